@@ -1,1 +1,36 @@
-//! placeholder
+//! The world model of Myriad: everything the simulation, the network and the store share.
+//!
+//! - [`shape`]: the three primitive shapes (sphere, axis-aligned box, vertical capsule) and
+//!   their compact form, half extents plus radius, which every backend uses.
+//! - [`aabb`]: axis-aligned bounding boxes.
+//! - [`world`]: the world state: dynamic objects in structure-of-arrays form ([`Dynamics`]),
+//!   static scenery made of primitives ([`Statics`]), the terrain and the world bounds.
+//! - [`terrain`]: the heightmap, generated from a seed or loaded from a file, with the
+//!   bilinear sampling every backend must reproduce bit for bit.
+//! - [`scenario`]: seeded generators for the reference's three scenarios and custom ones.
+//! - [`rng`]: counter-based random numbers (a hash of seed, object and tick), the same on
+//!   every machine and reproducible on a GPU.
+//! - [`config`]: the physics parameters shared by all backends.
+//!
+//! This crate does no I/O beyond reading heightmap files and knows nothing about
+//! backends, sockets or databases.
+
+pub mod aabb;
+pub mod action;
+pub mod config;
+pub mod error;
+pub mod rng;
+pub mod scenario;
+pub mod shape;
+pub mod terrain;
+pub mod world;
+
+pub use aabb::Aabb;
+pub use action::Action;
+pub use config::PhysicsConfig;
+pub use error::CoreError;
+pub use glam::Vec3;
+pub use scenario::{Placement, ScenarioSpec};
+pub use shape::{Shape, ShapeKind};
+pub use terrain::Terrain;
+pub use world::{Dynamics, EntityId, ObjectKind, StaticKind, Statics, World};

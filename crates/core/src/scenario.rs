@@ -1,0 +1,452 @@
+//! Seeded world generation: the reference's three scenarios (spec §9) and custom ones.
+//!
+//! A scenario fixes counts, world size, seed and placement; [`ScenarioSpec::build`] turns
+//! it into a [`World`]. Every draw comes from [`crate::rng::Stream`]s of the seed, one
+//! stream per purpose, so the same spec gives the same world on every machine.
+//!
+//! Counts follow the reference exactly: `n` dynamic objects are `n - 2⌊n/3⌋` spheres,
+//! `⌊n/3⌋` boxes and `⌊n/3⌋` capsules (6,000 → 2,000 each; 260,000 → 86,668 + 86,666 +
+//! 86,666), users spread evenly among them; `m` static objects are trees, crates and rocks
+//! in equal thirds (the remainder going to trees), a tree being a capsule trunk and two
+//! crown boxes, a crate one box, a rock two boxes — 5 boxes and 1 capsule per triple.
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use crate::aabb::Aabb;
+use crate::error::CoreError;
+use crate::rng::Stream;
+use crate::shape::Shape;
+use crate::terrain::{Terrain, TerrainPlacement};
+use crate::world::{ObjectKind, StaticKind, World};
+
+/// How dynamic objects are spread over the map.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Placement {
+    /// Uniformly over the whole map (the reference's placement).
+    Uniform,
+    /// Most objects crowd a few hot spots (the trade-hub case): `fraction` of them are
+    /// spread around `hotspots` centres with a standard deviation of `spread` units, the
+    /// rest uniformly.
+    Clustered {
+        /// Number of hot spots.
+        hotspots: u32,
+        /// Share of objects placed in hot spots (0..=1).
+        fraction: f32,
+        /// Standard deviation of the distance from a hot spot's centre, in units.
+        spread: f32,
+    },
+}
+
+/// Everything that determines a generated world.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ScenarioSpec {
+    /// A label for reports (`1`, `2`, `3`, `custom`, `clustered`).
+    pub name: String,
+    /// Static objects (trees, crates, rocks).
+    pub static_objects: u32,
+    /// Dynamic objects, users included.
+    pub dynamic: u32,
+    /// How many dynamic objects are users (the rest are NPCs).
+    pub users: u32,
+    /// Length of the map along x and z.
+    pub world_size: f32,
+    /// The world's minimum corner (bounds need not start at 0).
+    pub origin: Vec3,
+    /// Heightmap samples per side.
+    pub terrain_samples: u32,
+    /// Height of the highest terrain sample above the floor.
+    pub max_height: f32,
+    /// The seed of everything.
+    pub seed: u64,
+    /// Placement of dynamic objects.
+    pub placement: Placement,
+}
+
+/// Stream numbers: one per purpose (see [`Stream`]).
+mod streams {
+    pub const STATIC: u64 = 1;
+    pub const DYNAMIC: u64 = 2;
+    pub const HOTSPOT: u64 = 3;
+}
+
+impl ScenarioSpec {
+    /// The reference's scenario 1, 2 or 3 (spec §9) on a 1024-unit map.
+    pub fn reference(n: u8, seed: u64) -> Result<ScenarioSpec, CoreError> {
+        let (static_objects, dynamic, users) = match n {
+            1 => (3_000, 6_000, 1_000),
+            2 => (15_000, 55_000, 5_000),
+            3 => (99_999, 260_000, 10_000),
+            _ => {
+                return Err(CoreError::invalid(
+                    "scenario",
+                    format!("{n}: the reference has scenarios 1, 2 and 3"),
+                ));
+            }
+        };
+        Ok(ScenarioSpec {
+            name: n.to_string(),
+            static_objects,
+            dynamic,
+            users,
+            ..ScenarioSpec::custom(seed)
+        })
+    }
+
+    /// A custom scenario with the defaults of scenario 1; change the fields as needed.
+    pub fn custom(seed: u64) -> ScenarioSpec {
+        ScenarioSpec {
+            name: "custom".into(),
+            static_objects: 3_000,
+            dynamic: 6_000,
+            users: 1_000,
+            world_size: 1024.0,
+            origin: Vec3::ZERO,
+            terrain_samples: 1025,
+            max_height: 128.0,
+            seed,
+            placement: Placement::Uniform,
+        }
+    }
+
+    /// Scenario 2's counts with most dynamic objects crowding eight hot spots.
+    pub fn clustered(seed: u64) -> ScenarioSpec {
+        ScenarioSpec {
+            name: "clustered".into(),
+            static_objects: 15_000,
+            dynamic: 55_000,
+            users: 5_000,
+            placement: Placement::Clustered {
+                hotspots: 8,
+                fraction: 0.8,
+                spread: 16.0,
+            },
+            ..ScenarioSpec::custom(seed)
+        }
+    }
+
+    /// The world bounds this spec generates.
+    pub fn bounds(&self) -> Aabb {
+        let top = self.max_height + 64.0;
+        Aabb::new(
+            self.origin,
+            self.origin + Vec3::new(self.world_size, top, self.world_size),
+        )
+    }
+
+    /// Number of spheres, boxes and capsules among the dynamic objects.
+    pub fn dynamic_shapes(&self) -> [u32; 3] {
+        let third = self.dynamic / 3;
+        [self.dynamic - 2 * third, third, third]
+    }
+
+    /// Number of trees, crates and rocks.
+    pub fn static_kinds(&self) -> [u32; 3] {
+        let third = self.static_objects / 3;
+        [self.static_objects - 2 * third, third, third]
+    }
+
+    fn validate(&self) -> Result<(), CoreError> {
+        if !(self.world_size.is_finite() && self.world_size >= 16.0) {
+            return Err(CoreError::invalid(
+                "world size",
+                format!("{} (at least 16)", self.world_size),
+            ));
+        }
+        if !self.origin.is_finite() {
+            return Err(CoreError::invalid("origin", format!("{}", self.origin)));
+        }
+        if self.users > self.dynamic {
+            return Err(CoreError::invalid(
+                "users",
+                format!(
+                    "{} users but only {} dynamic objects",
+                    self.users, self.dynamic
+                ),
+            ));
+        }
+        if !(self.max_height.is_finite() && self.max_height >= 0.0) {
+            return Err(CoreError::invalid(
+                "max height",
+                format!("{}", self.max_height),
+            ));
+        }
+        if let Placement::Clustered {
+            hotspots,
+            fraction,
+            spread,
+        } = self.placement
+        {
+            if hotspots == 0
+                || !(0.0..=1.0).contains(&fraction)
+                || !(spread.is_finite() && spread > 0.0)
+            {
+                return Err(CoreError::invalid(
+                    "clustered placement",
+                    format!("{:?}", self.placement),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Generates the world.
+    pub fn build(&self) -> Result<World, CoreError> {
+        self.validate()?;
+        let bounds = self.bounds();
+        let at = TerrainPlacement {
+            origin_x: self.origin.x,
+            origin_z: self.origin.z,
+            extent_x: self.world_size,
+            extent_z: self.world_size,
+            base_y: self.origin.y,
+        };
+        let terrain = Terrain::generate(
+            self.seed,
+            self.terrain_samples,
+            self.terrain_samples,
+            self.max_height,
+            at,
+        )?;
+        let mut world = World::new(bounds, terrain, self.seed)?;
+        self.place_statics(&mut world)?;
+        self.place_dynamics(&mut world)?;
+        Ok(world)
+    }
+
+    fn place_statics(&self, world: &mut World) -> Result<(), CoreError> {
+        let mut rng = Stream::new(self.seed, streams::STATIC);
+        let [trees, crates, rocks] = self.static_kinds();
+        let kinds = std::iter::repeat_n(StaticKind::Tree, trees as usize)
+            .chain(std::iter::repeat_n(StaticKind::Crate, crates as usize))
+            .chain(std::iter::repeat_n(StaticKind::Rock, rocks as usize));
+        let (lo, hi) = (self.origin.x + 3.0, self.origin.x + self.world_size - 3.0);
+        let (lo_z, hi_z) = (self.origin.z + 3.0, self.origin.z + self.world_size - 3.0);
+        for kind in kinds {
+            let x = rng.range(lo, hi);
+            let z = rng.range(lo_z, hi_z);
+            let ground = world.terrain.height_at(x, z);
+            let s = rng.range(0.8, 1.6);
+            let prims: Vec<(Shape, Vec3)> = match kind {
+                StaticKind::Tree => {
+                    let (r, hh) = (0.3 * s, 1.5 * s);
+                    let trunk_y = ground + hh + r - 0.2;
+                    let top = trunk_y + hh + r;
+                    let low = Vec3::new(1.2, 0.6, 1.2) * s;
+                    let high = Vec3::new(0.7, 0.5, 0.7) * s;
+                    vec![
+                        (
+                            Shape::Capsule {
+                                radius: r,
+                                half_height: hh,
+                            },
+                            Vec3::new(x, trunk_y, z),
+                        ),
+                        (Shape::Box { half: low }, Vec3::new(x, top + low.y, z)),
+                        (
+                            Shape::Box { half: high },
+                            Vec3::new(x, top + 2.0 * low.y + high.y, z),
+                        ),
+                    ]
+                }
+                StaticKind::Crate => {
+                    let half = Vec3::new(
+                        rng.range(0.5, 2.0),
+                        rng.range(0.5, 2.0),
+                        rng.range(0.5, 2.0),
+                    );
+                    vec![(Shape::Box { half }, Vec3::new(x, ground + half.y - 0.1, z))]
+                }
+                StaticKind::Rock | StaticKind::Other => {
+                    let base = Vec3::new(
+                        rng.range(1.0, 2.5),
+                        rng.range(0.4, 0.8),
+                        rng.range(1.0, 2.5),
+                    ) * s;
+                    let top = base * 0.6;
+                    let by = ground + base.y - 0.2;
+                    vec![
+                        (Shape::Box { half: base }, Vec3::new(x, by, z)),
+                        (
+                            Shape::Box { half: top },
+                            Vec3::new(x + 0.2 * base.x, by + base.y + top.y, z),
+                        ),
+                    ]
+                }
+            };
+            world.statics.add(kind, &prims)?;
+        }
+        Ok(())
+    }
+
+    fn place_dynamics(&self, world: &mut World) -> Result<(), CoreError> {
+        let mut rng = Stream::new(self.seed, streams::DYNAMIC);
+        let [spheres, boxes, _] = self.dynamic_shapes();
+        let hotspots: Vec<(f32, f32)> = match self.placement {
+            Placement::Uniform => Vec::new(),
+            Placement::Clustered { hotspots, .. } => {
+                let mut h = Stream::new(self.seed, streams::HOTSPOT);
+                let m = 0.1 * self.world_size;
+                (0..hotspots)
+                    .map(|_| {
+                        (
+                            h.range(self.origin.x + m, self.origin.x + self.world_size - m),
+                            h.range(self.origin.z + m, self.origin.z + self.world_size - m),
+                        )
+                    })
+                    .collect()
+            }
+        };
+        let n = self.dynamic as u64;
+        let users = self.users as u64;
+        let margin = 2.0;
+        let (lo_x, hi_x) = (
+            self.origin.x + margin,
+            self.origin.x + self.world_size - margin,
+        );
+        let (lo_z, hi_z) = (
+            self.origin.z + margin,
+            self.origin.z + self.world_size - margin,
+        );
+        for i in 0..self.dynamic {
+            let s = rng.range(0.8, 1.2);
+            let shape = if i < spheres {
+                Shape::Sphere { radius: 0.5 * s }
+            } else if i < spheres + boxes {
+                Shape::Box {
+                    half: Vec3::splat(0.5 * s),
+                }
+            } else {
+                Shape::Capsule {
+                    radius: 0.35 * s,
+                    half_height: 0.55 * s,
+                }
+            };
+            // Users spread evenly: object i is a user when ⌊i·u/n⌋ steps up at i.
+            let iu = i as u64;
+            let kind = if (iu + 1) * users / n != iu * users / n {
+                ObjectKind::User
+            } else {
+                ObjectKind::Npc
+            };
+            let (x, z) = match self.placement {
+                Placement::Clustered {
+                    fraction, spread, ..
+                } if rng.unit() < fraction => {
+                    let (cx, cz) = hotspots[rng.below(hotspots.len() as u32) as usize];
+                    (
+                        (cx + rng.normalish() * spread).clamp(lo_x, hi_x),
+                        (cz + rng.normalish() * spread).clamp(lo_z, hi_z),
+                    )
+                }
+                _ => (rng.range(lo_x, hi_x), rng.range(lo_z, hi_z)),
+            };
+            let y = world.terrain.height_at(x, z) + shape.half_extents().y + 0.01;
+            world.dynamics.spawn(shape, Vec3::new(x, y, z), kind)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::shape::ShapeKind;
+
+    fn small(mut s: ScenarioSpec) -> ScenarioSpec {
+        s.terrain_samples = 65;
+        s
+    }
+
+    #[test]
+    fn reference_counts_are_exact() {
+        let s3 = ScenarioSpec::reference(3, 1).unwrap();
+        assert_eq!(s3.dynamic_shapes(), [86_668, 86_666, 86_666]);
+        assert_eq!(
+            ScenarioSpec::reference(2, 1).unwrap().dynamic_shapes(),
+            [18_334, 18_333, 18_333]
+        );
+        assert_eq!(s3.static_kinds(), [33_333, 33_333, 33_333]);
+        assert!(ScenarioSpec::reference(4, 1).is_err());
+
+        let w = small(ScenarioSpec::reference(1, 9).unwrap())
+            .build()
+            .unwrap();
+        assert_eq!(w.statics.objects().len(), 3_000);
+        assert_eq!(w.statics.prims_by_shape(), [0, 5_000, 1_000]);
+        assert_eq!(w.dynamics.len(), 6_000);
+        let mut shapes = [0; 3];
+        for s in w.dynamics.shapes() {
+            shapes[*s as usize] += 1;
+        }
+        assert_eq!(shapes, [2_000, 2_000, 2_000]);
+        let users = w
+            .dynamics
+            .kinds()
+            .iter()
+            .filter(|k| **k == ObjectKind::User)
+            .count();
+        assert_eq!(users, 1_000);
+        // Users are spread over every shape, not bunched at one end.
+        let user_shapes: std::collections::HashSet<ShapeKind> = (0..w.dynamics.len())
+            .filter(|&s| w.dynamics.kinds()[s] == ObjectKind::User)
+            .map(|s| w.dynamics.shapes()[s])
+            .collect();
+        assert_eq!(user_shapes.len(), 3);
+    }
+
+    #[test]
+    fn same_seed_same_world_and_everything_inside_bounds() {
+        let mut spec = small(ScenarioSpec::custom(5));
+        spec.origin = Vec3::new(-5000.0, -300.0, 12_000.0);
+        spec.world_size = 3000.0;
+        spec.dynamic = 900;
+        spec.users = 90;
+        spec.static_objects = 300;
+        let a = spec.build().unwrap();
+        let b = spec.build().unwrap();
+        assert_eq!(a.state_hash(), b.state_hash());
+        assert_eq!(a.statics.positions(), b.statics.positions());
+        let mut other = spec.clone();
+        other.seed = 6;
+        assert_ne!(other.build().unwrap().state_hash(), a.state_hash());
+        for s in 0..a.dynamics.len() {
+            let bb = a.dynamics.aabb(s);
+            assert!(
+                a.bounds.contains_point(bb.min) && a.bounds.contains_point(bb.max),
+                "slot {s}: {bb:?}"
+            );
+            let p = a.dynamics.positions()[s];
+            assert!(bb.min.y >= a.terrain.height_at(p.x, p.z));
+        }
+    }
+
+    #[test]
+    fn clustered_placement_crowds_hot_spots() {
+        let mut spec = small(ScenarioSpec::clustered(3));
+        spec.dynamic = 4_000;
+        spec.users = 100;
+        spec.static_objects = 30;
+        let w = spec.build().unwrap();
+        // Count objects per 32-unit cell: a crowd puts far more in the busiest cell than
+        // the uniform average (4000 / 1024 cells ≈ 4).
+        let mut cells = std::collections::HashMap::new();
+        for p in w.dynamics.positions() {
+            *cells
+                .entry(((p.x / 32.0) as i32, (p.z / 32.0) as i32))
+                .or_insert(0) += 1;
+        }
+        let busiest = cells.values().max().copied().unwrap();
+        assert!(busiest > 100, "busiest cell holds {busiest}");
+    }
+
+    #[test]
+    fn invalid_specs_are_rejected() {
+        let mut s = ScenarioSpec::custom(1);
+        s.users = s.dynamic + 1;
+        assert!(s.build().is_err());
+        let mut s = ScenarioSpec::custom(1);
+        s.world_size = f32::INFINITY;
+        assert!(s.build().is_err());
+    }
+}

@@ -1,0 +1,508 @@
+//! The world state.
+//!
+//! Dynamic objects are kept as a structure of arrays ([`Dynamics`]): one vector per
+//! field, all of the same length, indexed by *slot*. Slots are dense (`0..len`) so that
+//! backends can upload and sweep them as flat arrays; an object's stable identity is its
+//! [`EntityId`], which survives removals of other objects (removal moves the last object
+//! into the freed slot).
+//!
+//! Invariants:
+//! - every per-slot vector of [`Dynamics`] has the same length;
+//! - `slot_of[id[s]] == s` for every slot `s`;
+//! - positions are finite (backends keep them inside the world bounds and above the
+//!   terrain after every step).
+
+use std::collections::HashMap;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use xxhash_rust::xxh3::Xxh3;
+
+use crate::aabb::Aabb;
+use crate::action::Action;
+use crate::error::CoreError;
+use crate::shape::{Shape, ShapeKind};
+use crate::terrain::Terrain;
+
+/// The stable identity of a dynamic object (what clients see).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct EntityId(pub u32);
+
+/// Who drives a dynamic object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[repr(u8)]
+pub enum ObjectKind {
+    /// Moved by the server's random walk.
+    Npc = 0,
+    /// Moved by a player's actions.
+    User = 1,
+}
+
+/// Per-object flag bits kept in [`Dynamics::flags`].
+pub mod flags {
+    /// The object ended the last step resting on (or just above) the terrain.
+    pub const ON_TERRAIN: u8 = 1 << 0;
+    /// A contact this step pushed the object upwards: it stands on another object.
+    pub const SUPPORTED: u8 = 1 << 1;
+}
+
+/// Dynamic objects, structure of arrays. See the module documentation for invariants.
+#[derive(Clone, Debug, Default)]
+pub struct Dynamics {
+    id: Vec<EntityId>,
+    pos: Vec<Vec3>,
+    prev: Vec<Vec3>,
+    half: Vec<Vec3>,
+    radius: Vec<f32>,
+    shape: Vec<ShapeKind>,
+    kind: Vec<ObjectKind>,
+    action: Vec<u8>,
+    flags: Vec<u8>,
+    slot_of: HashMap<EntityId, u32>,
+    next_id: u32,
+    /// Bumped by every mutation; backends use it to notice host-side changes.
+    generation: u64,
+    /// Bumped when objects are added or removed (slots change meaning).
+    layout_generation: u64,
+}
+
+/// Mutable views of the per-slot state a physics step writes, borrowed together.
+pub struct DynamicsMut<'a> {
+    /// Current positions.
+    pub pos: &'a mut [Vec3],
+    /// Positions one step ago (Verlet).
+    pub prev: &'a mut [Vec3],
+    /// Held actions (NPC actions are rewritten by the step).
+    pub action: &'a mut [u8],
+    /// Flag bits (see [`flags`]).
+    pub flags: &'a mut [u8],
+    /// Half extents (read-only during a step).
+    pub half: &'a [Vec3],
+    /// Radii.
+    pub radius: &'a [f32],
+    /// Shape kinds.
+    pub shape: &'a [ShapeKind],
+    /// NPC or user.
+    pub kind: &'a [ObjectKind],
+    /// Entity ids.
+    pub id: &'a [EntityId],
+}
+
+impl Dynamics {
+    /// Number of objects.
+    pub fn len(&self) -> usize {
+        self.id.len()
+    }
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.id.is_empty()
+    }
+
+    /// Adds an object at rest and returns its id. Fails on a non-finite position or an
+    /// invalid shape.
+    pub fn spawn(
+        &mut self,
+        shape: Shape,
+        pos: Vec3,
+        kind: ObjectKind,
+    ) -> Result<EntityId, CoreError> {
+        if !shape.is_valid() {
+            return Err(CoreError::invalid("shape", format!("{shape:?}")));
+        }
+        if !pos.is_finite() {
+            return Err(CoreError::invalid("position", format!("{pos}")));
+        }
+        let id = EntityId(self.next_id);
+        self.next_id = self
+            .next_id
+            .checked_add(1)
+            .ok_or_else(|| CoreError::invalid("entity id", "all 2^32 ids are used"))?;
+        let slot = self.id.len() as u32;
+        self.id.push(id);
+        self.pos.push(pos);
+        self.prev.push(pos);
+        self.half.push(shape.half_extents());
+        self.radius.push(shape.radius());
+        self.shape.push(shape.kind());
+        self.kind.push(kind);
+        self.action.push(0);
+        self.flags.push(0);
+        self.slot_of.insert(id, slot);
+        self.generation += 1;
+        self.layout_generation += 1;
+        Ok(id)
+    }
+
+    /// Removes an object; the last object moves into its slot. Returns false if the id is
+    /// unknown.
+    pub fn despawn(&mut self, id: EntityId) -> bool {
+        let Some(slot) = self.slot_of.remove(&id) else {
+            return false;
+        };
+        let s = slot as usize;
+        self.id.swap_remove(s);
+        self.pos.swap_remove(s);
+        self.prev.swap_remove(s);
+        self.half.swap_remove(s);
+        self.radius.swap_remove(s);
+        self.shape.swap_remove(s);
+        self.kind.swap_remove(s);
+        self.action.swap_remove(s);
+        self.flags.swap_remove(s);
+        if s < self.id.len() {
+            self.slot_of.insert(self.id[s], slot);
+        }
+        self.generation += 1;
+        self.layout_generation += 1;
+        true
+    }
+
+    /// The slot of an entity, if it exists.
+    pub fn slot(&self, id: EntityId) -> Option<usize> {
+        self.slot_of.get(&id).map(|&s| s as usize)
+    }
+
+    /// Sets the held action of an entity. Returns false if the id is unknown.
+    pub fn set_action(&mut self, id: EntityId, action: Action) -> bool {
+        let Some(s) = self.slot(id) else { return false };
+        self.action[s] = action.bits();
+        self.generation += 1;
+        true
+    }
+
+    /// Moves an entity to `pos` at rest. Returns false if the id is unknown or the
+    /// position is not finite.
+    pub fn teleport(&mut self, id: EntityId, pos: Vec3) -> bool {
+        let Some(s) = self.slot(id) else { return false };
+        if !pos.is_finite() {
+            return false;
+        }
+        self.pos[s] = pos;
+        self.prev[s] = pos;
+        self.generation += 1;
+        true
+    }
+
+    /// Borrows the per-slot state for a physics step (bumps the generation).
+    pub fn state_mut(&mut self) -> DynamicsMut<'_> {
+        self.generation += 1;
+        DynamicsMut {
+            pos: &mut self.pos,
+            prev: &mut self.prev,
+            action: &mut self.action,
+            flags: &mut self.flags,
+            half: &self.half,
+            radius: &self.radius,
+            shape: &self.shape,
+            kind: &self.kind,
+            id: &self.id,
+        }
+    }
+
+    /// Entity ids by slot.
+    pub fn ids(&self) -> &[EntityId] {
+        &self.id
+    }
+    /// Current positions by slot.
+    pub fn positions(&self) -> &[Vec3] {
+        &self.pos
+    }
+    /// Previous positions by slot (velocity per tick is `pos - prev`).
+    pub fn prev_positions(&self) -> &[Vec3] {
+        &self.prev
+    }
+    /// Bounding-box half extents by slot.
+    pub fn half_extents(&self) -> &[Vec3] {
+        &self.half
+    }
+    /// Radii by slot (0 for boxes).
+    pub fn radii(&self) -> &[f32] {
+        &self.radius
+    }
+    /// Shape kinds by slot.
+    pub fn shapes(&self) -> &[ShapeKind] {
+        &self.shape
+    }
+    /// NPC or user, by slot.
+    pub fn kinds(&self) -> &[ObjectKind] {
+        &self.kind
+    }
+    /// Held action masks by slot.
+    pub fn actions(&self) -> &[u8] {
+        &self.action
+    }
+    /// Flag bits by slot (see [`flags`]).
+    pub fn flags(&self) -> &[u8] {
+        &self.flags
+    }
+    /// The shape of the object in `slot`.
+    pub fn shape_of(&self, slot: usize) -> Shape {
+        Shape::from_compact(self.shape[slot], self.half[slot], self.radius[slot])
+    }
+    /// The bounding box of the object in `slot`.
+    pub fn aabb(&self, slot: usize) -> Aabb {
+        Aabb::from_center_half(self.pos[slot], self.half[slot])
+    }
+    /// A counter bumped by every mutation through this type's methods.
+    pub fn generation(&self) -> u64 {
+        self.generation
+    }
+    /// A counter bumped whenever objects are added or removed.
+    pub fn layout_generation(&self) -> u64 {
+        self.layout_generation
+    }
+}
+
+/// What a static object represents (the reference's three kinds).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[repr(u8)]
+pub enum StaticKind {
+    /// A capsule trunk under two boxes of crown.
+    Tree = 0,
+    /// One box (a crate).
+    Crate = 1,
+    /// Two boxes, a wide base and a smaller top.
+    Rock = 2,
+    /// Anything else (imported scenery).
+    Other = 3,
+}
+
+/// One static object: a run of primitives in [`Statics`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StaticObject {
+    /// What it is.
+    pub kind: StaticKind,
+    /// Index of its first primitive.
+    pub first: u32,
+    /// Number of primitives.
+    pub count: u32,
+}
+
+/// Static scenery: objects made of primitives that never move. Primitives are kept as
+/// a structure of arrays in the same compact shape form as dynamic objects.
+#[derive(Clone, Debug, Default)]
+pub struct Statics {
+    objects: Vec<StaticObject>,
+    pos: Vec<Vec3>,
+    half: Vec<Vec3>,
+    radius: Vec<f32>,
+    shape: Vec<ShapeKind>,
+    owner: Vec<u32>,
+}
+
+impl Statics {
+    /// Adds an object made of `(shape, position)` primitives. Fails on an invalid shape or
+    /// a non-finite position, adding nothing.
+    pub fn add(&mut self, kind: StaticKind, prims: &[(Shape, Vec3)]) -> Result<u32, CoreError> {
+        for (shape, pos) in prims {
+            if !shape.is_valid() || !pos.is_finite() {
+                return Err(CoreError::invalid(
+                    "static primitive",
+                    format!("{shape:?} at {pos}"),
+                ));
+            }
+        }
+        let index = self.objects.len() as u32;
+        self.objects.push(StaticObject {
+            kind,
+            first: self.pos.len() as u32,
+            count: prims.len() as u32,
+        });
+        for (shape, pos) in prims {
+            self.pos.push(*pos);
+            self.half.push(shape.half_extents());
+            self.radius.push(shape.radius());
+            self.shape.push(shape.kind());
+            self.owner.push(index);
+        }
+        Ok(index)
+    }
+
+    /// The objects.
+    pub fn objects(&self) -> &[StaticObject] {
+        &self.objects
+    }
+    /// Number of primitives.
+    pub fn prim_count(&self) -> usize {
+        self.pos.len()
+    }
+    /// Primitive centres.
+    pub fn positions(&self) -> &[Vec3] {
+        &self.pos
+    }
+    /// Primitive half extents.
+    pub fn half_extents(&self) -> &[Vec3] {
+        &self.half
+    }
+    /// Primitive radii.
+    pub fn radii(&self) -> &[f32] {
+        &self.radius
+    }
+    /// Primitive shape kinds.
+    pub fn shapes(&self) -> &[ShapeKind] {
+        &self.shape
+    }
+    /// The object each primitive belongs to.
+    pub fn owners(&self) -> &[u32] {
+        &self.owner
+    }
+    /// The shape of primitive `i`.
+    pub fn shape_of(&self, i: usize) -> Shape {
+        Shape::from_compact(self.shape[i], self.half[i], self.radius[i])
+    }
+    /// The bounding box of primitive `i`.
+    pub fn aabb(&self, i: usize) -> Aabb {
+        Aabb::from_center_half(self.pos[i], self.half[i])
+    }
+    /// Number of primitives of each kind, in [`ShapeKind`] order.
+    pub fn prims_by_shape(&self) -> [usize; 3] {
+        let mut n = [0; 3];
+        for s in &self.shape {
+            n[*s as usize] += 1;
+        }
+        n
+    }
+}
+
+/// The whole simulated world.
+#[derive(Clone, Debug)]
+pub struct World {
+    /// Objects are kept inside these bounds; arbitrary, need not start at the origin.
+    pub bounds: Aabb,
+    /// The ground.
+    pub terrain: Terrain,
+    /// Scenery.
+    pub statics: Statics,
+    /// Moving objects.
+    pub dynamics: Dynamics,
+    /// Seed of the random numbers NPCs draw.
+    pub seed: u64,
+    /// Steps taken so far.
+    pub tick: u64,
+}
+
+impl World {
+    /// An empty world over `bounds` with the given terrain.
+    pub fn new(bounds: Aabb, terrain: Terrain, seed: u64) -> Result<World, CoreError> {
+        if !bounds.is_valid() || bounds.size().cmple(Vec3::ZERO).any() {
+            return Err(CoreError::invalid("world bounds", format!("{bounds:?}")));
+        }
+        Ok(World {
+            bounds,
+            terrain,
+            statics: Statics::default(),
+            dynamics: Dynamics::default(),
+            seed,
+            tick: 0,
+        })
+    }
+
+    /// A stable 64-bit hash of the simulated state: tick, and per slot the id, position,
+    /// previous position, action and flags, as little-endian bytes (xxh3). Equal hashes
+    /// mean bit-identical worlds for all practical purposes; the value is the same on
+    /// every platform.
+    pub fn state_hash(&self) -> u64 {
+        let d = &self.dynamics;
+        let mut h = Xxh3::new();
+        h.update(&self.tick.to_le_bytes());
+        h.update(&(d.len() as u64).to_le_bytes());
+        for s in 0..d.len() {
+            h.update(&d.id[s].0.to_le_bytes());
+            for v in [d.pos[s], d.prev[s]] {
+                for c in v.to_array() {
+                    h.update(&c.to_bits().to_le_bytes());
+                }
+            }
+            h.update(&[d.action[s], d.flags[s]]);
+        }
+        h.digest()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::terrain::TerrainPlacement;
+
+    fn world() -> World {
+        let bounds = Aabb::new(Vec3::new(-10.0, -5.0, -10.0), Vec3::new(10.0, 20.0, 10.0));
+        let terrain = Terrain::flat(TerrainPlacement {
+            origin_x: -10.0,
+            origin_z: -10.0,
+            extent_x: 20.0,
+            extent_z: 20.0,
+            base_y: -5.0,
+        });
+        World::new(bounds, terrain, 1).unwrap()
+    }
+
+    #[test]
+    fn despawn_keeps_slots_dense_and_ids_stable() {
+        let mut w = world();
+        let d = &mut w.dynamics;
+        let a = d
+            .spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc)
+            .unwrap();
+        let b = d
+            .spawn(Shape::Box { half: Vec3::ONE }, Vec3::X, ObjectKind::User)
+            .unwrap();
+        let c = d
+            .spawn(
+                Shape::Capsule {
+                    radius: 0.5,
+                    half_height: 1.0,
+                },
+                Vec3::Y,
+                ObjectKind::Npc,
+            )
+            .unwrap();
+        assert!(d.despawn(a));
+        assert!(!d.despawn(a));
+        assert_eq!(d.len(), 2);
+        assert_eq!(d.slot(c), Some(0));
+        assert_eq!(d.positions()[0], Vec3::Y);
+        assert_eq!(d.slot(b), Some(1));
+        assert_eq!(
+            d.shape_of(0),
+            Shape::Capsule {
+                radius: 0.5,
+                half_height: 1.0
+            }
+        );
+        assert!(d.set_action(b, Action::from_bits(Action::JUMP).unwrap()));
+        assert_eq!(d.actions()[1], Action::JUMP);
+        assert!(
+            d.spawn(Shape::Sphere { radius: -1.0 }, Vec3::ZERO, ObjectKind::Npc)
+                .is_err()
+        );
+        assert!(
+            d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::NAN, ObjectKind::Npc)
+                .is_err()
+        );
+    }
+
+    #[test]
+    fn hash_changes_with_state() {
+        let mut w = world();
+        let id = w
+            .dynamics
+            .spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc)
+            .unwrap();
+        let h0 = w.state_hash();
+        assert_eq!(h0, w.clone().state_hash());
+        w.dynamics.teleport(id, Vec3::new(0.0, 1e-6, 0.0));
+        assert_ne!(w.state_hash(), h0);
+    }
+
+    #[test]
+    fn rejects_empty_bounds() {
+        let t = Terrain::flat(TerrainPlacement {
+            origin_x: 0.0,
+            origin_z: 0.0,
+            extent_x: 1.0,
+            extent_z: 1.0,
+            base_y: 0.0,
+        });
+        assert!(World::new(Aabb::new(Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0)), t, 0).is_err());
+    }
+}

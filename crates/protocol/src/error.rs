@@ -1,0 +1,150 @@
+//! Typed errors. [`OpenError`] separates a malformed packet (cheap checks or body
+//! decoding failed), a forged or corrupted one (tag check failed) and a replayed one,
+//! so the server can count them apart; none of them changes any state.
+
+use crate::header::PacketKind;
+use thiserror::Error;
+
+/// A packet or body that does not follow the wire format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum DecodeError {
+    /// Fewer bytes than the format needs.
+    #[error("truncated: needed {needed} bytes, got {got}")]
+    Truncated {
+        /// Bytes the decoder needed at the point it stopped.
+        needed: usize,
+        /// Bytes that were available.
+        got: usize,
+    },
+    /// More bytes than any valid datagram can hold.
+    #[error("datagram of {len} bytes exceeds the {max}-byte limit")]
+    TooLong {
+        /// Length received.
+        len: usize,
+        /// Largest valid length.
+        max: usize,
+    },
+    /// Bytes left over after a complete body.
+    #[error("{extra} trailing bytes after the body")]
+    TrailingBytes {
+        /// Number of unread bytes.
+        extra: usize,
+    },
+    /// The header's protocol version is not ours.
+    #[error("unsupported protocol version {0}")]
+    BadVersion(u8),
+    /// The header's packet kind byte is not assigned.
+    #[error("unknown packet kind 0x{0:02x}")]
+    UnknownKind(u8),
+    /// A known packet kind that travels the other way.
+    #[error("packet kind {0:?} is not valid in this direction")]
+    WrongDirection(PacketKind),
+    /// An action mask with bits above bit 4.
+    #[error("action mask 0x{0:02x} has bits above bit 4")]
+    BadActionMask(u8),
+    /// An unassigned disconnect reason code.
+    #[error("unknown disconnect reason {0}")]
+    BadDisconnectReason(u8),
+    /// An unassigned object kind in a state record.
+    #[error("unknown object kind {0}")]
+    BadObjectKind(u8),
+    /// Reserved bits of an extended record are not zero.
+    #[error("reserved bits set in an extended record word 0x{0:08x}")]
+    ReservedBits(u32),
+    /// An object id that overflows 64 bits once the packet's id base is added.
+    #[error("object id overflows u64")]
+    IdOverflow,
+    /// A state update declaring more records than its body holds.
+    #[error("record count {count} does not match the body")]
+    RecordCount {
+        /// The declared count.
+        count: u16,
+    },
+}
+
+/// Why a received datagram was rejected by the replay window.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum ReplayError {
+    /// This sequence number was already accepted.
+    #[error("sequence {0} already received")]
+    Duplicate(u64),
+    /// This sequence number is older than the window remembers.
+    #[error("sequence {0} is older than the replay window")]
+    TooOld(u64),
+}
+
+/// Coarse class of an [`OpenError`], for counters and logs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ErrorClass {
+    /// The packet does not follow the format, or belongs to another session.
+    Malformed,
+    /// The tag did not verify: forged, corrupted or sealed with another key.
+    Authentication,
+    /// A sequence number seen before, or too old to tell.
+    Replayed,
+}
+
+/// Why [`Opener::open_with`](crate::Opener::open_with) rejected a datagram.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum OpenError {
+    /// The header or the (authentic) body does not follow the format.
+    #[error("malformed packet: {0}")]
+    Malformed(#[from] DecodeError),
+    /// The header names another session than the opener's.
+    #[error("packet for session {got}, expected {expected}")]
+    WrongSession {
+        /// This opener's session id.
+        expected: u64,
+        /// The id in the header.
+        got: u64,
+    },
+    /// The Poly1305 tag did not verify.
+    #[error("authentication failed")]
+    Authentication,
+    /// The sequence number was replayed or is too old.
+    #[error("replayed packet: {0}")]
+    Replayed(#[from] ReplayError),
+}
+
+impl OpenError {
+    /// The coarse class of this error.
+    pub fn class(&self) -> ErrorClass {
+        match self {
+            Self::Malformed(_) | Self::WrongSession { .. } => ErrorClass::Malformed,
+            Self::Authentication => ErrorClass::Authentication,
+            Self::Replayed(_) => ErrorClass::Replayed,
+        }
+    }
+}
+
+/// Why a datagram could not be sealed. These are caller bugs or an exhausted session,
+/// never caused by the peer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum SealError {
+    /// The buffer is shorter than header plus tag, or longer than [`crate::MAX_DATAGRAM`].
+    #[error("datagram buffer of {0} bytes has an invalid length")]
+    BadLength(usize),
+    /// The kind byte in the buffer is unknown or belongs to the other direction.
+    #[error("packet kind byte 0x{0:02x} cannot be sealed by this side")]
+    BadKind(u8),
+    /// The message does not fit one datagram.
+    #[error(transparent)]
+    Encode(#[from] EncodeError),
+    /// All 2^64 - 1 sequence numbers of this key were used: a new login is needed.
+    #[error("sequence numbers exhausted; the session must be re-keyed")]
+    SequenceExhausted,
+}
+
+/// A message that cannot be encoded into one datagram.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum EncodeError {
+    /// The body would exceed [`crate::MAX_BODY`]; state updates this large must go
+    /// through [`crate::pack_updates`], which splits them.
+    #[error("body of {len} bytes exceeds the {max}-byte limit")]
+    TooLarge {
+        /// Body length the message needs.
+        len: usize,
+        /// Largest body length.
+        max: usize,
+    },
+}

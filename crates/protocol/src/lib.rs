@@ -1,0 +1,56 @@
+//! Wire format of Myriad, free of I/O.
+//!
+//! This crate turns messages into sealed UDP datagrams and back, in memory only, so every
+//! rule of the protocol can be unit-tested, property-tested, fuzzed and benchmarked
+//! without a socket. `docs/protocol.md` describes the same format byte by byte.
+//!
+//! # How it works
+//!
+//! * Every datagram is `header (18 bytes) | ciphertext body | tag (16 bytes)`
+//!   ([`header`]). The header is sent in clear but authenticated as associated data.
+//! * A [`Sealer`] encrypts with ChaCha20-Poly1305 under one direction's key and a
+//!   nonce made of the direction and a strictly increasing 64-bit sequence number
+//!   ([`session`]).
+//! * An [`Opener`] checks the cheap things first (length, version, packet kind,
+//!   session id, replay window), then the tag, then decodes the body, and only then
+//!   marks the sequence number as seen in its [`ReplayWindow`]: a packet that fails any
+//!   check changes no state.
+//! * Bodies are plain little-endian structures ([`message`]); state updates use
+//!   10-byte records relative to a per-packet origin, with a 24-byte escape record for
+//!   anything that does not fit ([`update`]). [`pack_updates`] fills as few datagrams
+//!   as possible without allocating per record.
+//!
+//! # API boundary
+//!
+//! No sockets, threads or clocks here: callers hand in byte buffers and get byte
+//! buffers back. The transport lives in `myriad-net`, the choice of what to send in
+//! `myriad-interest`.
+
+pub mod batch;
+pub mod error;
+pub mod header;
+pub mod message;
+pub mod quant;
+pub mod replay;
+pub mod session;
+pub mod update;
+
+mod wire;
+
+pub use batch::DatagramBatch;
+pub use error::{DecodeError, EncodeError, ErrorClass, OpenError, ReplayError, SealError};
+pub use header::{
+    Direction, HEADER_LEN, Header, MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM, PROTOCOL_VERSION,
+    PacketKind, TAG_LEN, peek_header,
+};
+pub use message::{
+    Action, ActionMask, ClientMessage, DisconnectReason, ServerInfo, ServerMessage, encode_client,
+    encode_server,
+};
+pub use quant::{POS_SCALE, QuantPos};
+pub use replay::{REPLAY_WINDOW, ReplayWindow};
+pub use session::{ClientSession, Opened, Opener, Sealer, ServerSession, SessionKeys};
+pub use update::{
+    COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN, ID_WINDOW, MAX_COMPACT_RECORDS, ObjectKind,
+    StateRecord, StateUpdate, StateUpdateView, UPDATE_HEADER_LEN, UpdateHeader, pack_updates,
+};

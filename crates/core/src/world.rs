@@ -288,6 +288,8 @@ pub struct Statics {
     radius: Vec<f32>,
     shape: Vec<ShapeKind>,
     owner: Vec<u32>,
+    /// Bumped by every change, so backends know when to rebuild their static tree.
+    generation: u64,
 }
 
 impl Statics {
@@ -315,6 +317,7 @@ impl Statics {
             self.shape.push(shape.kind());
             self.owner.push(index);
         }
+        self.generation += 1;
         Ok(index)
     }
 
@@ -353,6 +356,10 @@ impl Statics {
     /// The bounding box of primitive `i`.
     pub fn aabb(&self, i: usize) -> Aabb {
         Aabb::from_center_half(self.pos[i], self.half[i])
+    }
+    /// A counter bumped by every change.
+    pub fn generation(&self) -> u64 {
+        self.generation
     }
     /// Number of primitives of each kind, in [`ShapeKind`] order.
     pub fn prims_by_shape(&self) -> [usize; 3] {

@@ -1,0 +1,208 @@
+//! The [`Backend`] trait every physics implementation provides, and what it reports.
+
+use std::fmt;
+use std::str::FromStr;
+
+use myriad_core::{Aabb, World};
+use serde::{Deserialize, Serialize};
+
+use crate::consts::TickConstants;
+use crate::error::PhysicsError;
+
+/// The implementations, by the names the command line uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum BackendKind {
+    /// One thread, all pairs: the reference's "CPU" column.
+    CpuNaive,
+    /// Rayon-parallel LBVH broad phase.
+    Cpu,
+}
+
+impl BackendKind {
+    /// Every kind.
+    pub const ALL: [BackendKind; 2] = [BackendKind::CpuNaive, BackendKind::Cpu];
+    /// Their names, in the order of [`BackendKind::ALL`].
+    pub const NAMES: [&'static str; 2] = ["cpu-naive", "cpu"];
+
+    /// The command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            BackendKind::CpuNaive => "cpu-naive",
+            BackendKind::Cpu => "cpu",
+        }
+    }
+}
+
+impl fmt::Display for BackendKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for BackendKind {
+    type Err = PhysicsError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        BackendKind::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| PhysicsError::UnknownBackend(s.into()))
+    }
+}
+
+/// The stages of a step, in order, with the reference's names (spec §9, Table 2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Stage {
+    /// Copying what changed to the device (0 on the CPU).
+    Upload,
+    /// Object boxes, Morton codes, sort, hierarchy and refit of the dynamic tree.
+    BuildDynamicBvh,
+    /// Candidate pairs of dynamic objects and static primitives.
+    BroadStatic,
+    /// Candidate pairs of dynamic objects.
+    BroadDynamic,
+    /// Exact tests and responses against statics.
+    NarrowStatic,
+    /// Exact tests and responses between dynamics.
+    NarrowDynamic,
+    /// NPC actions, gathering responses, forces, integration, limits and terrain.
+    Forces,
+}
+
+impl Stage {
+    /// Every stage, in order.
+    pub const ALL: [Stage; 7] = [
+        Stage::Upload,
+        Stage::BuildDynamicBvh,
+        Stage::BroadStatic,
+        Stage::BroadDynamic,
+        Stage::NarrowStatic,
+        Stage::NarrowDynamic,
+        Stage::Forces,
+    ];
+
+    /// The reference's name (`upload`, `build_dynamic_bvh`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Upload => "upload",
+            Stage::BuildDynamicBvh => "build_dynamic_bvh",
+            Stage::BroadStatic => "broad_static",
+            Stage::BroadDynamic => "broad_dynamic",
+            Stage::NarrowStatic => "narrow_static",
+            Stage::NarrowDynamic => "narrow_dynamic",
+            Stage::Forces => "forces",
+        }
+    }
+}
+
+/// What one step did and how long each stage took.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepReport {
+    /// Milliseconds per stage, indexed like [`Stage::ALL`].
+    pub stage_ms: [f64; 7],
+    /// Candidate (broad-phase) pairs of a dynamic object and a static primitive.
+    pub static_pairs: u64,
+    /// Candidate pairs of dynamic objects.
+    pub dynamic_pairs: u64,
+    /// Static pairs that touched and were not already separating.
+    pub static_contacts: u64,
+    /// Dynamic pairs that touched and were not already separating.
+    pub dynamic_contacts: u64,
+}
+
+impl StepReport {
+    /// The time of one stage.
+    pub fn ms(&self, stage: Stage) -> f64 {
+        self.stage_ms[stage as usize]
+    }
+
+    /// Table 1's "static" column: broad and narrow phase against statics.
+    pub fn physics_static_ms(&self) -> f64 {
+        self.ms(Stage::BroadStatic) + self.ms(Stage::NarrowStatic)
+    }
+
+    /// Table 1's "dynamic" column: everything else of the step (upload, the dynamic
+    /// tree, dynamic broad and narrow phase, forces).
+    pub fn physics_dynamic_ms(&self) -> f64 {
+        self.ms(Stage::Upload)
+            + self.ms(Stage::BuildDynamicBvh)
+            + self.ms(Stage::BroadDynamic)
+            + self.ms(Stage::NarrowDynamic)
+            + self.ms(Stage::Forces)
+    }
+
+    /// The whole step.
+    pub fn total_ms(&self) -> f64 {
+        self.stage_ms.iter().sum()
+    }
+}
+
+/// Area-of-interest results for a batch of query boxes, in compressed-row form: the
+/// objects of query `q` are `objects[offsets[q]..offsets[q + 1]]`, as dynamic slots in
+/// ascending order.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct AoiResults {
+    /// `queries + 1` offsets into `objects`.
+    pub offsets: Vec<u32>,
+    /// Dynamic slots, grouped by query, ascending within each.
+    pub objects: Vec<u32>,
+}
+
+impl AoiResults {
+    /// Number of queries answered.
+    pub fn len(&self) -> usize {
+        self.offsets.len().saturating_sub(1)
+    }
+
+    /// Whether no query was answered.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The slots inside query `q`'s box.
+    pub fn get(&self, q: usize) -> &[u32] {
+        &self.objects[self.offsets[q] as usize..self.offsets[q + 1] as usize]
+    }
+
+    /// Empties the results, keeping the buffers.
+    pub fn clear(&mut self) {
+        self.offsets.clear();
+        self.objects.clear();
+    }
+}
+
+/// A physics implementation.
+///
+/// A backend may keep state between calls (trees, device buffers), but the [`World`] is
+/// the source of truth: after [`Backend::step`] returns, the world's dynamic state is the
+/// new state, and a backend must notice changes the host made between steps (spawns,
+/// despawns, teleports, actions) through the world's generation counters.
+///
+/// **Contract:** every backend produces the same world, bit for bit, from the same world
+/// and constants (see `response` for how contact sums are ordered).
+pub trait Backend: Send {
+    /// Which implementation this is.
+    fn kind(&self) -> BackendKind;
+
+    /// A human-readable description (threads, device name, ...).
+    fn description(&self) -> String;
+
+    /// Advances the world by one tick.
+    fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError>;
+
+    /// For each query box, the dynamic objects whose boxes overlap it (touching counts),
+    /// at the world's current positions.
+    fn query_aoi(
+        &mut self,
+        world: &World,
+        boxes: &[Aabb],
+        out: &mut AoiResults,
+    ) -> Result<(), PhysicsError>;
+}
+
+/// Creates a backend.
+pub fn create_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
+    Ok(match kind {
+        BackendKind::CpuNaive => Box::new(crate::cpu::CpuNaive::default()),
+        BackendKind::Cpu => Box::new(crate::cpu::CpuLbvh::default()),
+    })
+}

@@ -1,0 +1,153 @@
+//! `cpu`: the parallel CPU backend, with an LBVH over the statics (rebuilt when they
+//! change) and one over the dynamic objects (rebuilt every tick).
+
+use myriad_core::{Aabb, World};
+use rayon::prelude::*;
+
+use super::pipeline::{BroadPhase, Exec, Scratch, dynamic_aabbs, run_step};
+use crate::backend::{AoiResults, Backend, BackendKind, StepReport};
+use crate::consts::TickConstants;
+use crate::error::PhysicsError;
+use crate::lbvh::Lbvh;
+
+/// Objects handled per rayon task in the per-object traversals.
+const CHUNK: usize = 512;
+
+/// The rayon-parallel LBVH backend.
+#[derive(Default)]
+pub struct CpuLbvh {
+    broad: Trees,
+    scratch: Scratch,
+}
+
+#[derive(Default)]
+struct Trees {
+    statics: Lbvh,
+    /// `Statics::generation` the static tree was built for.
+    statics_generation: Option<u64>,
+    dynamics: Lbvh,
+    /// `Dynamics::layout_generation` the dynamic tree's leaves belong to.
+    dynamic_layout: Option<u64>,
+    /// `Dynamics::generation` the dynamic tree's boxes are exact for.
+    dynamic_fresh: Option<u64>,
+}
+
+impl Trees {
+    fn ensure_statics(&mut self, world: &World) {
+        let st = &world.statics;
+        if self.statics_generation != Some(st.generation()) {
+            let boxes: Vec<Aabb> = (0..st.prim_count())
+                .into_par_iter()
+                .map(|i| st.aabb(i))
+                .collect();
+            self.statics.build(&boxes, &world.bounds);
+            self.statics_generation = Some(st.generation());
+        }
+    }
+}
+
+impl BroadPhase for Trees {
+    fn build_dynamic(&mut self, world: &World, aabbs: &[Aabb]) {
+        self.dynamics.build(aabbs, &world.bounds);
+        self.dynamic_layout = Some(world.dynamics.layout_generation());
+        // The step moves everything after this: the boxes go stale.
+        self.dynamic_fresh = None;
+    }
+
+    fn static_pairs(&mut self, world: &World, aabbs: &[Aabb], out: &mut Vec<u64>) {
+        self.ensure_statics(world);
+        let tree = &self.statics;
+        let parts: Vec<Vec<u64>> = aabbs
+            .par_chunks(CHUNK)
+            .enumerate()
+            .map(|(c, chunk)| {
+                let mut local = Vec::new();
+                for (k, a) in chunk.iter().enumerate() {
+                    let obj = ((c * CHUNK + k) as u64) << 32;
+                    let start = local.len();
+                    tree.query(a, |p| local.push(obj | p as u64));
+                    local[start..].sort_unstable();
+                }
+                local
+            })
+            .collect();
+        out.reserve(parts.iter().map(Vec::len).sum());
+        for p in parts {
+            out.extend_from_slice(&p);
+        }
+    }
+
+    fn dynamic_pairs(&mut self, _aabbs: &[Aabb], out: &mut Vec<u64>) {
+        self.dynamics.self_pairs(out);
+        // Pairs are unique, so an unstable sort is still deterministic.
+        out.par_sort_unstable();
+    }
+}
+
+impl Backend for CpuLbvh {
+    fn kind(&self) -> BackendKind {
+        BackendKind::Cpu
+    }
+
+    fn description(&self) -> String {
+        format!(
+            "cpu (rayon, {} threads, LBVH)",
+            rayon::current_num_threads()
+        )
+    }
+
+    fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
+        if world.dynamics.len() >= 1 << 31 {
+            return Err(PhysicsError::TooManyObjects {
+                count: world.dynamics.len(),
+                max: (1 << 31) - 1,
+            });
+        }
+        Ok(run_step(
+            Exec::Parallel,
+            world,
+            k,
+            &mut self.broad,
+            &mut self.scratch,
+        ))
+    }
+
+    fn query_aoi(
+        &mut self,
+        world: &World,
+        boxes: &[Aabb],
+        out: &mut AoiResults,
+    ) -> Result<(), PhysicsError> {
+        let d = &world.dynamics;
+        let trees = &mut self.broad;
+        if trees.dynamic_fresh != Some(d.generation()) {
+            dynamic_aabbs(Exec::Parallel, d, &mut self.scratch.aabbs);
+            if trees.dynamic_layout == Some(d.layout_generation()) {
+                // Same objects, new positions: refitting keeps the answers exact.
+                trees.dynamics.refit(&self.scratch.aabbs);
+            } else {
+                trees.dynamics.build(&self.scratch.aabbs, &world.bounds);
+                trees.dynamic_layout = Some(d.layout_generation());
+            }
+            trees.dynamic_fresh = Some(d.generation());
+        }
+        let tree = &trees.dynamics;
+        let per_query: Vec<Vec<u32>> = boxes
+            .par_iter()
+            .map(|q| {
+                let mut v = Vec::new();
+                tree.query(q, |i| v.push(i));
+                v.sort_unstable();
+                v
+            })
+            .collect();
+        out.clear();
+        out.offsets.reserve(boxes.len() + 1);
+        out.offsets.push(0);
+        for v in per_query {
+            out.objects.extend_from_slice(&v);
+            out.offsets.push(out.objects.len() as u32);
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,335 @@
+//! Linear bounding volume hierarchy after Karras, "Maximizing Parallelism in the
+//! Construction of BVHs, Octrees, and k-d Trees" (HPG 2012).
+//!
+//! # How it works
+//! 1. Each object's box centre gets a 63-bit Morton code over the world bounds
+//!    ([`morton`]); any world size and origin work.
+//! 2. The codes are radix-sorted with the object indices as values ([`radix`]); the
+//!    sorted order is the leaf order.
+//! 3. The `n - 1` internal nodes are emitted in parallel, each independently: node `i`
+//!    finds the direction and extent of its key range and its split by binary searches
+//!    on the length of common prefixes (δ). **Duplicate codes** are handled with Karras's
+//!    tie-break: when two codes are equal, δ is `64 + clz(i ^ j)` on the leaf indices, as
+//!    if each key were extended by its position.
+//! 4. Boxes are refitted bottom-up in parallel: each leaf walks towards the root and an
+//!    atomic counter per node stops the first of the two children to arrive, so the
+//!    second computes the union once both are final.
+//! 5. Queries walk the tree with a fixed stack. δ strictly grows from a node to its
+//!    internal children, so the depth is at most 97 and a stack of 128 never overflows.
+//!
+//! Every node also records the last leaf of its range, which lets the self-query report
+//! each pair once (only leaves after the querying one), the role the reference gave to
+//! "the largest Morton code reachable".
+//!
+//! # Performance note
+//! The build is O(n log n) in the sort and O(n) otherwise, all stages parallel; the tree
+//! is rebuilt every tick (it takes a fraction of the traversal's time and keeps quality).
+
+pub mod morton;
+pub mod radix;
+
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use myriad_core::Aabb;
+use rayon::prelude::*;
+
+use crate::par::SharedMut;
+use morton::MortonFrame;
+
+/// Marks a child reference as a leaf (leaf index in the low bits).
+const LEAF: u32 = 1 << 31;
+/// Traversal stack size; see the module docs for why it cannot overflow.
+const STACK: usize = 128;
+
+/// An internal node.
+#[derive(Clone, Copy, Debug)]
+struct Node {
+    aabb: Aabb,
+    left: u32,
+    right: u32,
+    /// The last (highest) leaf index under this node.
+    last: u32,
+}
+
+/// A linear BVH over a set of boxes.
+#[derive(Clone, Debug, Default)]
+pub struct Lbvh {
+    /// `order[leaf]` is the caller's index of the box in that leaf.
+    order: Vec<u32>,
+    /// Leaf boxes in leaf order.
+    leaves: Vec<Aabb>,
+    /// Internal nodes; the root is node 0 when there are at least two leaves.
+    nodes: Vec<Node>,
+    /// Parent of each internal node (the root's is unused) and of each leaf.
+    node_parent: Vec<u32>,
+    leaf_parent: Vec<u32>,
+    scratch_keys: Vec<u64>,
+    scratch_values: Vec<u32>,
+    keys: Vec<u64>,
+}
+
+impl Lbvh {
+    /// Number of leaves.
+    pub fn len(&self) -> usize {
+        self.leaves.len()
+    }
+
+    /// Whether the tree is empty.
+    pub fn is_empty(&self) -> bool {
+        self.leaves.is_empty()
+    }
+
+    /// Rebuilds the tree over `boxes`, with Morton codes over `bounds`. Buffers are reused
+    /// between builds. At most 2^31 - 1 boxes.
+    pub fn build(&mut self, boxes: &[Aabb], bounds: &Aabb) {
+        let n = boxes.len();
+        assert!(n < LEAF as usize, "an LBVH holds fewer than 2^31 leaves");
+        let frame = MortonFrame::new(bounds);
+        self.keys.clear();
+        self.keys
+            .par_extend(boxes.par_iter().map(|b| frame.code(b.center())));
+        self.order.clear();
+        self.order.par_extend(0..n as u32);
+        radix::sort_pairs(
+            &mut self.keys,
+            &mut self.order,
+            3 * morton::BITS_PER_AXIS,
+            &mut self.scratch_keys,
+            &mut self.scratch_values,
+        );
+        self.leaves.clear();
+        self.leaves
+            .par_extend(self.order.par_iter().map(|&o| boxes[o as usize]));
+        self.emit_hierarchy();
+        self.refit_internal();
+    }
+
+    /// Updates every box without changing the topology (positions moved, the set of
+    /// objects did not). `boxes` is indexed like the `build` input. Queries stay exact;
+    /// only their speed degrades as objects drift from their build-time neighbours.
+    pub fn refit(&mut self, boxes: &[Aabb]) {
+        assert_eq!(
+            boxes.len(),
+            self.leaves.len(),
+            "refit needs the same objects as the build"
+        );
+        let order = &self.order;
+        self.leaves
+            .par_iter_mut()
+            .zip(order.par_iter())
+            .for_each(|(l, &o)| *l = boxes[o as usize]);
+        self.refit_internal();
+    }
+
+    /// δ(i, j): the length of the common prefix of the keys of leaves `i` and `j`, with the
+    /// leaf index appended to break ties; −1 outside the leaves.
+    #[inline]
+    fn delta(keys: &[u64], i: i64, j: i64) -> i32 {
+        if j < 0 || j >= keys.len() as i64 {
+            return -1;
+        }
+        let (a, b) = (keys[i as usize], keys[j as usize]);
+        if a == b {
+            64 + ((i as u32) ^ (j as u32)).leading_zeros() as i32
+        } else {
+            (a ^ b).leading_zeros() as i32
+        }
+    }
+
+    /// Karras's parallel construction of the internal nodes (boxes are filled by refit).
+    fn emit_hierarchy(&mut self) {
+        let n = self.leaves.len();
+        self.nodes.clear();
+        self.node_parent.clear();
+        self.leaf_parent.clear();
+        if n < 2 {
+            return;
+        }
+        let keys = &self.keys;
+        self.nodes.par_extend((0..n - 1).into_par_iter().map(|i| {
+            let i = i as i64;
+            let d: i64 = if Self::delta(keys, i, i + 1) - Self::delta(keys, i, i - 1) >= 0 {
+                1
+            } else {
+                -1
+            };
+            // Upper bound of the range length, then its exact length, by doubling and
+            // binary search on δ.
+            let dmin = Self::delta(keys, i, i - d);
+            let mut lmax: i64 = 2;
+            while Self::delta(keys, i, i + lmax * d) > dmin {
+                lmax *= 2;
+            }
+            let mut l: i64 = 0;
+            let mut t = lmax / 2;
+            while t >= 1 {
+                if Self::delta(keys, i, i + (l + t) * d) > dmin {
+                    l += t;
+                }
+                t /= 2;
+            }
+            let j = i + l * d;
+            // The split: the last position sharing more than δ(i, j) bits with i.
+            let dnode = Self::delta(keys, i, j);
+            let mut s: i64 = 0;
+            let mut div: i64 = 2;
+            loop {
+                let t = (l + div - 1) / div;
+                if Self::delta(keys, i, i + (s + t) * d) > dnode {
+                    s += t;
+                }
+                if t == 1 {
+                    break;
+                }
+                div *= 2;
+            }
+            let gamma = i + s * d + d.min(0);
+            let (first, last) = (i.min(j), i.max(j));
+            let left = if first == gamma {
+                gamma as u32 | LEAF
+            } else {
+                gamma as u32
+            };
+            let right = if last == gamma + 1 {
+                (gamma + 1) as u32 | LEAF
+            } else {
+                (gamma + 1) as u32
+            };
+            Node {
+                aabb: Aabb::EMPTY,
+                left,
+                right,
+                last: last as u32,
+            }
+        }));
+        // Parents: every node except the root is the child of exactly one node.
+        let node_parent: Vec<AtomicU32> = (0..n - 1).map(|_| AtomicU32::new(0)).collect();
+        let leaf_parent: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(0)).collect();
+        self.nodes.par_iter().enumerate().for_each(|(p, node)| {
+            for c in [node.left, node.right] {
+                let slot = if c & LEAF != 0 {
+                    &leaf_parent[(c & !LEAF) as usize]
+                } else {
+                    &node_parent[c as usize]
+                };
+                slot.store(p as u32, Ordering::Relaxed);
+            }
+        });
+        self.node_parent = node_parent.into_iter().map(AtomicU32::into_inner).collect();
+        self.leaf_parent = leaf_parent.into_iter().map(AtomicU32::into_inner).collect();
+    }
+
+    /// Bottom-up union of the internal boxes from the leaf boxes.
+    fn refit_internal(&mut self) {
+        let n = self.leaves.len();
+        if n < 2 {
+            return;
+        }
+        let arrivals: Vec<AtomicU32> = (0..n - 1).map(|_| AtomicU32::new(0)).collect();
+        let leaves = &self.leaves;
+        let node_parent = &self.node_parent;
+        let leaf_parent = &self.leaf_parent;
+        let nodes = SharedMut::new(&mut self.nodes);
+        let child_box = |c: u32| -> Aabb {
+            if c & LEAF != 0 {
+                leaves[(c & !LEAF) as usize]
+            } else {
+                // SAFETY: only read after this child's subtree is complete (see below),
+                // and nobody writes a node's box after that.
+                unsafe { nodes.read(c as usize).aabb }
+            }
+        };
+        (0..n).into_par_iter().for_each(|leaf| {
+            let mut node = leaf_parent[leaf] as usize;
+            loop {
+                // The first child to arrive stops; the second (which sees 1) finds both
+                // children final. AcqRel orders the first one's writes before the
+                // second one's reads.
+                if arrivals[node].fetch_add(1, Ordering::AcqRel) == 0 {
+                    return;
+                }
+                // SAFETY: only the second arrival reaches here, once per node, so this
+                // thread alone reads and writes node `node` now.
+                let mut current = unsafe { nodes.read(node) };
+                current.aabb = child_box(current.left).union(&child_box(current.right));
+                unsafe { nodes.write(node, current) };
+                if node == 0 {
+                    return;
+                }
+                node = node_parent[node] as usize;
+            }
+        });
+    }
+
+    /// Calls `f(leaf)` for every leaf whose box overlaps `query`, with leaf index above
+    /// `after` (pass `None` for all). Returns nothing; `f` collects.
+    #[inline]
+    fn visit(&self, query: &Aabb, after: Option<u32>, mut f: impl FnMut(u32)) {
+        let n = self.leaves.len();
+        if n == 0 {
+            return;
+        }
+        let min_leaf = after.map_or(0, |a| a + 1);
+        if n == 1 {
+            if min_leaf == 0 && self.leaves[0].overlaps(query) {
+                f(0);
+            }
+            return;
+        }
+        let mut stack = [0u32; STACK];
+        let mut top = 1usize; // stack[0] = root (node 0)
+        while top > 0 {
+            top -= 1;
+            let node = &self.nodes[stack[top] as usize];
+            for c in [node.left, node.right] {
+                if c & LEAF != 0 {
+                    let leaf = c & !LEAF;
+                    if leaf >= min_leaf && self.leaves[leaf as usize].overlaps(query) {
+                        f(leaf);
+                    }
+                } else {
+                    let child = &self.nodes[c as usize];
+                    if child.last >= min_leaf && child.aabb.overlaps(query) {
+                        stack[top] = c;
+                        top += 1;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Calls `f(index)` with the caller's index of every box overlapping `query`.
+    #[inline]
+    pub fn query(&self, query: &Aabb, mut f: impl FnMut(u32)) {
+        self.visit(query, None, |leaf| f(self.order[leaf as usize]));
+    }
+
+    /// Every overlapping pair of boxes, as `(min index, max index)` packed into a `u64`
+    /// (`min << 32 | max`), appended to `out` in no particular order. Parallel over leaves.
+    pub fn self_pairs(&self, out: &mut Vec<u64>) {
+        let n = self.leaves.len();
+        let chunk = 256;
+        let parts: Vec<Vec<u64>> = (0..n.div_ceil(chunk))
+            .into_par_iter()
+            .map(|c| {
+                let mut local = Vec::new();
+                for leaf in c * chunk..((c + 1) * chunk).min(n) {
+                    let a = self.order[leaf];
+                    self.visit(&self.leaves[leaf], Some(leaf as u32), |other| {
+                        let b = self.order[other as usize];
+                        let (lo, hi) = if a < b { (a, b) } else { (b, a) };
+                        local.push((lo as u64) << 32 | hi as u64);
+                    });
+                }
+                local
+            })
+            .collect();
+        out.reserve(parts.iter().map(Vec::len).sum());
+        for p in parts {
+            out.extend_from_slice(&p);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

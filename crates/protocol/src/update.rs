@@ -373,7 +373,10 @@ mod tests {
         let mut b = DatagramBatch::new();
         assert_eq!(pack_updates(&h, &recs, 10, &mut b), recs.len());
         assert_eq!(b.len(), 4);
-        assert_eq!(b.get(0).map(<[u8]>::len), Some(HEADER_LEN + UPDATE_HEADER_LEN + 1130 + TAG_LEN));
+        assert_eq!(
+            b.get(0).map(<[u8]>::len),
+            Some(HEADER_LEN + UPDATE_HEADER_LEN + 1130 + TAG_LEN)
+        );
         let mut b = DatagramBatch::new();
         assert_eq!(pack_updates(&h, &recs, 2, &mut b), 226);
         assert_eq!(b.len(), 2);

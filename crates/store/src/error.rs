@@ -1,0 +1,113 @@
+//! The store's error type.
+//!
+//! Callers branch on the variant: a login service answers "wrong credentials" and
+//! "database unavailable" differently, and the write-behind [`Persister`](crate::Persister)
+//! retries only [`StoreError::Unavailable`]. No variant ever carries a password or a hash.
+
+/// Everything a store operation can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The requested row does not exist.
+    #[error("not found: {0}")]
+    NotFound(String),
+    /// The username does not exist or the password does not match. The two cases are
+    /// deliberately indistinguishable, so a caller cannot probe for usernames.
+    #[error("wrong username or password")]
+    WrongCredentials,
+    /// A user with this username (compared case-insensitively) already exists.
+    #[error("username already taken")]
+    UsernameTaken,
+    /// A row with this key already exists (e.g. a player state for the same user and map,
+    /// or a static object id on a map).
+    #[error("already exists: {0}")]
+    AlreadyExists(String),
+    /// The arguments were rejected before reaching the database.
+    #[error("invalid input: {0}")]
+    InvalidInput(String),
+    /// The database could not be reached or is temporarily unable to serve (connection
+    /// refused or lost, pool timeout, SQLite file locked). Retrying later may succeed.
+    #[error("database unavailable: {0}")]
+    Unavailable(#[source] sqlx::Error),
+    /// Any other database error (constraint violation, bad data, migration failure...).
+    #[error("database error: {0}")]
+    Database(#[source] sqlx::Error),
+    /// A migration could not be applied.
+    #[error("migration failed: {0}")]
+    Migration(#[source] sqlx::migrate::MigrateError),
+    /// Password hashing failed, or a background task panicked or was cancelled.
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl StoreError {
+    /// Whether retrying the same operation later may succeed (the database was unreachable).
+    pub fn is_transient(&self) -> bool {
+        matches!(self, StoreError::Unavailable(_))
+    }
+}
+
+/// SQLite result codes that mean "try again later" rather than "this statement is wrong":
+/// SQLITE_BUSY (5), SQLITE_LOCKED (6), SQLITE_IOERR (10), SQLITE_FULL (13) and
+/// SQLITE_CANTOPEN (14), with their extended variants (the low byte is the primary code).
+const SQLITE_TRANSIENT: [i64; 5] = [5, 6, 10, 13, 14];
+
+/// MySQL/MariaDB server errors that mean the server is going away or overloaded:
+/// ER_CON_COUNT_ERROR (1040), ER_SERVER_SHUTDOWN (1053), ER_LOCK_WAIT_TIMEOUT (1205),
+/// ER_LOCK_DEADLOCK (1213), ER_QUERY_INTERRUPTED (1317), ER_CONNECTION_KILLED (1927).
+const MYSQL_TRANSIENT: [i64; 6] = [1040, 1053, 1205, 1213, 1317, 1927];
+
+/// Whether a sqlx error means "the database is unreachable or busy, try again later".
+pub(crate) fn is_transient(err: &sqlx::Error) -> bool {
+    use sqlx::Error as E;
+    match err {
+        E::Io(_) | E::Tls(_) | E::PoolTimedOut | E::PoolClosed | E::WorkerCrashed => true,
+        // A broken packet stream is what a connection cut mid-reply looks like.
+        E::Protocol(_) => true,
+        E::Database(db) => {
+            if let Some(my) = db.try_downcast_ref::<sqlx::mysql::MySqlDatabaseError>() {
+                // SQLSTATE class 08 is "connection exception".
+                MYSQL_TRANSIENT.contains(&i64::from(my.number()))
+                    || my.code().is_some_and(|state| state.starts_with("08"))
+            } else if db.try_downcast_ref::<sqlx::sqlite::SqliteError>().is_some() {
+                // SQLite reports its extended result code; the low byte is the primary code.
+                db.code()
+                    .and_then(|c| c.parse::<i64>().ok())
+                    .is_some_and(|c| SQLITE_TRANSIENT.contains(&(c & 0xff)))
+            } else {
+                false
+            }
+        }
+        _ => false,
+    }
+}
+
+impl From<sqlx::Error> for StoreError {
+    fn from(err: sqlx::Error) -> Self {
+        if is_transient(&err) {
+            StoreError::Unavailable(err)
+        } else {
+            StoreError::Database(err)
+        }
+    }
+}
+
+impl From<sqlx::migrate::MigrateError> for StoreError {
+    fn from(err: sqlx::migrate::MigrateError) -> Self {
+        use sqlx::migrate::MigrateError as M;
+        match err {
+            M::Execute(e) | M::ExecuteMigration(e, _) if is_transient(&e) => {
+                StoreError::Unavailable(e)
+            }
+            other => StoreError::Migration(other),
+        }
+    }
+}
+
+/// Whether a database error is a unique-key (or primary-key) violation.
+pub(crate) fn is_unique_violation(err: &sqlx::Error) -> bool {
+    err.as_database_error()
+        .is_some_and(|db| db.is_unique_violation())
+}
+
+/// Shorthand for results of store operations.
+pub type Result<T, E = StoreError> = std::result::Result<T, E>;

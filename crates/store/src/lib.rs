@@ -1,0 +1,49 @@
+//! SQL persistence of Myriad: users, maps, per-map player state and static objects.
+//!
+//! One [`Store`] API over two backends, both through sqlx's `Any` driver:
+//! - **embedded SQLite** (the default): a file in a data directory, created on first
+//!   run, in WAL mode with a busy timeout;
+//! - **MySQL / MariaDB**, given a `mysql://` URL, for production.
+//!
+//! The schema is embedded and migrated when the store opens (one folder of migrations per
+//! backend under `migrations/`). Methods mirror the reference design's stored procedures
+//! (`NewUser`, `CheckUserAndRetrieveInfo`, `NewMap`, `GetMapStaticObjects`, ...), plus
+//! batched writes. Passwords are hashed with Argon2id on tokio's blocking pool.
+//!
+//! [`Persister`] sits in front of the store for the tick loop: it takes position
+//! snapshots without ever waiting on the database, coalesces them per player and writes
+//! them in batches, riding out database outages.
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), myriad_store::StoreError> {
+//! use myriad_store::{Store, StoreConfig};
+//! let store = Store::open(&StoreConfig::sqlite("data")).await?;
+//! store.seed_users(10).await?;
+//! let user = store.check_credentials("user3", "password3").await?;
+//! # Ok(()) }
+//! ```
+
+mod config;
+mod error;
+mod maps;
+mod model;
+mod password;
+mod persister;
+mod players;
+mod store;
+mod users;
+
+pub use config::{Database, SQLITE_FILE_NAME, StoreConfig};
+pub use error::{Result, StoreError};
+pub use maps::{MAX_HEIGHTMAP_PATH_LEN, MAX_HEIGHTMAP_SAMPLES, MAX_MAP_NAME_LEN};
+pub use model::{
+    Heightmap, LoginInfo, MapId, MapInfo, MapSummary, NewMap, PlayerState, SeedReport, Shape,
+    StaticObject, UserId, WorldBounds, now_ms,
+};
+pub use password::{
+    HashCost, MAX_PASSWORD_LEN, MAX_USERNAME_LEN, hash_password, validate_password,
+    validate_username, verify_password,
+};
+pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, SubmitError};
+pub use store::{Backend, Store};
+pub use users::User;

@@ -1,0 +1,180 @@
+//! Opening the store: pool, pragmas, migrations, dummy hash.
+//!
+//! # How it works
+//! Both backends go through one [`AnyPool`], so every query is written once with `?`
+//! placeholders and only basic types (i64, f64, text, blobs). The few statements whose
+//! syntax differs (upserts, insert-or-ignore) pick their text from [`Backend`]. The schema
+//! is embedded at compile time, one folder per backend under `migrations/`, and applied
+//! by sqlx's migrator when the store opens (it records applied versions in
+//! `_sqlx_migrations`, so reopening is a no-op).
+//!
+//! SQLite connections get `journal_mode=WAL` (readers never block the writer),
+//! `synchronous=NORMAL` (safe with WAL: a power cut may lose the last commits, never
+//! corrupt the file), `foreign_keys=ON` and a busy timeout, on every new connection.
+
+use std::borrow::Cow;
+use std::sync::Arc;
+
+use sqlx::any::{AnyConnectOptions, AnyPoolOptions};
+use sqlx::migrate::{Migration, MigrationType, Migrator};
+use sqlx::sqlite::SqliteConnectOptions;
+use sqlx::{AnyPool, AssertSqlSafe, ConnectOptions, Executor, SqlSafeStr};
+
+use crate::config::{Database, SQLITE_FILE_NAME, StoreConfig};
+use crate::error::{Result, StoreError};
+use crate::password::{self, HashCost};
+
+/// The database engine behind a [`Store`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Backend {
+    /// Embedded SQLite.
+    Sqlite,
+    /// MySQL or MariaDB.
+    MySql,
+}
+
+const SQLITE_INIT: &str = include_str!("../migrations/sqlite/0001_init.sql");
+const MYSQL_INIT: &str = include_str!("../migrations/mysql/0001_init.sql");
+
+/// The embedded migrations of one backend.
+fn migrator(backend: Backend) -> Migrator {
+    let init = match backend {
+        Backend::Sqlite => SQLITE_INIT,
+        Backend::MySql => MYSQL_INIT,
+    };
+    Migrator::with_migrations(vec![Migration::new(
+        1,
+        Cow::Borrowed("init"),
+        MigrationType::Simple,
+        init.into_sql_str(),
+        false,
+    )])
+}
+
+/// Handle to the database: cheap to clone (the pool is shared), safe to use from any task.
+///
+/// Every method is `async` and never blocks the calling thread: SQL runs on the pool's
+/// connections, password hashing on tokio's blocking pool.
+#[derive(Clone)]
+pub struct Store {
+    pub(crate) pool: AnyPool,
+    pub(crate) backend: Backend,
+    pub(crate) hash_cost: HashCost,
+    /// A hash of a fixed string at the configured cost, verified when a username does not
+    /// exist so that a failed login costs the same time whether or not the user exists.
+    pub(crate) dummy_hash: Arc<str>,
+}
+
+impl std::fmt::Debug for Store {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // The dummy hash is harmless, but hashes are never printed on principle.
+        f.debug_struct("Store")
+            .field("backend", &self.backend)
+            .field("hash_cost", &self.hash_cost)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Store {
+    /// Opens (creating if needed) the database described by `config` and applies pending
+    /// migrations.
+    ///
+    /// Fails with [`StoreError::Unavailable`] when the server cannot be reached,
+    /// [`StoreError::InvalidInput`] for a malformed URL or hash cost, and
+    /// [`StoreError::Migration`] when the schema cannot be brought up to date.
+    pub async fn open(config: &StoreConfig) -> Result<Store> {
+        sqlx::any::install_default_drivers();
+        config.hash_cost.validate()?;
+
+        let (backend, options) = connect_options(&config.database).await?;
+        let busy_ms = i64::try_from(config.sqlite_busy_timeout.as_millis()).unwrap_or(i64::MAX);
+        let mut pool_options = AnyPoolOptions::new()
+            .max_connections(config.max_connections.max(1))
+            .acquire_timeout(config.acquire_timeout);
+        if backend == Backend::Sqlite {
+            pool_options = pool_options.after_connect(move |conn, _meta| {
+                Box::pin(async move {
+                    let pragmas = format!(
+                        "PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; \
+                         PRAGMA foreign_keys = ON; PRAGMA busy_timeout = {busy_ms};"
+                    );
+                    conn.execute(AssertSqlSafe(pragmas)).await?;
+                    Ok(())
+                })
+            });
+        }
+        let pool = pool_options.connect_with(options).await?;
+        migrator(backend).run(&pool).await?;
+
+        let cost = config.hash_cost;
+        let dummy_hash =
+            password::spawn_blocking(move || password::hash_blocking(cost, b"myriad/no-such-user"))
+                .await??;
+
+        tracing::info!(?backend, "store opened");
+        Ok(Store {
+            pool,
+            backend,
+            hash_cost: cost,
+            dummy_hash: dummy_hash.into(),
+        })
+    }
+
+    /// The engine behind this store.
+    pub fn backend(&self) -> Backend {
+        self.backend
+    }
+
+    /// The cost used for new password hashes.
+    pub fn hash_cost(&self) -> HashCost {
+        self.hash_cost
+    }
+
+    /// Closes every pooled connection, waiting for operations in flight. Later calls fail
+    /// with [`StoreError::Unavailable`].
+    pub async fn close(&self) {
+        self.pool.close().await;
+    }
+}
+
+/// Parses the configured location into connect options, creating the SQLite directory.
+async fn connect_options(database: &Database) -> Result<(Backend, AnyConnectOptions)> {
+    match database {
+        Database::SqliteDir(dir) => {
+            tokio::fs::create_dir_all(dir).await.map_err(|e| {
+                StoreError::InvalidInput(format!(
+                    "cannot create data directory {}: {e}",
+                    dir.display()
+                ))
+            })?;
+            // Build the URL from the path so that spaces, `?` and `#` are escaped.
+            let url = SqliteConnectOptions::new()
+                .filename(dir.join(SQLITE_FILE_NAME))
+                .create_if_missing(true)
+                .to_url_lossy();
+            Ok((Backend::Sqlite, AnyConnectOptions::from_url(&url)?))
+        }
+        Database::Url(url) => {
+            let backend = if url.starts_with("mysql:") || url.starts_with("mariadb:") {
+                Backend::MySql
+            } else if url.starts_with("sqlite:") {
+                Backend::Sqlite
+            } else {
+                return Err(StoreError::InvalidInput(
+                    "database URL must start with mysql:, mariadb: or sqlite:".into(),
+                ));
+            };
+            let mut options: AnyConnectOptions = url.parse().map_err(|e: sqlx::Error| {
+                StoreError::InvalidInput(format!("bad database URL: {e}"))
+            })?;
+            if backend == Backend::Sqlite && !url.contains("mode=") {
+                // Like the data-directory form, create the file on first use.
+                options
+                    .database_url
+                    .query_pairs_mut()
+                    .append_pair("mode", "rwc");
+            }
+            Ok((backend, options))
+        }
+    }
+}

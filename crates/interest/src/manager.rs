@@ -1,0 +1,363 @@
+//! Per-player update selection, packing and sealing, parallel over players.
+
+use std::borrow::BorrowMut;
+use std::cell::RefCell;
+
+use myriad_protocol::update::record_len;
+use myriad_protocol::{
+    DatagramBatch, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader,
+    pack_updates,
+};
+use rayon::prelude::*;
+use thiserror::Error;
+
+use crate::config::{InterestConfig, TickInfo};
+use crate::source::{AoiLists, ObjectSource};
+
+/// Errors of [`InterestManager::build`]. Bad data inside a list (slots out of range,
+/// offsets out of order) is skipped and counted instead, so one broken list cannot stop
+/// the tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum InterestError {
+    /// The AOI result has a different number of lists than there are subscribers.
+    #[error("{lists} AOI lists for {subscribers} subscribers")]
+    LengthMismatch {
+        /// Lists in the AOI result.
+        lists: usize,
+        /// Subscribers passed.
+        subscribers: usize,
+    },
+}
+
+/// One player as interest management sees it. The server owns these, keeps them in the
+/// same order as the AOI queries, and updates `object` and `centre` before each tick.
+#[derive(Debug)]
+pub struct Subscriber {
+    /// Slot of the player's own object, always sent first (skipped if invalid).
+    pub object: u32,
+    /// Centre of the player's area of interest; the origin of its updates.
+    pub centre: [f32; 3],
+    /// Seals this player's datagrams (the server half of its session).
+    pub sealer: Sealer,
+    /// `(object id, staleness key)` sorted by id, kept while the player is over budget.
+    rotation: Vec<(u64, u64)>,
+    /// This tick's sealed datagrams.
+    datagrams: DatagramBatch,
+    /// What the last build did for this player.
+    report: SubscriberReport,
+}
+
+impl Subscriber {
+    /// A subscriber with no rotation history.
+    pub fn new(object: u32, centre: [f32; 3], sealer: Sealer) -> Self {
+        Self {
+            object,
+            centre,
+            sealer,
+            rotation: Vec::new(),
+            datagrams: DatagramBatch::new(),
+            report: SubscriberReport::default(),
+        }
+    }
+
+    /// The sealed datagrams of the last [`InterestManager::build`], ready to send.
+    pub fn datagrams(&self) -> &DatagramBatch {
+        &self.datagrams
+    }
+
+    /// What the last build did for this player.
+    pub fn report(&self) -> SubscriberReport {
+        self.report
+    }
+}
+
+/// Counters of one subscriber's last build.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SubscriberReport {
+    /// Objects in view after dropping invalid and duplicate slots (own excluded).
+    pub in_view: usize,
+    /// Records sent (own included).
+    pub records: usize,
+    /// Datagrams produced.
+    pub datagrams: usize,
+    /// Bytes produced, sealed.
+    pub bytes: usize,
+    /// Whether the view did not fit the budget and rotation was used.
+    pub over_budget: bool,
+    /// Invalid slots or broken list bounds that were skipped.
+    pub skipped: usize,
+    /// Whether sealing failed (sequence numbers exhausted): nothing was sent.
+    pub seal_failed: bool,
+}
+
+/// Sums over all subscribers of one tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct TickReport {
+    /// Subscribers processed.
+    pub subscribers: usize,
+    /// Records sent.
+    pub records: usize,
+    /// Datagrams produced.
+    pub datagrams: usize,
+    /// Bytes produced.
+    pub bytes: usize,
+    /// Subscribers over budget.
+    pub over_budget: usize,
+    /// Invalid slots skipped.
+    pub skipped: usize,
+    /// Subscribers whose sealing failed.
+    pub seal_failures: usize,
+}
+
+impl TickReport {
+    fn add(mut self, s: &SubscriberReport) -> Self {
+        self.subscribers += 1;
+        self.records += s.records;
+        self.datagrams += s.datagrams;
+        self.bytes += s.bytes;
+        self.over_budget += usize::from(s.over_budget);
+        self.skipped += s.skipped;
+        self.seal_failures += usize::from(s.seal_failed);
+        self
+    }
+
+    fn merge(mut self, o: Self) -> Self {
+        self.subscribers += o.subscribers;
+        self.records += o.records;
+        self.datagrams += o.datagrams;
+        self.bytes += o.bytes;
+        self.over_budget += o.over_budget;
+        self.skipped += o.skipped;
+        self.seal_failures += o.seal_failures;
+        self
+    }
+}
+
+/// Builds every player's updates for a tick.
+#[derive(Debug, Clone, Default)]
+pub struct InterestManager {
+    config: InterestConfig,
+}
+
+/// Per-thread working memory, reused across subscribers and ticks.
+#[derive(Default)]
+struct Scratch {
+    /// Candidates (own excluded), sorted by id when over budget.
+    cands: Vec<Candidate>,
+    /// Indices into `cands`, for the partial selections.
+    order: Vec<u32>,
+    /// The records to pack, in priority order.
+    records: Vec<StateRecord>,
+}
+
+#[derive(Clone, Copy)]
+struct Candidate {
+    rec: StateRecord,
+    dist2: f32,
+    key: u64,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+impl InterestManager {
+    /// A manager with `config`.
+    pub fn new(config: InterestConfig) -> Self {
+        Self { config }
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &InterestConfig {
+        &self.config
+    }
+
+    /// Builds and seals this tick's updates for every subscriber; subscriber `i` sees
+    /// AOI list `i`. Afterwards each [`Subscriber::datagrams`] holds what to send to
+    /// that player.
+    pub fn build<O, S>(
+        &self,
+        tick: TickInfo,
+        objects: &O,
+        aoi: AoiLists<'_>,
+        subscribers: &mut [S],
+    ) -> Result<TickReport, InterestError>
+    where
+        O: ObjectSource,
+        S: BorrowMut<Subscriber> + Send,
+    {
+        if aoi.len() != subscribers.len() {
+            return Err(InterestError::LengthMismatch {
+                lists: aoi.len(),
+                subscribers: subscribers.len(),
+            });
+        }
+        let config = self.config;
+        Ok(subscribers
+            .par_iter_mut()
+            .enumerate()
+            .fold(TickReport::default, |acc, (i, s)| {
+                let s = s.borrow_mut();
+                SCRATCH.with_borrow_mut(|scratch| {
+                    build_one(&config, tick, objects, aoi.get(i), s, scratch);
+                });
+                acc.add(&s.report)
+            })
+            .reduce(TickReport::default, TickReport::merge))
+    }
+}
+
+/// Datagrams greedy packing needs for `sizes` (each at most the record area).
+fn datagrams_needed(sizes: impl Iterator<Item = usize>) -> usize {
+    let area = MAX_BODY - UPDATE_HEADER_LEN;
+    let (mut datagrams, mut used) = (0usize, area);
+    for size in sizes {
+        if used + size > area {
+            datagrams += 1;
+            used = 0;
+        }
+        used += size;
+    }
+    datagrams
+}
+
+fn build_one<O: ObjectSource>(
+    config: &InterestConfig,
+    tick: TickInfo,
+    objects: &O,
+    list: Option<&[u32]>,
+    sub: &mut Subscriber,
+    scratch: &mut Scratch,
+) {
+    let Scratch {
+        cands,
+        order,
+        records,
+    } = scratch;
+    cands.clear();
+    records.clear();
+    sub.datagrams.clear();
+    let mut report = SubscriberReport {
+        skipped: usize::from(list.is_none()),
+        ..SubscriberReport::default()
+    };
+    let origin = QuantPos::from_f32(sub.centre);
+    let header = UpdateHeader {
+        tick: tick.tick,
+        dilation_permille: tick.dilation_permille,
+        origin,
+    };
+
+    // 1. Gather.
+    let own = objects.get(sub.object).map(|(id, kind, p)| StateRecord {
+        id,
+        kind,
+        pos: QuantPos::from_f32(p),
+    });
+    let c = sub.centre;
+    for &slot in list.unwrap_or(&[]) {
+        match objects.get(slot) {
+            Some((id, kind, p)) if own.is_none_or(|o| o.id != id) => {
+                let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+                cands.push(Candidate {
+                    rec: StateRecord {
+                        id,
+                        kind,
+                        pos: QuantPos::from_f32(p),
+                    },
+                    dist2: d[0] * d[0] + d[1] * d[1] + d[2] * d[2],
+                    key: 0,
+                });
+            }
+            Some(_) => {}
+            None => report.skipped += 1,
+        }
+    }
+    let id_base = own
+        .iter()
+        .map(|o| o.id)
+        .chain(cands.iter().map(|c| c.rec.id))
+        .min()
+        .unwrap_or(0);
+    let size = |r: &StateRecord| record_len(r, id_base, origin);
+    records.extend(own);
+
+    // 2. Everything fits? (Duplicates, if any, only make this estimate conservative.)
+    let needed = datagrams_needed(own.iter().chain(cands.iter().map(|c| &c.rec)).map(size));
+    if needed <= config.max_datagrams.max(1) {
+        report.in_view = cands.len();
+        records.extend(cands.iter().map(|c| c.rec));
+        sub.rotation.clear();
+    } else {
+        report.over_budget = true;
+        // 3a. Sort by id: drops duplicate slots and lines up with the stored keys.
+        cands.sort_unstable_by_key(|c| c.rec.id);
+        cands.dedup_by_key(|c| c.rec.id);
+        report.in_view = cands.len();
+        // Objects absent from the stored state entered the view this tick (key = now),
+        // unless there is no stored state: then everything was sent last tick, or
+        // nothing ever was, and all share the key `now - 1`.
+        let fresh_key = if sub.rotation.is_empty() {
+            tick.tick.saturating_sub(1)
+        } else {
+            tick.tick
+        };
+        let mut stored = sub.rotation.iter().peekable();
+        for c in cands.iter_mut() {
+            while stored.next_if(|&&(id, _)| id < c.rec.id).is_some() {}
+            c.key = match stored.peek() {
+                Some(&&(id, key)) if id == c.rec.id => key,
+                _ => fresh_key,
+            };
+        }
+        // 3b. The K nearest, nearest first.
+        order.clear();
+        order.extend(0..cands.len() as u32);
+        let k = config.near_slots().min(order.len());
+        if k < order.len() {
+            order.select_nth_unstable_by(k, |&a, &b| {
+                cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2)
+            });
+        }
+        let (near, rest) = order.split_at_mut(k);
+        near.sort_unstable_by(|&a, &b| cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2));
+        // 3c. The stalest of the rest, stalest first (ties by id, which is stable).
+        let r = config.rotation_slots().min(rest.len());
+        let stalest = |a: &u32, b: &u32| {
+            let (a, b) = (&cands[*a as usize], &cands[*b as usize]);
+            (a.key, a.rec.id).cmp(&(b.key, b.rec.id))
+        };
+        if r < rest.len() {
+            rest.select_nth_unstable_by(r, stalest);
+        }
+        rest[..r].sort_unstable_by(stalest);
+        records.extend(order[..k + r].iter().map(|&i| cands[i as usize].rec));
+    }
+
+    // Pack and stamp what was sent.
+    let packed = pack_updates(
+        &header,
+        records,
+        config.max_datagrams.max(1),
+        &mut sub.datagrams,
+    );
+    if report.over_budget {
+        let skip_own = usize::from(own.is_some());
+        for &i in order.iter().take(packed.saturating_sub(skip_own)) {
+            cands[i as usize].key = tick.tick;
+        }
+        sub.rotation.clear();
+        sub.rotation.extend(cands.iter().map(|c| (c.rec.id, c.key)));
+    }
+    report.records = packed;
+
+    // 4. Seal.
+    if sub.sealer.seal_batch(&mut sub.datagrams).is_err() {
+        sub.datagrams.clear();
+        report.seal_failed = true;
+        report.records = 0;
+    }
+    report.datagrams = sub.datagrams.len();
+    report.bytes = sub.datagrams.total_bytes();
+    sub.report = report;
+}

@@ -1,0 +1,356 @@
+//! End-to-end tests: build, seal, then open with the client half of each session and
+//! check what each player actually receives.
+
+use std::collections::{HashMap, HashSet};
+
+use myriad_interest::*;
+use myriad_protocol::{
+    ClientSession, ObjectKind, ServerMessage, ServerSession, SessionKeys, StateRecord,
+};
+
+/// A tiny deterministic generator (xorshift64*), so failures reproduce.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n
+    }
+    fn f(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (self.next() >> 40) as f32 / (1u64 << 24) as f32 * (hi - lo)
+    }
+}
+
+struct World {
+    ids: Vec<u64>,
+    kinds: Vec<ObjectKind>,
+    positions: Vec<[f32; 3]>,
+}
+
+impl World {
+    fn new(n: usize, rng: &mut Rng, id_offset: u64) -> Self {
+        Self {
+            ids: (0..n as u64).map(|i| id_offset + i * 3).collect(),
+            kinds: (0..n)
+                .map(|i| [ObjectKind::Sphere, ObjectKind::Box, ObjectKind::Capsule][i % 3])
+                .collect(),
+            positions: (0..n)
+                .map(|_| [rng.f(-100.0, 100.0), rng.f(0.0, 20.0), rng.f(-100.0, 100.0)])
+                .collect(),
+        }
+    }
+    fn soa(&self) -> SoaObjects<'_> {
+        SoaObjects {
+            ids: &self.ids,
+            kinds: &self.kinds,
+            positions: &self.positions,
+        }
+    }
+}
+
+fn keys(i: u64) -> SessionKeys {
+    SessionKeys {
+        session_id: i,
+        client_to_server: [i as u8; 32],
+        server_to_client: [(i as u8) ^ 0x55; 32],
+    }
+}
+
+/// Opens every datagram of `sub` with `client`; returns the records in order and the
+/// ticks of the updates.
+fn receive(sub: &Subscriber, client: &mut ClientSession) -> (Vec<StateRecord>, Vec<u64>) {
+    let mut records = Vec::new();
+    let mut ticks = Vec::new();
+    for d in sub.datagrams().iter() {
+        assert!(d.len() <= myriad_protocol::MAX_DATAGRAM);
+        let mut d = d.to_vec();
+        match client.open(&mut d).expect("sealed datagram opens").message {
+            ServerMessage::StateUpdate(u) => {
+                ticks.push(u.header.tick);
+                records.extend(u.records);
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    (records, ticks)
+}
+
+fn subscriber(i: u64, object: u32, centre: [f32; 3]) -> (Subscriber, ClientSession) {
+    let k = keys(i);
+    (
+        Subscriber::new(object, centre, ServerSession::new(&k).sealer),
+        ClientSession::new(&k),
+    )
+}
+
+#[test]
+fn small_views_are_sent_whole_with_own_object_first() {
+    let mut rng = Rng(1);
+    let world = World::new(500, &mut rng, 1 << 40);
+    let (mut sub, mut client) = subscriber(1, 10, world.positions[10]);
+    // The own object also appears in its own AOI list, as a physics query returns it.
+    let list: Vec<u32> = (0..150).collect();
+    let offsets = [0, list.len() as u32];
+    let manager = InterestManager::new(InterestConfig::default());
+    let tick = TickInfo {
+        tick: 5,
+        dilation_permille: 1000,
+    };
+    let report = manager
+        .build(
+            tick,
+            &world.soa(),
+            AoiLists {
+                offsets: &offsets,
+                objects: &list,
+            },
+            std::slice::from_mut(&mut sub),
+        )
+        .unwrap();
+    let (records, ticks) = receive(&sub, &mut client);
+    assert_eq!(records.len(), 150);
+    assert_eq!(records[0].id, world.ids[10]);
+    let got: HashSet<u64> = records.iter().map(|r| r.id).collect();
+    assert_eq!(got, list.iter().map(|&s| world.ids[s as usize]).collect());
+    assert!(ticks.iter().all(|&t| t == 5));
+    assert_eq!(report.datagrams, 2);
+    assert_eq!(report.records, 150);
+    assert!(!sub.report().over_budget);
+    // Positions arrive at 1/64 resolution.
+    for r in &records {
+        let slot = world.ids.iter().position(|&id| id == r.id).unwrap();
+        let p = r.pos.to_f32();
+        for a in 0..3 {
+            assert!((p[a] - world.positions[slot][a]).abs() <= 1.0 / 128.0 + 1e-4);
+        }
+    }
+}
+
+#[test]
+fn over_budget_sends_own_then_the_nearest() {
+    let mut rng = Rng(2);
+    let world = World::new(1000, &mut rng, 0);
+    let centre = [0.0, 10.0, 0.0];
+    let (mut sub, mut client) = subscriber(2, 999, centre);
+    let list: Vec<u32> = (0..400).collect();
+    let offsets = [0, 400];
+    let config = InterestConfig {
+        max_datagrams: 1,
+        near_share: 0.5,
+    };
+    let manager = InterestManager::new(config);
+    manager
+        .build(
+            TickInfo {
+                tick: 1,
+                dilation_permille: 1000,
+            },
+            &world.soa(),
+            AoiLists {
+                offsets: &offsets,
+                objects: &list,
+            },
+            std::slice::from_mut(&mut sub),
+        )
+        .unwrap();
+    let (records, _) = receive(&sub, &mut client);
+    assert_eq!(sub.datagrams().len(), 1);
+    assert_eq!(records.len(), config.capacity());
+    assert_eq!(records[0].id, world.ids[999]);
+    let dist = |slot: usize| {
+        let p = world.positions[slot];
+        (p[0] - centre[0]).powi(2) + (p[1] - centre[1]).powi(2) + (p[2] - centre[2]).powi(2)
+    };
+    let mut by_dist: Vec<usize> = (0..400).collect();
+    by_dist.sort_by(|&a, &b| dist(a).total_cmp(&dist(b)));
+    let k = config.near_slots();
+    let expected: Vec<u64> = by_dist[..k].iter().map(|&s| world.ids[s]).collect();
+    let near: Vec<u64> = records[1..=k].iter().map(|r| r.id).collect();
+    assert_eq!(near, expected);
+    assert!(sub.report().over_budget);
+}
+
+#[test]
+fn every_object_in_view_is_refreshed_within_the_bound() {
+    let mut rng = Rng(3);
+    let world = World::new(2000, &mut rng, 5);
+    let config = InterestConfig {
+        max_datagrams: 1,
+        near_share: 0.5,
+    };
+    let manager = InterestManager::new(config);
+    let players = 8usize;
+    let mut subs = Vec::new();
+    let mut clients = Vec::new();
+    for p in 0..players {
+        let (s, c) = subscriber(
+            p as u64 + 10,
+            1900 + p as u32,
+            [rng.f(-50.0, 50.0), 5.0, rng.f(-50.0, 50.0)],
+        );
+        subs.push(s);
+        clients.push(c);
+    }
+    // Each player's view: a churning set of 150..=320 objects out of 600.
+    let mut views: Vec<Vec<u32>> = (0..players).map(|_| (0..250).collect()).collect();
+    let mut last_event: Vec<HashMap<u64, u64>> = vec![HashMap::new(); players];
+    let mut max_in_view = 0usize;
+    let mut checks = Vec::new();
+    for tick in 1..=120u64 {
+        for v in views.iter_mut() {
+            // Drop a few, add a few.
+            for _ in 0..rng.below(12) {
+                if v.len() > 150 {
+                    let i = rng.below(v.len() as u64) as usize;
+                    v.swap_remove(i);
+                }
+            }
+            for _ in 0..rng.below(12) {
+                let s = rng.below(600) as u32;
+                if v.len() < 320 && !v.contains(&s) {
+                    v.push(s);
+                }
+            }
+            max_in_view = max_in_view.max(v.len());
+        }
+        let mut offsets = vec![0u32];
+        let mut objects = Vec::new();
+        for v in &views {
+            objects.extend_from_slice(v);
+            offsets.push(objects.len() as u32);
+        }
+        manager
+            .build(
+                TickInfo {
+                    tick,
+                    dilation_permille: 1000,
+                },
+                &world.soa(),
+                AoiLists {
+                    offsets: &offsets,
+                    objects: &objects,
+                },
+                &mut subs,
+            )
+            .unwrap();
+        for p in 0..players {
+            let (records, _) = receive(&subs[p], &mut clients[p]);
+            assert_eq!(records[0].id, world.ids[1900 + p], "own object first");
+            let in_view: HashSet<u64> = views[p].iter().map(|&s| world.ids[s as usize]).collect();
+            // Entrants count from the tick before they entered.
+            let events = &mut last_event[p];
+            events.retain(|id, _| in_view.contains(id));
+            for &id in &in_view {
+                events.entry(id).or_insert(tick - 1);
+            }
+            for r in &records[1..] {
+                assert!(in_view.contains(&r.id), "sent an object not in view");
+                events.insert(r.id, tick);
+            }
+            for (&id, &t) in events.iter() {
+                checks.push((tick - t, id));
+            }
+        }
+    }
+    let bound = config.refresh_bound(max_in_view);
+    assert!(bound > 1, "the scenario must actually be over budget");
+    let worst = checks.iter().map(|c| c.0).max().unwrap();
+    assert!(
+        worst <= bound,
+        "an object waited {worst} ticks, bound {bound}"
+    );
+    // And the bound is not vacuous: some object did wait more than one tick.
+    assert!(worst > 1);
+}
+
+#[test]
+fn broken_inputs_are_skipped_not_fatal() {
+    let mut rng = Rng(4);
+    let world = World::new(100, &mut rng, 0);
+    let (s0, _) = subscriber(20, 0, [0.0; 3]);
+    let (s1, mut c1) = subscriber(21, 500, [0.0; 3]); // own slot invalid
+    let (s2, _) = subscriber(22, 2, [0.0; 3]);
+    let mut subs = vec![s0, s1, s2];
+    let manager = InterestManager::default();
+    let objects = [1, 2, 7000, 3, 3, 4];
+    // List 0 is out of order (5 > 2), list 1 has an invalid slot and a duplicate.
+    let offsets = [5, 2, 6, 6];
+    let report = manager
+        .build(
+            TickInfo::default(),
+            &world.soa(),
+            AoiLists {
+                offsets: &offsets,
+                objects: &objects,
+            },
+            &mut subs,
+        )
+        .unwrap();
+    assert_eq!(report.subscribers, 3);
+    assert_eq!(subs[0].report().skipped, 1);
+    assert_eq!(subs[0].report().records, 1, "own object only");
+    assert_eq!(subs[1].report().skipped, 1);
+    let (records, _) = receive(&subs[1], &mut c1);
+    // Slots 3, 3 and 4; no own object. A duplicate slot costs one record when the view
+    // fits (the physics query never returns duplicates; only the over-budget path,
+    // which sorts by id anyway, removes them).
+    assert_eq!(records.len(), 3);
+    assert_eq!(records[0].id, world.ids[3]);
+    assert_eq!(subs[2].report().records, 1);
+    assert_eq!(
+        manager.build(
+            TickInfo::default(),
+            &world.soa(),
+            AoiLists {
+                offsets: &[0, 1],
+                objects: &[1]
+            },
+            &mut subs
+        ),
+        Err(InterestError::LengthMismatch {
+            lists: 1,
+            subscribers: 3
+        })
+    );
+}
+
+#[test]
+fn far_objects_and_huge_ids_use_extended_records_within_budget() {
+    let world = World {
+        ids: vec![1, u64::MAX, 1 << 50, 77],
+        kinds: vec![ObjectKind::Box; 4],
+        positions: vec![
+            [0.0; 3],
+            [5000.0, 0.0, 0.0],
+            [-1e6, 3.0, 2.0],
+            [1.0, 1.0, 1.0],
+        ],
+    };
+    let (mut sub, mut client) = subscriber(30, 0, [0.0; 3]);
+    InterestManager::default()
+        .build(
+            TickInfo::default(),
+            &world.soa(),
+            AoiLists {
+                offsets: &[0, 4],
+                objects: &[0, 1, 2, 3],
+            },
+            std::slice::from_mut(&mut sub),
+        )
+        .unwrap();
+    let (records, _) = receive(&sub, &mut client);
+    let got: Vec<(u64, [f32; 3])> = records.iter().map(|r| (r.id, r.pos.to_f32())).collect();
+    assert_eq!(
+        got,
+        vec![
+            (1, [0.0; 3]),
+            (u64::MAX, [5000.0, 0.0, 0.0]),
+            (1 << 50, [-1e6, 3.0, 2.0]),
+            (77, [1.0, 1.0, 1.0])
+        ]
+    );
+}

@@ -1,28 +1,4 @@
-//! Write-behind persistence of player positions.
-//!
-//! # How it works
-//! The server's tick thread calls [`Persister::submit`] (or [`Persister::submit_many`])
-//! with position snapshots. The call only takes a mutex around an in-memory map keyed by
-//! (user, map) and replaces that player's entry, so it never waits on the database and
-//! coalesces for free: only the newest state of each player is ever written.
-//!
-//! A tokio task drains the map every [`PersisterConfig::interval`] (and on
-//! [`Persister::flush`]) in batches of [`PersisterConfig::batch_size`] rows, each batch
-//! one transaction through [`Store::save_player_states`]. Entries are moved out of the
-//! map while their batch is in flight; if the write fails they are put back unless a
-//! newer snapshot of the same player arrived meanwhile.
-//!
-//! When the database is unreachable ([`StoreError::Unavailable`]) the world keeps
-//! running: snapshots keep coalescing in memory, the failure is counted, and the task
-//! retries with exponential backoff ([`PersisterConfig::retry_min`] doubling up to
-//! [`PersisterConfig::retry_max`]) until a write succeeds. Memory stays bounded by
-//! [`PersisterConfig::max_pending`] distinct players: beyond it, snapshots of players not
-//! already queued are dropped and counted in [`PersisterStats::dropped_overflow`]
-//! (queued players keep being updated to their newest state).
-//!
-//! A batch rejected for another reason (say, a player whose user row was deleted) is
-//! retried row by row, and rows the database refuses are dropped and counted in
-//! [`PersisterStats::rejected_rows`], so one bad row cannot block everybody's saves.
+//! Write-behind persistence of player positions; see [`Persister`] for how it works.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -147,7 +123,31 @@ enum Command {
     Shutdown(Duration, oneshot::Sender<Result<FlushReport>>),
 }
 
-/// Write-behind queue of player states; see the [module docs](self) for how it works.
+/// Write-behind queue of player states: the tick thread submits, a task writes.
+///
+/// # How it works
+/// The server's tick thread calls [`Persister::submit`] (or [`Persister::submit_many`])
+/// with position snapshots. The call only takes a mutex around an in-memory map keyed by
+/// (user, map) and replaces that player's entry, so it never waits on the database and
+/// coalesces for free: only the newest state of each player is ever written.
+///
+/// A tokio task drains the map every [`PersisterConfig::interval`] (and on
+/// [`Persister::flush`]) in batches of [`PersisterConfig::batch_size`] rows, each batch
+/// one transaction through [`Store::save_player_states`]. Entries are moved out of the
+/// map while their batch is in flight; if the write fails they are put back unless a
+/// newer snapshot of the same player arrived meanwhile.
+///
+/// When the database is unreachable ([`StoreError::Unavailable`]) the world keeps
+/// running: snapshots keep coalescing in memory, the failure is counted, and the task
+/// retries with exponential backoff ([`PersisterConfig::retry_min`] doubling up to
+/// [`PersisterConfig::retry_max`]) until a write succeeds. Memory stays bounded by
+/// [`PersisterConfig::max_pending`] distinct players: beyond it, snapshots of players not
+/// already queued are dropped and counted in [`PersisterStats::dropped_overflow`]
+/// (queued players keep being updated to their newest state).
+///
+/// A batch rejected for another reason (say, a player whose user row was deleted) is
+/// retried row by row, and rows the database refuses are dropped and counted in
+/// [`PersisterStats::rejected_rows`], so one bad row cannot block everybody's saves.
 ///
 /// Cloning gives another handle to the same queue and task. When every handle is
 /// dropped the task makes one last attempt to write what is queued and exits; call

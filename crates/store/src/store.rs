@@ -1,16 +1,4 @@
-//! Opening the store: pool, pragmas, migrations, dummy hash.
-//!
-//! # How it works
-//! Both backends go through one [`AnyPool`], so every query is written once with `?`
-//! placeholders and only basic types (i64, f64, text, blobs). The few statements whose
-//! syntax differs (upserts, insert-or-ignore) pick their text from [`Backend`]. The schema
-//! is embedded at compile time, one folder per backend under `migrations/`, and applied
-//! by sqlx's migrator when the store opens (it records applied versions in
-//! `_sqlx_migrations`, so reopening is a no-op).
-//!
-//! SQLite connections get `journal_mode=WAL` (readers never block the writer),
-//! `synchronous=NORMAL` (safe with WAL: a power cut may lose the last commits, never
-//! corrupt the file), `foreign_keys=ON` and a busy timeout, on every new connection.
+//! The [`Store`] handle and how it opens: pool, pragmas, migrations, dummy hash.
 
 use std::borrow::Cow;
 use std::sync::Arc;
@@ -55,6 +43,18 @@ fn migrator(backend: Backend) -> Migrator {
 ///
 /// Every method is `async` and never blocks the calling thread: SQL runs on the pool's
 /// connections, password hashing on tokio's blocking pool.
+///
+/// # How it works
+/// Both backends go through one [`AnyPool`], so every query is written once with `?`
+/// placeholders and only basic types (i64, f64, text, blobs). The few statements whose
+/// syntax differs (upserts, insert-or-ignore) pick their text from [`Backend`]. The schema
+/// is embedded at compile time, one folder per backend under `migrations/`, and applied
+/// by sqlx's migrator when the store opens (it records applied versions in
+/// `_sqlx_migrations`, so reopening is a no-op).
+///
+/// SQLite connections get `journal_mode=WAL` (readers never block the writer),
+/// `synchronous=NORMAL` (safe with WAL: a power cut may lose the last commits, never
+/// corrupt the file), `foreign_keys=ON` and a busy timeout, on every new connection.
 #[derive(Clone)]
 pub struct Store {
     pub(crate) pool: AnyPool,

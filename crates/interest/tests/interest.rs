@@ -124,8 +124,8 @@ fn small_views_are_sent_whole_with_own_object_first() {
     for r in &records {
         let slot = world.ids.iter().position(|&id| id == r.id).unwrap();
         let p = r.pos.to_f32();
-        for a in 0..3 {
-            assert!((p[a] - world.positions[slot][a]).abs() <= 1.0 / 128.0 + 1e-4);
+        for (got, want) in p.iter().zip(world.positions[slot]) {
+            assert!((got - want).abs() <= 1.0 / 128.0 + 1e-4);
         }
     }
 }

@@ -84,8 +84,8 @@ mod tests {
         // Half a step rounds away from zero: error is at most 1/128 unit.
         let p = [123.456f32, -98.765, 0.0078];
         let back = QuantPos::from_f32(p).to_f32();
-        for i in 0..3 {
-            assert!((back[i] - p[i]).abs() <= 1.0 / 128.0 + 1e-4);
+        for (b, v) in back.iter().zip(p) {
+            assert!((b - v).abs() <= 1.0 / 128.0 + 1e-4);
         }
     }
 

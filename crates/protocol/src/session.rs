@@ -126,6 +126,38 @@ impl Sealer {
         Ok(sequence)
     }
 
+    /// Appends `msg` to `out` as one sealed server datagram (this sealer must seal
+    /// server-to-client). Appends nothing on error.
+    pub fn seal_server_message(
+        &mut self,
+        msg: &ServerMessage,
+        out: &mut Vec<u8>,
+    ) -> Result<u64, SealError> {
+        let start = out.len();
+        encode_server(msg, out)?;
+        self.seal_tail(out, start)
+    }
+
+    /// Appends `msg` to `out` as one sealed client datagram (this sealer must seal
+    /// client-to-server). Appends nothing on error.
+    pub fn seal_client_message(
+        &mut self,
+        msg: &ClientMessage,
+        out: &mut Vec<u8>,
+    ) -> Result<u64, SealError> {
+        let start = out.len();
+        encode_client(msg, out);
+        self.seal_tail(out, start)
+    }
+
+    fn seal_tail(&mut self, out: &mut Vec<u8>, start: usize) -> Result<u64, SealError> {
+        let result = self.seal_in_place(&mut out[start..]);
+        if result.is_err() {
+            out.truncate(start);
+        }
+        result
+    }
+
     /// Seals every datagram of `batch` in place (see [`seal_in_place`](Self::seal_in_place)).
     pub fn seal_batch(&mut self, batch: &mut DatagramBatch) -> Result<(), SealError> {
         batch.try_for_each_mut(|d| self.seal_in_place(d).map(|_| ()))
@@ -242,13 +274,7 @@ impl ServerSession {
     /// Appends `msg` to `out` as one sealed datagram. Fails for a state update too
     /// large for one datagram (use [`crate::pack_updates`] and [`Sealer::seal_batch`]).
     pub fn seal(&mut self, msg: &ServerMessage, out: &mut Vec<u8>) -> Result<u64, SealError> {
-        let start = out.len();
-        encode_server(msg, out)?;
-        let result = self.sealer.seal_in_place(&mut out[start..]);
-        if result.is_err() {
-            out.truncate(start);
-        }
-        result
+        self.sealer.seal_server_message(msg, out)
     }
 
     /// Opens and decodes a client datagram.
@@ -285,13 +311,7 @@ impl ClientSession {
 
     /// Appends `msg` to `out` as one sealed datagram.
     pub fn seal(&mut self, msg: &ClientMessage, out: &mut Vec<u8>) -> Result<u64, SealError> {
-        let start = out.len();
-        encode_client(msg, out);
-        let result = self.sealer.seal_in_place(&mut out[start..]);
-        if result.is_err() {
-            out.truncate(start);
-        }
-        result
+        self.sealer.seal_client_message(msg, out)
     }
 
     /// Opens and decodes a server datagram.

@@ -53,7 +53,9 @@ fn nonce(direction: Direction, sequence: u64) -> Array<u8, chacha20poly1305::con
 }
 
 /// Seals outgoing datagrams of one session and direction.
-#[derive(Clone)]
+///
+/// Deliberately not `Clone`: two copies would hand out the same sequence numbers and so
+/// reuse nonces under one key, which breaks ChaCha20-Poly1305.
 pub struct Sealer {
     cipher: ChaCha20Poly1305,
     session_id: u64,
@@ -174,7 +176,8 @@ pub struct Opened<T> {
 }
 
 /// Opens incoming datagrams of one session and direction, rejecting replays.
-#[derive(Clone)]
+///
+/// Not `Clone`: two copies would each accept the same packet once.
 pub struct Opener {
     cipher: ChaCha20Poly1305,
     session_id: u64,
@@ -246,7 +249,7 @@ impl Opener {
 }
 
 /// The server's end of a session: seals server-to-client, opens client-to-server.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct ServerSession {
     /// Seals what the server sends.
     pub sealer: Sealer,
@@ -284,7 +287,7 @@ impl ServerSession {
 }
 
 /// The client's end of a session: seals client-to-server, opens server-to-client.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct ClientSession {
     /// Seals what the client sends.
     pub sealer: Sealer,

@@ -25,11 +25,7 @@ impl Action {
 
     /// The action for a raw mask, or `None` if a bit above bit 4 is set.
     pub const fn from_bits(bits: u8) -> Option<Action> {
-        if bits & !Self::ALL == 0 {
-            Some(Action(bits))
-        } else {
-            None
-        }
+        if bits & !Self::ALL == 0 { Some(Action(bits)) } else { None }
     }
 
     /// The action for a raw mask with the invalid bits dropped.
@@ -55,10 +51,7 @@ mod tests {
     #[test]
     fn rejects_high_bits() {
         assert_eq!(Action::from_bits(0b10_0000), None);
-        assert_eq!(
-            Action::from_bits(0b1_0001).map(Action::bits),
-            Some(0b1_0001)
-        );
+        assert_eq!(Action::from_bits(0b1_0001).map(Action::bits), Some(0b1_0001));
         assert_eq!(Action::from_bits_truncate(0xff).bits(), Action::ALL);
         assert!(Action::from_bits_truncate(Action::JUMP | Action::LEFT).has(Action::JUMP));
     }

@@ -50,11 +50,7 @@ impl PhysicsConfig {
     /// Checks every parameter, naming the first bad one.
     pub fn validate(&self) -> Result<(), crate::CoreError> {
         let check = |what: &'static str, v: f32, ok: bool| {
-            if v.is_finite() && ok {
-                Ok(())
-            } else {
-                Err(crate::CoreError::invalid(what, format!("{v}")))
-            }
+            if v.is_finite() && ok { Ok(()) } else { Err(crate::CoreError::invalid(what, format!("{v}"))) }
         };
         check("tick_rate", self.tick_rate, self.tick_rate > 0.0)?;
         check("gravity", self.gravity, true)?;
@@ -63,28 +59,13 @@ impl PhysicsConfig {
             self.ground_friction,
             (0.0..1.0).contains(&self.ground_friction) && self.ground_friction > 0.0,
         )?;
-        check(
-            "air_drag",
-            self.air_drag,
-            (0.0..1.0).contains(&self.air_drag),
-        )?;
+        check("air_drag", self.air_drag, (0.0..1.0).contains(&self.air_drag))?;
         check("move_speed", self.move_speed, self.move_speed >= 0.0)?;
         check("jump_speed", self.jump_speed, self.jump_speed >= 0.0)?;
-        check(
-            "restitution",
-            self.restitution,
-            (0.0..=1.0).contains(&self.restitution),
-        )?;
-        check(
-            "ground_tolerance",
-            self.ground_tolerance,
-            self.ground_tolerance >= 0.0,
-        )?;
+        check("restitution", self.restitution, (0.0..=1.0).contains(&self.restitution))?;
+        check("ground_tolerance", self.ground_tolerance, self.ground_tolerance >= 0.0)?;
         if self.npc_action_period == 0 {
-            return Err(crate::CoreError::invalid(
-                "npc_action_period",
-                "must be at least 1",
-            ));
+            return Err(crate::CoreError::invalid("npc_action_period", "must be at least 1"));
         }
         Ok(())
     }
@@ -97,21 +78,10 @@ mod tests {
     #[test]
     fn default_is_valid_and_bad_values_are_named() {
         PhysicsConfig::default().validate().unwrap();
-        let bad = PhysicsConfig {
-            ground_friction: 1.5,
-            ..Default::default()
-        };
+        let bad = PhysicsConfig { ground_friction: 1.5, ..Default::default() };
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains("ground_friction"), "{err}");
-        let bad = PhysicsConfig {
-            tick_rate: f32::NAN,
-            ..Default::default()
-        };
-        assert!(
-            bad.validate()
-                .unwrap_err()
-                .to_string()
-                .contains("tick_rate")
-        );
+        let bad = PhysicsConfig { tick_rate: f32::NAN, ..Default::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("tick_rate"));
     }
 }

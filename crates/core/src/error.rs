@@ -45,9 +45,6 @@ pub enum CoreError {
 impl CoreError {
     /// Shorthand for [`CoreError::Invalid`].
     pub fn invalid(what: &'static str, reason: impl Into<String>) -> CoreError {
-        CoreError::Invalid {
-            what,
-            reason: reason.into(),
-        }
+        CoreError::Invalid { what, reason: reason.into() }
     }
 }

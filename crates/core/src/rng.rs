@@ -45,11 +45,7 @@ pub struct Stream {
 impl Stream {
     /// Stream number `stream` of `seed`.
     pub fn new(seed: u64, stream: u64) -> Stream {
-        Stream {
-            seed,
-            stream,
-            counter: 0,
-        }
+        Stream { seed, stream, counter: 0 }
     }
 
     /// The next 64 random bits.

@@ -78,19 +78,10 @@ impl ScenarioSpec {
             2 => (15_000, 55_000, 5_000),
             3 => (99_999, 260_000, 10_000),
             _ => {
-                return Err(CoreError::invalid(
-                    "scenario",
-                    format!("{n}: the reference has scenarios 1, 2 and 3"),
-                ));
+                return Err(CoreError::invalid("scenario", format!("{n}: the reference has scenarios 1, 2 and 3")));
             }
         };
-        Ok(ScenarioSpec {
-            name: n.to_string(),
-            static_objects,
-            dynamic,
-            users,
-            ..ScenarioSpec::custom(seed)
-        })
+        Ok(ScenarioSpec { name: n.to_string(), static_objects, dynamic, users, ..ScenarioSpec::custom(seed) })
     }
 
     /// A custom scenario with the defaults of scenario 1; change the fields as needed.
@@ -116,11 +107,7 @@ impl ScenarioSpec {
             static_objects: 15_000,
             dynamic: 55_000,
             users: 5_000,
-            placement: Placement::Clustered {
-                hotspots: 8,
-                fraction: 0.8,
-                spread: 16.0,
-            },
+            placement: Placement::Clustered { hotspots: 8, fraction: 0.8, spread: 16.0 },
             ..ScenarioSpec::custom(seed)
         }
     }
@@ -128,10 +115,7 @@ impl ScenarioSpec {
     /// The world bounds this spec generates.
     pub fn bounds(&self) -> Aabb {
         let top = self.max_height + 64.0;
-        Aabb::new(
-            self.origin,
-            self.origin + Vec3::new(self.world_size, top, self.world_size),
-        )
+        Aabb::new(self.origin, self.origin + Vec3::new(self.world_size, top, self.world_size))
     }
 
     /// Number of spheres, boxes and capsules among the dynamic objects.
@@ -148,10 +132,7 @@ impl ScenarioSpec {
 
     fn validate(&self) -> Result<(), CoreError> {
         if !(self.world_size.is_finite() && self.world_size >= 16.0) {
-            return Err(CoreError::invalid(
-                "world size",
-                format!("{} (at least 16)", self.world_size),
-            ));
+            return Err(CoreError::invalid("world size", format!("{} (at least 16)", self.world_size)));
         }
         if !self.origin.is_finite() {
             return Err(CoreError::invalid("origin", format!("{}", self.origin)));
@@ -159,56 +140,45 @@ impl ScenarioSpec {
         if self.users > self.dynamic {
             return Err(CoreError::invalid(
                 "users",
-                format!(
-                    "{} users but only {} dynamic objects",
-                    self.users, self.dynamic
-                ),
+                format!("{} users but only {} dynamic objects", self.users, self.dynamic),
             ));
         }
         if !(self.max_height.is_finite() && self.max_height >= 0.0) {
-            return Err(CoreError::invalid(
-                "max height",
-                format!("{}", self.max_height),
-            ));
+            return Err(CoreError::invalid("max height", format!("{}", self.max_height)));
         }
-        if let Placement::Clustered {
-            hotspots,
-            fraction,
-            spread,
-        } = self.placement
-        {
-            if hotspots == 0
-                || !(0.0..=1.0).contains(&fraction)
-                || !(spread.is_finite() && spread > 0.0)
-            {
-                return Err(CoreError::invalid(
-                    "clustered placement",
-                    format!("{:?}", self.placement),
-                ));
+        if let Placement::Clustered { hotspots, fraction, spread } = self.placement {
+            if hotspots == 0 || !(0.0..=1.0).contains(&fraction) || !(spread.is_finite() && spread > 0.0) {
+                return Err(CoreError::invalid("clustered placement", format!("{:?}", self.placement)));
             }
         }
         Ok(())
     }
 
-    /// Generates the world.
-    pub fn build(&self) -> Result<World, CoreError> {
-        self.validate()?;
-        let bounds = self.bounds();
-        let at = TerrainPlacement {
+    /// Where the terrain of this spec lies: over the whole map, its floor at the origin.
+    pub fn terrain_placement(&self) -> TerrainPlacement {
+        TerrainPlacement {
             origin_x: self.origin.x,
             origin_z: self.origin.z,
             extent_x: self.world_size,
             extent_z: self.world_size,
             base_y: self.origin.y,
-        };
-        let terrain = Terrain::generate(
-            self.seed,
-            self.terrain_samples,
-            self.terrain_samples,
-            self.max_height,
-            at,
-        )?;
-        let mut world = World::new(bounds, terrain, self.seed)?;
+        }
+    }
+
+    /// Generates the world, terrain included.
+    pub fn build(&self) -> Result<World, CoreError> {
+        self.validate()?;
+        let at = self.terrain_placement();
+        let (n, h) = (self.terrain_samples, self.max_height);
+        let terrain = Terrain::generate(self.seed, n, n, h, at)?;
+        self.build_on(terrain)
+    }
+
+    /// Generates the world on a given terrain (for instance one loaded from a file with
+    /// [`ScenarioSpec::terrain_placement`]).
+    pub fn build_on(&self, terrain: Terrain) -> Result<World, CoreError> {
+        self.validate()?;
+        let mut world = World::new(self.bounds(), terrain, self.seed)?;
         self.place_statics(&mut world)?;
         self.place_dynamics(&mut world)?;
         Ok(world)
@@ -235,42 +205,22 @@ impl ScenarioSpec {
                     let low = Vec3::new(1.2, 0.6, 1.2) * s;
                     let high = Vec3::new(0.7, 0.5, 0.7) * s;
                     vec![
-                        (
-                            Shape::Capsule {
-                                radius: r,
-                                half_height: hh,
-                            },
-                            Vec3::new(x, trunk_y, z),
-                        ),
+                        (Shape::Capsule { radius: r, half_height: hh }, Vec3::new(x, trunk_y, z)),
                         (Shape::Box { half: low }, Vec3::new(x, top + low.y, z)),
-                        (
-                            Shape::Box { half: high },
-                            Vec3::new(x, top + 2.0 * low.y + high.y, z),
-                        ),
+                        (Shape::Box { half: high }, Vec3::new(x, top + 2.0 * low.y + high.y, z)),
                     ]
                 }
                 StaticKind::Crate => {
-                    let half = Vec3::new(
-                        rng.range(0.5, 2.0),
-                        rng.range(0.5, 2.0),
-                        rng.range(0.5, 2.0),
-                    );
+                    let half = Vec3::new(rng.range(0.5, 2.0), rng.range(0.5, 2.0), rng.range(0.5, 2.0));
                     vec![(Shape::Box { half }, Vec3::new(x, ground + half.y - 0.1, z))]
                 }
                 StaticKind::Rock | StaticKind::Other => {
-                    let base = Vec3::new(
-                        rng.range(1.0, 2.5),
-                        rng.range(0.4, 0.8),
-                        rng.range(1.0, 2.5),
-                    ) * s;
+                    let base = Vec3::new(rng.range(1.0, 2.5), rng.range(0.4, 0.8), rng.range(1.0, 2.5)) * s;
                     let top = base * 0.6;
                     let by = ground + base.y - 0.2;
                     vec![
                         (Shape::Box { half: base }, Vec3::new(x, by, z)),
-                        (
-                            Shape::Box { half: top },
-                            Vec3::new(x + 0.2 * base.x, by + base.y + top.y, z),
-                        ),
+                        (Shape::Box { half: top }, Vec3::new(x + 0.2 * base.x, by + base.y + top.y, z)),
                     ]
                 }
             };
@@ -300,39 +250,22 @@ impl ScenarioSpec {
         let n = self.dynamic as u64;
         let users = self.users as u64;
         let margin = 2.0;
-        let (lo_x, hi_x) = (
-            self.origin.x + margin,
-            self.origin.x + self.world_size - margin,
-        );
-        let (lo_z, hi_z) = (
-            self.origin.z + margin,
-            self.origin.z + self.world_size - margin,
-        );
+        let (lo_x, hi_x) = (self.origin.x + margin, self.origin.x + self.world_size - margin);
+        let (lo_z, hi_z) = (self.origin.z + margin, self.origin.z + self.world_size - margin);
         for i in 0..self.dynamic {
             let s = rng.range(0.8, 1.2);
             let shape = if i < spheres {
                 Shape::Sphere { radius: 0.5 * s }
             } else if i < spheres + boxes {
-                Shape::Box {
-                    half: Vec3::splat(0.5 * s),
-                }
+                Shape::Box { half: Vec3::splat(0.5 * s) }
             } else {
-                Shape::Capsule {
-                    radius: 0.35 * s,
-                    half_height: 0.55 * s,
-                }
+                Shape::Capsule { radius: 0.35 * s, half_height: 0.55 * s }
             };
             // Users spread evenly: object i is a user when ⌊i·u/n⌋ steps up at i.
             let iu = i as u64;
-            let kind = if (iu + 1) * users / n != iu * users / n {
-                ObjectKind::User
-            } else {
-                ObjectKind::Npc
-            };
+            let kind = if (iu + 1) * users / n != iu * users / n { ObjectKind::User } else { ObjectKind::Npc };
             let (x, z) = match self.placement {
-                Placement::Clustered {
-                    fraction, spread, ..
-                } if rng.unit() < fraction => {
+                Placement::Clustered { fraction, spread, .. } if rng.unit() < fraction => {
                     let (cx, cz) = hotspots[rng.below(hotspots.len() as u32) as usize];
                     (
                         (cx + rng.normalish() * spread).clamp(lo_x, hi_x),
@@ -362,16 +295,11 @@ mod tests {
     fn reference_counts_are_exact() {
         let s3 = ScenarioSpec::reference(3, 1).unwrap();
         assert_eq!(s3.dynamic_shapes(), [86_668, 86_666, 86_666]);
-        assert_eq!(
-            ScenarioSpec::reference(2, 1).unwrap().dynamic_shapes(),
-            [18_334, 18_333, 18_333]
-        );
+        assert_eq!(ScenarioSpec::reference(2, 1).unwrap().dynamic_shapes(), [18_334, 18_333, 18_333]);
         assert_eq!(s3.static_kinds(), [33_333, 33_333, 33_333]);
         assert!(ScenarioSpec::reference(4, 1).is_err());
 
-        let w = small(ScenarioSpec::reference(1, 9).unwrap())
-            .build()
-            .unwrap();
+        let w = small(ScenarioSpec::reference(1, 9).unwrap()).build().unwrap();
         assert_eq!(w.statics.objects().len(), 3_000);
         assert_eq!(w.statics.prims_by_shape(), [0, 5_000, 1_000]);
         assert_eq!(w.dynamics.len(), 6_000);
@@ -380,12 +308,7 @@ mod tests {
             shapes[*s as usize] += 1;
         }
         assert_eq!(shapes, [2_000, 2_000, 2_000]);
-        let users = w
-            .dynamics
-            .kinds()
-            .iter()
-            .filter(|k| **k == ObjectKind::User)
-            .count();
+        let users = w.dynamics.kinds().iter().filter(|k| **k == ObjectKind::User).count();
         assert_eq!(users, 1_000);
         // Users are spread over every shape, not bunched at one end.
         let user_shapes: std::collections::HashSet<ShapeKind> = (0..w.dynamics.len())
@@ -412,10 +335,7 @@ mod tests {
         assert_ne!(other.build().unwrap().state_hash(), a.state_hash());
         for s in 0..a.dynamics.len() {
             let bb = a.dynamics.aabb(s);
-            assert!(
-                a.bounds.contains_point(bb.min) && a.bounds.contains_point(bb.max),
-                "slot {s}: {bb:?}"
-            );
+            assert!(a.bounds.contains_point(bb.min) && a.bounds.contains_point(bb.max), "slot {s}: {bb:?}");
             let p = a.dynamics.positions()[s];
             assert!(bb.min.y >= a.terrain.height_at(p.x, p.z));
         }
@@ -432,9 +352,7 @@ mod tests {
         // the uniform average (4000 / 1024 cells ≈ 4).
         let mut cells = std::collections::HashMap::new();
         for p in w.dynamics.positions() {
-            *cells
-                .entry(((p.x / 32.0) as i32, (p.z / 32.0) as i32))
-                .or_insert(0) += 1;
+            *cells.entry(((p.x / 32.0) as i32, (p.z / 32.0) as i32)).or_insert(0) += 1;
         }
         let busiest = cells.values().max().copied().unwrap();
         assert!(busiest > 100, "busiest cell holds {busiest}");

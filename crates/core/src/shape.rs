@@ -79,10 +79,7 @@ impl Shape {
         match *self {
             Shape::Sphere { radius } => Vec3::splat(radius),
             Shape::Box { half } => half,
-            Shape::Capsule {
-                radius,
-                half_height,
-            } => Vec3::new(radius, half_height + radius, radius),
+            Shape::Capsule { radius, half_height } => Vec3::new(radius, half_height + radius, radius),
         }
     }
 
@@ -99,10 +96,7 @@ impl Shape {
         match kind {
             ShapeKind::Sphere => Shape::Sphere { radius },
             ShapeKind::Box => Shape::Box { half },
-            ShapeKind::Capsule => Shape::Capsule {
-                radius,
-                half_height: half.y - radius,
-            },
+            ShapeKind::Capsule => Shape::Capsule { radius, half_height: half.y - radius },
         }
     }
 
@@ -111,10 +105,7 @@ impl Shape {
         match *self {
             Shape::Sphere { radius } => radius.is_finite() && radius > 0.0,
             Shape::Box { half } => half.is_finite() && half.cmpgt(Vec3::ZERO).all(),
-            Shape::Capsule {
-                radius,
-                half_height,
-            } => {
+            Shape::Capsule { radius, half_height } => {
                 radius.is_finite() && radius > 0.0 && half_height.is_finite() && half_height >= 0.0
             }
         }
@@ -129,36 +120,15 @@ mod tests {
     fn compact_form_round_trips() {
         for s in [
             Shape::Sphere { radius: 0.5 },
-            Shape::Box {
-                half: Vec3::new(1.0, 2.0, 3.0),
-            },
-            Shape::Capsule {
-                radius: 0.25,
-                half_height: 0.75,
-            },
+            Shape::Box { half: Vec3::new(1.0, 2.0, 3.0) },
+            Shape::Capsule { radius: 0.25, half_height: 0.75 },
         ] {
-            assert_eq!(
-                Shape::from_compact(s.kind(), s.half_extents(), s.radius()),
-                s
-            );
+            assert_eq!(Shape::from_compact(s.kind(), s.half_extents(), s.radius()), s);
             assert!(s.is_valid());
         }
-        assert_eq!(
-            Shape::Capsule {
-                radius: 0.5,
-                half_height: 1.0
-            }
-            .half_extents(),
-            Vec3::new(0.5, 1.5, 0.5)
-        );
+        assert_eq!(Shape::Capsule { radius: 0.5, half_height: 1.0 }.half_extents(), Vec3::new(0.5, 1.5, 0.5));
         assert!(!Shape::Sphere { radius: f32::NAN }.is_valid());
-        assert!(
-            Shape::Capsule {
-                radius: 1.0,
-                half_height: 0.0
-            }
-            .is_valid()
-        );
+        assert!(Shape::Capsule { radius: 1.0, half_height: 0.0 }.is_valid());
     }
 
     #[test]

@@ -60,10 +60,7 @@ impl Terrain {
         at: TerrainPlacement,
     ) -> Result<Terrain, CoreError> {
         if width < 2 || depth < 2 {
-            return Err(CoreError::invalid(
-                "heightmap size",
-                format!("{width}x{depth}: need at least 2x2 samples"),
-            ));
+            return Err(CoreError::invalid("heightmap size", format!("{width}x{depth}: need at least 2x2 samples")));
         }
         if samples.len() as u64 != width as u64 * depth as u64 {
             return Err(CoreError::invalid(
@@ -76,10 +73,7 @@ impl Terrain {
         }
         let finite_pos = |v: f32| v.is_finite() && v > 0.0;
         if !finite_pos(at.extent_x) || !finite_pos(at.extent_z) {
-            return Err(CoreError::invalid(
-                "terrain extent",
-                format!("{} x {}", at.extent_x, at.extent_z),
-            ));
+            return Err(CoreError::invalid("terrain extent", format!("{} x {}", at.extent_x, at.extent_z)));
         }
         if !(at.origin_x.is_finite() && at.origin_z.is_finite() && at.base_y.is_finite()) {
             return Err(CoreError::invalid("terrain origin", "not finite"));
@@ -117,10 +111,7 @@ impl Terrain {
         at: TerrainPlacement,
     ) -> Result<Terrain, CoreError> {
         if width < 2 || depth < 2 {
-            return Err(CoreError::invalid(
-                "heightmap size",
-                format!("{width}x{depth}"),
-            ));
+            return Err(CoreError::invalid("heightmap size", format!("{width}x{depth}")));
         }
         const OCTAVES: u32 = 6;
         const BASE_CELLS: f64 = 4.0; // hills across the whole map at the lowest octave
@@ -140,56 +131,30 @@ impl Terrain {
                 raw[(j * width + i) as usize] = h;
             }
         }
-        let (lo, hi) = raw
-            .iter()
-            .fold((f64::MAX, f64::MIN), |(lo, hi), &h| (lo.min(h), hi.max(h)));
+        let (lo, hi) = raw.iter().fold((f64::MAX, f64::MIN), |(lo, hi), &h| (lo.min(h), hi.max(h)));
         let span = if hi > lo { hi - lo } else { 1.0 };
-        let samples = raw
-            .iter()
-            .map(|&h| ((h - lo) / span * 65535.0).round() as u16)
-            .collect();
+        let samples = raw.iter().map(|&h| ((h - lo) / span * 65535.0).round() as u16).collect();
         Terrain::new(width, depth, samples, max_height, at)
     }
 
     /// Loads a 16-bit (or 8-bit, scaled by 257) grayscale PNG.
-    pub fn from_png(
-        path: &Path,
-        max_height: f32,
-        at: TerrainPlacement,
-    ) -> Result<Terrain, CoreError> {
-        let bytes = std::fs::read(path).map_err(|source| CoreError::HeightmapIo {
-            path: path.into(),
-            source,
-        })?;
-        let bad = |reason: String| CoreError::HeightmapPng {
-            path: path.into(),
-            reason,
-        };
+    pub fn from_png(path: &Path, max_height: f32, at: TerrainPlacement) -> Result<Terrain, CoreError> {
+        let bytes = std::fs::read(path).map_err(|source| CoreError::HeightmapIo { path: path.into(), source })?;
+        let bad = |reason: String| CoreError::HeightmapPng { path: path.into(), reason };
         let decoder = png::Decoder::new(std::io::Cursor::new(bytes));
         let mut reader = decoder.read_info().map_err(|e| bad(e.to_string()))?;
-        let size = reader
-            .output_buffer_size()
-            .ok_or_else(|| bad("image too large".into()))?;
+        let size = reader.output_buffer_size().ok_or_else(|| bad("image too large".into()))?;
         let mut buf = vec![0u8; size];
-        let info = reader
-            .next_frame(&mut buf)
-            .map_err(|e| bad(e.to_string()))?;
+        let info = reader.next_frame(&mut buf).map_err(|e| bad(e.to_string()))?;
         if info.color_type != png::ColorType::Grayscale {
-            return Err(bad(format!(
-                "colour type {:?}, expected grayscale",
-                info.color_type
-            )));
+            return Err(bad(format!("colour type {:?}, expected grayscale", info.color_type)));
         }
         let samples: Vec<u16> = match info.bit_depth {
             // PNG stores 16-bit samples big-endian.
-            png::BitDepth::Sixteen => buf[..info.buffer_size()]
-                .chunks_exact(2)
-                .map(|c| u16::from_be_bytes([c[0], c[1]]))
-                .collect(),
-            png::BitDepth::Eight => buf[..info.buffer_size()]
-                .iter()
-                .map(|&b| b as u16 * 257)
-                .collect(),
+            png::BitDepth::Sixteen => {
+                buf[..info.buffer_size()].chunks_exact(2).map(|c| u16::from_be_bytes([c[0], c[1]])).collect()
+            }
+            png::BitDepth::Eight => buf[..info.buffer_size()].iter().map(|&b| b as u16 * 257).collect(),
             other => return Err(bad(format!("bit depth {other:?}, expected 8 or 16"))),
         };
         Terrain::new(info.width, info.height, samples, max_height, at)
@@ -202,10 +167,7 @@ impl Terrain {
         max_height: f32,
         at: TerrainPlacement,
     ) -> Result<Terrain, CoreError> {
-        let bytes = std::fs::read(path).map_err(|source| CoreError::HeightmapIo {
-            path: path.into(),
-            source,
-        })?;
+        let bytes = std::fs::read(path).map_err(|source| CoreError::HeightmapIo { path: path.into(), source })?;
         let n = bytes.len() as u64;
         let (w, d) = match dims {
             Some((w, d)) if n == 2 * w as u64 * d as u64 => (w, d),
@@ -228,30 +190,20 @@ impl Terrain {
                 (side as u32, side as u32)
             }
         };
-        let samples = bytes
-            .chunks_exact(2)
-            .map(|c| u16::from_le_bytes([c[0], c[1]]))
-            .collect();
+        let samples = bytes.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect();
         Terrain::new(w, d, samples, max_height, at)
     }
 
     /// Writes the samples as a 16-bit grayscale PNG (the format [`Terrain::from_png`] reads).
     pub fn write_png(&self, path: &Path) -> Result<(), CoreError> {
-        let io = |e: std::io::Error| CoreError::HeightmapIo {
-            path: path.into(),
-            source: e,
-        };
+        let io = |e: std::io::Error| CoreError::HeightmapIo { path: path.into(), source: e };
         let file = std::fs::File::create(path).map_err(io)?;
         let mut enc = png::Encoder::new(std::io::BufWriter::new(file), self.width, self.depth);
         enc.set_color(png::ColorType::Grayscale);
         enc.set_depth(png::BitDepth::Sixteen);
-        let mut writer = enc
-            .write_header()
-            .map_err(|e| io(std::io::Error::other(e)))?;
+        let mut writer = enc.write_header().map_err(|e| io(std::io::Error::other(e)))?;
         let data: Vec<u8> = self.samples.iter().flat_map(|s| s.to_be_bytes()).collect();
-        writer
-            .write_image_data(&data)
-            .map_err(|e| io(std::io::Error::other(e)))?;
+        writer.write_image_data(&data).map_err(|e| io(std::io::Error::other(e)))?;
         writer.finish().map_err(|e| io(std::io::Error::other(e)))
     }
 
@@ -338,13 +290,7 @@ mod tests {
     use super::*;
 
     fn placement() -> TerrainPlacement {
-        TerrainPlacement {
-            origin_x: -100.0,
-            origin_z: 50.0,
-            extent_x: 200.0,
-            extent_z: 100.0,
-            base_y: -10.0,
-        }
+        TerrainPlacement { origin_x: -100.0, origin_z: 50.0, extent_x: 200.0, extent_z: 100.0, base_y: -10.0 }
     }
 
     #[test]
@@ -367,10 +313,7 @@ mod tests {
         let c = Terrain::generate(8, 257, 257, 128.0, placement()).unwrap();
         assert_eq!(a, b);
         assert_ne!(a.samples(), c.samples());
-        let (lo, hi) = (
-            a.samples().iter().min().unwrap(),
-            a.samples().iter().max().unwrap(),
-        );
+        let (lo, hi) = (a.samples().iter().min().unwrap(), a.samples().iter().max().unwrap());
         assert_eq!((*lo, *hi), (0, 65535), "normalised to the full range");
         // Hills, not noise: neighbouring samples differ far less than the full range.
         let max_step = a
@@ -394,19 +337,13 @@ mod tests {
         let raw_path = dir.join("h.raw");
         let bytes: Vec<u8> = t.samples().iter().flat_map(|s| s.to_le_bytes()).collect();
         std::fs::write(&raw_path, &bytes).unwrap();
-        assert_eq!(
-            Terrain::from_raw(&raw_path, Some((33, 17)), 64.0, placement()).unwrap(),
-            t
-        );
+        assert_eq!(Terrain::from_raw(&raw_path, Some((33, 17)), 64.0, placement()).unwrap(), t);
         assert!(matches!(
             Terrain::from_raw(&raw_path, None, 64.0, placement()),
             Err(CoreError::HeightmapRawSize { .. })
         ));
         std::fs::write(&png_path, b"not a png").unwrap();
-        assert!(matches!(
-            Terrain::from_png(&png_path, 64.0, placement()),
-            Err(CoreError::HeightmapPng { .. })
-        ));
+        assert!(matches!(Terrain::from_png(&png_path, 64.0, placement()), Err(CoreError::HeightmapPng { .. })));
         assert!(matches!(
             Terrain::from_png(&dir.join("missing.png"), 64.0, placement()),
             Err(CoreError::HeightmapIo { .. })

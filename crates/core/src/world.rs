@@ -100,12 +100,7 @@ impl Dynamics {
 
     /// Adds an object at rest and returns its id. Fails on a non-finite position or an
     /// invalid shape.
-    pub fn spawn(
-        &mut self,
-        shape: Shape,
-        pos: Vec3,
-        kind: ObjectKind,
-    ) -> Result<EntityId, CoreError> {
+    pub fn spawn(&mut self, shape: Shape, pos: Vec3, kind: ObjectKind) -> Result<EntityId, CoreError> {
         if !shape.is_valid() {
             return Err(CoreError::invalid("shape", format!("{shape:?}")));
         }
@@ -113,10 +108,8 @@ impl Dynamics {
             return Err(CoreError::invalid("position", format!("{pos}")));
         }
         let id = EntityId(self.next_id);
-        self.next_id = self
-            .next_id
-            .checked_add(1)
-            .ok_or_else(|| CoreError::invalid("entity id", "all 2^32 ids are used"))?;
+        self.next_id =
+            self.next_id.checked_add(1).ok_or_else(|| CoreError::invalid("entity id", "all 2^32 ids are used"))?;
         let slot = self.id.len() as u32;
         self.id.push(id);
         self.pos.push(pos);
@@ -298,18 +291,11 @@ impl Statics {
     pub fn add(&mut self, kind: StaticKind, prims: &[(Shape, Vec3)]) -> Result<u32, CoreError> {
         for (shape, pos) in prims {
             if !shape.is_valid() || !pos.is_finite() {
-                return Err(CoreError::invalid(
-                    "static primitive",
-                    format!("{shape:?} at {pos}"),
-                ));
+                return Err(CoreError::invalid("static primitive", format!("{shape:?} at {pos}")));
             }
         }
         let index = self.objects.len() as u32;
-        self.objects.push(StaticObject {
-            kind,
-            first: self.pos.len() as u32,
-            count: prims.len() as u32,
-        });
+        self.objects.push(StaticObject { kind, first: self.pos.len() as u32, count: prims.len() as u32 });
         for (shape, pos) in prims {
             self.pos.push(*pos);
             self.half.push(shape.half_extents());
@@ -394,14 +380,7 @@ impl World {
         if !bounds.is_valid() || bounds.size().cmple(Vec3::ZERO).any() {
             return Err(CoreError::invalid("world bounds", format!("{bounds:?}")));
         }
-        Ok(World {
-            bounds,
-            terrain,
-            statics: Statics::default(),
-            dynamics: Dynamics::default(),
-            seed,
-            tick: 0,
-        })
+        Ok(World { bounds, terrain, statics: Statics::default(), dynamics: Dynamics::default(), seed, tick: 0 })
     }
 
     /// A stable 64-bit hash of the simulated state: tick, and per slot the id, position,
@@ -447,54 +426,26 @@ mod tests {
     fn despawn_keeps_slots_dense_and_ids_stable() {
         let mut w = world();
         let d = &mut w.dynamics;
-        let a = d
-            .spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc)
-            .unwrap();
-        let b = d
-            .spawn(Shape::Box { half: Vec3::ONE }, Vec3::X, ObjectKind::User)
-            .unwrap();
-        let c = d
-            .spawn(
-                Shape::Capsule {
-                    radius: 0.5,
-                    half_height: 1.0,
-                },
-                Vec3::Y,
-                ObjectKind::Npc,
-            )
-            .unwrap();
+        let a = d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap();
+        let b = d.spawn(Shape::Box { half: Vec3::ONE }, Vec3::X, ObjectKind::User).unwrap();
+        let c = d.spawn(Shape::Capsule { radius: 0.5, half_height: 1.0 }, Vec3::Y, ObjectKind::Npc).unwrap();
         assert!(d.despawn(a));
         assert!(!d.despawn(a));
         assert_eq!(d.len(), 2);
         assert_eq!(d.slot(c), Some(0));
         assert_eq!(d.positions()[0], Vec3::Y);
         assert_eq!(d.slot(b), Some(1));
-        assert_eq!(
-            d.shape_of(0),
-            Shape::Capsule {
-                radius: 0.5,
-                half_height: 1.0
-            }
-        );
+        assert_eq!(d.shape_of(0), Shape::Capsule { radius: 0.5, half_height: 1.0 });
         assert!(d.set_action(b, Action::from_bits(Action::JUMP).unwrap()));
         assert_eq!(d.actions()[1], Action::JUMP);
-        assert!(
-            d.spawn(Shape::Sphere { radius: -1.0 }, Vec3::ZERO, ObjectKind::Npc)
-                .is_err()
-        );
-        assert!(
-            d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::NAN, ObjectKind::Npc)
-                .is_err()
-        );
+        assert!(d.spawn(Shape::Sphere { radius: -1.0 }, Vec3::ZERO, ObjectKind::Npc).is_err());
+        assert!(d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::NAN, ObjectKind::Npc).is_err());
     }
 
     #[test]
     fn hash_changes_with_state() {
         let mut w = world();
-        let id = w
-            .dynamics
-            .spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc)
-            .unwrap();
+        let id = w.dynamics.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap();
         let h0 = w.state_hash();
         assert_eq!(h0, w.clone().state_hash());
         w.dynamics.teleport(id, Vec3::new(0.0, 1e-6, 0.0));
@@ -503,13 +454,8 @@ mod tests {
 
     #[test]
     fn rejects_empty_bounds() {
-        let t = Terrain::flat(TerrainPlacement {
-            origin_x: 0.0,
-            origin_z: 0.0,
-            extent_x: 1.0,
-            extent_z: 1.0,
-            base_y: 0.0,
-        });
+        let t =
+            Terrain::flat(TerrainPlacement { origin_x: 0.0, origin_z: 0.0, extent_x: 1.0, extent_z: 1.0, base_y: 0.0 });
         assert!(World::new(Aabb::new(Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0)), t, 0).is_err());
     }
 }

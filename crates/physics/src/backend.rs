@@ -42,10 +42,7 @@ impl fmt::Display for BackendKind {
 impl FromStr for BackendKind {
     type Err = PhysicsError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        BackendKind::ALL
-            .into_iter()
-            .find(|k| k.name() == s)
-            .ok_or_else(|| PhysicsError::UnknownBackend(s.into()))
+        BackendKind::ALL.into_iter().find(|k| k.name() == s).ok_or_else(|| PhysicsError::UnknownBackend(s.into()))
     }
 }
 
@@ -191,12 +188,7 @@ pub trait Backend: Send {
 
     /// For each query box, the dynamic objects whose boxes overlap it (touching counts),
     /// at the world's current positions.
-    fn query_aoi(
-        &mut self,
-        world: &World,
-        boxes: &[Aabb],
-        out: &mut AoiResults,
-    ) -> Result<(), PhysicsError>;
+    fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError>;
 }
 
 /// Creates a backend.

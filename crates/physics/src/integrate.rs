@@ -123,11 +123,7 @@ pub fn enforce_limits(
         pos.y = floor;
         prev.y = pos.y;
     }
-    if pos.y <= floor + k.ground_tolerance {
-        flags::ON_TERRAIN
-    } else {
-        0
-    }
+    if pos.y <= floor + k.ground_tolerance { flags::ON_TERRAIN } else { 0 }
 }
 
 #[cfg(test)]
@@ -175,10 +171,7 @@ mod tests {
         let (mut pos, mut prev) = (Vec3::new(0.0, 0.5, 0.0), Vec3::new(0.0, 0.5, 0.0));
         integrate(&mut pos, &mut prev, Action::JUMP, true, &k);
         let on = enforce_limits(&mut pos, &mut prev, half, &bounds, &terrain, &k);
-        assert!(
-            pos.y > 0.55 && on == 0,
-            "the jump leaves the ground at once"
-        );
+        assert!(pos.y > 0.55 && on == 0, "the jump leaves the ground at once");
         let mut top = pos.y;
         for _ in 0..60 {
             integrate(&mut pos, &mut prev, 0, false, &k);
@@ -215,10 +208,7 @@ mod tests {
             }
             a = b;
         }
-        assert!(
-            (5..=10).contains(&changes),
-            "{changes} changes in 10 periods"
-        );
+        assert!((5..=10).contains(&changes), "{changes} changes in 10 periods");
         assert_eq!(npc_action(9, id, 123, 60, 0), npc_action(9, id, 123, 60, 0));
     }
 }

@@ -24,11 +24,7 @@ unsafe impl<T: Send> Sync for SharedMut<'_, T> {}
 impl<'a, T: Copy> SharedMut<'a, T> {
     /// Wraps a mutable slice for the duration of its borrow.
     pub(crate) fn new(slice: &'a mut [T]) -> Self {
-        SharedMut {
-            ptr: slice.as_mut_ptr(),
-            len: slice.len(),
-            _borrow: PhantomData,
-        }
+        SharedMut { ptr: slice.as_mut_ptr(), len: slice.len(), _borrow: PhantomData }
     }
 
     /// Writes `value` at `i`.
@@ -40,6 +36,18 @@ impl<'a, T: Copy> SharedMut<'a, T> {
         debug_assert!(i < self.len);
         // SAFETY: in bounds and exclusive, by the caller's promise.
         unsafe { self.ptr.add(i).write(value) }
+    }
+
+    /// A raw pointer to element `i`, for writing one field of it while another thread
+    /// writes a different field.
+    ///
+    /// # Safety
+    /// `i < len`; what the caller does through the pointer must not race.
+    #[inline]
+    pub(crate) unsafe fn ptr(&self, i: usize) -> *mut T {
+        debug_assert!(i < self.len);
+        // SAFETY: in bounds by the caller's promise.
+        unsafe { self.ptr.add(i) }
     }
 
     /// Reads index `i`.

@@ -35,13 +35,7 @@ pub struct Response {
 /// `b` takes the fraction `share` (1 against a static, 0.5 between dynamics). `None` when
 /// they already move apart along the normal.
 #[inline]
-pub fn respond(
-    contact: &Contact,
-    va: Vec3,
-    vb: Vec3,
-    share: f32,
-    k: &TickConstants,
-) -> Option<Response> {
+pub fn respond(contact: &Contact, va: Vec3, vb: Vec3, share: f32, k: &TickConstants) -> Option<Response> {
     let n = contact.normal;
     let vrel = vb - va;
     let vn = dot(vrel, n);
@@ -52,11 +46,7 @@ pub fn respond(
     // Only the approaching part of the velocity is removed (and a share given back):
     // vn ≤ 0, so j ≥ 0 pushes b along +n.
     let j = -(k.one_plus_e * vn) * share;
-    Some(Response {
-        dx: n * s,
-        dv: n * j,
-        normal_y: n.y,
-    })
+    Some(Response { dx: n * s, dv: n * j, normal_y: n.y })
 }
 
 /// The sum of an object's responses, built in the canonical order.

@@ -36,10 +36,7 @@ impl Trees {
     fn ensure_statics(&mut self, world: &World) {
         let st = &world.statics;
         if self.statics_generation != Some(st.generation()) {
-            let boxes: Vec<Aabb> = (0..st.prim_count())
-                .into_par_iter()
-                .map(|i| st.aabb(i))
-                .collect();
+            let boxes: Vec<Aabb> = (0..st.prim_count()).into_par_iter().map(|i| st.aabb(i)).collect();
             self.statics.build(&boxes, &world.bounds);
             self.statics_generation = Some(st.generation());
         }
@@ -57,16 +54,18 @@ impl BroadPhase for Trees {
     fn static_pairs(&mut self, world: &World, aabbs: &[Aabb], out: &mut Vec<u64>) {
         self.ensure_statics(world);
         let tree = &self.statics;
-        let parts: Vec<Vec<u64>> = aabbs
+        // Query in the dynamic tree's Morton order: consecutive queries then walk the
+        // same parts of the static tree. The canonical order is restored by the sort.
+        let parts: Vec<Vec<u64>> = self
+            .dynamics
+            .leaf_order()
             .par_chunks(CHUNK)
-            .enumerate()
-            .map(|(c, chunk)| {
+            .map(|chunk| {
                 let mut local = Vec::new();
-                for (k, a) in chunk.iter().enumerate() {
-                    let obj = ((c * CHUNK + k) as u64) << 32;
-                    let start = local.len();
-                    tree.query(a, |p| local.push(obj | p as u64));
-                    local[start..].sort_unstable();
+                let mut stack = Vec::with_capacity(128);
+                for &obj in chunk {
+                    let key = (obj as u64) << 32;
+                    tree.query_with(&aabbs[obj as usize], &mut stack, |p| local.push(key | p as u64));
                 }
                 local
             })
@@ -75,6 +74,8 @@ impl BroadPhase for Trees {
         for p in parts {
             out.extend_from_slice(&p);
         }
+        // Pairs are unique, so an unstable sort is still deterministic.
+        out.par_sort_unstable();
     }
 
     fn dynamic_pairs(&mut self, _aabbs: &[Aabb], out: &mut Vec<u64>) {
@@ -90,34 +91,17 @@ impl Backend for CpuLbvh {
     }
 
     fn description(&self) -> String {
-        format!(
-            "cpu (rayon, {} threads, LBVH)",
-            rayon::current_num_threads()
-        )
+        format!("cpu (rayon, {} threads, LBVH)", rayon::current_num_threads())
     }
 
     fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
         if world.dynamics.len() >= 1 << 31 {
-            return Err(PhysicsError::TooManyObjects {
-                count: world.dynamics.len(),
-                max: (1 << 31) - 1,
-            });
+            return Err(PhysicsError::TooManyObjects { count: world.dynamics.len(), max: (1 << 31) - 1 });
         }
-        Ok(run_step(
-            Exec::Parallel,
-            world,
-            k,
-            &mut self.broad,
-            &mut self.scratch,
-        ))
+        Ok(run_step(Exec::Parallel, world, k, &mut self.broad, &mut self.scratch))
     }
 
-    fn query_aoi(
-        &mut self,
-        world: &World,
-        boxes: &[Aabb],
-        out: &mut AoiResults,
-    ) -> Result<(), PhysicsError> {
+    fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
         let d = &world.dynamics;
         let trees = &mut self.broad;
         if trees.dynamic_fresh != Some(d.generation()) {
@@ -134,12 +118,15 @@ impl Backend for CpuLbvh {
         let tree = &trees.dynamics;
         let per_query: Vec<Vec<u32>> = boxes
             .par_iter()
-            .map(|q| {
-                let mut v = Vec::new();
-                tree.query(q, |i| v.push(i));
-                v.sort_unstable();
-                v
-            })
+            .map_init(
+                || Vec::with_capacity(128),
+                |stack, q| {
+                    let mut v = Vec::new();
+                    tree.query_with(q, stack, |i| v.push(i));
+                    v.sort_unstable();
+                    v
+                },
+            )
             .collect();
         out.clear();
         out.offsets.reserve(boxes.len() + 1);

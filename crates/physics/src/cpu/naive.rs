@@ -24,8 +24,7 @@ impl BroadPhase for AllPairs {
     fn build_dynamic(&mut self, world: &World, _aabbs: &[Aabb]) {
         let st = &world.statics;
         self.static_aabbs.clear();
-        self.static_aabbs
-            .extend((0..st.prim_count()).map(|i| st.aabb(i)));
+        self.static_aabbs.extend((0..st.prim_count()).map(|i| st.aabb(i)));
     }
 
     fn static_pairs(&mut self, _world: &World, aabbs: &[Aabb], out: &mut Vec<u64>) {
@@ -59,28 +58,16 @@ impl Backend for CpuNaive {
     }
 
     fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
-        Ok(run_step(
-            Exec::Serial,
-            world,
-            k,
-            &mut self.broad,
-            &mut self.scratch,
-        ))
+        Ok(run_step(Exec::Serial, world, k, &mut self.broad, &mut self.scratch))
     }
 
-    fn query_aoi(
-        &mut self,
-        world: &World,
-        boxes: &[Aabb],
-        out: &mut AoiResults,
-    ) -> Result<(), PhysicsError> {
+    fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
         let aabbs = &mut self.scratch.aabbs;
         dynamic_aabbs(Exec::Serial, &world.dynamics, aabbs);
         out.clear();
         out.offsets.push(0);
         for q in boxes {
-            out.objects
-                .extend((0..aabbs.len() as u32).filter(|&i| aabbs[i as usize].overlaps(q)));
+            out.objects.extend((0..aabbs.len() as u32).filter(|&i| aabbs[i as usize].overlaps(q)));
             out.offsets.push(out.objects.len() as u32);
         }
         Ok(())

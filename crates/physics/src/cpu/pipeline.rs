@@ -55,22 +55,12 @@ pub(crate) struct Scratch {
 
 #[inline]
 pub(crate) fn dynamic_body(d: &Dynamics, i: usize) -> Body {
-    Body {
-        kind: d.shapes()[i],
-        pos: d.positions()[i],
-        half: d.half_extents()[i],
-        radius: d.radii()[i],
-    }
+    Body { kind: d.shapes()[i], pos: d.positions()[i], half: d.half_extents()[i], radius: d.radii()[i] }
 }
 
 #[inline]
 pub(crate) fn static_body(s: &Statics, i: usize) -> Body {
-    Body {
-        kind: s.shapes()[i],
-        pos: s.positions()[i],
-        half: s.half_extents()[i],
-        radius: s.radii()[i],
-    }
+    Body { kind: s.shapes()[i], pos: s.positions()[i], half: s.half_extents()[i], radius: s.radii()[i] }
 }
 
 /// Object boxes at the current positions.
@@ -79,22 +69,12 @@ pub(crate) fn dynamic_aabbs(exec: Exec, d: &Dynamics, out: &mut Vec<Aabb>) {
     let f = |(p, h): (&Vec3, &Vec3)| Aabb::from_center_half(*p, *h);
     match exec {
         Exec::Serial => out.extend(d.positions().iter().zip(d.half_extents()).map(f)),
-        Exec::Parallel => out.par_extend(
-            d.positions()
-                .par_iter()
-                .zip(d.half_extents().par_iter())
-                .map(f),
-        ),
+        Exec::Parallel => out.par_extend(d.positions().par_iter().zip(d.half_extents().par_iter()).map(f)),
     }
 }
 
 /// Keeps the items `f` maps to `Some`, in input order.
-fn filter_map<T: Sync, U: Send>(
-    exec: Exec,
-    input: &[T],
-    out: &mut Vec<U>,
-    f: impl Fn(&T) -> Option<U> + Sync + Send,
-) {
+fn filter_map<T: Sync, U: Send>(exec: Exec, input: &[T], out: &mut Vec<U>, f: impl Fn(&T) -> Option<U> + Sync + Send) {
     out.clear();
     match exec {
         Exec::Serial => out.extend(input.iter().filter_map(f)),
@@ -211,13 +191,8 @@ fn forces(exec: Exec, world: &mut World, k: &TickConstants, s: &Scratch) {
     };
     match exec {
         Exec::Serial => {
-            for (i, (((pos, prev), action), flag)) in st
-                .pos
-                .iter_mut()
-                .zip(st.prev.iter_mut())
-                .zip(st.action.iter_mut())
-                .zip(st.flags.iter_mut())
-                .enumerate()
+            for (i, (((pos, prev), action), flag)) in
+                st.pos.iter_mut().zip(st.prev.iter_mut()).zip(st.action.iter_mut()).zip(st.flags.iter_mut()).enumerate()
             {
                 per_object(i, pos, prev, action, flag);
             }

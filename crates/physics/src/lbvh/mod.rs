@@ -38,17 +38,20 @@ use morton::MortonFrame;
 
 /// Marks a child reference as a leaf (leaf index in the low bits).
 const LEAF: u32 = 1 << 31;
-/// Traversal stack size; see the module docs for why it cannot overflow.
+/// Traversal stack capacity; see the module docs for why it is never exceeded.
 const STACK: usize = 128;
 
-/// An internal node.
+/// An internal node. It holds its children's boxes rather than its own, so a traversal
+/// step tests both children from one 64-byte cache line without touching them.
 #[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
 struct Node {
-    aabb: Aabb,
-    left: u32,
-    right: u32,
-    /// The last (highest) leaf index under this node.
-    last: u32,
+    /// Boxes of the left and right child.
+    boxes: [Aabb; 2],
+    /// Children: an internal node index, or a leaf index with [`LEAF`] set.
+    child: [u32; 2],
+    /// The last (highest) leaf index under each child.
+    last: [u32; 2],
 }
 
 /// A linear BVH over a set of boxes.
@@ -74,6 +77,12 @@ impl Lbvh {
         self.leaves.len()
     }
 
+    /// The caller's indices in leaf (Morton) order: neighbours in this order are
+    /// neighbours in space, so processing objects in it keeps caches warm.
+    pub fn leaf_order(&self) -> &[u32] {
+        &self.order
+    }
+
     /// Whether the tree is empty.
     pub fn is_empty(&self) -> bool {
         self.leaves.is_empty()
@@ -86,8 +95,7 @@ impl Lbvh {
         assert!(n < LEAF as usize, "an LBVH holds fewer than 2^31 leaves");
         let frame = MortonFrame::new(bounds);
         self.keys.clear();
-        self.keys
-            .par_extend(boxes.par_iter().map(|b| frame.code(b.center())));
+        self.keys.par_extend(boxes.par_iter().map(|b| frame.code(b.center())));
         self.order.clear();
         self.order.par_extend(0..n as u32);
         radix::sort_pairs(
@@ -98,8 +106,7 @@ impl Lbvh {
             &mut self.scratch_values,
         );
         self.leaves.clear();
-        self.leaves
-            .par_extend(self.order.par_iter().map(|&o| boxes[o as usize]));
+        self.leaves.par_extend(self.order.par_iter().map(|&o| boxes[o as usize]));
         self.emit_hierarchy();
         self.refit_internal();
     }
@@ -108,16 +115,9 @@ impl Lbvh {
     /// objects did not). `boxes` is indexed like the `build` input. Queries stay exact;
     /// only their speed degrades as objects drift from their build-time neighbours.
     pub fn refit(&mut self, boxes: &[Aabb]) {
-        assert_eq!(
-            boxes.len(),
-            self.leaves.len(),
-            "refit needs the same objects as the build"
-        );
+        assert_eq!(boxes.len(), self.leaves.len(), "refit needs the same objects as the build");
         let order = &self.order;
-        self.leaves
-            .par_iter_mut()
-            .zip(order.par_iter())
-            .for_each(|(l, &o)| *l = boxes[o as usize]);
+        self.leaves.par_iter_mut().zip(order.par_iter()).for_each(|(l, &o)| *l = boxes[o as usize]);
         self.refit_internal();
     }
 
@@ -129,11 +129,7 @@ impl Lbvh {
             return -1;
         }
         let (a, b) = (keys[i as usize], keys[j as usize]);
-        if a == b {
-            64 + ((i as u32) ^ (j as u32)).leading_zeros() as i32
-        } else {
-            (a ^ b).leading_zeros() as i32
-        }
+        if a == b { 64 + ((i as u32) ^ (j as u32)).leading_zeros() as i32 } else { (a ^ b).leading_zeros() as i32 }
     }
 
     /// Karras's parallel construction of the internal nodes (boxes are filled by refit).
@@ -148,11 +144,7 @@ impl Lbvh {
         let keys = &self.keys;
         self.nodes.par_extend((0..n - 1).into_par_iter().map(|i| {
             let i = i as i64;
-            let d: i64 = if Self::delta(keys, i, i + 1) - Self::delta(keys, i, i - 1) >= 0 {
-                1
-            } else {
-                -1
-            };
+            let d: i64 = if Self::delta(keys, i, i + 1) - Self::delta(keys, i, i - 1) >= 0 { 1 } else { -1 };
             // Upper bound of the range length, then its exact length, by doubling and
             // binary search on δ.
             let dmin = Self::delta(keys, i, i - d);
@@ -185,33 +177,17 @@ impl Lbvh {
             }
             let gamma = i + s * d + d.min(0);
             let (first, last) = (i.min(j), i.max(j));
-            let left = if first == gamma {
-                gamma as u32 | LEAF
-            } else {
-                gamma as u32
-            };
-            let right = if last == gamma + 1 {
-                (gamma + 1) as u32 | LEAF
-            } else {
-                (gamma + 1) as u32
-            };
-            Node {
-                aabb: Aabb::EMPTY,
-                left,
-                right,
-                last: last as u32,
-            }
+            let left = if first == gamma { gamma as u32 | LEAF } else { gamma as u32 };
+            let right = if last == gamma + 1 { (gamma + 1) as u32 | LEAF } else { (gamma + 1) as u32 };
+            // The left child covers [first, gamma], the right one [gamma + 1, last].
+            Node { boxes: [Aabb::EMPTY; 2], child: [left, right], last: [gamma as u32, last as u32] }
         }));
         // Parents: every node except the root is the child of exactly one node.
         let node_parent: Vec<AtomicU32> = (0..n - 1).map(|_| AtomicU32::new(0)).collect();
         let leaf_parent: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(0)).collect();
         self.nodes.par_iter().enumerate().for_each(|(p, node)| {
-            for c in [node.left, node.right] {
-                let slot = if c & LEAF != 0 {
-                    &leaf_parent[(c & !LEAF) as usize]
-                } else {
-                    &node_parent[c as usize]
-                };
+            for c in node.child {
+                let slot = if c & LEAF != 0 { &leaf_parent[(c & !LEAF) as usize] } else { &node_parent[c as usize] };
                 slot.store(p as u32, Ordering::Relaxed);
             }
         });
@@ -230,69 +206,69 @@ impl Lbvh {
         let node_parent = &self.node_parent;
         let leaf_parent = &self.leaf_parent;
         let nodes = SharedMut::new(&mut self.nodes);
-        let child_box = |c: u32| -> Aabb {
-            if c & LEAF != 0 {
-                leaves[(c & !LEAF) as usize]
-            } else {
-                // SAFETY: only read after this child's subtree is complete (see below),
-                // and nobody writes a node's box after that.
-                unsafe { nodes.read(c as usize).aabb }
+        // Stores `aabb` as the box of child `c` in its parent `p`. The two children of a
+        // node write different fields of it, so only that field is written.
+        let store_side = |p: usize, c: u32, aabb: Aabb| {
+            // SAFETY: `p` is in bounds; `child` was written before this parallel phase and
+            // is only read; box `side` of `p` is written by the thread that finished child
+            // `c`, once, and read only after the parent's arrival counter orders it.
+            unsafe {
+                let node = nodes.ptr(p);
+                let side = usize::from((*node).child[1] == c);
+                std::ptr::addr_of_mut!((*node).boxes[side]).write(aabb);
             }
         };
         (0..n).into_par_iter().for_each(|leaf| {
             let mut node = leaf_parent[leaf] as usize;
+            let mut from = leaf as u32 | LEAF;
+            let mut aabb = leaves[leaf];
             loop {
-                // The first child to arrive stops; the second (which sees 1) finds both
-                // children final. AcqRel orders the first one's writes before the
-                // second one's reads.
+                // Both children write into the same parent, so the writes themselves
+                // must not overlap: each thread writes its side, then arrives; the
+                // first to arrive stops and the second (which sees 1) finds both sides
+                // final. AcqRel orders the first one's write before the second's read.
+                store_side(node, from, aabb);
                 if arrivals[node].fetch_add(1, Ordering::AcqRel) == 0 {
                     return;
                 }
-                // SAFETY: only the second arrival reaches here, once per node, so this
-                // thread alone reads and writes node `node` now.
-                let mut current = unsafe { nodes.read(node) };
-                current.aabb = child_box(current.left).union(&child_box(current.right));
-                unsafe { nodes.write(node, current) };
+                // SAFETY: only the second arrival reaches here, once per node, after both
+                // sides were stored.
+                let current = unsafe { nodes.read(node) };
+                aabb = current.boxes[0].union(&current.boxes[1]);
                 if node == 0 {
                     return;
                 }
+                from = node as u32;
                 node = node_parent[node] as usize;
             }
         });
     }
 
-    /// Calls `f(leaf)` for every leaf whose box overlaps `query`, with leaf index above
-    /// `after` (pass `None` for all). Returns nothing; `f` collects.
+    /// Calls `f(leaf)` for every leaf whose box overlaps `query`, with leaf index at least
+    /// `min_leaf`. `stack` is scratch space, reused between calls to avoid clearing a
+    /// fresh array per query.
     #[inline]
-    fn visit(&self, query: &Aabb, after: Option<u32>, mut f: impl FnMut(u32)) {
+    fn visit(&self, query: &Aabb, min_leaf: u32, stack: &mut Vec<u32>, mut f: impl FnMut(u32)) {
         let n = self.leaves.len();
-        if n == 0 {
-            return;
-        }
-        let min_leaf = after.map_or(0, |a| a + 1);
-        if n == 1 {
-            if min_leaf == 0 && self.leaves[0].overlaps(query) {
+        if n < 2 {
+            if n == 1 && min_leaf == 0 && self.leaves[0].overlaps(query) {
                 f(0);
             }
             return;
         }
-        let mut stack = [0u32; STACK];
-        let mut top = 1usize; // stack[0] = root (node 0)
-        while top > 0 {
-            top -= 1;
-            let node = &self.nodes[stack[top] as usize];
-            for c in [node.left, node.right] {
+        stack.clear();
+        stack.push(0); // the root
+        while let Some(top) = stack.pop() {
+            let node = &self.nodes[top as usize];
+            for side in 0..2 {
+                if node.last[side] < min_leaf || !node.boxes[side].overlaps(query) {
+                    continue;
+                }
+                let c = node.child[side];
                 if c & LEAF != 0 {
-                    let leaf = c & !LEAF;
-                    if leaf >= min_leaf && self.leaves[leaf as usize].overlaps(query) {
-                        f(leaf);
-                    }
+                    f(c & !LEAF);
                 } else {
-                    let child = &self.nodes[c as usize];
-                    if child.last >= min_leaf && child.aabb.overlaps(query) {
-                        stack[top] = c;
-                        top += 1;
-                    }
+                    stack.push(c);
                 }
             }
         }
@@ -300,8 +276,14 @@ impl Lbvh {
 
     /// Calls `f(index)` with the caller's index of every box overlapping `query`.
     #[inline]
-    pub fn query(&self, query: &Aabb, mut f: impl FnMut(u32)) {
-        self.visit(query, None, |leaf| f(self.order[leaf as usize]));
+    pub fn query(&self, query: &Aabb, f: impl FnMut(u32)) {
+        self.query_with(query, &mut Vec::with_capacity(STACK), f);
+    }
+
+    /// [`Lbvh::query`] with a caller-provided traversal stack, for loops of queries.
+    #[inline]
+    pub fn query_with(&self, query: &Aabb, stack: &mut Vec<u32>, mut f: impl FnMut(u32)) {
+        self.visit(query, 0, stack, |leaf| f(self.order[leaf as usize]));
     }
 
     /// Every overlapping pair of boxes, as `(min index, max index)` packed into a `u64`
@@ -313,9 +295,10 @@ impl Lbvh {
             .into_par_iter()
             .map(|c| {
                 let mut local = Vec::new();
+                let mut stack = Vec::with_capacity(STACK);
                 for leaf in c * chunk..((c + 1) * chunk).min(n) {
                     let a = self.order[leaf];
-                    self.visit(&self.leaves[leaf], Some(leaf as u32), |other| {
+                    self.visit(&self.leaves[leaf], leaf as u32 + 1, &mut stack, |other| {
                         let b = self.order[other as usize];
                         let (lo, hi) = if a < b { (a, b) } else { (b, a) };
                         local.push((lo as u64) << 32 | hi as u64);

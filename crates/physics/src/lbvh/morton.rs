@@ -33,10 +33,7 @@ impl MortonFrame {
         let cells = ((1u32 << BITS_PER_AXIS) - 1) as f32;
         let size = bounds.size();
         let s = |e: f32| if e > 0.0 { cells / e } else { 0.0 };
-        MortonFrame {
-            min: bounds.min,
-            scale: Vec3::new(s(size.x), s(size.y), s(size.z)),
-        }
+        MortonFrame { min: bounds.min, scale: Vec3::new(s(size.x), s(size.y), s(size.z)) }
     }
 
     /// The Morton code of point `p` (points outside the bounds clamp to the edge).
@@ -62,13 +59,7 @@ mod tests {
         assert_eq!(expand_bits(0x1f_ffff).count_ones(), 21);
         let frame = MortonFrame::new(&Aabb::new(Vec3::splat(-1000.0), Vec3::splat(3000.0)));
         assert_eq!(frame.code(Vec3::splat(-1000.0)), 0);
-        assert_eq!(
-            frame.code(Vec3::splat(1e9)),
-            (1u64 << 63) - 1,
-            "outside clamps"
-        );
-        assert!(
-            frame.code(Vec3::new(0.0, 0.0, 0.0)) < frame.code(Vec3::new(2000.0, 2000.0, 2000.0))
-        );
+        assert_eq!(frame.code(Vec3::splat(1e9)), (1u64 << 63) - 1, "outside clamps");
+        assert!(frame.code(Vec3::new(0.0, 0.0, 0.0)) < frame.code(Vec3::new(2000.0, 2000.0, 2000.0)));
     }
 }

@@ -34,11 +34,7 @@ pub fn sort_pairs(
     }
     scratch_keys.resize(n, 0);
     scratch_values.resize(n, 0);
-    let chunks = if n < PARALLEL_MIN {
-        1
-    } else {
-        rayon::current_num_threads() * 4
-    };
+    let chunks = if n < PARALLEL_MIN { 1 } else { rayon::current_num_threads() * 4 };
     let chunk_len = n.div_ceil(chunks);
     let passes = key_bits.div_ceil(RADIX_BITS);
     for pass in 0..passes {
@@ -71,10 +67,8 @@ pub fn sort_pairs(
         {
             let out_k = SharedMut::new(scratch_keys);
             let out_v = SharedMut::new(scratch_values);
-            keys.par_chunks(chunk_len)
-                .zip(values.par_chunks(chunk_len))
-                .zip(offsets.par_iter_mut())
-                .for_each(|((ks, vs), off)| {
+            keys.par_chunks(chunk_len).zip(values.par_chunks(chunk_len)).zip(offsets.par_iter_mut()).for_each(
+                |((ks, vs), off)| {
                     for (&k, &v) in ks.iter().zip(vs) {
                         let d = digit(k);
                         let at = off[d] as usize;
@@ -86,7 +80,8 @@ pub fn sort_pairs(
                             out_v.write(at, v);
                         }
                     }
-                });
+                },
+            );
         }
         std::mem::swap(keys, scratch_keys);
         std::mem::swap(values, scratch_values);
@@ -100,16 +95,9 @@ mod tests {
 
     fn check(mut keys: Vec<u64>, bits: u32) {
         let mut values: Vec<u32> = (0..keys.len() as u32).collect();
-        let mut expected: Vec<(u64, u32)> =
-            keys.iter().copied().zip(values.iter().copied()).collect();
+        let mut expected: Vec<(u64, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
         expected.sort(); // by key, then by original index: what a stable sort gives
-        sort_pairs(
-            &mut keys,
-            &mut values,
-            bits,
-            &mut Vec::new(),
-            &mut Vec::new(),
-        );
+        sort_pairs(&mut keys, &mut values, bits, &mut Vec::new(), &mut Vec::new());
         let got: Vec<(u64, u32)> = keys.into_iter().zip(values).collect();
         assert_eq!(got, expected);
     }

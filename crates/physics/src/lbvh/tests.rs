@@ -31,11 +31,7 @@ fn random_boxes(seed: u64, n: usize, bounds: &Aabb, max_half: f32) -> Vec<Aabb> 
     (0..n)
         .map(|_| {
             let c = bounds.min + Vec3::new(s.unit(), s.unit(), s.unit()) * size;
-            let h = Vec3::new(
-                s.range(0.05, max_half),
-                s.range(0.05, max_half),
-                s.range(0.05, max_half),
-            );
+            let h = Vec3::new(s.range(0.05, max_half), s.range(0.05, max_half), s.range(0.05, max_half));
             Aabb::from_center_half(c, h)
         })
         .collect()
@@ -43,17 +39,10 @@ fn random_boxes(seed: u64, n: usize, bounds: &Aabb, max_half: f32) -> Vec<Aabb> 
 
 #[test]
 fn pairs_match_brute_force_on_random_boxes() {
-    let bounds = Aabb::new(
-        Vec3::new(-5000.0, -10.0, 2000.0),
-        Vec3::new(-4900.0, 30.0, 2100.0),
-    );
+    let bounds = Aabb::new(Vec3::new(-5000.0, -10.0, 2000.0), Vec3::new(-4900.0, 30.0, 2100.0));
     let boxes = random_boxes(1, 3000, &bounds, 2.0);
     let expected = brute_pairs(&boxes);
-    assert!(
-        expected.len() > 500,
-        "the test needs many pairs, got {}",
-        expected.len()
-    );
+    assert!(expected.len() > 500, "the test needs many pairs, got {}", expected.len());
     assert_eq!(tree_pairs(&boxes, &bounds), expected);
 }
 
@@ -62,12 +51,9 @@ fn pairs_match_brute_force_with_duplicate_codes() {
     // 2,000 boxes on only 10 distinct centres: masses of identical Morton codes.
     let bounds = Aabb::new(Vec3::ZERO, Vec3::splat(100.0));
     let mut s = Stream::new(2, 0);
-    let centres: Vec<Vec3> = (0..10)
-        .map(|_| Vec3::new(s.unit(), s.unit(), s.unit()) * 100.0)
-        .collect();
-    let boxes: Vec<Aabb> = (0..2000)
-        .map(|i| Aabb::from_center_half(centres[i % 10], Vec3::splat(0.5 + (i % 3) as f32 * 0.1)))
-        .collect();
+    let centres: Vec<Vec3> = (0..10).map(|_| Vec3::new(s.unit(), s.unit(), s.unit()) * 100.0).collect();
+    let boxes: Vec<Aabb> =
+        (0..2000).map(|i| Aabb::from_center_half(centres[i % 10], Vec3::splat(0.5 + (i % 3) as f32 * 0.1))).collect();
     let expected = brute_pairs(&boxes);
     assert!(expected.len() >= 10 * 199 * 200 / 2);
     assert_eq!(tree_pairs(&boxes, &bounds), expected);
@@ -104,9 +90,7 @@ fn queries_match_brute_force_and_survive_refit() {
             let mut got = Vec::new();
             t.query(q, |i| got.push(i));
             got.sort_unstable();
-            let want: Vec<u32> = (0..boxes.len() as u32)
-                .filter(|&i| boxes[i as usize].overlaps(q))
-                .collect();
+            let want: Vec<u32> = (0..boxes.len() as u32).filter(|&i| boxes[i as usize].overlaps(q)).collect();
             assert_eq!(got, want);
         }
     };
@@ -143,11 +127,6 @@ fn tiny_trees() {
 fn objects_outside_the_bounds_are_still_found() {
     // Morton codes clamp to the edge; the boxes themselves are exact.
     let bounds = Aabb::new(Vec3::ZERO, Vec3::splat(10.0));
-    let boxes = random_boxes(
-        6,
-        500,
-        &Aabb::new(Vec3::splat(-50.0), Vec3::splat(60.0)),
-        5.0,
-    );
+    let boxes = random_boxes(6, 500, &Aabb::new(Vec3::splat(-50.0), Vec3::splat(60.0)), 5.0);
     assert_eq!(tree_pairs(&boxes, &bounds), brute_pairs(&boxes));
 }

@@ -10,22 +10,6 @@ use myriad_core::Vec3;
 /// otherwise, and the test becomes sphere–sphere between them. Coaxial capsules are
 /// separated by lifting `b` above `a`.
 #[inline]
-pub fn contact_capsule_capsule(
-    ac: Vec3,
-    ar: f32,
-    ahh: f32,
-    bc: Vec3,
-    br: f32,
-    bhh: f32,
-) -> Option<Contact> {
-    segment_segment(
-        ac,
-        ac.y - ahh,
-        ac.y + ahh,
-        ar,
-        bc,
-        bc.y - bhh,
-        bc.y + bhh,
-        br,
-    )
+pub fn contact_capsule_capsule(ac: Vec3, ar: f32, ahh: f32, bc: Vec3, br: f32, bhh: f32) -> Option<Contact> {
+    segment_segment(ac, ac.y - ahh, ac.y + ahh, ar, bc, bc.y - bhh, bc.y + bhh, br)
 }

@@ -14,13 +14,6 @@ pub fn contact_sphere_sphere(ca: Vec3, ra: f32, cb: Vec3, rb: f32) -> Option<Con
         return None;
     }
     let dist = dist2.sqrt();
-    let normal = if dist > 0.0 {
-        Vec3::new(d.x / dist, d.y / dist, d.z / dist)
-    } else {
-        FALLBACK_NORMAL
-    };
-    Some(Contact {
-        normal,
-        depth: r - dist,
-    })
+    let normal = if dist > 0.0 { Vec3::new(d.x / dist, d.y / dist, d.z / dist) } else { FALLBACK_NORMAL };
+    Some(Contact { normal, depth: r - dist })
 }

@@ -45,10 +45,7 @@ impl Contact {
     /// The same contact seen from the other shape.
     #[inline]
     pub fn flipped(self) -> Contact {
-        Contact {
-            normal: -self.normal,
-            depth: self.depth,
-        }
+        Contact { normal: -self.normal, depth: self.depth }
     }
 }
 
@@ -91,25 +88,16 @@ pub fn contact(a: &Body, b: &Body) -> Option<Contact> {
         (Sphere, Sphere) => contact_sphere_sphere(a.pos, a.radius, b.pos, b.radius),
         (Sphere, Box) => contact_sphere_box(a.pos, a.radius, b.pos, b.half),
         (Box, Sphere) => contact_sphere_box(b.pos, b.radius, a.pos, a.half).map(Contact::flipped),
-        (Sphere, Capsule) => {
-            contact_sphere_capsule(a.pos, a.radius, b.pos, b.radius, b.half_height())
-        }
+        (Sphere, Capsule) => contact_sphere_capsule(a.pos, a.radius, b.pos, b.radius, b.half_height()),
         (Capsule, Sphere) => {
-            contact_sphere_capsule(b.pos, b.radius, a.pos, a.radius, a.half_height())
-                .map(Contact::flipped)
+            contact_sphere_capsule(b.pos, b.radius, a.pos, a.radius, a.half_height()).map(Contact::flipped)
         }
         (Box, Box) => contact_box_box(a.pos, a.half, b.pos, b.half),
         (Box, Capsule) => contact_box_capsule(a.pos, a.half, b.pos, b.radius, b.half_height()),
-        (Capsule, Box) => contact_box_capsule(b.pos, b.half, a.pos, a.radius, a.half_height())
-            .map(Contact::flipped),
-        (Capsule, Capsule) => contact_capsule_capsule(
-            a.pos,
-            a.radius,
-            a.half_height(),
-            b.pos,
-            b.radius,
-            b.half_height(),
-        ),
+        (Capsule, Box) => contact_box_capsule(b.pos, b.half, a.pos, a.radius, a.half_height()).map(Contact::flipped),
+        (Capsule, Capsule) => {
+            contact_capsule_capsule(a.pos, a.radius, a.half_height(), b.pos, b.radius, b.half_height())
+        }
     }
 }
 

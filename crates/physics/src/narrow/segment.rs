@@ -26,22 +26,11 @@ fn closest_height(s0: f32, s1: f32, b0: f32, b1: f32) -> f32 {
 /// The vertical segment at `(c.x, [s0, s1], c.z)` swept by radius `r`, against the box at
 /// `bc` with half extents `bh`. The normal points from the segment's body to the box.
 #[inline]
-pub(crate) fn segment_box(
-    c: Vec3,
-    s0: f32,
-    s1: f32,
-    r: f32,
-    bc: Vec3,
-    bh: Vec3,
-) -> Option<Contact> {
+pub(crate) fn segment_box(c: Vec3, s0: f32, s1: f32, r: f32, bc: Vec3, bh: Vec3) -> Option<Contact> {
     let lo = bc - bh;
     let hi = bc + bh;
     let p = Vec3::new(c.x, closest_height(s0, s1, lo.y, hi.y), c.z);
-    let q = Vec3::new(
-        p.x.max(lo.x).min(hi.x),
-        p.y.max(lo.y).min(hi.y),
-        p.z.max(lo.z).min(hi.z),
-    );
+    let q = Vec3::new(p.x.max(lo.x).min(hi.x), p.y.max(lo.y).min(hi.y), p.z.max(lo.z).min(hi.z));
     let d = q - p;
     let dist2 = dot(d, d);
     if dist2 > 0.0 {
@@ -50,10 +39,7 @@ pub(crate) fn segment_box(
         }
         let dist = dist2.sqrt();
         let normal = Vec3::new(d.x / dist, d.y / dist, d.z / dist);
-        return Some(Contact {
-            normal,
-            depth: r - dist,
-        });
+        return Some(Contact { normal, depth: r - dist });
     }
     // The segment passes through the box: leave by the shortest of six moves. Each entry
     // is (distance the body must travel, normal from body to box); ties go to the first.
@@ -71,10 +57,7 @@ pub(crate) fn segment_box(
             best = *w;
         }
     }
-    Some(Contact {
-        normal: best.1,
-        depth: best.0,
-    })
+    Some(Contact { normal: best.1, depth: best.0 })
 }
 
 /// Two vertical segments `a` at `(ac.x, [a0, a1], ac.z)` with radius `ar` and `b` likewise,
@@ -103,10 +86,7 @@ pub(crate) fn segment_segment(
     let c = contact_sphere_sphere(pa, ar, pb, br)?;
     if pa == pb {
         // Shared axis and overlapping ranges: lift b until its bottom end clears a's top.
-        return Some(Contact {
-            normal: FALLBACK_NORMAL,
-            depth: (a1 - b0) + (ar + br),
-        });
+        return Some(Contact { normal: FALLBACK_NORMAL, depth: (a1 - b0) + (ar + br) });
     }
     Some(c)
 }

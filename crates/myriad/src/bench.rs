@@ -1,0 +1,354 @@
+//! `myriad bench`: every scenario on every backend, medians per stage, in the layout of
+//! the reference's Tables 1 and 2.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use myriad_core::{ObjectKind, PhysicsConfig, World};
+use myriad_physics::{BackendKind, Stage, StepReport, TickConstants, create_backend};
+use serde::Serialize;
+
+use crate::reference;
+use crate::scenario_args::{ScenarioName, WorldArgs};
+
+/// Output formats.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Format {
+    /// Markdown tables next to the reference's.
+    Md,
+    /// One JSON object per line.
+    Json,
+    /// Comma-separated values with a header.
+    Csv,
+}
+
+/// Flags of `myriad bench`.
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Scenarios, comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "1,2,3")]
+    pub scenario: Vec<ScenarioName>,
+    /// Backends, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "cpu,cpu-naive")]
+    pub backend: Vec<BackendKind>,
+    /// Measured ticks per run (after the warm-up).
+    #[arg(long, default_value_t = 30)]
+    pub ticks: u64,
+    /// Ticks run before measuring.
+    #[arg(long, default_value_t = 3)]
+    pub warmup: u64,
+    /// Output format on standard output.
+    #[arg(long, value_enum, default_value = "md")]
+    pub format: Format,
+    /// Also write bench.md, bench.json and bench.csv into this directory.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Run backends even when a tick takes longer than --max-tick-ms.
+    #[arg(long)]
+    pub force: bool,
+    /// A backend whose first tick takes longer than this is skipped (the reference's "-").
+    #[arg(long, default_value_t = 1000.0)]
+    pub max_tick_ms: f64,
+    #[command(flatten)]
+    pub world: WorldArgs,
+}
+
+/// One line of results: a scenario on a backend.
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    scenario: String,
+    backend: String,
+    description: String,
+    threads: usize,
+    ticks: u64,
+    warmup: u64,
+    dynamic: usize,
+    users: usize,
+    npcs: usize,
+    static_objects: usize,
+    static_spheres: usize,
+    static_boxes: usize,
+    static_capsules: usize,
+    upload: f64,
+    build_dynamic_bvh: f64,
+    broad_static: f64,
+    broad_dynamic: f64,
+    narrow_static: f64,
+    narrow_dynamic: f64,
+    forces: f64,
+    packets: f64,
+    send: f64,
+    physics_static_ms: f64,
+    physics_dynamic_ms: f64,
+    total_ms: f64,
+    static_pairs: u64,
+    dynamic_pairs: u64,
+    static_contacts: u64,
+    dynamic_contacts: u64,
+    state_hash: String,
+    skipped: Option<String>,
+}
+
+impl Row {
+    fn stages(&self) -> [f64; 9] {
+        [
+            self.upload,
+            self.build_dynamic_bvh,
+            self.broad_static,
+            self.broad_dynamic,
+            self.narrow_static,
+            self.narrow_dynamic,
+            self.forces,
+            self.packets,
+            self.send,
+        ]
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    let m = v.len() / 2;
+    if v.len() % 2 == 1 { v[m] } else { (v[m - 1] + v[m]) / 2.0 }
+}
+
+fn median_u64(v: impl Iterator<Item = u64>) -> u64 {
+    let mut v: Vec<u64> = v.collect();
+    v.sort_unstable();
+    v.get(v.len() / 2).copied().unwrap_or(0)
+}
+
+fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs) -> Result<Row> {
+    let mut backend = create_backend(kind)?;
+    let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
+    let mut w = world.clone();
+    let d = &world.dynamics;
+    let users = d.kinds().iter().filter(|k| **k == ObjectKind::User).count();
+    let [spheres, boxes, capsules] = world.statics.prims_by_shape();
+    let mut row = Row {
+        scenario: label.into(),
+        backend: kind.to_string(),
+        description: backend.description(),
+        threads: rayon::current_num_threads(),
+        ticks: args.ticks,
+        warmup: args.warmup,
+        dynamic: d.len(),
+        users,
+        npcs: d.len() - users,
+        static_objects: world.statics.objects().len(),
+        static_spheres: spheres,
+        static_boxes: boxes,
+        static_capsules: capsules,
+        upload: 0.0,
+        build_dynamic_bvh: 0.0,
+        broad_static: 0.0,
+        broad_dynamic: 0.0,
+        narrow_static: 0.0,
+        narrow_dynamic: 0.0,
+        forces: 0.0,
+        packets: 0.0,
+        send: 0.0,
+        physics_static_ms: 0.0,
+        physics_dynamic_ms: 0.0,
+        total_ms: 0.0,
+        static_pairs: 0,
+        dynamic_pairs: 0,
+        static_contacts: 0,
+        dynamic_contacts: 0,
+        state_hash: String::new(),
+        skipped: None,
+    };
+    let started = Instant::now();
+    backend.step(&mut w, &k).context("first tick")?;
+    let first_ms = started.elapsed().as_secs_f64() * 1e3;
+    if first_ms > args.max_tick_ms && !args.force {
+        row.skipped = Some(format!("first tick took {first_ms:.0} ms (> {} ms); --force runs it", args.max_tick_ms));
+        eprintln!("  {kind}: skipped, {}", row.skipped.as_deref().unwrap_or_default());
+        return Ok(row);
+    }
+    for _ in 1..args.warmup {
+        backend.step(&mut w, &k)?;
+    }
+    let mut reports: Vec<StepReport> = Vec::with_capacity(args.ticks as usize);
+    for _ in 0..args.ticks {
+        reports.push(backend.step(&mut w, &k)?);
+    }
+    let stage = |s: Stage| median(reports.iter().map(|r| r.ms(s)).collect());
+    row.upload = stage(Stage::Upload);
+    row.build_dynamic_bvh = stage(Stage::BuildDynamicBvh);
+    row.broad_static = stage(Stage::BroadStatic);
+    row.broad_dynamic = stage(Stage::BroadDynamic);
+    row.narrow_static = stage(Stage::NarrowStatic);
+    row.narrow_dynamic = stage(Stage::NarrowDynamic);
+    row.forces = stage(Stage::Forces);
+    row.physics_static_ms = median(reports.iter().map(StepReport::physics_static_ms).collect());
+    row.physics_dynamic_ms = median(reports.iter().map(StepReport::physics_dynamic_ms).collect());
+    row.total_ms = median(reports.iter().map(StepReport::total_ms).collect());
+    row.static_pairs = median_u64(reports.iter().map(|r| r.static_pairs));
+    row.dynamic_pairs = median_u64(reports.iter().map(|r| r.dynamic_pairs));
+    row.static_contacts = median_u64(reports.iter().map(|r| r.static_contacts));
+    row.dynamic_contacts = median_u64(reports.iter().map(|r| r.dynamic_contacts));
+    row.state_hash = format!("{:016x}", w.state_hash());
+    eprintln!(
+        "  {kind}: {:.3} ms a tick (static {:.3}, dynamic {:.3}), hash {}",
+        row.total_ms, row.physics_static_ms, row.physics_dynamic_ms, row.state_hash
+    );
+    Ok(row)
+}
+
+/// Runs the benchmark and returns its rows.
+pub fn measure(args: &BenchArgs) -> Result<Vec<Row>> {
+    let mut rows = Vec::new();
+    for &name in &args.scenario {
+        let started = Instant::now();
+        let (spec, world) = args.world.build(name)?;
+        eprintln!(
+            "scenario {}: {} dynamic, {} static objects, generated in {:.1} s",
+            spec.name,
+            world.dynamics.len(),
+            world.statics.objects().len(),
+            started.elapsed().as_secs_f64()
+        );
+        for &kind in &args.backend {
+            rows.push(
+                bench_one(&spec.name, &world, kind, args)
+                    .with_context(|| format!("scenario {} on {kind}", spec.name))?,
+            );
+        }
+    }
+    Ok(rows)
+}
+
+fn fmt_ms(v: f64) -> String {
+    if v >= 100.0 {
+        format!("{v:.0}")
+    } else if v >= 1.0 {
+        format!("{v:.2}")
+    } else {
+        format!("{v:.3}")
+    }
+}
+
+/// Markdown: our Table 1 and Table 2, then the reference's.
+pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
+    let mut s = String::new();
+    let threads = rows.first().map_or(0, |r| r.threads);
+    let _ = writeln!(
+        s,
+        "#### Table 1: physics time per tick (ms, median of {} ticks after {} warm-up)\n",
+        args.ticks, args.warmup
+    );
+    let _ =
+        writeln!(s, "| scenario | backend | static | dynamic | total | dynamic pairs | static pairs | state hash |");
+    let _ = writeln!(s, "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- |");
+    for r in rows {
+        match &r.skipped {
+            Some(why) => {
+                let _ = writeln!(s, "| {} | {} | - | - | - | | | {why} |", r.scenario, r.backend);
+            }
+            None => {
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {} | {} | {} | {} | {} | `{}` |",
+                    r.scenario,
+                    r.backend,
+                    fmt_ms(r.physics_static_ms),
+                    fmt_ms(r.physics_dynamic_ms),
+                    fmt_ms(r.total_ms),
+                    r.dynamic_pairs,
+                    r.static_pairs,
+                    r.state_hash
+                );
+            }
+        }
+    }
+    let _ = writeln!(s, "\n#### Table 2: time per stage (ms, medians)\n");
+    let _ = writeln!(s, "| scenario | backend | {} |", reference::STAGES.join(" | "));
+    let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(reference::STAGES.len()));
+    for r in rows.iter().filter(|r| r.skipped.is_none()) {
+        let cells: Vec<String> = r.stages().iter().map(|&v| fmt_ms(v)).collect();
+        let _ = writeln!(s, "| {} | {} | {} |", r.scenario, r.backend, cells.join(" | "));
+    }
+    let _ = writeln!(
+        s,
+        "\n`packets` and `send` belong to the server tick and are 0 in a physics-only run. cpu threads: {threads}."
+    );
+    let _ = writeln!(s, "\n#### The reference ({})\n", reference::MACHINE);
+    let _ = writeln!(
+        s,
+        "| scenario | CPU static | CPU dynamic | naive GPU static | naive GPU dynamic | optimized GPU static | optimized GPU dynamic |"
+    );
+    let _ = writeln!(s, "| --- | ---: | ---: | ---: | ---: | ---: | ---: |");
+    for (name, v) in reference::TABLE1 {
+        let cells: Vec<String> = v.iter().map(|c| c.map_or("-".into(), |x| format!("{x}"))).collect();
+        let _ = writeln!(s, "| {name} | {} |", cells.join(" | "));
+    }
+    let _ = writeln!(s, "\n| scenario (optimized GPU) | {} |", reference::STAGES.join(" | "));
+    let _ = writeln!(s, "| --- |{}", " ---: |".repeat(reference::STAGES.len()));
+    for (name, v) in reference::TABLE2 {
+        let cells: Vec<String> = v.iter().map(|x| format!("{x}")).collect();
+        let _ = writeln!(s, "| {name} | {} |", cells.join(" | "));
+    }
+    s
+}
+
+/// One JSON object per line.
+pub fn json(rows: &[Row]) -> Result<String> {
+    let mut s = String::new();
+    for r in rows {
+        s.push_str(&serde_json::to_string(r)?);
+        s.push('\n');
+    }
+    Ok(s)
+}
+
+/// CSV with a header line.
+pub fn csv(rows: &[Row]) -> Result<String> {
+    let mut s = String::new();
+    for (i, r) in rows.iter().enumerate() {
+        let v = serde_json::to_value(r)?;
+        let obj = v.as_object().context("a row serialises to an object")?;
+        if i == 0 {
+            s.push_str(&obj.keys().cloned().collect::<Vec<_>>().join(","));
+            s.push('\n');
+        }
+        let cells: Vec<String> = obj
+            .values()
+            .map(|v| match v {
+                serde_json::Value::String(t) => format!("\"{}\"", t.replace('"', "\"\"")),
+                serde_json::Value::Null => String::new(),
+                other => other.to_string(),
+            })
+            .collect();
+        s.push_str(&cells.join(","));
+        s.push('\n');
+    }
+    Ok(s)
+}
+
+/// Runs `myriad bench`.
+pub fn run(args: BenchArgs) -> Result<()> {
+    let rows = measure(&args)?;
+    let md = markdown(&rows, &args);
+    let js = json(&rows)?;
+    let cs = csv(&rows)?;
+    match args.format {
+        Format::Md => print!("{md}"),
+        Format::Json => print!("{js}"),
+        Format::Csv => print!("{cs}"),
+    }
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        for (name, text) in [("bench.md", &md), ("bench.json", &js), ("bench.csv", &cs)] {
+            let path = dir.join(name);
+            std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        }
+        eprintln!("wrote bench.md, bench.json and bench.csv to {}", dir.display());
+    }
+    Ok(())
+}

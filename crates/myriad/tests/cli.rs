@@ -1,0 +1,147 @@
+//! The `myriad` command as other tools drive it: flags, JSON fields, errors.
+
+use std::process::Command;
+
+fn myriad(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_myriad")).args(args).env("RUST_LOG", "warn").output().expect("running myriad")
+}
+
+fn json_lines(out: &[u8]) -> Vec<serde_json::Value> {
+    String::from_utf8_lossy(out)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON: {l:?}: {e}")))
+        .collect()
+}
+
+const SMALL: &[&str] = &[
+    "--scenario",
+    "custom",
+    "--dynamic",
+    "600",
+    "--static",
+    "90",
+    "--users",
+    "60",
+    "--world-size",
+    "64",
+    "--terrain-samples",
+    "65",
+    "--origin",
+    "-300,-20,5000",
+];
+
+#[test]
+fn sim_prints_the_same_hash_on_both_backends() {
+    let mut hashes = Vec::new();
+    for backend in ["cpu", "cpu-naive"] {
+        let mut args = vec!["sim", "--json", "--ticks", "40", "--backend", backend];
+        args.extend_from_slice(SMALL);
+        let out = myriad(&args);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let v = &json_lines(&out.stdout)[0];
+        assert_eq!(v["dynamic"], 600);
+        assert_eq!(v["users"], 60);
+        assert_eq!(v["static_objects"], 90);
+        assert_eq!(v["ticks"], 40);
+        hashes.push(v["state_hash"].as_str().unwrap().to_string());
+    }
+    assert_eq!(hashes[0], hashes[1]);
+    assert_eq!(hashes[0].len(), 16);
+}
+
+#[test]
+fn bench_reports_every_stage_and_the_table_columns() {
+    let dir = std::env::temp_dir().join(format!("myriad-bench-{}", std::process::id()));
+    let mut args =
+        vec!["bench", "--format", "json", "--ticks", "5", "--warmup", "1", "--backend", "cpu,cpu-naive", "--out"];
+    let dir_s = dir.to_string_lossy().to_string();
+    args.push(&dir_s);
+    args.extend_from_slice(SMALL);
+    let out = myriad(&args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rows = json_lines(&out.stdout);
+    assert_eq!(rows.len(), 2);
+    for r in &rows {
+        for key in [
+            "upload",
+            "build_dynamic_bvh",
+            "broad_static",
+            "broad_dynamic",
+            "narrow_static",
+            "narrow_dynamic",
+            "forces",
+            "packets",
+            "send",
+            "physics_static_ms",
+            "physics_dynamic_ms",
+            "dynamic",
+            "static_objects",
+            "static_boxes",
+            "static_capsules",
+            "users",
+            "static_pairs",
+            "dynamic_pairs",
+            "state_hash",
+        ] {
+            assert!(r.get(key).is_some(), "missing {key} in {r}");
+        }
+        assert!(r["physics_dynamic_ms"].as_f64().unwrap() > 0.0);
+        assert_eq!(r["static_boxes"], 150);
+        assert_eq!(r["static_capsules"], 30);
+    }
+    assert_eq!(rows[0]["state_hash"], rows[1]["state_hash"]);
+    for f in ["bench.md", "bench.json", "bench.csv"] {
+        let text = std::fs::read_to_string(dir.join(f)).unwrap();
+        assert!(text.contains("cpu-naive"), "{f}");
+    }
+    let md = std::fs::read_to_string(dir.join("bench.md")).unwrap();
+    assert!(md.contains("396.5"), "the reference's Table 1 is printed beside ours");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn slow_backends_are_skipped_unless_forced() {
+    let mut args = vec!["bench", "--format", "json", "--ticks", "2", "--warmup", "1", "--max-tick-ms", "0"];
+    args.extend_from_slice(SMALL);
+    let rows = json_lines(&myriad(&args).stdout);
+    assert!(rows.iter().all(|r| r["skipped"].is_string()), "{rows:?}");
+    args.push("--force");
+    let rows = json_lines(&myriad(&args).stdout);
+    assert!(rows.iter().all(|r| r["skipped"].is_null()), "{rows:?}");
+}
+
+#[test]
+fn bad_input_gets_a_clear_error() {
+    let out = myriad(&["sim", "--backend", "quantum"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("unknown backend"));
+
+    let out = myriad(&["sim", "--scenario", "2", "--dynamic", "5"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--scenario custom"));
+
+    let out = myriad(&["sim", "--scenario", "custom", "--heightmap", "/nonexistent/h.png"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("loading heightmap") && err.contains("/nonexistent/h.png"), "{err}");
+
+    let out = myriad(&["sim", "--scenario", "custom", "--origin", "1,2"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("three finite numbers"));
+}
+
+#[test]
+fn a_heightmap_file_can_replace_the_generated_terrain() {
+    let dir = std::env::temp_dir().join(format!("myriad-hm-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("ramp.raw");
+    // A 33×33 ramp along x.
+    let bytes: Vec<u8> = (0..33 * 33).flat_map(|i| ((i % 33) as u16 * 2000).to_le_bytes()).collect();
+    std::fs::write(&path, bytes).unwrap();
+    let p = path.to_string_lossy().to_string();
+    let mut args = vec!["sim", "--json", "--ticks", "10", "--heightmap", &p];
+    args.extend_from_slice(SMALL);
+    let out = myriad(&args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -70,9 +70,7 @@ pub(crate) fn is_transient(err: &sqlx::Error) -> bool {
                     || my.code().is_some_and(|state| state.starts_with("08"))
             } else if db.try_downcast_ref::<sqlx::sqlite::SqliteError>().is_some() {
                 // SQLite reports its extended result code; the low byte is the primary code.
-                db.code()
-                    .and_then(|c| c.parse::<i64>().ok())
-                    .is_some_and(|c| SQLITE_TRANSIENT.contains(&(c & 0xff)))
+                db.code().and_then(|c| c.parse::<i64>().ok()).is_some_and(|c| SQLITE_TRANSIENT.contains(&(c & 0xff)))
             } else {
                 false
             }
@@ -83,11 +81,7 @@ pub(crate) fn is_transient(err: &sqlx::Error) -> bool {
 
 impl From<sqlx::Error> for StoreError {
     fn from(err: sqlx::Error) -> Self {
-        if is_transient(&err) {
-            StoreError::Unavailable(err)
-        } else {
-            StoreError::Database(err)
-        }
+        if is_transient(&err) { StoreError::Unavailable(err) } else { StoreError::Database(err) }
     }
 }
 
@@ -95,9 +89,7 @@ impl From<sqlx::migrate::MigrateError> for StoreError {
     fn from(err: sqlx::migrate::MigrateError) -> Self {
         use sqlx::migrate::MigrateError as M;
         match err {
-            M::Execute(e) | M::ExecuteMigration(e, _) if is_transient(&e) => {
-                StoreError::Unavailable(e)
-            }
+            M::Execute(e) | M::ExecuteMigration(e, _) if is_transient(&e) => StoreError::Unavailable(e),
             other => StoreError::Migration(other),
         }
     }
@@ -105,9 +97,30 @@ impl From<sqlx::migrate::MigrateError> for StoreError {
 
 /// Whether a database error is a unique-key (or primary-key) violation.
 pub(crate) fn is_unique_violation(err: &sqlx::Error) -> bool {
-    err.as_database_error()
-        .is_some_and(|db| db.is_unique_violation())
+    err.as_database_error().is_some_and(|db| db.is_unique_violation())
 }
 
 /// Shorthand for results of store operations.
 pub type Result<T, E = StoreError> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn connection_errors_are_transient() {
+        let io = sqlx::Error::Io(std::io::Error::from(std::io::ErrorKind::ConnectionRefused));
+        assert!(StoreError::from(io).is_transient());
+        assert!(StoreError::from(sqlx::Error::PoolTimedOut).is_transient());
+        assert!(StoreError::from(sqlx::Error::PoolClosed).is_transient());
+        assert!(!StoreError::from(sqlx::Error::RowNotFound).is_transient());
+        assert!(!StoreError::WrongCredentials.is_transient());
+    }
+
+    #[test]
+    fn messages_never_carry_secrets() {
+        // The variants that talk about credentials have fixed messages.
+        assert_eq!(StoreError::WrongCredentials.to_string(), "wrong username or password");
+        assert_eq!(StoreError::UsernameTaken.to_string(), "username already taken");
+    }
+}

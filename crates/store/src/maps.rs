@@ -5,9 +5,7 @@ use sqlx::any::AnyRow;
 use sqlx::{Any, QueryBuilder, Row};
 
 use crate::error::{Result, StoreError, is_unique_violation};
-use crate::model::{
-    Heightmap, MapId, MapInfo, MapSummary, NewMap, Shape, StaticObject, WorldBounds, now_ms,
-};
+use crate::model::{Heightmap, MapId, MapInfo, MapSummary, NewMap, Shape, StaticObject, WorldBounds, now_ms};
 use crate::store::Store;
 
 /// Longest accepted map name in bytes.
@@ -24,15 +22,10 @@ const STATIC_CHUNK: usize = 250;
 fn validate_map(map: &NewMap) -> Result<()> {
     let bad = |msg: String| Err(StoreError::InvalidInput(msg));
     if map.name.trim().is_empty() || map.name.len() > MAX_MAP_NAME_LEN {
-        return bad(format!(
-            "map name must be 1 to {MAX_MAP_NAME_LEN} bytes, not blank"
-        ));
+        return bad(format!("map name must be 1 to {MAX_MAP_NAME_LEN} bytes, not blank"));
     }
     if !(map.max_height.is_finite() && map.max_height >= 0.0) {
-        return bad(format!(
-            "max_height {} must be finite and >= 0",
-            map.max_height
-        ));
+        return bad(format!("max_height {} must be finite and >= 0", map.max_height));
     }
     let b = map.bounds;
     let finite = b.min.iter().chain(&b.max).all(|c| c.is_finite());
@@ -41,11 +34,7 @@ fn validate_map(map: &NewMap) -> Result<()> {
     }
     match &map.heightmap {
         Heightmap::None => {}
-        Heightmap::Inline {
-            width,
-            height,
-            samples,
-        } => {
+        Heightmap::Inline { width, height, samples } => {
             let expected = (*width as usize).checked_mul(*height as usize);
             if *width == 0 || *height == 0 || expected != Some(samples.len()) {
                 return bad(format!(
@@ -54,16 +43,12 @@ fn validate_map(map: &NewMap) -> Result<()> {
                 ));
             }
             if samples.len() > MAX_HEIGHTMAP_SAMPLES {
-                return bad(format!(
-                    "heightmap larger than {MAX_HEIGHTMAP_SAMPLES} samples"
-                ));
+                return bad(format!("heightmap larger than {MAX_HEIGHTMAP_SAMPLES} samples"));
             }
         }
         Heightmap::Path(path) => {
             if path.is_empty() || path.len() > MAX_HEIGHTMAP_PATH_LEN {
-                return bad(format!(
-                    "heightmap path must be 1 to {MAX_HEIGHTMAP_PATH_LEN} bytes"
-                ));
+                return bad(format!("heightmap path must be 1 to {MAX_HEIGHTMAP_PATH_LEN} bytes"));
             }
         }
     }
@@ -75,10 +60,7 @@ fn validate_object(object: &StaticObject) -> Result<()> {
     if object.position.iter().all(|c| c.is_finite()) {
         Ok(())
     } else {
-        Err(StoreError::InvalidInput(format!(
-            "static object {} has a non-finite position",
-            object.object_id
-        )))
+        Err(StoreError::InvalidInput(format!("static object {} has a non-finite position", object.object_id)))
     }
 }
 
@@ -93,16 +75,8 @@ fn summary_from_row(row: &AnyRow) -> Result<MapSummary> {
         name: row.try_get("name")?,
         max_height: f32_of(row, "max_height")?,
         bounds: WorldBounds {
-            min: [
-                f32_of(row, "min_x")?,
-                f32_of(row, "min_y")?,
-                f32_of(row, "min_z")?,
-            ],
-            max: [
-                f32_of(row, "max_x")?,
-                f32_of(row, "max_y")?,
-                f32_of(row, "max_z")?,
-            ],
+            min: [f32_of(row, "min_x")?, f32_of(row, "min_y")?, f32_of(row, "min_z")?],
+            max: [f32_of(row, "max_x")?, f32_of(row, "max_y")?, f32_of(row, "max_z")?],
         },
     })
 }
@@ -120,15 +94,8 @@ fn heightmap_from_row(row: &AnyRow) -> Result<Heightmap> {
             if bytes.len() != 2 * width as usize * height as usize {
                 return Err(corrupt("heightmap blob size does not match its dimensions"));
             }
-            let samples = bytes
-                .chunks_exact(2)
-                .map(|p| u16::from_le_bytes([p[0], p[1]]))
-                .collect();
-            Ok(Heightmap::Inline {
-                width,
-                height,
-                samples,
-            })
+            let samples = bytes.chunks_exact(2).map(|p| u16::from_le_bytes([p[0], p[1]])).collect();
+            Ok(Heightmap::Inline { width, height, samples })
         }
         (None, Some(path)) => Ok(Heightmap::Path(path)),
         (None, None) => Ok(Heightmap::None),
@@ -145,17 +112,9 @@ fn object_from_row(row: &AnyRow) -> Result<StaticObject> {
         shape: Shape::from_columns(
             row.try_get("shape_kind")?,
             row.try_get("radius")?,
-            [
-                row.try_get("half_x")?,
-                row.try_get("half_y")?,
-                row.try_get("half_z")?,
-            ],
+            [row.try_get("half_x")?, row.try_get("half_y")?, row.try_get("half_z")?],
         )?,
-        position: [
-            f32_of(row, "pos_x")?,
-            f32_of(row, "pos_y")?,
-            f32_of(row, "pos_z")?,
-        ],
+        position: [f32_of(row, "pos_x")?, f32_of(row, "pos_y")?, f32_of(row, "pos_z")?],
     })
 }
 
@@ -166,11 +125,7 @@ impl Store {
         validate_map(map)?;
         let (blob, width, height, path) = match &map.heightmap {
             Heightmap::None => (None, 0i64, 0i64, None),
-            Heightmap::Inline {
-                width,
-                height,
-                samples,
-            } => {
+            Heightmap::Inline { width, height, samples } => {
                 let bytes: Vec<u8> = samples.iter().flat_map(|s| s.to_le_bytes()).collect();
                 (Some(bytes), i64::from(*width), i64::from(*height), None)
             }
@@ -202,10 +157,7 @@ impl Store {
         match inserted {
             Ok(_) => {}
             Err(e) if is_unique_violation(&e) => {
-                return Err(StoreError::AlreadyExists(format!(
-                    "map named {:?}",
-                    map.name
-                )));
+                return Err(StoreError::AlreadyExists(format!("map named {:?}", map.name)));
             }
             Err(e) => return Err(e.into()),
         }
@@ -242,12 +194,9 @@ impl Store {
 
     /// The id of the map with this name, or [`StoreError::NotFound`].
     pub async fn map_id_by_name(&self, name: &str) -> Result<MapId> {
-        let id: Option<i64> = sqlx::query_scalar("SELECT id FROM maps WHERE name = ?")
-            .bind(name)
-            .fetch_optional(&self.pool)
-            .await?;
-        id.map(MapId)
-            .ok_or_else(|| StoreError::NotFound(format!("map named {name:?}")))
+        let id: Option<i64> =
+            sqlx::query_scalar("SELECT id FROM maps WHERE name = ?").bind(name).fetch_optional(&self.pool).await?;
+        id.map(MapId).ok_or_else(|| StoreError::NotFound(format!("map named {name:?}")))
     }
 
     /// Every map without its heightmap samples, ordered by id.
@@ -270,10 +219,8 @@ impl Store {
             validate_object(object)?;
         }
         let mut tx = self.pool.begin().await?;
-        let exists: Option<i64> = sqlx::query_scalar("SELECT id FROM maps WHERE id = ?")
-            .bind(map.0)
-            .fetch_optional(&mut *tx)
-            .await?;
+        let exists: Option<i64> =
+            sqlx::query_scalar("SELECT id FROM maps WHERE id = ?").bind(map.0).fetch_optional(&mut *tx).await?;
         if exists.is_none() {
             return Err(StoreError::NotFound(format!("map {}", map.0)));
         }
@@ -313,10 +260,8 @@ impl Store {
     /// The static objects of a map ordered by object id (the reference's
     /// `GetMapStaticObjects`), or [`StoreError::NotFound`] if the map does not exist.
     pub async fn get_static_objects(&self, map: MapId) -> Result<Vec<StaticObject>> {
-        let exists: Option<i64> = sqlx::query_scalar("SELECT id FROM maps WHERE id = ?")
-            .bind(map.0)
-            .fetch_optional(&self.pool)
-            .await?;
+        let exists: Option<i64> =
+            sqlx::query_scalar("SELECT id FROM maps WHERE id = ?").bind(map.0).fetch_optional(&self.pool).await?;
         if exists.is_none() {
             return Err(StoreError::NotFound(format!("map {}", map.0)));
         }

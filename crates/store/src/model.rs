@@ -60,42 +60,22 @@ impl Shape {
         let ok = match *self {
             Shape::Sphere { radius } => radius.is_finite() && radius > 0.0,
             Shape::Box { half_extents } => half_extents.iter().all(|h| h.is_finite() && *h > 0.0),
-            Shape::Capsule {
-                radius,
-                half_height,
-            } => {
+            Shape::Capsule { radius, half_height } => {
                 radius.is_finite() && radius > 0.0 && half_height.is_finite() && half_height >= 0.0
             }
         };
-        if ok {
-            Ok(())
-        } else {
-            Err(StoreError::InvalidInput(format!(
-                "shape parameters out of range: {self:?}"
-            )))
-        }
+        if ok { Ok(()) } else { Err(StoreError::InvalidInput(format!("shape parameters out of range: {self:?}"))) }
     }
 
     pub(crate) fn to_columns(self) -> ShapeColumns {
         match self {
-            Shape::Sphere { radius } => ShapeColumns {
-                kind: Self::KIND_SPHERE,
-                radius: radius.into(),
-                half: [0.0; 3],
-            },
-            Shape::Box { half_extents } => ShapeColumns {
-                kind: Self::KIND_BOX,
-                radius: 0.0,
-                half: half_extents.map(f64::from),
-            },
-            Shape::Capsule {
-                radius,
-                half_height,
-            } => ShapeColumns {
-                kind: Self::KIND_CAPSULE,
-                radius: radius.into(),
-                half: [0.0, half_height.into(), 0.0],
-            },
+            Shape::Sphere { radius } => ShapeColumns { kind: Self::KIND_SPHERE, radius: radius.into(), half: [0.0; 3] },
+            Shape::Box { half_extents } => {
+                ShapeColumns { kind: Self::KIND_BOX, radius: 0.0, half: half_extents.map(f64::from) }
+            }
+            Shape::Capsule { radius, half_height } => {
+                ShapeColumns { kind: Self::KIND_CAPSULE, radius: radius.into(), half: [0.0, half_height.into(), 0.0] }
+            }
         }
     }
 
@@ -104,19 +84,10 @@ impl Shape {
     pub(crate) fn from_columns(kind: i64, radius: f64, half: [f64; 3]) -> Result<Shape> {
         // The values were written from f32, so the narrowing casts are exact.
         match kind {
-            Self::KIND_SPHERE => Ok(Shape::Sphere {
-                radius: radius as f32,
-            }),
-            Self::KIND_BOX => Ok(Shape::Box {
-                half_extents: half.map(|h| h as f32),
-            }),
-            Self::KIND_CAPSULE => Ok(Shape::Capsule {
-                radius: radius as f32,
-                half_height: half[1] as f32,
-            }),
-            other => Err(StoreError::Database(sqlx::Error::Decode(
-                format!("unknown shape_kind {other}").into(),
-            ))),
+            Self::KIND_SPHERE => Ok(Shape::Sphere { radius: radius as f32 }),
+            Self::KIND_BOX => Ok(Shape::Box { half_extents: half.map(|h| h as f32) }),
+            Self::KIND_CAPSULE => Ok(Shape::Capsule { radius: radius as f32, half_height: half[1] as f32 }),
+            other => Err(StoreError::Database(sqlx::Error::Decode(format!("unknown shape_kind {other}").into()))),
         }
     }
 }
@@ -139,13 +110,7 @@ pub struct PlayerState {
 impl PlayerState {
     /// A state stamped with the current time.
     pub fn new(user_id: UserId, map_id: MapId, shape: Shape, position: [f32; 3]) -> Self {
-        PlayerState {
-            user_id,
-            map_id,
-            shape,
-            position,
-            updated_at_ms: now_ms(),
-        }
+        PlayerState { user_id, map_id, shape, position, updated_at_ms: now_ms() }
     }
 
     /// Checks the shape and that the position is finite.
@@ -154,10 +119,7 @@ impl PlayerState {
         if self.position.iter().all(|c| c.is_finite()) {
             Ok(())
         } else {
-            Err(StoreError::InvalidInput(format!(
-                "non-finite position {:?}",
-                self.position
-            )))
+            Err(StoreError::InvalidInput(format!("non-finite position {:?}", self.position)))
         }
     }
 }
@@ -269,8 +231,5 @@ pub struct SeedReport {
 
 /// Milliseconds since the Unix epoch, the store's time unit (stored as `BIGINT`).
 pub fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
-        .unwrap_or(0)
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX)).unwrap_or(0)
 }

@@ -29,19 +29,11 @@ pub struct HashCost {
 impl HashCost {
     /// The OWASP-recommended Argon2id minimum (19 MiB, 2 passes, 1 lane), also argon2's
     /// default: about 20-30 ms per hash in a release build on one core.
-    pub const DEFAULT: HashCost = HashCost {
-        m_kib: 19 * 1024,
-        t: 2,
-        p: 1,
-    };
+    pub const DEFAULT: HashCost = HashCost { m_kib: 19 * 1024, t: 2, p: 1 };
 
     /// A cheap cost for tests and benchmarks of everything but hashing. Never use it for
     /// real accounts: it offers almost no resistance to offline guessing.
-    pub const INSECURE_FAST: HashCost = HashCost {
-        m_kib: 64,
-        t: 1,
-        p: 1,
-    };
+    pub const INSECURE_FAST: HashCost = HashCost { m_kib: 64, t: 1, p: 1 };
 
     fn hasher(self) -> Result<Argon2<'static>> {
         let params = Params::new(self.m_kib, self.t, self.p, None)
@@ -69,14 +61,9 @@ impl Default for HashCost {
 /// ignore trailing spaces).
 pub fn validate_username(username: &str) -> Result<()> {
     if username.is_empty() || username.len() > MAX_USERNAME_LEN {
-        return Err(StoreError::InvalidInput(format!(
-            "username must be 1 to {MAX_USERNAME_LEN} bytes"
-        )));
+        return Err(StoreError::InvalidInput(format!("username must be 1 to {MAX_USERNAME_LEN} bytes")));
     }
-    if !username
-        .bytes()
-        .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'-' | b'.'))
-    {
+    if !username.bytes().all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'-' | b'.')) {
         return Err(StoreError::InvalidInput(
             "username may only contain ASCII letters, digits, '_', '-' and '.'".into(),
         ));
@@ -87,9 +74,7 @@ pub fn validate_username(username: &str) -> Result<()> {
 /// Rejects empty passwords and passwords longer than the login packet's 64 bytes.
 pub fn validate_password(password: &str) -> Result<()> {
     if password.is_empty() || password.len() > MAX_PASSWORD_LEN {
-        return Err(StoreError::InvalidInput(format!(
-            "password must be 1 to {MAX_PASSWORD_LEN} bytes"
-        )));
+        return Err(StoreError::InvalidInput(format!("password must be 1 to {MAX_PASSWORD_LEN} bytes")));
     }
     Ok(())
 }
@@ -130,10 +115,54 @@ pub async fn verify_password(password: &str, phc: String) -> Result<bool> {
 }
 
 /// Runs `f` on the blocking pool and turns a panic or cancellation into an error.
-pub(crate) async fn spawn_blocking<T: Send + 'static>(
-    f: impl FnOnce() -> T + Send + 'static,
-) -> Result<T> {
-    tokio::task::spawn_blocking(f)
-        .await
-        .map_err(|e| StoreError::Internal(format!("blocking task failed: {e}")))
+pub(crate) async fn spawn_blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Result<T> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| StoreError::Internal(format!("blocking task failed: {e}")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn usernames_are_checked() {
+        for ok in ["a", "user0", "A.b-c_d", &"x".repeat(MAX_USERNAME_LEN)] {
+            assert!(validate_username(ok).is_ok(), "{ok:?}");
+        }
+        for bad in ["", " ", "a b", "é", "a\0", "a'b", &"x".repeat(MAX_USERNAME_LEN + 1)] {
+            assert!(matches!(validate_username(bad), Err(StoreError::InvalidInput(_))), "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn passwords_are_checked_by_bytes() {
+        assert!(validate_password("x").is_ok());
+        assert!(validate_password(&"p".repeat(MAX_PASSWORD_LEN)).is_ok());
+        assert!(validate_password("").is_err());
+        // 33 two-byte characters are 66 bytes: over the packet's 64.
+        assert!(validate_password(&"é".repeat(33)).is_err());
+    }
+
+    #[test]
+    fn hashes_are_argon2id_phc_strings_that_verify() {
+        let hash = hash_blocking(HashCost::INSECURE_FAST, "pässword".as_bytes()).unwrap();
+        assert!(hash.starts_with("$argon2id$v=19$m=64,t=1,p=1$"), "{hash}");
+        assert!(verify_blocking("pässword".as_bytes(), &hash));
+        assert!(!verify_blocking(b"password", &hash));
+        // Salted: the same password hashes differently.
+        let again = hash_blocking(HashCost::INSECURE_FAST, "pässword".as_bytes()).unwrap();
+        assert_ne!(hash, again);
+        // A malformed stored hash is a mismatch, not a panic.
+        assert!(!verify_blocking(b"x", "not a hash"));
+        assert!(!verify_blocking(b"x", ""));
+    }
+
+    #[test]
+    fn bad_costs_are_rejected() {
+        assert!(HashCost::DEFAULT.validate().is_ok());
+        assert!(HashCost::INSECURE_FAST.validate().is_ok());
+        let too_little_memory = HashCost { m_kib: 1, t: 1, p: 1 };
+        assert!(matches!(too_little_memory.validate(), Err(StoreError::InvalidInput(_))));
+        assert!(HashCost { m_kib: 64, t: 0, p: 1 }.validate().is_err());
+        assert!(HashCost { m_kib: 64, t: 1, p: 0 }.validate().is_err());
+    }
 }

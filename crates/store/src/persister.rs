@@ -160,10 +160,7 @@ pub struct Persister {
 
 impl std::fmt::Debug for Persister {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Persister")
-            .field("config", &self.shared.config)
-            .field("stats", &self.stats())
-            .finish()
+        f.debug_struct("Persister").field("config", &self.shared.config).field("stats", &self.stats()).finish()
     }
 }
 
@@ -173,22 +170,14 @@ impl Persister {
     /// zero batch size or queue bound.
     pub fn start(store: Store, config: PersisterConfig) -> Result<Persister> {
         if config.batch_size == 0 || config.max_pending == 0 {
-            return Err(StoreError::InvalidInput(
-                "persister batch_size and max_pending must be > 0".into(),
-            ));
+            return Err(StoreError::InvalidInput("persister batch_size and max_pending must be > 0".into()));
         }
         let runtime = tokio::runtime::Handle::try_current()
             .map_err(|_| StoreError::Internal("Persister::start needs a tokio runtime".into()))?;
-        let shared = Arc::new(Shared {
-            config,
-            pending: Mutex::new(Pending::default()),
-            counters: Counters::default(),
-        });
+        let shared =
+            Arc::new(Shared { config, pending: Mutex::new(Pending::default()), counters: Counters::default() });
         let (commands, receiver) = mpsc::channel(16);
-        let writer = Writer {
-            store,
-            shared: shared.clone(),
-        };
+        let writer = Writer { store, shared: shared.clone() };
         runtime.spawn(writer.run(receiver));
         Ok(Persister { shared, commands })
     }
@@ -196,19 +185,14 @@ impl Persister {
     /// Queues a snapshot, replacing any queued one of the same player on the same map.
     /// Never blocks on the database; safe to call from a non-async thread.
     pub fn submit(&self, state: PlayerState) -> Result<(), SubmitError> {
-        state
-            .validate()
-            .map_err(|e| SubmitError::Invalid(e.to_string()))?;
+        state.validate().map_err(|e| SubmitError::Invalid(e.to_string()))?;
         let mut pending = self.shared.lock();
         self.insert(&mut pending, state)
     }
 
     /// Queues many snapshots under one lock; returns how many were accepted. Invalid
     /// states and overflow are skipped (overflow is counted).
-    pub fn submit_many<'a>(
-        &self,
-        states: impl IntoIterator<Item = &'a PlayerState>,
-    ) -> Result<usize, SubmitError> {
+    pub fn submit_many<'a>(&self, states: impl IntoIterator<Item = &'a PlayerState>) -> Result<usize, SubmitError> {
         let mut pending = self.shared.lock();
         let mut accepted = 0;
         for state in states {
@@ -252,9 +236,7 @@ impl Persister {
             .send(Command::Flush(reply))
             .await
             .map_err(|_| StoreError::Internal("persister task is gone".into()))?;
-        answer
-            .await
-            .map_err(|_| StoreError::Internal("persister task is gone".into()))?
+        answer.await.map_err(|_| StoreError::Internal("persister task is gone".into()))?
     }
 
     /// Stops accepting snapshots, then keeps trying (with backoff) to write what is queued
@@ -266,9 +248,7 @@ impl Persister {
             .send(Command::Shutdown(timeout, reply))
             .await
             .map_err(|_| StoreError::Internal("persister already shut down".into()))?;
-        answer
-            .await
-            .map_err(|_| StoreError::Internal("persister task is gone".into()))?
+        answer.await.map_err(|_| StoreError::Internal("persister task is gone".into()))?
     }
 
     /// Current counters.
@@ -353,9 +333,7 @@ impl Writer {
             match self.write_all().await {
                 Ok(report) => {
                     total += report.rows_written;
-                    return Ok(FlushReport {
-                        rows_written: total,
-                    });
+                    return Ok(FlushReport { rows_written: total });
                 }
                 Err(e) if Instant::now() + delay >= deadline => return Err(e),
                 Err(_) => {
@@ -380,9 +358,7 @@ impl Writer {
             budget -= batch.len();
             written += self.write_batch(batch).await?;
         }
-        Ok(FlushReport {
-            rows_written: written,
-        })
+        Ok(FlushReport { rows_written: written })
     }
 
     /// Moves up to `min(limit, batch_size)` entries from the queue to "in flight".
@@ -390,10 +366,7 @@ impl Writer {
         let mut pending = self.shared.lock();
         let n = limit.min(self.shared.config.batch_size);
         let keys: Vec<(i64, i64)> = pending.entries.keys().take(n).copied().collect();
-        let batch: Vec<_> = keys
-            .into_iter()
-            .filter_map(|k| pending.entries.remove(&k).map(|e| (k, e)))
-            .collect();
+        let batch: Vec<_> = keys.into_iter().filter_map(|k| pending.entries.remove(&k).map(|e| (k, e))).collect();
         pending.in_flight += batch.len();
         batch
     }
@@ -438,11 +411,7 @@ impl Writer {
         let counters = &self.shared.counters;
         let mut written = 0;
         for state in states {
-            match self
-                .store
-                .save_player_states(std::slice::from_ref(state))
-                .await
-            {
+            match self.store.save_player_states(std::slice::from_ref(state)).await {
                 Ok(n) => written += n,
                 Err(e) if e.is_transient() => return Err(e),
                 Err(e) => {

@@ -43,17 +43,9 @@ fn state_from_row(row: &AnyRow) -> Result<PlayerState> {
     let shape = Shape::from_columns(
         row.try_get("shape_kind")?,
         row.try_get("radius")?,
-        [
-            row.try_get("half_x")?,
-            row.try_get("half_y")?,
-            row.try_get("half_z")?,
-        ],
+        [row.try_get("half_x")?, row.try_get("half_y")?, row.try_get("half_z")?],
     )?;
-    let pos: [f64; 3] = [
-        row.try_get("pos_x")?,
-        row.try_get("pos_y")?,
-        row.try_get("pos_z")?,
-    ];
+    let pos: [f64; 3] = [row.try_get("pos_x")?, row.try_get("pos_y")?, row.try_get("pos_z")?];
     Ok(PlayerState {
         user_id: UserId(row.try_get("user_id")?),
         map_id: MapId(row.try_get("map_id")?),
@@ -66,8 +58,7 @@ fn state_from_row(row: &AnyRow) -> Result<PlayerState> {
 
 /// Whether a database error is a foreign-key violation (unknown user or map).
 fn is_foreign_key_violation(err: &sqlx::Error) -> bool {
-    err.as_database_error()
-        .is_some_and(|db| db.is_foreign_key_violation())
+    err.as_database_error().is_some_and(|db| db.is_foreign_key_violation())
 }
 
 impl Store {
@@ -100,10 +91,9 @@ impl Store {
                 "player state of user {} on map {}",
                 state.user_id.0, state.map_id.0
             ))),
-            Err(e) if is_foreign_key_violation(&e) => Err(StoreError::NotFound(format!(
-                "user {} or map {}",
-                state.user_id.0, state.map_id.0
-            ))),
+            Err(e) if is_foreign_key_violation(&e) => {
+                Err(StoreError::NotFound(format!("user {} or map {}", state.user_id.0, state.map_id.0)))
+            }
             Err(e) => Err(e.into()),
         }
     }
@@ -144,9 +134,9 @@ impl Store {
     /// A player's state on a map (the reference's `GetUserGameInfo`), or
     /// [`StoreError::NotFound`].
     pub async fn get_player_state(&self, user: UserId, map: MapId) -> Result<PlayerState> {
-        self.find_player_state(user, map).await?.ok_or_else(|| {
-            StoreError::NotFound(format!("player state of user {} on map {}", user.0, map.0))
-        })
+        self.find_player_state(user, map)
+            .await?
+            .ok_or_else(|| StoreError::NotFound(format!("player state of user {} on map {}", user.0, map.0)))
     }
 
     /// A player's state on a map, or `None`.
@@ -201,8 +191,7 @@ impl Store {
         };
         let mut tx = self.pool.begin().await?;
         for chunk in rows.chunks(UPSERT_CHUNK) {
-            let mut qb: QueryBuilder<Any> =
-                QueryBuilder::new(format!("INSERT INTO player_state ({COLUMNS}) "));
+            let mut qb: QueryBuilder<Any> = QueryBuilder::new(format!("INSERT INTO player_state ({COLUMNS}) "));
             qb.push_values(chunk, |mut b, s| {
                 let c = s.shape.to_columns();
                 b.push_bind(s.user_id.0)

@@ -108,16 +108,10 @@ impl Store {
 
         let cost = config.hash_cost;
         let dummy_hash =
-            password::spawn_blocking(move || password::hash_blocking(cost, b"myriad/no-such-user"))
-                .await??;
+            password::spawn_blocking(move || password::hash_blocking(cost, b"myriad/no-such-user")).await??;
 
         tracing::info!(?backend, "store opened");
-        Ok(Store {
-            pool,
-            backend,
-            hash_cost: cost,
-            dummy_hash: dummy_hash.into(),
-        })
+        Ok(Store { pool, backend, hash_cost: cost, dummy_hash: dummy_hash.into() })
     }
 
     /// The engine behind this store.
@@ -142,16 +136,11 @@ async fn connect_options(database: &Database) -> Result<(Backend, AnyConnectOpti
     match database {
         Database::SqliteDir(dir) => {
             tokio::fs::create_dir_all(dir).await.map_err(|e| {
-                StoreError::InvalidInput(format!(
-                    "cannot create data directory {}: {e}",
-                    dir.display()
-                ))
+                StoreError::InvalidInput(format!("cannot create data directory {}: {e}", dir.display()))
             })?;
             // Build the URL from the path so that spaces, `?` and `#` are escaped.
-            let url = SqliteConnectOptions::new()
-                .filename(dir.join(SQLITE_FILE_NAME))
-                .create_if_missing(true)
-                .to_url_lossy();
+            let url =
+                SqliteConnectOptions::new().filename(dir.join(SQLITE_FILE_NAME)).create_if_missing(true).to_url_lossy();
             Ok((Backend::Sqlite, AnyConnectOptions::from_url(&url)?))
         }
         Database::Url(url) => {
@@ -164,15 +153,11 @@ async fn connect_options(database: &Database) -> Result<(Backend, AnyConnectOpti
                     "database URL must start with mysql:, mariadb: or sqlite:".into(),
                 ));
             };
-            let mut options: AnyConnectOptions = url.parse().map_err(|e: sqlx::Error| {
-                StoreError::InvalidInput(format!("bad database URL: {e}"))
-            })?;
+            let mut options: AnyConnectOptions =
+                url.parse().map_err(|e: sqlx::Error| StoreError::InvalidInput(format!("bad database URL: {e}")))?;
             if backend == Backend::Sqlite && !url.contains("mode=") {
                 // Like the data-directory form, create the file on first use.
-                options
-                    .database_url
-                    .query_pairs_mut()
-                    .append_pair("mode", "rwc");
+                options.database_url.query_pairs_mut().append_pair("mode", "rwc");
             }
             Ok((backend, options))
         }

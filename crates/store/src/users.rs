@@ -41,22 +41,19 @@ impl Store {
         // sqlx's Any driver reports no last-insert id for SQLite, and MySQL has no
         // RETURNING, so the id is read back by the unique name in the same transaction.
         let mut tx = self.pool.begin().await?;
-        let inserted =
-            sqlx::query("INSERT INTO users (username, password_hash, created_at) VALUES (?, ?, ?)")
-                .bind(username)
-                .bind(hash)
-                .bind(now_ms())
-                .execute(&mut *tx)
-                .await;
+        let inserted = sqlx::query("INSERT INTO users (username, password_hash, created_at) VALUES (?, ?, ?)")
+            .bind(username)
+            .bind(hash)
+            .bind(now_ms())
+            .execute(&mut *tx)
+            .await;
         match inserted {
             Ok(_) => {}
             Err(e) if is_unique_violation(&e) => return Err(StoreError::UsernameTaken),
             Err(e) => return Err(e.into()),
         }
-        let id: i64 = sqlx::query_scalar("SELECT id FROM users WHERE username = ?")
-            .bind(username)
-            .fetch_one(&mut *tx)
-            .await?;
+        let id: i64 =
+            sqlx::query_scalar("SELECT id FROM users WHERE username = ?").bind(username).fetch_one(&mut *tx).await?;
         tx.commit().await?;
         Ok(UserId(id))
     }
@@ -87,12 +84,10 @@ impl Store {
     pub async fn check_credentials(&self, username: &str, password: &str) -> Result<User> {
         validate_username(username)?;
         validate_password(password)?;
-        let row = sqlx::query(
-            "SELECT id, username, password_hash, created_at FROM users WHERE username = ?",
-        )
-        .bind(username)
-        .fetch_optional(&self.pool)
-        .await?;
+        let row = sqlx::query("SELECT id, username, password_hash, created_at FROM users WHERE username = ?")
+            .bind(username)
+            .fetch_optional(&self.pool)
+            .await?;
         let (user, hash) = match row {
             Some(row) => (
                 Some(User {
@@ -117,11 +112,7 @@ impl Store {
     pub async fn login(&self, username: &str, password: &str, map: MapId) -> Result<LoginInfo> {
         let user = self.check_credentials(username, password).await?;
         let state = self.find_player_state(user.id, map).await?;
-        Ok(LoginInfo {
-            user_id: user.id,
-            username: user.username,
-            state,
-        })
+        Ok(LoginInfo { user_id: user.id, username: user.username, state })
     }
 
     /// Creates the reference's test users `user<i>` with password `password<i>` for
@@ -134,8 +125,7 @@ impl Store {
         let names: Vec<u32> = (0..count).collect();
         let mut missing = Vec::new();
         for chunk in names.chunks(SEED_CHUNK) {
-            let mut qb: QueryBuilder<Any> =
-                QueryBuilder::new("SELECT username FROM users WHERE username IN (");
+            let mut qb: QueryBuilder<Any> = QueryBuilder::new("SELECT username FROM users WHERE username IN (");
             let mut list = qb.separated(", ");
             for i in chunk {
                 list.push_bind(format!("user{i}"));
@@ -146,19 +136,11 @@ impl Store {
                 .iter()
                 .map(|r| r.try_get::<String, _>(0).map(|s| s.to_ascii_lowercase()))
                 .collect::<Result<_, _>>()?;
-            missing.extend(
-                chunk
-                    .iter()
-                    .copied()
-                    .filter(|i| !existing.contains(&format!("user{i}"))),
-            );
+            missing.extend(chunk.iter().copied().filter(|i| !existing.contains(&format!("user{i}"))));
         }
         let skipped = count - u32::try_from(missing.len()).unwrap_or(count);
         if missing.is_empty() {
-            return Ok(SeedReport {
-                created: 0,
-                skipped,
-            });
+            return Ok(SeedReport { created: 0, skipped });
         }
 
         let hashed = self.hash_seed_passwords(&missing).await?;
@@ -168,26 +150,19 @@ impl Store {
             // Insert-or-ignore: a user created concurrently since the check is skipped
             // rather than failing the whole batch.
             let head = match self.backend {
-                Backend::Sqlite => {
-                    "INSERT OR IGNORE INTO users (username, password_hash, created_at) "
-                }
+                Backend::Sqlite => "INSERT OR IGNORE INTO users (username, password_hash, created_at) ",
                 Backend::MySql => "INSERT IGNORE INTO users (username, password_hash, created_at) ",
             };
             let mut qb: QueryBuilder<Any> = QueryBuilder::new(head);
             qb.push_values(chunk, |mut row, (name, hash)| {
-                row.push_bind(name.clone())
-                    .push_bind(hash.clone())
-                    .push_bind(created_at);
+                row.push_bind(name.clone()).push_bind(hash.clone()).push_bind(created_at);
             });
             let mut tx = self.pool.begin().await?;
             created += qb.build().execute(&mut *tx).await?.rows_affected();
             tx.commit().await?;
         }
         let created = u32::try_from(created).unwrap_or(u32::MAX);
-        Ok(SeedReport {
-            created,
-            skipped: count - created,
-        })
+        Ok(SeedReport { created, skipped: count - created })
     }
 
     /// Hashes `password<i>` for every index, spread over one blocking task per CPU.
@@ -201,8 +176,7 @@ impl Store {
             tasks.push(tokio::task::spawn_blocking(move || {
                 part.into_iter()
                     .map(|i| {
-                        let hash =
-                            password::hash_blocking(cost, format!("password{i}").as_bytes())?;
+                        let hash = password::hash_blocking(cost, format!("password{i}").as_bytes())?;
                         Ok((format!("user{i}"), hash))
                     })
                     .collect::<Result<Vec<_>>>()
@@ -210,9 +184,7 @@ impl Store {
         }
         let mut out = Vec::with_capacity(indices.len());
         for task in tasks {
-            let part = task
-                .await
-                .map_err(|e| StoreError::Internal(format!("hashing task failed: {e}")))??;
+            let part = task.await.map_err(|e| StoreError::Internal(format!("hashing task failed: {e}")))??;
             out.extend(part);
         }
         Ok(out)

@@ -13,9 +13,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::TestDb;
-use myriad_store::{
-    HashCost, MapId, Persister, PersisterConfig, PlayerState, Shape, Store, StoreError, UserId,
-};
+use myriad_store::{HashCost, MapId, Persister, PersisterConfig, PlayerState, Shape, Store, StoreError, UserId};
 
 const PLAYERS: u32 = 10_000;
 const ROUNDS: i64 = 5;
@@ -31,21 +29,10 @@ async fn players(db: &TestDb) -> (MapId, Vec<UserId>) {
     let map = db.map("bench").await;
     let t = Instant::now();
     db.store.seed_users(PLAYERS).await.unwrap();
-    eprintln!(
-        "[{:?}] seed_users({PLAYERS}) at the test cost: {:.2} s",
-        db.backend(),
-        t.elapsed().as_secs_f64()
-    );
+    eprintln!("[{:?}] seed_users({PLAYERS}) at the test cost: {:.2} s", db.backend(), t.elapsed().as_secs_f64());
     let mut users = Vec::new();
     for i in 0..PLAYERS {
-        users.push(
-            db.store
-                .find_user(&format!("user{i}"))
-                .await
-                .unwrap()
-                .unwrap()
-                .id,
-        );
+        users.push(db.store.find_user(&format!("user{i}")).await.unwrap().unwrap().id);
     }
     (map, users)
 }
@@ -57,10 +44,7 @@ fn round(users: &[UserId], map: MapId, r: i64) -> Vec<PlayerState> {
         .map(|(i, &u)| PlayerState {
             user_id: u,
             map_id: map,
-            shape: Shape::Capsule {
-                radius: 0.5,
-                half_height: 0.9,
-            },
+            shape: Shape::Capsule { radius: 0.5, half_height: 0.9 },
             position: [i as f32 + r as f32, 1.0, r as f32 * 0.5],
             updated_at_ms: 1_000 + r,
         })
@@ -88,10 +72,7 @@ async fn bench_persistence(db: TestDb) {
 
     let p = Persister::start(
         db.store.clone(),
-        PersisterConfig {
-            interval: Duration::from_secs(3600),
-            ..PersisterConfig::default()
-        },
+        PersisterConfig { interval: Duration::from_secs(3600), ..PersisterConfig::default() },
     )
     .unwrap();
     let t = Instant::now();
@@ -130,10 +111,7 @@ async fn bench_login(db: TestDb) {
     );
     let workers = std::thread::available_parallelism().map_or(1, |n| n.get()) * 2;
     for (label, password_of) in [
-        (
-            "right password",
-            (|i: u32| format!("password{i}")) as fn(u32) -> String,
-        ),
+        ("right password", (|i: u32| format!("password{i}")) as fn(u32) -> String),
         ("wrong password", |i: u32| format!("wrong{i}")),
     ] {
         let t = Instant::now();
@@ -144,9 +122,7 @@ async fn bench_login(db: TestDb) {
                 let mut n = 0u32;
                 for k in 0..16u32 {
                     let i = (w as u32 * 16 + k) % users;
-                    let r = store
-                        .check_credentials(&format!("user{i}"), &password_of(i))
-                        .await;
+                    let r = store.check_credentials(&format!("user{i}"), &password_of(i)).await;
                     assert!(r.is_ok() || matches!(r, Err(StoreError::WrongCredentials)));
                     n += 1;
                 }
@@ -170,9 +146,7 @@ async fn bench_login(db: TestDb) {
     let mut unknown = Duration::ZERO;
     for i in 0..16 {
         let t = Instant::now();
-        let _ = store
-            .check_credentials(&format!("user{}", i % users), "nope")
-            .await;
+        let _ = store.check_credentials(&format!("user{}", i % users), "nope").await;
         known += t.elapsed();
         let t = Instant::now();
         let _ = store.check_credentials(&format!("ghost{i}"), "nope").await;

@@ -5,9 +5,7 @@ mod common;
 use std::time::Duration;
 
 use common::{TestDb, wait_for};
-use myriad_store::{
-    MapId, Persister, PersisterConfig, PlayerState, Shape, StoreError, SubmitError, UserId,
-};
+use myriad_store::{MapId, Persister, PersisterConfig, PlayerState, Shape, StoreError, SubmitError, UserId};
 
 backend_tests!(
     coalesces_per_player,
@@ -31,10 +29,7 @@ fn snap(user: UserId, map: MapId, x: f32, t: i64) -> PlayerState {
 
 /// A persister that only writes when flushed (the interval is an hour).
 fn manual() -> PersisterConfig {
-    PersisterConfig {
-        interval: Duration::from_secs(3600),
-        ..PersisterConfig::default()
-    }
+    PersisterConfig { interval: Duration::from_secs(3600), ..PersisterConfig::default() }
 }
 
 async fn coalesces_per_player(db: TestDb) {
@@ -50,18 +45,9 @@ async fn coalesces_per_player(db: TestDb) {
     let report = p.flush().await.unwrap();
     assert_eq!(report.rows_written, 2);
     let stats = p.stats();
-    assert_eq!(
-        (stats.rows_written, stats.batches_written, stats.queued),
-        (2, 1, 0)
-    );
-    assert_eq!(
-        db.store.get_player_state(a, map).await.unwrap().position[0],
-        9.0
-    );
-    assert_eq!(
-        db.store.get_player_state(b, map).await.unwrap().position[0],
-        -1.0
-    );
+    assert_eq!((stats.rows_written, stats.batches_written, stats.queued), (2, 1, 0));
+    assert_eq!(db.store.get_player_state(a, map).await.unwrap().position[0], 9.0);
+    assert_eq!(db.store.get_player_state(b, map).await.unwrap().position[0], -1.0);
     // Nothing queued: a flush writes nothing.
     assert_eq!(p.flush().await.unwrap().rows_written, 0);
 }
@@ -69,50 +55,27 @@ async fn coalesces_per_player(db: TestDb) {
 async fn flushes_on_demand_only_when_asked(db: TestDb) {
     let user = db.user("flusher").await;
     let map = db.map("flush").await;
-    let p = Persister::start(
-        db.store.clone(),
-        PersisterConfig {
-            batch_size: 7,
-            ..manual()
-        },
-    )
-    .unwrap();
+    let p = Persister::start(db.store.clone(), PersisterConfig { batch_size: 7, ..manual() }).unwrap();
     p.submit(snap(user, map, 4.0, 10)).unwrap();
     let others: Vec<UserId> = {
         db.store.seed_users(30).await.unwrap();
         let mut v = Vec::new();
         for i in 0..30 {
-            v.push(
-                db.store
-                    .find_user(&format!("user{i}"))
-                    .await
-                    .unwrap()
-                    .unwrap()
-                    .id,
-            );
+            v.push(db.store.find_user(&format!("user{i}")).await.unwrap().unwrap().id);
         }
         v
     };
     let states: Vec<PlayerState> = others.iter().map(|&u| snap(u, map, 1.0, 10)).collect();
     assert_eq!(p.submit_many(&states).unwrap(), 30);
     tokio::time::sleep(Duration::from_millis(200)).await;
-    assert!(
-        db.store
-            .find_player_state(user, map)
-            .await
-            .unwrap()
-            .is_none()
-    );
+    assert!(db.store.find_player_state(user, map).await.unwrap().is_none());
     assert_eq!(p.stats().rows_written, 0);
 
     let report = p.flush().await.unwrap();
     assert_eq!(report.rows_written, 31);
     // 31 rows in batches of 7.
     assert_eq!(p.stats().batches_written, 5);
-    assert_eq!(
-        db.store.get_player_state(user, map).await.unwrap().position[0],
-        4.0
-    );
+    assert_eq!(db.store.get_player_state(user, map).await.unwrap().position[0], 4.0);
     assert_eq!(db.store.list_player_states(map).await.unwrap().len(), 31);
 }
 
@@ -121,18 +84,12 @@ async fn writes_periodically(db: TestDb) {
     let map = db.map("periodic").await;
     let p = Persister::start(
         db.store.clone(),
-        PersisterConfig {
-            interval: Duration::from_millis(50),
-            ..PersisterConfig::default()
-        },
+        PersisterConfig { interval: Duration::from_millis(50), ..PersisterConfig::default() },
     )
     .unwrap();
     p.submit(snap(user, map, 8.0, 1)).unwrap();
     assert!(wait_for(Duration::from_secs(10), || p.stats().rows_written == 1).await);
-    assert_eq!(
-        db.store.get_player_state(user, map).await.unwrap().position[0],
-        8.0
-    );
+    assert_eq!(db.store.get_player_state(user, map).await.unwrap().position[0], 8.0);
     assert_eq!(p.stats().queued, 0);
 }
 
@@ -142,52 +99,23 @@ async fn bounds_the_queue(db: TestDb) {
     for i in 0..5 {
         users.push(db.user(&format!("b{i}")).await);
     }
-    let p = Persister::start(
-        db.store.clone(),
-        PersisterConfig {
-            max_pending: 3,
-            ..manual()
-        },
-    )
-    .unwrap();
+    let p = Persister::start(db.store.clone(), PersisterConfig { max_pending: 3, ..manual() }).unwrap();
     for &u in &users[..3] {
         p.submit(snap(u, map, 1.0, 1)).unwrap();
     }
-    assert_eq!(
-        p.submit(snap(users[3], map, 1.0, 1)),
-        Err(SubmitError::Full)
-    );
-    assert_eq!(
-        p.submit(snap(users[4], map, 1.0, 1)),
-        Err(SubmitError::Full)
-    );
+    assert_eq!(p.submit(snap(users[3], map, 1.0, 1)), Err(SubmitError::Full));
+    assert_eq!(p.submit(snap(users[4], map, 1.0, 1)), Err(SubmitError::Full));
     // Queued players still get their newest state in.
     p.submit(snap(users[0], map, 2.0, 2)).unwrap();
     let stats = p.stats();
-    assert_eq!(
-        (stats.queued, stats.dropped_overflow, stats.coalesced),
-        (3, 2, 1)
-    );
+    assert_eq!((stats.queued, stats.dropped_overflow, stats.coalesced), (3, 2, 1));
     // Invalid input is refused up front.
     let bad = snap(users[1], map, f32::NAN, 3);
     assert!(matches!(p.submit(bad), Err(SubmitError::Invalid(_))));
 
     p.flush().await.unwrap();
-    assert_eq!(
-        db.store
-            .get_player_state(users[0], map)
-            .await
-            .unwrap()
-            .position[0],
-        2.0
-    );
-    assert!(
-        db.store
-            .find_player_state(users[3], map)
-            .await
-            .unwrap()
-            .is_none()
-    );
+    assert_eq!(db.store.get_player_state(users[0], map).await.unwrap().position[0], 2.0);
+    assert!(db.store.find_player_state(users[3], map).await.unwrap().is_none());
     // Room again after the flush.
     p.submit(snap(users[3], map, 1.0, 1)).unwrap();
 }
@@ -204,10 +132,7 @@ async fn drops_rows_the_database_refuses(db: TestDb) {
     let stats = p.stats();
     assert_eq!((stats.rejected_rows, stats.queued), (1, 0));
     assert!(stats.failures >= 1);
-    assert_eq!(
-        db.store.get_player_state(user, map).await.unwrap().position[0],
-        3.0
-    );
+    assert_eq!(db.store.get_player_state(user, map).await.unwrap().position[0], 3.0);
 }
 
 async fn shutdown_flushes_and_closes(db: TestDb) {
@@ -217,10 +142,7 @@ async fn shutdown_flushes_and_closes(db: TestDb) {
     p.submit(snap(user, map, 6.0, 1)).unwrap();
     let report = p.shutdown(Duration::from_secs(5)).await.unwrap();
     assert_eq!(report.rows_written, 1);
-    assert_eq!(
-        db.store.get_player_state(user, map).await.unwrap().position[0],
-        6.0
-    );
+    assert_eq!(db.store.get_player_state(user, map).await.unwrap().position[0], 6.0);
     assert_eq!(p.submit(snap(user, map, 7.0, 2)), Err(SubmitError::Closed));
     assert!(p.flush().await.is_err());
 }
@@ -230,14 +152,7 @@ async fn survives_a_database_outage(db: TestDb) {
     db.store.seed_users(50).await.unwrap();
     let mut users = Vec::new();
     for i in 0..50 {
-        users.push(
-            db.store
-                .find_user(&format!("user{i}"))
-                .await
-                .unwrap()
-                .unwrap()
-                .id,
-        );
+        users.push(db.store.find_user(&format!("user{i}")).await.unwrap().unwrap().id);
     }
     let (store, mut outage) = db.store_with_outage().await;
     let p = Persister::start(
@@ -287,9 +202,5 @@ async fn survives_a_database_outage(db: TestDb) {
     assert_eq!(p.stats().rows_written, 100);
     let stored = db.store.list_player_states(map).await.unwrap();
     assert_eq!(stored.len(), 50);
-    assert!(
-        stored
-            .iter()
-            .all(|s| s.position[0] == 3.0 && s.updated_at_ms == 3)
-    );
+    assert!(stored.iter().all(|s| s.position[0] == 3.0 && s.updated_at_ms == 3));
 }

@@ -3,9 +3,7 @@
 mod common;
 
 use common::TestDb;
-use myriad_store::{
-    Heightmap, MapId, NewMap, PlayerState, Shape, StaticObject, StoreError, UserId, WorldBounds,
-};
+use myriad_store::{Heightmap, MapId, NewMap, PlayerState, Shape, StaticObject, StoreError, UserId, WorldBounds};
 
 backend_tests!(
     create_user_then_login,
@@ -20,6 +18,7 @@ backend_tests!(
     static_objects_are_all_or_nothing,
     seed_users_is_idempotent,
     reopening_keeps_data,
+    unknown_user_takes_as_long_as_a_wrong_password,
 );
 
 fn sphere(r: f32) -> Shape {
@@ -30,10 +29,7 @@ fn state(user: UserId, map: MapId, pos: [f32; 3], t: i64) -> PlayerState {
     PlayerState {
         user_id: user,
         map_id: map,
-        shape: Shape::Capsule {
-            radius: 0.5,
-            half_height: 0.9,
-        },
+        shape: Shape::Capsule { radius: 0.5, half_height: 0.9 },
         position: pos,
         updated_at_ms: t,
     }
@@ -42,11 +38,7 @@ fn state(user: UserId, map: MapId, pos: [f32; 3], t: i64) -> PlayerState {
 async fn create_user_then_login(db: TestDb) {
     let id = db.user("alice").await;
     let map = db.map("login-map").await;
-    let user = db
-        .store
-        .check_credentials("alice", "pw-alice")
-        .await
-        .unwrap();
+    let user = db.store.check_credentials("alice", "pw-alice").await.unwrap();
     assert_eq!(user.id, id);
     assert_eq!(user.username, "alice");
 
@@ -62,27 +54,15 @@ async fn create_user_then_login(db: TestDb) {
     assert_eq!(login.state, Some(s));
 
     // Usernames are case-insensitive.
-    let user = db
-        .store
-        .check_credentials("ALICE", "pw-alice")
-        .await
-        .unwrap();
+    let user = db.store.check_credentials("ALICE", "pw-alice").await.unwrap();
     assert_eq!(user.id, id);
 }
 
 async fn wrong_password_is_rejected(db: TestDb) {
     db.user("bob").await;
-    let err = db
-        .store
-        .check_credentials("bob", "pw-bobx")
-        .await
-        .unwrap_err();
+    let err = db.store.check_credentials("bob", "pw-bobx").await.unwrap_err();
     assert!(matches!(err, StoreError::WrongCredentials), "{err:?}");
-    let err = db
-        .store
-        .check_credentials("bob", "PW-BOB")
-        .await
-        .unwrap_err();
+    let err = db.store.check_credentials("bob", "PW-BOB").await.unwrap_err();
     assert!(matches!(err, StoreError::WrongCredentials), "{err:?}");
     let map = db.map("m").await;
     let err = db.store.login("bob", "nope", map).await.unwrap_err();
@@ -91,11 +71,7 @@ async fn wrong_password_is_rejected(db: TestDb) {
 
 async fn unknown_user_is_rejected_like_a_wrong_password(db: TestDb) {
     db.user("carol").await;
-    let err = db
-        .store
-        .check_credentials("nobody", "pw-carol")
-        .await
-        .unwrap_err();
+    let err = db.store.check_credentials("nobody", "pw-carol").await.unwrap_err();
     assert!(matches!(err, StoreError::WrongCredentials), "{err:?}");
     assert_eq!(
         err.to_string(),
@@ -128,136 +104,50 @@ async fn invalid_input_is_rejected(db: TestDb) {
         ("ok", long_pw.as_str()),
     ] {
         let err = db.store.create_user(name, pw).await.unwrap_err();
-        assert!(
-            matches!(err, StoreError::InvalidInput(_)),
-            "{name:?}/{pw:?}: {err:?}"
-        );
+        assert!(matches!(err, StoreError::InvalidInput(_)), "{name:?}/{pw:?}: {err:?}");
         let err = db.store.check_credentials(name, pw).await.unwrap_err();
-        assert!(
-            matches!(err, StoreError::InvalidInput(_)),
-            "{name:?}/{pw:?}: {err:?}"
-        );
+        assert!(matches!(err, StoreError::InvalidInput(_)), "{name:?}/{pw:?}: {err:?}");
     }
     // Limits are inclusive.
-    db.store
-        .create_user(&"y".repeat(32), &"p".repeat(64))
-        .await
-        .unwrap();
+    db.store.create_user(&"y".repeat(32), &"p".repeat(64)).await.unwrap();
 
     let user = db.user("erin").await;
     let map = db.map("invalid-map").await;
     for bad in [
-        PlayerState {
-            position: [f32::NAN, 0.0, 0.0],
-            ..state(user, map, [0.0; 3], 1)
-        },
-        PlayerState {
-            position: [0.0, f32::INFINITY, 0.0],
-            ..state(user, map, [0.0; 3], 1)
-        },
-        PlayerState {
-            shape: sphere(0.0),
-            ..state(user, map, [0.0; 3], 1)
-        },
-        PlayerState {
-            shape: sphere(-1.0),
-            ..state(user, map, [0.0; 3], 1)
-        },
-        PlayerState {
-            shape: Shape::Box {
-                half_extents: [1.0, f32::NAN, 1.0],
-            },
-            ..state(user, map, [0.0; 3], 1)
-        },
+        PlayerState { position: [f32::NAN, 0.0, 0.0], ..state(user, map, [0.0; 3], 1) },
+        PlayerState { position: [0.0, f32::INFINITY, 0.0], ..state(user, map, [0.0; 3], 1) },
+        PlayerState { shape: sphere(0.0), ..state(user, map, [0.0; 3], 1) },
+        PlayerState { shape: sphere(-1.0), ..state(user, map, [0.0; 3], 1) },
+        PlayerState { shape: Shape::Box { half_extents: [1.0, f32::NAN, 1.0] }, ..state(user, map, [0.0; 3], 1) },
     ] {
         let err = db.store.create_player_state(&bad).await.unwrap_err();
-        assert!(
-            matches!(err, StoreError::InvalidInput(_)),
-            "{bad:?}: {err:?}"
-        );
+        assert!(matches!(err, StoreError::InvalidInput(_)), "{bad:?}: {err:?}");
         let err = db.store.save_player_states(&[bad]).await.unwrap_err();
-        assert!(
-            matches!(err, StoreError::InvalidInput(_)),
-            "{bad:?}: {err:?}"
-        );
+        assert!(matches!(err, StoreError::InvalidInput(_)), "{bad:?}: {err:?}");
     }
-    assert!(
-        db.store
-            .find_player_state(user, map)
-            .await
-            .unwrap()
-            .is_none()
-    );
+    assert!(db.store.find_player_state(user, map).await.unwrap().is_none());
 
     let good = NewMap {
         name: "fine".into(),
         heightmap: Heightmap::None,
         max_height: 1.0,
-        bounds: WorldBounds {
-            min: [0.0; 3],
-            max: [1.0; 3],
-        },
+        bounds: WorldBounds { min: [0.0; 3], max: [1.0; 3] },
     };
     let bad_maps = [
-        NewMap {
-            name: "".into(),
-            ..good.clone()
-        },
-        NewMap {
-            name: "   ".into(),
-            ..good.clone()
-        },
-        NewMap {
-            name: "n".repeat(65),
-            ..good.clone()
-        },
-        NewMap {
-            max_height: f32::NAN,
-            ..good.clone()
-        },
-        NewMap {
-            bounds: WorldBounds {
-                min: [0.0; 3],
-                max: [1.0, 0.0, 1.0],
-            },
-            ..good.clone()
-        },
-        NewMap {
-            heightmap: Heightmap::Inline {
-                width: 3,
-                height: 2,
-                samples: vec![0; 5],
-            },
-            ..good.clone()
-        },
-        NewMap {
-            heightmap: Heightmap::Inline {
-                width: 0,
-                height: 0,
-                samples: vec![],
-            },
-            ..good.clone()
-        },
-        NewMap {
-            heightmap: Heightmap::Path(String::new()),
-            ..good.clone()
-        },
+        NewMap { name: "".into(), ..good.clone() },
+        NewMap { name: "   ".into(), ..good.clone() },
+        NewMap { name: "n".repeat(65), ..good.clone() },
+        NewMap { max_height: f32::NAN, ..good.clone() },
+        NewMap { bounds: WorldBounds { min: [0.0; 3], max: [1.0, 0.0, 1.0] }, ..good.clone() },
+        NewMap { heightmap: Heightmap::Inline { width: 3, height: 2, samples: vec![0; 5] }, ..good.clone() },
+        NewMap { heightmap: Heightmap::Inline { width: 0, height: 0, samples: vec![] }, ..good.clone() },
+        NewMap { heightmap: Heightmap::Path(String::new()), ..good.clone() },
     ];
     for bad in bad_maps {
         let err = db.store.create_map(&bad).await.unwrap_err();
-        assert!(
-            matches!(err, StoreError::InvalidInput(_)),
-            "{bad:?}: {err:?}"
-        );
+        assert!(matches!(err, StoreError::InvalidInput(_)), "{bad:?}: {err:?}");
     }
-    assert!(
-        db.store
-            .list_maps()
-            .await
-            .unwrap()
-            .iter()
-            .all(|m| m.name != "fine")
-    );
+    assert!(db.store.list_maps().await.unwrap().iter().all(|m| m.name != "fine"));
 }
 
 async fn player_state_round_trip(db: TestDb) {
@@ -279,20 +169,10 @@ async fn player_state_round_trip(db: TestDb) {
     // Every shape kind survives the trip, with awkward f32 values.
     for shape in [
         sphere(0.1),
-        Shape::Box {
-            half_extents: [0.3, 1.0e-3, 7.123_456],
-        },
-        Shape::Capsule {
-            radius: 0.25,
-            half_height: 0.0,
-        },
+        Shape::Box { half_extents: [0.3, 1.0e-3, 7.123_456] },
+        Shape::Capsule { radius: 0.25, half_height: 0.0 },
     ] {
-        let s2 = PlayerState {
-            shape,
-            position: [-0.1, 1.0e7, std::f32::consts::PI],
-            updated_at_ms: 6,
-            ..s
-        };
+        let s2 = PlayerState { shape, position: [-0.1, 1.0e7, std::f32::consts::PI], updated_at_ms: 6, ..s };
         db.store.update_player_state(&s2).await.unwrap();
         assert_eq!(db.store.get_player_state(user, map).await.unwrap(), s2);
     }
@@ -301,19 +181,10 @@ async fn player_state_round_trip(db: TestDb) {
     db.store.update_player_state(&same).await.unwrap();
 
     // States are per map.
-    assert!(
-        db.store
-            .find_player_state(user, other_map)
-            .await
-            .unwrap()
-            .is_none()
-    );
+    assert!(db.store.find_player_state(user, other_map).await.unwrap().is_none());
     let elsewhere = state(user, other_map, [1.0, 2.0, 3.0], 7);
     db.store.create_player_state(&elsewhere).await.unwrap();
-    assert_eq!(
-        db.store.list_player_states(other_map).await.unwrap(),
-        vec![elsewhere]
-    );
+    assert_eq!(db.store.list_player_states(other_map).await.unwrap(), vec![elsewhere]);
 
     // Unknown user or map.
     let ghost = state(UserId(999_999), map, [0.0; 3], 1);
@@ -330,20 +201,10 @@ async fn batched_save_of_1000_states(db: TestDb) {
     assert_eq!(report.created, 1000);
     let mut users = Vec::new();
     for i in 0..1000 {
-        users.push(
-            db.store
-                .find_user(&format!("user{i}"))
-                .await
-                .unwrap()
-                .unwrap()
-                .id,
-        );
+        users.push(db.store.find_user(&format!("user{i}")).await.unwrap().unwrap().id);
     }
-    let states: Vec<PlayerState> = users
-        .iter()
-        .enumerate()
-        .map(|(i, &u)| state(u, map, [i as f32, 1.0, -(i as f32) * 0.5], 100))
-        .collect();
+    let states: Vec<PlayerState> =
+        users.iter().enumerate().map(|(i, &u)| state(u, map, [i as f32, 1.0, -(i as f32) * 0.5], 100)).collect();
     assert_eq!(db.store.save_player_states(&states).await.unwrap(), 1000);
     let mut stored = db.store.list_player_states(map).await.unwrap();
     stored.sort_by_key(|s| s.user_id);
@@ -353,40 +214,15 @@ async fn batched_save_of_1000_states(db: TestDb) {
 
     // Second round: updates of existing rows, with a duplicate in the same call (the
     // newer one must win whatever its position in the slice).
-    let mut moved: Vec<PlayerState> = states
-        .iter()
-        .map(|s| PlayerState {
-            position: [s.position[0], 2.0, 0.0],
-            updated_at_ms: 200,
-            ..*s
-        })
-        .collect();
-    moved.insert(
-        0,
-        PlayerState {
-            position: [0.0, 9.0, 9.0],
-            updated_at_ms: 300,
-            ..states[0]
-        },
-    );
-    moved.push(PlayerState {
-        position: [0.0, 8.0, 8.0],
-        updated_at_ms: 150,
-        ..states[0]
-    });
+    let mut moved: Vec<PlayerState> =
+        states.iter().map(|s| PlayerState { position: [s.position[0], 2.0, 0.0], updated_at_ms: 200, ..*s }).collect();
+    moved.insert(0, PlayerState { position: [0.0, 9.0, 9.0], updated_at_ms: 300, ..states[0] });
+    moved.push(PlayerState { position: [0.0, 8.0, 8.0], updated_at_ms: 150, ..states[0] });
     assert_eq!(db.store.save_player_states(&moved).await.unwrap(), 1000);
-    let first = db
-        .store
-        .get_player_state(states[0].user_id, map)
-        .await
-        .unwrap();
+    let first = db.store.get_player_state(states[0].user_id, map).await.unwrap();
     assert_eq!(first.position, [0.0, 9.0, 9.0]);
     assert_eq!(first.updated_at_ms, 300);
-    let last = db
-        .store
-        .get_player_state(states[999].user_id, map)
-        .await
-        .unwrap();
+    let last = db.store.get_player_state(states[999].user_id, map).await.unwrap();
     assert_eq!(last.position, [999.0, 2.0, 0.0]);
 
     assert_eq!(db.store.save_player_states(&[]).await.unwrap(), 0);
@@ -400,10 +236,7 @@ async fn stale_states_do_not_overwrite_newer_ones(db: TestDb) {
     let older = state(user, map, [1.0, 1.0, 1.0], 1000);
     db.store.save_player_states(&[older]).await.unwrap();
     assert_eq!(db.store.get_player_state(user, map).await.unwrap(), newer);
-    let newest = PlayerState {
-        shape: sphere(2.0),
-        ..state(user, map, [6.0, 6.0, 6.0], 3000)
-    };
+    let newest = PlayerState { shape: sphere(2.0), ..state(user, map, [6.0, 6.0, 6.0], 3000) };
     db.store.save_player_states(&[newest]).await.unwrap();
     assert_eq!(db.store.get_player_state(user, map).await.unwrap(), newest);
 }
@@ -414,13 +247,8 @@ fn objects(n: i64) -> Vec<StaticObject> {
             object_id: i,
             shape: match i % 3 {
                 0 => sphere(1.0 + i as f32 * 0.01),
-                1 => Shape::Box {
-                    half_extents: [1.0, 2.0, 0.5 + i as f32],
-                },
-                _ => Shape::Capsule {
-                    radius: 0.3,
-                    half_height: i as f32,
-                },
+                1 => Shape::Box { half_extents: [1.0, 2.0, 0.5 + i as f32] },
+                _ => Shape::Capsule { radius: 0.3, half_height: i as f32 },
             },
             position: [i as f32, -1.5, 0.125 * i as f32],
         })
@@ -431,27 +259,13 @@ async fn maps_and_statics_round_trip(db: TestDb) {
     let samples: Vec<u16> = (0..(64 * 32)).map(|i| (i * 31 % 65_536) as u16).collect();
     let inline = NewMap {
         name: "hills".into(),
-        heightmap: Heightmap::Inline {
-            width: 64,
-            height: 32,
-            samples,
-        },
+        heightmap: Heightmap::Inline { width: 64, height: 32, samples },
         max_height: 42.5,
-        bounds: WorldBounds {
-            min: [-10.0, 0.0, -20.0],
-            max: [1000.0, 64.0, 500.5],
-        },
+        bounds: WorldBounds { min: [-10.0, 0.0, -20.0], max: [1000.0, 64.0, 500.5] },
     };
-    let by_path = NewMap {
-        name: "desert".into(),
-        heightmap: Heightmap::Path("maps/desert.png".into()),
-        ..inline.clone()
-    };
-    let flat = NewMap {
-        name: "flat".into(),
-        heightmap: Heightmap::None,
-        ..inline.clone()
-    };
+    let by_path =
+        NewMap { name: "desert".into(), heightmap: Heightmap::Path("maps/desert.png".into()), ..inline.clone() };
+    let flat = NewMap { name: "flat".into(), heightmap: Heightmap::None, ..inline.clone() };
     let mut ids = Vec::new();
     for map in [&inline, &by_path, &flat] {
         let id = db.store.create_map(map).await.unwrap();
@@ -479,47 +293,21 @@ async fn maps_and_statics_round_trip(db: TestDb) {
 
     // Statics: more than one insert chunk, all shapes; per map.
     let objs = objects(600);
-    assert_eq!(
-        db.store.add_static_objects(ids[0], &objs).await.unwrap(),
-        600
-    );
+    assert_eq!(db.store.add_static_objects(ids[0], &objs).await.unwrap(), 600);
     assert_eq!(db.store.get_static_objects(ids[0]).await.unwrap(), objs);
-    assert!(
-        db.store
-            .get_static_objects(ids[1])
-            .await
-            .unwrap()
-            .is_empty()
-    );
+    assert!(db.store.get_static_objects(ids[1]).await.unwrap().is_empty());
     // The same object ids on another map are fine.
-    db.store
-        .add_static_objects(ids[1], &objs[..3])
-        .await
-        .unwrap();
-    assert_eq!(
-        db.store.get_static_objects(ids[1]).await.unwrap(),
-        objs[..3].to_vec()
-    );
-    let err = db
-        .store
-        .get_static_objects(MapId(424_242))
-        .await
-        .unwrap_err();
+    db.store.add_static_objects(ids[1], &objs[..3]).await.unwrap();
+    assert_eq!(db.store.get_static_objects(ids[1]).await.unwrap(), objs[..3].to_vec());
+    let err = db.store.get_static_objects(MapId(424_242)).await.unwrap_err();
     assert!(matches!(err, StoreError::NotFound(_)), "{err:?}");
-    let err = db
-        .store
-        .add_static_objects(MapId(424_242), &objs[..1])
-        .await
-        .unwrap_err();
+    let err = db.store.add_static_objects(MapId(424_242), &objs[..1]).await.unwrap_err();
     assert!(matches!(err, StoreError::NotFound(_)), "{err:?}");
 }
 
 async fn static_objects_are_all_or_nothing(db: TestDb) {
     let map = db.map("atomic").await;
-    db.store
-        .add_static_objects(map, &objects(10))
-        .await
-        .unwrap();
+    db.store.add_static_objects(map, &objects(10)).await.unwrap();
     // 300 new objects, then one clashing with an existing id: nothing is added.
     let mut batch: Vec<StaticObject> = objects(310)[10..].to_vec();
     batch.push(objects(10)[5]);
@@ -544,20 +332,10 @@ async fn seed_users_is_idempotent(db: TestDb) {
     assert_eq!((report.created, report.skipped), (0, 25));
     // Existing users were left alone, new ones work.
     assert_eq!(db.store.find_user("user7").await.unwrap().unwrap(), first);
-    db.store
-        .check_credentials("user7", "password7")
-        .await
-        .unwrap();
-    db.store
-        .check_credentials("user24", "password24")
-        .await
-        .unwrap();
+    db.store.check_credentials("user7", "password7").await.unwrap();
+    db.store.check_credentials("user24", "password24").await.unwrap();
     assert!(db.store.find_user("user25").await.unwrap().is_none());
-    let err = db
-        .store
-        .check_credentials("user3", "password4")
-        .await
-        .unwrap_err();
+    let err = db.store.check_credentials("user3", "password4").await.unwrap_err();
     assert!(matches!(err, StoreError::WrongCredentials), "{err:?}");
     assert_eq!(db.store.seed_users(0).await.unwrap().created, 0);
 }
@@ -572,8 +350,35 @@ async fn reopening_keeps_data(db: TestDb) {
     assert_eq!(again.get_player_state(user, map).await.unwrap(), s);
     again.close().await;
     let err = again.find_user("hank").await.unwrap_err();
-    assert!(
-        err.is_transient(),
-        "closed pool is reported as unavailable: {err:?}"
-    );
+    assert!(err.is_transient(), "closed pool is reported as unavailable: {err:?}");
+}
+
+/// Unknown usernames must cost a hash verification like wrong passwords do, or login
+/// timing tells which usernames exist. With a cost of a few milliseconds per hash, a
+/// lookup without the dummy verification would be several times faster.
+async fn unknown_user_takes_as_long_as_a_wrong_password(db: TestDb) {
+    use std::time::{Duration, Instant};
+    let mut config = db.config.clone();
+    config.hash_cost = myriad_store::HashCost { m_kib: 8 * 1024, t: 2, p: 1 };
+    let store = myriad_store::Store::open(&config).await.unwrap();
+    store.create_user("timed", "right-password").await.unwrap();
+    let mut known = Vec::new();
+    let mut unknown = Vec::new();
+    // Interleaved so that background load hits both sides alike; medians for robustness.
+    for i in 0..7 {
+        let t = Instant::now();
+        let err = store.check_credentials("timed", "wrong").await.unwrap_err();
+        known.push(t.elapsed());
+        assert!(matches!(err, StoreError::WrongCredentials));
+        let t = Instant::now();
+        let err = store.check_credentials(&format!("ghost{i}"), "wrong").await.unwrap_err();
+        unknown.push(t.elapsed());
+        assert!(matches!(err, StoreError::WrongCredentials));
+    }
+    known.sort();
+    unknown.sort();
+    let (k, u) = (known[3], unknown[3]);
+    assert!(k > Duration::from_micros(500), "the hash must cost something: {k:?}");
+    assert!(u * 2 > k, "unknown user answered in {u:?}, wrong password in {k:?}: timing leaks existence");
+    store.close().await;
 }

@@ -13,9 +13,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::time::Duration;
 
-use myriad_store::{
-    Backend, Database, HashCost, Heightmap, MapId, NewMap, Store, StoreConfig, UserId, WorldBounds,
-};
+use myriad_store::{Backend, Database, HashCost, Heightmap, MapId, NewMap, Store, StoreConfig, UserId, WorldBounds};
 use sqlx::{Connection, Executor};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::watch;
@@ -68,14 +66,8 @@ pub struct TestDb {
 }
 
 enum Kind {
-    Sqlite {
-        dir: tempfile::TempDir,
-    },
-    MySql {
-        admin_url: String,
-        db_name: String,
-        url: String,
-    },
+    Sqlite { dir: tempfile::TempDir },
+    MySql { admin_url: String, db_name: String, url: String },
 }
 
 static COUNTER: AtomicU32 = AtomicU32::new(0);
@@ -86,20 +78,14 @@ impl TestDb {
         let config = test_config(Database::SqliteDir(dir.path().join("data")));
         let store = Store::open(&config).await.expect("open sqlite store");
         assert_eq!(store.backend(), Backend::Sqlite);
-        TestDb {
-            store,
-            config,
-            kind: Arc::new(Kind::Sqlite { dir }),
-        }
+        TestDb { store, config, kind: Arc::new(Kind::Sqlite { dir }) }
     }
 
     /// A fresh database on the `MYSQL_URL` server, or `None` (after saying so) when the
     /// variable is unset.
     pub async fn mysql() -> Option<TestDb> {
         let Ok(admin_url) = std::env::var("MYSQL_URL") else {
-            eprintln!(
-                "skipping: MYSQL_URL not set (e.g. mysql://myriad:myriad@127.0.0.1:3306/test)"
-            );
+            eprintln!("skipping: MYSQL_URL not set (e.g. mysql://myriad:myriad@127.0.0.1:3306/test)");
             return None;
         };
         let db_name = format!(
@@ -108,9 +94,7 @@ impl TestDb {
             COUNTER.fetch_add(1, Ordering::Relaxed),
             myriad_store::now_ms() % 1_000_000
         );
-        let mut admin = sqlx::mysql::MySqlConnection::connect(&admin_url)
-            .await
-            .expect("connect to MYSQL_URL");
+        let mut admin = sqlx::mysql::MySqlConnection::connect(&admin_url).await.expect("connect to MYSQL_URL");
         admin
             .execute(sqlx::AssertSqlSafe(format!(
                 "CREATE DATABASE `{db_name}` CHARACTER SET utf8mb4 COLLATE utf8mb4_unicode_ci"
@@ -122,15 +106,7 @@ impl TestDb {
         let config = test_config(Database::Url(url.clone()));
         let store = Store::open(&config).await.expect("open mysql store");
         assert_eq!(store.backend(), Backend::MySql);
-        Some(TestDb {
-            store,
-            config,
-            kind: Arc::new(Kind::MySql {
-                admin_url,
-                db_name,
-                url,
-            }),
-        })
+        Some(TestDb { store, config, kind: Arc::new(Kind::MySql { admin_url, db_name, url }) })
     }
 
     pub fn backend(&self) -> Backend {
@@ -161,9 +137,7 @@ impl TestDb {
                 let mut config = self.config.clone();
                 config.database = Database::Url(proxied);
                 config.acquire_timeout = Duration::from_millis(500);
-                let store = Store::open(&config)
-                    .await
-                    .expect("open store through proxy");
+                let store = Store::open(&config).await.expect("open store through proxy");
                 (store, Outage::Proxy(proxy))
             }
         }
@@ -171,26 +145,17 @@ impl TestDb {
 
     pub async fn cleanup(&self) {
         self.store.close().await;
-        if let Kind::MySql {
-            admin_url, db_name, ..
-        } = &*self.kind
+        if let Kind::MySql { admin_url, db_name, .. } = &*self.kind
             && let Ok(mut admin) = sqlx::mysql::MySqlConnection::connect(admin_url).await
         {
-            let _ = admin
-                .execute(sqlx::AssertSqlSafe(format!(
-                    "DROP DATABASE IF EXISTS `{db_name}`"
-                )))
-                .await;
+            let _ = admin.execute(sqlx::AssertSqlSafe(format!("DROP DATABASE IF EXISTS `{db_name}`"))).await;
             admin.close().await.ok();
         }
     }
 
     /// A user with a unique name and password `pw-<name>`.
     pub async fn user(&self, name: &str) -> UserId {
-        self.store
-            .create_user(name, &format!("pw-{name}"))
-            .await
-            .expect("create user")
+        self.store.create_user(name, &format!("pw-{name}")).await.expect("create user")
     }
 
     /// A small map with the given name and no terrain.
@@ -200,10 +165,7 @@ impl TestDb {
                 name: name.to_owned(),
                 heightmap: Heightmap::None,
                 max_height: 10.0,
-                bounds: WorldBounds {
-                    min: [0.0, 0.0, 0.0],
-                    max: [100.0, 50.0, 100.0],
-                },
+                bounds: WorldBounds { min: [0.0, 0.0, 0.0], max: [100.0, 50.0, 100.0] },
             })
             .await
             .expect("create map")
@@ -237,24 +199,15 @@ fn upstream_authority(url: &str) -> String {
 
 fn upstream_addr(url: &str) -> SocketAddr {
     let authority = upstream_authority(url);
-    let with_port = if authority.contains(':') {
-        authority
-    } else {
-        format!("{authority}:3306")
-    };
+    let with_port = if authority.contains(':') { authority } else { format!("{authority}:3306") };
     let with_port = with_port.replace("localhost", "127.0.0.1");
-    with_port
-        .parse()
-        .expect("MYSQL_URL host must be an IP or localhost")
+    with_port.parse().expect("MYSQL_URL host must be an IP or localhost")
 }
 
 /// A way to make the database unreachable for one store and bring it back.
 pub enum Outage {
     /// SQLite: another connection holds the write lock, so writes fail with SQLITE_BUSY.
-    SqliteLock {
-        path: PathBuf,
-        lock: Option<sqlx::sqlite::SqliteConnection>,
-    },
+    SqliteLock { path: PathBuf, lock: Option<sqlx::sqlite::SqliteConnection> },
     /// MySQL: the store talks through a TCP proxy that can drop every connection.
     Proxy(Proxy),
 }
@@ -264,12 +217,9 @@ impl Outage {
         match self {
             Outage::SqliteLock { path, lock } => {
                 let options = sqlx::sqlite::SqliteConnectOptions::new().filename(&*path);
-                let mut conn = sqlx::sqlite::SqliteConnection::connect_with(&options)
-                    .await
-                    .expect("open locking connection");
-                conn.execute("BEGIN EXCLUSIVE")
-                    .await
-                    .expect("take write lock");
+                let mut conn =
+                    sqlx::sqlite::SqliteConnection::connect_with(&options).await.expect("open locking connection");
+                conn.execute("BEGIN EXCLUSIVE").await.expect("take write lock");
                 *lock = Some(conn);
             }
             Outage::Proxy(proxy) => proxy.set_up(false),
@@ -327,11 +277,7 @@ impl Proxy {
                 });
             }
         });
-        Proxy {
-            addr,
-            up,
-            generation,
-        }
+        Proxy { addr, up, generation }
     }
 
     fn set_up(&self, up: bool) {

@@ -8,7 +8,7 @@ use super::pipeline::{BroadPhase, Exec, Scratch, dynamic_aabbs, run_step};
 use crate::backend::{AoiResults, Backend, BackendKind, StepReport};
 use crate::consts::TickConstants;
 use crate::error::PhysicsError;
-use crate::lbvh::Lbvh;
+use crate::lbvh::{Lbvh, Stack};
 
 /// Objects handled per rayon task in the per-object traversals.
 const CHUNK: usize = 512;
@@ -62,7 +62,7 @@ impl BroadPhase for Trees {
             .par_chunks(CHUNK)
             .map(|chunk| {
                 let mut local = Vec::new();
-                let mut stack = Vec::with_capacity(128);
+                let mut stack = Stack::default();
                 for &obj in chunk {
                     let key = (obj as u64) << 32;
                     tree.query_with(&aabbs[obj as usize], &mut stack, |p| local.push(key | p as u64));
@@ -118,15 +118,12 @@ impl Backend for CpuLbvh {
         let tree = &trees.dynamics;
         let per_query: Vec<Vec<u32>> = boxes
             .par_iter()
-            .map_init(
-                || Vec::with_capacity(128),
-                |stack, q| {
-                    let mut v = Vec::new();
-                    tree.query_with(q, stack, |i| v.push(i));
-                    v.sort_unstable();
-                    v
-                },
-            )
+            .map_init(Stack::default, |stack, q| {
+                let mut v = Vec::new();
+                tree.query_with(q, stack, |i| v.push(i));
+                v.sort_unstable();
+                v
+            })
             .collect();
         out.clear();
         out.offsets.reserve(boxes.len() + 1);

@@ -41,6 +41,16 @@ const LEAF: u32 = 1 << 31;
 /// Traversal stack capacity; see the module docs for why it is never exceeded.
 const STACK: usize = 128;
 
+/// Scratch space for one traversal, reused across queries (clearing a fresh array per
+/// query costs more than the query on small trees).
+pub struct Stack([u32; STACK]);
+
+impl Default for Stack {
+    fn default() -> Self {
+        Stack([0; STACK])
+    }
+}
+
 /// An internal node. It holds its children's boxes rather than its own, so a traversal
 /// step tests both children from one 64-byte cache line without touching them.
 #[derive(Clone, Copy, Debug)]
@@ -248,7 +258,7 @@ impl Lbvh {
     /// `min_leaf`. `stack` is scratch space, reused between calls to avoid clearing a
     /// fresh array per query.
     #[inline]
-    fn visit(&self, query: &Aabb, min_leaf: u32, stack: &mut Vec<u32>, mut f: impl FnMut(u32)) {
+    fn visit(&self, query: &Aabb, min_leaf: u32, stack: &mut Stack, mut f: impl FnMut(u32)) {
         let n = self.leaves.len();
         if n < 2 {
             if n == 1 && min_leaf == 0 && self.leaves[0].overlaps(query) {
@@ -256,19 +266,32 @@ impl Lbvh {
             }
             return;
         }
-        stack.clear();
-        stack.push(0); // the root
-        while let Some(top) = stack.pop() {
-            let node = &self.nodes[top as usize];
-            for side in 0..2 {
-                if node.last[side] < min_leaf || !node.boxes[side].overlaps(query) {
-                    continue;
-                }
-                let c = node.child[side];
+        let stack = &mut stack.0;
+        stack[0] = 0; // the root
+        let mut top = 1;
+        while top > 0 {
+            top -= 1;
+            let node = &self.nodes[stack[top] as usize];
+            // Written out for both sides: a loop over the two sides costs more than the
+            // box tests themselves here, the hottest loop of the CPU backend.
+            if node.last[0] >= min_leaf && node.boxes[0].overlaps(query) {
+                let c = node.child[0];
                 if c & LEAF != 0 {
                     f(c & !LEAF);
                 } else {
-                    stack.push(c);
+                    stack[top] = c;
+                    top += 1;
+                }
+            }
+            if node.last[1] >= min_leaf && node.boxes[1].overlaps(query) {
+                let c = node.child[1];
+                if c & LEAF != 0 {
+                    f(c & !LEAF);
+                } else {
+                    // Cannot overflow: the depth is at most 97 (module docs) and each
+                    // level leaves at most one sibling on the stack.
+                    stack[top] = c;
+                    top += 1;
                 }
             }
         }
@@ -277,12 +300,12 @@ impl Lbvh {
     /// Calls `f(index)` with the caller's index of every box overlapping `query`.
     #[inline]
     pub fn query(&self, query: &Aabb, f: impl FnMut(u32)) {
-        self.query_with(query, &mut Vec::with_capacity(STACK), f);
+        self.query_with(query, &mut Stack::default(), f);
     }
 
     /// [`Lbvh::query`] with a caller-provided traversal stack, for loops of queries.
     #[inline]
-    pub fn query_with(&self, query: &Aabb, stack: &mut Vec<u32>, mut f: impl FnMut(u32)) {
+    pub fn query_with(&self, query: &Aabb, stack: &mut Stack, mut f: impl FnMut(u32)) {
         self.visit(query, 0, stack, |leaf| f(self.order[leaf as usize]));
     }
 
@@ -295,7 +318,7 @@ impl Lbvh {
             .into_par_iter()
             .map(|c| {
                 let mut local = Vec::new();
-                let mut stack = Vec::with_capacity(STACK);
+                let mut stack = Stack::default();
                 for leaf in c * chunk..((c + 1) * chunk).min(n) {
                     let a = self.order[leaf];
                     self.visit(&self.leaves[leaf], leaf as u32 + 1, &mut stack, |other| {

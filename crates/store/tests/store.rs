@@ -364,8 +364,9 @@ async fn unknown_user_takes_as_long_as_a_wrong_password(db: TestDb) {
     store.create_user("timed", "right-password").await.unwrap();
     let mut known = Vec::new();
     let mut unknown = Vec::new();
-    // Interleaved so that background load hits both sides alike; medians for robustness.
-    for i in 0..7 {
+    // Interleaved, and compared by their fastest runs: the minimum is the pure cost of
+    // the work, which other tests running in parallel can only add to.
+    for i in 0..9 {
         let t = Instant::now();
         let err = store.check_credentials("timed", "wrong").await.unwrap_err();
         known.push(t.elapsed());
@@ -375,9 +376,9 @@ async fn unknown_user_takes_as_long_as_a_wrong_password(db: TestDb) {
         unknown.push(t.elapsed());
         assert!(matches!(err, StoreError::WrongCredentials));
     }
-    known.sort();
-    unknown.sort();
-    let (k, u) = (known[3], unknown[3]);
+    let k = known.iter().min().copied().unwrap_or_default();
+    let u = unknown.iter().min().copied().unwrap_or_default();
+    eprintln!("fastest failed login: wrong password {k:?}, unknown user {u:?}");
     assert!(k > Duration::from_micros(500), "the hash must cost something: {k:?}");
     assert!(u * 2 > k, "unknown user answered in {u:?}, wrong password in {k:?}: timing leaks existence");
     store.close().await;

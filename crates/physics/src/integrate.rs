@@ -28,20 +28,43 @@ const NPC_MOVES: [u8; 9] = [
 /// Salt of the per-NPC phase draw, so that NPCs do not all turn on the same tick.
 const PHASE_SALT: u64 = u64::MAX;
 
-/// The action an NPC holds at `tick`, given the one it held: it changes every `period`
-/// ticks, at a phase of its own, to a counter-based draw of (seed, id, tick).
-#[inline]
-pub fn npc_action(seed: u64, id: EntityId, tick: u64, period: u32, current: u8) -> u8 {
-    let period = period as u64;
-    let phase = hash3(seed, id.0 as u64, PHASE_SALT) % period;
-    if (tick + phase) % period != 0 {
-        return current;
+/// When NPCs turn at a given tick: each NPC has a phase in `[0, period)` (a draw of
+/// (seed, id)), and turns at the ticks where `(tick + phase) % period == 0`, i.e. when
+/// its phase equals [`NpcTurn::phase`]. Computing that phase once per tick keeps the
+/// 64-bit division out of the per-object loop (and out of the GPU kernel).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NpcTurn {
+    /// The tick.
+    pub tick: u64,
+    /// The period in ticks.
+    pub period: u32,
+    /// NPCs whose phase equals this value turn at `tick`.
+    pub phase: u32,
+}
+
+impl NpcTurn {
+    /// The turn for `tick` with a period of `period` ticks (at least 1).
+    pub fn at(tick: u64, period: u32) -> NpcTurn {
+        let period = period.max(1);
+        let r = (tick % period as u64) as u32;
+        NpcTurn { tick, period, phase: (period - r) % period }
     }
-    let r = hash3(seed, id.0 as u64, tick);
-    let mv = NPC_MOVES[(r % 9) as usize];
-    // One turn in 16 includes a jump.
-    let jump = if (r >> 32) & 15 == 0 { Action::JUMP } else { 0 };
-    mv | jump
+
+    /// The action an NPC holds after this tick's turn, given the one it held: unchanged
+    /// unless it is this NPC's turn, then a counter-based draw of (seed, id, tick).
+    #[inline]
+    pub fn action(&self, seed: u64, id: EntityId, current: u8) -> u8 {
+        // Lemire's multiply-shift maps 32 random bits to [0, period) without division.
+        let phase = (((hash3(seed, id.0 as u64, PHASE_SALT) >> 32) * self.period as u64) >> 32) as u32;
+        if phase != self.phase {
+            return current;
+        }
+        let r = hash3(seed, id.0 as u64, self.tick);
+        let mv = NPC_MOVES[((r >> 32) * 9 >> 32) as usize];
+        // One turn in 16 includes a jump.
+        let jump = if r & 15 == 0 { Action::JUMP } else { 0 };
+        mv | jump
+    }
 }
 
 /// Gravity, drag, friction and the held action, then the Verlet step: `prev` becomes the
@@ -198,17 +221,26 @@ mod tests {
 
     #[test]
     fn npc_actions_change_on_their_phase_only() {
-        let id = EntityId(17);
-        let mut changes = 0;
-        let mut a = 0;
-        for tick in 0..600 {
-            let b = npc_action(9, id, tick, 60, a);
-            if b != a {
-                changes += 1;
+        for id in (0..50).map(EntityId) {
+            let mut turns = Vec::new();
+            let mut a = 0xff; // an impossible action: every turn shows as a change
+            for tick in 0..600 {
+                let b = NpcTurn::at(tick, 60).action(9, id, a);
+                if b != a {
+                    turns.push(tick);
+                }
+                a = b;
             }
-            a = b;
+            let first = turns[0];
+            assert!(first < 60, "{id:?} first turns at {first}");
+            for t in &turns {
+                assert_eq!((t - first) % 60, 0, "{id:?} turned off its phase at {t}");
+            }
         }
-        assert!((5..=10).contains(&changes), "{changes} changes in 10 periods");
-        assert_eq!(npc_action(9, id, 123, 60, 0), npc_action(9, id, 123, 60, 0));
+        let turn = NpcTurn::at(123, 60);
+        assert_eq!(turn.action(9, EntityId(3), 0), turn.action(9, EntityId(3), 0));
+        assert_eq!(NpcTurn::at(0, 60).phase, 0);
+        assert_eq!(NpcTurn::at(1, 60).phase, 59);
+        assert_eq!(NpcTurn::at(5, 1).phase, 0);
     }
 }

@@ -8,7 +8,7 @@ use myriad_core::{ScenarioSpec, Vec3};
 use myriad_physics::{BackendKind, TickConstants, create_backend};
 
 /// Scenario below, 120 ticks, default physics constants.
-const GOLDEN: u64 = 0x1c5b_8179_c4d1_8a7b;
+const GOLDEN: u64 = 0x3e25_4a7b_5870_977a;
 
 #[test]
 fn state_hash_matches_the_pinned_value_on_every_backend() {

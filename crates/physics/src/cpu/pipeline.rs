@@ -15,7 +15,7 @@ use rayon::prelude::*;
 
 use crate::backend::{Stage, StepReport};
 use crate::consts::TickConstants;
-use crate::integrate::{enforce_limits, integrate, npc_action};
+use crate::integrate::{NpcTurn, enforce_limits, integrate};
 use crate::narrow::{Body, contact};
 use crate::response::{Accum, Response, respond};
 
@@ -164,14 +164,15 @@ pub(crate) fn run_step(
 
 /// Per object: NPC action, gathered responses, forces and integration, limits.
 fn forces(exec: Exec, world: &mut World, k: &TickConstants, s: &Scratch) {
-    let (seed, tick) = (world.seed, world.tick);
+    let seed = world.seed;
+    let turn = NpcTurn::at(world.tick, k.npc_period);
     let bounds = world.bounds;
     let terrain = &world.terrain;
     let st = world.dynamics.state_mut();
     let (half, kind, id) = (st.half, st.kind, st.id);
     let per_object = |i: usize, pos: &mut Vec3, prev: &mut Vec3, action: &mut u8, flag: &mut u8| {
         if kind[i] == ObjectKind::Npc {
-            *action = npc_action(seed, id[i], tick, k.npc_period, *action);
+            *action = turn.action(seed, id[i], *action);
         }
         let mut acc = Accum::default();
         for (_, r) in &s.static_resp[s.static_off[i] as usize..s.static_off[i + 1] as usize] {

@@ -65,7 +65,7 @@ struct Node {
 }
 
 /// A linear BVH over a set of boxes.
-#[derive(Clone, Debug, Default)]
+#[derive(Debug, Default)]
 pub struct Lbvh {
     /// `order[leaf]` is the caller's index of the box in that leaf.
     order: Vec<u32>,
@@ -74,8 +74,10 @@ pub struct Lbvh {
     /// Internal nodes; the root is node 0 when there are at least two leaves.
     nodes: Vec<Node>,
     /// Parent of each internal node (the root's is unused) and of each leaf.
-    node_parent: Vec<u32>,
-    leaf_parent: Vec<u32>,
+    node_parent: Vec<AtomicU32>,
+    leaf_parent: Vec<AtomicU32>,
+    /// Per-node arrival counters of the refit, reset before each refit.
+    arrivals: Vec<AtomicU32>,
     scratch_keys: Vec<u64>,
     scratch_values: Vec<u32>,
     keys: Vec<u64>,
@@ -146,8 +148,6 @@ impl Lbvh {
     fn emit_hierarchy(&mut self) {
         let n = self.leaves.len();
         self.nodes.clear();
-        self.node_parent.clear();
-        self.leaf_parent.clear();
         if n < 2 {
             return;
         }
@@ -193,16 +193,16 @@ impl Lbvh {
             Node { boxes: [Aabb::EMPTY; 2], child: [left, right], last: [gamma as u32, last as u32] }
         }));
         // Parents: every node except the root is the child of exactly one node.
-        let node_parent: Vec<AtomicU32> = (0..n - 1).map(|_| AtomicU32::new(0)).collect();
-        let leaf_parent: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(0)).collect();
+        // Buffers persist between builds; every entry is overwritten below.
+        self.node_parent.resize_with(n - 1, AtomicU32::default);
+        self.leaf_parent.resize_with(n, AtomicU32::default);
+        let (node_parent, leaf_parent) = (&self.node_parent, &self.leaf_parent);
         self.nodes.par_iter().enumerate().for_each(|(p, node)| {
             for c in node.child {
                 let slot = if c & LEAF != 0 { &leaf_parent[(c & !LEAF) as usize] } else { &node_parent[c as usize] };
                 slot.store(p as u32, Ordering::Relaxed);
             }
         });
-        self.node_parent = node_parent.into_iter().map(AtomicU32::into_inner).collect();
-        self.leaf_parent = leaf_parent.into_iter().map(AtomicU32::into_inner).collect();
     }
 
     /// Bottom-up union of the internal boxes from the leaf boxes.
@@ -211,7 +211,9 @@ impl Lbvh {
         if n < 2 {
             return;
         }
-        let arrivals: Vec<AtomicU32> = (0..n - 1).map(|_| AtomicU32::new(0)).collect();
+        self.arrivals.resize_with(n - 1, AtomicU32::default);
+        self.arrivals.par_iter().for_each(|a| a.store(0, Ordering::Relaxed));
+        let arrivals = &self.arrivals;
         let leaves = &self.leaves;
         let node_parent = &self.node_parent;
         let leaf_parent = &self.leaf_parent;
@@ -229,7 +231,7 @@ impl Lbvh {
             }
         };
         (0..n).into_par_iter().for_each(|leaf| {
-            let mut node = leaf_parent[leaf] as usize;
+            let mut node = leaf_parent[leaf].load(Ordering::Relaxed) as usize;
             let mut from = leaf as u32 | LEAF;
             let mut aabb = leaves[leaf];
             loop {
@@ -249,7 +251,7 @@ impl Lbvh {
                     return;
                 }
                 from = node as u32;
-                node = node_parent[node] as usize;
+                node = node_parent[node].load(Ordering::Relaxed) as usize;
             }
         });
     }

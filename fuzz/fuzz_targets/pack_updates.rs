@@ -17,7 +17,7 @@ fuzz_target!(|data: &[u8]| {
     let header = UpdateHeader {
         tick: u64::from(*tick),
         dilation_permille: 1000,
-        origin: QuantPos::new(i32_at(&[*ox0, *ox1, *ox2, *ox3]), -i32_at(&[*ox3, *ox2, *ox1, *ox0]), 0),
+        origin: QuantPos::new(i32_at(&[*ox0, *ox1, *ox2, *ox3]), i32_at(&[*ox3, *ox2, *ox1, *ox0]).wrapping_neg(), 0),
     };
     // 21 input bytes per record: id, kind, x, y, z.
     let records: Vec<StateRecord> = rest

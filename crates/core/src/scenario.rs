@@ -146,10 +146,10 @@ impl ScenarioSpec {
         if !(self.max_height.is_finite() && self.max_height >= 0.0) {
             return Err(CoreError::invalid("max height", format!("{}", self.max_height)));
         }
-        if let Placement::Clustered { hotspots, fraction, spread } = self.placement {
-            if hotspots == 0 || !(0.0..=1.0).contains(&fraction) || !(spread.is_finite() && spread > 0.0) {
-                return Err(CoreError::invalid("clustered placement", format!("{:?}", self.placement)));
-            }
+        if let Placement::Clustered { hotspots, fraction, spread } = self.placement
+            && (hotspots == 0 || !(0.0..=1.0).contains(&fraction) || !(spread.is_finite() && spread > 0.0))
+        {
+            return Err(CoreError::invalid("clustered placement", format!("{:?}", self.placement)));
         }
         Ok(())
     }

@@ -180,7 +180,7 @@ impl Terrain {
             }
             None => {
                 let side = ((n / 2) as f64).sqrt().round() as u64;
-                if n % 2 != 0 || side * side * 2 != n {
+                if !n.is_multiple_of(2) || side * side * 2 != n {
                     return Err(CoreError::HeightmapRawSize {
                         path: path.into(),
                         bytes: n,

@@ -60,7 +60,7 @@ impl NpcTurn {
             return current;
         }
         let r = hash3(seed, id.0 as u64, self.tick);
-        let mv = NPC_MOVES[((r >> 32) * 9 >> 32) as usize];
+        let mv = NPC_MOVES[(((r >> 32) * 9) >> 32) as usize];
         // One turn in 16 includes a jump.
         let jump = if r & 15 == 0 { Action::JUMP } else { 0 };
         mv | jump

@@ -1,7 +1,7 @@
 //! Capsule–capsule.
 
 use super::Contact;
-use super::segment::segment_segment;
+use super::segment::{Swept, segment_segment};
 use myriad_core::Vec3;
 
 /// Two vertical capsules (centres `ac`, `bc`; radii `ar`, `br`; segment half lengths
@@ -11,5 +11,7 @@ use myriad_core::Vec3;
 /// separated by lifting `b` above `a`.
 #[inline]
 pub fn contact_capsule_capsule(ac: Vec3, ar: f32, ahh: f32, bc: Vec3, br: f32, bhh: f32) -> Option<Contact> {
-    segment_segment(ac, ac.y - ahh, ac.y + ahh, ar, bc, bc.y - bhh, bc.y + bhh, br)
+    let a = Swept { c: ac, y0: ac.y - ahh, y1: ac.y + ahh, r: ar };
+    let b = Swept { c: bc, y0: bc.y - bhh, y1: bc.y + bhh, r: br };
+    segment_segment(a, b)
 }

@@ -1,7 +1,7 @@
 //! Sphere–capsule.
 
 use super::Contact;
-use super::segment::segment_segment;
+use super::segment::{Swept, segment_segment};
 use myriad_core::Vec3;
 
 /// A sphere at `c` of radius `r` against a vertical capsule at `cc` with radius `cr` and
@@ -10,5 +10,5 @@ use myriad_core::Vec3;
 /// axis lifts the capsule clear of the sphere.
 #[inline]
 pub fn contact_sphere_capsule(c: Vec3, r: f32, cc: Vec3, cr: f32, chh: f32) -> Option<Contact> {
-    segment_segment(c, c.y, c.y, r, cc, cc.y - chh, cc.y + chh, cr)
+    segment_segment(Swept { c, y0: c.y, y1: c.y, r }, Swept { c: cc, y0: cc.y - chh, y1: cc.y + chh, r: cr })
 }

@@ -60,33 +60,33 @@ pub(crate) fn segment_box(c: Vec3, s0: f32, s1: f32, r: f32, bc: Vec3, bh: Vec3)
     Some(Contact { normal: best.1, depth: best.0 })
 }
 
-/// Two vertical segments `a` at `(ac.x, [a0, a1], ac.z)` with radius `ar` and `b` likewise,
-/// the normal pointing from `a` to `b`.
+/// A vertical segment from `(c.x, y0, c.z)` to `(c.x, y1, c.z)` swept by radius `r`
+/// (`c.y` is not used).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Swept {
+    pub c: Vec3,
+    pub y0: f32,
+    pub y1: f32,
+    pub r: f32,
+}
+
+/// Two swept vertical segments; the normal points from `a` to `b`.
 #[inline]
-pub(crate) fn segment_segment(
-    ac: Vec3,
-    a0: f32,
-    a1: f32,
-    ar: f32,
-    bc: Vec3,
-    b0: f32,
-    b1: f32,
-    br: f32,
-) -> Option<Contact> {
-    let (ya, yb) = if a0 > b1 {
-        (a0, b1)
-    } else if a1 < b0 {
-        (a1, b0)
+pub(crate) fn segment_segment(a: Swept, b: Swept) -> Option<Contact> {
+    let (ya, yb) = if a.y0 > b.y1 {
+        (a.y0, b.y1)
+    } else if a.y1 < b.y0 {
+        (a.y1, b.y0)
     } else {
-        let m = (a0.max(b0) + a1.min(b1)) * 0.5;
+        let m = (a.y0.max(b.y0) + a.y1.min(b.y1)) * 0.5;
         (m, m)
     };
-    let pa = Vec3::new(ac.x, ya, ac.z);
-    let pb = Vec3::new(bc.x, yb, bc.z);
-    let c = contact_sphere_sphere(pa, ar, pb, br)?;
+    let pa = Vec3::new(a.c.x, ya, a.c.z);
+    let pb = Vec3::new(b.c.x, yb, b.c.z);
+    let c = contact_sphere_sphere(pa, a.r, pb, b.r)?;
     if pa == pb {
         // Shared axis and overlapping ranges: lift b until its bottom end clears a's top.
-        return Some(Contact { normal: FALLBACK_NORMAL, depth: (a1 - b0) + (ar + br) });
+        return Some(Contact { normal: FALLBACK_NORMAL, depth: (a.y1 - b.y0) + (a.r + b.r) });
     }
     Some(c)
 }

@@ -1,7 +1,7 @@
 //! The CPU backends: [`CpuNaive`] (one thread, all pairs) and [`CpuLbvh`] (rayon, LBVH).
 //!
-//! Both run the same [`pipeline`]; they differ only in how candidate pairs are found
-//! ([`pipeline::BroadPhase`]) and whether stages run on one thread or on rayon's pool.
+//! Both run the same step (`pipeline.rs`); they differ only in how candidate pairs are found
+//! (the `BroadPhase` trait there) and whether stages run on one thread or on rayon's pool.
 //! Everything after the broad phase is shared code, and the broad phases produce the same
 //! canonically sorted pair lists, which is why the two agree bit for bit.
 

@@ -12,9 +12,7 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use myriad_interest::{
-    AoiLists, InterestConfig, InterestManager, SoaObjects, Subscriber, TickInfo,
-};
+use myriad_interest::{AoiLists, InterestConfig, InterestManager, SoaObjects, Subscriber, TickInfo};
 use myriad_protocol::{ObjectKind, ServerSession, SessionKeys};
 
 struct Rng(u64);
@@ -43,9 +41,8 @@ fn scenario(objects: usize, players: usize, seed: u64) -> Scenario {
     let mut rng = Rng(seed);
     let density = 175.0 / (100.0 * 100.0);
     let side = (objects as f32 / density).sqrt();
-    let positions: Vec<[f32; 3]> = (0..objects)
-        .map(|_| [rng.unit() * side, rng.unit() * 30.0, rng.unit() * side])
-        .collect();
+    let positions: Vec<[f32; 3]> =
+        (0..objects).map(|_| [rng.unit() * side, rng.unit() * 30.0, rng.unit() * side]).collect();
     // A 32-unit grid over x/z to find each AOI's objects.
     let cell = 32.0f32;
     let cells = (side / cell).ceil() as usize + 1;
@@ -75,22 +72,12 @@ fn scenario(objects: usize, players: usize, seed: u64) -> Scenario {
             }
         }
         offsets.push(list.len() as u32);
-        let keys = SessionKeys {
-            session_id: p as u64,
-            client_to_server: [1; 32],
-            server_to_client: [2; 32],
-        };
-        subscribers.push(Subscriber::new(
-            p as u32,
-            c,
-            ServerSession::new(&keys).sealer,
-        ));
+        let keys = SessionKeys { session_id: p as u64, client_to_server: [1; 32], server_to_client: [2; 32] };
+        subscribers.push(Subscriber::new(p as u32, c, ServerSession::new(&keys).sealer));
     }
     Scenario {
         ids: (0..objects as u64).collect(),
-        kinds: (0..objects)
-            .map(|i| [ObjectKind::Sphere, ObjectKind::Box, ObjectKind::Capsule][i % 3])
-            .collect(),
+        kinds: (0..objects).map(|i| [ObjectKind::Sphere, ObjectKind::Box, ObjectKind::Capsule][i % 3]).collect(),
         positions,
         offsets,
         objects: list,
@@ -101,33 +88,17 @@ fn scenario(objects: usize, players: usize, seed: u64) -> Scenario {
 fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group("interest_tick");
     group.sample_size(20);
-    for (name, objects, players) in [
-        ("scenario2_5k_players", 55_000, 5_000),
-        ("scenario3_10k_players", 260_000, 10_000),
-    ] {
+    for (name, objects, players) in
+        [("scenario2_5k_players", 55_000, 5_000), ("scenario3_10k_players", 260_000, 10_000)]
+    {
         let mut s = scenario(objects, players, 42);
         let manager = InterestManager::new(InterestConfig::default());
-        let soa = SoaObjects {
-            ids: &s.ids,
-            kinds: &s.kinds,
-            positions: &s.positions,
-        };
-        let aoi = AoiLists {
-            offsets: &s.offsets,
-            objects: &s.objects,
-        };
+        let soa = SoaObjects { ids: &s.ids, kinds: &s.kinds, positions: &s.positions };
+        let aoi = AoiLists { offsets: &s.offsets, objects: &s.objects };
         let mut tick = 0u64;
         // Warm up buffers and report the traffic once.
         let report = manager
-            .build(
-                TickInfo {
-                    tick,
-                    dilation_permille: 1000,
-                },
-                &soa,
-                aoi,
-                &mut s.subscribers,
-            )
+            .build(TickInfo { tick, dilation_permille: 1000 }, &soa, aoi, &mut s.subscribers)
             .expect("lists match subscribers");
         eprintln!(
             "{name}: {} AOI entries ({:.0} per player), {} records, {} datagrams, {} bytes, {} players over budget per tick",
@@ -143,15 +114,7 @@ fn bench(c: &mut Criterion) {
                 tick += 1;
                 black_box(
                     manager
-                        .build(
-                            TickInfo {
-                                tick,
-                                dilation_permille: 1000,
-                            },
-                            &soa,
-                            aoi,
-                            &mut s.subscribers,
-                        )
+                        .build(TickInfo { tick, dilation_permille: 1000 }, &soa, aoi, &mut s.subscribers)
                         .expect("lists match subscribers"),
                 )
             })

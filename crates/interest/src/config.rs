@@ -16,10 +16,7 @@ pub struct InterestConfig {
 
 impl Default for InterestConfig {
     fn default() -> Self {
-        Self {
-            max_datagrams: 2,
-            near_share: 0.5,
-        }
+        Self { max_datagrams: 2, near_share: 0.5 }
     }
 }
 
@@ -31,11 +28,7 @@ impl InterestConfig {
 
     /// `K`: records given to the nearest objects when over budget (own object excluded).
     pub fn near_slots(&self) -> usize {
-        let share = if self.near_share.is_nan() {
-            0.5
-        } else {
-            self.near_share.clamp(0.0, 1.0)
-        };
+        let share = if self.near_share.is_nan() { 0.5 } else { self.near_share.clamp(0.0, 1.0) };
         let available = self.capacity() - 1;
         ((available as f32 * share) as usize).min(available - 1)
     }
@@ -49,11 +42,7 @@ impl InterestConfig {
     /// excluded): every object that stays in view is sent at least once in every this
     /// many consecutive ticks. 1 when everything fits. Assumes compact records.
     pub fn refresh_bound(&self, objects_in_view: usize) -> u64 {
-        if objects_in_view < self.capacity() {
-            1
-        } else {
-            objects_in_view.div_ceil(self.rotation_slots()) as u64
-        }
+        if objects_in_view < self.capacity() { 1 } else { objects_in_view.div_ceil(self.rotation_slots()) as u64 }
     }
 }
 
@@ -78,16 +67,10 @@ mod tests {
         assert_eq!(c.rotation_slots(), 113);
         assert_eq!(c.refresh_bound(225), 1);
         assert_eq!(c.refresh_bound(300), 3);
-        let greedy = InterestConfig {
-            max_datagrams: 0,
-            near_share: 7.0,
-        };
+        let greedy = InterestConfig { max_datagrams: 0, near_share: 7.0 };
         assert_eq!(greedy.capacity(), 113);
         assert_eq!(greedy.rotation_slots(), 1);
-        let nan = InterestConfig {
-            max_datagrams: 1,
-            near_share: f32::NAN,
-        };
+        let nan = InterestConfig { max_datagrams: 1, near_share: f32::NAN };
         assert_eq!(nan.near_slots(), 56);
     }
 }

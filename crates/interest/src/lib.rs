@@ -16,9 +16,12 @@
 //!    centre.
 //! 2. If everything fits `max_datagrams`, pack it all (own object first).
 //! 3. Otherwise the update is *over budget*: send the own object, then the `K` nearest
-//!    objects (`K` = `near_share` of the budget), then the remaining objects in order
-//!    of *staleness* (the tick they were last sent, or entered the view), as many as
-//!    fit. The staleness keys persist in the subscriber between ticks.
+//!    objects (`K` = `near_share` of the budget), then the `R` stalest of the rest
+//!    (*staleness*: the tick an object was last sent, or entered the view). The
+//!    staleness keys persist in the subscriber between ticks. When every selected
+//!    record is compact they fill the budget exactly and their order does not matter;
+//!    otherwise (extended records take more room) the groups are sorted, nearest and
+//!    stalest first, so what is cut is the least urgent.
 //! 4. Seal every datagram with the subscriber's [`Sealer`](myriad_protocol::Sealer).
 //!
 //! # Refresh bound

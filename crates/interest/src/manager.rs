@@ -5,7 +5,7 @@ use std::cell::RefCell;
 
 use myriad_protocol::update::record_len;
 use myriad_protocol::{
-    DatagramBatch, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader,
+    COMPACT_RECORD_LEN, DatagramBatch, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader,
     pack_updates,
 };
 use rayon::prelude::*;
@@ -144,6 +144,8 @@ pub struct InterestManager {
 struct Scratch {
     /// Candidates (own excluded), sorted by id when over budget.
     cands: Vec<Candidate>,
+    /// `(id, index into cands)`, sorted, when over budget.
+    by_id: Vec<(u64, u32)>,
     /// Indices into `cands`, for the partial selections.
     order: Vec<u32>,
     /// The records to pack, in priority order.
@@ -187,10 +189,7 @@ impl InterestManager {
         S: BorrowMut<Subscriber> + Send,
     {
         if aoi.len() != subscribers.len() {
-            return Err(InterestError::LengthMismatch {
-                lists: aoi.len(),
-                subscribers: subscribers.len(),
-            });
+            return Err(InterestError::LengthMismatch { lists: aoi.len(), subscribers: subscribers.len() });
         }
         let config = self.config;
         Ok(subscribers
@@ -229,42 +228,23 @@ fn build_one<O: ObjectSource>(
     sub: &mut Subscriber,
     scratch: &mut Scratch,
 ) {
-    let Scratch {
-        cands,
-        order,
-        records,
-    } = scratch;
+    let Scratch { cands, by_id, order, records } = scratch;
     cands.clear();
     records.clear();
     sub.datagrams.clear();
-    let mut report = SubscriberReport {
-        skipped: usize::from(list.is_none()),
-        ..SubscriberReport::default()
-    };
+    let mut report = SubscriberReport { skipped: usize::from(list.is_none()), ..SubscriberReport::default() };
     let origin = QuantPos::from_f32(sub.centre);
-    let header = UpdateHeader {
-        tick: tick.tick,
-        dilation_permille: tick.dilation_permille,
-        origin,
-    };
+    let header = UpdateHeader { tick: tick.tick, dilation_permille: tick.dilation_permille, origin };
 
     // 1. Gather.
-    let own = objects.get(sub.object).map(|(id, kind, p)| StateRecord {
-        id,
-        kind,
-        pos: QuantPos::from_f32(p),
-    });
+    let own = objects.get(sub.object).map(|(id, kind, p)| StateRecord { id, kind, pos: QuantPos::from_f32(p) });
     let c = sub.centre;
     for &slot in list.unwrap_or(&[]) {
         match objects.get(slot) {
             Some((id, kind, p)) if own.is_none_or(|o| o.id != id) => {
                 let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
                 cands.push(Candidate {
-                    rec: StateRecord {
-                        id,
-                        kind,
-                        pos: QuantPos::from_f32(p),
-                    },
+                    rec: StateRecord { id, kind, pos: QuantPos::from_f32(p) },
                     dist2: d[0] * d[0] + d[1] * d[1] + d[2] * d[2],
                     key: 0,
                 });
@@ -273,12 +253,7 @@ fn build_one<O: ObjectSource>(
             None => report.skipped += 1,
         }
     }
-    let id_base = own
-        .iter()
-        .map(|o| o.id)
-        .chain(cands.iter().map(|c| c.rec.id))
-        .min()
-        .unwrap_or(0);
+    let id_base = own.iter().map(|o| o.id).chain(cands.iter().map(|c| c.rec.id)).min().unwrap_or(0);
     let size = |r: &StateRecord| record_len(r, id_base, origin);
     records.extend(own);
 
@@ -290,38 +265,34 @@ fn build_one<O: ObjectSource>(
         sub.rotation.clear();
     } else {
         report.over_budget = true;
-        // 3a. Sort by id: drops duplicate slots and lines up with the stored keys.
-        cands.sort_unstable_by_key(|c| c.rec.id);
-        cands.dedup_by_key(|c| c.rec.id);
-        report.in_view = cands.len();
+        // 3a. Sort (id, index) pairs, smaller than candidates: drops duplicate slots
+        // and lines up with the stored keys.
+        by_id.clear();
+        by_id.extend(cands.iter().enumerate().map(|(i, c)| (c.rec.id, i as u32)));
+        by_id.sort_unstable();
+        by_id.dedup_by_key(|p| p.0);
+        report.in_view = by_id.len();
         // Objects absent from the stored state entered the view this tick (key = now),
         // unless there is no stored state: then everything was sent last tick, or
         // nothing ever was, and all share the key `now - 1`.
-        let fresh_key = if sub.rotation.is_empty() {
-            tick.tick.saturating_sub(1)
-        } else {
-            tick.tick
-        };
+        let fresh_key = if sub.rotation.is_empty() { tick.tick.saturating_sub(1) } else { tick.tick };
         let mut stored = sub.rotation.iter().peekable();
-        for c in cands.iter_mut() {
-            while stored.next_if(|&&(id, _)| id < c.rec.id).is_some() {}
-            c.key = match stored.peek() {
-                Some(&&(id, key)) if id == c.rec.id => key,
+        for &(id, i) in by_id.iter() {
+            while stored.next_if(|&&(sid, _)| sid < id).is_some() {}
+            cands[i as usize].key = match stored.peek() {
+                Some(&&(sid, key)) if sid == id => key,
                 _ => fresh_key,
             };
         }
         // 3b. The K nearest, nearest first.
         order.clear();
-        order.extend(0..cands.len() as u32);
+        order.extend(by_id.iter().map(|p| p.1));
         let k = config.near_slots().min(order.len());
         if k < order.len() {
-            order.select_nth_unstable_by(k, |&a, &b| {
-                cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2)
-            });
+            order.select_nth_unstable_by(k, |&a, &b| cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2));
         }
         let (near, rest) = order.split_at_mut(k);
-        near.sort_unstable_by(|&a, &b| cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2));
-        // 3c. The stalest of the rest, stalest first (ties by id, which is stable).
+        // 3c. The stalest of the rest (ties by id, which is stable).
         let r = config.rotation_slots().min(rest.len());
         let stalest = |a: &u32, b: &u32| {
             let (a, b) = (&cands[*a as usize], &cands[*b as usize]);
@@ -330,24 +301,26 @@ fn build_one<O: ObjectSource>(
         if r < rest.len() {
             rest.select_nth_unstable_by(r, stalest);
         }
-        rest[..r].sort_unstable_by(stalest);
+        // Order inside the two groups only matters if not all of them fit, which
+        // takes an extended record: with compact ones, 1 + K + R is the capacity.
+        let all_compact = own.iter().all(|o| size(o) == COMPACT_RECORD_LEN)
+            && near.iter().chain(rest[..r].iter()).all(|&i| size(&cands[i as usize].rec) == COMPACT_RECORD_LEN);
+        if !all_compact {
+            near.sort_unstable_by(|&a, &b| cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2));
+            rest[..r].sort_unstable_by(stalest);
+        }
         records.extend(order[..k + r].iter().map(|&i| cands[i as usize].rec));
     }
 
     // Pack and stamp what was sent.
-    let packed = pack_updates(
-        &header,
-        records,
-        config.max_datagrams.max(1),
-        &mut sub.datagrams,
-    );
+    let packed = pack_updates(&header, records, config.max_datagrams.max(1), &mut sub.datagrams);
     if report.over_budget {
         let skip_own = usize::from(own.is_some());
         for &i in order.iter().take(packed.saturating_sub(skip_own)) {
             cands[i as usize].key = tick.tick;
         }
         sub.rotation.clear();
-        sub.rotation.extend(cands.iter().map(|c| (c.rec.id, c.key)));
+        sub.rotation.extend(by_id.iter().map(|&(id, i)| (id, cands[i as usize].key)));
     }
     report.records = packed;
 

@@ -25,11 +25,7 @@ impl ObjectSource for SoaObjects<'_> {
     #[inline]
     fn get(&self, slot: u32) -> Option<(u64, ObjectKind, [f32; 3])> {
         let i = slot as usize;
-        Some((
-            *self.ids.get(i)?,
-            *self.kinds.get(i)?,
-            *self.positions.get(i)?,
-        ))
+        Some((*self.ids.get(i)?, *self.kinds.get(i)?, *self.positions.get(i)?))
     }
 }
 

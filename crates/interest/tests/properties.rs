@@ -4,17 +4,11 @@
 //! datagram opens.
 
 use myriad_interest::*;
-use myriad_protocol::{
-    ClientSession, MAX_DATAGRAM, ObjectKind, ServerMessage, ServerSession, SessionKeys,
-};
+use myriad_protocol::{ClientSession, MAX_DATAGRAM, ObjectKind, ServerMessage, ServerSession, SessionKeys};
 use proptest::prelude::*;
 
 fn keys(i: u64) -> SessionKeys {
-    SessionKeys {
-        session_id: i,
-        client_to_server: [1; 32],
-        server_to_client: [2; 32],
-    }
+    SessionKeys { session_id: i, client_to_server: [1; 32], server_to_client: [2; 32] }
 }
 
 proptest! {

@@ -7,16 +7,12 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use myriad_protocol::{
-    ClientSession, DatagramBatch, MAX_COMPACT_RECORDS, ObjectKind, QuantPos, ServerSession,
-    SessionKeys, StateRecord, UpdateHeader, pack_updates,
+    ClientSession, DatagramBatch, MAX_COMPACT_RECORDS, ObjectKind, QuantPos, ServerSession, SessionKeys, StateRecord,
+    UpdateHeader, pack_updates,
 };
 
 fn keys() -> SessionKeys {
-    SessionKeys {
-        session_id: 1,
-        client_to_server: [1; 32],
-        server_to_client: [2; 32],
-    }
+    SessionKeys { session_id: 1, client_to_server: [1; 32], server_to_client: [2; 32] }
 }
 
 fn records(n: usize) -> Vec<StateRecord> {
@@ -30,11 +26,7 @@ fn records(n: usize) -> Vec<StateRecord> {
 }
 
 fn bench(c: &mut Criterion) {
-    let header = UpdateHeader {
-        tick: 1,
-        dilation_permille: 1000,
-        origin: QuantPos::default(),
-    };
+    let header = UpdateHeader { tick: 1, dilation_permille: 1000, origin: QuantPos::default() };
     let recs = records(MAX_COMPACT_RECORDS * 2);
     let mut batch = DatagramBatch::new();
     pack_updates(&header, &recs, 2, &mut batch);
@@ -74,13 +66,7 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             buf.copy_from_slice(&one);
             server.sealer.seal_in_place(&mut buf).expect("seal");
-            black_box(
-                client
-                    .opener
-                    .open_with(&mut buf, |_, body| Ok(body.len()))
-                    .expect("open")
-                    .message,
-            )
+            black_box(client.opener.open_with(&mut buf, |_, body| Ok(body.len())).expect("open").message)
         })
     });
     g.finish();

@@ -85,10 +85,7 @@ impl DatagramBatch {
     }
 
     /// Calls `f` on every datagram, mutably, stopping at the first error.
-    pub fn try_for_each_mut<E>(
-        &mut self,
-        mut f: impl FnMut(&mut [u8]) -> Result<(), E>,
-    ) -> Result<(), E> {
+    pub fn try_for_each_mut<E>(&mut self, mut f: impl FnMut(&mut [u8]) -> Result<(), E>) -> Result<(), E> {
         let mut start = 0;
         for &end in &self.ends {
             f(&mut self.bytes[start..end])?;

@@ -102,11 +102,7 @@ impl PacketKind {
 
     /// The direction this kind travels in (bit 7 of the byte).
     pub const fn direction(self) -> Direction {
-        if (self as u8) & 0x80 == 0 {
-            Direction::ClientToServer
-        } else {
-            Direction::ServerToClient
-        }
+        if (self as u8) & 0x80 == 0 { Direction::ClientToServer } else { Direction::ServerToClient }
     }
 }
 
@@ -138,16 +134,10 @@ impl Header {
 /// up the session named by [`Header::session_id`].
 pub fn peek_header(datagram: &[u8], direction: Direction) -> Result<Header, DecodeError> {
     if datagram.len() < MIN_DATAGRAM {
-        return Err(DecodeError::Truncated {
-            needed: MIN_DATAGRAM,
-            got: datagram.len(),
-        });
+        return Err(DecodeError::Truncated { needed: MIN_DATAGRAM, got: datagram.len() });
     }
     if datagram.len() > MAX_DATAGRAM {
-        return Err(DecodeError::TooLong {
-            len: datagram.len(),
-            max: MAX_DATAGRAM,
-        });
+        return Err(DecodeError::TooLong { len: datagram.len(), max: MAX_DATAGRAM });
     }
     let mut r = Reader::new(datagram);
     let version = r.u8()?;
@@ -159,11 +149,7 @@ pub fn peek_header(datagram: &[u8], direction: Direction) -> Result<Header, Deco
     if kind.direction() != direction {
         return Err(DecodeError::WrongDirection(kind));
     }
-    Ok(Header {
-        kind,
-        session_id: r.u64()?,
-        sequence: r.u64()?,
-    })
+    Ok(Header { kind, session_id: r.u64()?, sequence: r.u64()? })
 }
 
 #[cfg(test)]
@@ -175,30 +161,18 @@ mod tests {
         for kind in PacketKind::ALL {
             assert_eq!(PacketKind::from_byte(kind as u8), Some(kind));
         }
-        let assigned = (0..=255u8)
-            .filter(|&b| PacketKind::from_byte(b).is_some())
-            .count();
+        let assigned = (0..=255u8).filter(|&b| PacketKind::from_byte(b).is_some()).count();
         assert_eq!(assigned, PacketKind::ALL.len());
     }
 
     #[test]
     fn peek_rejects_cheap_failures() {
         let mut d = [0u8; MIN_DATAGRAM];
-        Header {
-            kind: PacketKind::Ready,
-            session_id: 7,
-            sequence: 9,
-        }
-        .write((&mut d[..HEADER_LEN]).try_into().unwrap());
+        Header { kind: PacketKind::Ready, session_id: 7, sequence: 9 }
+            .write((&mut d[..HEADER_LEN]).try_into().unwrap());
         let h = peek_header(&d, Direction::ClientToServer).unwrap();
-        assert_eq!(
-            (h.kind, h.session_id, h.sequence),
-            (PacketKind::Ready, 7, 9)
-        );
-        assert_eq!(
-            peek_header(&d, Direction::ServerToClient),
-            Err(DecodeError::WrongDirection(PacketKind::Ready))
-        );
+        assert_eq!((h.kind, h.session_id, h.sequence), (PacketKind::Ready, 7, 9));
+        assert_eq!(peek_header(&d, Direction::ServerToClient), Err(DecodeError::WrongDirection(PacketKind::Ready)));
         assert!(matches!(
             peek_header(&d[..MIN_DATAGRAM - 1], Direction::ClientToServer),
             Err(DecodeError::Truncated { .. })
@@ -208,15 +182,9 @@ mod tests {
             Err(DecodeError::TooLong { .. })
         ));
         d[0] = 2;
-        assert_eq!(
-            peek_header(&d, Direction::ClientToServer),
-            Err(DecodeError::BadVersion(2))
-        );
+        assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::BadVersion(2)));
         d[0] = PROTOCOL_VERSION;
         d[1] = 0x7f;
-        assert_eq!(
-            peek_header(&d, Direction::ClientToServer),
-            Err(DecodeError::UnknownKind(0x7f))
-        );
+        assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::UnknownKind(0x7f)));
     }
 }

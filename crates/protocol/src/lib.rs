@@ -29,6 +29,7 @@
 pub mod batch;
 pub mod error;
 pub mod header;
+pub mod login;
 pub mod message;
 pub mod quant;
 pub mod replay;
@@ -40,17 +41,16 @@ mod wire;
 pub use batch::DatagramBatch;
 pub use error::{DecodeError, EncodeError, ErrorClass, OpenError, ReplayError, SealError};
 pub use header::{
-    Direction, HEADER_LEN, Header, MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM, PROTOCOL_VERSION,
-    PacketKind, TAG_LEN, peek_header,
+    Direction, HEADER_LEN, Header, MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM, PROTOCOL_VERSION, PacketKind, TAG_LEN,
+    peek_header,
 };
 pub use message::{
-    Action, ActionMask, ClientMessage, DisconnectReason, ServerInfo, ServerMessage, encode_client,
-    encode_server,
+    Action, ActionMask, ClientMessage, DisconnectReason, ServerInfo, ServerMessage, encode_client, encode_server,
 };
 pub use quant::{POS_SCALE, QuantPos};
 pub use replay::{REPLAY_WINDOW, ReplayWindow};
 pub use session::{ClientSession, Opened, Opener, Sealer, ServerSession, SessionKeys};
 pub use update::{
-    COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN, ID_WINDOW, MAX_COMPACT_RECORDS, ObjectKind,
-    StateRecord, StateUpdate, StateUpdateView, UPDATE_HEADER_LEN, UpdateHeader, pack_updates,
+    COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN, ID_WINDOW, MAX_COMPACT_RECORDS, ObjectKind, StateRecord, StateUpdate,
+    StateUpdateView, UPDATE_HEADER_LEN, UpdateHeader, pack_updates,
 };

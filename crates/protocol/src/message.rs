@@ -37,11 +37,7 @@ impl ActionMask {
 
     /// Wraps a mask, or returns `None` if a bit above bit 4 is set.
     pub const fn new(bits: u8) -> Option<Self> {
-        if bits & !Self::VALID == 0 {
-            Some(Self(bits))
-        } else {
-            None
-        }
+        if bits & !Self::VALID == 0 { Some(Self(bits)) } else { None }
     }
 
     /// The raw bits.
@@ -105,10 +101,7 @@ impl ClientMessage {
             PacketKind::Action => {
                 let bits = r.u8()?;
                 let mask = ActionMask::new(bits).ok_or(DecodeError::BadActionMask(bits))?;
-                Self::Action(Action {
-                    mask,
-                    client_frame: r.u32()?,
-                })
+                Self::Action(Action { mask, client_frame: r.u32()? })
             }
             PacketKind::Ready => Self::Ready,
             PacketKind::ClientKeepAlive => Self::KeepAlive,
@@ -140,14 +133,8 @@ pub enum DisconnectReason {
 
 impl DisconnectReason {
     /// Every reason, in code order.
-    pub const ALL: [DisconnectReason; 6] = [
-        Self::Shutdown,
-        Self::Timeout,
-        Self::Kicked,
-        Self::Replaced,
-        Self::ServerFull,
-        Self::ProtocolViolation,
-    ];
+    pub const ALL: [DisconnectReason; 6] =
+        [Self::Shutdown, Self::Timeout, Self::Kicked, Self::Replaced, Self::ServerFull, Self::ProtocolViolation];
 
     /// Parses a reason code.
     pub const fn from_code(code: u8) -> Option<Self> {
@@ -222,15 +209,11 @@ impl ServerMessage {
             PacketKind::ServerKeepAlive => Self::KeepAlive,
             PacketKind::ServerDisconnect => {
                 let code = r.u8()?;
-                Self::Disconnect(
-                    DisconnectReason::from_code(code)
-                        .ok_or(DecodeError::BadDisconnectReason(code))?,
-                )
+                Self::Disconnect(DisconnectReason::from_code(code).ok_or(DecodeError::BadDisconnectReason(code))?)
             }
-            PacketKind::ServerInfo => Self::ServerInfo(ServerInfo {
-                tick_rate_hz: r.u16()?,
-                dilation_permille: r.u16()?,
-            }),
+            PacketKind::ServerInfo => {
+                Self::ServerInfo(ServerInfo { tick_rate_hz: r.u16()?, dilation_permille: r.u16()? })
+            }
             other => return Err(DecodeError::WrongDirection(other)),
         };
         r.finish()?;
@@ -298,10 +281,7 @@ mod tests {
 
     #[test]
     fn bodies_have_exact_lengths() {
-        assert_eq!(
-            ClientMessage::decode_body(PacketKind::Ready, &[0]),
-            Err(DecodeError::TrailingBytes { extra: 1 })
-        );
+        assert_eq!(ClientMessage::decode_body(PacketKind::Ready, &[0]), Err(DecodeError::TrailingBytes { extra: 1 }));
         assert!(matches!(
             ClientMessage::decode_body(PacketKind::Action, &[1, 0, 0]),
             Err(DecodeError::Truncated { .. })
@@ -321,9 +301,6 @@ mod tests {
         let mut out = vec![0xee];
         encode_client(&ClientMessage::KeepAlive, &mut out);
         assert_eq!(out.len(), 1 + HEADER_LEN + TAG_LEN);
-        assert_eq!(
-            &out[1..3],
-            &[PROTOCOL_VERSION, PacketKind::ClientKeepAlive as u8]
-        );
+        assert_eq!(&out[1..3], &[PROTOCOL_VERSION, PacketKind::ClientKeepAlive as u8]);
     }
 }

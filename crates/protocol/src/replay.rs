@@ -35,11 +35,7 @@ impl Default for ReplayWindow {
 impl ReplayWindow {
     /// An empty window that accepts any sequence number.
     pub const fn new() -> Self {
-        Self {
-            newest: 0,
-            started: false,
-            bits: [0; WORDS],
-        }
+        Self { newest: 0, started: false, bits: [0; WORDS] }
     }
 
     /// The highest sequence accepted so far, if any.
@@ -63,11 +59,7 @@ impl ReplayWindow {
             return Err(ReplayError::TooOld(seq));
         }
         let (word, mask) = Self::slot(seq);
-        if self.bits[word] & mask != 0 {
-            Err(ReplayError::Duplicate(seq))
-        } else {
-            Ok(())
-        }
+        if self.bits[word] & mask != 0 { Err(ReplayError::Duplicate(seq)) } else { Ok(()) }
     }
 
     /// Records `seq` as accepted; call only after [`check`](Self::check) passed and the
@@ -113,17 +105,11 @@ mod tests {
         w.commit(5 + REPLAY_WINDOW).unwrap();
         assert_eq!(w.check(5), Err(ReplayError::TooOld(5)));
         assert_eq!(w.check(6), Ok(()));
-        assert_eq!(
-            w.check(5 + REPLAY_WINDOW),
-            Err(ReplayError::Duplicate(5 + REPLAY_WINDOW))
-        );
+        assert_eq!(w.check(5 + REPLAY_WINDOW), Err(ReplayError::Duplicate(5 + REPLAY_WINDOW)));
         assert_eq!(w.commit(5), Err(ReplayError::TooOld(5)));
         w.commit(u64::MAX).unwrap();
         assert_eq!(w.check(u64::MAX), Err(ReplayError::Duplicate(u64::MAX)));
-        assert_eq!(
-            w.check(u64::MAX - REPLAY_WINDOW),
-            Err(ReplayError::TooOld(u64::MAX - REPLAY_WINDOW))
-        );
+        assert_eq!(w.check(u64::MAX - REPLAY_WINDOW), Err(ReplayError::TooOld(u64::MAX - REPLAY_WINDOW)));
         assert_eq!(w.check(u64::MAX - REPLAY_WINDOW + 1), Ok(()));
     }
 }

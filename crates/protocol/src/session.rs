@@ -19,9 +19,7 @@ use chacha20poly1305::{AeadInOut, ChaCha20Poly1305, KeyInit};
 
 use crate::batch::DatagramBatch;
 use crate::error::{DecodeError, OpenError, SealError};
-use crate::header::{
-    Direction, HEADER_LEN, Header, MAX_DATAGRAM, MIN_DATAGRAM, PacketKind, peek_header,
-};
+use crate::header::{Direction, HEADER_LEN, Header, MAX_DATAGRAM, MIN_DATAGRAM, PacketKind, peek_header};
 use crate::message::{ClientMessage, ServerMessage, encode_client, encode_server};
 use crate::replay::ReplayWindow;
 
@@ -39,9 +37,7 @@ pub struct SessionKeys {
 impl std::fmt::Debug for SessionKeys {
     // Keys never reach logs.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SessionKeys")
-            .field("session_id", &self.session_id)
-            .finish_non_exhaustive()
+        f.debug_struct("SessionKeys").field("session_id", &self.session_id).finish_non_exhaustive()
     }
 }
 
@@ -76,12 +72,7 @@ impl std::fmt::Debug for Sealer {
 impl Sealer {
     /// A sealer for `direction` with `key`, starting at sequence 0.
     pub fn new(session_id: u64, direction: Direction, key: &[u8; 32]) -> Self {
-        Self {
-            cipher: ChaCha20Poly1305::new(&Array::from(*key)),
-            session_id,
-            direction,
-            next_sequence: 0,
-        }
+        Self { cipher: ChaCha20Poly1305::new(&Array::from(*key)), session_id, direction, next_sequence: 0 }
     }
 
     /// The sequence number the next datagram gets.
@@ -110,14 +101,8 @@ impl Sealer {
         let sequence = self.next_sequence;
         let (head, rest) = datagram.split_at_mut(HEADER_LEN);
         let (body, tag_space) = rest.split_at_mut(len - MIN_DATAGRAM);
-        let header: &mut [u8; HEADER_LEN] =
-            head.try_into().map_err(|_| SealError::BadLength(len))?;
-        Header {
-            kind,
-            session_id: self.session_id,
-            sequence,
-        }
-        .write(header);
+        let header: &mut [u8; HEADER_LEN] = head.try_into().map_err(|_| SealError::BadLength(len))?;
+        Header { kind, session_id: self.session_id, sequence }.write(header);
         let tag = self
             .cipher
             .encrypt_inout_detached(&nonce(self.direction, sequence), header, body.into())
@@ -130,11 +115,7 @@ impl Sealer {
 
     /// Appends `msg` to `out` as one sealed server datagram (this sealer must seal
     /// server-to-client). Appends nothing on error.
-    pub fn seal_server_message(
-        &mut self,
-        msg: &ServerMessage,
-        out: &mut Vec<u8>,
-    ) -> Result<u64, SealError> {
+    pub fn seal_server_message(&mut self, msg: &ServerMessage, out: &mut Vec<u8>) -> Result<u64, SealError> {
         let start = out.len();
         encode_server(msg, out)?;
         self.seal_tail(out, start)
@@ -142,11 +123,7 @@ impl Sealer {
 
     /// Appends `msg` to `out` as one sealed client datagram (this sealer must seal
     /// client-to-server). Appends nothing on error.
-    pub fn seal_client_message(
-        &mut self,
-        msg: &ClientMessage,
-        out: &mut Vec<u8>,
-    ) -> Result<u64, SealError> {
+    pub fn seal_client_message(&mut self, msg: &ClientMessage, out: &mut Vec<u8>) -> Result<u64, SealError> {
         let start = out.len();
         encode_client(msg, out);
         self.seal_tail(out, start)
@@ -198,12 +175,7 @@ impl std::fmt::Debug for Opener {
 impl Opener {
     /// An opener for datagrams travelling in `direction`, sealed with `key`.
     pub fn new(session_id: u64, direction: Direction, key: &[u8; 32]) -> Self {
-        Self {
-            cipher: ChaCha20Poly1305::new(&Array::from(*key)),
-            session_id,
-            direction,
-            window: ReplayWindow::new(),
-        }
+        Self { cipher: ChaCha20Poly1305::new(&Array::from(*key)), session_id, direction, window: ReplayWindow::new() }
     }
 
     /// The replay window (read only).
@@ -224,10 +196,7 @@ impl Opener {
     ) -> Result<Opened<T>, OpenError> {
         let header = peek_header(datagram, self.direction)?;
         if header.session_id != self.session_id {
-            return Err(OpenError::WrongSession {
-                expected: self.session_id,
-                got: header.session_id,
-            });
+            return Err(OpenError::WrongSession { expected: self.session_id, got: header.session_id });
         }
         self.window.check(header.sequence)?;
         let len = datagram.len();
@@ -235,12 +204,7 @@ impl Opener {
         let (body, tag) = rest.split_at_mut(len - MIN_DATAGRAM);
         let tag = Array::try_from(&*tag).map_err(|_| OpenError::Authentication)?;
         self.cipher
-            .decrypt_inout_detached(
-                &nonce(self.direction, header.sequence),
-                head,
-                body.into(),
-                &tag,
-            )
+            .decrypt_inout_detached(&nonce(self.direction, header.sequence), head, body.into(), &tag)
             .map_err(|_| OpenError::Authentication)?;
         let message = decode(header.kind, body)?;
         self.window.commit(header.sequence)?;
@@ -261,16 +225,8 @@ impl ServerSession {
     /// Both halves from the login's keys.
     pub fn new(keys: &SessionKeys) -> Self {
         Self {
-            sealer: Sealer::new(
-                keys.session_id,
-                Direction::ServerToClient,
-                &keys.server_to_client,
-            ),
-            opener: Opener::new(
-                keys.session_id,
-                Direction::ClientToServer,
-                &keys.client_to_server,
-            ),
+            sealer: Sealer::new(keys.session_id, Direction::ServerToClient, &keys.server_to_client),
+            opener: Opener::new(keys.session_id, Direction::ClientToServer, &keys.client_to_server),
         }
     }
 
@@ -299,16 +255,8 @@ impl ClientSession {
     /// Both halves from the login's keys.
     pub fn new(keys: &SessionKeys) -> Self {
         Self {
-            sealer: Sealer::new(
-                keys.session_id,
-                Direction::ClientToServer,
-                &keys.client_to_server,
-            ),
-            opener: Opener::new(
-                keys.session_id,
-                Direction::ServerToClient,
-                &keys.server_to_client,
-            ),
+            sealer: Sealer::new(keys.session_id, Direction::ClientToServer, &keys.client_to_server),
+            opener: Opener::new(keys.session_id, Direction::ServerToClient, &keys.server_to_client),
         }
     }
 

@@ -105,11 +105,7 @@ pub struct UpdateHeader {
 /// [`COMPACT_RECORD_LEN`] or [`EXTENDED_RECORD_LEN`].
 #[inline]
 pub fn record_len(rec: &StateRecord, id_base: u64, origin: QuantPos) -> usize {
-    if compact_parts(rec, id_base, origin).is_some() {
-        COMPACT_RECORD_LEN
-    } else {
-        EXTENDED_RECORD_LEN
-    }
+    if compact_parts(rec, id_base, origin).is_some() { COMPACT_RECORD_LEN } else { EXTENDED_RECORD_LEN }
 }
 
 #[inline]
@@ -122,12 +118,7 @@ fn compact_parts(rec: &StateRecord, id_base: u64, origin: QuantPos) -> Option<(u
 /// Writes `rec` at the start of `out` and returns the bytes written, or `None`
 /// (writing nothing) if `out` is too short for it.
 #[inline]
-fn write_record(
-    rec: &StateRecord,
-    id_base: u64,
-    origin: QuantPos,
-    out: &mut [u8],
-) -> Option<usize> {
+fn write_record(rec: &StateRecord, id_base: u64, origin: QuantPos, out: &mut [u8]) -> Option<usize> {
     match compact_parts(rec, id_base, origin) {
         Some((word, d)) => {
             let out = out.get_mut(..COMPACT_RECORD_LEN)?;
@@ -160,23 +151,13 @@ fn write_update_header(h: &UpdateHeader, id_base: u64, count: u16, out: &mut [u8
     out[30..32].copy_from_slice(&count.to_le_bytes());
 }
 
-fn read_record(
-    r: &mut Reader<'_>,
-    id_base: u64,
-    origin: QuantPos,
-) -> Result<StateRecord, DecodeError> {
+fn read_record(r: &mut Reader<'_>, id_base: u64, origin: QuantPos) -> Result<StateRecord, DecodeError> {
     let word = r.u32()?;
     if word & 3 != ESCAPE {
         let kind = ObjectKind::from_code((word & 3) as u8).ok_or(DecodeError::BadObjectKind(3))?;
-        let id = id_base
-            .checked_add(u64::from(word >> 2))
-            .ok_or(DecodeError::IdOverflow)?;
+        let id = id_base.checked_add(u64::from(word >> 2)).ok_or(DecodeError::IdOverflow)?;
         let d = [r.i16()?, r.i16()?, r.i16()?];
-        Ok(StateRecord {
-            id,
-            kind,
-            pos: QuantPos::add_offset(origin, d),
-        })
+        Ok(StateRecord { id, kind, pos: QuantPos::add_offset(origin, d) })
     } else {
         if word >> 4 != 0 {
             return Err(DecodeError::ReservedBits(word));
@@ -204,12 +185,7 @@ impl StateUpdate {
     pub fn encode_body(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
         let id_base = self.records.iter().map(|r| r.id).min().unwrap_or(0);
         let origin = self.header.origin;
-        let len = UPDATE_HEADER_LEN
-            + self
-                .records
-                .iter()
-                .map(|r| record_len(r, id_base, origin))
-                .sum::<usize>();
+        let len = UPDATE_HEADER_LEN + self.records.iter().map(|r| record_len(r, id_base, origin)).sum::<usize>();
         if len > MAX_BODY {
             return Err(EncodeError::TooLarge { len, max: MAX_BODY });
         }
@@ -229,10 +205,7 @@ impl StateUpdate {
     /// Decodes a body.
     pub fn decode_body(body: &[u8]) -> Result<Self, DecodeError> {
         let view = StateUpdateView::parse(body)?;
-        Ok(Self {
-            header: view.header(),
-            records: view.records().collect(),
-        })
+        Ok(Self { header: view.header(), records: view.records().collect() })
     }
 }
 
@@ -266,12 +239,7 @@ impl<'a> StateUpdateView<'a> {
             read_record(&mut r, id_base, header.origin)?;
         }
         r.finish()?;
-        Ok(Self {
-            header,
-            id_base,
-            count,
-            records,
-        })
+        Ok(Self { header, id_base, count, records })
     }
 
     /// Tick, dilation and origin.
@@ -356,27 +324,18 @@ mod tests {
     use super::*;
 
     fn rec(id: u64, kind: ObjectKind, p: (i32, i32, i32)) -> StateRecord {
-        StateRecord {
-            id,
-            kind,
-            pos: QuantPos::new(p.0, p.1, p.2),
-        }
+        StateRecord { id, kind, pos: QuantPos::new(p.0, p.1, p.2) }
     }
 
     #[test]
     fn capacity_is_113_compact_records() {
         assert_eq!(MAX_COMPACT_RECORDS, 113);
         let h = UpdateHeader::default();
-        let recs: Vec<_> = (0..113 * 3 + 1)
-            .map(|i| rec(i, ObjectKind::Box, (i as i32, 0, 0)))
-            .collect();
+        let recs: Vec<_> = (0..113 * 3 + 1).map(|i| rec(i, ObjectKind::Box, (i as i32, 0, 0))).collect();
         let mut b = DatagramBatch::new();
         assert_eq!(pack_updates(&h, &recs, 10, &mut b), recs.len());
         assert_eq!(b.len(), 4);
-        assert_eq!(
-            b.get(0).map(<[u8]>::len),
-            Some(HEADER_LEN + UPDATE_HEADER_LEN + 1130 + TAG_LEN)
-        );
+        assert_eq!(b.get(0).map(<[u8]>::len), Some(HEADER_LEN + UPDATE_HEADER_LEN + 1130 + TAG_LEN));
         let mut b = DatagramBatch::new();
         assert_eq!(pack_updates(&h, &recs, 2, &mut b), 226);
         assert_eq!(b.len(), 2);
@@ -386,44 +345,12 @@ mod tests {
     fn escapes_for_far_positions_and_large_ids() {
         let origin = QuantPos::new(100, 100, 100);
         let base = 1u64 << 40;
-        assert_eq!(
-            record_len(
-                &rec(base, ObjectKind::Sphere, (100, 100, 100)),
-                base,
-                origin
-            ),
-            10
-        );
-        assert_eq!(
-            record_len(
-                &rec(base + ID_WINDOW - 1, ObjectKind::Sphere, (100, 100, 100)),
-                base,
-                origin
-            ),
-            10
-        );
-        assert_eq!(
-            record_len(
-                &rec(base + ID_WINDOW, ObjectKind::Sphere, (100, 100, 100)),
-                base,
-                origin
-            ),
-            24
-        );
-        assert_eq!(
-            record_len(
-                &rec(base, ObjectKind::Sphere, (100 + 32768, 100, 100)),
-                base,
-                origin
-            ),
-            24
-        );
+        assert_eq!(record_len(&rec(base, ObjectKind::Sphere, (100, 100, 100)), base, origin), 10);
+        assert_eq!(record_len(&rec(base + ID_WINDOW - 1, ObjectKind::Sphere, (100, 100, 100)), base, origin), 10);
+        assert_eq!(record_len(&rec(base + ID_WINDOW, ObjectKind::Sphere, (100, 100, 100)), base, origin), 24);
+        assert_eq!(record_len(&rec(base, ObjectKind::Sphere, (100 + 32768, 100, 100)), base, origin), 24);
         let u = StateUpdate {
-            header: UpdateHeader {
-                tick: 9,
-                dilation_permille: 1000,
-                origin,
-            },
+            header: UpdateHeader { tick: 9, dilation_permille: 1000, origin },
             records: vec![
                 rec(u64::MAX, ObjectKind::Capsule, (i32::MIN, i32::MAX, 0)),
                 rec(5, ObjectKind::Box, (100 - 32768, 100 + 32767, 100)),
@@ -439,10 +366,7 @@ mod tests {
     fn decoder_rejects_bad_records() {
         let u = StateUpdate {
             header: UpdateHeader::default(),
-            records: vec![
-                rec(1, ObjectKind::Box, (0, 0, 0)),
-                rec(2, ObjectKind::Sphere, (1, 2, 3)),
-            ],
+            records: vec![rec(1, ObjectKind::Box, (0, 0, 0)), rec(2, ObjectKind::Sphere, (1, 2, 3))],
         };
         let mut body = Vec::new();
         u.encode_body(&mut body).unwrap();
@@ -451,24 +375,15 @@ mod tests {
         assert!(StateUpdate::decode_body(&bad).is_err());
         let mut bad = body.clone();
         bad[30] = 3; // count says 3
-        assert_eq!(
-            StateUpdate::decode_body(&bad),
-            Err(DecodeError::RecordCount { count: 3 })
-        );
+        assert_eq!(StateUpdate::decode_body(&bad), Err(DecodeError::RecordCount { count: 3 }));
         let mut bad = body.clone();
         bad[30] = 1; // count says 1: the second record is left over
-        assert_eq!(
-            StateUpdate::decode_body(&bad),
-            Err(DecodeError::TrailingBytes { extra: 10 })
-        );
+        assert_eq!(StateUpdate::decode_body(&bad), Err(DecodeError::TrailingBytes { extra: 10 }));
         let mut bad = body.clone();
         bad[22..30].copy_from_slice(&u64::MAX.to_le_bytes()); // id base + delta overflows
         assert_eq!(StateUpdate::decode_body(&bad), Err(DecodeError::IdOverflow));
         let mut bad = body.clone();
         bad.push(0);
-        assert_eq!(
-            StateUpdate::decode_body(&bad),
-            Err(DecodeError::TrailingBytes { extra: 1 })
-        );
+        assert_eq!(StateUpdate::decode_body(&bad), Err(DecodeError::TrailingBytes { extra: 1 }));
     }
 }

@@ -15,10 +15,7 @@ impl<'a> Reader<'a> {
     }
 
     pub(crate) fn take<const N: usize>(&mut self) -> Result<[u8; N], DecodeError> {
-        let end = self
-            .pos
-            .checked_add(N)
-            .filter(|&end| end <= self.bytes.len());
+        let end = self.pos.checked_add(N).filter(|&end| end <= self.bytes.len());
         match end {
             Some(end) => {
                 let mut out = [0u8; N];
@@ -26,10 +23,7 @@ impl<'a> Reader<'a> {
                 self.pos = end;
                 Ok(out)
             }
-            None => Err(DecodeError::Truncated {
-                needed: self.pos.saturating_add(N),
-                got: self.bytes.len(),
-            }),
+            None => Err(DecodeError::Truncated { needed: self.pos.saturating_add(N), got: self.bytes.len() }),
         }
     }
 

@@ -7,26 +7,17 @@ use myriad_protocol::*;
 use proptest::prelude::*;
 
 fn keys() -> SessionKeys {
-    SessionKeys {
-        session_id: 0x1122_3344_5566_7788,
-        client_to_server: [7; 32],
-        server_to_client: [9; 32],
-    }
+    SessionKeys { session_id: 0x1122_3344_5566_7788, client_to_server: [7; 32], server_to_client: [9; 32] }
 }
 
 fn arb_kind() -> impl Strategy<Value = ObjectKind> {
-    prop_oneof![
-        Just(ObjectKind::Sphere),
-        Just(ObjectKind::Box),
-        Just(ObjectKind::Capsule)
-    ]
+    prop_oneof![Just(ObjectKind::Sphere), Just(ObjectKind::Box), Just(ObjectKind::Capsule)]
 }
 
 fn arb_pos() -> impl Strategy<Value = QuantPos> {
     prop_oneof![
         (any::<i32>(), any::<i32>(), any::<i32>()).prop_map(|(x, y, z)| QuantPos::new(x, y, z)),
-        (-40_000i32..40_000, -40_000i32..40_000, -40_000i32..40_000)
-            .prop_map(|(x, y, z)| QuantPos::new(x, y, z)),
+        (-40_000i32..40_000, -40_000i32..40_000, -40_000i32..40_000).prop_map(|(x, y, z)| QuantPos::new(x, y, z)),
     ]
 }
 
@@ -39,12 +30,10 @@ fn arb_record() -> impl Strategy<Value = StateRecord> {
 }
 
 fn arb_header() -> impl Strategy<Value = UpdateHeader> {
-    (any::<u64>(), any::<u16>(), arb_pos()).prop_map(|(tick, dilation_permille, origin)| {
-        UpdateHeader {
-            tick,
-            dilation_permille,
-            origin,
-        }
+    (any::<u64>(), any::<u16>(), arb_pos()).prop_map(|(tick, dilation_permille, origin)| UpdateHeader {
+        tick,
+        dilation_permille,
+        origin,
     })
 }
 
@@ -72,10 +61,7 @@ fn arb_server() -> impl Strategy<Value = ServerMessage> {
         Just(ServerMessage::KeepAlive),
         prop::sample::select(DisconnectReason::ALL.to_vec()).prop_map(ServerMessage::Disconnect),
         (any::<u16>(), any::<u16>()).prop_map(|(tick_rate_hz, dilation_permille)| {
-            ServerMessage::ServerInfo(ServerInfo {
-                tick_rate_hz,
-                dilation_permille,
-            })
+            ServerMessage::ServerInfo(ServerInfo { tick_rate_hz, dilation_permille })
         }),
     ]
 }
@@ -96,10 +82,7 @@ fn assert_damage_rejected<T: std::fmt::Debug>(
         prop_assert!(open(&mut d).is_err(), "flip of bit {} accepted", bit);
     }
     let mut d = sealed.to_vec();
-    prop_assert!(
-        open(&mut d).is_ok(),
-        "intact packet rejected after damaged ones"
-    );
+    prop_assert!(open(&mut d).is_ok(), "intact packet rejected after damaged ones");
     let mut d = sealed.to_vec();
     prop_assert!(matches!(open(&mut d), Err(OpenError::Replayed(_))));
     Ok(())
@@ -256,37 +239,20 @@ fn error_classes_are_distinct() {
     client.seal(&ClientMessage::Ready, &mut d).unwrap();
     let mut forged = d.clone();
     *forged.last_mut().unwrap() ^= 1;
-    assert_eq!(
-        server.open(&mut forged).unwrap_err().class(),
-        ErrorClass::Authentication
-    );
+    assert_eq!(server.open(&mut forged).unwrap_err().class(), ErrorClass::Authentication);
     let mut short = d[..10].to_vec();
-    assert_eq!(
-        server.open(&mut short).unwrap_err().class(),
-        ErrorClass::Malformed
-    );
+    assert_eq!(server.open(&mut short).unwrap_err().class(), ErrorClass::Malformed);
     let mut other = d.clone();
     other[2] ^= 1;
-    assert!(matches!(
-        server.open(&mut other),
-        Err(OpenError::WrongSession { .. })
-    ));
+    assert!(matches!(server.open(&mut other), Err(OpenError::WrongSession { .. })));
     let mut ok = d.clone();
     server.open(&mut ok).unwrap();
     let mut again = d.clone();
-    assert_eq!(
-        server.open(&mut again).unwrap_err().class(),
-        ErrorClass::Replayed
-    );
+    assert_eq!(server.open(&mut again).unwrap_err().class(), ErrorClass::Replayed);
     // A packet sealed by the server must not open as a client packet (reflection).
     let mut reflected = Vec::new();
-    server
-        .seal(&ServerMessage::KeepAlive, &mut reflected)
-        .unwrap();
-    assert!(matches!(
-        server.open(&mut reflected),
-        Err(OpenError::Malformed(DecodeError::WrongDirection(_)))
-    ));
+    server.seal(&ServerMessage::KeepAlive, &mut reflected).unwrap();
+    assert!(matches!(server.open(&mut reflected), Err(OpenError::Malformed(DecodeError::WrongDirection(_)))));
 }
 
 #[test]
@@ -301,10 +267,7 @@ fn authentic_but_undecodable_body_changes_nothing() {
     d.extend_from_slice(&[0x20, 0, 0, 0, 0]);
     d.extend_from_slice(&[0; TAG_LEN]);
     sealer.seal_in_place(&mut d).unwrap();
-    assert_eq!(
-        server.open(&mut d),
-        Err(OpenError::Malformed(DecodeError::BadActionMask(0x20)))
-    );
+    assert_eq!(server.open(&mut d), Err(OpenError::Malformed(DecodeError::BadActionMask(0x20))));
     assert_eq!(server.opener.window().newest(), None);
 }
 
@@ -314,31 +277,15 @@ fn sealer_rejects_wrong_kind_and_length() {
     let mut sealer = Sealer::new(k.session_id, Direction::ServerToClient, &k.server_to_client);
     let mut d = Vec::new();
     encode_client(&ClientMessage::Ready, &mut d);
-    assert_eq!(
-        sealer.seal_in_place(&mut d),
-        Err(SealError::BadKind(PacketKind::Ready as u8))
-    );
-    assert_eq!(
-        sealer.seal_in_place(&mut [0u8; 10]),
-        Err(SealError::BadLength(10))
-    );
+    assert_eq!(sealer.seal_in_place(&mut d), Err(SealError::BadKind(PacketKind::Ready as u8)));
+    assert_eq!(sealer.seal_in_place(&mut [0u8; 10]), Err(SealError::BadLength(10)));
     let big = ServerMessage::StateUpdate(StateUpdate {
         header: UpdateHeader::default(),
-        records: vec![
-            StateRecord {
-                id: 0,
-                kind: ObjectKind::Box,
-                pos: QuantPos::default()
-            };
-            200
-        ],
+        records: vec![StateRecord { id: 0, kind: ObjectKind::Box, pos: QuantPos::default() }; 200],
     });
     let mut server = ServerSession::new(&k);
     let mut out = Vec::new();
-    assert!(matches!(
-        server.seal(&big, &mut out),
-        Err(SealError::Encode(_))
-    ));
+    assert!(matches!(server.seal(&big, &mut out), Err(SealError::Encode(_))));
     assert!(out.is_empty());
     assert_eq!(sealer.next_sequence(), 0);
 }

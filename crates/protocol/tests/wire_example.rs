@@ -13,23 +13,14 @@ fn example_keys() -> SessionKeys {
         client_to_server[i] = i as u8;
         server_to_client[i] = 0x80 + i as u8;
     }
-    SessionKeys {
-        session_id: 0x0102_0304_0506_0708,
-        client_to_server,
-        server_to_client,
-    }
+    SessionKeys { session_id: 0x0102_0304_0506_0708, client_to_server, server_to_client }
 }
 
 fn hex(bytes: &[u8]) -> String {
     // 16 bytes per line, space separated, as on the page.
     bytes
         .chunks(16)
-        .map(|c| {
-            c.iter()
-                .map(|b| format!("{b:02x}"))
-                .collect::<Vec<_>>()
-                .join(" ")
-        })
+        .map(|c| c.iter().map(|b| format!("{b:02x}")).collect::<Vec<_>>().join(" "))
         .collect::<Vec<_>>()
         .join("\n")
 }
@@ -50,22 +41,10 @@ fn action_packet() -> Vec<u8> {
 /// compact record (id 7, sphere at (101, 20.5, -50)) and one extended record (id 2^40,
 /// capsule at (1000, 0, 0): 900 units away, beyond the i16 offset range).
 fn update_packet() -> (Vec<u8>, Vec<u8>) {
-    let header = UpdateHeader {
-        tick: 1000,
-        dilation_permille: 1000,
-        origin: QuantPos::from_f32([100.0, 20.0, -50.0]),
-    };
+    let header = UpdateHeader { tick: 1000, dilation_permille: 1000, origin: QuantPos::from_f32([100.0, 20.0, -50.0]) };
     let records = [
-        StateRecord {
-            id: 7,
-            kind: ObjectKind::Sphere,
-            pos: QuantPos::from_f32([101.0, 20.5, -50.0]),
-        },
-        StateRecord {
-            id: 1 << 40,
-            kind: ObjectKind::Capsule,
-            pos: QuantPos::from_f32([1000.0, 0.0, 0.0]),
-        },
+        StateRecord { id: 7, kind: ObjectKind::Sphere, pos: QuantPos::from_f32([101.0, 20.5, -50.0]) },
+        StateRecord { id: 1 << 40, kind: ObjectKind::Capsule, pos: QuantPos::from_f32([1000.0, 0.0, 0.0]) },
     ];
     let mut batch = DatagramBatch::new();
     assert_eq!(pack_updates(&header, &records, 1, &mut batch), 2);

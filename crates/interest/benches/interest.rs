@@ -85,6 +85,20 @@ fn scenario(objects: usize, players: usize, seed: u64) -> Scenario {
     }
 }
 
+/// CPU seconds (user + system) this process has used, from `/proc/self/stat` (Linux;
+/// `None` elsewhere). Wall time on a shared machine depends on what else runs; CPU
+/// time per tick does not, much.
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    // USER_HZ is 100 on Linux for every architecture's user-space ABI.
+    Some((utime + stime) / 100.0)
+}
+
 fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group("interest_tick");
     group.sample_size(20);
@@ -109,6 +123,27 @@ fn bench(c: &mut Criterion) {
             report.bytes,
             report.over_budget
         );
+        if let Some(before) = process_cpu_seconds() {
+            let ticks = 20;
+            let wall = std::time::Instant::now();
+            for _ in 0..ticks {
+                tick += 1;
+                black_box(
+                    manager
+                        .build(TickInfo { tick, dilation_permille: 1000 }, &soa, aoi, &mut s.subscribers)
+                        .expect("lists match subscribers"),
+                );
+            }
+            let wall = wall.elapsed().as_secs_f64();
+            if let Some(after) = process_cpu_seconds() {
+                eprintln!(
+                    "{name}: {:.1} ms of CPU per tick ({:.1} ms wall, {} rayon threads, {ticks} ticks)",
+                    (after - before) * 1000.0 / ticks as f64,
+                    wall * 1000.0 / ticks as f64,
+                    rayon::current_num_threads()
+                );
+            }
+        }
         group.bench_function(name, |b| {
             b.iter(|| {
                 tick += 1;

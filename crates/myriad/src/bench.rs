@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use myriad_core::{ObjectKind, PhysicsConfig, World};
+use myriad_core::{ObjectKind, PhysicsConfig, ScenarioSpec, World};
 use myriad_physics::{BackendKind, Stage, StepReport, TickConstants, create_backend};
 use serde::Serialize;
 
@@ -43,7 +43,8 @@ pub struct BenchArgs {
     /// Output format on standard output.
     #[arg(long, value_enum, default_value = "md")]
     pub format: Format,
-    /// Also write bench.md, bench.json and bench.csv into this directory.
+    /// Also write bench.md, bench.json, bench.csv and the plots (PNG and SVG) into this
+    /// directory.
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Run backends even when a tick takes longer than --max-tick-ms.
@@ -52,6 +53,11 @@ pub struct BenchArgs {
     /// A backend whose first tick takes longer than this is skipped (the reference's "-").
     #[arg(long, default_value_t = 1000.0)]
     pub max_tick_ms: f64,
+    /// Also run a scale sweep over these dynamic-object counts (comma-separated, e.g.
+    /// 10000,100000,1000000): statics at half the count, users at 1/26 (scenario 3's
+    /// share), the map grown to keep scenario 2's density.
+    #[arg(long, value_delimiter = ',')]
+    pub sweep: Vec<u32>,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -59,13 +65,13 @@ pub struct BenchArgs {
 /// One line of results: a scenario on a backend.
 #[derive(Clone, Debug, Serialize)]
 pub struct Row {
-    scenario: String,
-    backend: String,
+    pub scenario: String,
+    pub backend: String,
     description: String,
     threads: usize,
     ticks: u64,
     warmup: u64,
-    dynamic: usize,
+    pub dynamic: usize,
     users: usize,
     npcs: usize,
     static_objects: usize,
@@ -83,17 +89,23 @@ pub struct Row {
     send: f64,
     physics_static_ms: f64,
     physics_dynamic_ms: f64,
-    total_ms: f64,
+    pub total_ms: f64,
     static_pairs: u64,
     dynamic_pairs: u64,
     static_contacts: u64,
     dynamic_contacts: u64,
     state_hash: String,
-    skipped: Option<String>,
+    pub skipped: Option<String>,
 }
 
 impl Row {
-    fn stages(&self) -> [f64; 9] {
+    /// Whether the row belongs to the scale sweep.
+    pub fn is_sweep(&self) -> bool {
+        self.scenario.starts_with("sweep")
+    }
+
+    /// The stage times in the order of [`reference::STAGES`].
+    pub fn stages(&self) -> [f64; 9] {
         [
             self.upload,
             self.build_dynamic_bvh,
@@ -221,7 +233,29 @@ pub fn measure(args: &BenchArgs) -> Result<Vec<Row>> {
             );
         }
     }
+    for &n in &args.sweep {
+        let spec = sweep_spec(n, args.world.seed);
+        let world = spec.build().with_context(|| format!("generating sweep point {n}"))?;
+        eprintln!(
+            "{}: {n} dynamic, {} static objects, map {:.0} units",
+            spec.name, spec.static_objects, spec.world_size
+        );
+        for &kind in &args.backend {
+            rows.push(bench_one(&spec.name, &world, kind, args).with_context(|| format!("{} on {kind}", spec.name))?);
+        }
+    }
     Ok(rows)
+}
+
+/// A sweep point: `n` dynamic objects at scenario 2's density, statics at half.
+pub fn sweep_spec(n: u32, seed: u64) -> ScenarioSpec {
+    let mut spec = ScenarioSpec::custom(seed);
+    spec.name = format!("sweep-{n}");
+    spec.dynamic = n;
+    spec.static_objects = n / 2;
+    spec.users = (n / 26).clamp(1, n.max(1)).min(n);
+    spec.world_size = (1024.0 * (n as f64 / 55_000.0).sqrt()).max(64.0) as f32;
+    spec
 }
 
 fn fmt_ms(v: f64) -> String {
@@ -348,7 +382,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
             let path = dir.join(name);
             std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
         }
-        eprintln!("wrote bench.md, bench.json and bench.csv to {}", dir.display());
+        let plots = crate::plots::draw_all(&rows, dir)?;
+        eprintln!("wrote bench.md, bench.json, bench.csv and {} plots to {}", plots.len(), dir.display());
     }
     Ok(())
 }

@@ -5,6 +5,7 @@
 //! commands arrive with their issues.
 
 mod bench;
+mod plots;
 mod reference;
 mod scenario_args;
 mod sim;

@@ -94,8 +94,54 @@ fn bench_reports_every_stage_and_the_table_columns() {
         let text = std::fs::read_to_string(dir.join(f)).unwrap();
         assert!(text.contains("cpu-naive"), "{f}");
     }
+    for f in ["stages-custom.png", "stages-custom.svg"] {
+        assert!(std::fs::metadata(dir.join(f)).unwrap().len() > 1000, "{f} is drawn");
+    }
     let md = std::fs::read_to_string(dir.join("bench.md")).unwrap();
     assert!(md.contains("396.5"), "the reference's Table 1 is printed beside ours");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn the_scale_sweep_adds_rows_and_a_log_log_plot() {
+    let dir = std::env::temp_dir().join(format!("myriad-sweep-{}", std::process::id()));
+    let d = dir.to_string_lossy().to_string();
+    let args = [
+        "bench",
+        "--format",
+        "json",
+        "--ticks",
+        "2",
+        "--warmup",
+        "1",
+        "--backend",
+        "cpu",
+        "--scenario",
+        "custom",
+        "--dynamic",
+        "300",
+        "--static",
+        "60",
+        "--users",
+        "10",
+        "--world-size",
+        "64",
+        "--terrain-samples",
+        "65",
+        "--sweep",
+        "200,400",
+        "--out",
+        &d,
+    ];
+    let out = myriad(&args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rows = json_lines(&out.stdout);
+    let sweep: Vec<_> = rows.iter().filter(|r| r["scenario"].as_str().unwrap().starts_with("sweep")).collect();
+    assert_eq!(sweep.len(), 2);
+    assert_eq!(sweep[1]["dynamic"], 400);
+    assert_eq!(sweep[1]["static_objects"], 200);
+    assert!(std::fs::metadata(dir.join("sweep.svg")).unwrap().len() > 1000);
+    assert!(std::fs::metadata(dir.join("sweep.png")).unwrap().len() > 1000);
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -16,19 +16,32 @@ pub enum BackendKind {
     CpuNaive,
     /// Rayon-parallel LBVH broad phase.
     Cpu,
+    /// All pairs on the GPU: the reference's "naive GPU" column (crate `myriad-cuda`).
+    CudaNaive,
+    /// Device-resident state and an LBVH on the GPU (crate `myriad-cuda`).
+    Cuda,
+    /// `cuda` when a driver, NVRTC and a device are present, else `cpu` (crate
+    /// `myriad-cuda` resolves it).
+    Auto,
 }
 
 impl BackendKind {
-    /// Every kind.
+    /// The kinds this crate implements (the CPU backends): [`create_backend`] makes each.
     pub const ALL: [BackendKind; 2] = [BackendKind::CpuNaive, BackendKind::Cpu];
-    /// Their names, in the order of [`BackendKind::ALL`].
-    pub const NAMES: [&'static str; 2] = ["cpu-naive", "cpu"];
+    /// Every kind a name can select, the CUDA ones and `auto` included.
+    pub const EVERY: [BackendKind; 5] =
+        [BackendKind::CpuNaive, BackendKind::Cpu, BackendKind::CudaNaive, BackendKind::Cuda, BackendKind::Auto];
+    /// Their names, in the order of [`BackendKind::EVERY`].
+    pub const NAMES: [&'static str; 5] = ["cpu-naive", "cpu", "cuda-naive", "cuda", "auto"];
 
     /// The command-line name.
     pub fn name(self) -> &'static str {
         match self {
             BackendKind::CpuNaive => "cpu-naive",
             BackendKind::Cpu => "cpu",
+            BackendKind::CudaNaive => "cuda-naive",
+            BackendKind::Cuda => "cuda",
+            BackendKind::Auto => "auto",
         }
     }
 }
@@ -42,7 +55,7 @@ impl fmt::Display for BackendKind {
 impl FromStr for BackendKind {
     type Err = PhysicsError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        BackendKind::ALL.into_iter().find(|k| k.name() == s).ok_or_else(|| PhysicsError::UnknownBackend(s.into()))
+        BackendKind::EVERY.into_iter().find(|k| k.name() == s).ok_or_else(|| PhysicsError::UnknownBackend(s.into()))
     }
 }
 
@@ -191,10 +204,18 @@ pub trait Backend: Send {
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError>;
 }
 
-/// Creates a backend.
+/// Creates a CPU backend. The CUDA kinds and `auto` live in crate `myriad-cuda`
+/// (`myriad_cuda::create_backend` handles every kind); asked for here they give
+/// [`PhysicsError::Unavailable`].
 pub fn create_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
     Ok(match kind {
         BackendKind::CpuNaive => Box::new(crate::cpu::CpuNaive::default()),
         BackendKind::Cpu => Box::new(crate::cpu::CpuLbvh::default()),
+        BackendKind::CudaNaive | BackendKind::Cuda | BackendKind::Auto => {
+            return Err(PhysicsError::Unavailable {
+                backend: kind.name(),
+                reason: "the CUDA backends and auto are created by myriad_cuda::create_backend".into(),
+            });
+        }
     })
 }

@@ -7,7 +7,7 @@ use myriad_core::{Aabb, ObjectKind, Placement, ScenarioSpec, Shape, Vec3, World}
 use myriad_physics::{AoiResults, Backend, BackendKind, StepReport, TickConstants, create_backend};
 
 fn backends() -> Vec<Box<dyn Backend>> {
-    BackendKind::CPU.into_iter().map(|k| create_backend(k).unwrap()).collect()
+    BackendKind::ALL.into_iter().map(|k| create_backend(k).unwrap()).collect()
 }
 
 /// A small, crowded world: contacts of every pair kind happen from the first tick.

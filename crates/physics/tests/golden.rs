@@ -22,7 +22,7 @@ fn state_hash_matches_the_pinned_value_on_every_backend() {
     spec.max_height = 5.0;
     let start = spec.build().unwrap();
     let k = TickConstants::default();
-    for kind in BackendKind::CPU {
+    for kind in BackendKind::ALL {
         let mut w = start.clone();
         let mut b = create_backend(kind).unwrap();
         for _ in 0..120 {

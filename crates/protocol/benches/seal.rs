@@ -25,6 +25,34 @@ fn records(n: usize) -> Vec<StateRecord> {
         .collect()
 }
 
+/// CPU seconds (user + system) this process has used, from `/proc/self/stat` (Linux;
+/// `None` elsewhere). On a shared machine wall time depends on the neighbours; CPU time
+/// gives the per-core cost.
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    // USER_HZ is 100 on Linux.
+    Some((utime + stime) / 100.0)
+}
+
+/// Runs `f` `n` times and prints its CPU cost per call and per byte.
+fn cpu_cost(name: &str, n: u32, bytes_per_call: usize, mut f: impl FnMut()) {
+    let Some(before) = process_cpu_seconds() else { return };
+    for _ in 0..n {
+        f();
+    }
+    let Some(after) = process_cpu_seconds() else { return };
+    let per_call = (after - before) / f64::from(n);
+    eprintln!(
+        "{name}: {:.2} µs of CPU per call, {:.0} MB/s per core ({n} calls)",
+        per_call * 1e6,
+        bytes_per_call as f64 / per_call / 1e6
+    );
+}
+
 fn bench(c: &mut Criterion) {
     let header = UpdateHeader { tick: 1, dilation_permille: 1000, origin: QuantPos::default() };
     let recs = records(MAX_COMPACT_RECORDS * 2);
@@ -70,6 +98,28 @@ fn bench(c: &mut Criterion) {
         })
     });
     g.finish();
+
+    // The same operations timed by CPU time rather than wall time.
+    let mut server = ServerSession::new(&keys());
+    let mut client = ClientSession::new(&keys());
+    cpu_cost("pack_226_records", 200_000, datagram_bytes as usize, || {
+        batch.clear();
+        black_box(pack_updates(&header, black_box(&recs), 2, &mut batch));
+    });
+    cpu_cost("pack_and_seal_226_records", 50_000, datagram_bytes as usize, || {
+        batch.clear();
+        pack_updates(&header, black_box(&recs), 2, &mut batch);
+        server.sealer.seal_batch(&mut batch).expect("seal");
+    });
+    cpu_cost("seal_1196_bytes", 100_000, one.len(), || {
+        buf.copy_from_slice(&one);
+        black_box(server.sealer.seal_in_place(&mut buf).expect("seal"));
+    });
+    cpu_cost("seal_and_open_1196_bytes", 50_000, one.len(), || {
+        buf.copy_from_slice(&one);
+        server.sealer.seal_in_place(&mut buf).expect("seal");
+        black_box(client.opener.open_with(&mut buf, |_, body| Ok(body.len())).expect("open"));
+    });
 }
 
 criterion_group!(benches, bench);

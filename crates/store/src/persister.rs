@@ -1,6 +1,6 @@
 //! Write-behind persistence of player positions; see [`Persister`] for how it works.
 
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
@@ -84,7 +84,9 @@ pub struct FlushReport {
 
 #[derive(Default)]
 struct Pending {
-    entries: HashMap<(i64, i64), PlayerState>,
+    /// Ordered by (user, map) so that each batch covers a contiguous key range: the
+    /// database then updates neighbouring index pages instead of scattered ones.
+    entries: BTreeMap<(i64, i64), PlayerState>,
     in_flight: usize,
     closed: bool,
 }
@@ -365,8 +367,7 @@ impl Writer {
     fn take_batch(&self, limit: usize) -> Vec<((i64, i64), PlayerState)> {
         let mut pending = self.shared.lock();
         let n = limit.min(self.shared.config.batch_size);
-        let keys: Vec<(i64, i64)> = pending.entries.keys().take(n).copied().collect();
-        let batch: Vec<_> = keys.into_iter().filter_map(|k| pending.entries.remove(&k).map(|e| (k, e))).collect();
+        let batch: Vec<_> = std::iter::from_fn(|| pending.entries.pop_first()).take(n).collect();
         pending.in_flight += batch.len();
         batch
     }

@@ -40,12 +40,13 @@
 //!
 //! Scratch buffers live in a thread-local per rayon worker and the output batches in
 //! the subscribers, so a warm tick allocates nothing. The common case (everything
-//! fits) is one pass to gather and one to pack; only over-budget players pay for a
-//! sort by id (to match staleness keys) and two partial selections.
+//! fits) is one pass to gather and one to pack; over-budget players add a hash-table
+//! lookup per object (staleness keys) and two partial selections.
 
 mod config;
 mod manager;
 mod source;
+mod stale;
 
 pub use config::{InterestConfig, TickInfo};
 pub use manager::{InterestError, InterestManager, Subscriber, SubscriberReport, TickReport};

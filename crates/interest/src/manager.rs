@@ -13,6 +13,7 @@ use thiserror::Error;
 
 use crate::config::{InterestConfig, TickInfo};
 use crate::source::{AoiLists, ObjectSource};
+use crate::stale::StaleTable;
 
 /// Errors of [`InterestManager::build`]. Bad data inside a list (slots out of range,
 /// offsets out of order) is skipped and counted instead, so one broken list cannot stop
@@ -39,7 +40,8 @@ pub struct Subscriber {
     pub centre: [f32; 3],
     /// Seals this player's datagrams (the server half of its session).
     pub sealer: Sealer,
-    /// `(object id, staleness key)` sorted by id, kept while the player is over budget.
+    /// `(object id, staleness key)` of the objects in view, in no order, kept while the
+    /// player is over budget.
     rotation: Vec<(u64, u64)>,
     /// This tick's sealed datagrams.
     datagrams: DatagramBatch,
@@ -144,8 +146,10 @@ pub struct InterestManager {
 struct Scratch {
     /// Candidates (own excluded), sorted by id when over budget.
     cands: Vec<Candidate>,
-    /// `(id, index into cands)`, sorted, when over budget.
-    by_id: Vec<(u64, u32)>,
+    /// The subscriber's stored keys, loaded for lookups.
+    stored: StaleTable,
+    /// Ids already taken this tick, to drop duplicate slots.
+    seen: StaleTable,
     /// Indices into `cands`, for the partial selections.
     order: Vec<u32>,
     /// The records to pack, in priority order.
@@ -220,6 +224,10 @@ fn datagrams_needed(sizes: impl Iterator<Item = usize>) -> usize {
     datagrams
 }
 
+/// How many items ahead the loops prefetch: enough to cover a memory latency with the
+/// work of a few candidates, few enough not to flood the CPU's fill buffers.
+const AHEAD: usize = 8;
+
 fn build_one<O: ObjectSource>(
     config: &InterestConfig,
     tick: TickInfo,
@@ -228,7 +236,7 @@ fn build_one<O: ObjectSource>(
     sub: &mut Subscriber,
     scratch: &mut Scratch,
 ) {
-    let Scratch { cands, by_id, order, records } = scratch;
+    let Scratch { cands, stored, seen, order, records } = scratch;
     cands.clear();
     records.clear();
     sub.datagrams.clear();
@@ -239,7 +247,14 @@ fn build_one<O: ObjectSource>(
     // 1. Gather.
     let own = objects.get(sub.object).map(|(id, kind, p)| StateRecord { id, kind, pos: QuantPos::from_f32(p) });
     let c = sub.centre;
-    for &slot in list.unwrap_or(&[]) {
+    let list = list.unwrap_or(&[]);
+    for &slot in list.iter().take(AHEAD) {
+        objects.prefetch(slot);
+    }
+    for (j, &slot) in list.iter().enumerate() {
+        if let Some(&ahead) = list.get(j + AHEAD) {
+            objects.prefetch(ahead);
+        }
         match objects.get(slot) {
             Some((id, kind, p)) if own.is_none_or(|o| o.id != id) => {
                 let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
@@ -265,28 +280,24 @@ fn build_one<O: ObjectSource>(
         sub.rotation.clear();
     } else {
         report.over_budget = true;
-        // 3a. Sort (id, index) pairs, smaller than candidates: drops duplicate slots
-        // and lines up with the stored keys.
-        by_id.clear();
-        by_id.extend(cands.iter().enumerate().map(|(i, c)| (c.rec.id, i as u32)));
-        by_id.sort_unstable();
-        by_id.dedup_by_key(|p| p.0);
-        report.in_view = by_id.len();
-        // Objects absent from the stored state entered the view this tick (key = now),
-        // unless there is no stored state: then everything was sent last tick, or
-        // nothing ever was, and all share the key `now - 1`.
+        // 3a. Staleness keys. Objects absent from the stored list entered the view
+        // this tick (key = now), unless there is no stored list: then everything was
+        // sent last tick, or nothing ever was, and all share the key `now - 1`.
         let fresh_key = if sub.rotation.is_empty() { tick.tick.saturating_sub(1) } else { tick.tick };
-        let mut stored = sub.rotation.iter().peekable();
-        for &(id, i) in by_id.iter() {
-            while stored.next_if(|&&(sid, _)| sid < id).is_some() {}
-            cands[i as usize].key = match stored.peek() {
-                Some(&&(sid, key)) if sid == id => key,
-                _ => fresh_key,
-            };
+        stored.reset(sub.rotation.len());
+        for &(id, key) in &sub.rotation {
+            stored.insert(id, key);
         }
-        // 3b. The K nearest, nearest first.
+        seen.reset(cands.len());
         order.clear();
-        order.extend(by_id.iter().map(|p| p.1));
+        for (i, c) in cands.iter_mut().enumerate() {
+            if seen.insert(c.rec.id, 0) {
+                c.key = stored.get(c.rec.id).unwrap_or(fresh_key);
+                order.push(i as u32);
+            }
+        }
+        report.in_view = order.len();
+        // 3b. The K nearest.
         let k = config.near_slots().min(order.len());
         if k < order.len() {
             order.select_nth_unstable_by(k, |&a, &b| cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2));
@@ -320,7 +331,10 @@ fn build_one<O: ObjectSource>(
             cands[i as usize].key = tick.tick;
         }
         sub.rotation.clear();
-        sub.rotation.extend(by_id.iter().map(|&(id, i)| (id, cands[i as usize].key)));
+        sub.rotation.extend(order.iter().map(|&i| {
+            let c = &cands[i as usize];
+            (c.rec.id, c.key)
+        }));
     }
     report.records = packed;
 

@@ -8,7 +8,8 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use myriad_core::{ObjectKind, PhysicsConfig, ScenarioSpec, World};
-use myriad_physics::{BackendKind, Stage, StepReport, TickConstants, create_backend};
+use myriad_cuda::create_backend;
+use myriad_physics::{BackendKind, Stage, StepReport, TickConstants};
 use serde::Serialize;
 
 use crate::reference;
@@ -90,6 +91,9 @@ pub struct Row {
     physics_static_ms: f64,
     physics_dynamic_ms: f64,
     pub total_ms: f64,
+    /// CPU time of the whole process per measured tick (all threads), in ms: on a busy
+    /// machine wall times inflate, this does not.
+    cpu_ms: f64,
     static_pairs: u64,
     dynamic_pairs: u64,
     static_contacts: u64,
@@ -118,6 +122,22 @@ impl Row {
             self.send,
         ]
     }
+}
+
+/// User + system CPU time of this process so far, in ms (0 where unsupported).
+fn process_cpu_ms() -> f64 {
+    #[cfg(unix)]
+    {
+        let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+        // SAFETY: getrusage writes a complete rusage into the pointer on success.
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, usage.as_mut_ptr()) } == 0 {
+            // SAFETY: initialised by the successful call above.
+            let u = unsafe { usage.assume_init() };
+            let ms = |t: libc::timeval| t.tv_sec as f64 * 1e3 + t.tv_usec as f64 / 1e3;
+            return ms(u.ru_utime) + ms(u.ru_stime);
+        }
+    }
+    0.0
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -168,6 +188,7 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs) ->
         physics_static_ms: 0.0,
         physics_dynamic_ms: 0.0,
         total_ms: 0.0,
+        cpu_ms: 0.0,
         static_pairs: 0,
         dynamic_pairs: 0,
         static_contacts: 0,
@@ -187,9 +208,11 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs) ->
         backend.step(&mut w, &k)?;
     }
     let mut reports: Vec<StepReport> = Vec::with_capacity(args.ticks as usize);
+    let cpu_before = process_cpu_ms();
     for _ in 0..args.ticks {
         reports.push(backend.step(&mut w, &k)?);
     }
+    row.cpu_ms = (process_cpu_ms() - cpu_before) / args.ticks.max(1) as f64;
     let stage = |s: Stage| median(reports.iter().map(|r| r.ms(s)).collect());
     row.upload = stage(Stage::Upload);
     row.build_dynamic_bvh = stage(Stage::BuildDynamicBvh);
@@ -277,23 +300,26 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         "#### Table 1: physics time per tick (ms, median of {} ticks after {} warm-up)\n",
         args.ticks, args.warmup
     );
-    let _ =
-        writeln!(s, "| scenario | backend | static | dynamic | total | dynamic pairs | static pairs | state hash |");
-    let _ = writeln!(s, "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- |");
+    let _ = writeln!(
+        s,
+        "| scenario | backend | static | dynamic | total | CPU per tick | dynamic pairs | static pairs | state hash |"
+    );
+    let _ = writeln!(s, "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |");
     for r in rows {
         match &r.skipped {
             Some(why) => {
-                let _ = writeln!(s, "| {} | {} | - | - | - | | | {why} |", r.scenario, r.backend);
+                let _ = writeln!(s, "| {} | {} | - | - | - | | | | {why} |", r.scenario, r.backend);
             }
             None => {
                 let _ = writeln!(
                     s,
-                    "| {} | {} | {} | {} | {} | {} | {} | `{}` |",
+                    "| {} | {} | {} | {} | {} | {} | {} | {} | `{}` |",
                     r.scenario,
                     r.backend,
                     fmt_ms(r.physics_static_ms),
                     fmt_ms(r.physics_dynamic_ms),
                     fmt_ms(r.total_ms),
+                    fmt_ms(r.cpu_ms),
                     r.dynamic_pairs,
                     r.static_pairs,
                     r.state_hash

@@ -5,7 +5,8 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use myriad_core::{ObjectKind, PhysicsConfig};
-use myriad_physics::{BackendKind, TickConstants, create_backend};
+use myriad_cuda::create_backend;
+use myriad_physics::{BackendKind, TickConstants};
 use serde::Serialize;
 
 use crate::scenario_args::{ScenarioName, WorldArgs};
@@ -16,8 +17,9 @@ pub struct SimArgs {
     /// The scenario.
     #[arg(long, value_enum, default_value = "1")]
     pub scenario: ScenarioName,
-    /// The physics backend (`cpu`, `cpu-naive`).
-    #[arg(long, default_value = "cpu")]
+    /// The physics backend (`auto`, `cpu`, `cpu-naive`, `cuda`, `cuda-naive`); `auto` is
+    /// `cuda` when a GPU is usable, else `cpu`.
+    #[arg(long, default_value = "auto")]
     pub backend: BackendKind,
     /// Ticks to simulate.
     #[arg(long, default_value_t = 100)]

@@ -1,0 +1,101 @@
+// Broad phase and AOI queries. Every query (a dynamic object's box, or an AOI box) gets
+// the sorted list of targets (dynamic slots or static primitives) whose boxes overlap it,
+// in two passes: count, then (after an exclusive scan of the counts gives each query its
+// exact range) write and sort the range. No list can overflow and no pair is dropped:
+// the host grows the output to the exact total before the write pass.
+//
+// Canonical order: each query's range is sorted ascending, so static pairs come out by
+// (object, primitive) and each object's dynamic neighbours by slot, whatever order the
+// tree walk found them in.
+#include "common.cuh"
+
+__device__ __forceinline__ void sort_range(u32* a, u32 len) {
+    // Insertion sort: ranges are short (contacts of one object), and this keeps the
+    // kernel free of shared-memory sizing assumptions.
+    for (u32 i = 1; i < len; i++) {
+        u32 v = a[i];
+        u32 j = i;
+        while (j > 0 && a[j - 1] > v) {
+            a[j] = a[j - 1];
+            j--;
+        }
+        a[j] = v;
+    }
+}
+
+// Tree queries. `exclude_self` leaves query q out of its own list (dynamic self-query).
+extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, u32 exclude_self,
+                                        const Node* nodes, const u32* order, u32 nleaves,
+                                        const float* tboxes, u32* counts) {
+    u32 q = blockIdx.x * blockDim.x + threadIdx.x;
+    if (q >= nq) return;
+    const float* qb = qboxes + 6 * (u64)q;
+    float b[6];
+    for (int k = 0; k < 6; k++) b[k] = qb[k];
+    u32 c = 0;
+    tree_visit(nodes, order, nleaves, tboxes, b, exclude_self ? q : NO_SELF, [&](u32) { c++; });
+    counts[q] = c;
+}
+
+extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, u32 exclude_self,
+                                        const Node* nodes, const u32* order, u32 nleaves,
+                                        const float* tboxes, const u32* offsets, u32* out) {
+    u32 q = blockIdx.x * blockDim.x + threadIdx.x;
+    if (q >= nq) return;
+    const float* qb = qboxes + 6 * (u64)q;
+    float b[6];
+    for (int k = 0; k < 6; k++) b[k] = qb[k];
+    u32 begin = offsets[q], len = offsets[q + 1] - begin;
+    u32* dst = out + begin;
+    u32 c = 0;
+    tree_visit(nodes, order, nleaves, tboxes, b, exclude_self ? q : NO_SELF, [&](u32 t) {
+        if (c < len) dst[c] = t;
+        c++;
+    });
+    sort_range(dst, min(c, len));
+}
+
+// All pairs (cuda-naive): query q tests every target in index order, so its list comes
+// out sorted.
+extern "C" __global__ void k_naive_count(u32 nq, const float* qboxes, u32 exclude_self, u32 nt,
+                                         const float* tboxes, u32* counts) {
+    u32 q = blockIdx.x * blockDim.x + threadIdx.x;
+    if (q >= nq) return;
+    const float* qb = qboxes + 6 * (u64)q;
+    float b[6];
+    for (int k = 0; k < 6; k++) b[k] = qb[k];
+    u32 self = exclude_self ? q : NO_SELF;
+    u32 c = 0;
+    for (u32 t = 0; t < nt; t++)
+        if (t != self && box_overlaps(tboxes + 6 * (u64)t, b)) c++;
+    counts[q] = c;
+}
+
+extern "C" __global__ void k_naive_write(u32 nq, const float* qboxes, u32 exclude_self, u32 nt,
+                                         const float* tboxes, const u32* offsets, u32* out) {
+    u32 q = blockIdx.x * blockDim.x + threadIdx.x;
+    if (q >= nq) return;
+    const float* qb = qboxes + 6 * (u64)q;
+    float b[6];
+    for (int k = 0; k < 6; k++) b[k] = qb[k];
+    u32 self = exclude_self ? q : NO_SELF;
+    u32 begin = offsets[q], len = offsets[q + 1] - begin;
+    u32 c = 0;
+    for (u32 t = 0; t < nt && c < len; t++)
+        if (t != self && box_overlaps(tboxes + 6 * (u64)t, b)) out[begin + c++] = t;
+}
+
+// Boxes of static primitives (no Morton codes needed by cuda-naive).
+extern "C" __global__ void k_boxes(u32 n, const float* pos, const float* half, float* boxes) {
+    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= n) return;
+    V3 p = load3(pos, i), h = load3(half, i);
+    V3 lo = vsub(p, h), hi = vadd(p, h);
+    float* b = boxes + 6 * (u64)i;
+    b[0] = lo.x;
+    b[1] = lo.y;
+    b[2] = lo.z;
+    b[3] = hi.x;
+    b[4] = hi.y;
+    b[5] = hi.z;
+}

@@ -1,0 +1,208 @@
+// The LBVH of Karras 2012, as crates/physics/src/lbvh: Morton codes of box centres over
+// the world bounds, an LSD radix sort of (code, index), parallel emission of the internal
+// nodes with the index tie-break for duplicate codes, and a bottom-up refit with one
+// atomic arrival counter per node.
+#include "common.cuh"
+
+// An internal node holds its two children's boxes (min xyz, max xyz each) and children
+// (an internal node index, or a leaf index with LEAF_BIT): 64 bytes, one cache line.
+struct __align__(64) Node {
+    float b[12];
+    u32 child[2];
+    u32 pad[2];
+};
+
+__device__ __forceinline__ u64 expand_bits(u64 v) {
+    u64 x = v & 0x1fffffull;
+    x = (x | x << 32) & 0x001f00000000ffffull;
+    x = (x | x << 16) & 0x001f0000ff0000ffull;
+    x = (x | x << 8) & 0x100f00f00f00f00full;
+    x = (x | x << 4) & 0x10c30c30c30c30c3ull;
+    x = (x | x << 2) & 0x1249249249249249ull;
+    return x;
+}
+
+__device__ __forceinline__ u64 morton_q(float v, float min, float scale) {
+    return (u64)clampf((v - min) * scale, 0.0f, 2097151.0f);
+}
+
+// Object boxes (pos ± half, as Aabb::from_center_half) and the Morton codes of their
+// centres, with values 0..n for the sort.
+extern "C" __global__ void k_boxes_morton(u32 n, const float* pos, const float* half, float* boxes,
+                                          u64* keys, u32* vals, float mx, float my, float mz,
+                                          float sx, float sy, float sz) {
+    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= n) return;
+    V3 p = load3(pos, i), h = load3(half, i);
+    V3 lo = vsub(p, h), hi = vadd(p, h);
+    float* b = boxes + 6 * (u64)i;
+    b[0] = lo.x;
+    b[1] = lo.y;
+    b[2] = lo.z;
+    b[3] = hi.x;
+    b[4] = hi.y;
+    b[5] = hi.z;
+    V3 c = vscale(vadd(lo, hi), 0.5f);
+    keys[i] = expand_bits(morton_q(c.x, mx, sx)) << 2 | expand_bits(morton_q(c.y, my, sy)) << 1 |
+              expand_bits(morton_q(c.z, mz, sz));
+    vals[i] = i;
+}
+
+// Radix sort, 8 bits a pass. A block handles a tile of 256 threads x 8 items; the digit
+// histogram is stored digit-major (hist[digit * blocks + block]) so that one exclusive
+// scan of it gives every (digit, block) its output offset.
+#define RADIX_THREADS 256
+#define RADIX_ITEMS 8
+#define RADIX_TILE (RADIX_THREADS * RADIX_ITEMS)
+
+extern "C" __global__ void k_radix_hist(const u64* keys, u32 n, u32 shift, u32* hist, u32 blocks) {
+    __shared__ u32 h[256];
+    h[threadIdx.x] = 0;
+    __syncthreads();
+    u32 base = blockIdx.x * RADIX_TILE;
+    for (u32 r = 0; r < RADIX_ITEMS; r++) {
+        u32 i = base + r * RADIX_THREADS + threadIdx.x;
+        if (i < n) atomicAdd(&h[(keys[i] >> shift) & 255], 1u);
+    }
+    __syncthreads();
+    hist[threadIdx.x * blocks + blockIdx.x] = h[threadIdx.x];
+}
+
+// Stable scatter: items of a tile are ranked in order (rounds, then warps, then lanes),
+// so equal digits keep their input order and the sort is stable.
+extern "C" __global__ void k_radix_scatter(const u64* keys_in, const u32* vals_in, u64* keys_out,
+                                           u32* vals_out, u32 n, u32 shift, const u32* offsets,
+                                           u32 blocks) {
+    __shared__ u32 running[256];
+    __shared__ u32 wcount[RADIX_THREADS / 32][256];
+    u32 t = threadIdx.x, lane = t & 31, warp = t >> 5;
+    running[t] = offsets[t * blocks + blockIdx.x];
+    u32 base = blockIdx.x * RADIX_TILE;
+    u32 lt_mask = (1u << lane) - 1u;
+    for (u32 r = 0; r < RADIX_ITEMS; r++) {
+        u32 i = base + r * RADIX_THREADS + t;
+        bool valid = i < n;
+        u64 key = valid ? keys_in[i] : 0ull;
+        // Invalid items get a digit no valid item has, so they never share a rank.
+        u32 digit = valid ? (u32)((key >> shift) & 255) : 256u + lane;
+        for (u32 w = 0; w < RADIX_THREADS / 32; w++) wcount[w][t] = 0;
+        __syncthreads();
+        u32 peers = __match_any_sync(0xffffffffu, digit);
+        u32 rank = __popc(peers & lt_mask);
+        if (valid && rank == 0) wcount[warp][digit] = __popc(peers);
+        __syncthreads();
+        u32 sum = 0;
+        for (u32 w = 0; w < RADIX_THREADS / 32; w++) {
+            u32 c = wcount[w][t];
+            wcount[w][t] = sum;
+            sum += c;
+        }
+        __syncthreads();
+        if (valid) {
+            u32 at = running[digit] + wcount[warp][digit] + rank;
+            keys_out[at] = key;
+            vals_out[at] = vals_in[i];
+        }
+        __syncthreads();
+        running[t] += sum;
+        __syncthreads();
+    }
+}
+
+// delta(i, j): common prefix length of the keys of leaves i and j, the leaf indices
+// appended to break ties; -1 outside the leaves.
+__device__ __forceinline__ int delta(const u64* keys, long long n, long long i, long long j) {
+    if (j < 0 || j >= n) return -1;
+    u64 a = keys[i], b = keys[j];
+    if (a == b) return 64 + __clz((u32)i ^ (u32)j);
+    return __clzll(a ^ b);
+}
+
+// Karras's construction of internal node i (boxes are filled by the refit).
+extern "C" __global__ void k_emit(const u64* keys, u32 n, Node* nodes, u32* node_parent,
+                                  u32* leaf_parent) {
+    u32 gi = blockIdx.x * blockDim.x + threadIdx.x;
+    if (n < 2 || gi >= n - 1) return;
+    long long N = n, i = gi;
+    long long d = (delta(keys, N, i, i + 1) - delta(keys, N, i, i - 1)) >= 0 ? 1 : -1;
+    int dmin = delta(keys, N, i, i - d);
+    long long lmax = 2;
+    while (delta(keys, N, i, i + lmax * d) > dmin) lmax *= 2;
+    long long l = 0;
+    for (long long t = lmax / 2; t >= 1; t /= 2)
+        if (delta(keys, N, i, i + (l + t) * d) > dmin) l += t;
+    long long j = i + l * d;
+    int dnode = delta(keys, N, i, j);
+    long long s = 0, div = 2;
+    for (;;) {
+        long long t = (l + div - 1) / div;
+        if (delta(keys, N, i, i + (s + t) * d) > dnode) s += t;
+        if (t == 1) break;
+        div *= 2;
+    }
+    long long gamma = i + s * d + (d < 0 ? d : 0);
+    long long first = i < j ? i : j, last = i < j ? j : i;
+    u32 left = first == gamma ? ((u32)gamma | LEAF_BIT) : (u32)gamma;
+    u32 right = last == gamma + 1 ? ((u32)(gamma + 1) | LEAF_BIT) : (u32)(gamma + 1);
+    nodes[gi].child[0] = left;
+    nodes[gi].child[1] = right;
+    if (left & LEAF_BIT) leaf_parent[left & ~LEAF_BIT] = gi; else node_parent[left] = gi;
+    if (right & LEAF_BIT) leaf_parent[right & ~LEAF_BIT] = gi; else node_parent[right] = gi;
+}
+
+// Bottom-up refit: each leaf walks up; the first child to arrive at a node stops, the
+// second (which sees the counter at 1) unions both boxes, both being final.
+extern "C" __global__ void k_refit(u32 n, const u32* order, const float* boxes, Node* nodes,
+                                   const u32* node_parent, const u32* leaf_parent, u32* arrivals) {
+    u32 leaf = blockIdx.x * blockDim.x + threadIdx.x;
+    if (n < 2 || leaf >= n) return;
+    const float* src = boxes + 6 * (u64)order[leaf];
+    float b[6];
+    for (int k = 0; k < 6; k++) b[k] = src[k];
+    u32 node = leaf_parent[leaf];
+    u32 from = leaf | LEAF_BIT;
+    for (;;) {
+        volatile float* nb = nodes[node].b;
+        u32 side = nodes[node].child[1] == from ? 1u : 0u;
+        for (int k = 0; k < 6; k++) nb[side * 6 + k] = b[k];
+        __threadfence();
+        if (atomicAdd(&arrivals[node], 1u) == 0) return;
+        __threadfence();
+        for (int k = 0; k < 3; k++) {
+            b[k] = fminf(nb[k], nb[6 + k]);
+            b[3 + k] = fmaxf(nb[3 + k], nb[9 + k]);
+        }
+        if (node == 0) return;
+        from = node;
+        node = node_parent[node];
+    }
+}
+
+// Calls emit(target) for every target whose box overlaps `q`, except `self`.
+template <typename F>
+__device__ __forceinline__ void tree_visit(const Node* nodes, const u32* order, u32 nleaves,
+                                           const float* tboxes, const float* q, u32 self, F emit) {
+    if (nleaves == 0) return;
+    if (nleaves == 1) {
+        u32 t = order[0];
+        if (t != self && box_overlaps(tboxes + 6 * (u64)t, q)) emit(t);
+        return;
+    }
+    u32 stack[STACK_SIZE];
+    u32 top = 1;
+    stack[0] = 0;
+    while (top > 0) {
+        const Node& nd = nodes[stack[--top]];
+        for (int side = 0; side < 2; side++) {
+            if (box_overlaps(nd.b + 6 * side, q)) {
+                u32 c = nd.child[side];
+                if (c & LEAF_BIT) {
+                    u32 t = order[c & ~LEAF_BIT];
+                    if (t != self) emit(t);
+                } else if (top < STACK_SIZE) {
+                    stack[top++] = c;
+                }
+            }
+        }
+    }
+}

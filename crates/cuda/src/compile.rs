@@ -1,0 +1,255 @@
+//! Compiling the kernels with NVRTC, and the on-disk CUBIN cache.
+//!
+//! The kernels are CUDA C++ sources embedded in the binary (`kernels/*.cu`, `*.cuh`). At
+//! start-up they are compiled for the device's architecture straight to a CUBIN
+//! (`-arch=sm_XX`), which the driver loads in a fraction of a millisecond, where PTX
+//! would cost a JIT compile of ~80 ms. The CUBIN is cached on disk, keyed by a hash of
+//! the source, the options, the architecture and the NVRTC version, so a server start
+//! usually pays neither cost.
+//!
+//! Options: `--fmad=false` (Rust never contracts `a * b + c` into a fused multiply–add,
+//! so the kernels must not either), `-prec-div=true -prec-sqrt=true` (IEEE division and
+//! square root, as on the CPU) and `-ftz=false` (keep subnormals).
+
+use std::ffi::{CStr, CString, c_char, c_int};
+use std::path::PathBuf;
+
+use cudarc::nvrtc::sys as nvrtc;
+
+/// The kernel sources, in the order they are concatenated into one program.
+pub const SOURCES: [(&str, &str); 4] = [
+    ("scan.cu", include_str!("../kernels/scan.cu")),
+    ("lbvh.cu", include_str!("../kernels/lbvh.cu")),
+    ("broad.cu", include_str!("../kernels/broad.cu")),
+    ("physics.cu", include_str!("../kernels/physics.cu")),
+];
+
+/// Headers the sources include, handed to NVRTC by name.
+pub const HEADERS: [(&str, &str); 2] =
+    [("common.cuh", include_str!("../kernels/common.cuh")), ("narrow.cuh", include_str!("../kernels/narrow.cuh"))];
+
+/// Every kernel entry point the backends load.
+pub const KERNELS: [&str; 16] = [
+    "k_scan_blocks",
+    "k_scan_sums",
+    "k_scan_add",
+    "k_boxes_morton",
+    "k_radix_hist",
+    "k_radix_scatter",
+    "k_emit",
+    "k_refit",
+    "k_tree_count",
+    "k_tree_write",
+    "k_naive_count",
+    "k_naive_write",
+    "k_boxes",
+    "k_narrow_static",
+    "k_narrow_dynamic",
+    "k_forces",
+];
+
+/// Why the kernels could not be compiled.
+#[derive(Debug, thiserror::Error)]
+pub enum CompileError {
+    /// No NVRTC library could be loaded.
+    #[error("the NVRTC library (libnvrtc.so) was not found")]
+    NoNvrtc,
+    /// NVRTC refused the program; the log says why.
+    #[error("NVRTC failed ({status}):\n{log}")]
+    Failed {
+        /// NVRTC's status.
+        status: String,
+        /// The compiler's log.
+        log: String,
+    },
+}
+
+/// The whole program: every source file, with `#line` markers so errors name the file.
+pub fn program_source() -> String {
+    let mut s = String::new();
+    for (name, text) in SOURCES {
+        s.push_str(&format!("#line 1 \"{name}\"\n"));
+        s.push_str(text);
+        s.push('\n');
+    }
+    s
+}
+
+/// The compiler options for an architecture such as 90 (sm_90), plus `-I` for each
+/// include directory.
+pub fn options(arch: u32, include_dirs: &[PathBuf]) -> Vec<String> {
+    let mut o: Vec<String> = vec![
+        format!("-arch=sm_{arch}"),
+        "--fmad=false".into(),
+        "-prec-div=true".into(),
+        "-prec-sqrt=true".into(),
+        "-ftz=false".into(),
+        "-std=c++17".into(),
+        "-default-device".into(),
+    ];
+    o.extend(include_dirs.iter().map(|d| format!("-I{}", d.display())));
+    o
+}
+
+/// Whether the NVRTC library can be loaded (takes ~140 ms the first time: it is large).
+pub fn nvrtc_present() -> bool {
+    // SAFETY: only tries to open the library; no NVRTC function is called.
+    unsafe { nvrtc::is_culib_present() }
+}
+
+/// NVRTC's version as (major, minor).
+pub fn nvrtc_version() -> Result<(i32, i32), CompileError> {
+    if !nvrtc_present() {
+        return Err(CompileError::NoNvrtc);
+    }
+    let (mut major, mut minor) = (0, 0);
+    // SAFETY: the library is present (checked above); both pointers are valid.
+    let r = unsafe { nvrtc::nvrtcVersion(&mut major, &mut minor) };
+    check(r, None)?;
+    Ok((major, minor))
+}
+
+fn status_name(r: nvrtc::nvrtcResult) -> String {
+    // SAFETY: nvrtcGetErrorString returns a static string for any result code.
+    unsafe {
+        let p = nvrtc::nvrtcGetErrorString(r);
+        if p.is_null() { format!("{r:?}") } else { CStr::from_ptr(p).to_string_lossy().into_owned() }
+    }
+}
+
+fn check(r: nvrtc::nvrtcResult, log: Option<String>) -> Result<(), CompileError> {
+    if r == nvrtc::nvrtcResult::NVRTC_SUCCESS {
+        Ok(())
+    } else {
+        Err(CompileError::Failed { status: status_name(r), log: log.unwrap_or_default() })
+    }
+}
+
+/// Compiles the program for `sm_{arch}` and returns the CUBIN. Needs NVRTC, not a GPU.
+pub fn compile_cubin(arch: u32, include_dirs: &[PathBuf]) -> Result<Vec<u8>, CompileError> {
+    if !nvrtc_present() {
+        return Err(CompileError::NoNvrtc);
+    }
+    let bad = |what: &str| CompileError::Failed { status: format!("{what} contains a NUL byte"), log: String::new() };
+    let src = CString::new(program_source()).map_err(|_| bad("the source"))?;
+    let name = CString::new("myriad_kernels.cu").map_err(|_| bad("the name"))?;
+    let header_text: Vec<CString> =
+        HEADERS.iter().map(|(_, t)| CString::new(*t)).collect::<Result<_, _>>().map_err(|_| bad("a header"))?;
+    let header_names: Vec<CString> =
+        HEADERS.iter().map(|(n, _)| CString::new(*n)).collect::<Result<_, _>>().map_err(|_| bad("a header name"))?;
+    let text_ptrs: Vec<*const c_char> = header_text.iter().map(|c| c.as_ptr()).collect();
+    let name_ptrs: Vec<*const c_char> = header_names.iter().map(|c| c.as_ptr()).collect();
+    let opts: Vec<CString> = options(arch, include_dirs)
+        .into_iter()
+        .map(CString::new)
+        .collect::<Result<_, _>>()
+        .map_err(|_| bad("an option"))?;
+    let opt_ptrs: Vec<*const c_char> = opts.iter().map(|c| c.as_ptr()).collect();
+
+    let mut prog: nvrtc::nvrtcProgram = std::ptr::null_mut();
+    // SAFETY: every pointer refers to a NUL-terminated string that outlives the calls;
+    // the arrays have the lengths passed; `prog` is destroyed below on every path.
+    unsafe {
+        check(
+            nvrtc::nvrtcCreateProgram(
+                &mut prog,
+                src.as_ptr(),
+                name.as_ptr(),
+                HEADERS.len() as c_int,
+                text_ptrs.as_ptr(),
+                name_ptrs.as_ptr(),
+            ),
+            None,
+        )?;
+        let result = (|| {
+            let r = nvrtc::nvrtcCompileProgram(prog, opt_ptrs.len() as c_int, opt_ptrs.as_ptr());
+            if r != nvrtc::nvrtcResult::NVRTC_SUCCESS {
+                return Err(CompileError::Failed { status: status_name(r), log: program_log(prog) });
+            }
+            let mut size = 0usize;
+            check(nvrtc::nvrtcGetCUBINSize(prog, &mut size), None)?;
+            let mut cubin = vec![0u8; size];
+            check(nvrtc::nvrtcGetCUBIN(prog, cubin.as_mut_ptr() as *mut c_char), None)?;
+            Ok(cubin)
+        })();
+        nvrtc::nvrtcDestroyProgram(&mut prog);
+        result
+    }
+}
+
+/// # Safety
+/// `prog` must be a live program.
+unsafe fn program_log(prog: nvrtc::nvrtcProgram) -> String {
+    let mut size = 0usize;
+    // SAFETY: `prog` is live (caller); the buffer has the size NVRTC asked for.
+    unsafe {
+        if nvrtc::nvrtcGetProgramLogSize(prog, &mut size) != nvrtc::nvrtcResult::NVRTC_SUCCESS || size == 0 {
+            return String::new();
+        }
+        let mut buf = vec![0u8; size];
+        if nvrtc::nvrtcGetProgramLog(prog, buf.as_mut_ptr() as *mut c_char) != nvrtc::nvrtcResult::NVRTC_SUCCESS {
+            return String::new();
+        }
+        String::from_utf8_lossy(&buf).trim_end_matches('\0').to_string()
+    }
+}
+
+/// The cache directory: `$MYRIAD_CUBIN_CACHE`, else `$XDG_CACHE_HOME/myriad/cubin`, else
+/// `$HOME/.cache/myriad/cubin`.
+pub fn cache_dir() -> Option<PathBuf> {
+    if let Some(d) = std::env::var_os("MYRIAD_CUBIN_CACHE") {
+        return Some(PathBuf::from(d));
+    }
+    if let Some(d) = std::env::var_os("XDG_CACHE_HOME") {
+        return Some(PathBuf::from(d).join("myriad/cubin"));
+    }
+    std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache/myriad/cubin"))
+}
+
+/// The cache key: a hash of the source, headers, options, architecture and NVRTC version.
+pub fn cache_key(arch: u32) -> String {
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    h.update(program_source().as_bytes());
+    for (n, t) in HEADERS {
+        h.update(n.as_bytes());
+        h.update(t.as_bytes());
+    }
+    for o in options(arch, &[]) {
+        h.update(o.as_bytes());
+        h.update(&[0]);
+    }
+    if let Ok((a, b)) = nvrtc_version() {
+        h.update(&a.to_le_bytes());
+        h.update(&b.to_le_bytes());
+    }
+    format!("myriad-sm{arch}-{:016x}", h.digest())
+}
+
+/// The CUBIN for `sm_{arch}`: from the cache when present, else compiled and stored.
+/// Cache failures are logged and otherwise ignored (the compile still works).
+pub fn cached_cubin(arch: u32) -> Result<Vec<u8>, CompileError> {
+    let key = cache_key(arch);
+    let path = cache_dir().map(|d| d.join(format!("{key}.cubin")));
+    if let Some(p) = &path
+        && let Ok(bytes) = std::fs::read(p)
+        && !bytes.is_empty()
+    {
+        tracing::debug!("CUBIN from cache {}", p.display());
+        return Ok(bytes);
+    }
+    let started = std::time::Instant::now();
+    let cubin = compile_cubin(arch, &[])?;
+    tracing::info!("compiled the CUDA kernels for sm_{arch} in {:.0} ms", started.elapsed().as_secs_f64() * 1e3);
+    if let Some(p) = &path {
+        let tmp = p.with_extension(format!("tmp{}", std::process::id()));
+        let stored = p
+            .parent()
+            .map_or(Ok(()), std::fs::create_dir_all)
+            .and_then(|_| std::fs::write(&tmp, &cubin))
+            .and_then(|_| std::fs::rename(&tmp, p));
+        if let Err(e) = stored {
+            tracing::warn!("could not cache the CUBIN at {}: {e}", p.display());
+        }
+    }
+    Ok(cubin)
+}

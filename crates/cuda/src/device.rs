@@ -1,0 +1,372 @@
+//! The device: context, stream, module and kernels, plus thin owners of device and pinned
+//! host memory. Raw driver calls are used (through cudarc's `result` layer) so that
+//! launches carry no per-launch bookkeeping; every call's status is checked.
+
+use std::collections::HashMap;
+use std::ffi::{CString, c_void};
+use std::sync::Arc;
+
+use cudarc::driver::result;
+use cudarc::driver::safe::CudaContext;
+use cudarc::driver::sys::{self, CUdeviceptr, CUevent, CUfunction, CUmodule, CUstream};
+use myriad_physics::PhysicsError;
+
+use crate::compile;
+
+/// A driver error as a [`PhysicsError`] naming the stage it happened in.
+pub(crate) fn dev_err(stage: &'static str) -> impl Fn(result::DriverError) -> PhysicsError {
+    move |e| PhysicsError::Device { stage, message: format!("{e:?}") }
+}
+
+/// Whether a CUDA driver library can be loaded.
+pub fn driver_present() -> bool {
+    // SAFETY: only tries to open the library; no driver function is called.
+    unsafe { sys::is_culib_present() }
+}
+
+/// What [`probe`] found.
+#[derive(Clone, Debug)]
+pub struct DeviceInfo {
+    /// The device's name.
+    pub name: String,
+    /// Compute capability as `major * 10 + minor` (90 for Hopper).
+    pub arch: u32,
+}
+
+/// Checks for a driver, NVRTC and a device, in that order, without ever panicking: the
+/// error says which is missing.
+pub fn probe() -> Result<(Arc<CudaContext>, DeviceInfo), String> {
+    if !driver_present() {
+        return Err("no CUDA driver library (libcuda.so) was found".into());
+    }
+    if !compile::nvrtc_present() {
+        return Err("no NVRTC library (libnvrtc.so) was found".into());
+    }
+    let ctx = CudaContext::new(0).map_err(|e| format!("no usable CUDA device: {e:?}"))?;
+    let name = ctx.name().map_err(|e| format!("reading the device name: {e:?}"))?;
+    let (major, minor) = ctx.compute_capability().map_err(|e| format!("reading the compute capability: {e:?}"))?;
+    Ok((ctx, DeviceInfo { name, arch: (major * 10 + minor) as u32 }))
+}
+
+/// A kernel argument.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Arg {
+    /// A device pointer.
+    P(CUdeviceptr),
+    /// A 32-bit integer.
+    U(u32),
+    /// A 64-bit integer.
+    L(u64),
+    /// A float.
+    F(f32),
+}
+
+/// Context, stream and loaded kernels.
+pub(crate) struct Gpu {
+    pub ctx: Arc<CudaContext>,
+    pub info: DeviceInfo,
+    pub stream: CUstream,
+    module: CUmodule,
+    kernels: HashMap<&'static str, CUfunction>,
+}
+
+// SAFETY: the stream, module and function handles belong to the context held in `ctx`;
+// driver handles may be used from any thread once that context is current, which every
+// entry point ensures with `bind`. The backend owning a `Gpu` is used by one thread at a
+// time (`&mut self`).
+unsafe impl Send for Gpu {}
+
+impl Gpu {
+    /// Probes the device, loads (or compiles) the kernels and creates a stream.
+    pub fn new() -> Result<Gpu, String> {
+        let (ctx, info) = probe()?;
+        ctx.bind_to_thread().map_err(|e| format!("binding the context: {e:?}"))?;
+        let cubin = compile::cached_cubin(info.arch).map_err(|e| format!("compiling the kernels: {e}"))?;
+        // SAFETY: the context is current; `cubin` is a complete CUBIN image that stays
+        // alive during the call.
+        let module = unsafe { result::module::load_data(cubin.as_ptr() as *const c_void) }
+            .map_err(|e| format!("loading the kernels for sm_{}: {e:?}", info.arch))?;
+        let mut kernels = HashMap::new();
+        for name in compile::KERNELS {
+            let c = CString::new(name).map_err(|e| e.to_string())?;
+            // SAFETY: `module` was loaded above and is live.
+            let f = unsafe { result::module::get_function(module, c) }
+                .map_err(|e| format!("kernel {name} missing from the module: {e:?}"))?;
+            kernels.insert(name, f);
+        }
+        let stream = result::stream::create(result::stream::StreamKind::NonBlocking)
+            .map_err(|e| format!("creating a stream: {e:?}"))?;
+        Ok(Gpu { ctx, info, stream, module, kernels })
+    }
+
+    /// Makes the context current on the calling thread.
+    pub fn bind(&self) -> Result<(), PhysicsError> {
+        self.ctx.bind_to_thread().map_err(dev_err("bind"))
+    }
+
+    /// Launches kernel `name` on `grid` blocks of `block` threads.
+    pub fn launch_grid(&self, name: &'static str, grid: u32, block: u32, args: &[Arg]) -> Result<(), PhysicsError> {
+        if grid == 0 {
+            return Ok(());
+        }
+        let f =
+            *self.kernels.get(name).ok_or(PhysicsError::Device { stage: name, message: "unknown kernel".into() })?;
+        // Each argument lives in an 8-byte slot; the driver reads as many bytes as the
+        // kernel's parameter has (4 for u32/f32, little-endian low bytes).
+        let mut store: Vec<u64> = args
+            .iter()
+            .map(|a| match *a {
+                Arg::P(p) => p,
+                Arg::U(v) => v as u64,
+                Arg::L(v) => v,
+                Arg::F(v) => v.to_bits() as u64,
+            })
+            .collect();
+        let mut ptrs: Vec<*mut c_void> = store.iter_mut().map(|s| s as *mut u64 as *mut c_void).collect();
+        // SAFETY: `f` comes from the loaded module; the argument slots match the kernel's
+        // parameter list (each call site passes them in the kernel's order) and live
+        // until the launch call returns (the driver copies them).
+        unsafe { result::launch_kernel(f, (grid, 1, 1), (block, 1, 1), 0, self.stream, &mut ptrs) }
+            .map_err(dev_err(name))
+    }
+
+    /// Launches kernel `name` with one thread per item, 256 a block.
+    pub fn launch(&self, name: &'static str, items: usize, args: &[Arg]) -> Result<(), PhysicsError> {
+        self.launch_grid(name, items.div_ceil(256) as u32, 256, args)
+    }
+
+    /// Waits for everything queued on the stream.
+    pub fn sync(&self) -> Result<(), PhysicsError> {
+        // SAFETY: the stream is live.
+        unsafe { result::stream::synchronize(self.stream) }.map_err(dev_err("synchronize"))
+    }
+
+    /// Fills `bytes` bytes at `dst` with zeros, asynchronously.
+    pub fn zero(&self, dst: CUdeviceptr, bytes: usize) -> Result<(), PhysicsError> {
+        if bytes == 0 {
+            return Ok(());
+        }
+        // SAFETY: `dst` points to at least `bytes` bytes of device memory (callers pass a
+        // buffer and a size within it).
+        unsafe { result::memset_d8_async(dst, 0, bytes, self.stream) }.map_err(dev_err("memset"))
+    }
+
+    /// Copies a host slice to device memory (ordered on the stream; the call returns once
+    /// the source may be reused).
+    pub fn upload<T>(&self, dst: &DevBuf, src: &[T]) -> Result<(), PhysicsError> {
+        let bytes = std::mem::size_of_val(src);
+        if bytes == 0 {
+            return Ok(());
+        }
+        if bytes > dst.bytes {
+            return Err(PhysicsError::Device { stage: "upload", message: format!("{bytes} bytes into {}", dst.bytes) });
+        }
+        // SAFETY: the destination holds at least `bytes` bytes (checked). Pageable
+        // memory: the driver stages the copy, so `src` may be reused once it returns; the
+        // synchronize keeps it ordered with this stream's earlier work.
+        unsafe {
+            result::stream::synchronize(self.stream).map_err(dev_err("upload"))?;
+            result::memcpy_htod_sync(dst.ptr, src)
+        }
+        .map_err(dev_err("upload"))
+    }
+
+    /// Queues a copy of `count` items of type `T` from device memory into pinned host
+    /// memory, starting at item `at` of the host buffer.
+    pub fn download_async<T: Copy>(
+        &self,
+        dst: &mut Pinned,
+        at: usize,
+        src: CUdeviceptr,
+        count: usize,
+    ) -> Result<(), PhysicsError> {
+        let size = std::mem::size_of::<T>();
+        let bytes = count * size;
+        if bytes == 0 {
+            return Ok(());
+        }
+        if (at + count) * size > dst.bytes {
+            return Err(PhysicsError::Device {
+                stage: "download",
+                message: format!("{bytes} bytes into {}", dst.bytes),
+            });
+        }
+        // SAFETY: `dst` is pinned memory of at least `bytes` bytes that stays allocated
+        // until the caller synchronizes the stream (it is owned by the backend).
+        unsafe {
+            sys::cuMemcpyDtoHAsync_v2((dst.ptr as *mut u8).add(at * size) as *mut c_void, src, bytes, self.stream)
+                .result()
+        }
+        .map_err(dev_err("download"))
+    }
+
+    /// Records `event` on the stream.
+    pub fn record(&self, event: CUevent) -> Result<(), PhysicsError> {
+        // SAFETY: both handles are live.
+        unsafe { result::event::record(event, self.stream) }.map_err(dev_err("event"))
+    }
+}
+
+impl Drop for Gpu {
+    fn drop(&mut self) {
+        if self.ctx.bind_to_thread().is_ok() {
+            // SAFETY: the handles were created by this value and are not used after.
+            unsafe {
+                let _ = result::stream::synchronize(self.stream);
+                let _ = result::stream::destroy(self.stream);
+                let _ = result::module::unload(self.module);
+            }
+        }
+    }
+}
+
+/// Device memory, reallocated (contents dropped) when a larger size is needed.
+pub(crate) struct DevBuf {
+    pub ptr: CUdeviceptr,
+    pub bytes: usize,
+    ctx: Option<Arc<CudaContext>>,
+}
+
+impl DevBuf {
+    /// An empty buffer.
+    pub fn empty() -> DevBuf {
+        DevBuf { ptr: 0, bytes: 0, ctx: None }
+    }
+
+    /// Makes room for `bytes` bytes, reallocating with `headroom` (e.g. 1.25) when it has
+    /// to grow. Returns whether it reallocated (the contents are then undefined).
+    pub fn ensure(&mut self, gpu: &Gpu, bytes: usize, headroom: f64) -> Result<bool, PhysicsError> {
+        if bytes <= self.bytes && self.ptr != 0 {
+            return Ok(false);
+        }
+        self.free();
+        let want = ((bytes.max(64) as f64) * headroom) as usize;
+        // SAFETY: the context is current (callers bind before any work).
+        let ptr = unsafe { result::malloc_sync(want) }.map_err(dev_err("allocate"))?;
+        self.ptr = ptr;
+        self.bytes = want;
+        self.ctx = Some(gpu.ctx.clone());
+        Ok(true)
+    }
+
+    fn free(&mut self) {
+        if self.ptr != 0
+            && let Some(ctx) = &self.ctx
+            && ctx.bind_to_thread().is_ok()
+        {
+            // SAFETY: `ptr` was allocated by `malloc_sync` in this context and is not
+            // used after this point.
+            unsafe {
+                let _ = result::memory_free(self.ptr);
+            }
+        }
+        self.ptr = 0;
+        self.bytes = 0;
+    }
+}
+
+impl Drop for DevBuf {
+    fn drop(&mut self) {
+        self.free();
+    }
+}
+
+/// Page-locked host memory: the device copies it by DMA, asynchronously.
+pub(crate) struct Pinned {
+    ptr: *mut c_void,
+    bytes: usize,
+    ctx: Option<Arc<CudaContext>>,
+}
+
+// SAFETY: the buffer is plain memory owned by this value; it is only accessed through
+// `&self`/`&mut self`.
+unsafe impl Send for Pinned {}
+
+impl Pinned {
+    /// An empty buffer.
+    pub fn empty() -> Pinned {
+        Pinned { ptr: std::ptr::null_mut(), bytes: 0, ctx: None }
+    }
+
+    /// Makes room for `bytes` bytes (contents dropped when it grows).
+    pub fn ensure(&mut self, gpu: &Gpu, bytes: usize) -> Result<(), PhysicsError> {
+        if bytes <= self.bytes && !self.ptr.is_null() {
+            return Ok(());
+        }
+        self.free();
+        let want = bytes.max(64) * 5 / 4;
+        // SAFETY: the context is current; flags 0 = plain page-locked memory.
+        let ptr = unsafe { result::malloc_host(want, 0) }.map_err(dev_err("pinned allocate"))?;
+        // Zero it so that reading any part of it is defined.
+        // SAFETY: `ptr` points to `want` writable bytes.
+        unsafe { std::ptr::write_bytes(ptr as *mut u8, 0, want) };
+        self.ptr = ptr;
+        self.bytes = want;
+        self.ctx = Some(gpu.ctx.clone());
+        Ok(())
+    }
+
+    /// The first `count` items as `T` (plain-old-data types only: f32, u32, u8).
+    pub fn slice<T: Copy>(&self, count: usize) -> &[T] {
+        assert!(count * std::mem::size_of::<T>() <= self.bytes, "pinned buffer too small");
+        if count == 0 {
+            return &[];
+        }
+        // SAFETY: in bounds (asserted), aligned (the driver's allocations are page
+        // aligned), initialised (zeroed at allocation), and T is plain data.
+        unsafe { std::slice::from_raw_parts(self.ptr as *const T, count) }
+    }
+
+    fn free(&mut self) {
+        if !self.ptr.is_null()
+            && let Some(ctx) = &self.ctx
+            && ctx.bind_to_thread().is_ok()
+        {
+            // SAFETY: allocated by `malloc_host`, not used after this point.
+            unsafe {
+                let _ = result::free_host(self.ptr);
+            }
+        }
+        self.ptr = std::ptr::null_mut();
+        self.bytes = 0;
+    }
+}
+
+impl Drop for Pinned {
+    fn drop(&mut self) {
+        self.free();
+    }
+}
+
+/// A CUDA event, for timing stages on the device.
+pub(crate) struct Event {
+    pub raw: CUevent,
+    ctx: Arc<CudaContext>,
+}
+
+// SAFETY: as for `Gpu`: the handle belongs to the held context.
+unsafe impl Send for Event {}
+
+impl Event {
+    pub fn new(gpu: &Gpu) -> Result<Event, PhysicsError> {
+        let raw = result::event::create(sys::CUevent_flags::CU_EVENT_DEFAULT).map_err(dev_err("event"))?;
+        Ok(Event { raw, ctx: gpu.ctx.clone() })
+    }
+
+    /// Milliseconds from `self` to `end` (both recorded and complete).
+    pub fn ms_to(&self, end: &Event) -> Result<f64, PhysicsError> {
+        // SAFETY: both events are live and were recorded.
+        unsafe { result::event::elapsed(self.raw, end.raw) }.map(f64::from).map_err(dev_err("event timing"))
+    }
+}
+
+impl Drop for Event {
+    fn drop(&mut self) {
+        if self.ctx.bind_to_thread().is_ok() {
+            // SAFETY: created by `new`, not used after.
+            unsafe {
+                let _ = result::event::destroy(self.raw);
+            }
+        }
+    }
+}

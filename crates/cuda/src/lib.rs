@@ -1,0 +1,41 @@
+//! CUDA physics backends of Myriad: `cuda-naive` (all pairs on the GPU, the reference's
+//! naive GPU column) and `cuda` (device-resident state, LBVH broad phase), both bit for
+//! bit identical to the CPU backends; and [`create_backend`], which also resolves `auto`.
+//!
+//! Module map:
+//! - [`compile`]: the embedded kernel sources, NVRTC compilation to a CUBIN and its cache;
+//! - [`device`]: availability probe, context, stream, kernels, device and pinned memory;
+//! - [`backend`]: [`CudaBackend`], the pipeline of both backends;
+//! - `params`: the parameter block the kernels read.
+//!
+//! Without a CUDA driver, NVRTC or a device nothing here panics: the CUDA kinds return
+//! [`PhysicsError::Unavailable`] with the reason, and `auto` falls back to `cpu`.
+
+pub mod backend;
+pub mod compile;
+pub mod device;
+mod params;
+
+pub use backend::CudaBackend;
+
+use myriad_physics::{Backend, BackendKind, PhysicsError};
+
+/// Creates a backend of any kind: the CPU ones through `myriad_physics`, the CUDA ones
+/// here, and `auto`: `cuda` when a driver, NVRTC and a device are present and the kernels
+/// load, else `cpu`. The choice and its reason are logged.
+pub fn create_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
+    match kind {
+        BackendKind::Cuda | BackendKind::CudaNaive => Ok(Box::new(CudaBackend::new(kind)?)),
+        BackendKind::Auto => match CudaBackend::new(BackendKind::Cuda) {
+            Ok(b) => {
+                tracing::info!("backend auto: using {}", b.description());
+                Ok(Box::new(b))
+            }
+            Err(e) => {
+                tracing::info!("backend auto: using cpu, because {e}");
+                myriad_physics::create_backend(BackendKind::Cpu)
+            }
+        },
+        cpu => myriad_physics::create_backend(cpu),
+    }
+}

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Builds (release) the myriad-cuda test binaries and the `myriad` binary here, strips
+# them, and copies them into .carry/ (ignored by git) for the lent GPU machine; then
+# prints the `run` call that executes scripts/gpu-run.sh there.
+#
+# Usage: scripts/gpu-build.sh        (CARGO_TARGET_DIR is honoured)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+carry=.carry
+rm -rf "$carry"
+mkdir -p "$carry/tests"
+jobs=${JOBS:-1}
+
+# Test binaries of myriad-cuda; cargo's JSON messages name each executable.
+nice -n 10 cargo test --release -j "$jobs" -p myriad-cuda --no-run --message-format=json 2>/dev/null |
+    python3 -c '
+import json, sys
+for line in sys.stdin:
+    try:
+        m = json.loads(line)
+    except ValueError:
+        continue
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["kind"] == ["test"]:
+        print(m["target"]["name"], m["executable"])
+' | while read -r name exe; do
+    cp "$exe" "$carry/tests/$name"
+done
+nice -n 10 cargo build --release -j "$jobs" -p myriad --bin myriad
+target=${CARGO_TARGET_DIR:-target}
+cp "$target/release/myriad" "$carry/myriad"
+strip "$carry/myriad" "$carry"/tests/*
+du -sh "$carry"
+ls -l "$carry" "$carry/tests"
+cat <<'MSG'
+
+Now call the device tool:
+  run(command="bash scripts/gpu-run.sh", carry=[".carry"], timeout_s=600)
+MSG

@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Runs on the lent GPU machine, in the repository root, with .carry/ built by
+# scripts/gpu-build.sh: the GPU test suite (failing, not skipping, without a GPU), the
+# CPU <-> GPU hash comparisons and the benchmarks. Logs go to $OUT (or ./out).
+#
+# MODE=tests or MODE=bench runs one half; default: both.
+set -uo pipefail
+out=${OUT:-out}
+mkdir -p "$out"
+mode=${MODE:-all}
+export MYRIAD_REQUIRE_CUDA=1
+export MYRIAD_CUBIN_CACHE=${MYRIAD_CUBIN_CACHE:-/tmp/myriad-cubin}
+status=0
+{
+    date -u
+    nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.mem --format=csv || true
+} 2>&1 | tee "$out/device.txt"
+
+if [[ $mode == all || $mode == tests ]]; then
+    for t in .carry/tests/*; do
+        echo "=== $(basename "$t")"
+        "$t" --test-threads=1 --nocapture 2>&1 | grep -v '^$' || status=1
+    done 2>&1 | tee "$out/tests.log"
+    grep -E "^test result|^parity|FAILED|panicked" "$out/tests.log" || true
+    # The CLI's own hash on the reference scenario 1, every backend.
+    for b in cpu cuda-naive cuda; do
+        .carry/myriad sim --scenario 1 --ticks 200 --backend "$b" --json 2>/dev/null
+    done | tee "$out/sim-hashes.jsonl" | python3 -c '
+import json, sys
+rows = [json.loads(l) for l in sys.stdin if l.strip()]
+for r in rows:
+    print("sim scenario 1, 200 ticks:", r["backend"], r["state_hash"], "%.3f ms a tick" % r["mean_tick_ms"])
+print("sim hashes equal:", len({r["state_hash"] for r in rows}) == 1)
+'
+fi
+
+if [[ $mode == all || $mode == bench ]]; then
+    .carry/myriad bench --scenario 1,2,3 --backend cuda,cuda-naive,cpu --ticks 30 --warmup 3 \
+        --out "$out/bench-ref" > "$out/bench-ref.md" 2> "$out/bench-ref.err" || status=1
+    sed -n '1,/#### The reference/p' "$out/bench-ref.md"
+    # Scale sweep: dynamic N, static N/2, world area grows with N (density of scenario 3:
+    # 260k objects on a 1024 x 1024 map).
+    for n in 10000 30000 100000 300000 1000000 2000000; do
+        size=$(python3 -c "import math; print(round(1024 * math.sqrt($n / 260000), 1))")
+        .carry/myriad bench --scenario custom --dynamic $n --static $((n / 2)) --users $((n / 26)) \
+            --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json 2>> "$out/sweep.err"
+    done > "$out/sweep.jsonl" || status=1
+    python3 - "$out/sweep.jsonl" <<'PY'
+import json, sys
+print("| dynamic | static objects | total ms | build_dynamic_bvh | broad static | broad dynamic | narrow s+d | forces | upload+host | dyn pairs |")
+print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+for l in open(sys.argv[1]):
+    if not l.strip():
+        continue
+    r = json.loads(l)
+    print(f"| {r['dynamic']} | {r['static_objects']} | {r['total_ms']:.3f} | {r['build_dynamic_bvh']:.3f} | {r['broad_static']:.3f} | {r['broad_dynamic']:.3f} | {r['narrow_static'] + r['narrow_dynamic']:.3f} | {r['forces']:.3f} | {r['upload']:.3f} | {r['dynamic_pairs']} |")
+PY
+fi
+exit $status

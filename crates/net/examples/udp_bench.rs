@@ -53,26 +53,17 @@ mod bench {
             let addrs: Vec<libc::sockaddr_in> = list
                 .iter()
                 .map(|(a, _)| {
-                    let SocketAddr::V4(a) = a else {
-                        unreachable!("IPv4 destinations")
-                    };
+                    let SocketAddr::V4(a) = a else { unreachable!("IPv4 destinations") };
                     libc::sockaddr_in {
                         sin_family: libc::AF_INET as libc::sa_family_t,
                         sin_port: a.port().to_be(),
-                        sin_addr: libc::in_addr {
-                            s_addr: u32::from(*a.ip()).to_be(),
-                        },
+                        sin_addr: libc::in_addr { s_addr: u32::from(*a.ip()).to_be() },
                         sin_zero: [0; 8],
                     }
                 })
                 .collect();
-            let iovs: Vec<libc::iovec> = list
-                .iter()
-                .map(|(_, d)| libc::iovec {
-                    iov_base: d.as_ptr() as *mut _,
-                    iov_len: d.len(),
-                })
-                .collect();
+            let iovs: Vec<libc::iovec> =
+                list.iter().map(|(_, d)| libc::iovec { iov_base: d.as_ptr() as *mut _, iov_len: d.len() }).collect();
             let headers = (0..list.len())
                 .map(|i| {
                     // SAFETY: msghdr is plain old data; all-zero is a valid value.
@@ -81,17 +72,10 @@ mod bench {
                     h.msg_namelen = std::mem::size_of::<libc::sockaddr_in>() as u32;
                     h.msg_iov = &iovs[i] as *const _ as *mut _;
                     h.msg_iovlen = 1;
-                    libc::mmsghdr {
-                        msg_hdr: h,
-                        msg_len: 0,
-                    }
+                    libc::mmsghdr { msg_hdr: h, msg_len: 0 }
                 })
                 .collect();
-            Self {
-                _addrs: addrs,
-                _iovs: iovs,
-                headers,
-            }
+            Self { _addrs: addrs, _iovs: iovs, headers }
         }
 
         fn send_all(&mut self, fd: i32) -> usize {
@@ -100,14 +84,7 @@ mod bench {
                 let n = (self.headers.len() - done).min(BATCH);
                 // SAFETY: the headers point into `_addrs`, `_iovs` and the caller's
                 // datagrams, all alive for the duration of the call.
-                let r = unsafe {
-                    libc::sendmmsg(
-                        fd,
-                        self.headers[done..].as_mut_ptr(),
-                        n as u32,
-                        libc::MSG_DONTWAIT,
-                    )
-                };
+                let r = unsafe { libc::sendmmsg(fd, self.headers[done..].as_mut_ptr(), n as u32, libc::MSG_DONTWAIT) };
                 if r > 0 {
                     done += r as usize;
                 }
@@ -117,24 +94,14 @@ mod bench {
     }
 
     pub fn run() -> Result<(), Box<dyn std::error::Error>> {
-        let sinks: Vec<UdpSocket> = (0..DESTINATIONS)
-            .map(|_| UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)))
-            .collect::<Result<_, _>>()?;
-        let dests: Vec<SocketAddr> = sinks
-            .iter()
-            .map(|s| s.local_addr())
-            .collect::<Result<_, _>>()?;
+        let sinks: Vec<UdpSocket> =
+            (0..DESTINATIONS).map(|_| UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))).collect::<Result<_, _>>()?;
+        let dests: Vec<SocketAddr> = sinks.iter().map(|s| s.local_addr()).collect::<Result<_, _>>()?;
         let payloads: Vec<Vec<u8>> = (0..DATAGRAMS).map(|i| vec![i as u8; SIZE]).collect();
-        let list: Vec<(SocketAddr, &[u8])> = payloads
-            .iter()
-            .enumerate()
-            .map(|(i, p)| (dests[i % DESTINATIONS], &p[..]))
-            .collect();
+        let list: Vec<(SocketAddr, &[u8])> =
+            payloads.iter().enumerate().map(|(i, p)| (dests[i % DESTINATIONS], &p[..])).collect();
 
-        let mut ours = Endpoint::bind(EndpointConfig::new(SocketAddr::from((
-            Ipv4Addr::LOCALHOST,
-            0,
-        ))))?;
+        let mut ours = Endpoint::bind(EndpointConfig::new(SocketAddr::from((Ipv4Addr::LOCALHOST, 0))))?;
         let granted = ours.buffer_sizes();
         let bare_socket = UdpSocket::bind(SocketAddrV4::new(Ipv4Addr::LOCALHOST, 0))?;
         bare_socket.set_nonblocking(true)?;

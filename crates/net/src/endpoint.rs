@@ -44,13 +44,7 @@ pub struct EndpointConfig {
 impl EndpointConfig {
     /// Defaults for `bind`.
     pub fn new(bind: SocketAddr) -> Self {
-        Self {
-            bind,
-            send_buffer: 8 << 20,
-            recv_buffer: 8 << 20,
-            reuse_port: false,
-            batch: 512,
-        }
+        Self { bind, send_buffer: 8 << 20, recv_buffer: 8 << 20, reuse_port: false, batch: 512 }
     }
 }
 
@@ -97,35 +91,20 @@ impl Endpoint {
     /// Opens and binds one endpoint.
     pub fn bind(config: EndpointConfig) -> Result<Self, NetError> {
         let addr = config.bind;
-        let err = |action: &'static str| {
-            move |source| NetError::Socket {
-                action,
-                addr,
-                source,
-            }
-        };
-        let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))
-            .map_err(err("create"))?;
-        socket
-            .set_nonblocking(true)
-            .map_err(err("make non-blocking"))?;
+        let err = |action: &'static str| move |source| NetError::Socket { action, addr, source };
+        let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP)).map_err(err("create"))?;
+        socket.set_nonblocking(true).map_err(err("make non-blocking"))?;
         #[cfg(unix)]
         if config.reuse_port {
-            socket
-                .set_reuse_port(true)
-                .map_err(err("set SO_REUSEPORT on"))?;
+            socket.set_reuse_port(true).map_err(err("set SO_REUSEPORT on"))?;
         }
         // A refused size is not fatal: the granted size is reported instead.
         let _ = socket.set_send_buffer_size(config.send_buffer);
         let _ = socket.set_recv_buffer_size(config.recv_buffer);
         socket.bind(&addr.into()).map_err(err("bind"))?;
         let buffers = BufferSizes {
-            send: socket
-                .send_buffer_size()
-                .map_err(err("read SO_SNDBUF of"))?,
-            recv: socket
-                .recv_buffer_size()
-                .map_err(err("read SO_RCVBUF of"))?,
+            send: socket.send_buffer_size().map_err(err("read SO_SNDBUF of"))?,
+            recv: socket.recv_buffer_size().map_err(err("read SO_RCVBUF of"))?,
         };
         let socket: UdpSocket = socket.into();
         let local = socket.local_addr().map_err(err("read the address of"))?;
@@ -142,10 +121,7 @@ impl Endpoint {
     /// thread; the kernel spreads senders over them by address hash. With port 0 the
     /// first socket picks the port and the others join it.
     pub fn bind_group(config: EndpointConfig, count: usize) -> Result<Vec<Self>, NetError> {
-        let mut config = EndpointConfig {
-            reuse_port: true,
-            ..config
-        };
+        let mut config = EndpointConfig { reuse_port: true, ..config };
         let mut group = Vec::with_capacity(count);
         for _ in 0..count {
             let endpoint = Self::bind(config)?;
@@ -183,8 +159,10 @@ impl Endpoint {
         self.batcher.send(&self.socket, datagrams, &mut self.stats)
     }
 
-    /// Receives as many datagrams as are queued, up to `out`'s capacity, without
-    /// blocking (0 when none are waiting). `out` is overwritten.
+    /// Receives as many datagrams as are queued, up to `out`'s capacity and
+    /// [`EndpointConfig::batch`] (one system call on Linux), without blocking: 0 when
+    /// none are waiting. `out` is overwritten. Call it in a loop until it returns 0 to
+    /// drain the socket.
     pub fn recv_batch(&mut self, out: &mut RecvBatch) -> io::Result<usize> {
         self.batcher.recv(&self.socket, out, &mut self.stats)
     }
@@ -234,10 +212,7 @@ mod tests {
         }
         assert_eq!(got.len(), 50);
         assert!(got.iter().all(|(addr, _)| *addr == a.local));
-        assert_eq!(
-            got.iter().map(|g| g.1.clone()).collect::<Vec<_>>(),
-            payloads
-        );
+        assert_eq!(got.iter().map(|g| g.1.clone()).collect::<Vec<_>>(), payloads);
         // Nothing queued: returns at once with 0.
         assert_eq!(p.recv(&b.socket, &mut batch, &mut stats).unwrap(), 0);
         let _ = (&mut a, &mut b);
@@ -247,9 +222,7 @@ mod tests {
     fn native_send_and_receive_in_batches() {
         let mut a = Endpoint::bind(local()).unwrap();
         let mut b = Endpoint::bind(local()).unwrap();
-        let payloads: Vec<Vec<u8>> = (0..700u32)
-            .map(|i| i.to_le_bytes().repeat(1 + (i % 300) as usize))
-            .collect();
+        let payloads: Vec<Vec<u8>> = (0..700u32).map(|i| i.to_le_bytes().repeat(1 + (i % 300) as usize)).collect();
         let to_b: Vec<(SocketAddr, &[u8])> = payloads.iter().map(|d| (b.local, &d[..])).collect();
         let mut sent = 0;
         let mut received = Vec::new();
@@ -262,12 +235,7 @@ mod tests {
             received.extend(drain(&mut b, &mut batch, sent - received.len()));
         }
         assert_eq!(received.len(), payloads.len());
-        assert!(
-            received
-                .iter()
-                .zip(&payloads)
-                .all(|((addr, d), p)| *addr == a.local && d == p)
-        );
+        assert!(received.iter().zip(&payloads).all(|((addr, d), p)| *addr == a.local && d == p));
         assert_eq!(a.stats().sent, 700);
         assert_eq!(b.stats().received, 700);
         #[cfg(target_os = "linux")]
@@ -279,15 +247,11 @@ mod tests {
         let mut a = Endpoint::bind(local()).unwrap();
         let mut b = Endpoint::bind(local()).unwrap();
         let v6: SocketAddr = "[::1]:9".parse().unwrap();
-        let list: Vec<(SocketAddr, &[u8])> =
-            vec![(v6, b"x"), (b.local, b"one"), (v6, b"y"), (b.local, b"two")];
+        let list: Vec<(SocketAddr, &[u8])> = vec![(v6, b"x"), (b.local, b"one"), (v6, b"y"), (b.local, b"two")];
         assert_eq!(a.send_batch(&list).unwrap(), 4);
         assert_eq!(a.stats().send_errors, 2);
         let got = drain(&mut b, &mut RecvBatch::new(8), 2);
-        assert_eq!(
-            got.iter().map(|g| g.1.clone()).collect::<Vec<_>>(),
-            vec![b"one".to_vec(), b"two".to_vec()]
-        );
+        assert_eq!(got.iter().map(|g| g.1.clone()).collect::<Vec<_>>(), vec![b"one".to_vec(), b"two".to_vec()]);
     }
 
     #[test]
@@ -323,19 +287,12 @@ mod tests {
     fn reuse_port_group_shares_one_port_and_reports_buffers() {
         let group = Endpoint::bind_group(local(), 3).unwrap();
         assert_eq!(group.len(), 3);
-        assert!(
-            group
-                .iter()
-                .all(|e| e.local_addr() == group[0].local_addr())
-        );
+        assert!(group.iter().all(|e| e.local_addr() == group[0].local_addr()));
         let sizes = group[0].buffer_sizes();
         assert!(sizes.send > 0 && sizes.recv > 0);
         // Without SO_REUSEPORT the same port is refused.
         let mut plain = local();
         plain.bind = group[0].local_addr();
-        assert!(matches!(
-            Endpoint::bind(plain),
-            Err(NetError::Socket { action: "bind", .. })
-        ));
+        assert!(matches!(Endpoint::bind(plain), Err(NetError::Socket { action: "bind", .. })));
     }
 }

@@ -72,8 +72,7 @@ impl RecvBatch {
         for r in 0..self.len {
             if keep(r) {
                 if w != r {
-                    self.buf
-                        .copy_within(r * MAX_RECV..r * MAX_RECV + self.lens[r], w * MAX_RECV);
+                    self.buf.copy_within(r * MAX_RECV..r * MAX_RECV + self.lens[r], w * MAX_RECV);
                     self.lens[w] = self.lens[r];
                     self.addrs[w] = self.addrs[r];
                 }

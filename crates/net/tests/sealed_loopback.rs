@@ -12,11 +12,7 @@ fn local() -> EndpointConfig {
     EndpointConfig::new(SocketAddr::from((Ipv4Addr::LOCALHOST, 0)))
 }
 
-fn receive_at_least(
-    ep: &mut Endpoint,
-    batch: &mut RecvBatch,
-    want: usize,
-) -> Vec<(SocketAddr, Vec<u8>)> {
+fn receive_at_least(ep: &mut Endpoint, batch: &mut RecvBatch, want: usize) -> Vec<(SocketAddr, Vec<u8>)> {
     let mut got = Vec::new();
     let deadline = Instant::now() + Duration::from_secs(3);
     while got.len() < want && Instant::now() < deadline {
@@ -30,11 +26,7 @@ fn receive_at_least(
 
 #[test]
 fn sealed_traffic_both_ways() {
-    let keys = SessionKeys {
-        session_id: 42,
-        client_to_server: [5; 32],
-        server_to_client: [6; 32],
-    };
+    let keys = SessionKeys { session_id: 42, client_to_server: [5; 32], server_to_client: [6; 32] };
     let mut server_ep = Endpoint::bind(local()).unwrap();
     let mut client_ep = Endpoint::bind(local()).unwrap();
     let mut server = ServerSession::new(&keys);
@@ -44,10 +36,8 @@ fn sealed_traffic_both_ways() {
     let mut wire = Vec::new();
     for frame in 0..100u32 {
         let mut d = Vec::new();
-        let msg = ClientMessage::Action(Action {
-            mask: ActionMask::new((frame % 32) as u8).unwrap(),
-            client_frame: frame,
-        });
+        let msg =
+            ClientMessage::Action(Action { mask: ActionMask::new((frame % 32) as u8).unwrap(), client_frame: frame });
         client.seal(&msg, &mut d).unwrap();
         wire.push(d);
     }
@@ -58,10 +48,7 @@ fn sealed_traffic_both_ways() {
     let last = forged.len() - 1;
     forged[last] ^= 0x40;
     wire.push(forged);
-    let to_server: Vec<(SocketAddr, &[u8])> = wire
-        .iter()
-        .map(|d| (server_ep.local_addr(), &d[..]))
-        .collect();
+    let to_server: Vec<(SocketAddr, &[u8])> = wire.iter().map(|d| (server_ep.local_addr(), &d[..])).collect();
     assert_eq!(client_ep.send_batch(&to_server).unwrap(), wire.len());
 
     let mut batch = RecvBatch::new(64);
@@ -76,10 +63,7 @@ fn sealed_traffic_both_ways() {
             let (from, bytes) = batch.get_mut(i).unwrap();
             assert_eq!(from, client_ep.local_addr());
             match server.open(bytes) {
-                Ok(Opened {
-                    message: ClientMessage::Action(a),
-                    ..
-                }) => frames.push(a.client_frame),
+                Ok(Opened { message: ClientMessage::Action(a), .. }) => frames.push(a.client_frame),
                 Ok(other) => panic!("unexpected {other:?}"),
                 Err(e) => rejected.push(e.class()),
             }
@@ -87,27 +71,16 @@ fn sealed_traffic_both_ways() {
     }
     assert_eq!(frames, (0..100).collect::<Vec<_>>());
     rejected.sort_by_key(|c| format!("{c:?}"));
-    assert_eq!(
-        rejected,
-        vec![ErrorClass::Authentication, ErrorClass::Replayed]
-    );
+    assert_eq!(rejected, vec![ErrorClass::Authentication, ErrorClass::Replayed]);
 
     // The server answers with a two-datagram update.
     let records: Vec<StateRecord> = (0..200u64)
-        .map(|i| StateRecord {
-            id: i,
-            kind: ObjectKind::Sphere,
-            pos: QuantPos::new(i as i32, 0, 0),
-        })
+        .map(|i| StateRecord { id: i, kind: ObjectKind::Sphere, pos: QuantPos::new(i as i32, 0, 0) })
         .collect();
     let mut out = DatagramBatch::new();
-    assert_eq!(
-        pack_updates(&UpdateHeader::default(), &records, 2, &mut out),
-        200
-    );
+    assert_eq!(pack_updates(&UpdateHeader::default(), &records, 2, &mut out), 200);
     server.sealer.seal_batch(&mut out).unwrap();
-    let to_client: Vec<(SocketAddr, &[u8])> =
-        out.iter().map(|d| (client_ep.local_addr(), d)).collect();
+    let to_client: Vec<(SocketAddr, &[u8])> = out.iter().map(|d| (client_ep.local_addr(), d)).collect();
     assert_eq!(server_ep.send_batch(&to_client).unwrap(), 2);
     let mut got = Vec::new();
     for (_, mut d) in receive_at_least(&mut client_ep, &mut batch, 2) {

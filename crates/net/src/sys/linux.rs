@@ -51,19 +51,10 @@ impl Batcher {
         while done < datagrams.len() {
             let chunk = &datagrams[done..(done + self.batch).min(datagrams.len())];
             self.addrs.clear();
-            self.addrs
-                .extend(chunk.iter().map(|(a, _)| Some(SockaddrStorage::from(*a))));
+            self.addrs.extend(chunk.iter().map(|(a, _)| Some(SockaddrStorage::from(*a))));
             // One small allocation per system call of up to `batch` datagrams.
-            let slices: Vec<[IoSlice<'_>; 1]> =
-                chunk.iter().map(|(_, d)| [IoSlice::new(d)]).collect();
-            let result = sendmmsg(
-                fd,
-                &mut self.send_headers,
-                &slices,
-                &self.addrs,
-                [],
-                MsgFlags::MSG_DONTWAIT,
-            );
+            let slices: Vec<[IoSlice<'_>; 1]> = chunk.iter().map(|(_, d)| [IoSlice::new(d)]).collect();
+            let result = sendmmsg(fd, &mut self.send_headers, &slices, &self.addrs, [], MsgFlags::MSG_DONTWAIT);
             match result {
                 Ok(results) => {
                     let n = results.count();
@@ -108,29 +99,17 @@ impl Batcher {
         // Allocates only if a datagram was truncated, which only hostile peers cause.
         let mut truncated: Vec<bool> = Vec::new();
         let received = {
-            let mut slices: Vec<[IoSliceMut<'_>; 1]> = out
-                .buf
-                .chunks_exact_mut(MAX_RECV)
-                .take(want)
-                .map(|c| [IoSliceMut::new(c)])
-                .collect();
+            let mut slices: Vec<[IoSliceMut<'_>; 1]> =
+                out.buf.chunks_exact_mut(MAX_RECV).take(want).map(|c| [IoSliceMut::new(c)]).collect();
             // No retry loop: a non-blocking call is not interrupted in practice, and an
             // EINTR simply reports nothing this time (the caller polls every tick).
-            match recvmmsg(
-                socket.as_raw_fd(),
-                &mut self.recv_headers,
-                slices.iter_mut(),
-                MsgFlags::MSG_DONTWAIT,
-                None,
-            ) {
+            match recvmmsg(socket.as_raw_fd(), &mut self.recv_headers, slices.iter_mut(), MsgFlags::MSG_DONTWAIT, None)
+            {
                 Ok(results) => {
                     let mut n = 0;
                     for (i, msg) in results.enumerate() {
                         out.lens[i] = msg.bytes.min(MAX_RECV);
-                        out.addrs[i] = msg
-                            .address
-                            .and_then(|a| to_socket_addr(&a))
-                            .unwrap_or(out.addrs[i]);
+                        out.addrs[i] = msg.address.and_then(|a| to_socket_addr(&a)).unwrap_or(out.addrs[i]);
                         if msg.flags.contains(MsgFlags::MSG_TRUNC) || msg.address.is_none() {
                             truncated.resize(i + 1, false);
                             truncated[i] = true;

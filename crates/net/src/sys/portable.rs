@@ -68,11 +68,7 @@ impl Batcher {
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 // ICMP errors of earlier sends surface here on some systems
                 // (ECONNREFUSED, ECONNRESET): not about this receive; keep reading.
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        io::ErrorKind::ConnectionRefused | io::ErrorKind::ConnectionReset
-                    ) => {}
+                Err(e) if matches!(e.kind(), io::ErrorKind::ConnectionRefused | io::ErrorKind::ConnectionReset) => {}
                 Err(e) => return Err(e),
             }
         }

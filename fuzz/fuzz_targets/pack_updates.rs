@@ -4,8 +4,8 @@
 
 use libfuzzer_sys::fuzz_target;
 use myriad_protocol::{
-    DatagramBatch, HEADER_LEN, MAX_DATAGRAM, ObjectKind, PacketKind, QuantPos, ServerMessage,
-    StateRecord, TAG_LEN, UpdateHeader, pack_updates,
+    DatagramBatch, HEADER_LEN, MAX_DATAGRAM, ObjectKind, PacketKind, QuantPos, ServerMessage, StateRecord, TAG_LEN,
+    UpdateHeader, pack_updates,
 };
 
 fn i32_at(b: &[u8]) -> i32 {

@@ -7,8 +7,8 @@
 
 use libfuzzer_sys::fuzz_target;
 use myriad_protocol::{
-    ClientMessage, ClientSession, Direction, HEADER_LEN, MAX_BODY, PacketKind, Sealer,
-    ServerMessage, ServerSession, SessionKeys, TAG_LEN,
+    ClientMessage, ClientSession, Direction, HEADER_LEN, MAX_BODY, PacketKind, Sealer, ServerMessage, ServerSession,
+    SessionKeys, TAG_LEN,
 };
 
 fuzz_target!(|data: &[u8]| {

@@ -34,6 +34,15 @@ pub struct SessionKeys {
     pub server_to_client: [u8; 32],
 }
 
+impl Drop for SessionKeys {
+    // Wipe the keys when the last copy goes, so they do not linger in freed memory.
+    fn drop(&mut self) {
+        use zeroize::Zeroize;
+        self.client_to_server.zeroize();
+        self.server_to_client.zeroize();
+    }
+}
+
 impl std::fmt::Debug for SessionKeys {
     // Keys never reach logs.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

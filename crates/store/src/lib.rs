@@ -45,4 +45,4 @@ pub use password::{
 };
 pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, SubmitError};
 pub use store::{Backend, Store};
-pub use users::User;
+pub use users::{MAX_SEED_USERS, User};

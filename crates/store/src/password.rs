@@ -28,7 +28,8 @@ pub struct HashCost {
 
 impl HashCost {
     /// The OWASP-recommended Argon2id minimum (19 MiB, 2 passes, 1 lane), also argon2's
-    /// default: about 20-30 ms per hash in a release build on one core.
+    /// default: about 20-40 ms per hash or verification in a release build on one core
+    /// (measured: see the crate README).
     pub const DEFAULT: HashCost = HashCost { m_kib: 19 * 1024, t: 2, p: 1 };
 
     /// A cheap cost for tests and benchmarks of everything but hashing. Never use it for

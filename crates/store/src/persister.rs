@@ -274,6 +274,13 @@ impl Persister {
     }
 }
 
+/// `now + d`, saturating at a year from now instead of overflowing on absurd settings.
+fn after(d: Duration) -> Instant {
+    const FAR: Duration = Duration::from_secs(365 * 24 * 3600);
+    let now = Instant::now();
+    now.checked_add(d.min(FAR)).unwrap_or(now)
+}
+
 /// The background task.
 struct Writer {
     store: Store,
@@ -284,19 +291,19 @@ impl Writer {
     async fn run(self, mut commands: mpsc::Receiver<Command>) {
         let config = self.shared.config;
         let mut retry_delay = config.retry_min;
-        let mut next_write = Instant::now() + config.interval;
+        let mut next_write = after(config.interval);
         loop {
             tokio::select! {
                 _ = tokio::time::sleep_until(next_write) => {
                     match self.write_all().await {
                         Ok(_) => {
                             retry_delay = config.retry_min;
-                            next_write = Instant::now() + config.interval;
+                            next_write = after(config.interval);
                         }
                         Err(e) => {
                             tracing::warn!(error = %e, retry_in = ?retry_delay, "saving player states failed");
-                            next_write = Instant::now() + retry_delay;
-                            retry_delay = (retry_delay * 2).min(config.retry_max);
+                            next_write = after(retry_delay);
+                            retry_delay = retry_delay.saturating_mul(2).min(config.retry_max);
                         }
                     }
                 }
@@ -311,7 +318,7 @@ impl Writer {
                     }
                     Some(Command::Shutdown(timeout, reply)) => {
                         self.shared.lock().closed = true;
-                        let _ = reply.send(self.drain_until(Instant::now() + timeout).await);
+                        let _ = reply.send(self.drain_until(after(timeout)).await);
                         return;
                     }
                     None => {
@@ -337,10 +344,10 @@ impl Writer {
                     total += report.rows_written;
                     return Ok(FlushReport { rows_written: total });
                 }
-                Err(e) if Instant::now() + delay >= deadline => return Err(e),
+                Err(e) if after(delay) >= deadline => return Err(e),
                 Err(_) => {
                     tokio::time::sleep(delay).await;
-                    delay = (delay * 2).min(self.shared.config.retry_max);
+                    delay = delay.saturating_mul(2).min(self.shared.config.retry_max);
                 }
             }
         }

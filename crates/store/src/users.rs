@@ -9,6 +9,9 @@ use crate::model::{LoginInfo, MapId, SeedReport, UserId, now_ms};
 use crate::password::{self, validate_password, validate_username};
 use crate::store::{Backend, Store};
 
+/// Most users one `seed_users` call creates (test worlds; keeps memory bounded).
+pub const MAX_SEED_USERS: u32 = 1_000_000;
+
 /// Rows per multi-row statement when seeding users (3 binds per row).
 const SEED_CHUNK: usize = 500;
 
@@ -120,8 +123,11 @@ impl Store {
     /// calling it again is harmless.
     ///
     /// Missing users are hashed in parallel on the blocking pool (one task per CPU) and
-    /// inserted in transactions of 500 rows.
+    /// inserted in transactions of 500 rows. At most [`MAX_SEED_USERS`].
     pub async fn seed_users(&self, count: u32) -> Result<SeedReport> {
+        if count > MAX_SEED_USERS {
+            return Err(StoreError::InvalidInput(format!("seed_users is limited to {MAX_SEED_USERS} users")));
+        }
         let names: Vec<u32> = (0..count).collect();
         let mut missing = Vec::new();
         for chunk in names.chunks(SEED_CHUNK) {

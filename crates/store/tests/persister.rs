@@ -15,6 +15,7 @@ backend_tests!(
     drops_rows_the_database_refuses,
     shutdown_flushes_and_closes,
     survives_a_database_outage,
+    dropping_the_last_handle_writes_the_queue,
 );
 
 fn snap(user: UserId, map: MapId, x: f32, t: i64) -> PlayerState {
@@ -203,4 +204,45 @@ async fn survives_a_database_outage(db: TestDb) {
     let stored = db.store.list_player_states(map).await.unwrap();
     assert_eq!(stored.len(), 50);
     assert!(stored.iter().all(|s| s.position[0] == 3.0 && s.updated_at_ms == 3));
+}
+
+/// Dropping every handle makes the task write what is queued before it exits.
+async fn dropping_the_last_handle_writes_the_queue(db: TestDb) {
+    let user = db.user("dropper").await;
+    let map = db.map("dropped").await;
+    let p = Persister::start(db.store.clone(), manual()).unwrap();
+    let p2 = p.clone();
+    p.submit(snap(user, map, 5.0, 1)).unwrap();
+    drop(p);
+    p2.submit(snap(user, map, 6.0, 2)).unwrap();
+    drop(p2);
+    let mut found = None;
+    for _ in 0..250 {
+        found = db.store.find_player_state(user, map).await.unwrap();
+        if found.is_some() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(found.map(|s| s.position[0]), Some(6.0));
+}
+
+#[tokio::test]
+async fn start_rejects_zero_sizes() {
+    let db = TestDb::sqlite().await;
+    for config in [
+        PersisterConfig { batch_size: 0, ..PersisterConfig::default() },
+        PersisterConfig { max_pending: 0, ..PersisterConfig::default() },
+    ] {
+        let err = Persister::start(db.store.clone(), config).unwrap_err();
+        assert!(matches!(err, StoreError::InvalidInput(_)), "{err:?}");
+    }
+    // Absurd durations saturate instead of overflowing.
+    let p = Persister::start(
+        db.store.clone(),
+        PersisterConfig { interval: Duration::MAX, retry_max: Duration::MAX, ..PersisterConfig::default() },
+    )
+    .unwrap();
+    assert_eq!(p.flush().await.unwrap().rows_written, 0);
+    p.shutdown(Duration::MAX).await.unwrap();
 }

@@ -383,3 +383,47 @@ async fn unknown_user_takes_as_long_as_a_wrong_password(db: TestDb) {
     assert!(u * 2 > k, "unknown user answered in {u:?}, wrong password in {k:?}: timing leaks existence");
     store.close().await;
 }
+
+#[tokio::test]
+async fn bad_urls_and_costs_are_invalid_input() {
+    use myriad_store::{HashCost, Store, StoreConfig};
+    for url in ["postgres://localhost/db", "nonsense", "mysql://[::1"] {
+        let err = Store::open(&StoreConfig::url(url)).await.unwrap_err();
+        assert!(matches!(err, StoreError::InvalidInput(_)), "{url}: {err:?}");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let config = StoreConfig::sqlite(dir.path()).hash_cost(HashCost { m_kib: 1, t: 1, p: 1 });
+    let err = Store::open(&config).await.unwrap_err();
+    assert!(matches!(err, StoreError::InvalidInput(_)), "{err:?}");
+}
+
+#[tokio::test]
+async fn unreachable_server_is_unavailable() {
+    use myriad_store::{Store, StoreConfig};
+    // Nothing listens on port 1: connection refused.
+    let mut config = StoreConfig::url("mysql://myriad:myriad@127.0.0.1:1/none");
+    config.acquire_timeout = std::time::Duration::from_millis(300);
+    let err = Store::open(&config).await.unwrap_err();
+    assert!(matches!(err, StoreError::Unavailable(_)), "{err:?}");
+    assert!(err.is_transient());
+}
+
+#[tokio::test]
+async fn seed_users_refuses_absurd_counts() {
+    let db = TestDb::sqlite().await;
+    let err = db.store.seed_users(u32::MAX).await.unwrap_err();
+    assert!(matches!(err, StoreError::InvalidInput(_)), "{err:?}");
+}
+
+#[tokio::test]
+async fn sqlite_data_dir_is_created_with_wal() {
+    use myriad_store::{SQLITE_FILE_NAME, Store, StoreConfig};
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("nested dir #1").join("data?");
+    let store = Store::open(&StoreConfig::sqlite(&data).hash_cost(common::TEST_COST)).await.unwrap();
+    store.create_user("walter", "pw").await.unwrap();
+    assert!(data.join(SQLITE_FILE_NAME).is_file());
+    // WAL mode leaves a -wal file next to the database while connections are open.
+    assert!(data.join(format!("{SQLITE_FILE_NAME}-wal")).exists());
+    store.close().await;
+}

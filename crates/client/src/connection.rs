@@ -1,0 +1,375 @@
+//! A logged-in client: the TLS login, then the sealed UDP session.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use myriad_protocol::login::{
+    FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, frame_len,
+};
+use myriad_protocol::{
+    Action, ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, ServerInfo,
+    ServerMessage, StateUpdateView,
+};
+use rustls::pki_types::ServerName;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpStream, UdpSocket};
+
+use crate::error::ClientError;
+use crate::mirror::WorldMirror;
+use crate::stats::{ClientStats, SequenceTracker};
+use crate::tls::Trust;
+
+/// Where and how to connect.
+#[derive(Debug, Clone)]
+pub struct ClientConfig {
+    /// The login service (TCP, TLS).
+    pub login_addr: SocketAddr,
+    /// The name to check the certificate against (ignored when pinning).
+    pub server_name: String,
+    /// rustls configuration built from a [`Trust`].
+    pub tls: Arc<rustls::ClientConfig>,
+    /// Objects without news for this long are marked stale in the mirror.
+    pub stale_after: Duration,
+    /// A keep-alive is sent when nothing was sent for this long.
+    pub keepalive_every: Duration,
+    /// Deadline of a login.
+    pub login_timeout: Duration,
+    /// Ask for the terrain and static objects at login.
+    pub want_map: bool,
+}
+
+impl ClientConfig {
+    /// Defaults for a server at `login_addr` trusted through `trust`.
+    pub fn new(login_addr: SocketAddr, trust: &Trust) -> Result<Self, ClientError> {
+        Ok(Self {
+            login_addr,
+            server_name: "localhost".into(),
+            tls: trust.client_config()?,
+            stale_after: Duration::from_secs(1),
+            keepalive_every: Duration::from_secs(1),
+            login_timeout: Duration::from_secs(30),
+            want_map: false,
+        })
+    }
+}
+
+/// A username and password. `Debug` does not print the password.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Credentials {
+    /// Account name.
+    pub username: String,
+    /// Password.
+    pub password: String,
+}
+
+impl std::fmt::Debug for Credentials {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Credentials").field("username", &self.username).finish_non_exhaustive()
+    }
+}
+
+impl Credentials {
+    /// The reference's test account `user<i>` / `password<i>`.
+    pub fn test_user(i: usize) -> Self {
+        Self { username: format!("user{i}"), password: format!("password{i}") }
+    }
+}
+
+/// Logs in over TLS; returns the server's answer and, when asked for, the map.
+pub async fn login(
+    config: &ClientConfig,
+    credentials: &Credentials,
+) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
+    tokio::time::timeout(config.login_timeout, login_inner(config, credentials))
+        .await
+        .map_err(|_| ClientError::Timeout("login"))?
+}
+
+async fn login_inner(
+    config: &ClientConfig,
+    credentials: &Credentials,
+) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
+    let request = LoginRequest {
+        username: credentials.username.clone(),
+        password: credentials.password.clone(),
+        want_map: config.want_map,
+    };
+    let mut frame = Vec::new();
+    request.encode(&mut frame).map_err(|e| ClientError::Invalid(e.to_string()))?;
+    let tcp =
+        TcpStream::connect(config.login_addr).await.map_err(ClientError::io("connecting to the login service"))?;
+    let _ = tcp.set_nodelay(true);
+    let name = ServerName::try_from(config.server_name.clone())
+        .map_err(|e| ClientError::Invalid(format!("server name {:?}: {e}", config.server_name)))?;
+    let connector = tokio_rustls::TlsConnector::from(config.tls.clone());
+    let mut tls = connector.connect(name, tcp).await.map_err(ClientError::io("TLS handshake"))?;
+    tls.write_all(&frame).await.map_err(ClientError::io("sending the login"))?;
+    let body = read_frame(&mut tls).await?;
+    let accepted = match LoginResponse::decode(&body).map_err(|e| ClientError::Protocol(e.to_string()))? {
+        LoginResponse::Accepted(a) => *a,
+        LoginResponse::Refused(r) => {
+            return Err(ClientError::Refused { reason: r.reason, retry_after_ms: r.retry_after_ms });
+        }
+    };
+    let map = if config.want_map {
+        let body = read_frame(&mut tls).await?;
+        Some(MapData::decode(&body).map_err(|e| ClientError::Protocol(e.to_string()))?)
+    } else {
+        None
+    };
+    Ok((accepted, map))
+}
+
+async fn read_frame<S: AsyncReadExt + Unpin>(s: &mut S) -> Result<Vec<u8>, ClientError> {
+    let mut prefix = [0u8; FRAME_PREFIX_LEN];
+    s.read_exact(&mut prefix).await.map_err(ClientError::io("reading the login response"))?;
+    let len = frame_len(prefix, MAX_RESPONSE_FRAME).map_err(|e| ClientError::Protocol(e.to_string()))?;
+    let mut body = vec![0u8; len];
+    s.read_exact(&mut body).await.map_err(ClientError::io("reading the login response"))?;
+    Ok(body)
+}
+
+/// What one received datagram meant.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Event {
+    /// A state update for `tick` with this many records.
+    Update {
+        /// Server tick.
+        tick: u64,
+        /// Records in the datagram.
+        records: usize,
+        /// Time dilation in thousandths.
+        dilation_permille: u16,
+    },
+    /// Tick rate and dilation (answer to Ready).
+    Info(ServerInfo),
+    /// The server's keep-alive.
+    KeepAlive,
+    /// The server ended the session.
+    Disconnected(DisconnectReason),
+    /// The datagram was dropped (not authentic, replayed, malformed).
+    Rejected,
+}
+
+/// A logged-in player: the UDP session and the world mirror.
+pub struct Connection {
+    config: ClientConfig,
+    credentials: Credentials,
+    socket: Arc<UdpSocket>,
+    session: ClientSession,
+    accepted: LoginAccepted,
+    map: Option<MapData>,
+    mirror: WorldMirror,
+    stats: ClientStats,
+    sequences: SequenceTracker,
+    frame: u32,
+    last_sent: Instant,
+    out: Vec<u8>,
+    dilation_permille: u16,
+    disconnected: Option<DisconnectReason>,
+}
+
+impl std::fmt::Debug for Connection {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Connection")
+            .field("user", &self.credentials.username)
+            .field("entity", &self.accepted.entity_id)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Connection {
+    /// Logs in, opens the UDP session and sends Ready.
+    pub async fn connect(config: ClientConfig, credentials: Credentials) -> Result<Self, ClientError> {
+        let (accepted, map) = login(&config, &credentials).await?;
+        let socket = Arc::new(open_socket(&config, &accepted).await?);
+        let session = ClientSession::new(&accepted.keys);
+        let mut c = Connection {
+            mirror: WorldMirror::new(config.stale_after),
+            dilation_permille: accepted.dilation_permille,
+            config,
+            credentials,
+            socket,
+            session,
+            accepted,
+            map,
+            stats: ClientStats::default(),
+            sequences: SequenceTracker::default(),
+            frame: 0,
+            last_sent: Instant::now(),
+            out: Vec::with_capacity(64),
+            disconnected: None,
+        };
+        c.send(ClientMessage::Ready).await?;
+        Ok(c)
+    }
+
+    /// Logs in again with the same credentials (after a drop or a server restart): new
+    /// keys, new socket, empty mirror; statistics carry on.
+    pub async fn reconnect(&mut self) -> Result<(), ClientError> {
+        let (accepted, map) = login(&self.config, &self.credentials).await?;
+        self.socket = Arc::new(open_socket(&self.config, &accepted).await?);
+        self.session = ClientSession::new(&accepted.keys);
+        self.dilation_permille = accepted.dilation_permille;
+        self.accepted = accepted;
+        if map.is_some() {
+            self.map = map;
+        }
+        self.mirror.clear();
+        self.sequences = SequenceTracker::default();
+        self.disconnected = None;
+        self.stats.reconnects += 1;
+        self.send(ClientMessage::Ready).await
+    }
+
+    /// The login's answer: entity id, spawn position, shape, map description.
+    pub fn accepted(&self) -> &LoginAccepted {
+        &self.accepted
+    }
+
+    /// The player's object id.
+    pub fn entity_id(&self) -> u64 {
+        self.accepted.entity_id
+    }
+
+    /// The map data, if it was asked for.
+    pub fn map(&self) -> Option<&MapData> {
+        self.map.as_ref()
+    }
+
+    /// The mirror of the world around the player.
+    pub fn mirror(&self) -> &WorldMirror {
+        &self.mirror
+    }
+
+    /// Mutable access to the mirror (stale marking).
+    pub fn mirror_mut(&mut self) -> &mut WorldMirror {
+        &mut self.mirror
+    }
+
+    /// The player's own object as last heard.
+    pub fn own_position(&self) -> Option<[f32; 3]> {
+        self.mirror.get(self.accepted.entity_id).map(|o| o.position)
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> ClientStats {
+        self.stats
+    }
+
+    /// Time dilation last announced.
+    pub fn dilation_permille(&self) -> u16 {
+        self.dilation_permille
+    }
+
+    /// Why the server ended the session, if it did.
+    pub fn disconnected(&self) -> Option<DisconnectReason> {
+        self.disconnected
+    }
+
+    /// The UDP socket (to wait for datagrams in a `select!`).
+    pub fn socket(&self) -> Arc<UdpSocket> {
+        self.socket.clone()
+    }
+
+    /// Sends the held inputs (a 5-bit mask) for the next client frame.
+    pub async fn send_action(&mut self, mask: u8) -> Result<(), ClientError> {
+        let mask = ActionMask::new(mask).ok_or_else(|| ClientError::Invalid(format!("action mask {mask:#x}")))?;
+        self.frame = self.frame.wrapping_add(1);
+        self.send(ClientMessage::Action(Action { mask, client_frame: self.frame })).await
+    }
+
+    /// Sends a keep-alive if nothing was sent for the keep-alive interval.
+    pub async fn keepalive_if_due(&mut self) -> Result<(), ClientError> {
+        if self.last_sent.elapsed() >= self.config.keepalive_every {
+            self.send(ClientMessage::KeepAlive).await?;
+        }
+        Ok(())
+    }
+
+    /// Tells the server we leave (best effort: one datagram).
+    pub async fn disconnect(&mut self) -> Result<(), ClientError> {
+        self.send(ClientMessage::Disconnect).await
+    }
+
+    async fn send(&mut self, msg: ClientMessage) -> Result<(), ClientError> {
+        self.out.clear();
+        self.session.seal(&msg, &mut self.out).map_err(|e| ClientError::Protocol(e.to_string()))?;
+        self.socket.send(&self.out).await.map_err(ClientError::io("sending a datagram"))?;
+        self.stats.sent += 1;
+        self.last_sent = Instant::now();
+        Ok(())
+    }
+
+    /// Waits up to `timeout` for one datagram and handles it; `None` on timeout.
+    pub async fn recv(&mut self, timeout: Duration) -> Result<Option<Event>, ClientError> {
+        let mut buf = [0u8; MAX_DATAGRAM + 64];
+        let socket = self.socket.clone();
+        match tokio::time::timeout(timeout, socket.recv(&mut buf)).await {
+            Err(_) => Ok(None),
+            Ok(Err(e)) => Err(ClientError::Io { what: "receiving a datagram", source: e }),
+            Ok(Ok(n)) => Ok(Some(self.handle_datagram(&mut buf[..n], Instant::now()))),
+        }
+    }
+
+    /// Opens and applies one datagram received on [`Connection::socket`].
+    pub fn handle_datagram(&mut self, datagram: &mut [u8], now: Instant) -> Event {
+        let len = datagram.len() as u64;
+        let opened = match self.session.opener.open_with(datagram, |kind, body| {
+            // State updates are applied straight from the zero-copy view below; decode
+            // everything else fully.
+            if kind == myriad_protocol::PacketKind::StateUpdate {
+                StateUpdateView::parse(body).map(|_| None)
+            } else {
+                ServerMessage::decode_body(kind, body).map(Some)
+            }
+        }) {
+            Ok(o) => o,
+            Err(e) => {
+                self.stats.rejected += 1;
+                if e.class() == ErrorClass::Malformed {
+                    self.stats.decode_errors += 1;
+                }
+                return Event::Rejected;
+            }
+        };
+        self.stats.datagrams += 1;
+        self.stats.bytes += len;
+        self.stats.lost += self.sequences.record(opened.header.sequence);
+        match opened.message {
+            None => {
+                let body = &datagram[myriad_protocol::HEADER_LEN..datagram.len() - myriad_protocol::TAG_LEN];
+                let Ok(view) = StateUpdateView::parse(body) else {
+                    self.stats.decode_errors += 1;
+                    return Event::Rejected;
+                };
+                let header = view.header();
+                self.stats.updates += 1;
+                self.stats.records += view.len() as u64;
+                self.stats.last_tick = self.stats.last_tick.max(header.tick);
+                self.dilation_permille = header.dilation_permille;
+                self.mirror.apply(header.tick, view.records(), now);
+                Event::Update { tick: header.tick, records: view.len(), dilation_permille: header.dilation_permille }
+            }
+            Some(ServerMessage::ServerInfo(info)) => {
+                self.dilation_permille = info.dilation_permille;
+                Event::Info(info)
+            }
+            Some(ServerMessage::KeepAlive) => Event::KeepAlive,
+            Some(ServerMessage::Disconnect(reason)) => {
+                self.disconnected = Some(reason);
+                Event::Disconnected(reason)
+            }
+            Some(ServerMessage::StateUpdate(_)) => Event::Rejected,
+        }
+    }
+}
+
+async fn open_socket(config: &ClientConfig, accepted: &LoginAccepted) -> Result<UdpSocket, ClientError> {
+    let server = SocketAddr::new(config.login_addr.ip(), accepted.udp_port);
+    let bind: SocketAddr = if server.is_ipv4() { "0.0.0.0:0" } else { "[::]:0" }.parse().expect("literal");
+    let socket = UdpSocket::bind(bind).await.map_err(ClientError::io("binding a UDP socket"))?;
+    socket.connect(server).await.map_err(ClientError::io("connecting the UDP socket"))?;
+    Ok(socket)
+}

@@ -1,0 +1,460 @@
+//! A swarm of bots: many [`Connection`]s on one tokio runtime (one task and one UDP
+//! socket per bot, no thread per bot), each playing `user<i>` / `password<i>`.
+//!
+//! # How it works
+//!
+//! Bots log in through a semaphore (`login_concurrency` at once: the server hashes each
+//! password), retrying refusals that may pass later. Each bot then sends its action at
+//! `rate_hz`, reads every datagram into its mirror, records the interval between
+//! consecutive ticks' updates in a histogram, and checks that its own object moves as
+//! commanded: a direction is held for [`HOLD`], and at the end of the hold the bot's
+//! horizontal displacement must point the commanded way (idle bots must stay put). A bot
+//! whose session ends (server restart, time-out, replaced) logs in again.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use hdrhistogram::Histogram;
+use myriad_protocol::ActionMask;
+use tokio::sync::{Semaphore, watch};
+use tokio::task::JoinSet;
+
+use crate::connection::{ClientConfig, Connection, Credentials, Event};
+use crate::error::ClientError;
+use crate::stats::ClientStats;
+
+/// How long a bot holds one direction before checking its movement.
+pub const HOLD: Duration = Duration::from_millis(1500);
+
+/// What bots do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Behaviour {
+    /// A random direction (or none) per hold.
+    Random,
+    /// The four directions in turn: a square walk.
+    Circle,
+    /// Stand still (still sending empty actions, which keep the session alive).
+    Idle,
+}
+
+impl std::str::FromStr for Behaviour {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "random" => Ok(Self::Random),
+            "circle" => Ok(Self::Circle),
+            "idle" => Ok(Self::Idle),
+            other => Err(format!("unknown behaviour {other:?} (random, circle, idle)")),
+        }
+    }
+}
+
+/// Settings of a swarm.
+#[derive(Debug, Clone)]
+pub struct SwarmConfig {
+    /// How to reach the server.
+    pub client: ClientConfig,
+    /// Number of bots.
+    pub count: usize,
+    /// Index of the first bot's account (`user<first>`).
+    pub first: usize,
+    /// Actions per second per bot.
+    pub rate_hz: f32,
+    /// What bots do.
+    pub behaviour: Behaviour,
+    /// Logins in flight at once.
+    pub login_concurrency: usize,
+    /// Login attempts per bot before giving up (refusals that may pass later).
+    pub login_attempts: u32,
+    /// A bot that hears nothing for this long logs in again.
+    pub silence_reconnect: Duration,
+}
+
+impl SwarmConfig {
+    /// `count` random-walking bots at 30 Hz.
+    pub fn new(client: ClientConfig, count: usize) -> Self {
+        Self {
+            client,
+            count,
+            first: 0,
+            rate_hz: 30.0,
+            behaviour: Behaviour::Random,
+            login_concurrency: 32,
+            login_attempts: 20,
+            silence_reconnect: Duration::from_secs(5),
+        }
+    }
+}
+
+/// One bot's live numbers.
+#[derive(Debug, Clone)]
+struct BotState {
+    stats: ClientStats,
+    connected: bool,
+    in_view: usize,
+    intervals: Histogram<u64>,
+    moves_ok: u64,
+    moves_wrong: u64,
+    own_seen: bool,
+    error: Option<String>,
+}
+
+impl Default for BotState {
+    fn default() -> Self {
+        Self {
+            stats: ClientStats::default(),
+            connected: false,
+            in_view: 0,
+            // 1 µs to 1 min, 2 significant digits.
+            intervals: Histogram::new_with_bounds(1, 60_000_000, 2).expect("valid histogram bounds"),
+            moves_ok: 0,
+            moves_wrong: 0,
+            own_seen: false,
+            error: None,
+        }
+    }
+}
+
+#[derive(Debug, Default)]
+struct Shared {
+    logins_ok: AtomicU64,
+    logins_failed: AtomicU64,
+    login_attempts: AtomicU64,
+    bots: Vec<Mutex<BotState>>,
+}
+
+/// The swarm's totals at one moment.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SwarmSnapshot {
+    /// When it was taken, seconds since the swarm started.
+    pub elapsed_s: f64,
+    /// Bots configured.
+    pub bots: usize,
+    /// Successful logins (reconnects included).
+    pub logins_ok: u64,
+    /// Bots that gave up logging in.
+    pub logins_failed: u64,
+    /// Bots with a live session.
+    pub connected: usize,
+    /// Sum of every bot's counters.
+    pub totals: ClientStats,
+    /// Mean objects in view per connected bot.
+    pub mean_in_view: f64,
+    /// Bots that have seen their own object in an update.
+    pub own_object_seen: usize,
+    /// Holds whose movement matched the command.
+    pub moves_ok: u64,
+    /// Holds whose movement did not (blocked by an obstacle, or a bug).
+    pub moves_wrong: u64,
+    /// Median interval between consecutive ticks' updates, ms.
+    pub interval_p50_ms: f64,
+    /// 99th percentile of that interval, ms.
+    pub interval_p99_ms: f64,
+    /// Share of server datagrams lost.
+    pub loss: f64,
+    /// One failure message, if any bot failed.
+    pub first_error: Option<String>,
+}
+
+/// A running swarm.
+pub struct Swarm {
+    shared: Arc<Shared>,
+    stop: watch::Sender<bool>,
+    tasks: JoinSet<()>,
+    started: Instant,
+}
+
+impl std::fmt::Debug for Swarm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Swarm").field("bots", &self.shared.bots.len()).finish()
+    }
+}
+
+impl Swarm {
+    /// Starts every bot on the current tokio runtime.
+    pub fn start(config: SwarmConfig) -> Swarm {
+        let shared = Arc::new(Shared {
+            bots: (0..config.count).map(|_| Mutex::new(BotState::default())).collect(),
+            ..Shared::default()
+        });
+        let (stop, stop_rx) = watch::channel(false);
+        let logins = Arc::new(Semaphore::new(config.login_concurrency.max(1)));
+        let config = Arc::new(config);
+        let mut tasks = JoinSet::new();
+        for i in 0..config.count {
+            let bot = Bot { index: i, config: config.clone(), shared: shared.clone(), logins: logins.clone() };
+            tasks.spawn(bot.run(stop_rx.clone()));
+        }
+        Swarm { shared, stop, tasks, started: Instant::now() }
+    }
+
+    /// Logins attempted so far (for a progress bar).
+    pub fn login_attempts(&self) -> u64 {
+        self.shared.login_attempts.load(Ordering::Relaxed)
+    }
+
+    /// Totals now.
+    pub fn snapshot(&self) -> SwarmSnapshot {
+        let mut s = SwarmSnapshot {
+            elapsed_s: self.started.elapsed().as_secs_f64(),
+            bots: self.shared.bots.len(),
+            logins_ok: self.shared.logins_ok.load(Ordering::Relaxed),
+            logins_failed: self.shared.logins_failed.load(Ordering::Relaxed),
+            ..SwarmSnapshot::default()
+        };
+        let mut hist: Histogram<u64> = Histogram::new_with_bounds(1, 60_000_000, 2).expect("valid histogram bounds");
+        let mut in_view = 0usize;
+        for bot in &self.shared.bots {
+            let b = bot.lock().unwrap_or_else(|p| p.into_inner());
+            let t = &mut s.totals;
+            let c = &b.stats;
+            t.datagrams += c.datagrams;
+            t.bytes += c.bytes;
+            t.updates += c.updates;
+            t.records += c.records;
+            t.rejected += c.rejected;
+            t.decode_errors += c.decode_errors;
+            t.last_tick = t.last_tick.max(c.last_tick);
+            t.lost += c.lost;
+            t.sent += c.sent;
+            t.reconnects += c.reconnects;
+            if b.connected {
+                s.connected += 1;
+                in_view += b.in_view;
+            }
+            s.own_object_seen += usize::from(b.own_seen);
+            s.moves_ok += b.moves_ok;
+            s.moves_wrong += b.moves_wrong;
+            let _ = hist.add(&b.intervals);
+            if s.first_error.is_none() {
+                s.first_error.clone_from(&b.error);
+            }
+        }
+        s.mean_in_view = if s.connected > 0 { in_view as f64 / s.connected as f64 } else { 0.0 };
+        if !hist.is_empty() {
+            s.interval_p50_ms = hist.value_at_quantile(0.5) as f64 / 1000.0;
+            s.interval_p99_ms = hist.value_at_quantile(0.99) as f64 / 1000.0;
+        }
+        s.loss = s.totals.loss();
+        s
+    }
+
+    /// Stops every bot (each sends Disconnect) and returns the final totals.
+    pub async fn stop(mut self) -> SwarmSnapshot {
+        let _ = self.stop.send(true);
+        while self.tasks.join_next().await.is_some() {}
+        self.snapshot()
+    }
+}
+
+struct Bot {
+    index: usize,
+    config: Arc<SwarmConfig>,
+    shared: Arc<Shared>,
+    logins: Arc<Semaphore>,
+}
+
+/// The unit direction (x, z) a mask commands.
+fn direction(mask: u8) -> (f32, f32) {
+    let mut d = (0.0, 0.0);
+    if mask & ActionMask::FORWARD != 0 {
+        d.1 += 1.0;
+    }
+    if mask & ActionMask::BACK != 0 {
+        d.1 -= 1.0;
+    }
+    if mask & ActionMask::RIGHT != 0 {
+        d.0 += 1.0;
+    }
+    if mask & ActionMask::LEFT != 0 {
+        d.0 -= 1.0;
+    }
+    d
+}
+
+impl Bot {
+    fn state(&self) -> std::sync::MutexGuard<'_, BotState> {
+        self.shared.bots[self.index].lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    async fn login(&self, stop: &watch::Receiver<bool>) -> Result<Connection, ClientError> {
+        let credentials = Credentials::test_user(self.config.first + self.index);
+        let mut attempt = 0;
+        loop {
+            let result = {
+                let _permit = self.logins.acquire().await.map_err(|_| ClientError::Timeout("swarm stopped"))?;
+                self.shared.login_attempts.fetch_add(1, Ordering::Relaxed);
+                Connection::connect(self.config.client.clone(), credentials.clone()).await
+            };
+            attempt += 1;
+            match result {
+                Ok(c) => return Ok(c),
+                Err(e) if e.is_retryable() && attempt < self.config.login_attempts && !*stop.borrow() => {
+                    let wait = match &e {
+                        ClientError::Refused { retry_after_ms, .. } if *retry_after_ms > 0 => {
+                            Duration::from_millis(u64::from(*retry_after_ms).min(5000))
+                        }
+                        _ => Duration::from_millis(200 * u64::from(attempt.min(10))),
+                    };
+                    tokio::time::sleep(wait).await;
+                }
+                Err(e) => return Err(e),
+            }
+        }
+    }
+
+    async fn run(self, mut stop: watch::Receiver<bool>) {
+        let mut conn = match self.login(&stop).await {
+            Ok(c) => c,
+            Err(e) => {
+                self.shared.logins_failed.fetch_add(1, Ordering::Relaxed);
+                self.state().error = Some(format!("user{}: {e}", self.config.first + self.index));
+                return;
+            }
+        };
+        self.shared.logins_ok.fetch_add(1, Ordering::Relaxed);
+        self.state().connected = true;
+        let period = Duration::from_secs_f32(1.0 / self.config.rate_hz.max(0.1));
+        let mut ticker = tokio::time::interval(period);
+        ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut seed = (self.index as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        let mut hold_index = 0u64;
+        let mut mask = 0u8;
+        let mut hold_start = Instant::now();
+        let mut hold_from: Option<[f32; 3]> = None;
+        let mut last_tick = 0u64;
+        let mut last_update = None::<Instant>;
+        let mut last_heard = Instant::now();
+        let mut last_publish = Instant::now();
+        let mut buf = vec![0u8; myriad_protocol::MAX_DATAGRAM + 64];
+        let mut socket = conn.socket();
+        loop {
+            tokio::select! {
+                _ = stop.changed() => break,
+                _ = ticker.tick() => {
+                    let now = Instant::now();
+                    if now.duration_since(hold_start) >= HOLD {
+                        self.check_move(mask, hold_from, conn.own_position(), hold_index);
+                        hold_index += 1;
+                        seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+                        mask = match self.config.behaviour {
+                            Behaviour::Idle => 0,
+                            Behaviour::Circle => [ActionMask::FORWARD, ActionMask::RIGHT, ActionMask::BACK, ActionMask::LEFT][(hold_index % 4) as usize],
+                            Behaviour::Random => [0, ActionMask::FORWARD, ActionMask::BACK, ActionMask::RIGHT, ActionMask::LEFT][((seed >> 33) % 5) as usize],
+                        };
+                        hold_start = now;
+                        hold_from = conn.own_position();
+                    }
+                    let silent = now.duration_since(last_heard) > self.config.silence_reconnect;
+                    if conn.disconnected().is_some() || silent {
+                        self.state().connected = false;
+                        match self.login_again(&mut conn, &stop).await {
+                            Ok(()) => {
+                                socket = conn.socket();
+                                last_heard = Instant::now();
+                                hold_from = None;
+                                self.state().connected = true;
+                            }
+                            Err(e) => {
+                                self.state().error = Some(format!("user{}: reconnect: {e}", self.config.first + self.index));
+                                break;
+                            }
+                        }
+                        continue;
+                    }
+                    if let Err(e) = conn.send_action(mask).await {
+                        tracing::debug!(bot = self.index, error = %e, "send failed");
+                    }
+                    if now.duration_since(last_publish) >= Duration::from_millis(250) {
+                        last_publish = now;
+                        let in_view = { conn.mirror_mut().mark_stale(now); conn.mirror().fresh() };
+                        let mut s = self.state();
+                        s.stats = conn.stats();
+                        s.in_view = in_view;
+                    }
+                }
+                r = socket.recv(&mut buf) => {
+                    let Ok(n) = r else { continue };
+                    let now = Instant::now();
+                    match conn.handle_datagram(&mut buf[..n], now) {
+                        Event::Rejected => {}
+                        Event::Update { tick, .. } => {
+                            last_heard = now;
+                            if tick > last_tick {
+                                if let Some(prev) = last_update {
+                                    let us = now.duration_since(prev).as_micros().clamp(1, 60_000_000) as u64;
+                                    let _ = self.state().intervals.record(us);
+                                }
+                                last_tick = tick;
+                                last_update = Some(now);
+                            }
+                            if conn.own_position().is_some() {
+                                let mut s = self.state();
+                                if !s.own_seen {
+                                    s.own_seen = true;
+                                }
+                            }
+                        }
+                        _ => last_heard = now,
+                    }
+                }
+            }
+        }
+        let _ = conn.disconnect().await;
+        let mut s = self.state();
+        s.stats = conn.stats();
+        s.connected = false;
+    }
+
+    async fn login_again(&self, conn: &mut Connection, stop: &watch::Receiver<bool>) -> Result<(), ClientError> {
+        let mut attempt = 0;
+        loop {
+            let result = {
+                let _permit = self.logins.acquire().await.map_err(|_| ClientError::Timeout("swarm stopped"))?;
+                self.shared.login_attempts.fetch_add(1, Ordering::Relaxed);
+                conn.reconnect().await
+            };
+            attempt += 1;
+            match result {
+                Ok(()) => {
+                    self.shared.logins_ok.fetch_add(1, Ordering::Relaxed);
+                    return Ok(());
+                }
+                Err(e) if e.is_retryable() && attempt < self.config.login_attempts && !*stop.borrow() => {
+                    tokio::time::sleep(Duration::from_millis(250 * u64::from(attempt.min(8)))).await;
+                }
+                Err(e) => return Err(e),
+            }
+        }
+    }
+
+    /// Judges one finished hold: did the own object move the commanded way?
+    fn check_move(&self, mask: u8, from: Option<[f32; 3]>, to: Option<[f32; 3]>, hold_index: u64) {
+        // The first hold starts before the first update arrives: nothing to compare.
+        let (Some(a), Some(b)) = (from, to) else { return };
+        if hold_index == 0 {
+            return;
+        }
+        let (dx, dz) = (b[0] - a[0], b[2] - a[2]);
+        let (ux, uz) = direction(mask);
+        let ok = if ux == 0.0 && uz == 0.0 {
+            // Standing still: only pushes by others may move it a little.
+            (dx * dx + dz * dz).sqrt() < 1.0
+        } else {
+            dx * ux + dz * uz > 0.25
+        };
+        let mut s = self.state();
+        if ok {
+            s.moves_ok += 1;
+        } else {
+            s.moves_wrong += 1;
+        }
+    }
+}
+
+/// Tells whether a bot result should count as a movement failure.
+pub fn movement_ok_share(s: &SwarmSnapshot) -> f64 {
+    let n = s.moves_ok + s.moves_wrong;
+    if n == 0 { 0.0 } else { s.moves_ok as f64 / n as f64 }
+}

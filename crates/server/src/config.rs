@@ -1,0 +1,291 @@
+//! The server's configuration: a TOML file, overridable key by key.
+//!
+//! Every setting the reference fixes in code (spec §2.1: tick rate, UDP port, player
+//! speed, maximum players, NPC count and spacing, map, AOI box size) and what a real
+//! server needs (addresses, data directory, database, backend, persistence, login
+//! limits, password-hash cost) is a key of [`ServerConfig`]. Unknown keys are errors, and
+//! every error names the key ([`ConfigError`]).
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use myriad_core::PhysicsConfig;
+use myriad_physics::BackendKind;
+use myriad_store::HashCost;
+use serde::{Deserialize, Serialize};
+
+use crate::error::ConfigError;
+
+/// Everything `myriad serve` can be told. See `docs/server.md` for each key.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    /// Simulation ticks per second.
+    pub tick_rate: f32,
+    /// UDP address of the game traffic (the reference's UDP port).
+    pub udp_addr: SocketAddr,
+    /// TCP address of the TLS login service.
+    pub login_addr: SocketAddr,
+    /// Address of the Prometheus `/metrics` endpoint; none disables it.
+    pub metrics_addr: Option<SocketAddr>,
+    /// Players' top walking speed in units per second.
+    pub player_speed: f32,
+    /// Most players logged in at once; further logins are refused with "server full".
+    pub max_players: u32,
+    /// Non-player objects moved by the server's random walk.
+    pub npc_count: u32,
+    /// Distance between NPCs on a regular grid; 0 places them uniformly at random.
+    pub npc_spacing: f32,
+    /// Map to serve: the name of a map imported with `myriad map import`, or empty for
+    /// the generated map of `scenario` and `seed`.
+    pub map: String,
+    /// Reference scenario (1, 2 or 3) whose terrain and statics are generated when `map`
+    /// is empty.
+    pub scenario: u8,
+    /// Seed of generated terrain, statics and NPC placement.
+    pub seed: u64,
+    /// Edge length of the area-of-interest box centred on each player.
+    pub aoi_size: f32,
+    /// Most update datagrams a player receives per tick (113 objects each).
+    pub max_datagrams_per_player: usize,
+    /// Data directory: the SQLite database and the development TLS certificate.
+    pub data_dir: PathBuf,
+    /// Database URL (`mysql://user:pass@host/db`); empty uses SQLite in `data_dir`.
+    pub database_url: String,
+    /// Physics backend (`cpu`, `cpu-naive`).
+    pub backend: String,
+    /// How often player positions are handed to the database writer, in milliseconds.
+    pub persist_interval_ms: u64,
+    /// A player that sent nothing for this long is disconnected, in seconds.
+    pub session_timeout_s: f32,
+    /// Failed logins allowed per client address within `login_window_s`.
+    pub login_failures_per_addr: u32,
+    /// Failed logins allowed per account within `login_window_s`.
+    pub login_failures_per_account: u32,
+    /// Window of the failed-login limits, in seconds.
+    pub login_window_s: u64,
+    /// Logins verified at once (each Argon2id check takes a core for tens of ms).
+    pub login_concurrency: usize,
+    /// Argon2id memory cost of new password hashes, in KiB.
+    pub hash_memory_kib: u32,
+    /// Argon2id passes.
+    pub hash_passes: u32,
+    /// Argon2id lanes.
+    pub hash_lanes: u32,
+    /// PEM certificate chain of the login service; empty generates (once) a self-signed
+    /// development certificate in `data_dir`.
+    pub tls_cert: PathBuf,
+    /// PEM private key matching `tls_cert`.
+    pub tls_key: PathBuf,
+    /// Extra host names and addresses the development certificate is valid for (besides
+    /// `localhost`, `127.0.0.1` and `::1`).
+    pub tls_names: Vec<String>,
+    /// Whether time dilation may slow the world down when ticks overrun their budget.
+    pub dilation: bool,
+    /// Slowest the world may run under dilation, in thousandths of real time.
+    pub dilation_min_permille: u16,
+    /// Seconds between per-stage timing lines in the log (0 = never).
+    pub log_stages_every_s: f32,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        ServerConfig {
+            tick_rate: 30.0,
+            udp_addr: "0.0.0.0:7777".parse().expect("valid literal"),
+            login_addr: "0.0.0.0:7778".parse().expect("valid literal"),
+            metrics_addr: None,
+            player_speed: 5.0,
+            max_players: 10_000,
+            npc_count: 5_000,
+            npc_spacing: 0.0,
+            map: String::new(),
+            scenario: 1,
+            seed: 1,
+            aoi_size: 100.0,
+            max_datagrams_per_player: 2,
+            data_dir: PathBuf::from("data"),
+            database_url: String::new(),
+            backend: "cpu".into(),
+            persist_interval_ms: 500,
+            session_timeout_s: 10.0,
+            login_failures_per_addr: 20,
+            login_failures_per_account: 5,
+            login_window_s: 60,
+            login_concurrency: 64,
+            hash_memory_kib: HashCost::DEFAULT.m_kib,
+            hash_passes: HashCost::DEFAULT.t,
+            hash_lanes: HashCost::DEFAULT.p,
+            tls_cert: PathBuf::new(),
+            tls_key: PathBuf::new(),
+            tls_names: Vec::new(),
+            dilation: true,
+            dilation_min_permille: 100,
+            log_stages_every_s: 10.0,
+        }
+    }
+}
+
+impl ServerConfig {
+    /// Parses a TOML document; unknown keys and bad values name the key.
+    pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
+        let config: ServerConfig = toml::from_str(text).map_err(|e| ConfigError::Parse(e.to_string()))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Reads and parses a TOML file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ConfigError::Io { path: path.to_path_buf(), reason: e.to_string() })?;
+        Self::from_toml(&text).map_err(|e| match e {
+            ConfigError::Parse(reason) => ConfigError::File { path: path.to_path_buf(), reason },
+            other => other,
+        })
+    }
+
+    /// The configuration as TOML (what `myriad serve --print-config` shows).
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).unwrap_or_else(|e| format!("# cannot render the configuration: {e}\n"))
+    }
+
+    /// Sets one key from its TOML text (`key = value` on the command line); the value is
+    /// parsed as TOML, and as a plain string if that fails (`map = my-map`).
+    pub fn set(&mut self, key: &str, value: &str) -> Result<(), ConfigError> {
+        let mut table = toml::Table::try_from(&*self).map_err(|e| ConfigError::Parse(e.to_string()))?;
+        if !table.contains_key(key) && !OPTIONAL_KEYS.contains(&key) {
+            return Err(ConfigError::UnknownKey(key.to_string()));
+        }
+        let parsed = format!("v = {value}")
+            .parse::<toml::Table>()
+            .ok()
+            .and_then(|mut t| t.remove("v"))
+            .unwrap_or_else(|| toml::Value::String(value.to_string()));
+        table.insert(key.to_string(), parsed);
+        let next: ServerConfig = table
+            .try_into()
+            .map_err(|e: toml::de::Error| ConfigError::Value { key: key.to_string(), reason: e.to_string() })?;
+        next.validate()?;
+        *self = next;
+        Ok(())
+    }
+
+    /// Checks every value, naming the first bad key.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |key: &str, reason: String| Err(ConfigError::Value { key: key.into(), reason });
+        if !(self.tick_rate.is_finite() && self.tick_rate >= 1.0 && self.tick_rate <= 1000.0) {
+            return bad("tick_rate", format!("{} (1 to 1000)", self.tick_rate));
+        }
+        if !(self.player_speed.is_finite() && self.player_speed >= 0.0) {
+            return bad("player_speed", format!("{} (a speed ≥ 0)", self.player_speed));
+        }
+        if self.max_players == 0 {
+            return bad("max_players", "must be at least 1".into());
+        }
+        if !(self.npc_spacing.is_finite() && self.npc_spacing >= 0.0) {
+            return bad("npc_spacing", format!("{} (≥ 0)", self.npc_spacing));
+        }
+        if self.map.is_empty() && !(1..=3).contains(&self.scenario) {
+            return bad("scenario", format!("{} (1, 2 or 3)", self.scenario));
+        }
+        if !(self.aoi_size.is_finite() && self.aoi_size > 0.0) {
+            return bad("aoi_size", format!("{} (> 0)", self.aoi_size));
+        }
+        if !(1..=64).contains(&self.max_datagrams_per_player) {
+            return bad("max_datagrams_per_player", format!("{} (1 to 64)", self.max_datagrams_per_player));
+        }
+        if let Err(e) = self.backend.parse::<BackendKind>() {
+            return bad("backend", e.to_string());
+        }
+        if self.persist_interval_ms == 0 || self.persist_interval_ms > 60_000 {
+            return bad("persist_interval_ms", format!("{} (1 to 60000)", self.persist_interval_ms));
+        }
+        if !(self.session_timeout_s.is_finite() && self.session_timeout_s >= 1.0) {
+            return bad("session_timeout_s", format!("{} (≥ 1)", self.session_timeout_s));
+        }
+        if self.login_window_s == 0 {
+            return bad("login_window_s", "must be at least 1".into());
+        }
+        if self.login_concurrency == 0 {
+            return bad("login_concurrency", "must be at least 1".into());
+        }
+        if let Err(e) = self.hash_cost().validate() {
+            return bad("hash_memory_kib", e.to_string());
+        }
+        if self.tls_cert.as_os_str().is_empty() != self.tls_key.as_os_str().is_empty() {
+            return bad("tls_key", "tls_cert and tls_key must be given together".into());
+        }
+        if !(1..=1000).contains(&self.dilation_min_permille) {
+            return bad("dilation_min_permille", format!("{} (1 to 1000)", self.dilation_min_permille));
+        }
+        if !(self.log_stages_every_s.is_finite() && self.log_stages_every_s >= 0.0) {
+            return bad("log_stages_every_s", format!("{}", self.log_stages_every_s));
+        }
+        self.physics().validate().map_err(|e| ConfigError::Value { key: "physics".into(), reason: e.to_string() })
+    }
+
+    /// The Argon2id cost of new password hashes.
+    pub fn hash_cost(&self) -> HashCost {
+        HashCost { m_kib: self.hash_memory_kib, t: self.hash_passes, p: self.hash_lanes }
+    }
+
+    /// The physics parameters (the defaults with this tick rate and player speed).
+    pub fn physics(&self) -> PhysicsConfig {
+        PhysicsConfig { tick_rate: self.tick_rate, move_speed: self.player_speed, ..PhysicsConfig::default() }
+    }
+
+    /// The physics backend.
+    pub fn backend_kind(&self) -> BackendKind {
+        // validate() checked it; cpu is the safe fallback for a config built in code.
+        self.backend.parse().unwrap_or(BackendKind::Cpu)
+    }
+}
+
+/// Keys whose default (none) does not appear in the TOML rendering.
+const OPTIONAL_KEYS: &[&str] = &["metrics_addr"];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_round_trip_through_toml() {
+        let c = ServerConfig::default();
+        c.validate().unwrap();
+        assert_eq!(ServerConfig::from_toml(&c.to_toml()).unwrap(), c);
+    }
+
+    #[test]
+    fn unknown_key_is_named() {
+        let err = ServerConfig::from_toml("tick_rate = 20\ntick_rat = 30\n").unwrap_err().to_string();
+        assert!(err.contains("tick_rat"), "{err}");
+    }
+
+    #[test]
+    fn wrong_type_is_named() {
+        let err = ServerConfig::from_toml("max_players = \"many\"\n").unwrap_err().to_string();
+        assert!(err.contains("max_players"), "{err}");
+    }
+
+    #[test]
+    fn bad_value_is_named() {
+        let err = ServerConfig::from_toml("tick_rate = 0\n").unwrap_err().to_string();
+        assert!(err.contains("tick_rate"), "{err}");
+        let err = ServerConfig::from_toml("backend = \"quantum\"\n").unwrap_err().to_string();
+        assert!(err.contains("backend"), "{err}");
+    }
+
+    #[test]
+    fn set_overrides_and_checks() {
+        let mut c = ServerConfig::default();
+        c.set("tick_rate", "20").unwrap();
+        c.set("map", "island").unwrap();
+        c.set("metrics_addr", "\"127.0.0.1:9100\"").unwrap();
+        assert_eq!(c.tick_rate, 20.0);
+        assert_eq!(c.map, "island");
+        assert_eq!(c.metrics_addr, Some("127.0.0.1:9100".parse().unwrap()));
+        assert!(c.set("nope", "1").unwrap_err().to_string().contains("nope"));
+        assert!(c.set("max_players", "0").unwrap_err().to_string().contains("max_players"));
+        assert_eq!(c.max_players, 10_000, "a failed set leaves the config unchanged");
+    }
+}

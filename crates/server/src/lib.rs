@@ -1,0 +1,286 @@
+//! The authoritative game server of Myriad, as a library (`myriad serve` and
+//! `myriad demo` are thin front ends).
+//!
+//! - [`config`]: [`ServerConfig`], a TOML file with per-key overrides.
+//! - [`tick`](crate::tick) (private): the tick loop thread that owns the world: receive, step,
+//!   interest, send, persist.
+//! - [`login`]: the TLS login service and its rate limiter.
+//! - [`dilation`]: time dilation under overload.
+//! - [`world`]: building the served map and its NPCs.
+//! - [`tls`]: certificates (self-signed for development).
+//! - [`status`]: what the tick loop reports each second.
+//!
+//! # Architecture
+//!
+//! One thread runs the tick loop and owns the world, the physics backend and the UDP
+//! endpoint; nothing else touches them. A tokio runtime (two worker threads) runs the
+//! login service, the database writer ([`myriad_store::Persister`]) and the metrics
+//! endpoint. The login service reaches the tick loop only through a channel of join
+//! requests, answered on a oneshot channel, so password hashing and database round
+//! trips never delay a tick.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), myriad_server::ServerError> {
+//! let server = myriad_server::ServerHandle::start(myriad_server::ServerConfig::default())?;
+//! println!("login on {}", server.login_addr());
+//! server.shutdown()?;
+//! # Ok(()) }
+//! ```
+
+pub mod config;
+pub mod dilation;
+pub mod error;
+pub mod login;
+pub mod status;
+mod tick;
+pub mod tls;
+pub mod world;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+pub use config::ServerConfig;
+pub use error::{ConfigError, ServerError};
+pub use status::{STAGES, ServerStatus};
+pub use tick::PLAYER_SHAPE;
+
+use myriad_net::{Endpoint, EndpointConfig};
+use myriad_store::{Database, FlushReport, Persister, PersisterConfig, PersisterStats, Store, StoreConfig};
+
+use crate::status::Shared;
+
+/// How long shutdown keeps trying to write the last positions.
+const SHUTDOWN_FLUSH: Duration = Duration::from_secs(10);
+
+/// A running server. Dropping it shuts it down gracefully (as [`ServerHandle::shutdown`]).
+pub struct ServerHandle {
+    runtime: Option<tokio::runtime::Runtime>,
+    tick_thread: Option<JoinHandle<()>>,
+    shared: Arc<Shared>,
+    persister: Persister,
+    store: Store,
+    login_addr: SocketAddr,
+    udp_addr: SocketAddr,
+    certificate: PathBuf,
+}
+
+impl std::fmt::Debug for ServerHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServerHandle").field("login", &self.login_addr).field("udp", &self.udp_addr).finish()
+    }
+}
+
+/// The store configuration of a server configuration.
+pub fn store_config(config: &ServerConfig) -> StoreConfig {
+    let database = if config.database_url.is_empty() {
+        Database::SqliteDir(config.data_dir.clone())
+    } else {
+        Database::Url(config.database_url.clone())
+    };
+    let mut store = StoreConfig::sqlite(&config.data_dir).hash_cost(config.hash_cost());
+    store.database = database;
+    store
+}
+
+impl ServerHandle {
+    /// Opens the store, builds the world, binds the UDP and login ports, and starts the
+    /// tick loop and the login service. Call it outside any tokio runtime: the server
+    /// owns its own.
+    pub fn start(config: ServerConfig) -> Result<ServerHandle, ServerError> {
+        config.validate()?;
+        std::fs::create_dir_all(&config.data_dir)
+            .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .thread_name("myriad-io")
+            .enable_all()
+            .build()
+            .map_err(|e| ServerError::io("starting the async runtime", e))?;
+        let store = runtime.block_on(Store::open(&store_config(&config)))?;
+        let prepared = runtime.block_on(world::prepare(&config, &store))?;
+        tracing::info!(
+            map = %prepared.description.name,
+            npcs = prepared.world.dynamics.len(),
+            statics = prepared.description.static_primitives,
+            "world ready"
+        );
+        let backend = myriad_physics::create_backend(config.backend_kind())?;
+        let endpoint = Endpoint::bind(EndpointConfig::new(config.udp_addr))?;
+        let udp_addr = endpoint.local_addr();
+        let certificate = tls::certificate_paths(&config)?.0;
+        let acceptor = tokio_rustls::TlsAcceptor::from(tls::server_config(&config)?);
+        let listener = runtime
+            .block_on(tokio::net::TcpListener::bind(config.login_addr))
+            .map_err(|e| ServerError::io(format!("binding the login service to {}", config.login_addr), e))?;
+        let login_addr = listener.local_addr().map_err(|e| ServerError::io("login address", e))?;
+        let persister = {
+            let _guard = runtime.enter();
+            let interval = Duration::from_millis(config.persist_interval_ms);
+            Persister::start(store.clone(), PersisterConfig { interval, ..PersisterConfig::default() })?
+        };
+        if let Some(addr) = config.metrics_addr {
+            let _guard = runtime.enter();
+            install_metrics(addr)?;
+            tracing::info!(%addr, "metrics on /metrics");
+        }
+        let shared = Arc::new(Shared::default());
+        shared.dilation_permille.store(1000, Ordering::Relaxed);
+        let (commands, receiver) = std::sync::mpsc::channel();
+        let service = Arc::new(login::LoginService {
+            acceptor,
+            store: store.clone(),
+            map_id: prepared.map_id,
+            map: prepared.description.clone(),
+            map_frame: prepared.map_frame.clone(),
+            udp_port: udp_addr.port(),
+            tick_rate_hz: config.tick_rate.round() as u16,
+            commands,
+            limiter: login::RateLimiter::new(
+                Duration::from_secs(config.login_window_s),
+                config.login_failures_per_addr,
+                config.login_failures_per_account,
+            ),
+            hashing: tokio::sync::Semaphore::new(config.login_concurrency),
+            shared: shared.clone(),
+        });
+        runtime.spawn(service.serve(listener));
+        let tick_loop = tick::TickLoop::new(
+            config.clone(),
+            prepared.world,
+            backend,
+            endpoint,
+            persister.clone(),
+            prepared.map_id,
+            receiver,
+            shared.clone(),
+        );
+        let tick_thread = std::thread::Builder::new()
+            .name("myriad-tick".into())
+            .spawn(move || tick_loop.run())
+            .map_err(|e| ServerError::io("starting the tick thread", e))?;
+        tracing::info!(%login_addr, %udp_addr, backend = %config.backend, tick_rate = config.tick_rate, "server started");
+        Ok(ServerHandle {
+            runtime: Some(runtime),
+            tick_thread: Some(tick_thread),
+            shared,
+            persister,
+            store,
+            login_addr,
+            udp_addr,
+            certificate,
+        })
+    }
+
+    /// Address of the TLS login service (with the real port when 0 was configured).
+    pub fn login_addr(&self) -> SocketAddr {
+        self.login_addr
+    }
+
+    /// Address of the UDP game traffic.
+    pub fn udp_addr(&self) -> SocketAddr {
+        self.udp_addr
+    }
+
+    /// The certificate the login service presents (clients pin it in development).
+    pub fn certificate_path(&self) -> &std::path::Path {
+        &self.certificate
+    }
+
+    /// The last one-second summary of the tick loop.
+    pub fn status(&self) -> ServerStatus {
+        self.shared.status.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// Players logged in now.
+    pub fn players(&self) -> usize {
+        self.shared.players.load(Ordering::Relaxed)
+    }
+
+    /// The current tick.
+    pub fn tick(&self) -> u64 {
+        self.shared.tick.load(Ordering::Relaxed)
+    }
+
+    /// The current time dilation in thousandths of real time.
+    pub fn dilation_permille(&self) -> u16 {
+        self.shared.dilation_permille.load(Ordering::Relaxed) as u16
+    }
+
+    /// Counters of the database writer.
+    pub fn persister_stats(&self) -> PersisterStats {
+        self.persister.stats()
+    }
+
+    /// The store the server uses (for tests and tools in the same process).
+    pub fn store(&self) -> &Store {
+        &self.store
+    }
+
+    /// Adds busy time to every tick, as if the world had more work (load tests).
+    pub fn set_artificial_load(&self, per_tick: Duration) {
+        let us = per_tick.as_micros().min(u32::MAX as u128) as u32;
+        self.shared.artificial_load_us.store(us, Ordering::Relaxed);
+    }
+
+    /// Stops gracefully: disconnects every player, writes every position, closes the
+    /// store. Returns what the last flush wrote.
+    pub fn shutdown(mut self) -> Result<FlushReport, ServerError> {
+        self.stop_gracefully()
+    }
+
+    fn stop_gracefully(&mut self) -> Result<FlushReport, ServerError> {
+        self.shared.stop.store(true, Ordering::Release);
+        if let Some(t) = self.tick_thread.take()
+            && t.join().is_err()
+        {
+            tracing::error!("the tick thread panicked");
+        }
+        let Some(runtime) = self.runtime.take() else {
+            return Ok(FlushReport::default());
+        };
+        let report = runtime.block_on(self.persister.shutdown(SHUTDOWN_FLUSH));
+        runtime.block_on(self.store.close());
+        runtime.shutdown_timeout(Duration::from_secs(1));
+        tracing::info!("server stopped");
+        Ok(report?)
+    }
+
+    /// Stops abruptly, as a `kill -9` would: no final positions, no flush, the database
+    /// writer is abandoned mid-flight. Only what was already committed survives. For
+    /// crash-recovery tests.
+    pub fn crash(mut self) {
+        self.shared.crash.store(true, Ordering::Release);
+        self.shared.stop.store(true, Ordering::Release);
+        if let Some(t) = self.tick_thread.take() {
+            let _ = t.join();
+        }
+        if let Some(runtime) = self.runtime.take() {
+            runtime.shutdown_background();
+        }
+    }
+}
+
+impl Drop for ServerHandle {
+    fn drop(&mut self) {
+        if self.runtime.is_some()
+            && let Err(e) = self.stop_gracefully()
+        {
+            tracing::warn!(error = %e, "shutdown left positions unwritten");
+        }
+    }
+}
+
+fn install_metrics(addr: SocketAddr) -> Result<(), ServerError> {
+    use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
+    let tick_buckets = [0.001, 0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2, 0.5, 1.0];
+    PrometheusBuilder::new()
+        .with_http_listener(addr)
+        .set_buckets_for_metric(Matcher::Suffix("duration_seconds".into()), &tick_buckets)
+        .map_err(|e| ServerError::Metrics(e.to_string()))?
+        .install()
+        .map_err(|e| ServerError::Metrics(e.to_string()))
+}

@@ -1,0 +1,318 @@
+//! The server end to end: real TLS logins and sealed UDP sessions through the client
+//! library, on loopback, with the embedded SQLite store in a temporary directory (and
+//! MariaDB/MySQL for the persistence round trip when `MYSQL_URL` is set).
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use myriad_client::{ClientConfig, ClientError, Connection, Credentials, Event, Swarm, SwarmConfig, Trust};
+use myriad_protocol::login::RefusalReason;
+use myriad_protocol::{ActionMask, DisconnectReason};
+use myriad_server::{ServerConfig, ServerHandle};
+use myriad_store::{HashCost, Store};
+
+/// A small, fast server: scenario 1's map with few NPCs, cheap password hashes.
+fn config(dir: &Path) -> ServerConfig {
+    let fast = HashCost::INSECURE_FAST;
+    ServerConfig {
+        udp_addr: "127.0.0.1:0".parse().unwrap(),
+        login_addr: "127.0.0.1:0".parse().unwrap(),
+        npc_count: 300,
+        data_dir: dir.to_path_buf(),
+        hash_memory_kib: fast.m_kib,
+        hash_passes: fast.t,
+        hash_lanes: fast.p,
+        persist_interval_ms: 100,
+        log_stages_every_s: 0.0,
+        ..ServerConfig::default()
+    }
+}
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap()
+}
+
+/// Creates `user0..user<n>` before the server starts (the store opened from the test's
+/// own runtime, then closed).
+fn seed(rt: &tokio::runtime::Runtime, config: &ServerConfig, n: u32) {
+    rt.block_on(async {
+        let store = Store::open(&myriad_server::store_config(config)).await.unwrap();
+        store.seed_users(n).await.unwrap();
+        store.close().await;
+    });
+}
+
+fn client(server: &ServerHandle) -> ClientConfig {
+    let trust = Trust::pin_file(server.certificate_path()).unwrap();
+    let mut c = ClientConfig::new(server.login_addr(), &trust).unwrap();
+    c.login_timeout = Duration::from_secs(20);
+    c
+}
+
+/// Holds `mask` for `time`, receiving everything; returns the own position at the end.
+async fn walk(c: &mut Connection, mask: u8, time: Duration) -> Option<[f32; 3]> {
+    let end = Instant::now() + time;
+    let mut next_send = Instant::now();
+    while Instant::now() < end {
+        if Instant::now() >= next_send {
+            c.send_action(mask).await.unwrap();
+            next_send += Duration::from_millis(33);
+        }
+        let _ = c.recv(Duration::from_millis(10)).await.unwrap();
+    }
+    c.own_position()
+}
+
+async fn wait_own_position(c: &mut Connection) -> [f32; 3] {
+    let end = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < end {
+        c.keepalive_if_due().await.unwrap();
+        let _ = c.recv(Duration::from_millis(20)).await.unwrap();
+        if let Some(p) = c.own_position() {
+            return p;
+        }
+    }
+    panic!("no update with the own object within 5 s");
+}
+
+#[test]
+fn login_updates_and_commanded_movement() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let rt = runtime();
+    seed(&rt, &cfg, 2);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    rt.block_on(async {
+        let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
+        assert!(c.accepted().map.terrain_width > 1);
+        let start = wait_own_position(&mut c).await;
+        assert!(c.mirror().len() > 1, "NPCs around the player are mirrored too");
+        // Forward is +z.
+        let end = walk(&mut c, ActionMask::FORWARD, Duration::from_millis(1500)).await.unwrap();
+        assert!(end[2] - start[2] > 1.0, "moved forward: {start:?} -> {end:?}");
+        assert!((end[0] - start[0]).abs() < 1.0, "and not sideways: {start:?} -> {end:?}");
+        let right = walk(&mut c, ActionMask::RIGHT, Duration::from_millis(1500)).await.unwrap();
+        assert!(right[0] - end[0] > 1.0, "moved right (+x): {end:?} -> {right:?}");
+        let stats = c.stats();
+        assert!(stats.updates > 30, "{stats:?}");
+        assert_eq!(stats.decode_errors, 0);
+        assert!(stats.last_tick > 0);
+        // Stale marking: nothing is received for longer than the stale time.
+        let later = Instant::now() + Duration::from_secs(5);
+        assert_eq!(c.mirror_mut().mark_stale(later), c.mirror().len());
+        c.disconnect().await.unwrap();
+    });
+    let deadline = Instant::now() + Duration::from_secs(3);
+    while server.players() > 0 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert_eq!(server.players(), 0, "a Disconnect removes the player");
+    server.shutdown().unwrap();
+}
+
+#[test]
+fn wrong_password_then_rate_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = ServerConfig { login_failures_per_account: 3, ..config(dir.path()) };
+    let rt = runtime();
+    seed(&rt, &cfg, 1);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    rt.block_on(async {
+        let bad = Credentials { username: "user0".into(), password: "nope".into() };
+        for _ in 0..3 {
+            match Connection::connect(cc.clone(), bad.clone()).await {
+                Err(ClientError::Refused { reason: RefusalReason::WrongCredentials, .. }) => {}
+                other => panic!("expected wrong credentials, got {other:?}"),
+            }
+        }
+        // Locked now, even with the right password.
+        match Connection::connect(cc.clone(), Credentials::test_user(0)).await {
+            Err(ClientError::Refused { reason: RefusalReason::RateLimited, retry_after_ms }) => {
+                assert!(retry_after_ms > 0)
+            }
+            other => panic!("expected rate limited, got {other:?}"),
+        }
+        // Unknown users are refused the same way as wrong passwords.
+        let ghost = Credentials { username: "ghost".into(), password: "x".into() };
+        assert!(matches!(
+            Connection::connect(cc.clone(), ghost).await,
+            Err(ClientError::Refused { reason: RefusalReason::WrongCredentials, .. })
+        ));
+    });
+    server.shutdown().unwrap();
+}
+
+#[test]
+fn second_login_replaces_first_and_max_players_is_enforced() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = ServerConfig { max_players: 2, ..config(dir.path()) };
+    let rt = runtime();
+    seed(&rt, &cfg, 3);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    rt.block_on(async {
+        let mut first = Connection::connect(cc.clone(), Credentials::test_user(0)).await.unwrap();
+        wait_own_position(&mut first).await;
+        let mut second = Connection::connect(cc.clone(), Credentials::test_user(0)).await.unwrap();
+        assert_eq!(second.entity_id(), first.entity_id(), "the same object, a new session");
+        let mut replaced = false;
+        let end = Instant::now() + Duration::from_secs(3);
+        while Instant::now() < end && !replaced {
+            if let Some(Event::Disconnected(r)) = first.recv(Duration::from_millis(50)).await.unwrap() {
+                assert_eq!(r, DisconnectReason::Replaced);
+                replaced = true;
+            }
+        }
+        assert!(replaced, "the first session was told it was replaced");
+        wait_own_position(&mut second).await;
+        let _third = Connection::connect(cc.clone(), Credentials::test_user(1)).await.unwrap();
+        match Connection::connect(cc.clone(), Credentials::test_user(2)).await {
+            Err(ClientError::Refused { reason: RefusalReason::ServerFull, .. }) => {}
+            other => panic!("expected server full, got {other:?}"),
+        }
+        assert_eq!(server.players(), 2);
+    });
+    server.shutdown().unwrap();
+}
+
+/// Logs in, walks, leaves; restarts; checks the position survived.
+fn persistence_round_trip(cfg: ServerConfig, user: Credentials, rt: &tokio::runtime::Runtime) {
+    let server = ServerHandle::start(cfg.clone()).unwrap();
+    let cc = client(&server);
+    let left_at = rt.block_on(async {
+        let mut c = Connection::connect(cc, user.clone()).await.unwrap();
+        wait_own_position(&mut c).await;
+        walk(&mut c, ActionMask::BACK, Duration::from_millis(800)).await;
+        // Stand still so the position is settled when we leave.
+        walk(&mut c, 0, Duration::from_millis(800)).await.unwrap()
+    });
+    // Graceful shutdown writes every position.
+    server.shutdown().unwrap();
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    let back_at = rt.block_on(async {
+        let c = Connection::connect(cc, user).await.unwrap();
+        c.accepted().position
+    });
+    let d: f32 = (0..3).map(|i| (back_at[i] - left_at[i]).powi(2)).sum::<f32>().sqrt();
+    assert!(d < 0.5, "left at {left_at:?}, came back at {back_at:?}");
+    server.shutdown().unwrap();
+}
+
+#[test]
+fn persistence_round_trip_sqlite() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let rt = runtime();
+    seed(&rt, &cfg, 1);
+    persistence_round_trip(cfg, Credentials::test_user(0), &rt);
+}
+
+#[test]
+fn persistence_round_trip_mysql() {
+    let Ok(url) = std::env::var("MYSQL_URL") else {
+        eprintln!("skipping: MYSQL_URL not set (e.g. mysql://myriad:myriad@127.0.0.1:3306/test)");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = ServerConfig { database_url: url, ..config(dir.path()) };
+    let rt = runtime();
+    let name = format!("srv{}", std::process::id());
+    let user = Credentials { username: name.clone(), password: "secret-pass".into() };
+    rt.block_on(async {
+        let store = Store::open(&myriad_server::store_config(&cfg)).await.unwrap();
+        store.create_user(&user.username, &user.password).await.unwrap();
+        store.close().await;
+    });
+    persistence_round_trip(cfg, user, &rt);
+}
+
+#[test]
+fn crash_recovery_resumes_at_last_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let rt = runtime();
+    seed(&rt, &cfg, 1);
+    let server = ServerHandle::start(cfg.clone()).unwrap();
+    let cc = client(&server);
+    let last = rt.block_on(async {
+        let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
+        wait_own_position(&mut c).await;
+        walk(&mut c, ActionMask::LEFT, Duration::from_millis(800)).await;
+        // Still for several persistence intervals: the checkpoint is this position.
+        walk(&mut c, 0, Duration::from_millis(1200)).await.unwrap()
+    });
+    // No goodbye, no final flush: like kill -9.
+    server.crash();
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    let resumed =
+        rt.block_on(async { Connection::connect(cc, Credentials::test_user(0)).await.unwrap().accepted().position });
+    let d: f32 = (0..3).map(|i| (resumed[i] - last[i]).powi(2)).sum::<f32>().sqrt();
+    assert!(d < 0.5, "last seen at {last:?}, resumed at {resumed:?}");
+    server.shutdown().unwrap();
+}
+
+#[test]
+fn time_dilation_engages_under_load_and_recovers() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let rt = runtime();
+    seed(&rt, &cfg, 1);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    rt.block_on(async {
+        let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
+        wait_own_position(&mut c).await;
+        // 60 ms of work per 33 ms tick.
+        server.set_artificial_load(Duration::from_millis(60));
+        let end = Instant::now() + Duration::from_secs(15);
+        while server.dilation_permille() > 700 && Instant::now() < end {
+            walk(&mut c, 0, Duration::from_millis(200)).await;
+        }
+        assert!(server.dilation_permille() <= 700, "dilation {}", server.dilation_permille());
+        walk(&mut c, 0, Duration::from_millis(500)).await;
+        assert!(c.dilation_permille() < 1000, "clients see the dilation in their updates");
+        server.set_artificial_load(Duration::ZERO);
+        let end = Instant::now() + Duration::from_secs(15);
+        while server.dilation_permille() < 1000 && Instant::now() < end {
+            walk(&mut c, 0, Duration::from_millis(200)).await;
+        }
+        assert_eq!(server.dilation_permille(), 1000, "back to real time");
+    });
+    server.shutdown().unwrap();
+}
+
+#[test]
+fn two_hundred_bots_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let rt = runtime();
+    seed(&rt, &cfg, 200);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    let report = rt.block_on(async {
+        let swarm = Swarm::start(SwarmConfig::new(cc, 200));
+        let end = Instant::now() + Duration::from_secs(60);
+        while swarm.snapshot().logins_ok < 200 && swarm.snapshot().logins_failed == 0 && Instant::now() < end {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        // A few seconds of play.
+        tokio::time::sleep(Duration::from_secs(4)).await;
+        swarm.stop().await
+    });
+    assert_eq!(report.logins_ok, 200, "{report:?}");
+    assert_eq!(report.logins_failed, 0, "{report:?}");
+    assert_eq!(report.own_object_seen, 200, "every bot saw its own object: {report:?}");
+    assert_eq!(report.totals.decode_errors, 0, "{report:?}");
+    assert_eq!(report.totals.rejected, 0, "{report:?}");
+    assert!(report.moves_ok > report.moves_wrong, "{report:?}");
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while server.players() > 0 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert_eq!(server.players(), 0, "every bot said goodbye");
+    server.shutdown().unwrap();
+}

@@ -16,7 +16,7 @@ use common::TestDb;
 use myriad_store::{HashCost, MapId, Persister, PersisterConfig, PlayerState, Shape, Store, StoreError, UserId};
 
 const PLAYERS: u32 = 10_000;
-const ROUNDS: i64 = 5;
+const ROUNDS: i64 = 7;
 
 backend_tests!(
     #[ignore = "benchmark; run with --ignored --nocapture in release"]
@@ -51,22 +51,36 @@ fn round(users: &[UserId], map: MapId, r: i64) -> Vec<PlayerState> {
         .collect()
 }
 
+/// "best / median" of per-round rates: the machine is shared, so the best round is the
+/// closest to what the code can do and the median shows the typical case.
+fn summary(rates: Vec<f64>) -> String {
+    summary_with(rates, 0)
+}
+
+fn summary_with(mut rates: Vec<f64>, decimals: usize) -> String {
+    rates.sort_by(f64::total_cmp);
+    let best = rates.last().copied().unwrap_or(0.0);
+    let median = rates.get(rates.len() / 2).copied().unwrap_or(0.0);
+    format!("best {best:.decimals$} / median {median:.decimals$}")
+}
+
 async fn bench_persistence(db: TestDb) {
     let (map, users) = players(&db).await;
     for batch in [100usize, 1000, 10_000] {
-        let mut rows = 0usize;
-        let t = Instant::now();
+        let mut rates = Vec::new();
         for r in 0..ROUNDS {
             let states = round(&users, map, r + batch as i64 * 10);
+            let t = Instant::now();
+            let mut rows = 0;
             for chunk in states.chunks(batch) {
-                rows += db.store.save_player_states(chunk).await.unwrap() as usize;
+                rows += db.store.save_player_states(chunk).await.unwrap();
             }
+            rates.push(rows as f64 / t.elapsed().as_secs_f64());
         }
-        let secs = t.elapsed().as_secs_f64();
         eprintln!(
-            "[{:?}] save_player_states, {batch} rows per call: {rows} rows in {secs:.2} s = {:.0} rows/s",
+            "[{:?}] save_player_states, {batch} rows per call, {PLAYERS} rows per round: {} rows/s",
             db.backend(),
-            rows as f64 / secs
+            summary(rates)
         );
     }
 
@@ -75,24 +89,24 @@ async fn bench_persistence(db: TestDb) {
         PersisterConfig { interval: Duration::from_secs(3600), ..PersisterConfig::default() },
     )
     .unwrap();
-    let t = Instant::now();
-    let mut submit_time = Duration::ZERO;
+    let mut rates = Vec::new();
+    let mut submit_ns = Vec::new();
     for r in 0..ROUNDS {
         let states = round(&users, map, 1_000_000 + r);
-        let s = Instant::now();
+        let t = Instant::now();
         p.submit_many(&states).unwrap();
-        submit_time += s.elapsed();
-        p.flush().await.unwrap();
+        submit_ns.push(-(t.elapsed().as_nanos() as f64 / f64::from(PLAYERS)));
+        let rows = p.flush().await.unwrap().rows_written;
+        rates.push(rows as f64 / t.elapsed().as_secs_f64());
     }
-    let secs = t.elapsed().as_secs_f64();
-    let stats = p.stats();
+    submit_ns.sort_by(f64::total_cmp);
     eprintln!(
-        "[{:?}] Persister submit_many+flush: {} rows in {secs:.2} s = {:.0} rows/s; \
-         submit_many costs {:.0} ns per state on the caller's thread",
+        "[{:?}] Persister submit_many + flush, {PLAYERS} rows per round: {} rows/s; \
+         submit_many on the caller's thread: best {:.0} / median {:.0} ns per state",
         db.backend(),
-        stats.rows_written,
-        stats.rows_written as f64 / secs,
-        submit_time.as_nanos() as f64 / (ROUNDS as f64 * f64::from(PLAYERS))
+        summary(rates),
+        -submit_ns[submit_ns.len() - 1],
+        -submit_ns[submit_ns.len() / 2],
     );
 }
 
@@ -110,53 +124,65 @@ async fn bench_login(db: TestDb) {
         t.elapsed().as_secs_f64()
     );
     let workers = std::thread::available_parallelism().map_or(1, |n| n.get()) * 2;
+    // Warm-up: start the blocking-pool threads and fault in their hashing memory.
+    for i in 0..workers as u32 {
+        let _ = store.check_credentials(&format!("user{i}"), "warm-up").await;
+    }
     for (label, password_of) in [
         ("right password", (|i: u32| format!("password{i}")) as fn(u32) -> String),
         ("wrong password", |i: u32| format!("wrong{i}")),
     ] {
-        let t = Instant::now();
-        let mut tasks = Vec::new();
-        for w in 0..workers {
-            let store = store.clone();
-            tasks.push(tokio::spawn(async move {
-                let mut n = 0u32;
-                for k in 0..16u32 {
-                    let i = (w as u32 * 16 + k) % users;
-                    let r = store.check_credentials(&format!("user{i}"), &password_of(i)).await;
-                    assert!(r.is_ok() || matches!(r, Err(StoreError::WrongCredentials)));
-                    n += 1;
-                }
-                n
-            }));
+        let mut rates = Vec::new();
+        for _ in 0..3 {
+            let t = Instant::now();
+            let mut tasks = Vec::new();
+            for w in 0..workers {
+                let store = store.clone();
+                tasks.push(tokio::spawn(async move {
+                    let mut n = 0u32;
+                    for k in 0..8u32 {
+                        let i = (w as u32 * 8 + k) % users;
+                        let r = store.check_credentials(&format!("user{i}"), &password_of(i)).await;
+                        assert!(r.is_ok() || matches!(r, Err(StoreError::WrongCredentials)));
+                        n += 1;
+                    }
+                    n
+                }));
+            }
+            let mut n = 0;
+            for task in tasks {
+                n += task.await.unwrap();
+            }
+            rates.push(f64::from(n) / t.elapsed().as_secs_f64());
         }
-        let mut n = 0;
-        for task in tasks {
-            n += task.await.unwrap();
-        }
-        let secs = t.elapsed().as_secs_f64();
         eprintln!(
-            "[{:?}] check_credentials ({label}), {workers} concurrent callers: {n} in {secs:.2} s = {:.1} logins/s",
+            "[{:?}] check_credentials ({label}), {workers} concurrent callers: {} logins/s",
             db.backend(),
-            f64::from(n) / secs
+            summary_with(rates, 1),
         );
     }
 
     // Timing of a known user with a wrong password against an unknown user.
-    let mut known = Duration::ZERO;
-    let mut unknown = Duration::ZERO;
+    let mut known = Vec::new();
+    let mut unknown = Vec::new();
     for i in 0..16 {
         let t = Instant::now();
         let _ = store.check_credentials(&format!("user{}", i % users), "nope").await;
-        known += t.elapsed();
+        known.push(t.elapsed());
         let t = Instant::now();
         let _ = store.check_credentials(&format!("ghost{i}"), "nope").await;
-        unknown += t.elapsed();
+        unknown.push(t.elapsed());
     }
+    known.sort();
+    unknown.sort();
     eprintln!(
-        "[{:?}] sequential failed login: known user {:.1} ms, unknown user {:.1} ms (mean of 16)",
+        "[{:?}] one failed login, sequential, fastest / median of 16: known user {:.1} / {:.1} ms, \
+         unknown user {:.1} / {:.1} ms",
         db.backend(),
-        known.as_secs_f64() * 1000.0 / 16.0,
-        unknown.as_secs_f64() * 1000.0 / 16.0
+        known[0].as_secs_f64() * 1000.0,
+        known[8].as_secs_f64() * 1000.0,
+        unknown[0].as_secs_f64() * 1000.0,
+        unknown[8].as_secs_f64() * 1000.0,
     );
     store.close().await;
 }

@@ -379,16 +379,17 @@ impl Writer {
         batch
     }
 
-    /// Writes one batch; on failure puts back the entries not replaced meanwhile.
+    /// Writes one batch; on failure puts back the entries not yet handled, unless a newer
+    /// snapshot of the same player was submitted meanwhile.
     async fn write_batch(&self, batch: Vec<((i64, i64), PlayerState)>) -> Result<u64> {
         let counters = &self.shared.counters;
         let states: Vec<PlayerState> = batch.iter().map(|(_, s)| *s).collect();
-        let result = match self.store.save_player_states(&states).await {
+        let outcome = match self.store.save_player_states(&states).await {
             Ok(n) => {
                 Shared::bump(&counters.batches_written, 1);
-                Ok(n)
+                Outcome { written: n, handled: states.len(), error: None }
             }
-            Err(e) if e.is_transient() => Err(e),
+            Err(e) if e.is_transient() => Outcome { written: 0, handled: 0, error: Some(e) },
             Err(e) => {
                 Shared::bump(&counters.failures, 1);
                 tracing::warn!(error = %e, rows = states.len(), "batch refused; saving row by row");
@@ -397,16 +398,14 @@ impl Writer {
         };
         let mut pending = self.shared.lock();
         pending.in_flight -= batch.len();
-        match result {
-            Ok(n) => {
-                Shared::bump(&counters.rows_written, n);
-                Ok(n)
-            }
-            Err(e) => {
+        Shared::bump(&counters.rows_written, outcome.written);
+        match outcome.error {
+            None => Ok(outcome.written),
+            Some(e) => {
                 Shared::bump(&counters.failures, 1);
-                for (key, entry) in batch {
+                for (key, state) in batch.into_iter().skip(outcome.handled) {
                     // A newer snapshot submitted while this batch was in flight wins.
-                    pending.entries.entry(key).or_insert(entry);
+                    pending.entries.entry(key).or_insert(state);
                 }
                 Err(e)
             }
@@ -415,13 +414,16 @@ impl Writer {
 
     /// Fallback for a batch the database refused: each row in its own statement, rows
     /// refused for good are dropped and counted. Stops at an unavailability error.
-    async fn write_rows_individually(&self, states: &[PlayerState]) -> Result<u64> {
+    async fn write_rows_individually(&self, states: &[PlayerState]) -> Outcome {
         let counters = &self.shared.counters;
         let mut written = 0;
-        for state in states {
+        for (handled, state) in states.iter().enumerate() {
             match self.store.save_player_states(std::slice::from_ref(state)).await {
-                Ok(n) => written += n,
-                Err(e) if e.is_transient() => return Err(e),
+                Ok(n) => {
+                    written += n;
+                    Shared::bump(&counters.batches_written, 1);
+                }
+                Err(e) if e.is_transient() => return Outcome { written, handled, error: Some(e) },
                 Err(e) => {
                     Shared::bump(&counters.rejected_rows, 1);
                     tracing::warn!(
@@ -433,7 +435,17 @@ impl Writer {
                 }
             }
         }
-        Shared::bump(&counters.batches_written, written);
-        Ok(written)
+        Outcome { written, handled: states.len(), error: None }
     }
+}
+
+/// What became of one batch.
+struct Outcome {
+    /// Rows written.
+    written: u64,
+    /// How many leading rows of the batch were dealt with (written or dropped); the rest
+    /// go back to the queue when `error` is set.
+    handled: usize,
+    /// The unavailability error that stopped the batch, if any.
+    error: Option<StoreError>,
 }

@@ -143,13 +143,12 @@ impl TestDb {
         }
     }
 
+    /// Closes the store and drops the MySQL database. (A test that panics skips this;
+    /// [`Kind`]'s `Drop` then drops the database from a helper thread.)
     pub async fn cleanup(&self) {
         self.store.close().await;
-        if let Kind::MySql { admin_url, db_name, .. } = &*self.kind
-            && let Ok(mut admin) = sqlx::mysql::MySqlConnection::connect(admin_url).await
-        {
-            let _ = admin.execute(sqlx::AssertSqlSafe(format!("DROP DATABASE IF EXISTS `{db_name}`"))).await;
-            admin.close().await.ok();
+        if let Kind::MySql { admin_url, db_name, .. } = &*self.kind {
+            drop_database(admin_url, db_name).await;
         }
     }
 
@@ -169,6 +168,31 @@ impl TestDb {
             })
             .await
             .expect("create map")
+    }
+}
+
+async fn drop_database(admin_url: &str, db_name: &str) {
+    if let Ok(mut admin) = sqlx::mysql::MySqlConnection::connect(admin_url).await {
+        let _ = admin.execute(sqlx::AssertSqlSafe(format!("DROP DATABASE IF EXISTS `{db_name}`"))).await;
+        admin.close().await.ok();
+    }
+}
+
+impl Drop for Kind {
+    fn drop(&mut self) {
+        if let Kind::MySql { admin_url, db_name, .. } = self
+            && std::thread::panicking()
+        {
+            // The test failed before `cleanup`: drop its database on a private runtime
+            // (the test's runtime may be gone or blocked).
+            let (admin_url, db_name) = (admin_url.clone(), db_name.clone());
+            let _ = std::thread::spawn(move || {
+                if let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() {
+                    rt.block_on(drop_database(&admin_url, &db_name));
+                }
+            })
+            .join();
+        }
     }
 }
 

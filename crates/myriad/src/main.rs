@@ -4,10 +4,14 @@
 //! reference's result tables on this machine). The server, bots, admin and map
 //! commands arrive with their issues.
 
+mod admin;
 mod bench;
+mod bots;
+mod demo;
 mod plots;
 mod reference;
 mod scenario_args;
+mod serve;
 mod sim;
 
 use anyhow::{Context, Result};
@@ -30,6 +34,18 @@ enum Command {
     Sim(sim::SimArgs),
     /// Measure every scenario on every backend, in the layout of the reference's tables.
     Bench(bench::BenchArgs),
+    /// Run the world server (TLS login, UDP game traffic) until SIGINT/SIGTERM.
+    Serve(serve::ServeArgs),
+    /// Serve a scenario on the embedded database with built-in bots and a live status line.
+    Demo(demo::DemoArgs),
+    /// Run a swarm of bots (user<i> / password<i>) against a server.
+    Bots(bots::BotsArgs),
+    /// Manage accounts.
+    #[command(subcommand)]
+    User(admin::UserCommand),
+    /// Manage maps.
+    #[command(subcommand)]
+    Map(admin::MapCommand),
 }
 
 fn main() -> Result<()> {
@@ -47,5 +63,10 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Sim(a) => sim::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::Serve(a) => serve::run(a),
+        Command::Demo(a) => demo::run(a),
+        Command::Bots(a) => bots::run(a),
+        Command::User(c) => admin::user(c),
+        Command::Map(c) => admin::map(c),
     }
 }

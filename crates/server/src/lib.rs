@@ -91,6 +91,20 @@ impl ServerHandle {
     /// tick loop and the login service. Call it outside any tokio runtime: the server
     /// owns its own.
     pub fn start(config: ServerConfig) -> Result<ServerHandle, ServerError> {
+        Self::start_with_backends(config, myriad_physics::create_backend)
+    }
+
+    /// Like [`ServerHandle::start`], with the function that creates the physics backend
+    /// (the `myriad` binary passes one that also knows the CUDA backends). It runs on the
+    /// tick thread, since GPU contexts belong to the thread that uses them.
+    pub fn start_with_backends<F>(config: ServerConfig, create_backend: F) -> Result<ServerHandle, ServerError>
+    where
+        F: FnOnce(
+                myriad_physics::BackendKind,
+            ) -> Result<Box<dyn myriad_physics::Backend>, myriad_physics::PhysicsError>
+            + Send
+            + 'static,
+    {
         config.validate()?;
         std::fs::create_dir_all(&config.data_dir)
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
@@ -108,7 +122,6 @@ impl ServerHandle {
             statics = prepared.description.static_primitives,
             "world ready"
         );
-        let backend = myriad_physics::create_backend(config.backend_kind())?;
         let endpoint = Endpoint::bind(EndpointConfig::new(config.udp_addr))?;
         let udp_addr = endpoint.local_addr();
         let certificate = tls::certificate_paths(&config)?.0;
@@ -148,20 +161,51 @@ impl ServerHandle {
             shared: shared.clone(),
         });
         runtime.spawn(service.serve(listener));
-        let tick_loop = tick::TickLoop::new(
-            config.clone(),
-            prepared.world,
-            backend,
-            endpoint,
-            persister.clone(),
-            prepared.map_id,
-            receiver,
-            shared.clone(),
-        );
+        let (ready, backend_result) = std::sync::mpsc::sync_channel(1);
+        let map_id = prepared.map_id;
+        let world = prepared.world;
+        let tick_config = config.clone();
+        let tick_shared = shared.clone();
+        let persister_for_tick = persister.clone();
         let tick_thread = std::thread::Builder::new()
             .name("myriad-tick".into())
-            .spawn(move || tick_loop.run())
+            .spawn(move || {
+                let backend = match create_backend(tick_config.backend_kind()) {
+                    Ok(b) => {
+                        tracing::info!(backend = %b.description(), "physics backend ready");
+                        let _ = ready.send(Ok(()));
+                        b
+                    }
+                    Err(e) => {
+                        let _ = ready.send(Err(e));
+                        return;
+                    }
+                };
+                let tick_loop = tick::TickLoop::new(
+                    tick_config,
+                    world,
+                    backend,
+                    endpoint,
+                    persister_for_tick,
+                    map_id,
+                    receiver,
+                    tick_shared,
+                );
+                tick_loop.run();
+            })
             .map_err(|e| ServerError::io("starting the tick thread", e))?;
+        match backend_result.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => {
+                let _ = tick_thread.join();
+                runtime.shutdown_background();
+                return Err(e.into());
+            }
+            Err(_) => {
+                runtime.shutdown_background();
+                return Err(ServerError::Internal("the tick thread died while starting".into()));
+            }
+        }
         tracing::info!(%login_addr, %udp_addr, backend = %config.backend, tick_rate = config.tick_rate, "server started");
         Ok(ServerHandle {
             runtime: Some(runtime),

@@ -12,7 +12,7 @@ mkdir -p "$carry/tests"
 jobs=${JOBS:-1}
 
 # Test binaries of myriad-cuda; cargo's JSON messages name each executable.
-nice -n 10 cargo test --release -j "$jobs" -p myriad-cuda --no-run --message-format=json 2>/dev/null |
+nice -n 10 cargo test --release -j "$jobs" -p myriad-cuda --no-run --message-format=json 2>"$carry/build.log" |
     python3 -c '
 import json, sys
 for line in sys.stdin:

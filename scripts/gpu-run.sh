@@ -45,6 +45,13 @@ if [[ $mode == all || $mode == bench ]]; then
         .carry/myriad bench --scenario custom --dynamic $n --static $((n / 2)) --users $((n / 26)) \
             --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json 2>> "$out/sweep.err"
     done > "$out/sweep.jsonl" || status=1
+    # Per-kernel device times (CUDA events around every launch; slows the step a little).
+    MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 3 --backend cuda --ticks 20 --warmup 3 \
+        > /dev/null 2> "$out/profile-s3.txt" || status=1
+    MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario custom --dynamic 2000000 --static 1000000 \
+        --users 76923 --world-size 2840.2 --backend cuda --ticks 10 --warmup 2 \
+        > /dev/null 2> "$out/profile-2m.txt" || status=1
+    grep -A40 "per-kernel" "$out/profile-s3.txt" "$out/profile-2m.txt" | grep "|" | head -40
     python3 - "$out/sweep.jsonl" <<'PY'
 import json, sys
 print("| dynamic | static objects | total ms | build_dynamic_bvh | broad static | broad dynamic | narrow s+d | forces | upload+host | dyn pairs |")

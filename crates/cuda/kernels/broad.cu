@@ -24,11 +24,21 @@ __device__ __forceinline__ void sort_range(u32* a, u32 len) {
 }
 
 // Tree queries. `exclude_self` leaves query q out of its own list (dynamic self-query).
-extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, u32 exclude_self,
-                                        const Node* nodes, const u32* order, u32 nleaves,
-                                        const float* tboxes, u32* counts) {
-    u32 q = blockIdx.x * blockDim.x + threadIdx.x;
-    if (q >= nq) return;
+// `qorder` (may be null) maps threads to queries: the step passes the dynamic tree's leaf
+// order, so neighbouring threads query neighbouring boxes and walk the same nodes
+// (coherent branches and cache lines). `cap` is the output's capacity: writes past it are
+// dropped, and the host, which reads the exact total, grows the output and redoes the
+// step when that happened.
+__device__ __forceinline__ u32 query_index(const u32* qorder, u32 t) {
+    return qorder ? qorder[t] : t;
+}
+
+extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, const u32* qorder,
+                                        u32 exclude_self, const Node* nodes, const u32* order,
+                                        u32 nleaves, const float* tboxes, u32* counts) {
+    u32 t = blockIdx.x * blockDim.x + threadIdx.x;
+    if (t >= nq) return;
+    u32 q = query_index(qorder, t);
     const float* qb = qboxes + 6 * (u64)q;
     float b[6];
     for (int k = 0; k < 6; k++) b[k] = qb[k];
@@ -37,17 +47,20 @@ extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, u32 exclude
     counts[q] = c;
 }
 
-extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, u32 exclude_self,
-                                        const Node* nodes, const u32* order, u32 nleaves,
-                                        const float* tboxes, const u32* offsets, u32* out) {
-    u32 q = blockIdx.x * blockDim.x + threadIdx.x;
-    if (q >= nq) return;
+extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* qorder,
+                                        u32 exclude_self, const Node* nodes, const u32* order,
+                                        u32 nleaves, const float* tboxes, const u32* offsets,
+                                        u32* out, u32 cap) {
+    u32 t = blockIdx.x * blockDim.x + threadIdx.x;
+    if (t >= nq) return;
+    u32 q = query_index(qorder, t);
     const float* qb = qboxes + 6 * (u64)q;
     float b[6];
     for (int k = 0; k < 6; k++) b[k] = qb[k];
-    u32 begin = offsets[q], len = offsets[q + 1] - begin;
+    u32 begin = offsets[q], end = offsets[q + 1];
+    if (end > cap) return;
     u32* dst = out + begin;
-    u32 c = 0;
+    u32 len = end - begin, c = 0;
     tree_visit(nodes, order, nleaves, tboxes, b, exclude_self ? q : NO_SELF, [&](u32 t) {
         if (c < len) dst[c] = t;
         c++;
@@ -72,15 +85,17 @@ extern "C" __global__ void k_naive_count(u32 nq, const float* qboxes, u32 exclud
 }
 
 extern "C" __global__ void k_naive_write(u32 nq, const float* qboxes, u32 exclude_self, u32 nt,
-                                         const float* tboxes, const u32* offsets, u32* out) {
+                                         const float* tboxes, const u32* offsets, u32* out,
+                                         u32 cap) {
     u32 q = blockIdx.x * blockDim.x + threadIdx.x;
     if (q >= nq) return;
     const float* qb = qboxes + 6 * (u64)q;
     float b[6];
     for (int k = 0; k < 6; k++) b[k] = qb[k];
     u32 self = exclude_self ? q : NO_SELF;
-    u32 begin = offsets[q], len = offsets[q + 1] - begin;
-    u32 c = 0;
+    u32 begin = offsets[q], end = offsets[q + 1];
+    if (end > cap) return;
+    u32 len = end - begin, c = 0;
     for (u32 t = 0; t < nt && c < len; t++)
         if (t != self && box_overlaps(tboxes + 6 * (u64)t, b)) out[begin + c++] = t;
 }

@@ -30,8 +30,8 @@ extern "C" __global__ void k_narrow_static(u32 n, const Params* kp, const float*
                                            const float* radius, const u8* shape,
                                            const float* spos, const float* shalf,
                                            const float* sradius, const u8* sshape,
-                                           const u32* offsets, const u32* prims, float* acc,
-                                           u8* sup, u32* counters) {
+                                           const u32* offsets, const u32* prims, u32 cap,
+                                           float* acc, u8* sup, u32* counters) {
     u32 i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= n) return;
     const Params k = *kp;
@@ -40,7 +40,10 @@ extern "C" __global__ void k_narrow_static(u32 n, const Params* kp, const float*
     V3 dx = v3(0.0f, 0.0f, 0.0f), dv = v3(0.0f, 0.0f, 0.0f);
     bool supported = false;
     u32 contacts = 0;
-    for (u32 e = offsets[i]; e < offsets[i + 1]; e++) {
+    // A list reaching past `cap` was not written: skip it (the host sees the total,
+    // grows the buffer and redoes the step, discarding this one).
+    u32 end = offsets[i + 1] <= cap ? offsets[i + 1] : offsets[i];
+    for (u32 e = offsets[i]; e < end; e++) {
         u32 p = prims[e];
         Body s = load_body(spos, shalf, sradius, sshape, p);
         Contact c;
@@ -61,8 +64,8 @@ extern "C" __global__ void k_narrow_static(u32 n, const Params* kp, const float*
 extern "C" __global__ void k_narrow_dynamic(u32 n, const Params* kp, const float* pos,
                                             const float* prev, const float* half,
                                             const float* radius, const u8* shape,
-                                            const u32* offsets, const u32* others, float* acc,
-                                            u8* sup, u32* counters) {
+                                            const u32* offsets, const u32* others, u32 cap,
+                                            float* acc, u8* sup, u32* counters) {
     u32 i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= n) return;
     const Params k = *kp;
@@ -71,7 +74,8 @@ extern "C" __global__ void k_narrow_dynamic(u32 n, const Params* kp, const float
     V3 dx = load3(acc, 2 * i), dv = load3(acc, 2 * i + 1);
     bool supported = sup[i] != 0;
     u32 contacts = 0;
-    for (u32 e = offsets[i]; e < offsets[i + 1]; e++) {
+    u32 end = offsets[i + 1] <= cap ? offsets[i + 1] : offsets[i];
+    for (u32 e = offsets[i]; e < end; e++) {
         u32 j = others[e];
         Body other = load_body(pos, half, radius, shape, j);
         V3 vo = velocity(pos, prev, j);
@@ -100,21 +104,23 @@ extern "C" __global__ void k_narrow_dynamic(u32 n, const Params* kp, const float
 
 __constant__ u8 NPC_MOVES[9] = {0, 1, 2, 4, 8, 1 | 4, 1 | 8, 2 | 4, 2 | 8};
 
-extern "C" __global__ void k_forces(u32 n, const Params* kp, u64 seed, u64 tick, float* pos,
-                                    float* prev, const float* half, const u8* kind, const u32* id,
-                                    u8* action, u8* flags, const float* acc, const u8* sup,
+// `period` and `turn_phase` come from the host's NpcTurn::at(tick, period): an NPC turns
+// at this tick when its own phase equals `turn_phase`.
+extern "C" __global__ void k_forces(u32 n, const Params* kp, u64 seed, u64 tick, u32 period,
+                                    u32 turn_phase, float* pos, float* prev, const float* half,
+                                    const u8* kind, const u32* id, u8* action, u8* flags,
+                                    const float* acc, const u8* sup,
                                     const unsigned short* samples) {
     u32 i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= n) return;
     const Params k = *kp;
     u8 act = action[i];
     if (kind[i] == 0) {
-        // integrate::npc_action.
-        u64 period = k.npc_period;
-        u64 phase = hash3(seed, id[i], ~0ull) % period;
-        if ((tick + phase) % period == 0) {
+        // integrate::NpcTurn::action: Lemire's multiply-shift, no division.
+        u32 phase = (u32)(((hash3(seed, id[i], ~0ull) >> 32) * (u64)period) >> 32);
+        if (phase == turn_phase) {
             u64 r = hash3(seed, id[i], tick);
-            act = NPC_MOVES[r % 9] | (((r >> 32) & 15) == 0 ? 16 : 0);
+            act = NPC_MOVES[((r >> 32) * 9ull) >> 32] | ((r & 15) == 0 ? 16 : 0);
         }
     }
     V3 p = load3(pos, i), pv = load3(prev, i), h = load3(half, i);

@@ -27,6 +27,7 @@ use std::time::Instant;
 
 use cudarc::driver::sys::CUdeviceptr;
 use myriad_core::{Aabb, Vec3, World};
+use myriad_physics::integrate::NpcTurn;
 use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, Stage, StepReport, TickConstants};
 
@@ -203,17 +204,19 @@ enum Targets<'a> {
     All(usize, CUdeviceptr),
 }
 
+/// Query boxes: `n` boxes at `boxes`, visited in the order `order` (0: in index order).
+#[derive(Clone, Copy)]
+struct Queries {
+    n: usize,
+    boxes: CUdeviceptr,
+    order: CUdeviceptr,
+}
+
 /// The count pass: `counts[q]` = targets overlapping query box `q`; `counts[nq]` = 0.
-fn count_pass(
-    gpu: &Gpu,
-    nq: usize,
-    qboxes: CUdeviceptr,
-    exclude_self: bool,
-    t: Targets,
-    counts: CUdeviceptr,
-) -> Result<(), PhysicsError> {
+fn count_pass(gpu: &Gpu, qs: Queries, exclude_self: bool, t: Targets, counts: CUdeviceptr) -> Result<(), PhysicsError> {
+    let nq = qs.n;
     gpu.zero(counts + 4 * nq as u64, 4)?;
-    let (q, qb, ex) = (Arg::U(nq as u32), Arg::P(qboxes), Arg::U(exclude_self as u32));
+    let (q, qb, ex) = (Arg::U(nq as u32), Arg::P(qs.boxes), Arg::U(exclude_self as u32));
     match t {
         Targets::Tree(tree, tb) => gpu.launch(
             "k_tree_count",
@@ -221,6 +224,7 @@ fn count_pass(
             &[
                 q,
                 qb,
+                Arg::P(qs.order),
                 ex,
                 Arg::P(tree.nodes.ptr),
                 Arg::P(tree.order.ptr),
@@ -235,17 +239,20 @@ fn count_pass(
     }
 }
 
-/// The write pass: each query's sorted targets at `out[offsets[q]..offsets[q + 1]]`.
+/// The write pass: each query's sorted targets at `out[offsets[q]..offsets[q + 1]]`,
+/// for the queries whose range ends within `out`'s capacity.
 fn write_pass(
     gpu: &Gpu,
-    nq: usize,
-    qboxes: CUdeviceptr,
+    qs: Queries,
     exclude_self: bool,
     t: Targets,
     offsets: CUdeviceptr,
-    out: CUdeviceptr,
+    out: &DevBuf,
 ) -> Result<(), PhysicsError> {
-    let (q, qb, ex) = (Arg::U(nq as u32), Arg::P(qboxes), Arg::U(exclude_self as u32));
+    let nq = qs.n;
+    let (q, qb, ex) = (Arg::U(nq as u32), Arg::P(qs.boxes), Arg::U(exclude_self as u32));
+    let cap = Arg::U(out.capacity::<u32>());
+    let out = out.ptr;
     match t {
         Targets::Tree(tree, tb) => gpu.launch(
             "k_tree_write",
@@ -253,6 +260,7 @@ fn write_pass(
             &[
                 q,
                 qb,
+                Arg::P(qs.order),
                 ex,
                 Arg::P(tree.nodes.ptr),
                 Arg::P(tree.order.ptr),
@@ -260,11 +268,14 @@ fn write_pass(
                 Arg::P(tb),
                 Arg::P(offsets),
                 Arg::P(out),
+                cap,
             ],
         ),
-        Targets::All(nt, tb) => {
-            gpu.launch("k_naive_write", nq, &[q, qb, ex, Arg::U(nt as u32), Arg::P(tb), Arg::P(offsets), Arg::P(out)])
-        }
+        Targets::All(nt, tb) => gpu.launch(
+            "k_naive_write",
+            nq,
+            &[q, qb, ex, Arg::U(nt as u32), Arg::P(tb), Arg::P(offsets), Arg::P(out), cap],
+        ),
     }
 }
 
@@ -307,18 +318,32 @@ struct Host {
     aoi_objects: Pinned,
 }
 
-fn flat3(v: &[Vec3]) -> Vec<f32> {
-    v.iter().flat_map(|p| p.to_array()).collect()
+// glam's Vec3 is `#[repr(C)] { x, y, z }` of f32: three packed floats.
+const _: () = assert!(std::mem::size_of::<Vec3>() == 12 && std::mem::align_of::<Vec3>() == 4);
+
+/// The vectors as packed floats (x, y, z, x, ...), without copying.
+fn flat3(v: &[Vec3]) -> &[f32] {
+    // SAFETY: Vec3 is repr(C) of three f32 with no padding (asserted above), so the
+    // slice's memory is exactly `3 * len` initialised, aligned f32 values.
+    unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f32, v.len() * 3) }
+}
+
+/// [`flat3`] for writing.
+fn flat3_mut(v: &mut [Vec3]) -> &mut [f32] {
+    // SAFETY: as in `flat3`; the borrow is unique.
+    unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr() as *mut f32, v.len() * 3) }
 }
 
 /// A CUDA backend: `cuda` (LBVH) or `cuda-naive` (all pairs).
 pub struct CudaBackend {
     kind: BackendKind,
     n: usize,
-    /// (generation, layout generation) of the dynamics the device holds.
-    synced: Option<(u64, u64)>,
-    /// (generation, primitive count) of the statics the device holds.
-    statics_key: Option<(u64, usize)>,
+    /// (generation, layout generation, address of the id vector) of the dynamics the
+    /// device holds. The address tells two worlds with equal counters apart.
+    synced: Option<(u64, u64, usize)>,
+    /// (generation, primitive count, address of the positions) of the statics on the
+    /// device.
+    statics_key: Option<(u64, usize, usize)>,
     /// (address, length) of the terrain samples uploaded.
     terrain_key: Option<(usize, usize)>,
     params_key: Option<DeviceParams>,
@@ -411,8 +436,9 @@ impl CudaBackend {
             return Err(PhysicsError::TooManyObjects { count: n, max: LEAF_LIMIT });
         }
         let (generation, layout) = (d.generation(), d.layout_generation());
+        let identity = d.ids().as_ptr() as usize;
         let o = &mut self.obj;
-        if self.synced.map(|s| s.1) != Some(layout) || self.n != n {
+        if self.synced.map(|s| (s.1, s.2)) != Some((layout, identity)) || self.n != n {
             // Objects came or went: slots changed meaning, upload everything.
             for b in [&mut o.pos, &mut o.prev, &mut o.half] {
                 b.ensure(gpu, n * 12, 1.25)?;
@@ -429,7 +455,7 @@ impl CudaBackend {
             for b in [&mut o.shape, &mut o.kind, &mut o.action, &mut o.flags, &mut o.sup] {
                 b.ensure(gpu, n, 1.25)?;
             }
-            gpu.upload(&o.half, &flat3(d.half_extents()))?;
+            gpu.upload(&o.half, flat3(d.half_extents()))?;
             gpu.upload(&o.radius, d.radii())?;
             gpu.upload(&o.shape, &d.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
             gpu.upload(&o.kind, &d.kinds().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
@@ -438,16 +464,16 @@ impl CudaBackend {
             self.synced = None;
         }
         if self.synced.map(|s| s.0) != Some(generation) {
-            gpu.upload(&o.pos, &flat3(d.positions()))?;
-            gpu.upload(&o.prev, &flat3(d.prev_positions()))?;
+            gpu.upload(&o.pos, flat3(d.positions()))?;
+            gpu.upload(&o.prev, flat3(d.prev_positions()))?;
             gpu.upload(&o.action, d.actions())?;
             gpu.upload(&o.flags, d.flags())?;
             self.boxes_fresh = None;
         }
-        self.synced = Some((generation, layout));
+        self.synced = Some((generation, layout, identity));
 
         let st = &world.statics;
-        let key = (st.generation(), st.prim_count());
+        let key = (st.generation(), st.prim_count(), st.positions().as_ptr() as usize);
         if self.statics_key != Some(key) {
             let m = st.prim_count();
             let p = &mut self.prims;
@@ -457,8 +483,8 @@ impl CudaBackend {
             p.boxes.ensure(gpu, m * 24, 1.25)?;
             p.radius.ensure(gpu, m * 4, 1.25)?;
             p.shape.ensure(gpu, m, 1.25)?;
-            gpu.upload(&p.pos, &flat3(st.positions()))?;
-            gpu.upload(&p.half, &flat3(st.half_extents()))?;
+            gpu.upload(&p.pos, flat3(st.positions()))?;
+            gpu.upload(&p.half, flat3(st.half_extents()))?;
             gpu.upload(&p.radius, st.radii())?;
             gpu.upload(&p.shape, &st.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
             p.count = m;
@@ -525,7 +551,27 @@ impl CudaBackend {
         }
     }
 
+    /// The dynamic objects as queries, in the dynamic tree's leaf order for `cuda`.
+    fn object_queries(&self) -> Queries {
+        let order = if self.naive() { 0 } else { self.dyn_tree.order.ptr };
+        Queries { n: self.n, boxes: self.obj.boxes.ptr, order }
+    }
+
     fn step_impl(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
+        // A step whose pair lists outgrew their buffers is redone once with buffers of
+        // the exact size (the world is only written after a complete step).
+        match self.try_step(world, k)? {
+            Some(report) => Ok(report),
+            None => self.try_step(world, k)?.ok_or(PhysicsError::Device {
+                stage: "broad phase",
+                message: "pair buffers still too small after growing them to the exact count".into(),
+            }),
+        }
+    }
+
+    /// One step, or `None` (world untouched) when a pair list did not fit: the buffers are
+    /// then grown to the exact totals and the device state is marked for re-upload.
+    fn try_step(&mut self, world: &mut World, k: &TickConstants) -> Result<Option<StepReport>, PhysicsError> {
         let wall = Instant::now();
         self.gpu.bind()?;
         let mut report = StepReport::default();
@@ -535,36 +581,31 @@ impl CudaBackend {
         if n == 0 {
             world.tick += 1;
             report.stage_ms[Stage::Upload as usize] = wall.elapsed().as_secs_f64() * 1e3;
-            return Ok(report);
+            return Ok(Some(report));
         }
         let ev = |s: &Self, i: usize| s.gpu.record(s.events[i].raw);
         ev(self, 1)?;
         self.build_dynamic(world)?;
         ev(self, 2)?;
 
-        let (sc, dc, boxes) = (self.obj.static_counts.ptr, self.obj.dynamic_counts.ptr, self.obj.boxes.ptr);
-        count_pass(&self.gpu, n, boxes, false, self.static_targets(), sc)?;
+        let (sc, dc) = (self.obj.static_counts.ptr, self.obj.dynamic_counts.ptr);
+        let qs = self.object_queries();
+        count_pass(&self.gpu, qs, false, self.static_targets(), sc)?;
         self.scan.exclusive(&self.gpu, sc, n + 1)?;
         ev(self, 3)?;
-        count_pass(&self.gpu, n, boxes, true, self.dynamic_targets(), dc)?;
+        count_pass(&self.gpu, qs, true, self.dynamic_targets(), dc)?;
         self.scan.exclusive(&self.gpu, dc, n + 1)?;
         ev(self, 4)?;
-        // The exact totals size the pair buffers before anything is written.
-        self.host.small.ensure(&self.gpu, 64)?;
-        self.gpu.download_async::<u32>(&mut self.host.small, 0, sc + 4 * n as u64, 1)?;
-        self.gpu.download_async::<u32>(&mut self.host.small, 1, dc + 4 * n as u64, 1)?;
-        self.gpu.sync()?;
-        let totals: [u32; 2] = {
-            let s = self.host.small.slice::<u32>(2);
-            [s[0], s[1]]
-        };
-        self.static_pairs.ensure(&self.gpu, totals[0] as usize * 4, 1.25)?;
-        self.dynamic_pairs.ensure(&self.gpu, totals[1] as usize * 4, 1.25)?;
+        // No wait for the totals here: the write passes fill what fits, and the totals
+        // come back with the state at the end of the step.
+        self.static_pairs.ensure(&self.gpu, 4 * n, 1.0)?;
+        self.dynamic_pairs.ensure(&self.gpu, 4 * n, 1.0)?;
         ev(self, 5)?;
-        write_pass(&self.gpu, n, boxes, false, self.static_targets(), sc, self.static_pairs.ptr)?;
+        write_pass(&self.gpu, qs, false, self.static_targets(), sc, &self.static_pairs)?;
         ev(self, 6)?;
-        write_pass(&self.gpu, n, boxes, true, self.dynamic_targets(), dc, self.dynamic_pairs.ptr)?;
+        write_pass(&self.gpu, qs, true, self.dynamic_targets(), dc, &self.dynamic_pairs)?;
         ev(self, 7)?;
+        let caps = [self.static_pairs.capacity::<u32>(), self.dynamic_pairs.capacity::<u32>()];
 
         self.counters.ensure(&self.gpu, 16, 1.0)?;
         self.gpu.zero(self.counters.ptr, 8)?;
@@ -591,6 +632,7 @@ impl CudaBackend {
                 Arg::P(p.shape.ptr),
                 Arg::P(sc),
                 Arg::P(self.static_pairs.ptr),
+                Arg::U(caps[0]),
                 acc,
                 sup,
                 counters,
@@ -600,9 +642,24 @@ impl CudaBackend {
         self.gpu.launch(
             "k_narrow_dynamic",
             n,
-            &[nn, kp, pos, prev, half, radius, shape, Arg::P(dc), Arg::P(self.dynamic_pairs.ptr), acc, sup, counters],
+            &[
+                nn,
+                kp,
+                pos,
+                prev,
+                half,
+                radius,
+                shape,
+                Arg::P(dc),
+                Arg::P(self.dynamic_pairs.ptr),
+                Arg::U(caps[1]),
+                acc,
+                sup,
+                counters,
+            ],
         )?;
         ev(self, 9)?;
+        let turn = NpcTurn::at(world.tick, k.npc_period);
         self.gpu.launch(
             "k_forces",
             n,
@@ -611,6 +668,8 @@ impl CudaBackend {
                 kp,
                 Arg::L(world.seed),
                 Arg::L(world.tick),
+                Arg::U(turn.period),
+                Arg::U(turn.phase),
                 pos,
                 prev,
                 half,
@@ -634,27 +693,38 @@ impl CudaBackend {
         gpu.download_async::<f32>(&mut h.prev, 0, o.prev.ptr, 3 * n)?;
         gpu.download_async::<u8>(&mut h.action, 0, o.action.ptr, n)?;
         gpu.download_async::<u8>(&mut h.flags, 0, o.flags.ptr, n)?;
+        h.small.ensure(gpu, 64)?;
         gpu.download_async::<u32>(&mut h.small, 0, self.counters.ptr, 2)?;
+        gpu.download_async::<u32>(&mut h.small, 2, sc + 4 * n as u64, 1)?;
+        gpu.download_async::<u32>(&mut h.small, 3, dc + 4 * n as u64, 1)?;
         gpu.record(self.events[11].raw)?;
         gpu.sync()?;
+        gpu.collect_profile()?;
 
-        let contacts = h.small.slice::<u32>(2);
+        let small = h.small.slice::<u32>(4);
+        let (contacts, totals) = ([small[0], small[1]], [small[2], small[3]]);
+        if totals[0] > caps[0] || totals[1] > caps[1] {
+            // Some list did not fit: grow to the exact totals and redo from the world,
+            // which this step has not touched.
+            self.static_pairs.ensure(gpu, totals[0] as usize * 4, 1.0)?;
+            self.dynamic_pairs.ensure(gpu, totals[1] as usize * 4, 1.0)?;
+            self.synced = None;
+            return Ok(None);
+        }
         report.static_pairs = totals[0] as u64;
         report.dynamic_pairs = totals[1] as u64 / 2;
         report.static_contacts = contacts[0] as u64;
         report.dynamic_contacts = contacts[1] as u64;
         {
             let st = world.dynamics.state_mut();
-            let (hp, hq) = (h.pos.slice::<f32>(3 * n), h.prev.slice::<f32>(3 * n));
-            for (i, (p, q)) in st.pos.iter_mut().zip(st.prev.iter_mut()).enumerate() {
-                *p = Vec3::new(hp[3 * i], hp[3 * i + 1], hp[3 * i + 2]);
-                *q = Vec3::new(hq[3 * i], hq[3 * i + 1], hq[3 * i + 2]);
-            }
+            flat3_mut(st.pos).copy_from_slice(h.pos.slice::<f32>(3 * n));
+            flat3_mut(st.prev).copy_from_slice(h.prev.slice::<f32>(3 * n));
             st.action.copy_from_slice(h.action.slice::<u8>(n));
             st.flags.copy_from_slice(h.flags.slice::<u8>(n));
         }
         world.tick += 1;
-        self.synced = Some((world.dynamics.generation(), world.dynamics.layout_generation()));
+        let d = &world.dynamics;
+        self.synced = Some((d.generation(), d.layout_generation(), d.ids().as_ptr() as usize));
         self.boxes_fresh = None;
 
         let e = &self.events;
@@ -669,7 +739,7 @@ impl CudaBackend {
         let device: f64 = ms.iter().sum();
         let wall_ms = wall.elapsed().as_secs_f64() * 1e3;
         ms[Stage::Upload as usize] = t(0, 1)? + t(10, 11)? + (wall_ms - device - t(0, 1)? - t(10, 11)?).max(0.0);
-        Ok(report)
+        Ok(Some(report))
     }
 
     /// The candidate pairs of the world as it is, without stepping: static pairs as
@@ -693,10 +763,11 @@ impl CudaBackend {
         }
         self.build_dynamic(world)?;
         self.boxes_fresh = Some(world.dynamics.generation());
-        let (sc, dc, boxes) = (self.obj.static_counts.ptr, self.obj.dynamic_counts.ptr, self.obj.boxes.ptr);
-        count_pass(&self.gpu, n, boxes, false, self.static_targets(), sc)?;
+        let (sc, dc) = (self.obj.static_counts.ptr, self.obj.dynamic_counts.ptr);
+        let qs = self.object_queries();
+        count_pass(&self.gpu, qs, false, self.static_targets(), sc)?;
         self.scan.exclusive(&self.gpu, sc, n + 1)?;
-        count_pass(&self.gpu, n, boxes, true, self.dynamic_targets(), dc)?;
+        count_pass(&self.gpu, qs, true, self.dynamic_targets(), dc)?;
         self.scan.exclusive(&self.gpu, dc, n + 1)?;
         let mut lists = Vec::new();
         for (counts, exclude_self) in [(sc, false), (dc, true)] {
@@ -709,7 +780,7 @@ impl CudaBackend {
             let mut out = DevBuf::empty();
             out.ensure(&self.gpu, total * 4, 1.0)?;
             let targets = if exclude_self { self.dynamic_targets() } else { self.static_targets() };
-            write_pass(&self.gpu, n, boxes, exclude_self, targets, counts, out.ptr)?;
+            write_pass(&self.gpu, qs, exclude_self, targets, counts, &out)?;
             let mut host = Pinned::empty();
             host.ensure(&self.gpu, total * 4)?;
             self.gpu.download_async::<u32>(&mut host, 0, out.ptr, total)?;
@@ -753,21 +824,31 @@ impl CudaBackend {
         self.aoi_counts.ensure(gpu, (nq + 1) * 4, 1.25)?;
         let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
         gpu.upload(&self.aoi_boxes, &flat)?;
-        count_pass(gpu, nq, self.aoi_boxes.ptr, false, self.dynamic_targets(), self.aoi_counts.ptr)?;
+        let qs = Queries { n: nq, boxes: self.aoi_boxes.ptr, order: 0 };
+        count_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr)?;
         self.scan.exclusive(gpu, self.aoi_counts.ptr, nq + 1)?;
         self.host.aoi_offsets.ensure(gpu, (nq + 1) * 4)?;
         gpu.download_async::<u32>(&mut self.host.aoi_offsets, 0, self.aoi_counts.ptr, nq + 1)?;
         gpu.sync()?;
         let total = self.host.aoi_offsets.slice::<u32>(nq + 1)[nq] as usize;
         self.aoi_out.ensure(gpu, total * 4, 1.25)?;
-        write_pass(gpu, nq, self.aoi_boxes.ptr, false, self.dynamic_targets(), self.aoi_counts.ptr, self.aoi_out.ptr)?;
+        write_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr, &self.aoi_out)?;
         let h = &mut self.host;
         h.aoi_objects.ensure(gpu, total * 4)?;
         gpu.download_async::<u32>(&mut h.aoi_objects, 0, self.aoi_out.ptr, total)?;
         gpu.sync()?;
+        gpu.collect_profile()?;
         out.offsets.extend_from_slice(h.aoi_offsets.slice::<u32>(nq + 1));
         out.objects.extend_from_slice(h.aoi_objects.slice::<u32>(total));
         Ok(())
+    }
+}
+
+impl Drop for CudaBackend {
+    fn drop(&mut self) {
+        if let Some(table) = self.gpu.profile_table() {
+            eprintln!("per-kernel device time, {} ({} objects):\n{table}", self.description(), self.n);
+        }
     }
 }
 

@@ -28,25 +28,44 @@ pub const SOURCES: [(&str, &str); 4] = [
 pub const HEADERS: [(&str, &str); 2] =
     [("common.cuh", include_str!("../kernels/common.cuh")), ("narrow.cuh", include_str!("../kernels/narrow.cuh"))];
 
-/// Every kernel entry point the backends load.
-pub const KERNELS: [&str; 16] = [
-    "k_scan_blocks",
-    "k_scan_sums",
-    "k_scan_add",
-    "k_boxes_morton",
-    "k_radix_hist",
-    "k_radix_scatter",
-    "k_emit",
-    "k_refit",
-    "k_tree_count",
-    "k_tree_write",
-    "k_naive_count",
-    "k_naive_write",
-    "k_boxes",
-    "k_narrow_static",
-    "k_narrow_dynamic",
-    "k_forces",
+/// Every kernel entry point the backends load, with its number of parameters (launches
+/// are checked against it: a raw launch cannot check argument lists otherwise).
+pub const KERNELS: [(&str, usize); 16] = [
+    ("k_scan_blocks", 3),
+    ("k_scan_sums", 2),
+    ("k_scan_add", 3),
+    ("k_boxes_morton", 12),
+    ("k_radix_hist", 5),
+    ("k_radix_scatter", 8),
+    ("k_emit", 5),
+    ("k_refit", 7),
+    ("k_tree_count", 9),
+    ("k_tree_write", 11),
+    ("k_naive_count", 6),
+    ("k_naive_write", 8),
+    ("k_boxes", 4),
+    ("k_narrow_static", 17),
+    ("k_narrow_dynamic", 13),
+    ("k_forces", 16),
 ];
+
+/// The parameter count of each `extern "C" __global__` function in the sources, read
+/// from the text (for checking [`KERNELS`]).
+pub fn declared_kernels() -> Vec<(String, usize)> {
+    let mut out = Vec::new();
+    for (_, text) in SOURCES {
+        let mut rest = text;
+        while let Some(at) = rest.find("extern \"C\" __global__ void ") {
+            rest = &rest[at + "extern \"C\" __global__ void ".len()..];
+            let Some(open) = rest.find('(') else { break };
+            let Some(close) = rest.find(')') else { break };
+            let params = &rest[open + 1..close];
+            out.push((rest[..open].trim().to_string(), params.split(',').filter(|p| !p.trim().is_empty()).count()));
+            rest = &rest[close..];
+        }
+    }
+    out
+}
 
 /// Why the kernels could not be compiled.
 #[derive(Debug, thiserror::Error)]

@@ -2,7 +2,8 @@
 //! host memory. Raw driver calls are used (through cudarc's `result` layer) so that
 //! launches carry no per-launch bookkeeping; every call's status is checked.
 
-use std::collections::HashMap;
+use std::cell::RefCell;
+use std::collections::{BTreeMap, HashMap};
 use std::ffi::{CString, c_void};
 use std::sync::Arc;
 
@@ -67,7 +68,18 @@ pub(crate) struct Gpu {
     pub info: DeviceInfo,
     pub stream: CUstream,
     module: CUmodule,
-    kernels: HashMap<&'static str, CUfunction>,
+    kernels: HashMap<&'static str, (CUfunction, usize)>,
+    /// Per-kernel timing, when `MYRIAD_CUDA_PROFILE=1`.
+    profile: Option<RefCell<Profile>>,
+}
+
+/// Per-kernel device times: an event pair around every launch, folded into totals after
+/// each synchronization. Costs two event records per launch, so it is off by default.
+#[derive(Default)]
+struct Profile {
+    pending: Vec<(&'static str, Event, Event)>,
+    spare: Vec<Event>,
+    totals: BTreeMap<&'static str, (u64, f64)>,
 }
 
 // SAFETY: the stream, module and function handles belong to the context held in `ctx`;
@@ -87,16 +99,17 @@ impl Gpu {
         let module = unsafe { result::module::load_data(cubin.as_ptr() as *const c_void) }
             .map_err(|e| format!("loading the kernels for sm_{}: {e:?}", info.arch))?;
         let mut kernels = HashMap::new();
-        for name in compile::KERNELS {
+        for (name, arity) in compile::KERNELS {
             let c = CString::new(name).map_err(|e| e.to_string())?;
             // SAFETY: `module` was loaded above and is live.
             let f = unsafe { result::module::get_function(module, c) }
                 .map_err(|e| format!("kernel {name} missing from the module: {e:?}"))?;
-            kernels.insert(name, f);
+            kernels.insert(name, (f, arity));
         }
         let stream = result::stream::create(result::stream::StreamKind::NonBlocking)
             .map_err(|e| format!("creating a stream: {e:?}"))?;
-        Ok(Gpu { ctx, info, stream, module, kernels })
+        let profile = std::env::var("MYRIAD_CUDA_PROFILE").is_ok_and(|v| v == "1").then(RefCell::default);
+        Ok(Gpu { ctx, info, stream, module, kernels, profile })
     }
 
     /// Makes the context current on the calling thread.
@@ -109,8 +122,14 @@ impl Gpu {
         if grid == 0 {
             return Ok(());
         }
-        let f =
+        let (f, arity) =
             *self.kernels.get(name).ok_or(PhysicsError::Device { stage: name, message: "unknown kernel".into() })?;
+        if args.len() != arity {
+            return Err(PhysicsError::Device {
+                stage: name,
+                message: format!("{} arguments for {arity} parameters", args.len()),
+            });
+        }
         // Each argument lives in an 8-byte slot; the driver reads as many bytes as the
         // kernel's parameter has (4 for u32/f32, little-endian low bytes).
         let mut store: Vec<u64> = args
@@ -123,11 +142,61 @@ impl Gpu {
             })
             .collect();
         let mut ptrs: Vec<*mut c_void> = store.iter_mut().map(|s| s as *mut u64 as *mut c_void).collect();
+        let timing = match &self.profile {
+            Some(p) => {
+                let mut p = p.borrow_mut();
+                let start = match p.spare.pop() {
+                    Some(e) => e,
+                    None => Event::new(self)?,
+                };
+                let end = match p.spare.pop() {
+                    Some(e) => e,
+                    None => Event::new(self)?,
+                };
+                self.record(start.raw)?;
+                Some((start, end))
+            }
+            None => None,
+        };
         // SAFETY: `f` comes from the loaded module; the argument slots match the kernel's
         // parameter list (each call site passes them in the kernel's order) and live
         // until the launch call returns (the driver copies them).
         unsafe { result::launch_kernel(f, (grid, 1, 1), (block, 1, 1), 0, self.stream, &mut ptrs) }
-            .map_err(dev_err(name))
+            .map_err(dev_err(name))?;
+        if let (Some((start, end)), Some(p)) = (timing, &self.profile) {
+            self.record(end.raw)?;
+            p.borrow_mut().pending.push((name, start, end));
+        }
+        Ok(())
+    }
+
+    /// Folds the kernel times recorded since the last call into the totals (after a
+    /// synchronize; nothing to do unless profiling).
+    pub fn collect_profile(&self) -> Result<(), PhysicsError> {
+        let Some(p) = &self.profile else { return Ok(()) };
+        let mut p = p.borrow_mut();
+        let pending = std::mem::take(&mut p.pending);
+        for (name, start, end) in pending {
+            let ms = start.ms_to(&end)?;
+            let t = p.totals.entry(name).or_default();
+            t.0 += 1;
+            t.1 += ms;
+            p.spare.push(start);
+            p.spare.push(end);
+        }
+        Ok(())
+    }
+
+    /// The per-kernel table (launches, total and mean device time), when profiling.
+    pub fn profile_table(&self) -> Option<String> {
+        let p = self.profile.as_ref()?.borrow();
+        let mut rows: Vec<_> = p.totals.iter().collect();
+        rows.sort_by(|a, b| b.1.1.total_cmp(&a.1.1));
+        let mut s = String::from("| kernel | launches | total ms | mean us |\n| --- | ---: | ---: | ---: |\n");
+        for (name, (count, ms)) in rows {
+            s.push_str(&format!("| {name} | {count} | {ms:.3} | {:.2} |\n", ms * 1e3 / *count as f64));
+        }
+        Some(s)
     }
 
     /// Launches kernel `name` with one thread per item, 256 a block.
@@ -151,8 +220,8 @@ impl Gpu {
         unsafe { result::memset_d8_async(dst, 0, bytes, self.stream) }.map_err(dev_err("memset"))
     }
 
-    /// Copies a host slice to device memory (ordered on the stream; the call returns once
-    /// the source may be reused).
+    /// Copies a host slice to device memory, ordered on the stream; the call returns once
+    /// the source may be reused.
     pub fn upload<T>(&self, dst: &DevBuf, src: &[T]) -> Result<(), PhysicsError> {
         let bytes = std::mem::size_of_val(src);
         if bytes == 0 {
@@ -161,14 +230,16 @@ impl Gpu {
         if bytes > dst.bytes {
             return Err(PhysicsError::Device { stage: "upload", message: format!("{bytes} bytes into {}", dst.bytes) });
         }
-        // SAFETY: the destination holds at least `bytes` bytes (checked). Pageable
-        // memory: the driver stages the copy, so `src` may be reused once it returns; the
-        // synchronize keeps it ordered with this stream's earlier work.
+        // SAFETY: the destination holds at least `bytes` bytes (checked). The copy is
+        // ordered on this backend's stream: a plain cuMemcpyHtoD runs on the legacy
+        // stream and, from pageable memory, may return before its DMA lands, after
+        // kernels queued here already read the buffer (seen: stale NPC ids on the first
+        // tick). Waiting for the stream keeps `src` alive until the copy is done; uploads
+        // happen only when the host changed the world, so the wait is rare.
         unsafe {
-            result::stream::synchronize(self.stream).map_err(dev_err("upload"))?;
-            result::memcpy_htod_sync(dst.ptr, src)
+            result::memcpy_htod_async(dst.ptr, src, self.stream).map_err(dev_err("upload"))?;
+            result::stream::synchronize(self.stream).map_err(dev_err("upload"))
         }
-        .map_err(dev_err("upload"))
     }
 
     /// Queues a copy of `count` items of type `T` from device memory into pinned host
@@ -209,6 +280,10 @@ impl Gpu {
 
 impl Drop for Gpu {
     fn drop(&mut self) {
+        if let Some(p) = self.profile.take() {
+            // Events first, while the context is alive.
+            drop(p);
+        }
         if self.ctx.bind_to_thread().is_ok() {
             // SAFETY: the handles were created by this value and are not used after.
             unsafe {
@@ -231,6 +306,11 @@ impl DevBuf {
     /// An empty buffer.
     pub fn empty() -> DevBuf {
         DevBuf { ptr: 0, bytes: 0, ctx: None }
+    }
+
+    /// How many items of `T` fit (at most `u32::MAX`).
+    pub fn capacity<T>(&self) -> u32 {
+        (self.bytes / std::mem::size_of::<T>()).min(u32::MAX as usize) as u32
     }
 
     /// Makes room for `bytes` bytes, reallocating with `headroom` (e.g. 1.25) when it has

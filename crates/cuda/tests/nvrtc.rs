@@ -37,6 +37,15 @@ fn a_broken_kernel_reports_the_compiler_log() {
 }
 
 #[test]
+fn the_launch_table_matches_the_kernel_sources() {
+    let mut declared = compile::declared_kernels();
+    declared.sort();
+    let mut table: Vec<(String, usize)> = compile::KERNELS.iter().map(|(n, a)| (n.to_string(), *a)).collect();
+    table.sort();
+    assert_eq!(declared, table);
+}
+
+#[test]
 fn cache_keys_depend_on_the_architecture() {
     assert_ne!(compile::cache_key(90), compile::cache_key(80));
     assert_eq!(compile::cache_key(90), compile::cache_key(90));

@@ -118,6 +118,33 @@ impl Store {
         Ok(LoginInfo { user_id: user.id, username: user.username, state })
     }
 
+    /// Replaces a user's password (for an admin command; the caller has authorised it).
+    /// Fails with [`StoreError::NotFound`] for an unknown user.
+    pub async fn set_password(&self, username: &str, new_password: &str) -> Result<()> {
+        validate_username(username)?;
+        validate_password(new_password)?;
+        let hash = password::hash_password(self.hash_cost, new_password).await?;
+        let done = sqlx::query("UPDATE users SET password_hash = ? WHERE username = ?")
+            .bind(hash)
+            .bind(username)
+            .execute(&self.pool)
+            .await?;
+        if done.rows_affected() == 0 {
+            return Err(StoreError::NotFound(format!("user {username:?}")));
+        }
+        Ok(())
+    }
+
+    /// Deletes a user and, by cascade, their player states. Fails with
+    /// [`StoreError::NotFound`] for an unknown user.
+    pub async fn delete_user(&self, username: &str) -> Result<()> {
+        let done = sqlx::query("DELETE FROM users WHERE username = ?").bind(username).execute(&self.pool).await?;
+        if done.rows_affected() == 0 {
+            return Err(StoreError::NotFound(format!("user {username:?}")));
+        }
+        Ok(())
+    }
+
     /// Creates the reference's test users `user<i>` with password `password<i>` for
     /// `i` in `0..count`. Existing users are skipped (their passwords are not reset), so
     /// calling it again is harmless.

@@ -19,6 +19,7 @@ backend_tests!(
     seed_users_is_idempotent,
     reopening_keeps_data,
     unknown_user_takes_as_long_as_a_wrong_password,
+    password_change_and_user_deletion,
 );
 
 fn sphere(r: f32) -> Shape {
@@ -426,4 +427,28 @@ async fn sqlite_data_dir_is_created_with_wal() {
     // WAL mode leaves a -wal file next to the database while connections are open.
     assert!(data.join(format!("{SQLITE_FILE_NAME}-wal")).exists());
     store.close().await;
+}
+
+async fn password_change_and_user_deletion(db: TestDb) {
+    let user = db.user("ivy").await;
+    let map = db.map("admin").await;
+    db.store.create_player_state(&state(user, map, [1.0, 2.0, 3.0], 1)).await.unwrap();
+
+    db.store.set_password("IVY", "new-secret").await.unwrap();
+    let err = db.store.check_credentials("ivy", "pw-ivy").await.unwrap_err();
+    assert!(matches!(err, StoreError::WrongCredentials), "{err:?}");
+    assert_eq!(db.store.check_credentials("ivy", "new-secret").await.unwrap().id, user);
+    let err = db.store.set_password("nobody", "x").await.unwrap_err();
+    assert!(matches!(err, StoreError::NotFound(_)), "{err:?}");
+    let err = db.store.set_password("ivy", "").await.unwrap_err();
+    assert!(matches!(err, StoreError::InvalidInput(_)), "{err:?}");
+
+    db.store.delete_user("ivy").await.unwrap();
+    assert!(db.store.find_user("ivy").await.unwrap().is_none());
+    // The player's state went with the user (foreign key cascade).
+    assert!(db.store.find_player_state(user, map).await.unwrap().is_none());
+    let err = db.store.delete_user("ivy").await.unwrap_err();
+    assert!(matches!(err, StoreError::NotFound(_)), "{err:?}");
+    // The name is free again.
+    db.store.create_user("ivy", "again").await.unwrap();
 }

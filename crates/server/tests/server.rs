@@ -316,3 +316,109 @@ fn two_hundred_bots_end_to_end() {
     assert_eq!(server.players(), 0, "every bot said goodbye");
     server.shutdown().unwrap();
 }
+
+/// A port free right now on loopback (for tests that restart a server on the same ports).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+#[test]
+fn client_reconnects_after_server_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let (login, udp) = (free_port(), free_port());
+    let cfg = ServerConfig {
+        login_addr: format!("127.0.0.1:{login}").parse().unwrap(),
+        udp_addr: format!("127.0.0.1:{udp}").parse().unwrap(),
+        ..config(dir.path())
+    };
+    let rt = runtime();
+    seed(&rt, &cfg, 1);
+    let server = ServerHandle::start(cfg.clone()).unwrap();
+    let cc = client(&server);
+    let mut c = rt.block_on(async {
+        let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
+        wait_own_position(&mut c).await;
+        c
+    });
+    server.shutdown().unwrap();
+    rt.block_on(async {
+        let end = Instant::now() + Duration::from_secs(3);
+        while c.disconnected().is_none() && Instant::now() < end {
+            let _ = c.recv(Duration::from_millis(50)).await;
+        }
+        assert_eq!(c.disconnected(), Some(DisconnectReason::Shutdown), "told about the shutdown");
+    });
+    let server = ServerHandle::start(cfg).unwrap();
+    rt.block_on(async {
+        c.reconnect().await.unwrap();
+        assert!(c.mirror().is_empty(), "a fresh mirror after a new login");
+        wait_own_position(&mut c).await;
+        assert_eq!(c.stats().reconnects, 1);
+        assert_eq!(c.stats().decode_errors, 0);
+    });
+    server.shutdown().unwrap();
+}
+
+#[test]
+fn unauthenticated_datagrams_get_no_reply() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let rt = runtime();
+    seed(&rt, &cfg, 1);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    rt.block_on(async {
+        // A real session exists, so its id is live: forge datagrams carrying it.
+        let c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
+        let session = c.accepted().keys.session_id;
+        let probe = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        probe.connect(server.udp_addr()).await.unwrap();
+        let mut forged = vec![1u8, 0x03];
+        forged.extend_from_slice(&session.to_le_bytes());
+        forged.extend_from_slice(&0u64.to_le_bytes());
+        forged.extend_from_slice(&[0u8; 16]);
+        for d in [vec![], vec![0xff; 5], vec![0u8; 1200], forged] {
+            probe.send(&d).await.unwrap();
+        }
+        let mut buf = [0u8; 2048];
+        let got = tokio::time::timeout(Duration::from_millis(700), probe.recv(&mut buf)).await;
+        assert!(got.is_err(), "the server answered an unauthenticated datagram");
+    });
+    assert_eq!(server.players(), 1, "forged datagrams changed nothing");
+    server.shutdown().unwrap();
+}
+
+#[test]
+fn metrics_endpoint_serves_stage_histograms() {
+    use std::io::{Read, Write};
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    // The only test that installs the process-wide metrics recorder.
+    let cfg = ServerConfig { metrics_addr: Some(format!("127.0.0.1:{port}").parse().unwrap()), ..config(dir.path()) };
+    let rt = runtime();
+    seed(&rt, &cfg, 1);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    rt.block_on(async {
+        let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
+        wait_own_position(&mut c).await;
+        walk(&mut c, 0, Duration::from_millis(500)).await;
+    });
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n").unwrap();
+    let mut body = String::new();
+    s.read_to_string(&mut body).unwrap();
+    for needle in [
+        "myriad_tick_duration_seconds_bucket",
+        "myriad_stage_duration_seconds_bucket{stage=\"broad_dynamic\"",
+        "stage=\"packets\"",
+        "stage=\"send\"",
+        "myriad_players 1",
+        "myriad_time_dilation",
+        "myriad_bytes_sent_total",
+        "myriad_logins_total{result=\"ok\"}",
+    ] {
+        assert!(body.contains(needle), "{needle} missing from /metrics:\n{body}");
+    }
+    server.shutdown().unwrap();
+}

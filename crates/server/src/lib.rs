@@ -2,7 +2,7 @@
 //! `myriad demo` are thin front ends).
 //!
 //! - [`config`]: [`ServerConfig`], a TOML file with per-key overrides.
-//! - [`tick`](crate::tick) (private): the tick loop thread that owns the world: receive, step,
+//! - `tick` (private): the tick loop thread that owns the world: receive, step,
 //!   interest, send, persist.
 //! - [`login`]: the TLS login service and its rate limiter.
 //! - [`dilation`]: time dilation under overload.

@@ -36,22 +36,22 @@ fi
 
 if [[ $mode == all || $mode == bench ]]; then
     .carry/myriad bench --scenario 1,2,3 --backend cuda,cuda-naive,cpu --ticks 30 --warmup 3 \
-        --out "$out/bench-ref" > "$out/bench-ref.md" 2> "$out/bench-ref.err" || status=1
+        > "$out/bench-ref.md" 2> "$out/bench.log" || status=1
     sed -n '1,/#### The reference/p' "$out/bench-ref.md"
     # Scale sweep: dynamic N, static N/2, world area grows with N (density of scenario 3:
     # 260k objects on a 1024 x 1024 map).
     for n in 10000 30000 100000 300000 1000000 2000000; do
         size=$(python3 -c "import math; print(round(1024 * math.sqrt($n / 260000), 1))")
         .carry/myriad bench --scenario custom --dynamic $n --static $((n / 2)) --users $((n / 26)) \
-            --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json 2>> "$out/sweep.err"
+            --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json 2>> "$out/bench.log"
     done > "$out/sweep.jsonl" || status=1
     # Per-kernel device times (CUDA events around every launch; slows the step a little).
     MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 3 --backend cuda --ticks 20 --warmup 3 \
-        > /dev/null 2> "$out/profile-s3.txt" || status=1
+        > /dev/null 2> "$out/profile.txt" || status=1
     MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario custom --dynamic 2000000 --static 1000000 \
         --users 76923 --world-size 2840.2 --backend cuda --ticks 10 --warmup 2 \
-        > /dev/null 2> "$out/profile-2m.txt" || status=1
-    grep -A40 "per-kernel" "$out/profile-s3.txt" "$out/profile-2m.txt" | grep "|" | head -40
+        > /dev/null 2>> "$out/profile.txt" || status=1
+    grep -E "per-kernel|^\|" "$out/profile.txt"
     python3 - "$out/sweep.jsonl" <<'PY'
 import json, sys
 print("| dynamic | static objects | total ms | build_dynamic_bvh | broad static | broad dynamic | narrow s+d | forces | upload+host | dyn pairs |")

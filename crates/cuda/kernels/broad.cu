@@ -33,36 +33,51 @@ __device__ __forceinline__ u32 query_index(const u32* qorder, u32 t) {
     return qorder ? qorder[t] : t;
 }
 
+// The count pass also keeps the first `slots` targets of each query in `scratch`
+// (`slots` a query, may be 0): the write pass copies those instead of walking the tree
+// again, and walks it only for the queries with more.
 extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, const u32* qorder,
                                         u32 exclude_self, const Node* nodes, const u32* order,
-                                        u32 nleaves, const float* tboxes, u32* counts) {
+                                        u32 nleaves, const float* tboxes, u32* counts,
+                                        u32* scratch, u32 slots) {
     u32 t = blockIdx.x * blockDim.x + threadIdx.x;
     if (t >= nq) return;
     u32 q = query_index(qorder, t);
     const float* qb = qboxes + 6 * (u64)q;
     float b[6];
     for (int k = 0; k < 6; k++) b[k] = qb[k];
+    u32* keep = scratch + (u64)q * slots;
     u32 c = 0;
-    tree_visit(nodes, order, nleaves, tboxes, b, exclude_self ? q : NO_SELF, [&](u32) { c++; });
+    tree_visit(nodes, order, nleaves, tboxes, b, exclude_self ? q : NO_SELF, [&](u32 target) {
+        if (c < slots) keep[c] = target;
+        c++;
+    });
     counts[q] = c;
 }
 
 extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* qorder,
                                         u32 exclude_self, const Node* nodes, const u32* order,
                                         u32 nleaves, const float* tboxes, const u32* offsets,
-                                        u32* out, u32 cap) {
+                                        u32* out, u32 cap, const u32* scratch, u32 slots) {
     u32 t = blockIdx.x * blockDim.x + threadIdx.x;
     if (t >= nq) return;
     u32 q = query_index(qorder, t);
-    const float* qb = qboxes + 6 * (u64)q;
-    float b[6];
-    for (int k = 0; k < 6; k++) b[k] = qb[k];
     u32 begin = offsets[q], end = offsets[q + 1];
     if (end > cap) return;
     u32* dst = out + begin;
-    u32 len = end - begin, c = 0;
-    tree_visit(nodes, order, nleaves, tboxes, b, exclude_self ? q : NO_SELF, [&](u32 t) {
-        if (c < len) dst[c] = t;
+    u32 len = end - begin;
+    if (len <= slots) {
+        const u32* keep = scratch + (u64)q * slots;
+        for (u32 k = 0; k < len; k++) dst[k] = keep[k];
+        sort_range(dst, len);
+        return;
+    }
+    const float* qb = qboxes + 6 * (u64)q;
+    float b[6];
+    for (int k = 0; k < 6; k++) b[k] = qb[k];
+    u32 c = 0;
+    tree_visit(nodes, order, nleaves, tboxes, b, exclude_self ? q : NO_SELF, [&](u32 target) {
+        if (c < len) dst[c] = target;
         c++;
     });
     sort_range(dst, min(c, len));

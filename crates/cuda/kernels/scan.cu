@@ -40,7 +40,8 @@ extern "C" __global__ void k_scan_blocks(u32* data, u32 len, u32* block_sums) {
     if (threadIdx.x == 0) block_sums[blockIdx.x] = total;
 }
 
-// One block of 1024 threads scans `len` block sums, each thread a contiguous chunk.
+// One block of 1024 threads scans `len` values, each thread a contiguous chunk: used
+// for the block sums, and directly for short arrays (one launch instead of three).
 extern "C" __global__ void k_scan_sums(u32* sums, u32 len) {
     u32 chunk = (len + SCAN_BLOCK - 1) / SCAN_BLOCK;
     u32 begin = min(threadIdx.x * chunk, len), end = min(begin + chunk, len);

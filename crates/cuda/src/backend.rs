@@ -30,6 +30,7 @@ use myriad_core::{Aabb, Vec3, World};
 use myriad_physics::integrate::NpcTurn;
 use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, Stage, StepReport, TickConstants};
+use rayon::prelude::*;
 
 use crate::device::{Arg, DevBuf, Event, Gpu, Pinned};
 use crate::params::DeviceParams;
@@ -39,6 +40,11 @@ const LEAF_LIMIT: usize = (1 << 31) - 1;
 const RADIX_PASSES: u32 = 8;
 const RADIX_TILE: usize = 2048;
 const SCAN_BLOCK: usize = 1024;
+/// Up to this length one block scans the whole array in one launch (4 items a thread),
+/// saving two launches. Not more: each thread reads its items one after the other, and at
+/// 32 items a thread (the 32k-entry radix histogram of 260k keys) this one launch took
+/// 52 us on an H200 where the three launches of the block-parallel scan took 12.6 us.
+const SCAN_ONE_BLOCK: usize = 4 * 1024;
 const NODE_BYTES: usize = 64;
 const EVENTS: usize = 12;
 
@@ -52,6 +58,9 @@ impl Scan {
     fn exclusive(&mut self, gpu: &Gpu, data: CUdeviceptr, len: usize) -> Result<(), PhysicsError> {
         if len == 0 {
             return Ok(());
+        }
+        if len <= SCAN_ONE_BLOCK {
+            return gpu.launch_grid("k_scan_sums", 1, SCAN_BLOCK as u32, &[Arg::P(data), Arg::U(len as u32)]);
         }
         let blocks = len.div_ceil(SCAN_BLOCK);
         self.sums.ensure(gpu, blocks * 4, 1.5)?;
@@ -205,12 +214,19 @@ enum Targets<'a> {
 }
 
 /// Query boxes: `n` boxes at `boxes`, visited in the order `order` (0: in index order).
+/// A tree count pass keeps each query's first `slots` targets at `scratch` (`slots` a
+/// query), so the write pass walks the tree again only for queries with more.
 #[derive(Clone, Copy)]
 struct Queries {
     n: usize,
     boxes: CUdeviceptr,
     order: CUdeviceptr,
+    scratch: CUdeviceptr,
+    slots: u32,
 }
+
+/// Targets kept per object by the count pass: most objects have fewer contacts.
+const SLOTS: u32 = 8;
 
 /// The count pass: `counts[q]` = targets overlapping query box `q`; `counts[nq]` = 0.
 fn count_pass(gpu: &Gpu, qs: Queries, exclude_self: bool, t: Targets, counts: CUdeviceptr) -> Result<(), PhysicsError> {
@@ -231,6 +247,8 @@ fn count_pass(gpu: &Gpu, qs: Queries, exclude_self: bool, t: Targets, counts: CU
                 Arg::U(tree.leaves as u32),
                 Arg::P(tb),
                 Arg::P(counts),
+                Arg::P(qs.scratch),
+                Arg::U(qs.slots),
             ],
         ),
         Targets::All(nt, tb) => {
@@ -269,6 +287,8 @@ fn write_pass(
                 Arg::P(offsets),
                 Arg::P(out),
                 cap,
+                Arg::P(qs.scratch),
+                Arg::U(qs.slots),
             ],
         ),
         Targets::All(nt, tb) => gpu.launch(
@@ -295,6 +315,9 @@ struct Objects {
     sup: DevBuf,
     static_counts: DevBuf,
     dynamic_counts: DevBuf,
+    /// The count passes' kept targets, `SLOTS` an object.
+    static_keep: DevBuf,
+    dynamic_keep: DevBuf,
 }
 
 /// Static primitives on the device.
@@ -326,6 +349,18 @@ fn flat3(v: &[Vec3]) -> &[f32] {
     // SAFETY: Vec3 is repr(C) of three f32 with no padding (asserted above), so the
     // slice's memory is exactly `3 * len` initialised, aligned f32 values.
     unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f32, v.len() * 3) }
+}
+
+/// `dst.copy_from_slice(src)`, on rayon's pool for large arrays: copying the state out
+/// of pinned memory into the `World` is the largest host cost of a step, and one core's
+/// memcpy bandwidth is a fraction of what the machine has.
+fn par_copy<T: Copy + Send + Sync>(dst: &mut [T], src: &[T]) {
+    const CHUNK: usize = 1 << 16;
+    if dst.len() < 4 * CHUNK {
+        dst.copy_from_slice(src);
+    } else {
+        dst.par_chunks_mut(CHUNK).zip(src.par_chunks(CHUNK)).for_each(|(d, s)| d.copy_from_slice(s));
+    }
 }
 
 /// [`flat3`] for writing.
@@ -404,6 +439,8 @@ impl CudaBackend {
                 sup: e(),
                 static_counts: e(),
                 dynamic_counts: e(),
+                static_keep: e(),
+                dynamic_keep: e(),
             },
             prims: Prims { pos: e(), half: e(), radius: e(), shape: e(), boxes: e(), count: 0 },
             dyn_tree: Tree::new(),
@@ -451,6 +488,9 @@ impl CudaBackend {
             }
             for b in [&mut o.static_counts, &mut o.dynamic_counts] {
                 b.ensure(gpu, (n + 1) * 4, 1.25)?;
+            }
+            for b in [&mut o.static_keep, &mut o.dynamic_keep] {
+                b.ensure(gpu, n * SLOTS as usize * 4, 1.25)?;
             }
             for b in [&mut o.shape, &mut o.kind, &mut o.action, &mut o.flags, &mut o.sup] {
                 b.ensure(gpu, n, 1.25)?;
@@ -551,10 +591,19 @@ impl CudaBackend {
         }
     }
 
-    /// The dynamic objects as queries, in the dynamic tree's leaf order for `cuda`.
-    fn object_queries(&self) -> Queries {
-        let order = if self.naive() { 0 } else { self.dyn_tree.order.ptr };
-        Queries { n: self.n, boxes: self.obj.boxes.ptr, order }
+    /// The dynamic objects as queries, in the dynamic tree's leaf order for `cuda`, with
+    /// `scratch` for the count pass's kept targets.
+    fn object_queries(&self, scratch: &DevBuf) -> Queries {
+        if self.naive() {
+            return Queries { n: self.n, boxes: self.obj.boxes.ptr, order: 0, scratch: 0, slots: 0 };
+        }
+        Queries {
+            n: self.n,
+            boxes: self.obj.boxes.ptr,
+            order: self.dyn_tree.order.ptr,
+            scratch: scratch.ptr,
+            slots: SLOTS,
+        }
     }
 
     fn step_impl(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
@@ -589,11 +638,12 @@ impl CudaBackend {
         ev(self, 2)?;
 
         let (sc, dc) = (self.obj.static_counts.ptr, self.obj.dynamic_counts.ptr);
-        let qs = self.object_queries();
-        count_pass(&self.gpu, qs, false, self.static_targets(), sc)?;
+        let (qs_static, qs_dynamic) =
+            (self.object_queries(&self.obj.static_keep), self.object_queries(&self.obj.dynamic_keep));
+        count_pass(&self.gpu, qs_static, false, self.static_targets(), sc)?;
         self.scan.exclusive(&self.gpu, sc, n + 1)?;
         ev(self, 3)?;
-        count_pass(&self.gpu, qs, true, self.dynamic_targets(), dc)?;
+        count_pass(&self.gpu, qs_dynamic, true, self.dynamic_targets(), dc)?;
         self.scan.exclusive(&self.gpu, dc, n + 1)?;
         ev(self, 4)?;
         // No wait for the totals here: the write passes fill what fits, and the totals
@@ -601,9 +651,9 @@ impl CudaBackend {
         self.static_pairs.ensure(&self.gpu, 4 * n, 1.0)?;
         self.dynamic_pairs.ensure(&self.gpu, 4 * n, 1.0)?;
         ev(self, 5)?;
-        write_pass(&self.gpu, qs, false, self.static_targets(), sc, &self.static_pairs)?;
+        write_pass(&self.gpu, qs_static, false, self.static_targets(), sc, &self.static_pairs)?;
         ev(self, 6)?;
-        write_pass(&self.gpu, qs, true, self.dynamic_targets(), dc, &self.dynamic_pairs)?;
+        write_pass(&self.gpu, qs_dynamic, true, self.dynamic_targets(), dc, &self.dynamic_pairs)?;
         ev(self, 7)?;
         let caps = [self.static_pairs.capacity::<u32>(), self.dynamic_pairs.capacity::<u32>()];
 
@@ -717,10 +767,10 @@ impl CudaBackend {
         report.dynamic_contacts = contacts[1] as u64;
         {
             let st = world.dynamics.state_mut();
-            flat3_mut(st.pos).copy_from_slice(h.pos.slice::<f32>(3 * n));
-            flat3_mut(st.prev).copy_from_slice(h.prev.slice::<f32>(3 * n));
-            st.action.copy_from_slice(h.action.slice::<u8>(n));
-            st.flags.copy_from_slice(h.flags.slice::<u8>(n));
+            par_copy(flat3_mut(st.pos), h.pos.slice::<f32>(3 * n));
+            par_copy(flat3_mut(st.prev), h.prev.slice::<f32>(3 * n));
+            par_copy(st.action, h.action.slice::<u8>(n));
+            par_copy(st.flags, h.flags.slice::<u8>(n));
         }
         world.tick += 1;
         let d = &world.dynamics;
@@ -764,10 +814,11 @@ impl CudaBackend {
         self.build_dynamic(world)?;
         self.boxes_fresh = Some(world.dynamics.generation());
         let (sc, dc) = (self.obj.static_counts.ptr, self.obj.dynamic_counts.ptr);
-        let qs = self.object_queries();
-        count_pass(&self.gpu, qs, false, self.static_targets(), sc)?;
+        let (qs_static, qs_dynamic) =
+            (self.object_queries(&self.obj.static_keep), self.object_queries(&self.obj.dynamic_keep));
+        count_pass(&self.gpu, qs_static, false, self.static_targets(), sc)?;
         self.scan.exclusive(&self.gpu, sc, n + 1)?;
-        count_pass(&self.gpu, qs, true, self.dynamic_targets(), dc)?;
+        count_pass(&self.gpu, qs_dynamic, true, self.dynamic_targets(), dc)?;
         self.scan.exclusive(&self.gpu, dc, n + 1)?;
         let mut lists = Vec::new();
         for (counts, exclude_self) in [(sc, false), (dc, true)] {
@@ -780,6 +831,7 @@ impl CudaBackend {
             let mut out = DevBuf::empty();
             out.ensure(&self.gpu, total * 4, 1.0)?;
             let targets = if exclude_self { self.dynamic_targets() } else { self.static_targets() };
+            let qs = if exclude_self { qs_dynamic } else { qs_static };
             write_pass(&self.gpu, qs, exclude_self, targets, counts, &out)?;
             let mut host = Pinned::empty();
             host.ensure(&self.gpu, total * 4)?;
@@ -824,7 +876,7 @@ impl CudaBackend {
         self.aoi_counts.ensure(gpu, (nq + 1) * 4, 1.25)?;
         let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
         gpu.upload(&self.aoi_boxes, &flat)?;
-        let qs = Queries { n: nq, boxes: self.aoi_boxes.ptr, order: 0 };
+        let qs = Queries { n: nq, boxes: self.aoi_boxes.ptr, order: 0, scratch: 0, slots: 0 };
         count_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr)?;
         self.scan.exclusive(gpu, self.aoi_counts.ptr, nq + 1)?;
         self.host.aoi_offsets.ensure(gpu, (nq + 1) * 4)?;

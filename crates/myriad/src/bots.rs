@@ -65,7 +65,8 @@ fn resolve(server: &str) -> Result<(SocketAddr, String)> {
 /// One statistics line between two snapshots.
 pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
     let secs = (now.elapsed_s - prev.elapsed_s).max(1e-9);
-    let bots = now.connected.max(1) as f64;
+    // After the swarm stopped nobody is connected: average over every bot then.
+    let bots = if now.connected > 0 { now.connected } else { now.bots.max(1) } as f64;
     let r = now.totals.rates_since(&prev.totals, secs);
     format!(
         "t={:.0}s bots {}/{} (failed {}) | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} | interval p50 {:.1} ms p99 {:.1} ms | loss {:.2}% | own seen {} moves ok {:.0}% | rejected {} decode errors {} reconnects {}",
@@ -90,7 +91,8 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
 /// The same as JSON.
 pub fn stats_json(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> serde_json::Value {
     let secs = (now.elapsed_s - prev.elapsed_s).max(1e-9);
-    let bots = now.connected.max(1) as f64;
+    // After the swarm stopped nobody is connected: average over every bot then.
+    let bots = if now.connected > 0 { now.connected } else { now.bots.max(1) } as f64;
     let r = now.totals.rates_since(&prev.totals, secs);
     serde_json::json!({
         "t_s": now.elapsed_s,

@@ -32,6 +32,19 @@ for r in rows:
     print("sim scenario 1, 200 ticks:", r["backend"], r["state_hash"], "%.3f ms a tick" % r["mean_tick_ms"])
 print("sim hashes equal:", len({r["state_hash"] for r in rows}) == 1)
 '
+    # Large worlds: CPU and GPU hashes after a few ticks (many sort tiles, deep trees).
+    for spec in "300000 150000 1100.0 30" "2000000 1000000 2840.2 5"; do
+        set -- $spec
+        for b in cpu cuda; do
+            .carry/myriad sim --scenario custom --dynamic "$1" --static "$2" --users $(($1 / 26)) \
+                --world-size "$3" --ticks "$4" --backend "$b" --json 2>/dev/null
+        done
+    done | tee -a "$out/sim-hashes.jsonl" | python3 -c '
+import json, sys
+rows = [json.loads(l) for l in sys.stdin if l.strip()]
+for a, b in zip(rows[::2], rows[1::2]):
+    print("sim %d dynamic, %d ticks: cpu %s cuda %s equal: %s" % (a["dynamic"], a["ticks"], a["state_hash"], b["state_hash"], a["state_hash"] == b["state_hash"]))
+'
 fi
 
 if [[ $mode == all || $mode == bench ]]; then

@@ -48,36 +48,94 @@ extern "C" __global__ void k_boxes_morton(u32 n, const float* pos, const float* 
     vals[i] = i;
 }
 
-// Radix sort, 8 bits a pass. A block handles a tile of 256 threads x 8 items; the digit
-// histogram is stored digit-major (hist[digit * blocks + block]) so that one exclusive
-// scan of it gives every (digit, block) its output offset.
+// Radix sort, 8 bits a pass, one launch a pass ("one-sweep", after Adinets and
+// Merrill 2022): the digit counts of every pass are order-independent, so one kernel
+// counts them all up front; each pass then ranks its tile and finds the tile's output
+// offsets by decoupled look-back over the preceding tiles' published counts, instead of
+// a histogram launch and a scan of it. Tiles take their index from an atomic counter, so
+// a tile only ever waits on tiles that already run (no deadlock).
 #define RADIX_THREADS 256
 #define RADIX_ITEMS 8
 #define RADIX_TILE (RADIX_THREADS * RADIX_ITEMS)
+#define RADIX_PASSES 8
+#define FLAG_AGGREGATE (1u << 30)
+#define FLAG_PREFIX (2u << 30)
+#define COUNT_MASK ((1u << 30) - 1u)
 
-extern "C" __global__ void k_radix_hist(const u64* keys, u32 n, u32 shift, u32* hist, u32 blocks) {
-    __shared__ u32 h[256];
-    h[threadIdx.x] = 0;
+// Digit counts of all 8 passes: hist[pass * 256 + digit] (zeroed by the host).
+extern "C" __global__ void k_radix_counts(const u64* keys, u32 n, u32* hist) {
+    __shared__ u32 h[RADIX_PASSES][256];
+    for (u32 p = 0; p < RADIX_PASSES; p++) h[p][threadIdx.x] = 0;
     __syncthreads();
-    u32 base = blockIdx.x * RADIX_TILE;
-    for (u32 r = 0; r < RADIX_ITEMS; r++) {
-        u32 i = base + r * RADIX_THREADS + threadIdx.x;
-        if (i < n) atomicAdd(&h[(keys[i] >> shift) & 255], 1u);
+    for (u32 i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x) {
+        u64 key = keys[i];
+        for (u32 p = 0; p < RADIX_PASSES; p++) atomicAdd(&h[p][(key >> (8 * p)) & 255], 1u);
     }
     __syncthreads();
-    hist[threadIdx.x * blocks + blockIdx.x] = h[threadIdx.x];
+    for (u32 p = 0; p < RADIX_PASSES; p++) {
+        u32 c = h[p][threadIdx.x];
+        if (c) atomicAdd(&hist[p * 256 + threadIdx.x], c);
+    }
 }
 
-// Stable scatter: items of a tile are ranked in order (rounds, then warps, then lanes),
-// so equal digits keep their input order and the sort is stable.
-extern "C" __global__ void k_radix_scatter(const u64* keys_in, const u32* vals_in, u64* keys_out,
-                                           u32* vals_out, u32 n, u32 shift, const u32* offsets,
-                                           u32 blocks) {
+// Exclusive scan of one value a thread over a block of 256 threads.
+__device__ __forceinline__ u32 scan256(u32 v) {
+    __shared__ u32 warp_sums[RADIX_THREADS / 32];
+    u32 lane = threadIdx.x & 31, w = threadIdx.x >> 5;
+    u32 x = v;
+    for (u32 o = 1; o < 32; o <<= 1) {
+        u32 y = __shfl_up_sync(0xffffffffu, x, o);
+        if (lane >= o) x += y;
+    }
+    if (lane == 31) warp_sums[w] = x;
+    __syncthreads();
+    u32 before = 0;
+    for (u32 k = 0; k < w; k++) before += warp_sums[k];
+    __syncthreads();
+    return before + x - v;
+}
+
+// One pass. `status` holds 256 words a tile for this pass and `tile_counter` one word,
+// both zeroed by the host before the sort.
+extern "C" __global__ void k_radix_pass(const u64* keys_in, const u32* vals_in, u64* keys_out,
+                                        u32* vals_out, u32 n, u32 pass, const u32* hist,
+                                        u32* status, u32* tile_counter) {
+    __shared__ u32 tile_s;
     __shared__ u32 running[256];
     __shared__ u32 wcount[RADIX_THREADS / 32][256];
     u32 t = threadIdx.x, lane = t & 31, warp = t >> 5;
-    running[t] = offsets[t * blocks + blockIdx.x];
-    u32 base = blockIdx.x * RADIX_TILE;
+    u32 shift = 8 * pass;
+    if (t == 0) tile_s = atomicAdd(tile_counter, 1u);
+    running[t] = 0;
+    __syncthreads();
+    u32 tile = tile_s;
+    u32 base = tile * RADIX_TILE;
+    // This tile's digit counts.
+    for (u32 r = 0; r < RADIX_ITEMS; r++) {
+        u32 i = base + r * RADIX_THREADS + t;
+        if (i < n) atomicAdd(&running[(keys_in[i] >> shift) & 255], 1u);
+    }
+    __syncthreads();
+    u32 mine = running[t];
+    volatile u32* st = status;
+    // Publish, then look back: thread t owns digit t.
+    st[tile * 256 + t] = (tile == 0 ? FLAG_PREFIX : FLAG_AGGREGATE) | mine;
+    __threadfence();
+    u32 before = 0;
+    if (tile > 0) {
+        int k = (int)tile - 1;
+        for (;;) {
+            u32 v = st[k * 256 + t];
+            if ((v & ~COUNT_MASK) == 0) continue; // not published yet: wait
+            before += v & COUNT_MASK;
+            if ((v & ~COUNT_MASK) == FLAG_PREFIX) break;
+            k--;
+        }
+        st[tile * 256 + t] = FLAG_PREFIX | (before + mine);
+    }
+    u32 digit_base = scan256(hist[pass * 256 + t]);
+    running[t] = digit_base + before;
+    __syncthreads();
     u32 lt_mask = (1u << lane) - 1u;
     for (u32 r = 0; r < RADIX_ITEMS; r++) {
         u32 i = base + r * RADIX_THREADS + t;

@@ -109,7 +109,6 @@ impl Tree {
     fn build(
         &mut self,
         gpu: &Gpu,
-        scan: &mut Scan,
         n: usize,
         pos: CUdeviceptr,
         half: CUdeviceptr,
@@ -129,8 +128,6 @@ impl Tree {
             b.ensure(gpu, n * 4, 1.25)?;
         }
         self.nodes.ensure(gpu, n * NODE_BYTES, 1.25)?;
-        let blocks = n.div_ceil(RADIX_TILE);
-        self.hist.ensure(gpu, 256 * blocks * 4, 1.25)?;
         let (m, s) = (frame.min, frame.scale);
         gpu.launch(
             "k_boxes_morton",
@@ -150,14 +147,22 @@ impl Tree {
                 Arg::F(s.z),
             ],
         )?;
+        // One-sweep radix sort: the digit counts of all passes, then one launch a pass.
+        // `hist` holds the 8 x 256 counts, the 8 tile counters and 8 x 256 status words
+        // a tile, all zeroed at once.
+        let tiles = n.div_ceil(RADIX_TILE);
+        let words = RADIX_PASSES as usize * (256 + 1 + 256 * tiles);
+        self.hist.ensure(gpu, words * 4, 1.25)?;
+        gpu.zero(self.hist.ptr, words * 4)?;
+        let counters = self.hist.ptr + 4 * 256 * RADIX_PASSES as u64;
+        let status = counters + 4 * RADIX_PASSES as u64;
+        let nn = Arg::U(n as u32);
+        let blocks = n.div_ceil(256).min(1024);
+        gpu.launch_grid("k_radix_counts", blocks as u32, 256, &[Arg::P(self.keys.ptr), nn, Arg::P(self.hist.ptr)])?;
         for pass in 0..RADIX_PASSES {
-            let shift = Arg::U(pass * 8);
-            let (nn, bl, h) = (Arg::U(n as u32), Arg::U(blocks as u32), Arg::P(self.hist.ptr));
-            gpu.launch_grid("k_radix_hist", blocks as u32, 256, &[Arg::P(self.keys.ptr), nn, shift, h, bl])?;
-            scan.exclusive(gpu, self.hist.ptr, 256 * blocks)?;
             gpu.launch_grid(
-                "k_radix_scatter",
-                blocks as u32,
+                "k_radix_pass",
+                tiles as u32,
                 256,
                 &[
                     Arg::P(self.keys.ptr),
@@ -165,9 +170,10 @@ impl Tree {
                     Arg::P(self.keys_tmp.ptr),
                     Arg::P(self.order_tmp.ptr),
                     nn,
-                    shift,
-                    h,
-                    bl,
+                    Arg::U(pass),
+                    Arg::P(self.hist.ptr),
+                    Arg::P(status + 4 * (pass as u64) * 256 * tiles as u64),
+                    Arg::P(counters + 4 * pass as u64),
                 ],
             )?;
             std::mem::swap(&mut self.keys, &mut self.keys_tmp);
@@ -536,7 +542,7 @@ impl CudaBackend {
                 )?;
             } else {
                 let frame = MortonFrame::new(&world.bounds);
-                self.static_tree.build(gpu, &mut self.scan, m, p.pos.ptr, p.half.ptr, p.boxes.ptr, &frame)?;
+                self.static_tree.build(gpu, m, p.pos.ptr, p.half.ptr, p.boxes.ptr, &frame)?;
             }
             self.statics_key = Some(key);
         }
@@ -571,7 +577,7 @@ impl CudaBackend {
             )
         } else {
             let frame = MortonFrame::new(&world.bounds);
-            self.dyn_tree.build(&self.gpu, &mut self.scan, n, o.pos.ptr, o.half.ptr, o.boxes.ptr, &frame)
+            self.dyn_tree.build(&self.gpu, n, o.pos.ptr, o.half.ptr, o.boxes.ptr, &frame)
         }
     }
 

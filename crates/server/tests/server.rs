@@ -84,6 +84,14 @@ fn login_updates_and_commanded_movement() {
     let server = ServerHandle::start(cfg).unwrap();
     let cc = client(&server);
     rt.block_on(async {
+        // The map on request: terrain samples and every static primitive.
+        let with_map = ClientConfig { want_map: true, ..cc.clone() };
+        let (accepted, map) = myriad_client::login(&with_map, &Credentials::test_user(1)).await.unwrap();
+        let map = map.expect("map data was asked for");
+        let d = &accepted.map;
+        assert_eq!(map.samples.len(), (d.terrain_width * d.terrain_depth) as usize);
+        assert_eq!(map.statics.len(), d.static_primitives as usize);
+        assert!(map.statics.len() >= 3000, "scenario 1 has 3,000 static objects");
         let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
         assert!(c.accepted().map.terrain_width > 1);
         let start = wait_own_position(&mut c).await;
@@ -103,11 +111,12 @@ fn login_updates_and_commanded_movement() {
         assert_eq!(c.mirror_mut().mark_stale(later), c.mirror().len());
         c.disconnect().await.unwrap();
     });
+    // user1 (the map download) never opened its UDP session and stays until it times out.
     let deadline = Instant::now() + Duration::from_secs(3);
-    while server.players() > 0 && Instant::now() < deadline {
+    while server.players() > 1 && Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(20));
     }
-    assert_eq!(server.players(), 0, "a Disconnect removes the player");
+    assert_eq!(server.players(), 1, "a Disconnect removes the player");
     server.shutdown().unwrap();
 }
 
@@ -421,4 +430,22 @@ fn metrics_endpoint_serves_stage_histograms() {
         assert!(body.contains(needle), "{needle} missing from /metrics:\n{body}");
     }
     server.shutdown().unwrap();
+}
+
+#[test]
+fn client_refuses_a_server_with_another_certificate() {
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let rt = runtime();
+    let cfg_b = config(b.path());
+    seed(&rt, &cfg_b, 1);
+    let server_a = ServerHandle::start(config(a.path())).unwrap();
+    let server_b = ServerHandle::start(cfg_b).unwrap();
+    // Pin A's certificate, talk to B: the handshake must fail before any credential is sent.
+    let trust = Trust::pin_file(server_a.certificate_path()).unwrap();
+    let cc = ClientConfig::new(server_b.login_addr(), &trust).unwrap();
+    let result = rt.block_on(Connection::connect(cc, Credentials::test_user(0)));
+    assert!(matches!(result, Err(ClientError::Io { what: "TLS handshake", .. })), "{result:?}");
+    assert_eq!(server_b.players(), 0);
+    server_a.shutdown().unwrap();
+    server_b.shutdown().unwrap();
 }

@@ -59,7 +59,7 @@ if [[ $mode == all || $mode == bench ]]; then
             --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json 2>> "$out/bench.log"
     done > "$out/sweep.jsonl" || status=1
     # Per-kernel device times (CUDA events around every launch; slows the step a little).
-    MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 3 --backend cuda --ticks 20 --warmup 3 \
+    MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 1,3 --backend cuda --ticks 20 --warmup 3 \
         > /dev/null 2> "$out/profile.txt" || status=1
     MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario custom --dynamic 2000000 --static 1000000 \
         --users 76923 --world-size 2840.2 --backend cuda --ticks 10 --warmup 2 \

@@ -204,12 +204,17 @@ extern "C" __global__ void k_emit(const u64* keys, u32 n, Node* nodes, u32* node
     u32 right = last == gamma + 1 ? ((u32)(gamma + 1) | LEAF_BIT) : (u32)(gamma + 1);
     nodes[gi].child[0] = left;
     nodes[gi].child[1] = right;
-    if (left & LEAF_BIT) leaf_parent[left & ~LEAF_BIT] = gi; else node_parent[left] = gi;
-    if (right & LEAF_BIT) leaf_parent[right & ~LEAF_BIT] = gi; else node_parent[right] = gi;
+    // Parents are stored with the side the child hangs on (parent << 1 | side), so the
+    // refit needs no read of the parent's children to know which box it writes.
+    u32 up = gi << 1;
+    if (left & LEAF_BIT) leaf_parent[left & ~LEAF_BIT] = up; else node_parent[left] = up;
+    if (right & LEAF_BIT) leaf_parent[right & ~LEAF_BIT] = up | 1u; else node_parent[right] = up | 1u;
 }
 
 // Bottom-up refit: each leaf walks up; the first child to arrive at a node stops, the
-// second (which sees the counter at 1) unions both boxes, both being final.
+// second (which sees the counter at 1) unions its box with its sibling's, both being
+// final. The walk is a chain of dependent memory operations from leaf to root, so each
+// level does as few as it can: write one side, fence, count, read the other side.
 extern "C" __global__ void k_refit(u32 n, const u32* order, const float* boxes, Node* nodes,
                                    const u32* node_parent, const u32* leaf_parent, u32* arrivals) {
     u32 leaf = blockIdx.x * blockDim.x + threadIdx.x;
@@ -217,22 +222,21 @@ extern "C" __global__ void k_refit(u32 n, const u32* order, const float* boxes, 
     const float* src = boxes + 6 * (u64)order[leaf];
     float b[6];
     for (int k = 0; k < 6; k++) b[k] = src[k];
-    u32 node = leaf_parent[leaf];
-    u32 from = leaf | LEAF_BIT;
+    u32 up = leaf_parent[leaf];
     for (;;) {
+        u32 node = up >> 1, side = up & 1u;
         volatile float* nb = nodes[node].b;
-        u32 side = nodes[node].child[1] == from ? 1u : 0u;
         for (int k = 0; k < 6; k++) nb[side * 6 + k] = b[k];
         __threadfence();
         if (atomicAdd(&arrivals[node], 1u) == 0) return;
         __threadfence();
+        u32 other = (side ^ 1u) * 6;
         for (int k = 0; k < 3; k++) {
-            b[k] = fminf(nb[k], nb[6 + k]);
-            b[3 + k] = fmaxf(nb[3 + k], nb[9 + k]);
+            b[k] = fminf(b[k], nb[other + k]);
+            b[3 + k] = fmaxf(b[3 + k], nb[other + 3 + k]);
         }
         if (node == 0) return;
-        from = node;
-        node = node_parent[node];
+        up = node_parent[node];
     }
 }
 

@@ -232,10 +232,10 @@ impl Gpu {
         }
         // SAFETY: the destination holds at least `bytes` bytes (checked). The copy is
         // ordered on this backend's stream: a plain cuMemcpyHtoD runs on the legacy
-        // stream and, from pageable memory, may return before its DMA lands, after
-        // kernels queued here already read the buffer (seen: stale NPC ids on the first
-        // tick). Waiting for the stream keeps `src` alive until the copy is done; uploads
-        // happen only when the host changed the world, so the wait is rare.
+        // stream and, from pageable memory, may return before its DMA lands, so kernels
+        // queued on this (non-blocking) stream could read the buffer first. Waiting for
+        // the stream keeps `src` alive until the copy is done; uploads happen only when
+        // the host changed the world, so the wait is rare.
         unsafe {
             result::memcpy_htod_async(dst.ptr, src, self.stream).map_err(dev_err("upload"))?;
             result::stream::synchronize(self.stream).map_err(dev_err("upload"))

@@ -8,8 +8,8 @@ use myriad_protocol::login::{
     FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, frame_len,
 };
 use myriad_protocol::{
-    Action, ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, ServerInfo,
-    ServerMessage, StateUpdateView,
+    Action, ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, OpenError,
+    ServerInfo, ServerMessage, StateUpdateView,
 };
 use rustls::pki_types::ServerName;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -328,7 +328,10 @@ impl Connection {
             Ok(o) => o,
             Err(e) => {
                 self.stats.rejected += 1;
-                if e.class() == ErrorClass::Malformed {
+                // A datagram for another session is not a decode error: after a
+                // reconnect, an ephemeral port can be reused while the server still
+                // addresses an old session to it.
+                if e.class() == ErrorClass::Malformed && !matches!(e, OpenError::WrongSession { .. }) {
                     self.stats.decode_errors += 1;
                 }
                 return Event::Rejected;

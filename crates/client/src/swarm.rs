@@ -335,7 +335,7 @@ impl Bot {
                 _ = ticker.tick() => {
                     let now = Instant::now();
                     if now.duration_since(hold_start) >= HOLD {
-                        self.check_move(mask, hold_from, conn.own_position(), hold_index);
+                        self.check_move(mask, hold_from, conn.own_position(), hold_index, conn.dilation_permille());
                         hold_index += 1;
                         seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
                         mask = match self.config.behaviour {
@@ -430,7 +430,7 @@ impl Bot {
     }
 
     /// Judges one finished hold: did the own object move the commanded way?
-    fn check_move(&self, mask: u8, from: Option<[f32; 3]>, to: Option<[f32; 3]>, hold_index: u64) {
+    fn check_move(&self, mask: u8, from: Option<[f32; 3]>, to: Option<[f32; 3]>, hold_index: u64, dilation: u16) {
         // The first hold starts before the first update arrives: nothing to compare.
         let (Some(a), Some(b)) = (from, to) else { return };
         if hold_index == 0 {
@@ -442,7 +442,8 @@ impl Bot {
             // Standing still: only pushes by others may move it a little.
             (dx * dx + dz * dz).sqrt() < 1.0
         } else {
-            dx * ux + dz * uz > 0.25
+            // A dilated world moves slower in real time: scale the expected distance.
+            dx * ux + dz * uz > 0.25 * f32::from(dilation) / 1000.0
         };
         let mut s = self.state();
         if ok {

@@ -573,7 +573,13 @@ impl TickLoop {
         for (addr, d) in &self.control {
             out.push((*addr, d));
         }
-        for (p, s) in self.players.iter().zip(&self.subscribers) {
+        // Start at a different player every tick: when the socket buffer fills and the
+        // tail is dropped, the loss is spread over everyone instead of starving the same
+        // players tick after tick.
+        let n = self.players.len();
+        let first = if n == 0 { 0 } else { (self.world.tick % n as u64) as usize };
+        for i in (first..n).chain(0..first) {
+            let (p, s) = (&self.players[i], &self.subscribers[i]);
             // The same filter as build_updates: only active players had datagrams built.
             if let (true, Some(addr), true) = (p.ready, p.addr, self.world.dynamics.slot(p.entity).is_some()) {
                 out.extend(s.datagrams().iter().map(|d| (addr, d)));

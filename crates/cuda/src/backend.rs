@@ -379,9 +379,10 @@ fn flat3_mut(v: &mut [Vec3]) -> &mut [f32] {
 pub struct CudaBackend {
     kind: BackendKind,
     n: usize,
-    /// (generation, layout generation, address of the id vector) of the dynamics the
-    /// device holds. The address tells two worlds with equal counters apart.
-    synced: Option<(u64, u64, usize)>,
+    /// (generation, layout generation, address of the id vector, tick, seed) of the
+    /// dynamics the device holds. The address, tick and seed tell two worlds with equal
+    /// generation counters apart (a backend moved from one world to another).
+    synced: Option<(u64, u64, usize, u64, u64)>,
     /// (generation, primitive count, address of the positions) of the statics on the
     /// device.
     statics_key: Option<(u64, usize, usize)>,
@@ -479,9 +480,11 @@ impl CudaBackend {
             return Err(PhysicsError::TooManyObjects { count: n, max: LEAF_LIMIT });
         }
         let (generation, layout) = (d.generation(), d.layout_generation());
-        let identity = d.ids().as_ptr() as usize;
+        let identity = (d.ids().as_ptr() as usize, world.tick, world.seed);
         let o = &mut self.obj;
-        if self.synced.map(|s| (s.1, s.2)) != Some((layout, identity)) || self.n != n {
+        if self.synced.map(|s| (s.1, s.2, s.3, s.4)) != Some((layout, identity.0, identity.1, identity.2))
+            || self.n != n
+        {
             // Objects came or went: slots changed meaning, upload everything.
             for b in [&mut o.pos, &mut o.prev, &mut o.half] {
                 b.ensure(gpu, n * 12, 1.25)?;
@@ -516,7 +519,7 @@ impl CudaBackend {
             gpu.upload(&o.flags, d.flags())?;
             self.boxes_fresh = None;
         }
-        self.synced = Some((generation, layout, identity));
+        self.synced = Some((generation, layout, identity.0, identity.1, identity.2));
 
         let st = &world.statics;
         let key = (st.generation(), st.prim_count(), st.positions().as_ptr() as usize);
@@ -780,7 +783,7 @@ impl CudaBackend {
         }
         world.tick += 1;
         let d = &world.dynamics;
-        self.synced = Some((d.generation(), d.layout_generation(), d.ids().as_ptr() as usize));
+        self.synced = Some((d.generation(), d.layout_generation(), d.ids().as_ptr() as usize, world.tick, world.seed));
         self.boxes_fresh = None;
 
         let e = &self.events;

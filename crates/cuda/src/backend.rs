@@ -46,7 +46,7 @@ const SCAN_BLOCK: usize = 1024;
 /// 52 us on an H200 where the three launches of the block-parallel scan took 12.6 us.
 const SCAN_ONE_BLOCK: usize = 4 * 1024;
 const NODE_BYTES: usize = 64;
-const EVENTS: usize = 12;
+const EVENTS: usize = 15;
 
 /// Exclusive scans of u32 arrays on the device.
 struct Scan {
@@ -748,23 +748,30 @@ impl CudaBackend {
         h.prev.ensure(gpu, n * 12)?;
         h.action.ensure(gpu, n)?;
         h.flags.ensure(gpu, n)?;
-        gpu.download_async::<f32>(&mut h.pos, 0, o.pos.ptr, 3 * n)?;
-        gpu.download_async::<f32>(&mut h.prev, 0, o.prev.ptr, 3 * n)?;
-        gpu.download_async::<u8>(&mut h.action, 0, o.action.ptr, n)?;
-        gpu.download_async::<u8>(&mut h.flags, 0, o.flags.ptr, n)?;
+        // The small totals first, then the state array by array, each followed by an
+        // event: the host checks the totals as soon as they land and copies each array
+        // into the World while the next one is still crossing the bus.
         h.small.ensure(gpu, 64)?;
         gpu.download_async::<u32>(&mut h.small, 0, self.counters.ptr, 2)?;
         gpu.download_async::<u32>(&mut h.small, 2, sc + 4 * n as u64, 1)?;
         gpu.download_async::<u32>(&mut h.small, 3, dc + 4 * n as u64, 1)?;
+        gpu.record(self.events[12].raw)?;
+        gpu.download_async::<f32>(&mut h.pos, 0, o.pos.ptr, 3 * n)?;
+        gpu.record(self.events[13].raw)?;
+        gpu.download_async::<f32>(&mut h.prev, 0, o.prev.ptr, 3 * n)?;
+        gpu.record(self.events[14].raw)?;
+        gpu.download_async::<u8>(&mut h.action, 0, o.action.ptr, n)?;
+        gpu.download_async::<u8>(&mut h.flags, 0, o.flags.ptr, n)?;
         gpu.record(self.events[11].raw)?;
-        gpu.sync()?;
-        gpu.collect_profile()?;
+        self.events[12].wait()?;
 
         let small = h.small.slice::<u32>(4);
         let (contacts, totals) = ([small[0], small[1]], [small[2], small[3]]);
         if totals[0] > caps[0] || totals[1] > caps[1] {
             // Some list did not fit: grow to the exact totals and redo from the world,
             // which this step has not touched.
+            gpu.sync()?;
+            gpu.collect_profile()?;
             self.static_pairs.ensure(gpu, totals[0] as usize * 4, 1.0)?;
             self.dynamic_pairs.ensure(gpu, totals[1] as usize * 4, 1.0)?;
             self.synced = None;
@@ -776,11 +783,15 @@ impl CudaBackend {
         report.dynamic_contacts = contacts[1] as u64;
         {
             let st = world.dynamics.state_mut();
+            self.events[13].wait()?;
             par_copy(flat3_mut(st.pos), h.pos.slice::<f32>(3 * n));
+            self.events[14].wait()?;
             par_copy(flat3_mut(st.prev), h.prev.slice::<f32>(3 * n));
+            gpu.sync()?;
             par_copy(st.action, h.action.slice::<u8>(n));
             par_copy(st.flags, h.flags.slice::<u8>(n));
         }
+        gpu.collect_profile()?;
         world.tick += 1;
         let d = &world.dynamics;
         self.synced = Some((d.generation(), d.layout_generation(), d.ids().as_ptr() as usize, world.tick, world.seed));

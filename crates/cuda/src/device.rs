@@ -433,6 +433,12 @@ impl Event {
         Ok(Event { raw, ctx: gpu.ctx.clone() })
     }
 
+    /// Blocks until the work recorded before this event is done.
+    pub fn wait(&self) -> Result<(), PhysicsError> {
+        // SAFETY: the event is live.
+        unsafe { result::event::synchronize(self.raw) }.map_err(dev_err("event wait"))
+    }
+
     /// Milliseconds from `self` to `end` (both recorded and complete).
     pub fn ms_to(&self, end: &Event) -> Result<f64, PhysicsError> {
         // SAFETY: both events are live and were recorded.

@@ -36,7 +36,7 @@ pub enum UserCommand {
         #[command(flatten)]
         store: StoreArgs,
     },
-    /// Create the test accounts user<i> / password<i> for i in 0..count (existing ones are kept).
+    /// Create the test accounts `user<i>` / `password<i>` for i in 0..count (existing ones are kept).
     Seed {
         /// How many.
         #[arg(long, default_value_t = 100)]

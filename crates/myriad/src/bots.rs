@@ -1,4 +1,4 @@
-//! `myriad bots`: a swarm of bots playing user<i> / password<i> against a server.
+//! `myriad bots`: a swarm of bots playing `user<i>` / `password<i>` against a server.
 
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::path::PathBuf;
@@ -16,7 +16,7 @@ pub struct BotsArgs {
     /// Number of bots.
     #[arg(long, default_value_t = 100)]
     count: usize,
-    /// Account index of the first bot (user<first>).
+    /// Account index of the first bot (`user<first>`).
     #[arg(long, default_value_t = 0)]
     first: usize,
     /// Actions per second per bot.

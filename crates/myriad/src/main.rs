@@ -38,7 +38,7 @@ enum Command {
     Serve(serve::ServeArgs),
     /// Serve a scenario on the embedded database with built-in bots and a live status line.
     Demo(demo::DemoArgs),
-    /// Run a swarm of bots (user<i> / password<i>) against a server.
+    /// Run a swarm of bots (`user<i>` / `password<i>`) against a server.
     Bots(bots::BotsArgs),
     /// Manage accounts.
     #[command(subcommand)]

@@ -53,6 +53,9 @@ use myriad_store::{Database, FlushReport, Persister, PersisterConfig, PersisterS
 
 use crate::status::Shared;
 
+/// Login connections handled at once; more are closed immediately.
+const MAX_LOGIN_CONNECTIONS: usize = 4096;
+
 /// How long shutdown keeps trying to write the last positions.
 const SHUTDOWN_FLUSH: Duration = Duration::from_secs(10);
 
@@ -158,6 +161,7 @@ impl ServerHandle {
                 config.login_failures_per_account,
             ),
             hashing: tokio::sync::Semaphore::new(config.login_concurrency),
+            connections: Arc::new(tokio::sync::Semaphore::new(MAX_LOGIN_CONNECTIONS)),
             shared: shared.clone(),
         });
         runtime.spawn(service.serve(listener));

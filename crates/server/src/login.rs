@@ -111,6 +111,8 @@ pub(crate) struct LoginService {
     pub commands: std::sync::mpsc::Sender<Command>,
     pub limiter: RateLimiter,
     pub hashing: Semaphore,
+    /// Login connections in flight (handshake to close).
+    pub connections: Arc<Semaphore>,
     pub shared: Arc<Shared>,
 }
 
@@ -127,8 +129,16 @@ impl LoginService {
                     continue;
                 }
             };
+            // Bound the connections in flight: beyond that, new ones are closed at once
+            // (no TLS work, no reply) rather than queueing without limit.
+            let Ok(permit) = self.connections.clone().try_acquire_owned() else {
+                metrics::counter!("myriad_logins_total", "result" => "too_many_connections").increment(1);
+                drop(stream);
+                continue;
+            };
             let this = self.clone();
             tokio::spawn(async move {
+                let _permit = permit;
                 match tokio::time::timeout(LOGIN_DEADLINE, this.handle(stream, peer)).await {
                     Ok(Ok(())) => {}
                     Ok(Err(e)) => tracing::debug!(%peer, error = %e, "login connection failed"),

@@ -234,6 +234,11 @@ impl TickLoop {
                     last_log = Instant::now();
                 }
                 *self.shared.status.lock().unwrap_or_else(|p| p.into_inner()) = status;
+                let p = self.persister.stats();
+                metrics::gauge!("myriad_persist_queued").set(p.queued as f64);
+                metrics::gauge!("myriad_persist_rows_written").set(p.rows_written as f64);
+                metrics::gauge!("myriad_persist_failures").set(p.failures as f64);
+                metrics::gauge!("myriad_persist_dropped").set(p.dropped_overflow as f64);
             }
 
             next += self.dilation.period();

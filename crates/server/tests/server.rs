@@ -233,7 +233,9 @@ fn persistence_round_trip_mysql() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = ServerConfig { database_url: url, ..config(dir.path()) };
     let rt = runtime();
-    let name = format!("srv{}", std::process::id());
+    // Unique per run: the `test` database keeps its users between CI runs.
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos();
+    let name = format!("srv{}_{}", std::process::id(), nanos % 1_000_000_000_000);
     let user = Credentials { username: name.clone(), password: "secret-pass".into() };
     rt.block_on(async {
         let store = Store::open(&myriad_server::store_config(&cfg)).await.unwrap();

@@ -276,6 +276,20 @@ mod tests {
     }
 
     #[test]
+    fn file_errors_name_the_file_line_and_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("server.toml");
+        std::fs::write(&path, "tick_rate = 30\nnpc_count = -5\n").unwrap();
+        let err = ServerConfig::load(&path).unwrap_err().to_string();
+        assert!(err.contains("server.toml") && err.contains("npc_count") && err.contains("line 2"), "{err}");
+        let missing = ServerConfig::load(&dir.path().join("nope.toml")).unwrap_err().to_string();
+        assert!(missing.contains("nope.toml"), "{missing}");
+        std::fs::write(&path, "aoi_size = 64.0\nmap = \"island\"\n").unwrap();
+        let ok = ServerConfig::load(&path).unwrap();
+        assert_eq!((ok.aoi_size, ok.map.as_str()), (64.0, "island"));
+    }
+
+    #[test]
     fn set_overrides_and_checks() {
         let mut c = ServerConfig::default();
         c.set("tick_rate", "20").unwrap();

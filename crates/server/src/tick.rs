@@ -582,7 +582,10 @@ impl TickLoop {
         // tail is dropped, the loss is spread over everyone instead of starving the same
         // players tick after tick.
         let n = self.players.len();
-        let first = if n == 0 { 0 } else { (self.world.tick % n as u64) as usize };
+        // A scrambled offset, not tick % n: shifting by one player per tick would keep
+        // starving almost the same tail.
+        let first =
+            if n == 0 { 0 } else { ((self.world.tick.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 32) % n as u64) as usize };
         for i in (first..n).chain(0..first) {
             let (p, s) = (&self.players[i], &self.subscribers[i]);
             // The same filter as build_updates: only active players had datagrams built.

@@ -52,7 +52,8 @@ pub struct ServerConfig {
     pub data_dir: PathBuf,
     /// Database URL (`mysql://user:pass@host/db`); empty uses SQLite in `data_dir`.
     pub database_url: String,
-    /// Physics backend (`cpu`, `cpu-naive`).
+    /// Physics backend (`cpu`, `cpu-naive`, `cuda`, `cuda-naive`, or `auto`: CUDA when a
+    /// driver, NVRTC and a device are present, else `cpu`).
     pub backend: String,
     /// How often player positions are handed to the database writer, in milliseconds.
     pub persist_interval_ms: u64,
@@ -106,7 +107,7 @@ impl Default for ServerConfig {
             max_datagrams_per_player: 2,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),
-            backend: "cpu".into(),
+            backend: "auto".into(),
             persist_interval_ms: 500,
             session_timeout_s: 10.0,
             login_failures_per_addr: 20,

@@ -49,6 +49,7 @@ pub use status::{STAGES, ServerStatus};
 pub use tick::PLAYER_SHAPE;
 
 use myriad_net::{Endpoint, EndpointConfig};
+use myriad_physics::BackendKind;
 use myriad_store::{Database, FlushReport, Persister, PersisterConfig, PersisterStats, Store, StoreConfig};
 
 use crate::status::Shared;
@@ -93,8 +94,15 @@ impl ServerHandle {
     /// Opens the store, builds the world, binds the UDP and login ports, and starts the
     /// tick loop and the login service. Call it outside any tokio runtime: the server
     /// owns its own.
+    ///
+    /// Only the CPU backends exist in this crate, so `auto` means `cpu` here; the
+    /// `myriad` binary uses [`ServerHandle::start_with_backends`] with the CUDA-aware
+    /// factory, where `auto` picks the GPU when there is one.
     pub fn start(config: ServerConfig) -> Result<ServerHandle, ServerError> {
-        Self::start_with_backends(config, myriad_physics::create_backend)
+        Self::start_with_backends(config, |kind| {
+            let kind = if kind == BackendKind::Auto { BackendKind::Cpu } else { kind };
+            myriad_physics::create_backend(kind)
+        })
     }
 
     /// Like [`ServerHandle::start`], with the function that creates the physics backend

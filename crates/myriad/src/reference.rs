@@ -17,18 +17,9 @@ pub const TABLE2: [(&str, [f64; 9]); 3] = [
     ("3", [0.4, 1.4, 1.6, 3.9, 0.6, 0.6, 0.5, 10.5, 19.3]),
 ];
 
-/// The stage names of Table 2, as our reports spell them.
-pub const STAGES: [&str; 9] = [
-    "upload",
-    "build_dynamic_bvh",
-    "broad_static",
-    "broad_dynamic",
-    "narrow_static",
-    "narrow_dynamic",
-    "forces",
-    "packets",
-    "send",
-];
+/// The stage names of Table 2, as our reports spell them: the server tick's stages up
+/// to `send` (the server's list, which takes the physics stages from the backend).
+pub const STAGES: &[&str] = myriad_server::STAGES.split_at(9).0;
 
 /// The reference's machine.
 pub const MACHINE: &str = "AMD Ryzen 9 5900X, NVIDIA GTX 1660";

@@ -91,7 +91,7 @@ impl Stage {
     ];
 
     /// The reference's name (`upload`, `build_dynamic_bvh`, ...).
-    pub fn name(self) -> &'static str {
+    pub const fn name(self) -> &'static str {
         match self {
             Stage::Upload => "upload",
             Stage::BuildDynamicBvh => "build_dynamic_bvh",

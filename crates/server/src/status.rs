@@ -2,6 +2,8 @@
 //! once-per-second status summary (the demo's live line, the stage log).
 
 use std::sync::Mutex;
+
+use myriad_physics::Stage;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize};
 use std::time::{Duration, Instant};
 
@@ -9,13 +11,13 @@ use std::time::{Duration, Instant};
 /// server's `packets` (AOI query, interest management, sealing), `send`, and `receive`
 /// (draining and opening client datagrams, before the step).
 pub const STAGES: [&str; 10] = [
-    "upload",
-    "build_dynamic_bvh",
-    "broad_static",
-    "broad_dynamic",
-    "narrow_static",
-    "narrow_dynamic",
-    "forces",
+    Stage::Upload.name(),
+    Stage::BuildDynamicBvh.name(),
+    Stage::BroadStatic.name(),
+    Stage::BroadDynamic.name(),
+    Stage::NarrowStatic.name(),
+    Stage::NarrowDynamic.name(),
+    Stage::Forces.name(),
     "packets",
     "send",
     "receive",

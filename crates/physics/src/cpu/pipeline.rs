@@ -51,6 +51,8 @@ pub(crate) struct Scratch {
     static_off: Vec<u32>,
     a_off: Vec<u32>,
     b_off: Vec<u32>,
+    /// Write cursors of the counting sort by b.
+    fill: Vec<u32>,
 }
 
 #[inline]
@@ -148,9 +150,10 @@ pub(crate) fn run_step(
     run_offsets(n, s.dynamic_resp.iter().map(|r| r.1), &mut s.b_off);
     s.by_b.clear();
     s.by_b.resize(s.dynamic_resp.len(), 0);
-    let mut fill = s.b_off.clone();
+    s.fill.clear();
+    s.fill.extend_from_slice(&s.b_off);
     for (i, r) in s.dynamic_resp.iter().enumerate() {
-        let at = &mut fill[r.1 as usize];
+        let at = &mut s.fill[r.1 as usize];
         s.by_b[*at as usize] = i as u32;
         *at += 1;
     }

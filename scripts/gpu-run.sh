@@ -48,21 +48,24 @@ for a, b in zip(rows[::2], rows[1::2]):
 fi
 
 if [[ $mode == all || $mode == bench ]]; then
+    # Tables 1 to 3: physics on every backend, then the whole server tick (one bot per
+    # user on loopback) on cuda and cpu; plots into $out/bench.
     .carry/myriad bench --scenario 1,2,3 --backend cuda,cuda-naive,cpu --ticks 30 --warmup 3 \
-        > "$out/bench-ref.md" 2> "$out/bench.log" || status=1
+        --out "$out/bench" > "$out/bench-ref.md" 2> "$out/bench.log" || status=1
     sed -n '1,/#### The reference/p' "$out/bench-ref.md"
     # Scale sweep: dynamic N, static N/2, world area grows with N (density of scenario 3:
     # 260k objects on a 1024 x 1024 map).
     for n in 10000 30000 100000 300000 1000000 2000000; do
         size=$(python3 -c "import math; print(round(1024 * math.sqrt($n / 260000), 1))")
         .carry/myriad bench --scenario custom --dynamic $n --static $((n / 2)) --users $((n / 26)) \
-            --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json 2>> "$out/bench.log"
+            --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json --physics-only \
+            2>> "$out/bench.log"
     done > "$out/sweep.jsonl" || status=1
     # Per-kernel device times (CUDA events around every launch; slows the step a little).
-    MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 1,3 --backend cuda --ticks 20 --warmup 3 \
+    MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 1,3 --backend cuda --ticks 20 --warmup 3 --physics-only \
         > /dev/null 2> "$out/profile.txt" || status=1
     MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario custom --dynamic 2000000 --static 1000000 \
-        --users 76923 --world-size 2840.2 --backend cuda --ticks 10 --warmup 2 \
+        --users 76923 --world-size 2840.2 --backend cuda --ticks 10 --warmup 2 --physics-only \
         > /dev/null 2>> "$out/profile.txt" || status=1
     grep -E "per-kernel|^\|" "$out/profile.txt"
     python3 - "$out/sweep.jsonl" <<'PY'

@@ -7,9 +7,12 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use myriad_core::{ObjectKind, PhysicsConfig, ScenarioSpec, World};
 use myriad_cuda::create_backend;
 use myriad_physics::{BackendKind, Stage, StepReport, TickConstants};
+use myriad_server::ServerConfig;
+use myriad_server::tick_bench::{TickBench, TickSample};
 use serde::Serialize;
 
 use crate::reference;
@@ -59,6 +62,14 @@ pub struct BenchArgs {
     /// share), the map grown to keep scenario 2's density.
     #[arg(long, value_delimiter = ',')]
     pub sweep: Vec<u32>,
+    /// Skip the end-to-end server tick (by default each scenario also runs the full
+    /// server tick on every non-naive backend, with one bot per user on loopback, for
+    /// the `packets`, `send` and `receive` columns).
+    #[arg(long)]
+    pub physics_only: bool,
+    /// Area-of-interest edge length of the server tick, in world units.
+    #[arg(long, default_value_t = ServerConfig::default().aoi_size)]
+    pub aoi_size: f32,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -68,6 +79,8 @@ pub struct BenchArgs {
 pub struct Row {
     pub scenario: String,
     pub backend: String,
+    /// `physics` (the backend's step alone) or `server` (the whole server tick).
+    pub mode: &'static str,
     description: String,
     threads: usize,
     ticks: u64,
@@ -88,6 +101,7 @@ pub struct Row {
     forces: f64,
     packets: f64,
     send: f64,
+    receive: f64,
     physics_static_ms: f64,
     physics_dynamic_ms: f64,
     pub total_ms: f64,
@@ -99,13 +113,43 @@ pub struct Row {
     static_contacts: u64,
     dynamic_contacts: u64,
     state_hash: String,
+    /// Server tick only: players (one bot socket each), per-tick medians of what was
+    /// sent and what the bots received and opened.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    server: Option<ServerTick>,
     pub skipped: Option<String>,
+}
+
+/// What a server-tick row adds (medians per tick).
+#[derive(Clone, Debug, Serialize)]
+struct ServerTick {
+    players: usize,
+    aoi_size: f32,
+    datagrams: u64,
+    bytes: u64,
+    records: u64,
+    actions_received: u64,
+    delivered: u64,
+    rejected: u64,
+    /// Smallest number over the measured ticks of players whose update held their own
+    /// object.
+    min_saw_own: usize,
 }
 
 impl Row {
     /// Whether the row belongs to the scale sweep.
     pub fn is_sweep(&self) -> bool {
         self.scenario.starts_with("sweep")
+    }
+
+    /// Whether the row is a whole server tick.
+    pub fn is_server(&self) -> bool {
+        self.mode == SERVER
+    }
+
+    /// The backend, with "server tick" on server-tick rows.
+    pub fn label(&self) -> String {
+        if self.is_server() { format!("{} server tick", self.backend) } else { self.backend.clone() }
     }
 
     /// The stage times in the order of [`reference::STAGES`].
@@ -155,20 +199,22 @@ fn median_u64(v: impl Iterator<Item = u64>) -> u64 {
     v.get(v.len() / 2).copied().unwrap_or(0)
 }
 
-fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs) -> Result<Row> {
-    let mut backend = create_backend(kind)?;
-    let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
-    let mut w = world.clone();
+const PHYSICS: &str = "physics";
+const SERVER: &str = "server";
+
+/// A row with the world's counts filled in and every measurement zero.
+fn empty_row(label: &str, world: &World, kind: BackendKind, description: String, mode: &'static str) -> Row {
     let d = &world.dynamics;
     let users = d.kinds().iter().filter(|k| **k == ObjectKind::User).count();
     let [spheres, boxes, capsules] = world.statics.prims_by_shape();
-    let mut row = Row {
+    Row {
         scenario: label.into(),
         backend: kind.to_string(),
-        description: backend.description(),
+        mode,
+        description,
         threads: rayon::current_num_threads(),
-        ticks: args.ticks,
-        warmup: args.warmup,
+        ticks: 0,
+        warmup: 0,
         dynamic: d.len(),
         users,
         npcs: d.len() - users,
@@ -185,6 +231,7 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs) ->
         forces: 0.0,
         packets: 0.0,
         send: 0.0,
+        receive: 0.0,
         physics_static_ms: 0.0,
         physics_dynamic_ms: 0.0,
         total_ms: 0.0,
@@ -194,25 +241,13 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs) ->
         static_contacts: 0,
         dynamic_contacts: 0,
         state_hash: String::new(),
+        server: None,
         skipped: None,
-    };
-    let started = Instant::now();
-    backend.step(&mut w, &k).context("first tick")?;
-    let first_ms = started.elapsed().as_secs_f64() * 1e3;
-    if first_ms > args.max_tick_ms && !args.force {
-        row.skipped = Some(format!("first tick took {first_ms:.0} ms (> {} ms); --force runs it", args.max_tick_ms));
-        eprintln!("  {kind}: skipped, {}", row.skipped.as_deref().unwrap_or_default());
-        return Ok(row);
     }
-    for _ in 1..args.warmup {
-        backend.step(&mut w, &k)?;
-    }
-    let mut reports: Vec<StepReport> = Vec::with_capacity(args.ticks as usize);
-    let cpu_before = process_cpu_ms();
-    for _ in 0..args.ticks {
-        reports.push(backend.step(&mut w, &k)?);
-    }
-    row.cpu_ms = (process_cpu_ms() - cpu_before) / args.ticks.max(1) as f64;
+}
+
+/// Fills the physics stages of `row` from per-tick reports.
+fn physics_medians(row: &mut Row, reports: &[StepReport]) {
     let stage = |s: Stage| median(reports.iter().map(|r| r.ms(s)).collect());
     row.upload = stage(Stage::Upload);
     row.build_dynamic_bvh = stage(Stage::BuildDynamicBvh);
@@ -223,50 +258,205 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs) ->
     row.forces = stage(Stage::Forces);
     row.physics_static_ms = median(reports.iter().map(StepReport::physics_static_ms).collect());
     row.physics_dynamic_ms = median(reports.iter().map(StepReport::physics_dynamic_ms).collect());
+}
+
+fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, progress: &Progress) -> Result<Row> {
+    progress.start(format!("scenario {label} · {kind}"));
+    let mut backend = create_backend(kind)?;
+    let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
+    let mut w = world.clone();
+    let mut row = empty_row(label, world, kind, backend.description(), PHYSICS);
+    row.ticks = args.ticks;
+    row.warmup = args.warmup;
+    let started = Instant::now();
+    backend.step(&mut w, &k).context("first tick")?;
+    progress.tick();
+    let first_ms = started.elapsed().as_secs_f64() * 1e3;
+    if first_ms > args.max_tick_ms && !args.force {
+        row.skipped = Some(format!("first tick took {first_ms:.0} ms (> {} ms); --force runs it", args.max_tick_ms));
+        progress.log(format!("  {kind}: skipped, {}", row.skipped.as_deref().unwrap_or_default()));
+        progress.skip(args.warmup.saturating_sub(1) + args.ticks);
+        return Ok(row);
+    }
+    for _ in 1..args.warmup {
+        backend.step(&mut w, &k)?;
+        progress.tick();
+    }
+    let mut reports: Vec<StepReport> = Vec::with_capacity(args.ticks as usize);
+    let cpu_before = process_cpu_ms();
+    for _ in 0..args.ticks {
+        reports.push(backend.step(&mut w, &k)?);
+        progress.tick();
+    }
+    row.cpu_ms = (process_cpu_ms() - cpu_before) / args.ticks.max(1) as f64;
+    physics_medians(&mut row, &reports);
     row.total_ms = median(reports.iter().map(StepReport::total_ms).collect());
     row.static_pairs = median_u64(reports.iter().map(|r| r.static_pairs));
     row.dynamic_pairs = median_u64(reports.iter().map(|r| r.dynamic_pairs));
     row.static_contacts = median_u64(reports.iter().map(|r| r.static_contacts));
     row.dynamic_contacts = median_u64(reports.iter().map(|r| r.dynamic_contacts));
     row.state_hash = format!("{:016x}", w.state_hash());
-    eprintln!(
+    progress.log(format!(
         "  {kind}: {:.3} ms a tick (static {:.3}, dynamic {:.3}), hash {}",
         row.total_ms, row.physics_static_ms, row.physics_dynamic_ms, row.state_hash
-    );
+    ));
     Ok(row)
+}
+
+/// The whole server tick on `kind` with one bot per user of the world.
+fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, progress: &Progress) -> Result<Row> {
+    progress.start(format!("scenario {label} · {kind} server tick"));
+    let backend = create_backend(kind)?;
+    let mut row = empty_row(label, world, kind, backend.description(), SERVER);
+    row.ticks = args.ticks;
+    row.warmup = args.warmup;
+    let config = ServerConfig { aoi_size: args.aoi_size, ..ServerConfig::default() };
+    let mut bench = TickBench::new(config, world.clone(), backend).context("starting the server tick")?;
+    for _ in 0..args.warmup {
+        bench.tick()?;
+        progress.tick();
+    }
+    let mut samples: Vec<TickSample> = Vec::with_capacity(args.ticks as usize);
+    let cpu_before = process_cpu_ms();
+    for _ in 0..args.ticks {
+        samples.push(bench.tick()?);
+        progress.tick();
+    }
+    // The bots send and drain in this process too, on one thread: take their time out
+    // of the process's CPU time, as the reference's clients ran on other machines.
+    let bots_ms: f64 = samples.iter().map(|s| s.bots_ms).sum();
+    row.cpu_ms = ((process_cpu_ms() - cpu_before - bots_ms) / args.ticks.max(1) as f64).max(0.0);
+    let stage = |i: usize| median(samples.iter().map(|s| s.stage_ms[i]).collect());
+    row.upload = stage(0);
+    row.build_dynamic_bvh = stage(1);
+    row.broad_static = stage(2);
+    row.broad_dynamic = stage(3);
+    row.narrow_static = stage(4);
+    row.narrow_dynamic = stage(5);
+    row.forces = stage(6);
+    row.packets = stage(7);
+    row.send = stage(8);
+    row.receive = stage(9);
+    row.physics_static_ms = row.upload + row.broad_static + row.narrow_static;
+    row.physics_dynamic_ms = row.build_dynamic_bvh + row.broad_dynamic + row.narrow_dynamic + row.forces;
+    row.total_ms = median(samples.iter().map(TickSample::total_ms).collect());
+    row.state_hash = format!("{:016x}", bench.world().state_hash());
+    let m = |f: fn(&TickSample) -> u64| median_u64(samples.iter().map(f));
+    let server = ServerTick {
+        players: bench.players(),
+        aoi_size: args.aoi_size,
+        datagrams: m(|s| s.datagrams),
+        bytes: m(|s| s.bytes),
+        records: m(|s| s.records as u64),
+        actions_received: m(|s| s.received),
+        delivered: m(|s| s.delivered),
+        rejected: samples.iter().map(|s| s.rejected).sum(),
+        min_saw_own: samples.iter().map(|s| s.saw_own).min().unwrap_or(0),
+    };
+    if server.rejected > 0 {
+        anyhow::bail!("{} datagrams the bots could not open: the server tick is broken", server.rejected);
+    }
+    progress.log(format!(
+        "  {kind} server tick: {:.3} ms (packets {:.3}, send {:.3}, receive {:.3}), {} players, {} datagrams a tick",
+        row.total_ms, row.packets, row.send, row.receive, server.players, server.datagrams
+    ));
+    row.server = Some(server);
+    Ok(row)
+}
+
+/// The progress bar of a long run (hidden when standard error is not a terminal, where
+/// the log lines are printed plainly instead).
+struct Progress {
+    bar: ProgressBar,
+}
+
+impl Progress {
+    fn new(total_ticks: u64) -> Self {
+        let bar = ProgressBar::with_draw_target(Some(total_ticks), ProgressDrawTarget::stderr());
+        bar.set_style(
+            ProgressStyle::with_template("{bar:30} {pos}/{len} ticks, {elapsed} (eta {eta}) {msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        Progress { bar }
+    }
+
+    fn start(&self, what: String) {
+        self.bar.set_message(what);
+    }
+
+    fn tick(&self) {
+        self.bar.inc(1);
+    }
+
+    fn skip(&self, ticks: u64) {
+        self.bar.inc(ticks);
+    }
+
+    fn log(&self, line: String) {
+        if self.bar.is_hidden() { eprintln!("{line}") } else { self.bar.println(line) }
+    }
+}
+
+fn is_naive(kind: BackendKind) -> bool {
+    matches!(kind, BackendKind::CpuNaive | BackendKind::CudaNaive)
 }
 
 /// Runs the benchmark and returns its rows.
 pub fn measure(args: &BenchArgs) -> Result<Vec<Row>> {
+    let per_run = args.warmup.max(1) + args.ticks;
+    let server_runs = if args.physics_only { 0 } else { args.backend.iter().filter(|k| !is_naive(**k)).count() };
+    let runs = args.scenario.len() * (args.backend.len() + server_runs) + args.sweep.len() * args.backend.len();
+    let progress = Progress::new(runs as u64 * per_run);
     let mut rows = Vec::new();
     for &name in &args.scenario {
         let started = Instant::now();
+        progress.start(format!("generating scenario {name:?}"));
         let (spec, world) = args.world.build(name)?;
-        eprintln!(
+        progress.log(format!(
             "scenario {}: {} dynamic, {} static objects, generated in {:.1} s",
             spec.name,
             world.dynamics.len(),
             world.statics.objects().len(),
             started.elapsed().as_secs_f64()
-        );
+        ));
         for &kind in &args.backend {
             rows.push(
-                bench_one(&spec.name, &world, kind, args)
+                bench_one(&spec.name, &world, kind, args, &progress)
                     .with_context(|| format!("scenario {} on {kind}", spec.name))?,
+            );
+        }
+        if args.physics_only {
+            continue;
+        }
+        for &kind in args.backend.iter().filter(|k| !is_naive(**k)) {
+            let physics_skipped =
+                rows.iter().any(|r| r.scenario == spec.name && r.backend == kind.to_string() && r.skipped.is_some());
+            if physics_skipped {
+                progress.skip(per_run);
+                continue;
+            }
+            rows.push(
+                server_one(&spec.name, &world, kind, args, &progress)
+                    .with_context(|| format!("server tick of scenario {} on {kind}", spec.name))?,
             );
         }
     }
     for &n in &args.sweep {
         let spec = sweep_spec(n, args.world.seed);
+        progress.start(format!("generating {}", spec.name));
         let world = spec.build().with_context(|| format!("generating sweep point {n}"))?;
-        eprintln!(
+        progress.log(format!(
             "{}: {n} dynamic, {} static objects, map {:.0} units",
             spec.name, spec.static_objects, spec.world_size
-        );
+        ));
         for &kind in &args.backend {
-            rows.push(bench_one(&spec.name, &world, kind, args).with_context(|| format!("{} on {kind}", spec.name))?);
+            rows.push(
+                bench_one(&spec.name, &world, kind, args, &progress)
+                    .with_context(|| format!("{} on {kind}", spec.name))?,
+            );
         }
     }
+    progress.bar.finish_and_clear();
     Ok(rows)
 }
 
@@ -305,7 +495,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         "| scenario | backend | static | dynamic | total | CPU per tick | dynamic pairs | static pairs | state hash |"
     );
     let _ = writeln!(s, "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |");
-    for r in rows {
+    for r in rows.iter().filter(|r| !r.is_server()) {
         match &r.skipped {
             Some(why) => {
                 let _ = writeln!(s, "| {} | {} | - | - | - | | | | {why} |", r.scenario, r.backend);
@@ -327,17 +517,65 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
             }
         }
     }
+    // Table 2 is the whole server tick where it was run; without it (--physics-only),
+    // the physics rows with `packets` and `send` at 0.
+    let server_rows: Vec<&Row> = rows.iter().filter(|r| r.is_server() && r.skipped.is_none()).collect();
+    let table2: Vec<&Row> = if server_rows.is_empty() {
+        rows.iter().filter(|r| r.skipped.is_none()).collect()
+    } else {
+        server_rows.clone()
+    };
     let _ = writeln!(s, "\n#### Table 2: time per stage (ms, medians)\n");
     let _ = writeln!(s, "| scenario | backend | {} |", reference::STAGES.join(" | "));
     let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(reference::STAGES.len()));
-    for r in rows.iter().filter(|r| r.skipped.is_none()) {
+    for r in &table2 {
         let cells: Vec<String> = r.stages().iter().map(|&v| fmt_ms(v)).collect();
-        let _ = writeln!(s, "| {} | {} | {} |", r.scenario, r.backend, cells.join(" | "));
+        let _ = writeln!(s, "| {} | {} | {} |", r.scenario, r.label(), cells.join(" | "));
     }
-    let _ = writeln!(
-        s,
-        "\n`packets` and `send` belong to the server tick and are 0 in a physics-only run. cpu threads: {threads}."
-    );
+    if server_rows.is_empty() {
+        let _ = writeln!(
+            s,
+            "\n`packets` and `send` belong to the server tick and are 0 in a physics-only run. cpu threads: {threads}."
+        );
+    } else {
+        let _ = writeln!(
+            s,
+            "\n#### Table 3: the whole server tick (medians per tick; one bot socket per user on loopback)\n"
+        );
+        let _ = writeln!(
+            s,
+            "| scenario | backend | players | tick | server CPU | receive | packets | send | datagrams | KiB sent | records | actions in | opened by bots | min. players seeing themselves |"
+        );
+        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(12));
+        for r in &server_rows {
+            let Some(t) = &r.server else { continue };
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {} | {} | {} | {} |",
+                r.scenario,
+                r.backend,
+                t.players,
+                fmt_ms(r.total_ms),
+                fmt_ms(r.cpu_ms),
+                fmt_ms(r.receive),
+                fmt_ms(r.packets),
+                fmt_ms(r.send),
+                t.datagrams,
+                t.bytes as f64 / 1024.0,
+                t.records,
+                t.actions_received,
+                t.delivered,
+                t.min_saw_own
+            );
+        }
+        let _ = writeln!(
+            s,
+            "\n`tick` is the sum of the stages (receive included); `server CPU` is the process's CPU time less the bots'. \
+             AOI edge {} units; each bot sends an action every {} ticks. cpu threads: {threads}.",
+            server_rows[0].server.as_ref().map_or(0.0, |t| t.aoi_size),
+            myriad_server::tick_bench::ACTION_EVERY
+        );
+    }
     let _ = writeln!(s, "\n#### The reference ({})\n", reference::MACHINE);
     let _ = writeln!(
         s,
@@ -367,25 +605,41 @@ pub fn json(rows: &[Row]) -> Result<String> {
     Ok(s)
 }
 
-/// CSV with a header line.
+/// CSV with a header line: one column per field, nested fields as `server.players`
+/// and so on, empty where a row does not have the field (physics rows have no
+/// `server.*`).
 pub fn csv(rows: &[Row]) -> Result<String> {
-    let mut s = String::new();
-    for (i, r) in rows.iter().enumerate() {
-        let v = serde_json::to_value(r)?;
-        let obj = v.as_object().context("a row serialises to an object")?;
-        if i == 0 {
-            s.push_str(&obj.keys().cloned().collect::<Vec<_>>().join(","));
-            s.push('\n');
+    fn flatten(prefix: &str, v: &serde_json::Value, out: &mut Vec<(String, String)>) {
+        match v {
+            serde_json::Value::Object(o) => {
+                for (k, v) in o {
+                    let key = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+                    flatten(&key, v, out);
+                }
+            }
+            serde_json::Value::String(t) => out.push((prefix.into(), format!("\"{}\"", t.replace('"', "\"\"")))),
+            serde_json::Value::Null => out.push((prefix.into(), String::new())),
+            other => out.push((prefix.into(), other.to_string())),
         }
-        let cells: Vec<String> = obj
-            .values()
-            .map(|v| match v {
-                serde_json::Value::String(t) => format!("\"{}\"", t.replace('"', "\"\"")),
-                serde_json::Value::Null => String::new(),
-                other => other.to_string(),
-            })
-            .collect();
-        s.push_str(&cells.join(","));
+    }
+    let mut flat = Vec::with_capacity(rows.len());
+    let mut header: Vec<String> = Vec::new();
+    for r in rows {
+        let mut cells = Vec::new();
+        flatten("", &serde_json::to_value(r)?, &mut cells);
+        for (k, _) in &cells {
+            if !header.contains(k) {
+                header.push(k.clone());
+            }
+        }
+        flat.push(cells);
+    }
+    let mut s = header.join(",");
+    s.push('\n');
+    for cells in &flat {
+        let line: Vec<&str> =
+            header.iter().map(|h| cells.iter().find(|(k, _)| k == h).map_or("", |(_, v)| v.as_str())).collect();
+        s.push_str(&line.join(","));
         s.push('\n');
     }
     Ok(s)

@@ -102,7 +102,7 @@ where
     DB::ErrorType: 'static,
 {
     let top = rows.iter().map(|r| r.stages().iter().sum::<f64>()).fold(0.0, f64::max).max(1e-3) * 1.15;
-    let names: Vec<String> = rows.iter().map(|r| r.backend.clone()).collect();
+    let names: Vec<String> = rows.iter().map(|r| r.label()).collect();
     let mut chart = ChartBuilder::on(area)
         .caption(format!("Scenario {scenario}: time per stage (ms, median per tick)"), ("sans-serif", 24))
         .margin(16)

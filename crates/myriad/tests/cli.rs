@@ -60,7 +60,9 @@ fn bench_reports_every_stage_and_the_table_columns() {
     let out = myriad(&args);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let rows = json_lines(&out.stdout);
-    assert_eq!(rows.len(), 2);
+    // Two physics rows, then the whole server tick on the non-naive backend.
+    assert_eq!(rows.len(), 3);
+    assert_eq!([&rows[0]["mode"], &rows[1]["mode"], &rows[2]["mode"]], ["physics", "physics", "server"]);
     for r in &rows {
         for key in [
             "upload",
@@ -90,6 +92,17 @@ fn bench_reports_every_stage_and_the_table_columns() {
         assert_eq!(r["static_capsules"], 30);
     }
     assert_eq!(rows[0]["state_hash"], rows[1]["state_hash"]);
+    // The server tick fills the columns a physics run leaves at 0, and its datagrams
+    // reached every bot, each seeing its own object.
+    let server = &rows[2];
+    assert_eq!(server["backend"], "cpu");
+    for key in ["packets", "send", "receive"] {
+        assert!(server[key].as_f64().unwrap() > 0.0, "{key} in {server}");
+    }
+    assert_eq!(server["server"]["players"], 60);
+    assert_eq!(server["server"]["min_saw_own"], 60);
+    assert_eq!(server["server"]["rejected"], 0);
+    assert!(server["server"]["delivered"].as_u64().unwrap() >= 60);
     for f in ["bench.md", "bench.json", "bench.csv"] {
         let text = std::fs::read_to_string(dir.join(f)).unwrap();
         assert!(text.contains("cpu-naive"), "{f}");
@@ -97,8 +110,16 @@ fn bench_reports_every_stage_and_the_table_columns() {
     for f in ["stages-custom.png", "stages-custom.svg"] {
         assert!(std::fs::metadata(dir.join(f)).unwrap().len() > 1000, "{f} is drawn");
     }
+    // Every CSV line has the header's number of fields (quoted commas do not count).
+    let csv = std::fs::read_to_string(dir.join("bench.csv")).unwrap();
+    let fields =
+        |line: &str| line.chars().fold((1, false), |(n, q), c| (n + usize::from(c == ',' && !q), q ^ (c == '"'))).0;
+    let lines: Vec<&str> = csv.lines().collect();
+    assert!(lines[0].contains("server.players") && lines[0].contains("receive"), "{}", lines[0]);
+    assert!(lines.iter().all(|l| fields(l) == fields(lines[0])), "{csv}");
     let md = std::fs::read_to_string(dir.join("bench.md")).unwrap();
     assert!(md.contains("396.5"), "the reference's Table 1 is printed beside ours");
+    assert!(md.contains("Table 3") && md.contains("cpu server tick"), "{md}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

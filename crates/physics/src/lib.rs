@@ -9,11 +9,14 @@
 //! - [`lbvh`]: Karras's linear BVH with Morton codes and a radix sort;
 //! - [`cpu`]: the `cpu-naive` and `cpu` backends over one shared pipeline;
 //! - [`backend`]: the trait, stage names and reports;
-//! - [`consts`]: per-tick constants shared by every backend.
+//! - [`consts`]: per-tick constants shared by every backend;
+//! - [`conformance`]: the behaviour every backend must show, as checks any backend's
+//!   tests can run.
 //!
 //! No I/O happens here.
 
 pub mod backend;
+pub mod conformance;
 pub mod consts;
 pub mod cpu;
 pub mod error;

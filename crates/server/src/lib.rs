@@ -9,6 +9,7 @@
 //! - [`world`]: building the served map and its NPCs.
 //! - [`tls`]: certificates (self-signed for development).
 //! - [`status`]: what the tick loop reports each second.
+//! - [`tick_bench`]: the end-to-end tick benchmark (the real tick, bots on loopback).
 //!
 //! # Architecture
 //!
@@ -33,6 +34,7 @@ pub mod error;
 pub mod login;
 pub mod status;
 mod tick;
+pub mod tick_bench;
 pub mod tls;
 pub mod world;
 
@@ -198,7 +200,7 @@ impl ServerHandle {
                     world,
                     backend,
                     endpoint,
-                    persister_for_tick,
+                    Some(persister_for_tick),
                     map_id,
                     receiver,
                     tick_shared,

@@ -71,6 +71,28 @@ pub(crate) struct Joined {
 /// The default player shape (a person-sized capsule).
 pub const PLAYER_SHAPE: Shape = Shape::Capsule { radius: 0.4, half_height: 0.5 };
 
+/// Indices of the server's own stages in [`STAGES`] (the physics stages come first).
+const PACKETS: usize = Stage::ALL.len();
+const SEND: usize = PACKETS + 1;
+const RECEIVE: usize = SEND + 1;
+
+/// Datagrams taken from the socket per `recvmmsg` call.
+pub(crate) const RECV_BATCH: usize = 1024;
+
+/// What one tick did: milliseconds per stage (indexed like [`STAGES`]) and what it sent.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct TickWork {
+    pub stage_ms: [f64; STAGES.len()],
+    /// Bytes sent (control replies and updates).
+    pub bytes: u64,
+    /// Datagrams sent.
+    pub datagrams: u64,
+    /// State records packed.
+    pub records: usize,
+    /// Datagrams received from clients (before authentication).
+    pub received: u64,
+}
+
 struct Player {
     user_id: UserId,
     username: String,
@@ -101,7 +123,8 @@ pub(crate) struct TickLoop {
     pub world: World,
     pub backend: Box<dyn Backend>,
     pub endpoint: Endpoint,
-    pub persister: Persister,
+    /// `None` in the tick benchmark, which has no database.
+    pub persister: Option<Persister>,
     pub map_id: MapId,
     pub commands: Receiver<Command>,
     pub shared: Arc<Shared>,
@@ -124,7 +147,7 @@ impl TickLoop {
         world: World,
         backend: Box<dyn Backend>,
         endpoint: Endpoint,
-        persister: Persister,
+        persister: Option<Persister>,
         map_id: MapId,
         commands: Receiver<Command>,
         shared: Arc<Shared>,
@@ -159,7 +182,7 @@ impl TickLoop {
     /// Runs until the shared stop flag is set; then disconnects everyone and hands their
     /// final positions to the persister (unless the stop is a simulated crash).
     pub(crate) fn run(mut self) {
-        let mut recv = RecvBatch::new(1024);
+        let mut recv = RecvBatch::new(RECV_BATCH);
         let mut aoi = AoiResults::default();
         let mut boxes: Vec<Aabb> = Vec::new();
         let persist_every = Duration::from_millis(self.config.persist_interval_ms);
@@ -169,29 +192,8 @@ impl TickLoop {
         let mut last_log = Instant::now();
         while !self.shared.stop.load(Ordering::Acquire) {
             let start = Instant::now();
-            let mut stage_ms = [0f64; STAGES.len()];
-            self.drain_commands();
-            let t = Instant::now();
-            self.receive(&mut recv);
-            self.expire(Instant::now());
-            stage_ms[9] = ms(t.elapsed());
-
-            let k = TickConstants::new(&self.config.physics(), 1.0);
-            match self.backend.step(&mut self.world, &k) {
-                Ok(report) => stage_ms[..7].copy_from_slice(&report.stage_ms),
-                Err(e) => {
-                    tracing::error!(error = %e, "physics step failed");
-                    metrics::counter!("myriad_physics_errors_total").increment(1);
-                }
-            }
-            self.world.tick += 1;
-
-            let t = Instant::now();
-            let built = self.build_updates(&mut boxes, &mut aoi);
-            stage_ms[Stage::ALL.len()] = ms(t.elapsed());
-            let t = Instant::now();
-            let (bytes, datagrams) = self.send();
-            stage_ms[8] = ms(t.elapsed());
+            let TickWork { stage_ms, bytes, datagrams, records: built, .. } =
+                self.tick_once(&mut recv, &mut boxes, &mut aoi);
 
             if last_persist.elapsed() >= persist_every {
                 self.persist_all();
@@ -234,11 +236,13 @@ impl TickLoop {
                     last_log = Instant::now();
                 }
                 *self.shared.status.lock().unwrap_or_else(|p| p.into_inner()) = status;
-                let p = self.persister.stats();
-                metrics::gauge!("myriad_persist_queued").set(p.queued as f64);
-                metrics::gauge!("myriad_persist_rows_written").set(p.rows_written as f64);
-                metrics::gauge!("myriad_persist_failures").set(p.failures as f64);
-                metrics::gauge!("myriad_persist_dropped").set(p.dropped_overflow as f64);
+                if let Some(persister) = &self.persister {
+                    let p = persister.stats();
+                    metrics::gauge!("myriad_persist_queued").set(p.queued as f64);
+                    metrics::gauge!("myriad_persist_rows_written").set(p.rows_written as f64);
+                    metrics::gauge!("myriad_persist_failures").set(p.failures as f64);
+                    metrics::gauge!("myriad_persist_dropped").set(p.dropped_overflow as f64);
+                }
             }
 
             next += self.dilation.period();
@@ -258,6 +262,36 @@ impl TickLoop {
         }
         self.persist_all();
         self.send();
+    }
+
+    /// One tick's work, steps 1 to 6 of the module docs: joins, receive, expiry, the
+    /// physics step, interest management and the send. Pacing, persistence, dilation and
+    /// metrics stay in [`TickLoop::run`], so the tick benchmark times exactly this.
+    pub(crate) fn tick_once(&mut self, recv: &mut RecvBatch, boxes: &mut Vec<Aabb>, aoi: &mut AoiResults) -> TickWork {
+        let mut stage_ms = [0f64; STAGES.len()];
+        self.drain_commands();
+        let t = Instant::now();
+        let received = self.receive(recv);
+        self.expire(Instant::now());
+        stage_ms[RECEIVE] = ms(t.elapsed());
+
+        let k = TickConstants::new(&self.config.physics(), 1.0);
+        match self.backend.step(&mut self.world, &k) {
+            Ok(report) => stage_ms[..Stage::ALL.len()].copy_from_slice(&report.stage_ms),
+            Err(e) => {
+                tracing::error!(error = %e, "physics step failed");
+                metrics::counter!("myriad_physics_errors_total").increment(1);
+            }
+        }
+        self.world.tick += 1;
+
+        let t = Instant::now();
+        let records = self.build_updates(boxes, aoi);
+        stage_ms[PACKETS] = ms(t.elapsed());
+        let t = Instant::now();
+        let (bytes, datagrams) = self.send();
+        stage_ms[SEND] = ms(t.elapsed());
+        TickWork { stage_ms, bytes, datagrams, records, received }
     }
 
     fn drain_commands(&mut self) {
@@ -319,41 +353,75 @@ impl TickLoop {
                 tracing::error!(error = %e, "cannot spawn a player");
                 RefusalReason::Unavailable
             })?;
-            let slot = self.world.dynamics.slot(entity).unwrap_or(0) as u32;
-            self.players.push(Player {
-                user_id,
-                username: username.clone(),
-                entity,
-                session_id: keys.session_id,
-                opener: session.opener,
-                addr: None,
-                ready: false,
-                last_heard: Instant::now(),
-                last_frame: None,
-                shape,
-            });
-            self.subscribers.push(Subscriber::new(slot, pos.to_array(), session.sealer));
-            let idx = self.players.len() - 1;
-            self.by_user.insert(user_id.0, idx);
-            if state.is_none() {
+            let idx = self.admit(user_id, username.clone(), entity, shape, keys.session_id, session);
+            if state.is_none()
+                && let Some(persister) = &self.persister
+            {
                 // First visit: record the spawn point now so the next login finds it.
-                let _ =
-                    self.persister.submit(PlayerState::new(user_id, self.map_id, store_shape(shape), pos.to_array()));
+                let _ = persister.submit(PlayerState::new(user_id, self.map_id, store_shape(shape), pos.to_array()));
             }
             tracing::info!(user = %username, entity = entity.0, "player joined");
             idx
         };
+        Ok(self.joined(idx, keys))
+    }
+
+    /// Adds a player for `entity`, an object already in the world; returns its index.
+    fn admit(
+        &mut self,
+        user_id: UserId,
+        username: String,
+        entity: EntityId,
+        shape: Shape,
+        session_id: u64,
+        session: ServerSession,
+    ) -> usize {
+        let slot = self.world.dynamics.slot(entity).unwrap_or(0);
+        let pos = self.world.dynamics.positions()[slot];
+        self.players.push(Player {
+            user_id,
+            username,
+            entity,
+            session_id,
+            opener: session.opener,
+            addr: None,
+            ready: false,
+            last_heard: Instant::now(),
+            last_frame: None,
+            shape,
+        });
+        self.subscribers.push(Subscriber::new(slot as u32, pos.to_array(), session.sealer));
+        let idx = self.players.len() - 1;
+        self.by_user.insert(user_id.0, idx);
+        idx
+    }
+
+    /// Registers player `idx`'s new session and describes it for the login response.
+    fn joined(&mut self, idx: usize, keys: SessionKeys) -> Joined {
         self.by_session.insert(keys.session_id, idx);
         let p = &self.players[idx];
         let slot = self.world.dynamics.slot(p.entity).unwrap_or(0);
-        Ok(Joined {
+        Joined {
             keys,
             entity: u64::from(p.entity.0),
             position: self.world.dynamics.positions()[slot].to_array(),
             shape: shape_desc(p.shape),
             tick: self.world.tick,
             dilation_permille: self.dilation.permille(),
-        })
+        }
+    }
+
+    /// The tick benchmark's join: makes `entity`, an object already in the world (one of
+    /// a scenario's users), a player with a fresh session, as a login would.
+    pub(crate) fn adopt(&mut self, user_id: UserId, entity: EntityId) -> JoinResult {
+        if self.by_user.contains_key(&user_id.0) || self.world.dynamics.slot(entity).is_none() {
+            return Err(RefusalReason::Unavailable);
+        }
+        let keys = self.fresh_keys()?;
+        let session = ServerSession::new(&keys);
+        let shape = self.world.dynamics.shape_of(self.world.dynamics.slot(entity).unwrap_or(0));
+        let idx = self.admit(user_id, format!("bench{}", user_id.0), entity, shape, keys.session_id, session);
+        Ok(self.joined(idx, keys))
     }
 
     /// A spawn point for a first visit: spread over the map by user id, on the terrain.
@@ -378,9 +446,11 @@ impl TickLoop {
         Vec3::new(p.x, p.y.max(floor + 0.05), p.z)
     }
 
-    fn receive(&mut self, recv: &mut RecvBatch) {
+    /// Receives and handles what is queued on the socket; returns the datagrams taken.
+    fn receive(&mut self, recv: &mut RecvBatch) -> u64 {
         let now = Instant::now();
         let mut leaving = Vec::new();
+        let mut received = 0;
         // Bounded so a flood cannot starve the tick; what is left waits for the next one.
         for _ in 0..64 {
             let n = match self.endpoint.recv_batch(recv) {
@@ -392,6 +462,7 @@ impl TickLoop {
                 }
             };
             metrics::counter!("myriad_datagrams_received_total").increment(n as u64);
+            received += n as u64;
             for i in 0..n {
                 let Some((from, bytes)) = recv.get_mut(i) else { continue };
                 if let Some(idx) = self.handle(from, bytes, now) {
@@ -405,6 +476,7 @@ impl TickLoop {
         for idx in leaving.into_iter().rev() {
             self.remove(idx, None);
         }
+        received
     }
 
     /// Handles one datagram; returns the player index if it asked to leave.
@@ -515,16 +587,18 @@ impl TickLoop {
     }
 
     fn persist_one(&self, idx: usize) {
-        if let Some(state) = self.state_of(idx)
-            && let Err(e) = self.persister.submit(state)
+        if let Some(persister) = &self.persister
+            && let Some(state) = self.state_of(idx)
+            && let Err(e) = persister.submit(state)
         {
             tracing::warn!(error = %e, "position not queued for the database");
         }
     }
 
     fn persist_all(&self) {
+        let Some(persister) = &self.persister else { return };
         let states: Vec<PlayerState> = (0..self.players.len()).filter_map(|i| self.state_of(i)).collect();
-        if let Err(e) = self.persister.submit_many(&states) {
+        if let Err(e) = persister.submit_many(&states) {
             tracing::warn!(error = %e, "positions not queued for the database");
         }
     }

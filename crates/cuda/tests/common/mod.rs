@@ -1,11 +1,10 @@
 //! Shared helpers of the GPU tests: which CUDA backends can run here, and the worlds of
-//! `crates/physics/tests/backends.rs`.
+//! [`myriad_physics::conformance`].
 
-#![allow(dead_code)]
+#![allow(dead_code, unused_imports)]
 
-use myriad_core::{Placement, ScenarioSpec, Vec3, World};
 use myriad_cuda::CudaBackend;
-use myriad_physics::{Backend, BackendKind, StepReport, TickConstants};
+use myriad_physics::{Backend, BackendKind};
 
 /// Whether the run must fail instead of skipping when no GPU is usable.
 pub fn cuda_required() -> bool {
@@ -41,24 +40,5 @@ pub fn cuda_backend(test: &str, kind: BackendKind) -> Option<CudaBackend> {
     }
 }
 
-/// A small, crowded world: contacts of every pair kind happen from the first tick (the
-/// world of `crates/physics/tests/backends.rs`).
-pub fn crowded(seed: u64, placement: Placement) -> World {
-    let mut spec = ScenarioSpec::custom(seed);
-    spec.name = "test".into();
-    spec.dynamic = 1_500;
-    spec.users = 150;
-    spec.static_objects = 150;
-    spec.world_size = 96.0;
-    spec.origin = Vec3::new(-2_000.0, 40.0, 7_000.0);
-    spec.terrain_samples = 97;
-    spec.max_height = 6.0;
-    spec.placement = placement;
-    spec.build().unwrap()
-}
-
-/// Steps `ticks` times with the default constants.
-pub fn run(backend: &mut dyn Backend, world: &mut World, ticks: usize) -> Vec<StepReport> {
-    let k = TickConstants::default();
-    (0..ticks).map(|_| backend.step(world, &k).unwrap()).collect()
-}
+/// The shared test worlds (the same as the CPU backends' tests).
+pub use myriad_physics::conformance::{crowded, run};

@@ -1,0 +1,228 @@
+//! Behaviour every backend must show, written once: the worlds and checks that the CPU
+//! backends' tests (`tests/backends.rs`) and the CUDA backends' (`crates/cuda/tests`)
+//! both run, so a new backend is held to exactly the same contract.
+//!
+//! Each check takes the backends under test and, where it compares results, a reference
+//! backend whose world the others must reproduce bit for bit. A check panics with a
+//! message naming the backend when the contract is broken: these are test helpers.
+
+use myriad_core::{Aabb, ObjectKind, Placement, ScenarioSpec, Shape, Vec3, World};
+
+use crate::{AoiResults, Backend, StepReport, TickConstants};
+
+/// A small, crowded world: contacts of every pair kind happen from the first tick, at an
+/// origin far from zero (so nothing relies on a world that starts at the origin).
+pub fn crowded(seed: u64, placement: Placement) -> World {
+    let mut spec = ScenarioSpec::custom(seed);
+    spec.name = "test".into();
+    spec.dynamic = 1_500;
+    spec.users = 150;
+    spec.static_objects = 150;
+    spec.world_size = 96.0;
+    spec.origin = Vec3::new(-2_000.0, 40.0, 7_000.0);
+    spec.terrain_samples = 97;
+    spec.max_height = 6.0;
+    spec.placement = placement;
+    spec.build().expect("the crowded test world builds")
+}
+
+/// The world of the pinned golden hash (`tests/golden.rs`): 900 dynamic objects,
+/// 120 static objects, an 80-unit map at an odd origin.
+pub fn golden_world() -> World {
+    let mut spec = ScenarioSpec::custom(2024);
+    spec.dynamic = 900;
+    spec.users = 90;
+    spec.static_objects = 120;
+    spec.world_size = 80.0;
+    spec.origin = Vec3::new(123.5, -7.0, -4096.0);
+    spec.terrain_samples = 81;
+    spec.max_height = 5.0;
+    spec.build().expect("the golden test world builds")
+}
+
+/// Steps `ticks` times with the default constants.
+pub fn run(backend: &mut dyn Backend, world: &mut World, ticks: usize) -> Vec<StepReport> {
+    let k = TickConstants::default();
+    (0..ticks).map(|_| backend.step(world, &k).expect("a step succeeds")).collect()
+}
+
+/// 150 ticks of a crowded world: every backend ends with the reference's world, bit for
+/// bit, having found the same pairs and contacts tick by tick.
+pub fn same_world_bit_for_bit(reference: &mut dyn Backend, others: &mut [Box<dyn Backend>]) {
+    let start = crowded(11, Placement::Uniform);
+    let mut want = start.clone();
+    let want_reports = run(reference, &mut want, 150);
+    assert_ne!(want.state_hash(), start.state_hash(), "the world must have moved");
+    let contacts: u64 = want_reports.iter().map(|r| r.dynamic_contacts + r.static_contacts).sum();
+    assert!(contacts > 1_000, "the test needs collisions, had {contacts}");
+    for b in others {
+        let mut w = start.clone();
+        let reports = run(b.as_mut(), &mut w, 150);
+        assert_eq!(w.state_hash(), want.state_hash(), "{} differs from {}", b.kind(), reference.kind());
+        for (t, (a, c)) in reports.iter().zip(&want_reports).enumerate() {
+            assert_eq!(
+                (a.static_pairs, a.dynamic_pairs, a.static_contacts, a.dynamic_contacts),
+                (c.static_pairs, c.dynamic_pairs, c.static_contacts, c.dynamic_contacts),
+                "{} tick {t}",
+                b.kind()
+            );
+        }
+    }
+}
+
+/// 300 objects spawned at one point (duplicate Morton codes, coincident centres): every
+/// backend gives the reference's world and the pile spreads out.
+pub fn stacked_duplicates_agree_and_separate(reference: &mut dyn Backend, others: &mut [Box<dyn Backend>]) {
+    let mut base = crowded(13, Placement::Uniform);
+    let spot = base.dynamics.positions()[0] + Vec3::new(0.0, 3.0, 0.0);
+    for i in 0..300 {
+        let shape = match i % 3 {
+            0 => Shape::Sphere { radius: 0.5 },
+            1 => Shape::Box { half: Vec3::splat(0.5) },
+            _ => Shape::Capsule { radius: 0.4, half_height: 0.5 },
+        };
+        base.dynamics.spawn(shape, spot, ObjectKind::Npc).expect("spawn");
+    }
+    let spread_out = |w: &World, who: &dyn Backend| {
+        // No two of the spawned objects share a position any more.
+        let n = w.dynamics.len();
+        let mut pts: Vec<[u32; 3]> =
+            w.dynamics.positions()[n - 300..].iter().map(|p| p.to_array().map(f32::to_bits)).collect();
+        pts.sort_unstable();
+        pts.dedup();
+        assert_eq!(pts.len(), 300, "{}", who.kind());
+    };
+    let mut want = base.clone();
+    run(reference, &mut want, 60);
+    spread_out(&want, reference);
+    for b in others {
+        let mut w = base.clone();
+        run(b.as_mut(), &mut w, 60);
+        assert_eq!(w.state_hash(), want.state_hash(), "{}", b.kind());
+        spread_out(&w, b.as_ref());
+    }
+}
+
+/// 300 ticks of a crowded world: positions finite, everything inside the bounds and
+/// on or above the terrain.
+pub fn physics_stays_sane(backends: &mut [Box<dyn Backend>]) {
+    for b in backends {
+        let mut w = crowded(14, Placement::Uniform);
+        run(b.as_mut(), &mut w, 300);
+        let d = &w.dynamics;
+        for s in 0..d.len() {
+            let p = d.positions()[s];
+            assert!(p.is_finite() && d.prev_positions()[s].is_finite(), "{} slot {s}: {p}", b.kind());
+            let bb = d.aabb(s);
+            assert!(
+                w.bounds.contains_point(bb.min) && w.bounds.contains_point(bb.max),
+                "{} slot {s} outside: {bb:?}",
+                b.kind()
+            );
+            // The floor is enforced on the centre (height + half extent), exactly.
+            let floor = w.terrain.height_at(p.x, p.z) + d.half_extents()[s].y;
+            assert!(p.y >= floor, "{} slot {s} under the terrain: {} < {floor}", b.kind(), p.y);
+        }
+    }
+}
+
+/// A sparse grid of users holding no action falls, settles and then does not creep.
+pub fn resting_objects_stay_at_rest(backends: &mut [Box<dyn Backend>]) {
+    for b in backends {
+        let mut w = crowded(15, Placement::Uniform);
+        let ids: Vec<_> = w.dynamics.ids().to_vec();
+        for id in ids {
+            w.dynamics.despawn(id);
+        }
+        for i in 0..10 {
+            for j in 0..10 {
+                let (x, z) = (w.bounds.min.x + 8.0 + 8.0 * i as f32, w.bounds.min.z + 8.0 + 8.0 * j as f32);
+                let shape = [
+                    Shape::Sphere { radius: 0.5 },
+                    Shape::Box { half: Vec3::splat(0.5) },
+                    Shape::Capsule { radius: 0.4, half_height: 0.5 },
+                ][(i + j) % 3];
+                let y = w.terrain.height_at(x, z) + shape.half_extents().y + 0.3;
+                w.dynamics.spawn(shape, Vec3::new(x, y, z), ObjectKind::User).expect("spawn");
+            }
+        }
+        run(b.as_mut(), &mut w, 60); // fall and settle
+        let settled: Vec<Vec3> = w.dynamics.positions().to_vec();
+        run(b.as_mut(), &mut w, 200);
+        for (s, (a, now)) in settled.iter().zip(w.dynamics.positions()).enumerate() {
+            // Statics may hold some of them up; either way nothing creeps.
+            assert!((*a - *now).length() < 1e-3, "{}: slot {s} moved from {a} to {now}", b.kind());
+        }
+    }
+}
+
+/// A sphere and a box spawned overlapping are pushed a full contact apart.
+pub fn overlapping_objects_are_pushed_apart(backends: &mut [Box<dyn Backend>]) {
+    for b in backends {
+        let mut w = crowded(16, Placement::Uniform);
+        let ids: Vec<_> = w.dynamics.ids().to_vec();
+        for id in ids {
+            w.dynamics.despawn(id);
+        }
+        let c = w.bounds.center();
+        let y = w.terrain.height_at(c.x, c.z) + 0.5;
+        let a = w.dynamics.spawn(Shape::Sphere { radius: 0.5 }, Vec3::new(c.x, y, c.z), ObjectKind::User).expect("a");
+        let bx = w
+            .dynamics
+            .spawn(Shape::Box { half: Vec3::splat(0.5) }, Vec3::new(c.x + 0.6, y, c.z), ObjectKind::User)
+            .expect("b");
+        run(b.as_mut(), &mut w, 30);
+        let pa = w.dynamics.positions()[w.dynamics.slot(a).expect("a lives")];
+        let pb = w.dynamics.positions()[w.dynamics.slot(bx).expect("b lives")];
+        assert!(pb.x - pa.x >= 0.99, "{}: still overlapping, {pa} {pb}", b.kind());
+    }
+}
+
+/// AOI answers equal brute force before any step (build), after steps (refit), after
+/// the object set changed (rebuild), for an empty batch, and after a teleport between
+/// steps.
+pub fn area_of_interest_matches_brute_force(backends: &mut [Box<dyn Backend>]) {
+    for b in backends {
+        let mut w = crowded(17, Placement::Clustered { hotspots: 2, fraction: 0.5, spread: 6.0 });
+        let c = w.bounds.center();
+        let queries: Vec<Aabb> = (0..40)
+            .map(|i| {
+                let centre = c + Vec3::new((i % 7) as f32 * 9.0 - 30.0, 0.0, (i % 5) as f32 * 11.0 - 25.0);
+                Aabb::from_center_half(centre, Vec3::new(8.0 + i as f32, 100.0, 6.0))
+            })
+            .collect();
+        let check = |w: &World, b: &mut dyn Backend| {
+            let mut out = AoiResults::default();
+            b.query_aoi(w, &queries, &mut out).expect("AOI query");
+            assert_eq!(out.len(), queries.len());
+            let mut total = 0;
+            for (q, bx) in queries.iter().enumerate() {
+                let want: Vec<u32> =
+                    (0..w.dynamics.len() as u32).filter(|&s| w.dynamics.aabb(s as usize).overlaps(bx)).collect();
+                assert_eq!(out.get(q), want.as_slice(), "{} query {q}", b.kind());
+                total += want.len();
+            }
+            assert!(total > 500, "queries must see objects, saw {total}");
+        };
+        check(&w, b.as_mut());
+        run(b.as_mut(), &mut w, 10);
+        check(&w, b.as_mut());
+        w.dynamics.spawn(Shape::Sphere { radius: 1.0 }, c, ObjectKind::User).expect("spawn");
+        let first = w.dynamics.ids()[0];
+        w.dynamics.despawn(first);
+        check(&w, b.as_mut());
+        let mut out = AoiResults::default();
+        b.query_aoi(&w, &[], &mut out).expect("empty AOI batch");
+        assert!(out.is_empty(), "{}", b.kind());
+        let id = w.dynamics.ids()[5];
+        w.dynamics.teleport(id, c);
+        check(&w, b.as_mut());
+    }
+}
+
+/// The golden world stepped 120 times: its state hash (which `tests/golden.rs` pins).
+pub fn golden_hash(backend: &mut dyn Backend) -> u64 {
+    let mut w = golden_world();
+    run(backend, &mut w, 120);
+    w.state_hash()
+}

@@ -1,0 +1,300 @@
+//! The end-to-end tick benchmark: the server's real tick (receive, physics, AOI and
+//! interest management, sealing, `sendmmsg`) with every user object of a world played by
+//! a bot that has its own UDP socket on loopback.
+//!
+//! It runs the same code as `myriad serve`, minus the TLS login (players are admitted
+//! directly with fresh session keys, as a login would) and minus pacing, persistence
+//! and metrics, which are not stages. Between two timed ticks, untimed, the bots send
+//! their sealed actions and then drain their sockets, opening every datagram with their
+//! session key, so each sample also proves what was sent arrived and decoded.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use myriad_server::tick_bench::TickBench;
+//! let world = myriad_core::ScenarioSpec::reference(1, 42)?.build()?;
+//! let backend = myriad_physics::create_backend(myriad_physics::BackendKind::Cpu)?;
+//! let mut bench = TickBench::new(myriad_server::ServerConfig::default(), world, backend)?;
+//! let sample = bench.tick()?;
+//! println!("{} players, packets {:.3} ms, send {:.3} ms", bench.players(), sample.stage_ms[7], sample.stage_ms[8]);
+//! # Ok(()) }
+//! ```
+
+use std::io::ErrorKind;
+use std::net::{SocketAddr, UdpSocket};
+use std::sync::Arc;
+use std::time::Instant;
+
+use myriad_core::{Aabb, ObjectKind, World};
+use myriad_net::{Endpoint, EndpointConfig, RecvBatch};
+use myriad_physics::{AoiResults, Backend};
+use myriad_protocol::{Action, ActionMask, ClientMessage, ClientSession, ServerMessage};
+use myriad_store::{MapId, UserId};
+
+use crate::config::ServerConfig;
+use crate::error::ServerError;
+use crate::status::{STAGES, Shared};
+use crate::tick::{RECV_BATCH, TickLoop, TickWork};
+
+/// Ticks between two actions of one bot. Bots take turns (bot `i` sends on the ticks
+/// where `(tick + i) % ACTION_EVERY == 0`), so the server receives a steady third of
+/// the players each tick, as from clients that send when their keys change, instead of
+/// one burst of every player that could overflow the socket's receive buffer.
+pub const ACTION_EVERY: u64 = 3;
+
+/// Ticks a bot holds one direction before it turns.
+const TURN_EVERY: u64 = 30;
+
+/// One measured tick.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct TickSample {
+    /// Milliseconds per stage, indexed like [`STAGES`] (the physics stages, then
+    /// `packets`, `send`, `receive`).
+    pub stage_ms: [f64; STAGES.len()],
+    /// Bytes the server sent.
+    pub bytes: u64,
+    /// Datagrams the server sent.
+    pub datagrams: u64,
+    /// State records packed.
+    pub records: usize,
+    /// Datagrams the server received from the bots before this tick's step.
+    pub received: u64,
+    /// Actions the bots sent before this tick.
+    pub actions_sent: u64,
+    /// Datagrams the bots received and opened (session key, replay window, decode).
+    pub delivered: u64,
+    /// Datagrams a bot received but could not open: always 0 unless something is broken.
+    pub rejected: u64,
+    /// Records the bots decoded.
+    pub records_delivered: u64,
+    /// Bots whose update this tick contained their own object.
+    pub saw_own: usize,
+    /// Wall time of the bots' untimed work (sealing and sending actions, draining and
+    /// opening), in ms: one thread, so also its CPU time, which a caller that measures
+    /// the process's CPU time subtracts to get the server's.
+    pub bots_ms: f64,
+}
+
+impl TickSample {
+    /// The whole tick's work in milliseconds (the sum of the stages).
+    pub fn total_ms(&self) -> f64 {
+        self.stage_ms.iter().sum()
+    }
+}
+
+struct Bot {
+    socket: UdpSocket,
+    session: ClientSession,
+    entity: u64,
+    frame: u32,
+}
+
+/// The server tick with one bot per user object; see the module docs.
+pub struct TickBench {
+    tick: TickLoop,
+    bots: Vec<Bot>,
+    server_addr: SocketAddr,
+    recv: RecvBatch,
+    boxes: Vec<Aabb>,
+    aoi: AoiResults,
+    buf: Vec<u8>,
+    datagram: Vec<u8>,
+    // Kept so the tick loop's command channel stays open (nothing joins through it).
+    _commands: std::sync::mpsc::Sender<crate::tick::Command>,
+}
+
+impl std::fmt::Debug for TickBench {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TickBench").field("players", &self.bots.len()).field("server", &self.server_addr).finish()
+    }
+}
+
+impl TickBench {
+    /// Binds the server's UDP endpoint on loopback, makes every [`ObjectKind::User`]
+    /// object of `world` a player with a bot socket of its own, and runs one untimed
+    /// tick in which the bots' `Ready` messages are received, so every player is active
+    /// from the first measured tick. Only the tick-related keys of `config` matter
+    /// (tick rate, AOI size, datagrams per player, session timeout).
+    pub fn new(config: ServerConfig, world: World, backend: Box<dyn Backend>) -> Result<TickBench, ServerError> {
+        config.validate()?;
+        let endpoint = Endpoint::bind(EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0))))?;
+        let server_addr = endpoint.local_addr();
+        let users: Vec<_> = world
+            .dynamics
+            .ids()
+            .iter()
+            .zip(world.dynamics.kinds())
+            .filter(|(_, k)| **k == ObjectKind::User)
+            .map(|(id, _)| *id)
+            .collect();
+        let (commands, receiver) = std::sync::mpsc::channel();
+        let shared = Arc::new(Shared::default());
+        let mut tick = TickLoop::new(config, world, backend, endpoint, None, MapId(0), receiver, shared);
+        let mut bots = Vec::with_capacity(users.len());
+        for (i, entity) in users.into_iter().enumerate() {
+            let joined = tick
+                .adopt(UserId(i as i64 + 1), entity)
+                .map_err(|r| ServerError::Internal(format!("admitting bench player {i}: {r:?}")))?;
+            let socket = UdpSocket::bind(SocketAddr::from(([127, 0, 0, 1], 0)))
+                .and_then(|s| s.set_nonblocking(true).map(|()| s))
+                .map_err(|e| {
+                    ServerError::io(format!("binding bot socket {} (raise `ulimit -n` for many players)", i + 1), e)
+                })?;
+            bots.push(Bot { socket, session: ClientSession::new(&joined.keys), entity: joined.entity, frame: 0 });
+        }
+        let mut bench = TickBench {
+            tick,
+            bots,
+            server_addr,
+            recv: RecvBatch::new(RECV_BATCH),
+            boxes: Vec::new(),
+            aoi: AoiResults::default(),
+            buf: vec![0; 65_536],
+            datagram: Vec::with_capacity(128),
+            _commands: commands,
+        };
+        // Ready in waves small enough for the server's receive buffer, each received by a
+        // tick: every player is active (address known, ready) before measuring starts.
+        for wave in (0..bench.bots.len()).collect::<Vec<_>>().chunks(2_000) {
+            for &i in wave {
+                bench.send(i, &ClientMessage::Ready)?;
+            }
+            bench.run_tick();
+            bench.drain();
+        }
+        Ok(bench)
+    }
+
+    /// Players (and bots).
+    pub fn players(&self) -> usize {
+        self.bots.len()
+    }
+
+    /// The simulated world.
+    pub fn world(&self) -> &World {
+        &self.tick.world
+    }
+
+    /// The bots whose turn it is send their actions (untimed), the server runs one tick
+    /// (timed per stage), then every bot drains and opens what it received (untimed).
+    pub fn tick(&mut self) -> Result<TickSample, ServerError> {
+        let tick = self.tick.world.tick;
+        let before = Instant::now();
+        let mut actions_sent = 0;
+        for i in 0..self.bots.len() {
+            if (tick + i as u64).is_multiple_of(ACTION_EVERY) {
+                let mask = [ActionMask::FORWARD, ActionMask::RIGHT, ActionMask::BACK, ActionMask::LEFT]
+                    [((tick / TURN_EVERY + i as u64) % 4) as usize];
+                let frame = self.bots[i].frame.wrapping_add(1);
+                self.bots[i].frame = frame;
+                let action = Action { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
+                self.send(i, &ClientMessage::Action(action))?;
+                actions_sent += 1;
+            }
+        }
+        let bots_before = before.elapsed();
+        let work = self.run_tick();
+        let after = Instant::now();
+        let mut sample = self.drain();
+        sample.bots_ms = (bots_before + after.elapsed()).as_secs_f64() * 1e3;
+        sample.stage_ms = work.stage_ms;
+        sample.bytes = work.bytes;
+        sample.datagrams = work.datagrams;
+        sample.records = work.records;
+        sample.received = work.received;
+        sample.actions_sent = actions_sent;
+        Ok(sample)
+    }
+
+    fn run_tick(&mut self) -> TickWork {
+        self.tick.tick_once(&mut self.recv, &mut self.boxes, &mut self.aoi)
+    }
+
+    fn send(&mut self, i: usize, msg: &ClientMessage) -> Result<(), ServerError> {
+        self.datagram.clear();
+        let bot = &mut self.bots[i];
+        bot.session.seal(msg, &mut self.datagram).map_err(|e| ServerError::Internal(format!("sealing: {e}")))?;
+        match bot.socket.send_to(&self.datagram, self.server_addr) {
+            // A full loopback queue loses the datagram, as a network would: the server's
+            // `received` count shows it.
+            Ok(_) => Ok(()),
+            Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(()),
+            Err(e) => Err(ServerError::io(format!("bot {} sending", i + 1), e)),
+        }
+    }
+
+    /// Every bot reads and opens everything queued on its socket.
+    fn drain(&mut self) -> TickSample {
+        let mut s = TickSample::default();
+        for bot in &mut self.bots {
+            let mut saw_own = false;
+            // Until WouldBlock: drained. Any other error (an ICMP error queued on the
+            // socket) is not the server's datagram either.
+            while let Ok(n) = bot.socket.recv(&mut self.buf) {
+                match bot.session.open(&mut self.buf[..n]) {
+                    Ok(opened) => {
+                        s.delivered += 1;
+                        if let ServerMessage::StateUpdate(u) = opened.message {
+                            s.records_delivered += u.records.len() as u64;
+                            saw_own |= u.records.iter().any(|r| r.id == bot.entity);
+                        }
+                    }
+                    Err(_) => s.rejected += 1,
+                }
+            }
+            s.saw_own += usize::from(saw_own);
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use myriad_core::ScenarioSpec;
+    use myriad_physics::BackendKind;
+
+    #[test]
+    fn every_player_gets_its_own_object_and_packets_and_send_are_timed() {
+        let mut spec = ScenarioSpec::custom(7);
+        spec.dynamic = 1_200;
+        spec.users = 60;
+        spec.static_objects = 300;
+        spec.world_size = 256.0;
+        spec.terrain_samples = 129;
+        let world = spec.build().unwrap();
+        let backend = myriad_physics::create_backend(BackendKind::Cpu).unwrap();
+        let mut bench = TickBench::new(ServerConfig::default(), world, backend).unwrap();
+        assert_eq!(bench.players(), 60);
+        let d = &bench.world().dynamics;
+        let users: Vec<_> = (0..d.len()).filter(|&i| d.kinds()[i] == ObjectKind::User).map(|i| d.ids()[i]).collect();
+        let start: Vec<_> = users.iter().map(|&id| d.positions()[d.slot(id).unwrap()]).collect();
+        let mut samples = Vec::new();
+        for _ in 0..12 {
+            samples.push(bench.tick().unwrap());
+        }
+        for s in &samples {
+            // Every player is active: at least one update datagram each, all delivered
+            // and opened, and each update holds the player's own object.
+            assert!(s.datagrams >= 60, "{s:?}");
+            assert_eq!(s.delivered, s.datagrams, "{s:?}");
+            assert_eq!(s.rejected, 0);
+            assert_eq!(s.saw_own, 60);
+            assert!(s.records_delivered >= s.records as u64 && s.records > 0, "{s:?}");
+            // The bots' actions arrive: a third of them each tick.
+            assert_eq!(s.received, s.actions_sent, "{s:?}");
+            assert_eq!(s.actions_sent, 20);
+            assert!(s.stage_ms[7] > 0.0 && s.stage_ms[8] > 0.0, "packets and send are measured: {s:?}");
+        }
+        // The users moved as commanded (walking, not just settling).
+        let d = &bench.world().dynamics;
+        let moved = users
+            .iter()
+            .zip(&start)
+            .filter(|&(&id, a)| {
+                let b = d.positions()[d.slot(id).unwrap()];
+                (b.x - a.x).hypot(b.z - a.z) > 0.5
+            })
+            .count();
+        assert!(moved >= 50, "only {moved} of 60 players walked");
+    }
+}

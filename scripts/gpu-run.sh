@@ -79,4 +79,8 @@ for l in open(sys.argv[1]):
     print(f"| {r['dynamic']} | {r['static_objects']} | {r['total_ms']:.3f} | {r['build_dynamic_bvh']:.3f} | {r['broad_static']:.3f} | {r['broad_dynamic']:.3f} | {r['narrow_static'] + r['narrow_dynamic']:.3f} | {r['forces']:.3f} | {r['upload']:.3f} | {r['dynamic_pairs']} |")
 PY
 fi
+# The device tool brings back a few files only: the bench's tables and plots as one.
+if [[ -d $out/bench ]]; then
+    tar -C "$out" -czf "$out/bench.tgz" bench && rm -rf "$out/bench"
+fi
 exit $status

@@ -125,6 +125,8 @@ pub struct Row {
 struct ServerTick {
     players: usize,
     aoi_size: f32,
+    /// The part of `packets` spent in the backend's AOI query (ms).
+    aoi_query: f64,
     datagrams: u64,
     bytes: u64,
     records: u64,
@@ -345,6 +347,7 @@ fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, p
     let server = ServerTick {
         players: bench.players(),
         aoi_size: args.aoi_size,
+        aoi_query: median(samples.iter().map(|s| s.aoi_ms).collect()),
         datagrams: m(|s| s.datagrams),
         bytes: m(|s| s.bytes),
         records: m(|s| s.records as u64),
@@ -544,14 +547,14 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         );
         let _ = writeln!(
             s,
-            "| scenario | backend | players | tick | server CPU | receive | packets | send | datagrams | KiB sent | records | actions in | opened by bots | min. players seeing themselves |"
+            "| scenario | backend | players | tick | server CPU | receive | packets | of which AOI query | send | datagrams | KiB sent | records | actions in | opened by bots | min. players seeing themselves |"
         );
-        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(12));
+        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(13));
         for r in &server_rows {
             let Some(t) = &r.server else { continue };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {} | {} | {} | {} |",
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {} | {} | {} | {} |",
                 r.scenario,
                 r.backend,
                 t.players,
@@ -559,6 +562,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
                 fmt_ms(r.cpu_ms),
                 fmt_ms(r.receive),
                 fmt_ms(r.packets),
+                fmt_ms(t.aoi_query),
                 fmt_ms(r.send),
                 t.datagrams,
                 t.bytes as f64 / 1024.0,

@@ -83,6 +83,8 @@ pub(crate) const RECV_BATCH: usize = 1024;
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct TickWork {
     pub stage_ms: [f64; STAGES.len()],
+    /// The part of `packets` spent in the backend's AOI query, in ms.
+    pub aoi_ms: f64,
     /// Bytes sent (control replies and updates).
     pub bytes: u64,
     /// Datagrams sent.
@@ -286,12 +288,12 @@ impl TickLoop {
         self.world.tick += 1;
 
         let t = Instant::now();
-        let records = self.build_updates(boxes, aoi);
+        let (records, aoi_ms) = self.build_updates(boxes, aoi);
         stage_ms[PACKETS] = ms(t.elapsed());
         let t = Instant::now();
         let (bytes, datagrams) = self.send();
         stage_ms[SEND] = ms(t.elapsed());
-        TickWork { stage_ms, bytes, datagrams, records, received }
+        TickWork { stage_ms, aoi_ms, bytes, datagrams, records, received }
     }
 
     fn drain_commands(&mut self) {
@@ -605,8 +607,9 @@ impl TickLoop {
 
     /// AOI queries and interest management for every active player (ready, address
     /// known); returns the records packed. Inactive players get nothing sealed, so their
-    /// sequence numbers start with what they actually receive.
-    fn build_updates(&mut self, boxes: &mut Vec<Aabb>, aoi: &mut AoiResults) -> usize {
+    /// sequence numbers start with what they actually receive. Also returns the time of
+    /// the AOI query in ms (part of the `packets` stage).
+    fn build_updates(&mut self, boxes: &mut Vec<Aabb>, aoi: &mut AoiResults) -> (usize, f64) {
         let half = Vec3::splat(self.config.aoi_size / 2.0);
         boxes.clear();
         let positions = self.world.dynamics.positions();
@@ -623,15 +626,18 @@ impl TickLoop {
             active.push(s);
         }
         if active.is_empty() {
-            return 0;
+            return (0, 0.0);
         }
-        if let Err(e) = self.backend.query_aoi(&self.world, boxes, aoi) {
+        let t = Instant::now();
+        let queried = self.backend.query_aoi(&self.world, boxes, aoi);
+        let aoi_ms = ms(t.elapsed());
+        if let Err(e) = queried {
             tracing::error!(error = %e, "AOI query failed");
-            return 0;
+            return (0, aoi_ms);
         }
         let tick = TickInfo { tick: self.world.tick, dilation_permille: self.dilation.permille() };
         let lists = AoiLists { offsets: &aoi.offsets, objects: &aoi.objects };
-        match self.interest.build(tick, &WorldObjects(&self.world), lists, &mut active) {
+        let records = match self.interest.build(tick, &WorldObjects(&self.world), lists, &mut active) {
             Ok(report) => {
                 if report.seal_failures > 0 {
                     metrics::counter!("myriad_seal_failures_total").increment(report.seal_failures as u64);
@@ -642,7 +648,8 @@ impl TickLoop {
                 tracing::error!(error = %e, "interest management failed");
                 0
             }
-        }
+        };
+        (records, aoi_ms)
     }
 
     /// Sends the control replies and every ready player's updates; returns bytes and

@@ -50,6 +50,9 @@ pub struct TickSample {
     /// Milliseconds per stage, indexed like [`STAGES`] (the physics stages, then
     /// `packets`, `send`, `receive`).
     pub stage_ms: [f64; STAGES.len()],
+    /// The part of `packets` spent in the backend's AOI query, in ms (the rest is
+    /// interest management: selection, packing, sealing).
+    pub aoi_ms: f64,
     /// Bytes the server sent.
     pub bytes: u64,
     /// Datagrams the server sent.
@@ -197,6 +200,7 @@ impl TickBench {
         let mut sample = self.drain();
         sample.bots_ms = (bots_before + after.elapsed()).as_secs_f64() * 1e3;
         sample.stage_ms = work.stage_ms;
+        sample.aoi_ms = work.aoi_ms;
         sample.bytes = work.bytes;
         sample.datagrams = work.datagrams;
         sample.records = work.records;
@@ -284,6 +288,7 @@ mod tests {
             assert_eq!(s.received, s.actions_sent, "{s:?}");
             assert_eq!(s.actions_sent, 20);
             assert!(s.stage_ms[7] > 0.0 && s.stage_ms[8] > 0.0, "packets and send are measured: {s:?}");
+            assert!(s.aoi_ms > 0.0 && s.aoi_ms < s.stage_ms[7], "the AOI query is part of packets: {s:?}");
         }
         // The users moved as commanded (walking, not just settling).
         let d = &bench.world().dynamics;

@@ -96,6 +96,7 @@ fn open_window(args: &Args) -> Result<Window> {
         surface_settings: SurfaceSettings {
             // Measured runs draw as fast as they can.
             vsync: args.frames.is_none(),
+            multisamples: args.msaa,
             ..SurfaceSettings::default()
         },
         ..WindowSettings::default()
@@ -190,6 +191,9 @@ struct Viewer {
     frames_after_first: u64,
     times: FrameTimes,
     last_frame: Option<Instant>,
+    /// Time spent turning snapshots into instances and uploading them (the CPU side of a
+    /// world update), in milliseconds.
+    update_times: FrameTimes,
 }
 
 impl Viewer {
@@ -233,6 +237,7 @@ impl Viewer {
             frames_after_first: 0,
             times: FrameTimes::default(),
             last_frame: None,
+            update_times: FrameTimes::default(),
             context,
             session,
             args,
@@ -267,7 +272,9 @@ impl Viewer {
         self.camera.set_viewport(frame.viewport);
         self.camera.set_view(to_render(eye), to_render(target), vec3(0.0, 1.0, 0.0));
         if snap.generation != self.shown_generation {
+            let t = Instant::now();
             self.show(&snap, eye);
+            self.update_times.record(t.elapsed().as_secs_f64() * 1000.0);
         }
         if let Some(why) = &snap.ended
             && self.first_update.is_none()
@@ -367,8 +374,14 @@ impl Viewer {
         // The first frames compile shaders and upload buffers: leave them out.
         let skip = (self.times.samples_ms.len() / 10).min(10);
         if let Some((mean, p50, p95)) = self.times.summary(skip) {
+            let updates = self.update_times.summary(1).map_or_else(String::new, |(m, _, p)| {
+                format!(
+                    " | {} world updates, instance rebuild + upload mean {m:.2} ms, p95 {p:.2} ms",
+                    self.update_times.samples_ms.len()
+                )
+            });
             println!(
-                "frames {} | objects in view {} | instances {} | frame time mean {mean:.2} ms, median {p50:.2} ms, p95 {p95:.2} ms ({:.1} fps) | {:.1} s since the first update",
+                "frames {} | objects in view {} | instances {} | frame time mean {mean:.2} ms, median {p50:.2} ms, p95 {p95:.2} ms ({:.1} fps){updates} | {:.1} s since the first update",
                 self.times.samples_ms.len() - skip,
                 self.in_view,
                 self.batches.total(),

@@ -42,6 +42,10 @@ pub struct Args {
     /// with every snapshot) to measure rendering under load.
     #[arg(long, default_value_t = 0)]
     pub bench_objects: usize,
+    /// Multisample anti-aliasing samples (0, 2, 4, 8); 0 is much cheaper in software
+    /// rendering.
+    #[arg(long, default_value_t = 4, value_parser = parse_msaa)]
+    pub msaa: u8,
     /// Seconds to wait for the first world update with --frames before giving up.
     #[arg(long, default_value_t = 30.0)]
     pub wait: f64,
@@ -54,6 +58,14 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     match (parse(w), parse(h)) {
         (Some(w), Some(h)) => Ok((w, h)),
         _ => Err(format!("{s:?}: width and height must be whole numbers from 16 to 16384")),
+    }
+}
+
+/// Parses a multisample count: 0, 2, 4 or 8.
+pub fn parse_msaa(s: &str) -> Result<u8, String> {
+    match s.parse::<u8>() {
+        Ok(n @ (0 | 2 | 4 | 8)) => Ok(n),
+        _ => Err(format!("{s:?}: 0, 2, 4 or 8")),
     }
 }
 
@@ -87,6 +99,8 @@ mod tests {
         assert!(parse_size("1280").is_err());
         assert!(parse_size("0x720").is_err());
         assert!(parse_size("axb").is_err());
+        assert_eq!(parse_msaa("8"), Ok(8));
+        assert!(parse_msaa("3").is_err());
     }
 
     #[test]

@@ -277,3 +277,38 @@ fn clear_errors_without_a_panic() {
     assert!(!err.contains("panicked"), "{err}");
     server.shutdown().unwrap();
 }
+
+/// Frame times with 10,000 extra objects in view (software rendering here, so the numbers
+/// say little about a GPU; see docs/viewer.md). Run with
+/// `cargo test --release -p myriad-viewer --test headless -- --ignored --nocapture`.
+#[test]
+#[ignore = "a measurement, not a check: slow under software rendering"]
+fn frame_times_with_many_objects() {
+    let Some(xvfb) = start_xvfb() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let rt = runtime();
+    let server = start_server(&rt, dir.path());
+    place_player(&rt, &server);
+    let objects = std::env::var("MYRIAD_VIEWER_BENCH_OBJECTS").unwrap_or_else(|_| "0,10000".into());
+    let size = std::env::var("MYRIAD_VIEWER_BENCH_SIZE").unwrap_or_else(|_| "1280x720".into());
+    let extra = std::env::var("MYRIAD_VIEWER_BENCH_ARGS").unwrap_or_default();
+    for n in objects.split(',') {
+        let child = Command::new(VIEWER)
+            .args(["--server", &server.login_addr().to_string(), "--user", "user0", "--cert"])
+            .arg(server.certificate_path())
+            .args(["--frames", "60", "--size", &size, "--bench-objects", n])
+            .args(extra.split_whitespace())
+            .env("DISPLAY", &xvfb.display)
+            .env_remove("WAYLAND_DISPLAY")
+            .env("LIBGL_ALWAYS_SOFTWARE", "1")
+            .env("MYRIAD_PASSWORD", "password0")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("starting the viewer");
+        let out = wait_with_timeout(child, Duration::from_secs(590));
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        println!("--bench-objects {n} at {size} {extra}: {}", String::from_utf8_lossy(&out.stdout).trim());
+    }
+    server.shutdown().unwrap();
+}

@@ -312,3 +312,51 @@ fn frame_times_with_many_objects() {
     }
     server.shutdown().unwrap();
 }
+
+/// The network thread without a window: held keys reach the server at the tick rate, a
+/// tapped jump is sent, and snapshots carry the world, the ping and the bandwidth.
+#[test]
+fn session_sends_held_keys_and_publishes_snapshots() {
+    use myriad_protocol::ActionMask;
+    use myriad_viewer::net::Session;
+    let dir = tempfile::tempdir().unwrap();
+    let rt = runtime();
+    let server = start_server(&rt, dir.path());
+    place_player(&rt, &server);
+    let trust = Trust::pin_file(server.certificate_path()).unwrap();
+    let cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
+    let mut session = Session::start(cc, Credentials::test_user(0)).unwrap();
+    assert_eq!(session.map.samples.len(), (session.map.terrain_width * session.map.terrain_depth) as usize);
+    assert!(!session.map.statics.is_empty(), "the map came with the login");
+    let wait_for = |what: &str, f: &dyn Fn(&myriad_viewer::net::Snapshot) -> bool| {
+        let end = Instant::now() + Duration::from_secs(10);
+        loop {
+            let s = session.shared.snapshot();
+            if f(&s) {
+                return s;
+            }
+            assert!(Instant::now() < end, "no snapshot with {what} within 10 s: {s:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    };
+    let first = wait_for("the own position", &|s| s.own_position.is_some() && s.objects.len() > 1);
+    let start = first.own_position.unwrap();
+    session.shared.with_keys(|k| k.handle(three_d::Key::ArrowUp, true));
+    let moved = wait_for("the player 2 units forward", &|s| s.own_position.is_some_and(|p| p[2] - start[2] > 2.0));
+    let p = moved.own_position.unwrap();
+    assert!((p[0] - start[0]).abs() < 1.0, "forward is +z only: {start:?} -> {p:?}");
+    assert!(moved.tick > first.tick && moved.generation > first.generation);
+    session.shared.with_keys(|k| k.handle(three_d::Key::ArrowUp, false));
+    // A tap of space shorter than a tick still makes the player jump.
+    let before = session.shared.snapshot().own_position.unwrap();
+    session.shared.with_keys(|k| {
+        k.handle(three_d::Key::Space, true);
+        k.handle(three_d::Key::Space, false);
+    });
+    wait_for("the player off the ground", &|s| s.own_position.is_some_and(|p| p[1] - before[1] > 0.3));
+    let s = wait_for("a ping and a bandwidth", &|s| s.ping.is_some() && s.bytes_per_s > 0.0);
+    assert!(s.ping.unwrap() < Duration::from_secs(1), "{:?}", s.ping);
+    assert_eq!(ActionMask::JUMP, 1 << 4);
+    session.stop(Duration::from_secs(2));
+    server.shutdown().unwrap();
+}

@@ -248,18 +248,16 @@ fn empty_row(label: &str, world: &World, kind: BackendKind, description: String,
     }
 }
 
-/// Fills the physics stages of `row` from per-tick reports.
-fn physics_medians(row: &mut Row, reports: &[StepReport]) {
-    let stage = |s: Stage| median(reports.iter().map(|r| r.ms(s)).collect());
-    row.upload = stage(Stage::Upload);
-    row.build_dynamic_bvh = stage(Stage::BuildDynamicBvh);
-    row.broad_static = stage(Stage::BroadStatic);
-    row.broad_dynamic = stage(Stage::BroadDynamic);
-    row.narrow_static = stage(Stage::NarrowStatic);
-    row.narrow_dynamic = stage(Stage::NarrowDynamic);
-    row.forces = stage(Stage::Forces);
-    row.physics_static_ms = median(reports.iter().map(StepReport::physics_static_ms).collect());
-    row.physics_dynamic_ms = median(reports.iter().map(StepReport::physics_dynamic_ms).collect());
+/// Sets the seven physics stages of `row`, `stage(i)` giving the median of
+/// [`Stage::ALL`]`[i]` (the server's stage list starts with the same seven).
+fn set_physics_stages(row: &mut Row, stage: impl Fn(usize) -> f64) {
+    row.upload = stage(0);
+    row.build_dynamic_bvh = stage(1);
+    row.broad_static = stage(2);
+    row.broad_dynamic = stage(3);
+    row.narrow_static = stage(4);
+    row.narrow_dynamic = stage(5);
+    row.forces = stage(6);
 }
 
 fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, progress: &Progress) -> Result<Row> {
@@ -291,7 +289,9 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, pr
         progress.tick();
     }
     row.cpu_ms = (process_cpu_ms() - cpu_before) / args.ticks.max(1) as f64;
-    physics_medians(&mut row, &reports);
+    set_physics_stages(&mut row, |i| median(reports.iter().map(|r| r.ms(Stage::ALL[i])).collect()));
+    row.physics_static_ms = median(reports.iter().map(StepReport::physics_static_ms).collect());
+    row.physics_dynamic_ms = median(reports.iter().map(StepReport::physics_dynamic_ms).collect());
     row.total_ms = median(reports.iter().map(StepReport::total_ms).collect());
     row.static_pairs = median_u64(reports.iter().map(|r| r.static_pairs));
     row.dynamic_pairs = median_u64(reports.iter().map(|r| r.dynamic_pairs));
@@ -329,13 +329,7 @@ fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, p
     let bots_ms: f64 = samples.iter().map(|s| s.bots_ms).sum();
     row.cpu_ms = ((process_cpu_ms() - cpu_before - bots_ms) / args.ticks.max(1) as f64).max(0.0);
     let stage = |i: usize| median(samples.iter().map(|s| s.stage_ms[i]).collect());
-    row.upload = stage(0);
-    row.build_dynamic_bvh = stage(1);
-    row.broad_static = stage(2);
-    row.broad_dynamic = stage(3);
-    row.narrow_static = stage(4);
-    row.narrow_dynamic = stage(5);
-    row.forces = stage(6);
+    set_physics_stages(&mut row, stage);
     row.packets = stage(7);
     row.send = stage(8);
     row.receive = stage(9);

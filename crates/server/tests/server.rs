@@ -42,6 +42,16 @@ fn seed(rt: &tokio::runtime::Runtime, config: &ServerConfig, n: u32) {
     });
 }
 
+/// Seeds `users` accounts and starts a server on `cfg`: the test's runtime, the server
+/// and a client configuration that trusts it.
+fn start(cfg: ServerConfig, users: u32) -> (tokio::runtime::Runtime, ServerHandle, ClientConfig) {
+    let rt = runtime();
+    seed(&rt, &cfg, users);
+    let server = ServerHandle::start(cfg).unwrap();
+    let cc = client(&server);
+    (rt, server, cc)
+}
+
 fn client(server: &ServerHandle) -> ClientConfig {
     let trust = Trust::pin_file(server.certificate_path()).unwrap();
     let mut c = ClientConfig::new(server.login_addr(), &trust).unwrap();
@@ -79,10 +89,7 @@ async fn wait_own_position(c: &mut Connection) -> [f32; 3] {
 fn login_updates_and_commanded_movement() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(dir.path());
-    let rt = runtime();
-    seed(&rt, &cfg, 2);
-    let server = ServerHandle::start(cfg).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg, 2);
     rt.block_on(async {
         // The map on request: terrain samples and every static primitive.
         let with_map = ClientConfig { want_map: true, ..cc.clone() };
@@ -124,10 +131,7 @@ fn login_updates_and_commanded_movement() {
 fn wrong_password_then_rate_limit() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = ServerConfig { login_failures_per_account: 3, ..config(dir.path()) };
-    let rt = runtime();
-    seed(&rt, &cfg, 1);
-    let server = ServerHandle::start(cfg).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg, 1);
     rt.block_on(async {
         let bad = Credentials { username: "user0".into(), password: "nope".into() };
         for _ in 0..3 {
@@ -157,10 +161,7 @@ fn wrong_password_then_rate_limit() {
 fn second_login_replaces_first_and_max_players_is_enforced() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = ServerConfig { max_players: 2, ..config(dir.path()) };
-    let rt = runtime();
-    seed(&rt, &cfg, 3);
-    let server = ServerHandle::start(cfg).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg, 3);
     rt.block_on(async {
         let mut first = Connection::connect(cc.clone(), Credentials::test_user(0)).await.unwrap();
         wait_own_position(&mut first).await;
@@ -249,10 +250,7 @@ fn persistence_round_trip_mysql() {
 fn crash_recovery_resumes_at_last_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(dir.path());
-    let rt = runtime();
-    seed(&rt, &cfg, 1);
-    let server = ServerHandle::start(cfg.clone()).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg.clone(), 1);
     let last = rt.block_on(async {
         let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
         wait_own_position(&mut c).await;
@@ -275,10 +273,7 @@ fn crash_recovery_resumes_at_last_checkpoint() {
 fn time_dilation_engages_under_load_and_recovers() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(dir.path());
-    let rt = runtime();
-    seed(&rt, &cfg, 1);
-    let server = ServerHandle::start(cfg).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg, 1);
     rt.block_on(async {
         let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
         wait_own_position(&mut c).await;
@@ -305,10 +300,7 @@ fn time_dilation_engages_under_load_and_recovers() {
 fn two_hundred_bots_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(dir.path());
-    let rt = runtime();
-    seed(&rt, &cfg, 200);
-    let server = ServerHandle::start(cfg).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg, 200);
     let report = rt.block_on(async {
         let swarm = Swarm::start(SwarmConfig::new(cc, 200));
         let end = Instant::now() + Duration::from_secs(60);
@@ -347,10 +339,7 @@ fn client_reconnects_after_server_restart() {
         udp_addr: format!("127.0.0.1:{udp}").parse().unwrap(),
         ..config(dir.path())
     };
-    let rt = runtime();
-    seed(&rt, &cfg, 1);
-    let server = ServerHandle::start(cfg.clone()).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg.clone(), 1);
     let mut c = rt.block_on(async {
         let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
         wait_own_position(&mut c).await;
@@ -379,10 +368,7 @@ fn client_reconnects_after_server_restart() {
 fn unauthenticated_datagrams_get_no_reply() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(dir.path());
-    let rt = runtime();
-    seed(&rt, &cfg, 1);
-    let server = ServerHandle::start(cfg).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg, 1);
     rt.block_on(async {
         // A real session exists, so its id is live: forge datagrams carrying it.
         let c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
@@ -411,10 +397,7 @@ fn metrics_endpoint_serves_stage_histograms() {
     let port = free_port();
     // The only test that installs the process-wide metrics recorder.
     let cfg = ServerConfig { metrics_addr: Some(format!("127.0.0.1:{port}").parse().unwrap()), ..config(dir.path()) };
-    let rt = runtime();
-    seed(&rt, &cfg, 1);
-    let server = ServerHandle::start(cfg).unwrap();
-    let cc = client(&server);
+    let (rt, server, cc) = start(cfg, 1);
     rt.block_on(async {
         let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
         wait_own_position(&mut c).await;

@@ -11,6 +11,7 @@
 //! - [`rng`]: counter-based random numbers (a hash of seed, object and tick), the same on
 //!   every machine and reproducible on a GPU.
 //! - [`config`]: the physics parameters shared by all backends.
+//! - [`script`]: scripted actions for reproducible runs (`myriad sim --actions`).
 //!
 //! This crate does no I/O beyond reading heightmap files and knows nothing about
 //! backends, sockets or databases.
@@ -21,6 +22,7 @@ pub mod config;
 pub mod error;
 pub mod rng;
 pub mod scenario;
+pub mod script;
 pub mod shape;
 pub mod terrain;
 pub mod world;
@@ -31,6 +33,7 @@ pub use config::PhysicsConfig;
 pub use error::CoreError;
 pub use glam::Vec3;
 pub use scenario::{Placement, ScenarioSpec};
+pub use script::{ActionScript, ScriptError, ScriptedAction};
 pub use shape::{Shape, ShapeKind};
 pub use terrain::Terrain;
 pub use world::{Dynamics, EntityId, ObjectKind, StaticKind, Statics, World};

@@ -925,6 +925,10 @@ impl Drop for CudaBackend {
 }
 
 impl Backend for CudaBackend {
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+
     fn kind(&self) -> BackendKind {
         self.kind
     }

@@ -33,9 +33,9 @@ pub fn create_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsErro
             }
             Err(e) => {
                 tracing::info!("backend auto: using cpu, because {e}");
-                myriad_physics::create_backend(BackendKind::Cpu)
+                myriad_physics::create_cpu_backend(BackendKind::Cpu)
             }
         },
-        cpu => myriad_physics::create_backend(cpu),
+        cpu => myriad_physics::create_cpu_backend(cpu),
     }
 }

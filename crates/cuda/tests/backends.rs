@@ -7,19 +7,19 @@ mod common;
 
 use common::cuda_backends;
 use myriad_physics::conformance;
-use myriad_physics::{BackendKind, create_backend};
+use myriad_physics::{BackendKind, create_cpu_backend};
 
 #[test]
 fn every_backend_produces_the_same_world_bit_for_bit() {
     let Some(mut gpus) = cuda_backends("every_backend_produces_the_same_world_bit_for_bit") else { return };
-    let mut cpu = create_backend(BackendKind::Cpu).unwrap();
+    let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
     conformance::same_world_bit_for_bit(cpu.as_mut(), &mut gpus);
 }
 
 #[test]
 fn stacked_duplicates_agree_and_separate() {
     let Some(mut gpus) = cuda_backends("stacked_duplicates_agree_and_separate") else { return };
-    let mut cpu = create_backend(BackendKind::Cpu).unwrap();
+    let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
     conformance::stacked_duplicates_agree_and_separate(cpu.as_mut(), &mut gpus);
 }
 
@@ -52,7 +52,7 @@ fn area_of_interest_matches_brute_force() {
 #[test]
 fn golden_scenario_matches_the_cpu() {
     let Some(mut gpus) = cuda_backends("golden_scenario_matches_the_cpu") else { return };
-    let want = conformance::golden_hash(create_backend(BackendKind::Cpu).unwrap().as_mut());
+    let want = conformance::golden_hash(create_cpu_backend(BackendKind::Cpu).unwrap().as_mut());
     for b in &mut gpus {
         let got = conformance::golden_hash(b.as_mut());
         assert_eq!(got, want, "{}: {got:#018x}", b.kind());

@@ -7,7 +7,7 @@ mod common;
 
 use common::{crowded, cuda_backend, cuda_backends};
 use myriad_core::{ObjectKind, Placement, Shape, Vec3, World};
-use myriad_physics::{BackendKind, TickConstants, create_backend};
+use myriad_physics::{BackendKind, TickConstants, create_cpu_backend};
 
 fn duplicate_heavy(seed: u64) -> World {
     let mut w = crowded(seed, Placement::Uniform);
@@ -42,7 +42,7 @@ fn gpu_state_hash_equals_cpu_over_hundreds_of_ticks() {
     let k = TickConstants::default();
     const TICKS: usize = 300;
     for (name, start) in worlds() {
-        let mut cpu = create_backend(BackendKind::Cpu).unwrap();
+        let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
         let mut want = start.clone();
         let mut got: Vec<World> = gpus.iter().map(|_| start.clone()).collect();
         let mut contacts = 0u64;
@@ -127,7 +127,7 @@ fn first_divergence_is_reported_per_object() {
     let k = TickConstants::default();
     for (name, start) in worlds() {
         for b in gpus.iter_mut() {
-            let mut cpu = create_backend(BackendKind::Cpu).unwrap();
+            let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
             let mut want = start.clone();
             for t in 0..60 {
                 let before = want.clone();

@@ -6,7 +6,7 @@ use std::collections::HashSet;
 
 use myriad_core::{Aabb, ObjectKind as Who, ScenarioSpec, ShapeKind, Vec3};
 use myriad_interest::{AoiLists, InterestConfig, InterestManager, SoaObjects, Subscriber, TickInfo};
-use myriad_physics::{AoiResults, BackendKind, TickConstants, create_backend};
+use myriad_physics::{AoiResults, BackendKind, TickConstants, create_cpu_backend};
 use myriad_protocol::{ClientSession, ObjectKind, ServerMessage, ServerSession, SessionKeys};
 
 fn keys(i: u64) -> SessionKeys {
@@ -36,7 +36,7 @@ fn every_player_receives_exactly_its_area_of_interest() {
 
     for backend_kind in BackendKind::ALL {
         let mut world = start.clone();
-        let mut backend = create_backend(backend_kind).unwrap();
+        let mut backend = create_cpu_backend(backend_kind).unwrap();
         for _ in 0..5 {
             backend.step(&mut world, &TickConstants::default()).unwrap();
         }

@@ -12,6 +12,7 @@ use myriad_core::{ObjectKind, PhysicsConfig, ScenarioSpec, World};
 use myriad_cuda::create_backend;
 use myriad_physics::{BackendKind, Stage, StepReport, TickConstants};
 use myriad_server::ServerConfig;
+use myriad_server::TickStage;
 use myriad_server::tick_bench::{TickBench, TickSample};
 use serde::Serialize;
 
@@ -248,16 +249,15 @@ fn empty_row(label: &str, world: &World, kind: BackendKind, description: String,
     }
 }
 
-/// Sets the seven physics stages of `row`, `stage(i)` giving the median of
-/// [`Stage::ALL`]`[i]` (the server's stage list starts with the same seven).
-fn set_physics_stages(row: &mut Row, stage: impl Fn(usize) -> f64) {
-    row.upload = stage(0);
-    row.build_dynamic_bvh = stage(1);
-    row.broad_static = stage(2);
-    row.broad_dynamic = stage(3);
-    row.narrow_static = stage(4);
-    row.narrow_dynamic = stage(5);
-    row.forces = stage(6);
+/// Sets the seven physics stages of `row`, `stage(s)` giving the median of stage `s`.
+fn set_physics_stages(row: &mut Row, stage: impl Fn(Stage) -> f64) {
+    row.upload = stage(Stage::Upload);
+    row.build_dynamic_bvh = stage(Stage::BuildDynamicBvh);
+    row.broad_static = stage(Stage::BroadStatic);
+    row.broad_dynamic = stage(Stage::BroadDynamic);
+    row.narrow_static = stage(Stage::NarrowStatic);
+    row.narrow_dynamic = stage(Stage::NarrowDynamic);
+    row.forces = stage(Stage::Forces);
 }
 
 fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, progress: &Progress) -> Result<Row> {
@@ -289,7 +289,7 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, pr
         progress.tick();
     }
     row.cpu_ms = (process_cpu_ms() - cpu_before) / args.ticks.max(1) as f64;
-    set_physics_stages(&mut row, |i| median(reports.iter().map(|r| r.ms(Stage::ALL[i])).collect()));
+    set_physics_stages(&mut row, |st| median(reports.iter().map(|r| r.ms(st)).collect()));
     row.physics_static_ms = median(reports.iter().map(StepReport::physics_static_ms).collect());
     row.physics_dynamic_ms = median(reports.iter().map(StepReport::physics_dynamic_ms).collect());
     row.total_ms = median(reports.iter().map(StepReport::total_ms).collect());
@@ -328,11 +328,11 @@ fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, p
     // of the process's CPU time, as the reference's clients ran on other machines.
     let bots_ms: f64 = samples.iter().map(|s| s.bots_ms).sum();
     row.cpu_ms = ((process_cpu_ms() - cpu_before - bots_ms) / args.ticks.max(1) as f64).max(0.0);
-    let stage = |i: usize| median(samples.iter().map(|s| s.stage_ms[i]).collect());
-    set_physics_stages(&mut row, stage);
-    row.packets = stage(7);
-    row.send = stage(8);
-    row.receive = stage(9);
+    let stage = |t: TickStage| median(samples.iter().map(|s| s.work.stages[t]).collect());
+    set_physics_stages(&mut row, |st| stage(TickStage::Physics(st)));
+    row.packets = stage(TickStage::Packets);
+    row.send = stage(TickStage::Send);
+    row.receive = stage(TickStage::Receive);
     row.physics_static_ms = row.upload + row.broad_static + row.narrow_static;
     row.physics_dynamic_ms = row.build_dynamic_bvh + row.broad_dynamic + row.narrow_dynamic + row.forces;
     row.total_ms = median(samples.iter().map(TickSample::total_ms).collect());
@@ -341,11 +341,11 @@ fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, p
     let server = ServerTick {
         players: bench.players(),
         aoi_size: args.aoi_size,
-        aoi_query: median(samples.iter().map(|s| s.aoi_ms).collect()),
-        datagrams: m(|s| s.datagrams),
-        bytes: m(|s| s.bytes),
-        records: m(|s| s.records as u64),
-        actions_received: m(|s| s.received),
+        aoi_query: median(samples.iter().map(|s| s.work.aoi_ms).collect()),
+        datagrams: m(|s| s.work.datagrams),
+        bytes: m(|s| s.work.bytes),
+        records: m(|s| s.work.records as u64),
+        actions_received: m(|s| s.work.received),
         delivered: m(|s| s.delivered),
         rejected: samples.iter().map(|s| s.rejected).sum(),
         min_saw_own: samples.iter().map(|s| s.saw_own).min().unwrap_or(0),

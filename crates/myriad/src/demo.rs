@@ -6,7 +6,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use myriad_client::{Behaviour, ClientConfig, Swarm, SwarmConfig, SwarmSnapshot, Trust};
-use myriad_server::ServerStatus;
+use myriad_physics::Stage;
+use myriad_server::{ServerStatus, TickStage};
 use myriad_store::Store;
 
 use crate::bots::{interrupted_within, stats_line};
@@ -28,23 +29,30 @@ pub struct DemoArgs {
     duration: Option<f64>,
 }
 
+/// The status line's abbreviation of a stage.
+fn short_name(stage: TickStage) -> &'static str {
+    match stage {
+        TickStage::Physics(Stage::Upload) => "up",
+        TickStage::Physics(Stage::BuildDynamicBvh) => "bvh",
+        TickStage::Physics(Stage::BroadStatic) => "bs",
+        TickStage::Physics(Stage::BroadDynamic) => "bd",
+        TickStage::Physics(Stage::NarrowStatic) => "ns",
+        TickStage::Physics(Stage::NarrowDynamic) => "nd",
+        TickStage::Physics(Stage::Forces) => "f",
+        TickStage::Packets => "pk",
+        TickStage::Send => "tx",
+        TickStage::Receive => "rx",
+    }
+}
+
 fn status_line(s: &ServerStatus, bots: &SwarmSnapshot) -> String {
-    let st = &s.stage_ms;
+    let stages: Vec<String> = s.stages.iter().map(|(t, v)| format!("{} {v:.1}", short_name(t))).collect();
     format!(
-        "tick {} {:.0}/s {:.1} ms [up {:.1} bvh {:.1} bs {:.1} bd {:.1} ns {:.1} nd {:.1} f {:.1} pk {:.1} tx {:.1} rx {:.1}] players {} objects {} out {:.0} kB/s tidi {:.2} | bots {}/{} view {:.0} p99 {:.0} ms",
+        "tick {} {:.0}/s {:.1} ms [{}] players {} objects {} out {:.0} kB/s tidi {:.2} | bots {}/{} view {:.0} p99 {:.0} ms",
         s.tick,
         s.ticks_per_s,
         s.tick_ms,
-        st[0],
-        st[1],
-        st[2],
-        st[3],
-        st[4],
-        st[5],
-        st[6],
-        st[7],
-        st[8],
-        st[9],
+        stages.join(" "),
         s.players,
         s.objects,
         s.bytes_per_s / 1000.0,

@@ -113,9 +113,9 @@ pub struct ServeArgs {
     print_config: bool,
 }
 
-/// Starts the server with the CUDA-aware backend factory.
+/// Starts the server.
 pub fn start(config: ServerConfig) -> Result<ServerHandle> {
-    ServerHandle::start_with_backends(config, myriad_cuda::create_backend).context("starting the server")
+    ServerHandle::start(config).context("starting the server")
 }
 
 /// Waits for SIGINT or SIGTERM (or `limit`, when given).

@@ -4,7 +4,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use myriad_core::{ObjectKind, PhysicsConfig};
+use myriad_core::{ActionScript, ObjectKind, PhysicsConfig};
 use myriad_cuda::create_backend;
 use myriad_physics::{BackendKind, TickConstants};
 use serde::Serialize;
@@ -27,6 +27,11 @@ pub struct SimArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
+    /// A script of players' actions (`TICK ENTITY MASK` lines, see
+    /// `myriad_core::script`): each is set just before the step of its tick, as the
+    /// server applies an action received before that tick.
+    #[arg(long, value_name = "FILE")]
+    pub actions: Option<std::path::PathBuf>,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -48,17 +53,28 @@ struct Summary {
     dynamic_pairs: u64,
     static_contacts: u64,
     dynamic_contacts: u64,
+    /// Scripted actions applied.
+    actions: usize,
     state_hash: String,
 }
 
 /// Runs `myriad sim`.
 pub fn run(args: SimArgs) -> Result<()> {
     let (spec, mut world) = args.world.build(args.scenario)?;
+    let script = match &args.actions {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            ActionScript::parse(&text).with_context(|| format!("in {}", path.display()))?
+        }
+        None => ActionScript::default(),
+    };
     let mut backend = create_backend(args.backend)?;
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     let mut pairs = [0u64; 4];
+    let mut actions = 0;
     let start = Instant::now();
     for t in 0..args.ticks {
+        actions += script.apply(&mut world)?;
         let r = backend.step(&mut world, &k).with_context(|| format!("tick {t}"))?;
         for (acc, v) in pairs.iter_mut().zip([r.static_pairs, r.dynamic_pairs, r.static_contacts, r.dynamic_contacts]) {
             *acc += v;
@@ -81,6 +97,7 @@ pub fn run(args: SimArgs) -> Result<()> {
         dynamic_pairs: pairs[1],
         static_contacts: pairs[2],
         dynamic_contacts: pairs[3],
+        actions,
         state_hash: format!("{:016x}", world.state_hash()),
     };
     if args.json {
@@ -95,6 +112,9 @@ pub fn run(args: SimArgs) -> Result<()> {
         println!("ticks        {} in {:.1} ms ({:.3} ms a tick)", s.ticks, s.total_ms, s.mean_tick_ms);
         println!("pairs        {} static, {} dynamic (all ticks)", s.static_pairs, s.dynamic_pairs);
         println!("contacts     {} static, {} dynamic (all ticks)", s.static_contacts, s.dynamic_contacts);
+        if args.actions.is_some() {
+            println!("actions      {} applied from the script", s.actions);
+        }
         println!("state hash   {}", s.state_hash);
     }
     Ok(())

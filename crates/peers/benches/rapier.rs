@@ -23,7 +23,7 @@ use clap::Parser;
 use myriad_core::rng::Stream;
 use myriad_core::{PhysicsConfig, ScenarioSpec, World};
 use myriad_peers::{AabbSet, Lattice, OurBroadPhase, PairDiff, Pairs};
-use myriad_physics::{Backend, BackendKind, TickConstants, create_backend};
+use myriad_physics::{Backend, BackendKind, TickConstants, create_cpu_backend};
 use rayon::{ThreadPool, ThreadPoolBuilder};
 use serde::Serialize;
 
@@ -256,7 +256,7 @@ fn broad_phase(name: &str, args: &Args, all: &ThreadPool, one: &ThreadPool) -> B
         let spec = spec(name, args.seed).unwrap_or_else(|| panic!("unknown set {name:?}"));
         let world = spec.build().expect("a generated world");
         let set = AabbSet::from_world(name, &world);
-        let backend = create_backend(BackendKind::Cpu).expect("the cpu backend");
+        let backend = create_cpu_backend(BackendKind::Cpu).expect("the cpu backend");
         (set, Motion::World(Box::new(world), backend, TickConstants::new(&PhysicsConfig::default(), 1.0)))
     };
     eprintln!(
@@ -392,7 +392,7 @@ fn whole_step(name: &str, args: &Args, all: &ThreadPool, one: &ThreadPool) -> St
     let mut contacts = 0;
     let mut ours = |pool: &ThreadPool| {
         let mut w = world.clone();
-        let mut backend = create_backend(BackendKind::Cpu).expect("the cpu backend");
+        let mut backend = create_cpu_backend(BackendKind::Cpu).expect("the cpu backend");
         let mut t = Timing::default();
         pool.install(|| {
             for tick in 0..args.warmup + args.ticks {

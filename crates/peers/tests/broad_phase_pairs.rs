@@ -11,7 +11,7 @@ mod rapier_side;
 
 use myriad_core::{Aabb, PhysicsConfig, ScenarioSpec};
 use myriad_peers::{AabbSet, Lattice, OurBroadPhase, PairDiff, Pairs, unpack};
-use myriad_physics::{BackendKind, TickConstants, create_backend};
+use myriad_physics::{BackendKind, TickConstants, create_cpu_backend};
 use rapier_side::{RapierBroad, Skin};
 
 fn assert_same(what: &str, expected: &Pairs, got: &Pairs) {
@@ -104,7 +104,7 @@ fn scenario_pairs_are_equal_and_match_the_backend() {
     assert_same("ours vs brute force", &Pairs::brute_force(&set.dynamic_aabbs(), &set.static_aabbs()), &ours0);
 
     // The backend's first step finds its pairs before anything moves: the same boxes.
-    let mut backend = create_backend(BackendKind::Cpu).unwrap();
+    let mut backend = create_cpu_backend(BackendKind::Cpu).unwrap();
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     let report = backend.step(&mut world, &k).unwrap();
     assert_eq!(

@@ -9,8 +9,10 @@ use serde::{Deserialize, Serialize};
 use crate::consts::TickConstants;
 use crate::error::PhysicsError;
 
-/// The implementations, by the names the command line uses.
+/// The implementations, by the names the command line and configuration files use
+/// (`cpu-naive`, `cpu`, `cuda-naive`, `cuda`, `auto`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum BackendKind {
     /// One thread, all pairs: the reference's "CPU" column.
     CpuNaive,
@@ -26,7 +28,7 @@ pub enum BackendKind {
 }
 
 impl BackendKind {
-    /// The kinds this crate implements (the CPU backends): [`create_backend`] makes each.
+    /// The kinds this crate implements (the CPU backends): [`create_cpu_backend`] makes each.
     pub const ALL: [BackendKind; 2] = [BackendKind::CpuNaive, BackendKind::Cpu];
     /// Every kind a name can select, the CUDA ones and `auto` included.
     pub const EVERY: [BackendKind; 5] =
@@ -197,17 +199,28 @@ pub trait Backend: Send {
     fn description(&self) -> String;
 
     /// Advances the world by one tick.
+    ///
+    /// **The step is the single owner of `world.tick`:** it increments it by exactly one
+    /// (NPC turns are drawn from it, and device copies are keyed on it); no caller, the
+    /// server included, ever changes it.
     fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError>;
 
     /// For each query box, the dynamic objects whose boxes overlap it (touching counts),
     /// at the world's current positions.
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError>;
+
+    /// The backend as [`Any`](std::any::Any), so code that knows a concrete backend can
+    /// reach it: a device-side outbound in the server shares the CUDA backend's buffers
+    /// this way instead of copying the world back to the host.
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any;
 }
 
-/// Creates a CPU backend. The CUDA kinds and `auto` live in crate `myriad-cuda`
-/// (`myriad_cuda::create_backend` handles every kind); asked for here they give
-/// [`PhysicsError::Unavailable`].
-pub fn create_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
+/// Creates one of the CPU backends this crate implements (`cpu-naive`, `cpu`).
+///
+/// This is not the backend factory: `myriad_cuda::create_backend` is, the one place
+/// that knows every kind and resolves `auto` (to `cuda` when a GPU is usable, else
+/// `cpu`). Asked for a CUDA kind or `auto`, this gives [`PhysicsError::Unavailable`].
+pub fn create_cpu_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
     Ok(match kind {
         BackendKind::CpuNaive => Box::new(crate::cpu::CpuNaive::default()),
         BackendKind::Cpu => Box::new(crate::cpu::CpuLbvh::default()),
@@ -218,4 +231,20 @@ pub fn create_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsErro
             });
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn serde_and_command_line_names_agree() {
+        for kind in BackendKind::EVERY {
+            let json = serde_json::to_string(&kind).unwrap();
+            assert_eq!(json, format!("\"{}\"", kind.name()));
+            assert_eq!(serde_json::from_str::<BackendKind>(&json).unwrap(), kind);
+            assert_eq!(kind.name().parse::<BackendKind>().unwrap(), kind);
+        }
+        assert!(serde_json::from_str::<BackendKind>("\"quantum\"").is_err());
+    }
 }

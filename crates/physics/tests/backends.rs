@@ -4,15 +4,15 @@
 
 use myriad_core::Placement;
 use myriad_physics::conformance::{self, crowded, run};
-use myriad_physics::{Backend, BackendKind, create_backend};
+use myriad_physics::{Backend, BackendKind, create_cpu_backend};
 
 fn backends() -> Vec<Box<dyn Backend>> {
-    BackendKind::ALL.into_iter().map(|k| create_backend(k).unwrap()).collect()
+    BackendKind::ALL.into_iter().map(|k| create_cpu_backend(k).unwrap()).collect()
 }
 
 /// `cpu-naive` as the reference, `cpu` under test.
 fn reference_and_others() -> (Box<dyn Backend>, Vec<Box<dyn Backend>>) {
-    (create_backend(BackendKind::CpuNaive).unwrap(), vec![create_backend(BackendKind::Cpu).unwrap()])
+    (create_cpu_backend(BackendKind::CpuNaive).unwrap(), vec![create_cpu_backend(BackendKind::Cpu).unwrap()])
 }
 
 fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
@@ -30,7 +30,7 @@ fn results_do_not_depend_on_thread_count_or_run() {
     let start = crowded(12, Placement::Clustered { hotspots: 3, fraction: 0.9, spread: 4.0 });
     let hash = |threads: usize| {
         in_pool(threads, || {
-            let mut b = create_backend(BackendKind::Cpu).unwrap();
+            let mut b = create_cpu_backend(BackendKind::Cpu).unwrap();
             let mut w = start.clone();
             let reports = run(b.as_mut(), &mut w, 120);
             (w.state_hash(), reports.iter().map(|r| r.dynamic_contacts).sum::<u64>())

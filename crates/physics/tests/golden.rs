@@ -5,7 +5,7 @@
 //! function, iteration order).
 
 use myriad_physics::conformance::golden_hash;
-use myriad_physics::{BackendKind, create_backend};
+use myriad_physics::{BackendKind, create_cpu_backend};
 
 /// [`myriad_physics::conformance::golden_world`], 120 ticks, default physics constants.
 const GOLDEN: u64 = 0x3e25_4a7b_5870_977a;
@@ -13,7 +13,7 @@ const GOLDEN: u64 = 0x3e25_4a7b_5870_977a;
 #[test]
 fn state_hash_matches_the_pinned_value_on_every_backend() {
     for kind in BackendKind::ALL {
-        let hash = golden_hash(create_backend(kind).unwrap().as_mut());
+        let hash = golden_hash(create_cpu_backend(kind).unwrap().as_mut());
         assert_eq!(hash, GOLDEN, "{kind}: {hash:#018x}");
     }
 }

@@ -1,7 +1,8 @@
 //! The server's configuration: a TOML file, overridable key by key.
 //!
-//! Every setting the reference fixes in code (spec §2.1: tick rate, UDP port, player
-//! speed, maximum players, NPC count and spacing, map, AOI box size) and what a real
+//! Every setting the reference design fixes in code (docs/design.md, server settings:
+//! tick rate, UDP port, player speed, maximum players, NPC count and spacing, map, AOI
+//! box size) and what a real
 //! server needs (addresses, data directory, database, backend, persistence, login
 //! limits, password-hash cost) is a key of [`ServerConfig`]. Unknown keys are errors, and
 //! every error names the key ([`ConfigError`]).
@@ -53,8 +54,9 @@ pub struct ServerConfig {
     /// Database URL (`mysql://user:pass@host/db`); empty uses SQLite in `data_dir`.
     pub database_url: String,
     /// Physics backend (`cpu`, `cpu-naive`, `cuda`, `cuda-naive`, or `auto`: CUDA when a
-    /// driver, NVRTC and a device are present, else `cpu`).
-    pub backend: String,
+    /// driver, NVRTC and a device are present, else `cpu`). An unknown name is an error
+    /// naming this key.
+    pub backend: BackendKind,
     /// How often player positions are handed to the database writer, in milliseconds.
     pub persist_interval_ms: u64,
     /// A player that sent nothing for this long is disconnected, in seconds.
@@ -107,7 +109,7 @@ impl Default for ServerConfig {
             max_datagrams_per_player: 2,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),
-            backend: "auto".into(),
+            backend: BackendKind::Auto,
             persist_interval_ms: 500,
             session_timeout_s: 10.0,
             login_failures_per_addr: 20,
@@ -195,9 +197,6 @@ impl ServerConfig {
         if !(1..=64).contains(&self.max_datagrams_per_player) {
             return bad("max_datagrams_per_player", format!("{} (1 to 64)", self.max_datagrams_per_player));
         }
-        if let Err(e) = self.backend.parse::<BackendKind>() {
-            return bad("backend", e.to_string());
-        }
         if self.persist_interval_ms == 0 || self.persist_interval_ms > 60_000 {
             return bad("persist_interval_ms", format!("{} (1 to 60000)", self.persist_interval_ms));
         }
@@ -233,12 +232,6 @@ impl ServerConfig {
     /// The physics parameters (the defaults with this tick rate and player speed).
     pub fn physics(&self) -> PhysicsConfig {
         PhysicsConfig { tick_rate: self.tick_rate, move_speed: self.player_speed, ..PhysicsConfig::default() }
-    }
-
-    /// The physics backend.
-    pub fn backend_kind(&self) -> BackendKind {
-        // validate() checked it; cpu is the safe fallback for a config built in code.
-        self.backend.parse().unwrap_or(BackendKind::Cpu)
     }
 }
 

@@ -2,8 +2,16 @@
 //! `myriad demo` are thin front ends).
 //!
 //! - [`config`]: [`ServerConfig`], a TOML file with per-key overrides.
-//! - `tick` (private): the tick loop thread that owns the world: receive, step,
-//!   interest, send, persist.
+//! - `tick` (private): the tick loop thread that owns the world and orchestrates one
+//!   tick: receive, step, outbound, send, persistence hand-off, dilation, metrics.
+//! - `session` (private): the sessions table, the one owner of every player's session.
+//! - `inbound` (private): receiving and applying authenticated datagrams.
+//! - [`outbound`]: the AOI query, interest selection, packing and sealing behind one
+//!   trait ([`outbound::Outbound`]).
+//! - [`transport`]: the datagram transport trait, UDP and in memory.
+//! - [`stages`]: the stages of a server tick ([`TickStage`]) and their times.
+//! - [`scripted`]: the server driven by a scripted sequence of actions in memory (the
+//!   check that the server and `myriad sim` agree on the world).
 //! - [`login`]: the TLS login service and its rate limiter.
 //! - [`dilation`]: time dilation under overload.
 //! - [`world`]: building the served map and its NPCs.
@@ -13,8 +21,8 @@
 //!
 //! # Architecture
 //!
-//! One thread runs the tick loop and owns the world, the physics backend and the UDP
-//! endpoint; nothing else touches them. A tokio runtime (two worker threads) runs the
+//! One thread runs the tick loop and owns the world, the physics backend, the sessions
+//! and the transport; nothing else touches them. A tokio runtime (two worker threads) runs the
 //! login service, the database writer ([`myriad_store::Persister`]) and the metrics
 //! endpoint. The login service reaches the tick loop only through a channel of join
 //! requests, answered on a oneshot channel, so password hashing and database round
@@ -31,11 +39,17 @@
 pub mod config;
 pub mod dilation;
 pub mod error;
+mod inbound;
 pub mod login;
+pub mod outbound;
+pub mod scripted;
+mod session;
+pub mod stages;
 pub mod status;
 mod tick;
 pub mod tick_bench;
 pub mod tls;
+pub mod transport;
 pub mod world;
 
 use std::net::SocketAddr;
@@ -47,11 +61,13 @@ use std::time::Duration;
 
 pub use config::ServerConfig;
 pub use error::{ConfigError, ServerError};
-pub use status::{STAGES, ServerStatus};
-pub use tick::PLAYER_SHAPE;
+pub use myriad_physics::BackendKind;
+pub use session::PLAYER_SHAPE;
+pub use stages::{STAGES, StageTimes, TickStage};
+pub use status::ServerStatus;
+pub use tick::TickWork;
 
 use myriad_net::{Endpoint, EndpointConfig};
-use myriad_physics::BackendKind;
 use myriad_store::{Database, FlushReport, Persister, PersisterConfig, PersisterStats, Store, StoreConfig};
 
 use crate::status::Shared;
@@ -97,27 +113,10 @@ impl ServerHandle {
     /// tick loop and the login service. Call it outside any tokio runtime: the server
     /// owns its own.
     ///
-    /// Only the CPU backends exist in this crate, so `auto` means `cpu` here; the
-    /// `myriad` binary uses [`ServerHandle::start_with_backends`] with the CUDA-aware
-    /// factory, where `auto` picks the GPU when there is one.
+    /// The physics backend comes from the one backend factory,
+    /// [`myriad_cuda::create_backend`], on the tick thread (GPU contexts belong to the
+    /// thread that uses them): `auto` picks the GPU when one is usable, else `cpu`.
     pub fn start(config: ServerConfig) -> Result<ServerHandle, ServerError> {
-        Self::start_with_backends(config, |kind| {
-            let kind = if kind == BackendKind::Auto { BackendKind::Cpu } else { kind };
-            myriad_physics::create_backend(kind)
-        })
-    }
-
-    /// Like [`ServerHandle::start`], with the function that creates the physics backend
-    /// (the `myriad` binary passes one that also knows the CUDA backends). It runs on the
-    /// tick thread, since GPU contexts belong to the thread that uses them.
-    pub fn start_with_backends<F>(config: ServerConfig, create_backend: F) -> Result<ServerHandle, ServerError>
-    where
-        F: FnOnce(
-                myriad_physics::BackendKind,
-            ) -> Result<Box<dyn myriad_physics::Backend>, myriad_physics::PhysicsError>
-            + Send
-            + 'static,
-    {
         config.validate()?;
         std::fs::create_dir_all(&config.data_dir)
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
@@ -184,7 +183,7 @@ impl ServerHandle {
         let tick_thread = std::thread::Builder::new()
             .name("myriad-tick".into())
             .spawn(move || {
-                let backend = match create_backend(tick_config.backend_kind()) {
+                let backend = match myriad_cuda::create_backend(tick_config.backend) {
                     Ok(b) => {
                         tracing::info!(backend = %b.description(), "physics backend ready");
                         let _ = ready.send(Ok(()));
@@ -195,16 +194,12 @@ impl ServerHandle {
                         return;
                     }
                 };
-                let tick_loop = tick::TickLoop::new(
-                    tick_config,
-                    world,
-                    backend,
-                    endpoint,
-                    Some(persister_for_tick),
-                    map_id,
-                    receiver,
-                    tick_shared,
-                );
+                let transport = Box::new(transport::UdpTransport::new(endpoint));
+                let tick_loop = tick::TickLoop::builder(tick_config, world, backend, transport)
+                    .persister(Box::new(persister_for_tick), map_id)
+                    .commands(receiver)
+                    .shared(tick_shared)
+                    .build();
                 tick_loop.run();
             })
             .map_err(|e| ServerError::io("starting the tick thread", e))?;

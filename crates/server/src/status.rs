@@ -3,25 +3,11 @@
 
 use std::sync::Mutex;
 
-use myriad_physics::Stage;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize};
 use std::time::{Duration, Instant};
 
-/// Stage names of a server tick, in order: the physics backend's seven, then the
-/// server's `packets` (AOI query, interest management, sealing), `send`, and `receive`
-/// (draining and opening client datagrams, before the step).
-pub const STAGES: [&str; 10] = [
-    Stage::Upload.name(),
-    Stage::BuildDynamicBvh.name(),
-    Stage::BroadStatic.name(),
-    Stage::BroadDynamic.name(),
-    Stage::NarrowStatic.name(),
-    Stage::NarrowDynamic.name(),
-    Stage::Forces.name(),
-    "packets",
-    "send",
-    "receive",
-];
+use crate::stages::StageTimes;
+use crate::tick::TickWork;
 
 /// State shared between the tick thread, the login service and the handle.
 #[derive(Debug, Default)]
@@ -53,8 +39,8 @@ pub struct ServerStatus {
     pub objects: usize,
     /// Ticks run in the window, per second.
     pub ticks_per_s: f64,
-    /// Mean milliseconds per stage, indexed like [`STAGES`].
-    pub stage_ms: [f64; 10],
+    /// Mean milliseconds per stage.
+    pub stages: StageTimes,
     /// Mean work time of a tick in milliseconds.
     pub tick_ms: f64,
     /// Slowest tick of the window in milliseconds.
@@ -72,7 +58,7 @@ pub struct ServerStatus {
 impl ServerStatus {
     /// One log line with every stage's mean time.
     pub fn stage_line(&self) -> String {
-        let stages: Vec<String> = STAGES.iter().zip(&self.stage_ms).map(|(name, v)| format!("{name}={v:.2}")).collect();
+        let stages: Vec<String> = self.stages.iter().map(|(stage, v)| format!("{}={v:.2}", stage.name())).collect();
         format!(
             "tick {} | {:.1} ticks/s | tick {:.2} ms (max {:.2}) | {} | players {} objects {} | {:.0} kB/s | dilation {}",
             self.tick,
@@ -93,7 +79,7 @@ impl ServerStatus {
 pub(crate) struct StatusWindow {
     start: Instant,
     ticks: u64,
-    stage_ms: [f64; 10],
+    stages: StageTimes,
     tick_ms: f64,
     max_tick_ms: f64,
     bytes: u64,
@@ -106,7 +92,7 @@ impl Default for StatusWindow {
         Self {
             start: Instant::now(),
             ticks: 0,
-            stage_ms: [0.0; 10],
+            stages: StageTimes::default(),
             tick_ms: 0.0,
             max_tick_ms: 0.0,
             bytes: 0,
@@ -117,16 +103,14 @@ impl Default for StatusWindow {
 }
 
 impl StatusWindow {
-    pub(crate) fn add(&mut self, stage_ms: &[f64; 10], tick_ms: f64, bytes: u64, datagrams: u64, records: usize) {
+    pub(crate) fn add(&mut self, work: &TickWork, tick_ms: f64) {
         self.ticks += 1;
-        for (a, b) in self.stage_ms.iter_mut().zip(stage_ms) {
-            *a += b;
-        }
+        self.stages += &work.stages;
         self.tick_ms += tick_ms;
         self.max_tick_ms = self.max_tick_ms.max(tick_ms);
-        self.bytes += bytes;
-        self.datagrams += datagrams;
-        self.records += records as u64;
+        self.bytes += work.bytes;
+        self.datagrams += work.datagrams;
+        self.records += work.records as u64;
     }
 
     pub(crate) fn elapsed(&self) -> Duration {
@@ -142,7 +126,7 @@ impl StatusWindow {
             players,
             objects,
             ticks_per_s: self.ticks as f64 / secs,
-            stage_ms: self.stage_ms.map(|v| v / n),
+            stages: self.stages.divided_by(n),
             tick_ms: self.tick_ms / n,
             max_tick_ms: self.max_tick_ms,
             dilation_permille,

@@ -2,47 +2,49 @@
 //!
 //! # How it works
 //!
-//! Each iteration, at a fixed rate (stretched by time dilation, see
-//! [`crate::dilation`]):
+//! [`TickLoop::tick_once`] is one tick, top to bottom:
 //!
 //! 1. joins from the login service are admitted (or refused: server full);
-//! 2. every queued datagram is received in batches and checked by the session's
-//!    opener (cheap checks, tag, decode, replay window) — a datagram that fails changes
-//!    nothing and is answered with nothing; actions are stored in the world;
-//! 3. silent sessions time out;
-//! 4. the backend steps the world (stages `upload` … `forces`);
-//! 5. the backend answers one AOI box per player, and interest management builds and
-//!    seals each player's updates (stage `packets`);
-//! 6. the datagrams go out in `sendmmsg` batches (stage `send`);
-//! 7. player positions are handed to the persister every `persist_interval_ms`.
+//! 2. `receive`: queued datagrams are opened and applied ([`crate::inbound`]); silent
+//!    sessions expire ([`crate::session`]);
+//! 3. the backend steps the world (stages `upload` … `forces`); the step alone
+//!    advances `world.tick`;
+//! 4. `packets`: the outbound builds and seals every active player's updates
+//!    ([`crate::outbound`]);
+//! 5. `send`: control replies and updates go out through the transport
+//!    ([`crate::transport`]);
+//! 6. final states of players who left go to the persister.
 //!
-//! **Invariant:** only a datagram that passed its session's authentication changes any
-//! state (addresses, actions, timers, replay windows), and the server never sends to an
-//! address that has not proved it holds a session key.
+//! [`TickLoop::run`] adds pacing, the periodic persistence hand-off, time dilation and
+//! metrics around it.
+//!
+//! Each piece of state has one owner: the world and backend here, sessions in
+//! [`Sessions`], the interest state and sealer of a player in its session, datagrams in
+//! flight in the transport.
 
-use std::collections::HashMap;
-use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::mpsc::{Receiver, TryRecvError};
+use std::sync::mpsc::Receiver;
 use std::time::{Duration, Instant};
 
-use myriad_core::{Aabb, Action, EntityId, ObjectKind, Shape, Vec3, World};
-use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource, Subscriber, TickInfo};
-use myriad_net::{Endpoint, RecvBatch};
-use myriad_physics::{AoiResults, Backend, Stage, TickConstants};
-use myriad_protocol::login::{RefusalReason, ShapeDesc};
-use myriad_protocol::{
-    ClientMessage, Direction, DisconnectReason, ErrorClass, ObjectKind as WireKind, Opener, ServerInfo, ServerMessage,
-    ServerSession, SessionKeys, peek_header,
-};
+use myriad_core::World;
+use myriad_interest::TickInfo;
+use myriad_physics::{Backend, TickConstants};
+use myriad_protocol::{DisconnectReason, ServerInfo};
 use myriad_store::{MapId, Persister, PlayerState, UserId};
-use ring::rand::{SecureRandom, SystemRandom};
+
+#[cfg(test)]
+#[path = "tick_tests.rs"]
+mod tests;
 
 use crate::config::ServerConfig;
 use crate::dilation::DilationController;
-use crate::status::{STAGES, Shared, StatusWindow};
-use crate::world::{shape_desc, store_shape, wire_kind};
+use crate::inbound;
+use crate::outbound::{CpuOutbound, Outbound, Recipient};
+use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
+use crate::stages::{StageTimes, TickStage};
+use crate::status::{Shared, StatusWindow};
+use crate::transport::Transport;
 
 /// What the login service asks of the tick loop.
 pub(crate) enum Command {
@@ -55,34 +57,31 @@ pub(crate) enum Command {
     },
 }
 
-/// The answer to a join.
-pub(crate) type JoinResult = Result<Joined, RefusalReason>;
-
-/// An admitted player: what the login response carries.
-pub(crate) struct Joined {
-    pub keys: SessionKeys,
-    pub entity: u64,
-    pub position: [f32; 3],
-    pub shape: ShapeDesc,
-    pub tick: u64,
-    pub dilation_permille: u16,
+/// Where the tick hands player states for persistence (the database writer, or a
+/// test's list).
+pub(crate) trait StateSink: Send {
+    /// Queues `states` for writing; never blocks the tick.
+    fn submit(&self, states: &[PlayerState]) -> Result<(), String>;
+    /// The writer's counters, for the metrics (none for a sink without them).
+    fn stats(&self) -> Option<myriad_store::PersisterStats> {
+        None
+    }
 }
 
-/// The default player shape (a person-sized capsule).
-pub const PLAYER_SHAPE: Shape = Shape::Capsule { radius: 0.4, half_height: 0.5 };
+impl StateSink for Persister {
+    fn submit(&self, states: &[PlayerState]) -> Result<(), String> {
+        self.submit_many(states).map(|_| ()).map_err(|e| e.to_string())
+    }
+    fn stats(&self) -> Option<myriad_store::PersisterStats> {
+        Some(Persister::stats(self))
+    }
+}
 
-/// Indices of the server's own stages in [`STAGES`] (the physics stages come first).
-const PACKETS: usize = Stage::ALL.len();
-const SEND: usize = PACKETS + 1;
-const RECEIVE: usize = SEND + 1;
-
-/// Datagrams taken from the socket per `recvmmsg` call.
-pub(crate) const RECV_BATCH: usize = 1024;
-
-/// What one tick did: milliseconds per stage (indexed like [`STAGES`]) and what it sent.
-#[derive(Debug, Clone, Copy, Default)]
-pub(crate) struct TickWork {
-    pub stage_ms: [f64; STAGES.len()],
+/// What one tick did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TickWork {
+    /// Milliseconds per stage.
+    pub stages: StageTimes,
     /// The part of `packets` spent in the backend's AOI query, in ms.
     pub aoi_ms: f64,
     /// Bytes sent (control replies and updates).
@@ -93,100 +92,134 @@ pub(crate) struct TickWork {
     pub records: usize,
     /// Datagrams received from clients (before authentication).
     pub received: u64,
+    /// Actions applied to the world.
+    pub actions: u64,
 }
 
-struct Player {
-    user_id: UserId,
-    username: String,
-    entity: EntityId,
-    session_id: u64,
-    opener: Opener,
-    /// Where the last authenticated datagram came from; nothing is sent before that.
-    addr: Option<SocketAddr>,
-    ready: bool,
-    last_heard: Instant,
-    last_frame: Option<u32>,
-    shape: Shape,
+/// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
+/// rest has defaults (the host outbound from the config, no persister, map 0, no login
+/// service, fresh shared state).
+pub(crate) struct TickLoopBuilder {
+    config: ServerConfig,
+    world: World,
+    backend: Box<dyn Backend>,
+    transport: Box<dyn Transport>,
+    outbound: Option<Box<dyn Outbound>>,
+    persister: Option<Box<dyn StateSink>>,
+    map_id: MapId,
+    commands: Option<Receiver<Command>>,
+    shared: Option<Arc<Shared>>,
 }
 
-/// Reads the world's dynamics for interest management.
-struct WorldObjects<'a>(&'a World);
+impl TickLoopBuilder {
+    /// The outbound (default: [`CpuOutbound`] with the config's AOI size and budget).
+    #[allow(dead_code)] // The GPU outbound plugs in here.
+    pub fn outbound(mut self, outbound: Box<dyn Outbound>) -> Self {
+        self.outbound = Some(outbound);
+        self
+    }
 
-impl ObjectSource for WorldObjects<'_> {
-    fn get(&self, slot: u32) -> Option<(u64, WireKind, [f32; 3])> {
-        let d = &self.0.dynamics;
-        let i = slot as usize;
-        Some((u64::from(d.ids().get(i)?.0), wire_kind(*d.shapes().get(i)?), d.positions().get(i)?.to_array()))
+    /// Where player positions go (the database writer), and the map they are on.
+    pub fn persister(mut self, persister: Box<dyn StateSink>, map_id: MapId) -> Self {
+        self.persister = Some(persister);
+        self.map_id = map_id;
+        self
+    }
+
+    /// The channel of join requests from the login service.
+    pub fn commands(mut self, commands: Receiver<Command>) -> Self {
+        self.commands = Some(commands);
+        self
+    }
+
+    /// State shared with the server handle and the login service.
+    pub fn shared(mut self, shared: Arc<Shared>) -> Self {
+        self.shared = Some(shared);
+        self
+    }
+
+    /// The tick loop.
+    pub fn build(self) -> TickLoop {
+        let config = self.config;
+        let nominal = Duration::from_secs_f64(1.0 / f64::from(config.tick_rate));
+        let outbound = self
+            .outbound
+            .unwrap_or_else(|| Box::new(CpuOutbound::new(config.aoi_size, config.max_datagrams_per_player)));
+        // Without a login service nothing joins: a receiver whose sender is gone reads
+        // as empty.
+        let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
+        TickLoop {
+            dilation: DilationController::new(nominal, config.dilation, config.dilation_min_permille),
+            sessions: Sessions::new(config.max_players as usize, self.map_id),
+            world: self.world,
+            backend: self.backend,
+            transport: self.transport,
+            outbound,
+            persister: self.persister,
+            commands,
+            shared: self.shared.unwrap_or_default(),
+            window: StatusWindow::default(),
+            config,
+        }
     }
 }
 
+/// The tick loop; see the module docs.
 pub(crate) struct TickLoop {
-    pub config: ServerConfig,
-    pub world: World,
-    pub backend: Box<dyn Backend>,
-    pub endpoint: Endpoint,
-    /// `None` in the tick benchmark, which has no database.
-    pub persister: Option<Persister>,
-    pub map_id: MapId,
-    pub commands: Receiver<Command>,
-    pub shared: Arc<Shared>,
-    players: Vec<Player>,
-    subscribers: Vec<Subscriber>,
-    by_session: HashMap<u64, usize>,
-    by_user: HashMap<i64, usize>,
-    interest: InterestManager,
-    rng: SystemRandom,
-    /// Control replies (keep-alives, server info, disconnects) queued for this tick's send.
-    control: Vec<(SocketAddr, Vec<u8>)>,
+    config: ServerConfig,
+    world: World,
+    backend: Box<dyn Backend>,
+    transport: Box<dyn Transport>,
+    outbound: Box<dyn Outbound>,
+    sessions: Sessions,
+    persister: Option<Box<dyn StateSink>>,
+    commands: Receiver<Command>,
+    shared: Arc<Shared>,
     dilation: DilationController,
     window: StatusWindow,
 }
 
 impl TickLoop {
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn new(
+    /// Starts building a tick loop.
+    pub fn builder(
         config: ServerConfig,
         world: World,
         backend: Box<dyn Backend>,
-        endpoint: Endpoint,
-        persister: Option<Persister>,
-        map_id: MapId,
-        commands: Receiver<Command>,
-        shared: Arc<Shared>,
-    ) -> Self {
-        let nominal = Duration::from_secs_f64(1.0 / f64::from(config.tick_rate));
-        let interest = InterestManager::new(InterestConfig {
-            max_datagrams: config.max_datagrams_per_player,
-            ..Default::default()
-        });
-        let dilation = DilationController::new(nominal, config.dilation, config.dilation_min_permille);
-        TickLoop {
+        transport: Box<dyn Transport>,
+    ) -> TickLoopBuilder {
+        TickLoopBuilder {
             config,
             world,
             backend,
-            endpoint,
-            persister,
-            map_id,
-            commands,
-            shared,
-            players: Vec::new(),
-            subscribers: Vec::new(),
-            by_session: HashMap::new(),
-            by_user: HashMap::new(),
-            interest,
-            rng: SystemRandom::new(),
-            control: Vec::new(),
-            dilation,
-            window: StatusWindow::default(),
+            transport,
+            outbound: None,
+            persister: None,
+            map_id: MapId(0),
+            commands: None,
+            shared: None,
         }
+    }
+
+    /// The world.
+    pub fn world(&self) -> &World {
+        &self.world
+    }
+
+    /// Ends the loop, keeping the world.
+    pub fn into_world(self) -> World {
+        self.world
+    }
+
+    /// The sessions.
+    #[cfg(test)]
+    pub fn sessions(&self) -> &Sessions {
+        &self.sessions
     }
 
     /// Runs until the shared stop flag is set; then disconnects everyone and hands their
     /// final positions to the persister (unless the stop is a simulated crash).
-    pub(crate) fn run(mut self) {
-        let mut recv = RecvBatch::new(RECV_BATCH);
-        let mut aoi = AoiResults::default();
-        let mut boxes: Vec<Aabb> = Vec::new();
+    pub fn run(mut self) {
+        tracing::info!(backend = %self.backend.description(), outbound = %self.outbound.description(), "tick loop ready");
         let persist_every = Duration::from_millis(self.config.persist_interval_ms);
         let mut last_persist = Instant::now();
         let mut next = Instant::now();
@@ -194,42 +227,21 @@ impl TickLoop {
         let mut last_log = Instant::now();
         while !self.shared.stop.load(Ordering::Acquire) {
             let start = Instant::now();
-            let TickWork { stage_ms, bytes, datagrams, records: built, .. } =
-                self.tick_once(&mut recv, &mut boxes, &mut aoi);
-
+            let work = self.tick_once();
             if last_persist.elapsed() >= persist_every {
                 self.persist_all();
                 last_persist = Instant::now();
             }
-            let load = self.shared.artificial_load_us.load(Ordering::Relaxed);
-            if load > 0 {
-                // A test knob: burn CPU as if the tick had more work.
-                let until = Instant::now() + Duration::from_micros(u64::from(load));
-                while Instant::now() < until {
-                    std::hint::spin_loop();
-                }
-            }
-            let work = start.elapsed();
-            if self.dilation.record(work) {
+            self.burn_artificial_load();
+            let elapsed = start.elapsed();
+            if self.dilation.record(elapsed) {
                 tracing::info!(dilation_permille = self.dilation.permille(), "time dilation changed");
             }
-            self.shared.dilation_permille.store(u32::from(self.dilation.permille()), Ordering::Relaxed);
-            self.shared.tick.store(self.world.tick, Ordering::Relaxed);
-            self.shared.players.store(self.players.len(), Ordering::Relaxed);
-            self.window.add(&stage_ms, ms(work), bytes, datagrams, built);
-            record_metrics(
-                &stage_ms,
-                work,
-                bytes,
-                datagrams,
-                self.players.len(),
-                self.world.dynamics.len(),
-                &self.dilation,
-            );
+            self.publish(&work, elapsed);
             if self.window.elapsed() >= Duration::from_secs(1) {
                 let status = self.window.finish(
                     self.world.tick,
-                    self.players.len(),
+                    self.sessions.len(),
                     self.world.dynamics.len(),
                     self.dilation.permille(),
                 );
@@ -238,15 +250,8 @@ impl TickLoop {
                     last_log = Instant::now();
                 }
                 *self.shared.status.lock().unwrap_or_else(|p| p.into_inner()) = status;
-                if let Some(persister) = &self.persister {
-                    let p = persister.stats();
-                    metrics::gauge!("myriad_persist_queued").set(p.queued as f64);
-                    metrics::gauge!("myriad_persist_rows_written").set(p.rows_written as f64);
-                    metrics::gauge!("myriad_persist_failures").set(p.failures as f64);
-                    metrics::gauge!("myriad_persist_dropped").set(p.dropped_overflow as f64);
-                }
+                self.publish_persister_metrics();
             }
-
             next += self.dilation.period();
             let now = Instant::now();
             if next > now {
@@ -259,426 +264,133 @@ impl TickLoop {
         if self.shared.crash.load(Ordering::Acquire) {
             return;
         }
-        for i in 0..self.players.len() {
-            self.queue_disconnect(i, DisconnectReason::Shutdown);
-        }
+        self.sessions.disconnect_all(DisconnectReason::Shutdown);
         self.persist_all();
-        self.send();
+        self.send(&[]);
     }
 
-    /// One tick's work, steps 1 to 6 of the module docs: joins, receive, expiry, the
-    /// physics step, interest management and the send. Pacing, persistence, dilation and
-    /// metrics stay in [`TickLoop::run`], so the tick benchmark times exactly this.
-    pub(crate) fn tick_once(&mut self, recv: &mut RecvBatch, boxes: &mut Vec<Aabb>, aoi: &mut AoiResults) -> TickWork {
-        let mut stage_ms = [0f64; STAGES.len()];
+    /// One tick's work (steps 1 to 6 of the module docs). Pacing, periodic persistence,
+    /// dilation and metrics stay in [`TickLoop::run`], so the tick benchmark and the
+    /// tests time and drive exactly this.
+    pub fn tick_once(&mut self) -> TickWork {
+        let mut work = TickWork::default();
         self.drain_commands();
+
         let t = Instant::now();
-        let received = self.receive(recv);
-        self.expire(Instant::now());
-        stage_ms[RECEIVE] = ms(t.elapsed());
+        let info = ServerInfo {
+            tick_rate_hz: self.config.tick_rate.round() as u16,
+            dilation_permille: self.dilation.permille(),
+        };
+        let now = Instant::now();
+        let inbound = inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, now);
+        let mut left: Vec<PlayerState> = inbound
+            .leaving
+            .iter()
+            .filter_map(|&session| self.sessions.remove(&mut self.world, session, None))
+            .collect();
+        let timeout = Duration::from_secs_f32(self.config.session_timeout_s);
+        left.extend(self.sessions.expire(&mut self.world, now, timeout));
+        work.received = inbound.received;
+        work.actions = inbound.actions;
+        work.stages[TickStage::Receive] = ms(t.elapsed());
 
         let k = TickConstants::new(&self.config.physics(), 1.0);
         match self.backend.step(&mut self.world, &k) {
-            Ok(report) => stage_ms[..Stage::ALL.len()].copy_from_slice(&report.stage_ms),
+            Ok(report) => work.stages.set_physics(&report),
             Err(e) => {
                 tracing::error!(error = %e, "physics step failed");
                 metrics::counter!("myriad_physics_errors_total").increment(1);
             }
         }
-        self.world.tick += 1;
 
         let t = Instant::now();
-        let (records, aoi_ms) = self.build_updates(boxes, aoi);
-        stage_ms[PACKETS] = ms(t.elapsed());
+        let built = self.build_updates(&mut work);
+        work.stages[TickStage::Packets] = ms(t.elapsed());
+
         let t = Instant::now();
-        let (bytes, datagrams) = self.send();
-        stage_ms[SEND] = ms(t.elapsed());
-        TickWork { stage_ms, aoi_ms, bytes, datagrams, records, received }
+        (work.bytes, work.datagrams) = self.send(&built);
+        work.stages[TickStage::Send] = ms(t.elapsed());
+
+        if !left.is_empty() {
+            self.hand_off(&left);
+        }
+        work
     }
 
     fn drain_commands(&mut self) {
-        loop {
-            match self.commands.try_recv() {
-                Ok(Command::Join { user_id, username, state, reply }) => {
-                    let result = self.join(user_id, username, state);
-                    // The login task may have given up (client gone): nothing to undo, the
-                    // session times out unused.
-                    let _ = reply.send(result);
-                }
-                Err(TryRecvError::Empty | TryRecvError::Disconnected) => return,
-            }
-        }
-    }
-
-    fn fresh_keys(&self) -> Result<SessionKeys, RefusalReason> {
-        let mut bytes = [0u8; 72];
-        loop {
-            self.rng.fill(&mut bytes).map_err(|_| RefusalReason::Unavailable)?;
-            let session_id = u64::from_le_bytes(bytes[..8].try_into().unwrap_or_default());
-            if session_id != 0 && !self.by_session.contains_key(&session_id) {
-                let mut keys = SessionKeys { session_id, client_to_server: [0; 32], server_to_client: [0; 32] };
-                keys.client_to_server.copy_from_slice(&bytes[8..40]);
-                keys.server_to_client.copy_from_slice(&bytes[40..72]);
-                return Ok(keys);
-            }
-        }
-    }
-
-    fn join(&mut self, user_id: UserId, username: String, state: Option<PlayerState>) -> JoinResult {
-        let keys = self.fresh_keys()?;
-        let session = ServerSession::new(&keys);
-        let idx = if let Some(&idx) = self.by_user.get(&user_id.0) {
-            // A second login replaces the first session; the object (and its position in
-            // the world, newer than the stored one) stays.
-            self.queue_disconnect(idx, DisconnectReason::Replaced);
-            let p = &mut self.players[idx];
-            self.by_session.remove(&p.session_id);
-            p.session_id = keys.session_id;
-            p.opener = session.opener;
-            p.addr = None;
-            p.ready = false;
-            p.last_frame = None;
-            p.last_heard = Instant::now();
-            let slot = self.world.dynamics.slot(p.entity).unwrap_or(0) as u32;
-            self.subscribers[idx] = Subscriber::new(slot, [0.0; 3], session.sealer);
-            tracing::info!(user = %username, "session replaced by a new login");
-            idx
-        } else {
-            if self.players.len() >= self.config.max_players as usize {
-                return Err(RefusalReason::ServerFull);
-            }
-            let (shape, pos) = match state {
-                Some(s) => (crate::world::core_shape(s.shape), self.clamp_into_world(Vec3::from_array(s.position))),
-                None => (PLAYER_SHAPE, self.spawn_point(user_id, PLAYER_SHAPE)),
-            };
-            let entity = self.world.dynamics.spawn(shape, pos, ObjectKind::User).map_err(|e| {
-                tracing::error!(error = %e, "cannot spawn a player");
-                RefusalReason::Unavailable
-            })?;
-            let idx = self.admit(user_id, username.clone(), entity, shape, keys.session_id, session);
-            if state.is_none()
-                && let Some(persister) = &self.persister
-            {
+        while let Ok(Command::Join { user_id, username, state, reply }) = self.commands.try_recv() {
+            let ctx = JoinContext { tick: self.world.tick, dilation_permille: self.dilation.permille() };
+            let result = self.sessions.join(&mut self.world, user_id, username, state, ctx).map(|(joined, first)| {
                 // First visit: record the spawn point now so the next login finds it.
-                let _ = persister.submit(PlayerState::new(user_id, self.map_id, store_shape(shape), pos.to_array()));
-            }
-            tracing::info!(user = %username, entity = entity.0, "player joined");
-            idx
-        };
-        Ok(self.joined(idx, keys))
-    }
-
-    /// Adds a player for `entity`, an object already in the world; returns its index.
-    fn admit(
-        &mut self,
-        user_id: UserId,
-        username: String,
-        entity: EntityId,
-        shape: Shape,
-        session_id: u64,
-        session: ServerSession,
-    ) -> usize {
-        let slot = self.world.dynamics.slot(entity).unwrap_or(0);
-        let pos = self.world.dynamics.positions()[slot];
-        self.players.push(Player {
-            user_id,
-            username,
-            entity,
-            session_id,
-            opener: session.opener,
-            addr: None,
-            ready: false,
-            last_heard: Instant::now(),
-            last_frame: None,
-            shape,
-        });
-        self.subscribers.push(Subscriber::new(slot as u32, pos.to_array(), session.sealer));
-        let idx = self.players.len() - 1;
-        self.by_user.insert(user_id.0, idx);
-        idx
-    }
-
-    /// Registers player `idx`'s new session and describes it for the login response.
-    fn joined(&mut self, idx: usize, keys: SessionKeys) -> Joined {
-        self.by_session.insert(keys.session_id, idx);
-        let p = &self.players[idx];
-        let slot = self.world.dynamics.slot(p.entity).unwrap_or(0);
-        Joined {
-            keys,
-            entity: u64::from(p.entity.0),
-            position: self.world.dynamics.positions()[slot].to_array(),
-            shape: shape_desc(p.shape),
-            tick: self.world.tick,
-            dilation_permille: self.dilation.permille(),
-        }
-    }
-
-    /// The tick benchmark's join: makes `entity`, an object already in the world (one of
-    /// a scenario's users), a player with a fresh session, as a login would.
-    pub(crate) fn adopt(&mut self, user_id: UserId, entity: EntityId) -> JoinResult {
-        if self.by_user.contains_key(&user_id.0) || self.world.dynamics.slot(entity).is_none() {
-            return Err(RefusalReason::Unavailable);
-        }
-        let keys = self.fresh_keys()?;
-        let session = ServerSession::new(&keys);
-        let shape = self.world.dynamics.shape_of(self.world.dynamics.slot(entity).unwrap_or(0));
-        let idx = self.admit(user_id, format!("bench{}", user_id.0), entity, shape, keys.session_id, session);
-        Ok(self.joined(idx, keys))
-    }
-
-    /// A spawn point for a first visit: spread over the map by user id, on the terrain.
-    fn spawn_point(&self, user: UserId, shape: Shape) -> Vec3 {
-        let b = self.world.bounds;
-        let h = myriad_core::rng::hash3(self.world.seed, 0x5e5e, user.0 as u64);
-        let fx = (h & 0xffff_ffff) as f32 / u32::MAX as f32;
-        let fz = (h >> 32) as f32 / u32::MAX as f32;
-        let margin = 4.0f32.min(b.size().x / 4.0);
-        let x = b.min.x + margin + fx * (b.size().x - 2.0 * margin);
-        let z = b.min.z + margin + fz * (b.size().z - 2.0 * margin);
-        Vec3::new(x, self.world.terrain.height_at(x, z) + shape.half_extents().y + 0.1, z)
-    }
-
-    /// A stored position may come from another map version: keep it inside the bounds
-    /// and above the terrain.
-    fn clamp_into_world(&self, p: Vec3) -> Vec3 {
-        let b = self.world.bounds;
-        let p = if p.is_finite() { p } else { b.center() };
-        let p = p.clamp(b.min + Vec3::splat(0.5), b.max - Vec3::splat(0.5));
-        let floor = self.world.terrain.height_at(p.x, p.z);
-        Vec3::new(p.x, p.y.max(floor + 0.05), p.z)
-    }
-
-    /// Receives and handles what is queued on the socket; returns the datagrams taken.
-    fn receive(&mut self, recv: &mut RecvBatch) -> u64 {
-        let now = Instant::now();
-        let mut leaving = Vec::new();
-        let mut received = 0;
-        // Bounded so a flood cannot starve the tick; what is left waits for the next one.
-        for _ in 0..64 {
-            let n = match self.endpoint.recv_batch(recv) {
-                Ok(0) => break,
-                Ok(n) => n,
-                Err(e) => {
-                    tracing::warn!(error = %e, "udp receive failed");
-                    break;
+                if let Some(first) = first {
+                    self.hand_off(std::slice::from_ref(&first));
                 }
-            };
-            metrics::counter!("myriad_datagrams_received_total").increment(n as u64);
-            received += n as u64;
-            for i in 0..n {
-                let Some((from, bytes)) = recv.get_mut(i) else { continue };
-                if let Some(idx) = self.handle(from, bytes, now) {
-                    leaving.push(idx);
-                }
-            }
-        }
-        // Remove from the highest index down so swap_remove does not move a pending one.
-        leaving.sort_unstable();
-        leaving.dedup();
-        for idx in leaving.into_iter().rev() {
-            self.remove(idx, None);
-        }
-        received
-    }
-
-    /// Handles one datagram; returns the player index if it asked to leave.
-    fn handle(&mut self, from: SocketAddr, bytes: &mut [u8], now: Instant) -> Option<usize> {
-        let header = match peek_header(bytes, Direction::ClientToServer) {
-            Ok(h) => h,
-            Err(_) => {
-                dropped("malformed");
-                return None;
-            }
-        };
-        let Some(&idx) = self.by_session.get(&header.session_id) else {
-            dropped("unknown_session");
-            return None;
-        };
-        let p = &mut self.players[idx];
-        let opened = match p.opener.open_with(bytes, ClientMessage::decode_body) {
-            Ok(o) => o,
-            Err(e) => {
-                dropped(match e.class() {
-                    ErrorClass::Malformed => "malformed",
-                    ErrorClass::Authentication => "authentication",
-                    ErrorClass::Replayed => "replayed",
-                });
-                return None;
-            }
-        };
-        // Authenticated: the sender holds the session key, so its address is the player's
-        // (this also follows a client whose NAT mapping changed).
-        p.addr = Some(from);
-        p.last_heard = now;
-        match opened.message {
-            ClientMessage::Action(a) => {
-                // Keep only the newest frame; wrapping comparison on the frame counter.
-                let newer = p.last_frame.is_none_or(|f| a.client_frame.wrapping_sub(f) as i32 > 0);
-                if newer {
-                    p.last_frame = Some(a.client_frame);
-                    let entity = p.entity;
-                    self.world.dynamics.set_action(entity, Action::from_bits_truncate(a.mask.bits()));
-                }
-                None
-            }
-            ClientMessage::Ready => {
-                p.ready = true;
-                let info = ServerInfo {
-                    tick_rate_hz: self.config.tick_rate.round() as u16,
-                    dilation_permille: self.dilation.permille(),
-                };
-                self.queue_message(idx, &ServerMessage::ServerInfo(info));
-                None
-            }
-            ClientMessage::KeepAlive => {
-                self.queue_message(idx, &ServerMessage::KeepAlive);
-                None
-            }
-            ClientMessage::Disconnect => Some(idx),
+                joined
+            });
+            // The login task may have given up (client gone): nothing to undo, the
+            // session times out unused.
+            let _ = reply.send(result);
         }
     }
 
-    fn queue_message(&mut self, idx: usize, msg: &ServerMessage) {
-        let Some(addr) = self.players[idx].addr else { return };
-        let mut out = Vec::with_capacity(64);
-        if self.subscribers[idx].sealer.seal_server_message(msg, &mut out).is_ok() {
-            self.control.push((addr, out));
-        }
+    /// Makes `entity`, an object already in the world, a player with a fresh session, as
+    /// a login would (the tick benchmark's and the scripted harness's join).
+    pub fn adopt(&mut self, user_id: UserId, entity: myriad_core::EntityId) -> JoinResult {
+        let ctx = JoinContext { tick: self.world.tick, dilation_permille: self.dilation.permille() };
+        self.sessions.adopt(&self.world, user_id, entity, ctx)
     }
 
-    fn queue_disconnect(&mut self, idx: usize, reason: DisconnectReason) {
-        self.queue_message(idx, &ServerMessage::Disconnect(reason));
-    }
-
-    fn expire(&mut self, now: Instant) {
-        let timeout = Duration::from_secs_f32(self.config.session_timeout_s);
-        let mut i = self.players.len();
-        while i > 0 {
-            i -= 1;
-            if now.duration_since(self.players[i].last_heard) > timeout {
-                tracing::info!(user = %self.players[i].username, "session timed out");
-                self.remove(i, Some(DisconnectReason::Timeout));
-            }
-        }
-    }
-
-    /// Removes player `idx`: final position to the persister, object out of the world.
-    fn remove(&mut self, idx: usize, reason: Option<DisconnectReason>) {
-        if let Some(reason) = reason {
-            self.queue_disconnect(idx, reason);
-        }
-        self.persist_one(idx);
-        let p = self.players.swap_remove(idx);
-        self.subscribers.swap_remove(idx);
-        self.by_session.remove(&p.session_id);
-        self.by_user.remove(&p.user_id.0);
-        self.world.dynamics.despawn(p.entity);
-        if idx < self.players.len() {
-            let moved = &self.players[idx];
-            self.by_session.insert(moved.session_id, idx);
-            self.by_user.insert(moved.user_id.0, idx);
-        }
-        tracing::info!(user = %p.username, "player left");
-    }
-
-    fn state_of(&self, idx: usize) -> Option<PlayerState> {
-        let p = &self.players[idx];
-        let slot = self.world.dynamics.slot(p.entity)?;
-        let pos = self.world.dynamics.positions()[slot].to_array();
-        Some(PlayerState::new(p.user_id, self.map_id, store_shape(p.shape), pos))
-    }
-
-    fn persist_one(&self, idx: usize) {
-        if let Some(persister) = &self.persister
-            && let Some(state) = self.state_of(idx)
-            && let Err(e) = persister.submit(state)
-        {
-            tracing::warn!(error = %e, "position not queued for the database");
-        }
-    }
-
-    fn persist_all(&self) {
-        let Some(persister) = &self.persister else { return };
-        let states: Vec<PlayerState> = (0..self.players.len()).filter_map(|i| self.state_of(i)).collect();
-        if let Err(e) = persister.submit_many(&states) {
-            tracing::warn!(error = %e, "positions not queued for the database");
-        }
-    }
-
-    /// AOI queries and interest management for every active player (ready, address
-    /// known); returns the records packed. Inactive players get nothing sealed, so their
-    /// sequence numbers start with what they actually receive. Also returns the time of
-    /// the AOI query in ms (part of the `packets` stage).
-    fn build_updates(&mut self, boxes: &mut Vec<Aabb>, aoi: &mut AoiResults) -> (usize, f64) {
-        let half = Vec3::splat(self.config.aoi_size / 2.0);
-        boxes.clear();
+    /// Runs the outbound for every active player; returns the table positions of the
+    /// players it built for (the ones the send serves).
+    fn build_updates(&mut self, work: &mut TickWork) -> Vec<usize> {
         let positions = self.world.dynamics.positions();
-        let mut active: Vec<&mut Subscriber> = Vec::with_capacity(self.players.len());
-        for (p, s) in self.players.iter().zip(self.subscribers.iter_mut()) {
-            if !(p.ready && p.addr.is_some()) {
+        let mut built = Vec::with_capacity(self.sessions.len());
+        let mut recipients = Vec::with_capacity(self.sessions.len());
+        for (idx, p) in self.sessions.iter_mut().enumerate() {
+            if !p.active() {
                 continue;
             }
-            let Some(slot) = self.world.dynamics.slot(p.entity) else { continue };
-            let centre = positions[slot];
-            s.object = slot as u32;
-            s.centre = centre.to_array();
-            boxes.push(Aabb::from_center_half(centre, half));
-            active.push(s);
-        }
-        if active.is_empty() {
-            return (0, 0.0);
-        }
-        let t = Instant::now();
-        let queried = self.backend.query_aoi(&self.world, boxes, aoi);
-        let aoi_ms = ms(t.elapsed());
-        if let Err(e) = queried {
-            tracing::error!(error = %e, "AOI query failed");
-            return (0, aoi_ms);
+            let Some(slot) = self.world.dynamics.slot(p.entity) else {
+                missing_entity(p);
+                continue;
+            };
+            built.push(idx);
+            recipients.push(Recipient {
+                session_id: p.session_id,
+                object: slot as u32,
+                centre: positions[slot],
+                view: &mut p.view,
+            });
         }
         let tick = TickInfo { tick: self.world.tick, dilation_permille: self.dilation.permille() };
-        let lists = AoiLists { offsets: &aoi.offsets, objects: &aoi.objects };
-        let records = match self.interest.build(tick, &WorldObjects(&self.world), lists, &mut active) {
-            Ok(report) => {
-                if report.seal_failures > 0 {
-                    metrics::counter!("myriad_seal_failures_total").increment(report.seal_failures as u64);
-                }
-                report.records
-            }
-            Err(e) => {
-                tracing::error!(error = %e, "interest management failed");
-                0
-            }
-        };
-        (records, aoi_ms)
+        let report = self.outbound.build(self.backend.as_mut(), &self.world, tick, &mut recipients);
+        work.records = report.records;
+        work.aoi_ms = report.aoi_ms;
+        built
     }
 
-    /// Sends the control replies and every ready player's updates; returns bytes and
-    /// datagrams sent.
-    fn send(&mut self) -> (u64, u64) {
-        let mut out: Vec<(SocketAddr, &[u8])> = Vec::new();
-        for (addr, d) in &self.control {
-            out.push((*addr, d));
-        }
-        // Start at a different player every tick: when the socket buffer fills and the
-        // tail is dropped, the loss is spread over everyone instead of starving the same
-        // players tick after tick.
-        let n = self.players.len();
-        // A scrambled offset, not tick % n: shifting by one player per tick would keep
-        // starving almost the same tail.
+    /// Sends the control replies and the updates of the players in `built`; returns
+    /// bytes and datagrams sent.
+    fn send(&mut self, built: &[usize]) -> (u64, u64) {
+        let mut out: Vec<(std::net::SocketAddr, &[u8])> = Vec::new();
+        out.extend(self.sessions.control().iter().map(|(addr, d)| (*addr, d.as_slice())));
+        // Start at a different player every tick: when the transport fills and the tail
+        // is dropped, the loss is spread over everyone instead of starving the same
+        // players tick after tick. A scrambled offset, not tick % n: shifting by one
+        // player per tick would keep starving almost the same tail.
+        let n = built.len();
         let first =
             if n == 0 { 0 } else { ((self.world.tick.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 32) % n as u64) as usize };
-        for i in (first..n).chain(0..first) {
-            let (p, s) = (&self.players[i], &self.subscribers[i]);
-            // The same filter as build_updates: only active players had datagrams built.
-            if let (true, Some(addr), true) = (p.ready, p.addr, self.world.dynamics.slot(p.entity).is_some()) {
-                out.extend(s.datagrams().iter().map(|d| (addr, d)));
+        for &idx in built[first..].iter().chain(&built[..first]) {
+            if let Some(p) = self.sessions.get(idx)
+                && let Some(addr) = p.addr
+            {
+                out.extend(p.view.datagrams().iter().map(|d| (addr, d)));
             }
         }
-        let mut sent = 0;
-        let mut bytes = 0u64;
-        let mut stalls = 0;
+        let (mut sent, mut bytes, mut stalls) = (0, 0u64, 0);
         while sent < out.len() {
-            match self.endpoint.send_batch(&out[sent..]) {
+            match self.transport.send(&out[sent..]) {
                 Ok(0) => {
                     stalls += 1;
                     if stalls > 3 {
@@ -691,7 +403,7 @@ impl TickLoop {
                     sent += n;
                 }
                 Err(e) => {
-                    tracing::warn!(error = %e, "udp send failed");
+                    tracing::warn!(error = %e, "send failed");
                     break;
                 }
             }
@@ -700,36 +412,64 @@ impl TickLoop {
             metrics::counter!("myriad_packets_dropped_total", "reason" => "send_buffer_full")
                 .increment((out.len() - sent) as u64);
         }
-        self.control.clear();
+        self.sessions.clear_control();
         (bytes, sent as u64)
+    }
+
+    /// Hands player states to the persister, if there is one.
+    fn hand_off(&self, states: &[PlayerState]) {
+        if let Some(persister) = &self.persister
+            && let Err(e) = persister.submit(states)
+        {
+            tracing::warn!(error = %e, "positions not queued for the database");
+        }
+    }
+
+    fn persist_all(&self) {
+        if self.persister.is_some() {
+            self.hand_off(&self.sessions.states(&self.world));
+        }
+    }
+
+    fn burn_artificial_load(&self) {
+        let load = self.shared.artificial_load_us.load(Ordering::Relaxed);
+        if load > 0 {
+            // A test knob: burn CPU as if the tick had more work.
+            let until = Instant::now() + Duration::from_micros(u64::from(load));
+            while Instant::now() < until {
+                std::hint::spin_loop();
+            }
+        }
+    }
+
+    /// Shared counters, the status window and the per-tick metrics.
+    fn publish(&mut self, work: &TickWork, elapsed: Duration) {
+        self.shared.dilation_permille.store(u32::from(self.dilation.permille()), Ordering::Relaxed);
+        self.shared.tick.store(self.world.tick, Ordering::Relaxed);
+        self.shared.players.store(self.sessions.len(), Ordering::Relaxed);
+        self.window.add(work, ms(elapsed));
+        metrics::histogram!("myriad_tick_duration_seconds").record(elapsed.as_secs_f64());
+        for (stage, v) in work.stages.iter() {
+            metrics::histogram!("myriad_stage_duration_seconds", "stage" => stage.name()).record(v / 1000.0);
+        }
+        metrics::counter!("myriad_bytes_sent_total").increment(work.bytes);
+        metrics::counter!("myriad_datagrams_sent_total").increment(work.datagrams);
+        metrics::gauge!("myriad_players").set(self.sessions.len() as f64);
+        metrics::gauge!("myriad_objects").set(self.world.dynamics.len() as f64);
+        metrics::gauge!("myriad_time_dilation").set(self.dilation.factor());
+        metrics::counter!("myriad_ticks_total").increment(1);
+    }
+
+    fn publish_persister_metrics(&self) {
+        if let Some(p) = self.persister.as_ref().and_then(|p| p.stats()) {
+            metrics::gauge!("myriad_persist_queued").set(p.queued as f64);
+            metrics::gauge!("myriad_persist_rows_written").set(p.rows_written as f64);
+            metrics::gauge!("myriad_persist_failures").set(p.failures as f64);
+            metrics::gauge!("myriad_persist_dropped").set(p.dropped_overflow as f64);
+        }
     }
 }
 
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1000.0
-}
-
-fn dropped(reason: &'static str) {
-    metrics::counter!("myriad_packets_dropped_total", "reason" => reason).increment(1);
-}
-
-fn record_metrics(
-    stage_ms: &[f64],
-    work: Duration,
-    bytes: u64,
-    datagrams: u64,
-    players: usize,
-    objects: usize,
-    dilation: &DilationController,
-) {
-    metrics::histogram!("myriad_tick_duration_seconds").record(work.as_secs_f64());
-    for (name, v) in STAGES.iter().zip(stage_ms) {
-        metrics::histogram!("myriad_stage_duration_seconds", "stage" => *name).record(v / 1000.0);
-    }
-    metrics::counter!("myriad_bytes_sent_total").increment(bytes);
-    metrics::counter!("myriad_datagrams_sent_total").increment(datagrams);
-    metrics::gauge!("myriad_players").set(players as f64);
-    metrics::gauge!("myriad_objects").set(objects as f64);
-    metrics::gauge!("myriad_time_dilation").set(dilation.factor());
-    metrics::counter!("myriad_ticks_total").increment(1);
 }

@@ -12,28 +12,29 @@
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! use myriad_server::tick_bench::TickBench;
 //! let world = myriad_core::ScenarioSpec::reference(1, 42)?.build()?;
-//! let backend = myriad_physics::create_backend(myriad_physics::BackendKind::Cpu)?;
+//! let backend = myriad_cuda::create_backend(myriad_physics::BackendKind::Cpu)?;
 //! let mut bench = TickBench::new(myriad_server::ServerConfig::default(), world, backend)?;
 //! let sample = bench.tick()?;
-//! println!("{} players, packets {:.3} ms, send {:.3} ms", bench.players(), sample.stage_ms[7], sample.stage_ms[8]);
+//! let stages = &sample.work.stages;
+//! use myriad_server::TickStage::{Packets, Send};
+//! println!("{} players, packets {:.3} ms, send {:.3} ms", bench.players(), stages[Packets], stages[Send]);
 //! # Ok(()) }
 //! ```
 
 use std::io::ErrorKind;
 use std::net::{SocketAddr, UdpSocket};
-use std::sync::Arc;
 use std::time::Instant;
 
-use myriad_core::{Aabb, ObjectKind, World};
-use myriad_net::{Endpoint, EndpointConfig, RecvBatch};
-use myriad_physics::{AoiResults, Backend};
+use myriad_core::{ObjectKind, World};
+use myriad_net::{Endpoint, EndpointConfig};
+use myriad_physics::Backend;
 use myriad_protocol::{Action, ActionMask, ClientMessage, ClientSession, ServerMessage};
-use myriad_store::{MapId, UserId};
+use myriad_store::UserId;
 
 use crate::config::ServerConfig;
 use crate::error::ServerError;
-use crate::status::{STAGES, Shared};
-use crate::tick::{RECV_BATCH, TickLoop, TickWork};
+use crate::tick::{TickLoop, TickWork};
+use crate::transport::UdpTransport;
 
 /// Ticks between two actions of one bot. Bots take turns (bot `i` sends on the ticks
 /// where `(tick + i) % ACTION_EVERY == 0`), so the server receives a steady third of
@@ -44,23 +45,11 @@ pub const ACTION_EVERY: u64 = 3;
 /// Ticks a bot holds one direction before it turns.
 const TURN_EVERY: u64 = 30;
 
-/// One measured tick.
+/// One measured tick: the server's work and what the bots saw.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct TickSample {
-    /// Milliseconds per stage, indexed like [`STAGES`] (the physics stages, then
-    /// `packets`, `send`, `receive`).
-    pub stage_ms: [f64; STAGES.len()],
-    /// The part of `packets` spent in the backend's AOI query, in ms (the rest is
-    /// interest management: selection, packing, sealing).
-    pub aoi_ms: f64,
-    /// Bytes the server sent.
-    pub bytes: u64,
-    /// Datagrams the server sent.
-    pub datagrams: u64,
-    /// State records packed.
-    pub records: usize,
-    /// Datagrams the server received from the bots before this tick's step.
-    pub received: u64,
+    /// What the server's tick did, with its stage times.
+    pub work: TickWork,
     /// Actions the bots sent before this tick.
     pub actions_sent: u64,
     /// Datagrams the bots received and opened (session key, replay window, decode).
@@ -80,7 +69,7 @@ pub struct TickSample {
 impl TickSample {
     /// The whole tick's work in milliseconds (the sum of the stages).
     pub fn total_ms(&self) -> f64 {
-        self.stage_ms.iter().sum()
+        self.work.stages.total()
     }
 }
 
@@ -96,13 +85,8 @@ pub struct TickBench {
     tick: TickLoop,
     bots: Vec<Bot>,
     server_addr: SocketAddr,
-    recv: RecvBatch,
-    boxes: Vec<Aabb>,
-    aoi: AoiResults,
     buf: Vec<u8>,
     datagram: Vec<u8>,
-    // Kept so the tick loop's command channel stays open (nothing joins through it).
-    _commands: std::sync::mpsc::Sender<crate::tick::Command>,
 }
 
 impl std::fmt::Debug for TickBench {
@@ -129,9 +113,7 @@ impl TickBench {
             .filter(|(_, k)| **k == ObjectKind::User)
             .map(|(id, _)| *id)
             .collect();
-        let (commands, receiver) = std::sync::mpsc::channel();
-        let shared = Arc::new(Shared::default());
-        let mut tick = TickLoop::new(config, world, backend, endpoint, None, MapId(0), receiver, shared);
+        let mut tick = TickLoop::builder(config, world, backend, Box::new(UdpTransport::new(endpoint))).build();
         let mut bots = Vec::with_capacity(users.len());
         for (i, entity) in users.into_iter().enumerate() {
             let joined = tick
@@ -144,17 +126,7 @@ impl TickBench {
                 })?;
             bots.push(Bot { socket, session: ClientSession::new(&joined.keys), entity: joined.entity, frame: 0 });
         }
-        let mut bench = TickBench {
-            tick,
-            bots,
-            server_addr,
-            recv: RecvBatch::new(RECV_BATCH),
-            boxes: Vec::new(),
-            aoi: AoiResults::default(),
-            buf: vec![0; 65_536],
-            datagram: Vec::with_capacity(128),
-            _commands: commands,
-        };
+        let mut bench = TickBench { tick, bots, server_addr, buf: vec![0; 65_536], datagram: Vec::with_capacity(128) };
         // Ready in waves small enough for the server's receive buffer, each received by a
         // tick: every player is active (address known, ready) before measuring starts.
         for wave in (0..bench.bots.len()).collect::<Vec<_>>().chunks(2_000) {
@@ -174,13 +146,13 @@ impl TickBench {
 
     /// The simulated world.
     pub fn world(&self) -> &World {
-        &self.tick.world
+        self.tick.world()
     }
 
     /// The bots whose turn it is send their actions (untimed), the server runs one tick
     /// (timed per stage), then every bot drains and opens what it received (untimed).
     pub fn tick(&mut self) -> Result<TickSample, ServerError> {
-        let tick = self.tick.world.tick;
+        let tick = self.tick.world().tick;
         let before = Instant::now();
         let mut actions_sent = 0;
         for i in 0..self.bots.len() {
@@ -199,18 +171,13 @@ impl TickBench {
         let after = Instant::now();
         let mut sample = self.drain();
         sample.bots_ms = (bots_before + after.elapsed()).as_secs_f64() * 1e3;
-        sample.stage_ms = work.stage_ms;
-        sample.aoi_ms = work.aoi_ms;
-        sample.bytes = work.bytes;
-        sample.datagrams = work.datagrams;
-        sample.records = work.records;
-        sample.received = work.received;
+        sample.work = work;
         sample.actions_sent = actions_sent;
         Ok(sample)
     }
 
     fn run_tick(&mut self) -> TickWork {
-        self.tick.tick_once(&mut self.recv, &mut self.boxes, &mut self.aoi)
+        self.tick.tick_once()
     }
 
     fn send(&mut self, i: usize, msg: &ClientMessage) -> Result<(), ServerError> {
@@ -266,7 +233,8 @@ mod tests {
         spec.world_size = 256.0;
         spec.terrain_samples = 129;
         let world = spec.build().unwrap();
-        let backend = myriad_physics::create_backend(BackendKind::Cpu).unwrap();
+        let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
+        use crate::stages::TickStage::{Packets, Send};
         let mut bench = TickBench::new(ServerConfig::default(), world, backend).unwrap();
         assert_eq!(bench.players(), 60);
         let d = &bench.world().dynamics;
@@ -279,16 +247,18 @@ mod tests {
         for s in &samples {
             // Every player is active: at least one update datagram each, all delivered
             // and opened, and each update holds the player's own object.
-            assert!(s.datagrams >= 60, "{s:?}");
-            assert_eq!(s.delivered, s.datagrams, "{s:?}");
+            let w = &s.work;
+            assert!(w.datagrams >= 60, "{s:?}");
+            assert_eq!(s.delivered, w.datagrams, "{s:?}");
             assert_eq!(s.rejected, 0);
             assert_eq!(s.saw_own, 60);
-            assert!(s.records_delivered >= s.records as u64 && s.records > 0, "{s:?}");
-            // The bots' actions arrive: a third of them each tick.
-            assert_eq!(s.received, s.actions_sent, "{s:?}");
+            assert!(s.records_delivered >= w.records as u64 && w.records > 0, "{s:?}");
+            // The bots' actions arrive: a third of them each tick, and each is applied.
+            assert_eq!(w.received, s.actions_sent, "{s:?}");
+            assert_eq!(w.actions, s.actions_sent, "{s:?}");
             assert_eq!(s.actions_sent, 20);
-            assert!(s.stage_ms[7] > 0.0 && s.stage_ms[8] > 0.0, "packets and send are measured: {s:?}");
-            assert!(s.aoi_ms > 0.0 && s.aoi_ms < s.stage_ms[7], "the AOI query is part of packets: {s:?}");
+            assert!(w.stages[Packets] > 0.0 && w.stages[Send] > 0.0, "packets and send are measured: {s:?}");
+            assert!(w.aoi_ms > 0.0 && w.aoi_ms < w.stages[Packets], "the AOI query is part of packets: {s:?}");
         }
         // The users moved as commanded (walking, not just settling).
         let d = &bench.world().dynamics;

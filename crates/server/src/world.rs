@@ -185,3 +185,25 @@ pub fn wire_kind(k: ShapeKind) -> WireKind {
 pub fn shape_desc(s: Shape) -> ShapeDesc {
     ShapeDesc { kind: wire_kind(s.kind()), half: s.half_extents().to_array(), radius: s.radius() }
 }
+
+/// A spawn point for a first visit: spread over the map by user id, on the terrain.
+pub fn spawn_point(world: &World, user: myriad_store::UserId, shape: Shape) -> Vec3 {
+    let b = world.bounds;
+    let h = myriad_core::rng::hash3(world.seed, 0x5e5e, user.0 as u64);
+    let fx = (h & 0xffff_ffff) as f32 / u32::MAX as f32;
+    let fz = (h >> 32) as f32 / u32::MAX as f32;
+    let margin = 4.0f32.min(b.size().x / 4.0);
+    let x = b.min.x + margin + fx * (b.size().x - 2.0 * margin);
+    let z = b.min.z + margin + fz * (b.size().z - 2.0 * margin);
+    Vec3::new(x, world.terrain.height_at(x, z) + shape.half_extents().y + 0.1, z)
+}
+
+/// A stored position may come from another map version: keep it inside the bounds and
+/// above the terrain.
+pub fn clamp_into_world(world: &World, p: Vec3) -> Vec3 {
+    let b = world.bounds;
+    let p = if p.is_finite() { p } else { b.center() };
+    let p = p.clamp(b.min + Vec3::splat(0.5), b.max - Vec3::splat(0.5));
+    let floor = world.terrain.height_at(p.x, p.z);
+    Vec3::new(p.x, p.y.max(floor + 0.05), p.z)
+}

@@ -75,7 +75,7 @@ fn config(dir: &Path) -> ServerConfig {
         hash_passes: fast.t,
         hash_lanes: fast.p,
         log_stages_every_s: 0.0,
-        backend: "cpu".into(),
+        backend: myriad_server::BackendKind::Cpu,
         ..ServerConfig::default()
     }
 }

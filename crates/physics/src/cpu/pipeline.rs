@@ -161,6 +161,7 @@ pub(crate) fn run_step(
 
     forces(exec, world, k, s);
     lap(&mut report, Stage::Forces);
+    // The step is the single owner of the tick counter (see `Backend::step`).
     world.tick += 1;
     report
 }

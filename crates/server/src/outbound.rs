@@ -1,0 +1,156 @@
+//! Building what each player is sent: the AOI query, interest selection, packing and
+//! sealing, behind one trait.
+//!
+//! [`Outbound::build`] gets the physics backend, the world after the step and one
+//! [`Recipient`] per active player, and leaves each recipient's sealed datagrams in its
+//! [`Subscriber`]. [`CpuOutbound`] is the implementation on the host: the backend
+//! answers the AOI boxes, [`InterestManager`] selects, packs and seals in parallel over
+//! players.
+//!
+//! The seam is made for an implementation on the device: it receives the backend as
+//! `&mut dyn Backend` (so it can reach the CUDA backend's device buffers through
+//! [`Backend::as_any_mut`]) and each recipient's sealer, from which it can lease a key and
+//! a range of sequence numbers to seal elsewhere without ever reusing a nonce.
+
+use std::borrow::{Borrow, BorrowMut};
+use std::time::Instant;
+
+use myriad_core::{Aabb, Vec3, World};
+use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource, Subscriber, TickInfo};
+use myriad_physics::{AoiResults, Backend};
+use myriad_protocol::ObjectKind as WireKind;
+
+use crate::world::wire_kind;
+
+/// One active player as the outbound sees it.
+#[derive(Debug)]
+pub struct Recipient<'a> {
+    /// The player's session (a stable key for per-player state kept elsewhere).
+    pub session_id: u64,
+    /// Slot of the player's own object in the world's dynamics.
+    pub object: u32,
+    /// Centre of the player's area of interest (its object's position).
+    pub centre: Vec3,
+    /// The player's interest state, sealer and this tick's datagrams.
+    pub view: &'a mut Subscriber,
+}
+
+impl Borrow<Subscriber> for Recipient<'_> {
+    fn borrow(&self) -> &Subscriber {
+        self.view
+    }
+}
+
+impl BorrowMut<Subscriber> for Recipient<'_> {
+    fn borrow_mut(&mut self) -> &mut Subscriber {
+        self.view
+    }
+}
+
+/// What one build did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct OutboundReport {
+    /// State records packed, over all recipients.
+    pub records: usize,
+    /// Time of the AOI query in ms (part of the `packets` stage).
+    pub aoi_ms: f64,
+    /// Recipients whose sealing failed (nothing is sent to them this tick).
+    pub seal_failures: usize,
+}
+
+/// Builds every active player's sealed updates for a tick; see the module docs.
+pub trait Outbound: Send {
+    /// A human-readable description (for the start-up log).
+    fn description(&self) -> String;
+
+    /// Fills each recipient's datagrams for this tick. Errors are logged and counted
+    /// by the implementation; recipients it could not serve get no datagrams.
+    fn build(
+        &mut self,
+        backend: &mut dyn Backend,
+        world: &World,
+        tick: TickInfo,
+        recipients: &mut [Recipient<'_>],
+    ) -> OutboundReport;
+}
+
+/// The host implementation: backend AOI query, then [`InterestManager`].
+#[derive(Debug)]
+pub struct CpuOutbound {
+    interest: InterestManager,
+    half: Vec3,
+    boxes: Vec<Aabb>,
+    aoi: AoiResults,
+}
+
+impl CpuOutbound {
+    /// AOI boxes of edge `aoi_size` centred on each player, at most `max_datagrams`
+    /// update datagrams per player and tick.
+    pub fn new(aoi_size: f32, max_datagrams: usize) -> Self {
+        CpuOutbound {
+            interest: InterestManager::new(InterestConfig { max_datagrams, ..Default::default() }),
+            half: Vec3::splat(aoi_size / 2.0),
+            boxes: Vec::new(),
+            aoi: AoiResults::default(),
+        }
+    }
+}
+
+/// Reads the world's dynamics for interest management.
+struct WorldObjects<'a>(&'a World);
+
+impl ObjectSource for WorldObjects<'_> {
+    fn get(&self, slot: u32) -> Option<(u64, WireKind, [f32; 3])> {
+        let d = &self.0.dynamics;
+        let i = slot as usize;
+        Some((u64::from(d.ids().get(i)?.0), wire_kind(*d.shapes().get(i)?), d.positions().get(i)?.to_array()))
+    }
+}
+
+impl Outbound for CpuOutbound {
+    fn description(&self) -> String {
+        format!("host interest management ({} datagrams a player at most)", self.interest.config().max_datagrams)
+    }
+
+    fn build(
+        &mut self,
+        backend: &mut dyn Backend,
+        world: &World,
+        tick: TickInfo,
+        recipients: &mut [Recipient<'_>],
+    ) -> OutboundReport {
+        let mut report = OutboundReport::default();
+        if recipients.is_empty() {
+            return report;
+        }
+        self.boxes.clear();
+        for r in recipients.iter_mut() {
+            r.view.object = r.object;
+            r.view.centre = r.centre.to_array();
+            self.boxes.push(Aabb::from_center_half(r.centre, self.half));
+        }
+        let t = Instant::now();
+        let queried = backend.query_aoi(world, &self.boxes, &mut self.aoi);
+        report.aoi_ms = t.elapsed().as_secs_f64() * 1e3;
+        if let Err(e) = queried {
+            tracing::error!(error = %e, "AOI query failed");
+            metrics::counter!("myriad_outbound_errors_total", "reason" => "aoi_query").increment(1);
+            return report;
+        }
+        let lists = AoiLists { offsets: &self.aoi.offsets, objects: &self.aoi.objects };
+        match self.interest.build(tick, &WorldObjects(world), lists, recipients) {
+            Ok(r) => {
+                if r.seal_failures > 0 {
+                    metrics::counter!("myriad_seal_failures_total").increment(r.seal_failures as u64);
+                }
+                report.records = r.records;
+                report.seal_failures = r.seal_failures;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "interest management failed");
+                metrics::counter!("myriad_outbound_errors_total", "reason" => "interest").increment(1);
+            }
+        }
+        report
+    }
+}

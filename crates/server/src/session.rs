@@ -1,0 +1,444 @@
+//! The sessions table: every logged-in player, both halves of its session, and the
+//! control messages queued for it.
+//!
+//! [`Sessions`] is the one owner of a player's session state: the opener (client to
+//! server), the sealer (server to client, inside the player's interest [`Subscriber`]),
+//! the address, the ready flag, the last-heard time and the indexes by session id and by
+//! user. Joins, replacements, adoptions, expiry and removal all go through it, so the
+//! indexes cannot drift from the table. It touches the world only to spawn and despawn
+//! player objects and to read their positions.
+//!
+//! A player's object missing from the world is a broken invariant, not slot 0: it is
+//! logged, counted (`myriad_missing_entity_total`) and the player is skipped.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use myriad_core::{EntityId, ObjectKind, Shape, Vec3, World};
+use myriad_interest::Subscriber;
+use myriad_protocol::login::RefusalReason;
+use myriad_protocol::{DisconnectReason, Opener, ServerMessage, ServerSession, SessionKeys};
+use myriad_store::{MapId, PlayerState, UserId};
+use ring::rand::{SecureRandom, SystemRandom};
+
+use crate::world::{clamp_into_world, shape_desc, spawn_point, store_shape};
+
+/// The default player shape (a person-sized capsule).
+pub const PLAYER_SHAPE: Shape = Shape::Capsule { radius: 0.4, half_height: 0.5 };
+
+/// An admitted player: what the login response carries.
+pub(crate) struct Joined {
+    pub keys: SessionKeys,
+    pub entity: u64,
+    pub position: [f32; 3],
+    pub shape: myriad_protocol::login::ShapeDesc,
+    pub tick: u64,
+    pub dilation_permille: u16,
+}
+
+/// The answer to a join.
+pub(crate) type JoinResult = Result<Joined, RefusalReason>;
+
+/// One logged-in player.
+pub(crate) struct Player {
+    pub user_id: UserId,
+    pub username: String,
+    pub entity: EntityId,
+    pub shape: Shape,
+    pub session_id: u64,
+    /// Opens what the client sends.
+    pub opener: Opener,
+    /// Interest state and the sealer of what the server sends.
+    pub view: Subscriber,
+    /// Where the last authenticated datagram came from; nothing is sent before that.
+    pub addr: Option<SocketAddr>,
+    /// The client asked for state updates.
+    pub ready: bool,
+    pub last_heard: Instant,
+    /// Newest client frame applied (actions of older frames are ignored).
+    last_frame: Option<u32>,
+}
+
+impl Player {
+    /// Whether this player gets state updates: it asked for them, and its address is
+    /// known from an authenticated datagram.
+    pub fn active(&self) -> bool {
+        self.ready && self.addr.is_some()
+    }
+
+    /// Whether an action of `frame` is newer than the last one applied; if so it
+    /// becomes the last. Wrapping comparison, so the frame counter may wrap.
+    pub fn accept_frame(&mut self, frame: u32) -> bool {
+        let newer = self.last_frame.is_none_or(|f| frame.wrapping_sub(f) as i32 > 0);
+        if newer {
+            self.last_frame = Some(frame);
+        }
+        newer
+    }
+}
+
+/// Context a join needs besides the world.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct JoinContext {
+    pub tick: u64,
+    pub dilation_permille: u16,
+}
+
+/// What a join did to persistence: a first visit's spawn point to store.
+pub(crate) type FirstVisit = Option<PlayerState>;
+
+/// Every player's session; see the module docs.
+pub(crate) struct Sessions {
+    players: Vec<Player>,
+    by_session: HashMap<u64, usize>,
+    by_user: HashMap<i64, usize>,
+    /// Sealed control replies (keep-alives, server info, disconnects) for this tick.
+    control: Vec<(SocketAddr, Vec<u8>)>,
+    rng: SystemRandom,
+    max_players: usize,
+    map_id: MapId,
+}
+
+/// Counts and logs a player whose object is not in the world.
+pub(crate) fn missing_entity(p: &Player) {
+    tracing::error!(user = %p.username, entity = p.entity.0, "player object missing from the world");
+    metrics::counter!("myriad_missing_entity_total").increment(1);
+}
+
+impl Sessions {
+    /// An empty table for at most `max_players` players on map `map_id`.
+    pub fn new(max_players: usize, map_id: MapId) -> Self {
+        Sessions {
+            players: Vec::new(),
+            by_session: HashMap::new(),
+            by_user: HashMap::new(),
+            control: Vec::new(),
+            rng: SystemRandom::new(),
+            max_players,
+            map_id,
+        }
+    }
+
+    /// Players logged in.
+    pub fn len(&self) -> usize {
+        self.players.len()
+    }
+
+    /// Every player, in table order.
+    #[cfg(test)]
+    pub fn iter(&self) -> impl Iterator<Item = &Player> {
+        self.players.iter()
+    }
+
+    /// Every player, mutably, in table order.
+    pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut Player> {
+        self.players.iter_mut()
+    }
+
+    /// The player of `session_id`.
+    pub fn by_session_mut(&mut self, session_id: u64) -> Option<&mut Player> {
+        let idx = *self.by_session.get(&session_id)?;
+        self.players.get_mut(idx)
+    }
+
+    /// The player at table position `idx` (stable until the next join or removal).
+    pub fn get(&self, idx: usize) -> Option<&Player> {
+        self.players.get(idx)
+    }
+
+    fn fresh_keys(&self) -> Result<SessionKeys, RefusalReason> {
+        let mut bytes = [0u8; 72];
+        loop {
+            self.rng.fill(&mut bytes).map_err(|_| RefusalReason::Unavailable)?;
+            let session_id = u64::from_le_bytes(bytes[..8].try_into().unwrap_or_default());
+            if session_id != 0 && !self.by_session.contains_key(&session_id) {
+                let mut keys = SessionKeys { session_id, client_to_server: [0; 32], server_to_client: [0; 32] };
+                keys.client_to_server.copy_from_slice(&bytes[8..40]);
+                keys.server_to_client.copy_from_slice(&bytes[40..72]);
+                bytes.fill(0);
+                return Ok(keys);
+            }
+        }
+    }
+
+    /// Admits an authenticated user, or gives it a fresh session if it is already
+    /// logged in (the object, and its position in the world, newer than the stored one,
+    /// stays; the old session gets a `Replaced` disconnect). A first visit spawns the
+    /// player's object and returns its spawn point for the store.
+    pub fn join(
+        &mut self,
+        world: &mut World,
+        user_id: UserId,
+        username: String,
+        state: Option<PlayerState>,
+        ctx: JoinContext,
+    ) -> Result<(Joined, FirstVisit), RefusalReason> {
+        if let Some(&idx) = self.by_user.get(&user_id.0) {
+            let keys = self.fresh_keys()?;
+            self.queue_message(idx, &ServerMessage::Disconnect(DisconnectReason::Replaced));
+            let session = ServerSession::new(&keys);
+            let p = &mut self.players[idx];
+            let Some(slot) = world.dynamics.slot(p.entity) else {
+                missing_entity(p);
+                return Err(RefusalReason::Unavailable);
+            };
+            self.by_session.remove(&p.session_id);
+            p.session_id = keys.session_id;
+            p.opener = session.opener;
+            p.view = Subscriber::new(slot as u32, world.dynamics.positions()[slot].to_array(), session.sealer);
+            p.addr = None;
+            p.ready = false;
+            p.last_frame = None;
+            p.last_heard = Instant::now();
+            self.by_session.insert(keys.session_id, idx);
+            tracing::info!(user = %username, "session replaced by a new login");
+            return Ok((self.joined(world, idx, keys, ctx)?, None));
+        }
+        if self.players.len() >= self.max_players {
+            return Err(RefusalReason::ServerFull);
+        }
+        let keys = self.fresh_keys()?;
+        let (shape, pos) = match &state {
+            Some(s) => (crate::world::core_shape(s.shape), clamp_into_world(world, Vec3::from_array(s.position))),
+            None => (PLAYER_SHAPE, spawn_point(world, user_id, PLAYER_SHAPE)),
+        };
+        let entity = world.dynamics.spawn(shape, pos, ObjectKind::User).map_err(|e| {
+            tracing::error!(error = %e, "cannot spawn a player");
+            RefusalReason::Unavailable
+        })?;
+        let idx = self.admit(world, user_id, username.clone(), entity, shape, &keys)?;
+        tracing::info!(user = %username, entity = entity.0, "player joined");
+        let first_visit =
+            state.is_none().then(|| PlayerState::new(user_id, self.map_id, store_shape(shape), pos.to_array()));
+        Ok((self.joined(world, idx, keys, ctx)?, first_visit))
+    }
+
+    /// Makes `entity`, an object already in the world, the player of `user_id` with a
+    /// fresh session, as a login would (the tick benchmark's and the scripted
+    /// harness's join).
+    pub fn adopt(&mut self, world: &World, user_id: UserId, entity: EntityId, ctx: JoinContext) -> JoinResult {
+        let Some(slot) = world.dynamics.slot(entity) else { return Err(RefusalReason::Unavailable) };
+        if self.by_user.contains_key(&user_id.0) || self.players.len() >= self.max_players {
+            return Err(RefusalReason::Unavailable);
+        }
+        let keys = self.fresh_keys()?;
+        let shape = world.dynamics.shape_of(slot);
+        let idx = self.admit(world, user_id, format!("player{}", user_id.0), entity, shape, &keys)?;
+        self.joined(world, idx, keys, ctx)
+    }
+
+    fn admit(
+        &mut self,
+        world: &World,
+        user_id: UserId,
+        username: String,
+        entity: EntityId,
+        shape: Shape,
+        keys: &SessionKeys,
+    ) -> Result<usize, RefusalReason> {
+        let slot = world.dynamics.slot(entity).ok_or(RefusalReason::Unavailable)?;
+        let session = ServerSession::new(keys);
+        let view = Subscriber::new(slot as u32, world.dynamics.positions()[slot].to_array(), session.sealer);
+        self.players.push(Player {
+            user_id,
+            username,
+            entity,
+            shape,
+            session_id: keys.session_id,
+            opener: session.opener,
+            view,
+            addr: None,
+            ready: false,
+            last_heard: Instant::now(),
+            last_frame: None,
+        });
+        let idx = self.players.len() - 1;
+        self.by_user.insert(user_id.0, idx);
+        self.by_session.insert(keys.session_id, idx);
+        Ok(idx)
+    }
+
+    fn joined(&self, world: &World, idx: usize, keys: SessionKeys, ctx: JoinContext) -> JoinResult {
+        let p = &self.players[idx];
+        let Some(slot) = world.dynamics.slot(p.entity) else {
+            missing_entity(p);
+            return Err(RefusalReason::Unavailable);
+        };
+        Ok(Joined {
+            keys,
+            entity: u64::from(p.entity.0),
+            position: world.dynamics.positions()[slot].to_array(),
+            shape: shape_desc(p.shape),
+            tick: ctx.tick,
+            dilation_permille: ctx.dilation_permille,
+        })
+    }
+
+    /// Seals `msg` for player `idx` and queues it for this tick's send; nothing is
+    /// queued before the player's address is known.
+    pub fn queue_message(&mut self, idx: usize, msg: &ServerMessage) {
+        let Some(p) = self.players.get_mut(idx) else { return };
+        let Some(addr) = p.addr else { return };
+        let mut out = Vec::with_capacity(64);
+        match p.view.sealer.seal_server_message(msg, &mut out) {
+            Ok(_) => self.control.push((addr, out)),
+            Err(e) => {
+                tracing::warn!(error = %e, user = %p.username, "control message not sealed");
+                metrics::counter!("myriad_seal_failures_total").increment(1);
+            }
+        }
+    }
+
+    /// Like [`Sessions::queue_message`], by session id.
+    pub fn queue_message_to(&mut self, session_id: u64, msg: &ServerMessage) {
+        if let Some(&idx) = self.by_session.get(&session_id) {
+            self.queue_message(idx, msg);
+        }
+    }
+
+    /// Queues a disconnect for every player (shutdown).
+    pub fn disconnect_all(&mut self, reason: DisconnectReason) {
+        for idx in 0..self.players.len() {
+            self.queue_message(idx, &ServerMessage::Disconnect(reason));
+        }
+    }
+
+    /// The control replies queued since the last call.
+    pub fn control(&self) -> &[(SocketAddr, Vec<u8>)] {
+        &self.control
+    }
+
+    /// Forgets the queued control replies (after the send).
+    pub fn clear_control(&mut self) {
+        self.control.clear();
+    }
+
+    /// Removes every player silent for longer than `timeout` (queuing a `Timeout`
+    /// disconnect); returns their final states for the persister.
+    pub fn expire(&mut self, world: &mut World, now: Instant, timeout: Duration) -> Vec<PlayerState> {
+        let expired: Vec<u64> = self
+            .players
+            .iter()
+            .filter(|p| now.saturating_duration_since(p.last_heard) > timeout)
+            .map(|p| p.session_id)
+            .collect();
+        let mut states = Vec::new();
+        for session_id in expired {
+            if let Some(p) = self.by_session.get(&session_id).and_then(|&i| self.players.get(i)) {
+                tracing::info!(user = %p.username, "session timed out");
+            }
+            states.extend(self.remove(world, session_id, Some(DisconnectReason::Timeout)));
+        }
+        states
+    }
+
+    /// Removes the player of `session_id` (queuing `reason`, if any, first): its object
+    /// leaves the world; returns its final state for the persister.
+    pub fn remove(
+        &mut self,
+        world: &mut World,
+        session_id: u64,
+        reason: Option<DisconnectReason>,
+    ) -> Option<PlayerState> {
+        let idx = *self.by_session.get(&session_id)?;
+        if let Some(reason) = reason {
+            self.queue_message(idx, &ServerMessage::Disconnect(reason));
+        }
+        let state = self.state_of(world, idx);
+        let p = self.players.swap_remove(idx);
+        self.by_session.remove(&p.session_id);
+        self.by_user.remove(&p.user_id.0);
+        if let Some(moved) = self.players.get(idx) {
+            self.by_session.insert(moved.session_id, idx);
+            self.by_user.insert(moved.user_id.0, idx);
+        }
+        world.dynamics.despawn(p.entity);
+        tracing::info!(user = %p.username, "player left");
+        state
+    }
+
+    fn state_of(&self, world: &World, idx: usize) -> Option<PlayerState> {
+        let p = &self.players[idx];
+        let Some(slot) = world.dynamics.slot(p.entity) else {
+            missing_entity(p);
+            return None;
+        };
+        let pos = world.dynamics.positions()[slot].to_array();
+        Some(PlayerState::new(p.user_id, self.map_id, store_shape(p.shape), pos))
+    }
+
+    /// Every player's current state, for the persister.
+    pub fn states(&self, world: &World) -> Vec<PlayerState> {
+        (0..self.players.len()).filter_map(|i| self.state_of(world, i)).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn world() -> World {
+        let mut spec = myriad_core::ScenarioSpec::custom(3);
+        spec.dynamic = 10;
+        spec.users = 0;
+        spec.static_objects = 0;
+        spec.world_size = 64.0;
+        spec.terrain_samples = 17;
+        spec.build().unwrap()
+    }
+
+    const CTX: JoinContext = JoinContext { tick: 0, dilation_permille: 1000 };
+
+    #[test]
+    fn indexes_follow_removals_and_replacements() {
+        let mut w = world();
+        let mut s = Sessions::new(3, MapId(1));
+        let mut ids = Vec::new();
+        for u in 1..=3 {
+            let (j, first) = s.join(&mut w, UserId(u), format!("u{u}"), None, CTX).unwrap();
+            assert!(first.is_some(), "a first visit is stored");
+            ids.push(j.keys.session_id);
+        }
+        assert_eq!(w.dynamics.len(), 13);
+        assert!(matches!(s.join(&mut w, UserId(4), "u4".into(), None, CTX), Err(RefusalReason::ServerFull)));
+        // Removing the first moves the last into its place; both indexes follow.
+        assert!(s.remove(&mut w, ids[0], None).is_some());
+        assert_eq!(w.dynamics.len(), 12);
+        assert_eq!(s.by_session_mut(ids[2]).unwrap().user_id, UserId(3));
+        assert!(s.by_session_mut(ids[0]).is_none());
+        // A second login of user 3 replaces its session, keeps its object.
+        let entity = s.by_session_mut(ids[2]).unwrap().entity;
+        let (j, first) = s.join(&mut w, UserId(3), "u3".into(), None, CTX).unwrap();
+        assert!(first.is_none());
+        assert!(s.by_session_mut(ids[2]).is_none(), "the old session is gone");
+        assert_eq!(s.by_session_mut(j.keys.session_id).unwrap().entity, entity);
+        assert_eq!(s.len(), 2);
+        assert_eq!(w.dynamics.len(), 12);
+    }
+
+    #[test]
+    fn a_missing_object_is_an_error_not_slot_zero() {
+        let mut w = world();
+        let mut s = Sessions::new(4, MapId(1));
+        let (j, _) = s.join(&mut w, UserId(1), "u1".into(), None, CTX).unwrap();
+        let entity = s.by_session_mut(j.keys.session_id).unwrap().entity;
+        w.dynamics.despawn(entity);
+        assert!(s.states(&w).is_empty(), "no state is made up for a missing object");
+        assert!(matches!(s.join(&mut w, UserId(1), "u1".into(), None, CTX), Err(RefusalReason::Unavailable)));
+    }
+
+    #[test]
+    fn silent_sessions_expire_with_their_final_state() {
+        let mut w = world();
+        let mut s = Sessions::new(4, MapId(1));
+        s.join(&mut w, UserId(1), "u1".into(), None, CTX).unwrap();
+        let later = Instant::now() + Duration::from_secs(30);
+        assert!(s.expire(&mut w, Instant::now(), Duration::from_secs(10)).is_empty());
+        let states = s.expire(&mut w, later, Duration::from_secs(10));
+        assert_eq!(states.len(), 1);
+        assert_eq!(states[0].user_id, UserId(1));
+        assert_eq!(s.len(), 0);
+        assert_eq!(w.dynamics.len(), 10);
+    }
+}

@@ -1,0 +1,262 @@
+//! The tick, driven through the in-memory transport: real sessions, sealed datagrams,
+//! the real receive, step, outbound and send, no sockets.
+
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use myriad_core::{Action, ScenarioSpec};
+use myriad_physics::{BackendKind, create_cpu_backend};
+use myriad_protocol::{
+    Action as PlayerInput, ActionMask, ClientMessage, ClientSession, DisconnectReason, Opened, ServerMessage,
+};
+use myriad_store::{PlayerState, UserId};
+
+use super::{Command, StateSink, TickLoop};
+use crate::config::ServerConfig;
+use crate::transport::MemoryTransport;
+
+/// Collects handed-off states.
+#[derive(Clone, Default)]
+struct Saved(Arc<Mutex<Vec<PlayerState>>>);
+
+impl StateSink for Saved {
+    fn submit(&self, states: &[PlayerState]) -> Result<(), String> {
+        self.0.lock().unwrap().extend_from_slice(states);
+        Ok(())
+    }
+}
+
+struct Rig {
+    tick: TickLoop,
+    net: MemoryTransport,
+    commands: std::sync::mpsc::Sender<Command>,
+    saved: Saved,
+}
+
+struct Client {
+    session: ClientSession,
+    addr: SocketAddr,
+    entity: u64,
+    frame: u32,
+}
+
+fn rig(config: ServerConfig) -> Rig {
+    let mut spec = ScenarioSpec::custom(11);
+    spec.dynamic = 300;
+    spec.users = 0;
+    spec.static_objects = 30;
+    spec.world_size = 96.0;
+    spec.terrain_samples = 33;
+    let world = spec.build().unwrap();
+    let net = MemoryTransport::new("127.0.0.1:7777".parse().unwrap());
+    let (commands, receiver) = std::sync::mpsc::channel();
+    let saved = Saved::default();
+    let backend = create_cpu_backend(BackendKind::Cpu).unwrap();
+    let tick = TickLoop::builder(config, world, backend, Box::new(net.clone()))
+        .commands(receiver)
+        .persister(Box::new(saved.clone()), myriad_store::MapId(1))
+        .build();
+    Rig { tick, net, commands, saved }
+}
+
+impl Rig {
+    /// Logs `user` in through the join channel (one tick), then sends `Ready` from
+    /// `port` (one more tick).
+    fn join(&mut self, user: i64, port: u16) -> Client {
+        let (reply, mut answer) = tokio::sync::oneshot::channel();
+        let cmd = Command::Join { user_id: UserId(user), username: format!("user{user}"), state: None, reply };
+        self.commands.send(cmd).unwrap();
+        self.tick.tick_once();
+        let joined = answer.try_recv().unwrap().unwrap();
+        let mut c = Client {
+            session: ClientSession::new(&joined.keys),
+            addr: SocketAddr::from(([127, 0, 0, 1], port)),
+            entity: joined.entity,
+            frame: 0,
+        };
+        self.send(&mut c, &ClientMessage::Ready);
+        self.tick.tick_once();
+        c
+    }
+
+    fn seal(c: &mut Client, msg: &ClientMessage) -> Vec<u8> {
+        let mut d = Vec::new();
+        c.session.seal(msg, &mut d).unwrap();
+        d
+    }
+
+    fn send(&self, c: &mut Client, msg: &ClientMessage) -> Vec<u8> {
+        let d = Self::seal(c, msg);
+        self.net.push(c.addr, d.clone());
+        d
+    }
+
+    fn action(&self, c: &mut Client, mask: u8) -> Vec<u8> {
+        c.frame += 1;
+        let input = PlayerInput { mask: ActionMask::new(mask).unwrap(), client_frame: c.frame };
+        self.send(c, &ClientMessage::Action(input))
+    }
+
+    fn action_of(&self, c: &Client) -> Action {
+        let d = &self.tick.world().dynamics;
+        Action::from_bits_truncate(d.actions()[d.slot(myriad_core::EntityId(c.entity as u32)).unwrap()])
+    }
+
+    /// Everything sent to `c` since the last call, opened with its session.
+    fn received(&self, sent: &[(SocketAddr, Vec<u8>)], c: &mut Client) -> Vec<Opened<ServerMessage>> {
+        sent.iter()
+            .filter(|(to, _)| *to == c.addr)
+            .map(|(_, d)| c.session.open(&mut d.clone()).expect("every datagram opens"))
+            .collect()
+    }
+}
+
+#[test]
+fn the_tick_counter_advances_once_per_tick() {
+    let mut r = rig(ServerConfig::default());
+    for expected in 1..=5 {
+        r.tick.tick_once();
+        assert_eq!(r.tick.world().tick, expected);
+    }
+}
+
+#[test]
+fn an_action_is_applied_on_the_next_tick() {
+    let mut r = rig(ServerConfig::default());
+    let mut c = r.join(1, 40_001);
+    assert_eq!(r.action_of(&c), Action::NONE);
+    let d = &r.tick.world().dynamics;
+    let start = d.positions()[d.slot(myriad_core::EntityId(c.entity as u32)).unwrap()];
+    r.action(&mut c, ActionMask::FORWARD);
+    assert_eq!(r.action_of(&c), Action::NONE, "nothing happens before the tick");
+    let work = r.tick.tick_once();
+    assert_eq!(work.actions, 1);
+    assert_eq!(r.action_of(&c).bits(), Action::FORWARD);
+    for _ in 0..20 {
+        r.tick.tick_once();
+    }
+    let d = &r.tick.world().dynamics;
+    let end = d.positions()[d.slot(myriad_core::EntityId(c.entity as u32)).unwrap()];
+    assert!(end.z > start.z + 0.5, "forward is +z: {start} -> {end}");
+    // An older frame arriving late is ignored.
+    c.frame = c.frame.wrapping_sub(5);
+    r.action(&mut c, ActionMask::BACK);
+    assert_eq!(r.tick.tick_once().actions, 0);
+    assert_eq!(r.action_of(&c).bits(), Action::FORWARD);
+}
+
+#[test]
+fn replayed_and_forged_datagrams_change_nothing() {
+    let mut r = rig(ServerConfig::default());
+    let mut c = r.join(1, 40_001);
+    let first = r.action(&mut c, ActionMask::FORWARD);
+    assert_eq!(r.tick.tick_once().actions, 1);
+    r.net.take_sent();
+    let hash_of = |r: &Rig| r.tick.world().state_hash();
+
+    // A twin that receives nothing steps in lockstep: any change from a bad datagram
+    // would show in the hash.
+    let mut twin = rig(ServerConfig::default());
+    let mut tc = twin.join(1, 40_001);
+    twin.action(&mut tc, ActionMask::FORWARD);
+    twin.tick.tick_once();
+    twin.net.take_sent();
+    assert_eq!(hash_of(&r), hash_of(&twin));
+
+    let attacker: SocketAddr = "127.0.0.1:50000".parse().unwrap();
+    // The same datagram again, from the player's address and from another one.
+    r.net.push(c.addr, first.clone());
+    r.net.push(attacker, first.clone());
+    // A forged one: the live session id and a fresh sequence, but a wrong tag.
+    let mut forged = Rig::seal(
+        &mut c,
+        &ClientMessage::Action(PlayerInput { mask: ActionMask::new(ActionMask::BACK).unwrap(), client_frame: 99 }),
+    );
+    let n = forged.len();
+    forged[n - 1] ^= 1;
+    r.net.push(attacker, forged);
+    // Garbage and a truncated header.
+    r.net.push(attacker, vec![0xff; 40]);
+    r.net.push(attacker, first[..10].to_vec());
+
+    let work = r.tick.tick_once();
+    twin.tick.tick_once();
+    assert_eq!(work.received, 5);
+    assert_eq!(work.actions, 0);
+    assert_eq!(hash_of(&r), hash_of(&twin), "the world is as if nothing arrived");
+    assert_eq!(r.action_of(&c).bits(), Action::FORWARD);
+    let sent = r.net.take_sent();
+    assert!(sent.iter().all(|(to, _)| *to != attacker), "nothing goes to the sender of bad datagrams");
+    let p = r.tick.sessions().iter().next().unwrap();
+    assert_eq!(p.addr, Some(c.addr), "the player's address did not move");
+}
+
+#[test]
+fn a_second_login_replaces_the_first_session() {
+    let mut r = rig(ServerConfig::default());
+    let mut old = r.join(7, 40_001);
+    r.net.take_sent();
+    let mut new = r.join(7, 40_002);
+    assert_eq!(new.entity, old.entity, "the object stays");
+    assert_eq!(r.tick.sessions().len(), 1);
+    let sent = r.net.take_sent();
+    let to_old = r.received(&sent, &mut old);
+    assert!(
+        to_old.iter().any(|o| o.message == ServerMessage::Disconnect(DisconnectReason::Replaced)),
+        "the old session is told it was replaced"
+    );
+    // The old session's keys no longer move the object; the new one's do.
+    r.action(&mut old, ActionMask::LEFT);
+    assert_eq!(r.tick.tick_once().actions, 0);
+    r.action(&mut new, ActionMask::RIGHT);
+    assert_eq!(r.tick.tick_once().actions, 1);
+    assert_eq!(r.action_of(&new).bits(), Action::RIGHT);
+}
+
+#[test]
+fn a_silent_session_expires_and_its_player_is_saved() {
+    let config = ServerConfig { session_timeout_s: 1.0, ..ServerConfig::default() };
+    let mut r = rig(config);
+    let mut c = r.join(3, 40_001);
+    let objects = r.tick.world().dynamics.len();
+    r.saved.0.lock().unwrap().clear();
+    r.net.take_sent();
+    std::thread::sleep(Duration::from_millis(1100));
+    r.tick.tick_once();
+    assert_eq!(r.tick.sessions().len(), 0);
+    assert_eq!(r.tick.world().dynamics.len(), objects - 1, "its object left the world");
+    let saved = r.saved.0.lock().unwrap().clone();
+    assert_eq!(saved.len(), 1);
+    assert_eq!(saved[0].user_id, UserId(3));
+    let sent = r.net.take_sent();
+    let got = r.received(&sent, &mut c);
+    assert!(got.iter().any(|o| o.message == ServerMessage::Disconnect(DisconnectReason::Timeout)));
+}
+
+#[test]
+fn every_update_datagram_of_a_player_contains_its_own_object() {
+    // A small budget and a big view: several datagrams a tick, over budget.
+    let config = ServerConfig { aoi_size: 400.0, max_datagrams_per_player: 2, ..ServerConfig::default() };
+    let mut r = rig(config);
+    let mut clients: Vec<Client> = (0..4).map(|i| r.join(i + 1, 40_001 + i as u16)).collect();
+    let mut updates = 0;
+    let mut multi = 0;
+    for _ in 0..10 {
+        r.tick.tick_once();
+        let sent = r.net.take_sent();
+        for c in &mut clients {
+            let mut this_tick = 0;
+            for o in r.received(&sent, c) {
+                if let ServerMessage::StateUpdate(u) = o.message {
+                    updates += 1;
+                    this_tick += 1;
+                    assert!(u.records.iter().any(|rec| rec.id == c.entity), "datagram without the player's own object");
+                }
+            }
+            assert!(this_tick >= 1, "an update every tick");
+            multi += usize::from(this_tick > 1);
+        }
+    }
+    assert!(updates > 40 && multi > 0, "the view spans several datagrams: {updates} updates, {multi} multi");
+}

@@ -1,4 +1,5 @@
-//! Seeded world generation: the reference's three scenarios (spec §9) and custom ones.
+//! Seeded world generation: the reference's three scenarios (docs/design.md, scenarios)
+//! and custom ones.
 //!
 //! A scenario fixes counts, world size, seed and placement; [`ScenarioSpec::build`] turns
 //! it into a [`World`]. Every draw comes from [`crate::rng::Stream`]s of the seed, one
@@ -71,7 +72,7 @@ mod streams {
 }
 
 impl ScenarioSpec {
-    /// The reference's scenario 1, 2 or 3 (spec §9) on a 1024-unit map.
+    /// The reference's scenario 1, 2 or 3 (docs/design.md, scenarios) on a 1024-unit map.
     pub fn reference(n: u8, seed: u64) -> Result<ScenarioSpec, CoreError> {
         let (static_objects, dynamic, users) = match n {
             1 => (3_000, 6_000, 1_000),

@@ -1,4 +1,5 @@
-//! The reference's published results (spec §9), printed next to ours.
+//! The reference's published results (docs/design.md, reference results), printed next
+//! to ours.
 
 /// Table 1 of the reference: physics ms per tick, `None` where it reported "-" (over a
 /// second). Columns: CPU static, CPU dynamic, naive GPU static, naive GPU dynamic,

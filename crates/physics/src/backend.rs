@@ -61,7 +61,8 @@ impl FromStr for BackendKind {
     }
 }
 
-/// The stages of a step, in order, with the reference's names (spec §9, Table 2).
+/// The stages of a step, in order, with the reference's names (docs/design.md, the tick;
+/// reference results, Table 2).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum Stage {
     /// Copying what changed to the device (0 on the CPU).

@@ -4,7 +4,7 @@
 //! A contact between `a` and `b` (normal from `a` to `b`) moves `b` by `+dx` and `a` by
 //! `-dx`, and changes their velocities by `+dv` and `-dv`; against a static primitive the
 //! dynamic object plays `b` and takes the whole response, between two dynamic objects
-//! each takes half (spec §3.2). Pairs already moving apart are skipped.
+//! each takes half (docs/design.md, physics). Pairs already moving apart are skipped.
 //!
 //! Velocities are implicit in Verlet integration (`pos - prev`), so a response is applied
 //! as `pos += dx; prev += dx - dv`: the position is corrected without the correction

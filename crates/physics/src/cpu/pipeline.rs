@@ -1,7 +1,7 @@
-//! The step shared by the CPU backends, stage by stage (spec §3, in the reference's
-//! order): object boxes and dynamic tree, broad phase static, broad phase dynamic,
-//! narrow phase static, narrow phase dynamic, then per object: NPC action, gathered
-//! responses, forces, integration, limits.
+//! The step shared by the CPU backends, stage by stage (docs/design.md, the tick: in
+//! the reference's order): object boxes and dynamic tree, broad phase static, broad
+//! phase dynamic, narrow phase static, narrow phase dynamic, then per object: NPC
+//! action, gathered responses, forces, integration, limits.
 //!
 //! Pair lists are canonical: static pairs sorted by (object, primitive), dynamic pairs by
 //! (lower slot, higher slot). Responses are summed per object in the order fixed by

@@ -30,7 +30,7 @@
 //! - `step`: one tick in order, the download of the new state and the stage times;
 //! - `aoi`: area-of-interest queries.
 //!
-//! Every launch goes through the typed argument structs of [`crate::launch`].
+//! Every launch goes through the typed argument structs of the crate's `launch` module.
 //!
 //! # Performance note
 //! Stage times come from CUDA events; the host's own time in a step (launch calls, the

@@ -1,6 +1,8 @@
 //! The device: context, stream, module and kernels, plus thin owners of device and pinned
 //! host memory. Raw driver calls are used (through cudarc's `result` layer) so that
-//! launches carry no per-launch bookkeeping; every call's status is checked.
+//! launches carry no per-launch bookkeeping; every call's status is checked. Kernels are
+//! launched through the typed argument structs of the `launch` module, which build the
+//! raw argument slots of `Gpu::launch_raw` in the kernel's order.
 
 use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};

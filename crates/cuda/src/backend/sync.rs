@@ -17,23 +17,39 @@ use crate::params::DeviceParams;
 const LEAF_LIMIT: usize = (1 << 31) - 1;
 
 /// Per-object device state.
+/// Vectors are packed floats (x, y, z), boxes six floats (min, max); enums are one byte.
 pub(super) struct Objects {
+    /// Positions, the state the kernels advance.
     pub pos: DevBuf<f32>,
+    /// Positions one tick earlier (velocity is `pos - prev`).
     pub prev: DevBuf<f32>,
+    /// Half extents of each shape's box.
     pub half: DevBuf<f32>,
+    /// Sphere and capsule radii.
     pub radius: DevBuf<f32>,
+    /// `ShapeKind` discriminants.
     pub shape: DevBuf<u8>,
+    /// `ObjectKind` discriminants (NPC or user).
     pub kind: DevBuf<u8>,
+    /// Object ids (they seed the NPCs' random numbers).
     pub id: DevBuf<u32>,
+    /// Action bits (held directions, jump).
     pub action: DevBuf<u8>,
+    /// Flag bits (on terrain, supported).
     pub flags: DevBuf<u8>,
+    /// Boxes at the current positions, built each step.
     pub boxes: DevBuf<f32>,
+    /// The narrow phase's summed responses, read by the forces.
     pub acc: DevBuf<f32>,
+    /// Whether a contact supports the object from below.
     pub sup: DevBuf<u8>,
+    /// Static pair counts, then (after the scan) each object's range start; `n + 1`.
     pub static_counts: DevBuf<u32>,
+    /// As `static_counts`, for the dynamic pairs.
     pub dynamic_counts: DevBuf<u32>,
     /// The count passes' kept targets, `SLOTS` an object.
     pub static_keep: DevBuf<u32>,
+    /// As `static_keep`, for the dynamic pairs.
     pub dynamic_keep: DevBuf<u32>,
 }
 
@@ -63,11 +79,17 @@ impl Objects {
 
 /// Static primitives on the device.
 pub(super) struct Prims {
+    /// Centres, packed floats.
     pub pos: DevBuf<f32>,
+    /// Half extents, packed floats.
     pub half: DevBuf<f32>,
+    /// Radii.
     pub radius: DevBuf<f32>,
+    /// `ShapeKind` discriminants.
     pub shape: DevBuf<u8>,
+    /// Boxes, built when the statics are uploaded.
     pub boxes: DevBuf<f32>,
+    /// How many primitives are on the device.
     pub count: usize,
 }
 
@@ -87,12 +109,19 @@ impl Prims {
 
 /// Pinned host buffers for what comes back each step.
 pub(super) struct Host {
+    /// New positions.
     pub pos: Pinned,
+    /// New previous positions.
     pub prev: Pinned,
+    /// New actions.
     pub action: Pinned,
+    /// New flags.
     pub flags: Pinned,
+    /// The contact counts and pair totals: read first, to decide whether to redo.
     pub small: Pinned,
+    /// AOI range starts, one per query plus the total.
     pub aoi_offsets: Pinned,
+    /// AOI results, the objects of every query.
     pub aoi_objects: Pinned,
 }
 

@@ -28,8 +28,9 @@ pub const SOURCES: [(&str, &str); 4] = [
 pub const HEADERS: [(&str, &str); 2] =
     [("common.cuh", include_str!("../kernels/common.cuh")), ("narrow.cuh", include_str!("../kernels/narrow.cuh"))];
 
-/// Every kernel entry point the backends load, with its number of parameters (launches
-/// are checked against it: a raw launch cannot check argument lists otherwise).
+/// Every kernel entry point the backends load, with its number of parameters (each
+/// launch's argument count is checked against it at run time; the argument structs of
+/// the `launch` module are checked against the sources' signatures by a unit test).
 pub const KERNELS: [(&str, usize); 16] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
@@ -146,11 +147,18 @@ fn check(r: nvrtc::nvrtcResult, log: Option<String>) -> Result<(), CompileError>
 
 /// Compiles the program for `sm_{arch}` and returns the CUBIN. Needs NVRTC, not a GPU.
 pub fn compile_cubin(arch: u32, include_dirs: &[PathBuf]) -> Result<Vec<u8>, CompileError> {
+    compile_source(&program_source(), arch, include_dirs)
+}
+
+/// Compiles `source` (which may `#include` the kernels' [`HEADERS`] by name) for
+/// `sm_{arch}` with the kernels' options and returns the CUBIN. Needs NVRTC, not a GPU.
+/// Tests use it to check host-side layouts against the headers at compile time.
+pub fn compile_source(source: &str, arch: u32, include_dirs: &[PathBuf]) -> Result<Vec<u8>, CompileError> {
     if !nvrtc_present() {
         return Err(CompileError::NoNvrtc);
     }
     let bad = |what: &str| CompileError::Failed { status: format!("{what} contains a NUL byte"), log: String::new() };
-    let src = CString::new(program_source()).map_err(|_| bad("the source"))?;
+    let src = CString::new(source).map_err(|_| bad("the source"))?;
     let name = CString::new("myriad_kernels.cu").map_err(|_| bad("the name"))?;
     let header_text: Vec<CString> =
         HEADERS.iter().map(|(_, t)| CString::new(*t)).collect::<Result<_, _>>().map_err(|_| bad("a header"))?;

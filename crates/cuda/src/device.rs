@@ -1,18 +1,22 @@
 //! The device: context, stream, module and kernels, plus thin owners of device and pinned
 //! host memory. Raw driver calls are used (through cudarc's `result` layer) so that
-//! launches carry no per-launch bookkeeping; every call's status is checked.
+//! launches carry no per-launch bookkeeping; every call's status is checked. Kernels are
+//! launched through the typed argument structs of the `launch` module, which build the
+//! raw argument slots of `Gpu::launch_raw` in the kernel's order.
 
 use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
 use std::ffi::{CString, c_void};
 use std::sync::Arc;
 
+use bytemuck::Pod;
 use cudarc::driver::result;
 use cudarc::driver::safe::CudaContext;
 use cudarc::driver::sys::{self, CUdeviceptr, CUevent, CUfunction, CUmodule, CUstream};
 use myriad_physics::PhysicsError;
 
 use crate::compile;
+use crate::launch::DevPtr;
 
 /// A driver error as a [`PhysicsError`] naming the stage it happened in.
 pub(crate) fn dev_err(stage: &'static str) -> impl Fn(result::DriverError) -> PhysicsError {
@@ -117,8 +121,16 @@ impl Gpu {
         self.ctx.bind_to_thread().map_err(dev_err("bind"))
     }
 
-    /// Launches kernel `name` on `grid` blocks of `block` threads.
-    pub fn launch_grid(&self, name: &'static str, grid: u32, block: u32, args: &[Arg]) -> Result<(), PhysicsError> {
+    /// Launches kernel `name` on `grid` blocks of `block` threads with raw argument
+    /// slots. Only the typed launches of [`crate::launch`] call this: they build `args`
+    /// from a kernel's argument struct, so the slots are in the kernel's order.
+    pub(crate) fn launch_raw(
+        &self,
+        name: &'static str,
+        grid: u32,
+        block: u32,
+        args: &[Arg],
+    ) -> Result<(), PhysicsError> {
         if grid == 0 {
             return Ok(());
         }
@@ -159,7 +171,8 @@ impl Gpu {
             None => None,
         };
         // SAFETY: `f` comes from the loaded module; the argument slots match the kernel's
-        // parameter list (each call site passes them in the kernel's order) and live
+        // parameter list (built from the kernel's argument struct, whose fields are
+        // checked against the C++ signature by `launch`'s tests) and live
         // until the launch call returns (the driver copies them).
         unsafe { result::launch_kernel(f, (grid, 1, 1), (block, 1, 1), 0, self.stream, &mut ptrs) }
             .map_err(dev_err(name))?;
@@ -199,30 +212,26 @@ impl Gpu {
         Some(s)
     }
 
-    /// Launches kernel `name` with one thread per item, 256 a block.
-    pub fn launch(&self, name: &'static str, items: usize, args: &[Arg]) -> Result<(), PhysicsError> {
-        self.launch_grid(name, items.div_ceil(256) as u32, 256, args)
-    }
-
     /// Waits for everything queued on the stream.
     pub fn sync(&self) -> Result<(), PhysicsError> {
         // SAFETY: the stream is live.
         unsafe { result::stream::synchronize(self.stream) }.map_err(dev_err("synchronize"))
     }
 
-    /// Fills `bytes` bytes at `dst` with zeros, asynchronously.
-    pub fn zero(&self, dst: CUdeviceptr, bytes: usize) -> Result<(), PhysicsError> {
+    /// Fills `items` items at `dst` with zero bytes, asynchronously.
+    pub fn zero<T>(&self, dst: DevPtr<T>, items: usize) -> Result<(), PhysicsError> {
+        let bytes = items * std::mem::size_of::<T>();
         if bytes == 0 {
             return Ok(());
         }
-        // SAFETY: `dst` points to at least `bytes` bytes of device memory (callers pass a
-        // buffer and a size within it).
-        unsafe { result::memset_d8_async(dst, 0, bytes, self.stream) }.map_err(dev_err("memset"))
+        // SAFETY: `dst` points to at least `items` items of device memory (callers pass a
+        // buffer and a count within it).
+        unsafe { result::memset_d8_async(dst.raw(), 0, bytes, self.stream) }.map_err(dev_err("memset"))
     }
 
     /// Copies a host slice to device memory, ordered on the stream; the call returns once
     /// the source may be reused.
-    pub fn upload<T>(&self, dst: &DevBuf, src: &[T]) -> Result<(), PhysicsError> {
+    pub fn upload<T: Pod>(&self, dst: &DevBuf<T>, src: &[T]) -> Result<(), PhysicsError> {
         let bytes = std::mem::size_of_val(src);
         if bytes == 0 {
             return Ok(());
@@ -237,18 +246,18 @@ impl Gpu {
         // the stream keeps `src` alive until the copy is done; uploads happen only when
         // the host changed the world, so the wait is rare.
         unsafe {
-            result::memcpy_htod_async(dst.ptr, src, self.stream).map_err(dev_err("upload"))?;
+            result::memcpy_htod_async(dst.ptr().raw(), src, self.stream).map_err(dev_err("upload"))?;
             result::stream::synchronize(self.stream).map_err(dev_err("upload"))
         }
     }
 
     /// Queues a copy of `count` items of type `T` from device memory into pinned host
     /// memory, starting at item `at` of the host buffer.
-    pub fn download_async<T: Copy>(
+    pub fn download_async<T: Pod>(
         &self,
         dst: &mut Pinned,
         at: usize,
-        src: CUdeviceptr,
+        src: DevPtr<T>,
         count: usize,
     ) -> Result<(), PhysicsError> {
         let size = std::mem::size_of::<T>();
@@ -265,7 +274,7 @@ impl Gpu {
         // SAFETY: `dst` is pinned memory of at least `bytes` bytes that stays allocated
         // until the caller synchronizes the stream (it is owned by the backend).
         unsafe {
-            sys::cuMemcpyDtoHAsync_v2((dst.ptr as *mut u8).add(at * size) as *mut c_void, src, bytes, self.stream)
+            sys::cuMemcpyDtoHAsync_v2((dst.ptr as *mut u8).add(at * size) as *mut c_void, src.raw(), bytes, self.stream)
                 .result()
         }
         .map_err(dev_err("download"))
@@ -295,57 +304,66 @@ impl Drop for Gpu {
     }
 }
 
-/// Device memory, reallocated (contents dropped) when a larger size is needed.
-pub(crate) struct DevBuf {
-    pub ptr: CUdeviceptr,
-    pub bytes: usize,
+/// Device memory holding items of `T`, reallocated (contents dropped) when a larger size
+/// is needed. The item type fixes the type of the pointers it hands out ([`DevPtr<T>`]),
+/// so a buffer cannot be passed where a kernel expects another item type.
+pub(crate) struct DevBuf<T> {
+    ptr: DevPtr<T>,
+    bytes: usize,
     ctx: Option<Arc<CudaContext>>,
 }
 
-impl DevBuf {
+impl<T> DevBuf<T> {
     /// An empty buffer.
-    pub fn empty() -> DevBuf {
-        DevBuf { ptr: 0, bytes: 0, ctx: None }
+    pub fn empty() -> DevBuf<T> {
+        DevBuf { ptr: DevPtr::NULL, bytes: 0, ctx: None }
+    }
+
+    /// The buffer's address (null while empty).
+    pub fn ptr(&self) -> DevPtr<T> {
+        self.ptr
     }
 
     /// How many items of `T` fit (at most `u32::MAX`).
-    pub fn capacity<T>(&self) -> u32 {
+    pub fn capacity(&self) -> u32 {
         (self.bytes / std::mem::size_of::<T>()).min(u32::MAX as usize) as u32
     }
 
     /// Makes room for `bytes` bytes, reallocating with `headroom` (e.g. 1.25) when it has
     /// to grow. Returns whether it reallocated (the contents are then undefined).
+    /// The size stays in bytes (not items) so that allocations are exactly those of
+    /// the call sites' byte counts.
     pub fn ensure(&mut self, gpu: &Gpu, bytes: usize, headroom: f64) -> Result<bool, PhysicsError> {
-        if bytes <= self.bytes && self.ptr != 0 {
+        if bytes <= self.bytes && self.ptr.raw() != 0 {
             return Ok(false);
         }
         self.free();
         let want = ((bytes.max(64) as f64) * headroom) as usize;
         // SAFETY: the context is current (callers bind before any work).
         let ptr = unsafe { result::malloc_sync(want) }.map_err(dev_err("allocate"))?;
-        self.ptr = ptr;
+        self.ptr = DevPtr::from_raw(ptr);
         self.bytes = want;
         self.ctx = Some(gpu.ctx.clone());
         Ok(true)
     }
 
     fn free(&mut self) {
-        if self.ptr != 0
+        if self.ptr.raw() != 0
             && let Some(ctx) = &self.ctx
             && ctx.bind_to_thread().is_ok()
         {
             // SAFETY: `ptr` was allocated by `malloc_sync` in this context and is not
             // used after this point.
             unsafe {
-                let _ = result::memory_free(self.ptr);
+                let _ = result::memory_free(self.ptr.raw());
             }
         }
-        self.ptr = 0;
+        self.ptr = DevPtr::NULL;
         self.bytes = 0;
     }
 }
 
-impl Drop for DevBuf {
+impl<T> Drop for DevBuf<T> {
     fn drop(&mut self) {
         self.free();
     }
@@ -386,15 +404,21 @@ impl Pinned {
         Ok(())
     }
 
-    /// The first `count` items as `T` (plain-old-data types only: f32, u32, u8).
-    pub fn slice<T: Copy>(&self, count: usize) -> &[T] {
-        assert!(count * std::mem::size_of::<T>() <= self.bytes, "pinned buffer too small");
-        if count == 0 {
+    /// The first `count` items as `T`. `T: Pod` (plain data: any bit pattern is a valid
+    /// value, no padding) is what makes reading the bytes the device wrote as `T` sound.
+    /// Panics when the buffer holds fewer than `count` items.
+    pub fn slice<T: Pod>(&self, count: usize) -> &[T] {
+        let bytes = count * std::mem::size_of::<T>();
+        assert!(bytes <= self.bytes, "pinned buffer too small");
+        if bytes == 0 {
             return &[];
         }
-        // SAFETY: in bounds (asserted), aligned (the driver's allocations are page
-        // aligned), initialised (zeroed at allocation), and T is plain data.
-        unsafe { std::slice::from_raw_parts(self.ptr as *const T, count) }
+        // SAFETY: `ptr` points to `self.bytes >= bytes` bytes (asserted) that were
+        // zeroed at allocation, so all of them are initialised; the borrow of `self`
+        // keeps the buffer alive and unchanged (writes need `&mut self`).
+        let raw = unsafe { std::slice::from_raw_parts(self.ptr as *const u8, bytes) };
+        // The driver's pinned allocations are page aligned, so the cast cannot fail.
+        bytemuck::cast_slice(raw)
     }
 
     fn free(&mut self) {
@@ -428,6 +452,7 @@ pub(crate) struct Event {
 unsafe impl Send for Event {}
 
 impl Event {
+    /// A new event in `gpu`'s context.
     pub fn new(gpu: &Gpu) -> Result<Event, PhysicsError> {
         let raw = result::event::create(sys::CUevent_flags::CU_EVENT_DEFAULT).map_err(dev_err("event"))?;
         Ok(Event { raw, ctx: gpu.ctx.clone() })

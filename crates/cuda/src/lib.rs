@@ -1,12 +1,13 @@
-//! CUDA physics backends of Myriad: `cuda-naive` (all pairs on the GPU, the reference's
-//! naive GPU column) and `cuda` (device-resident state, LBVH broad phase), both bit for
+//! CUDA physics backends of Myriad: `cuda-naive` (every pair tested on the GPU, the
+//! simplest GPU baseline) and `cuda` (device-resident state, LBVH broad phase), both bit for
 //! bit identical to the CPU backends; and [`create_backend`], which also resolves `auto`.
 //!
 //! Module map:
 //! - [`compile`]: the embedded kernel sources, NVRTC compilation to a CUBIN and its cache;
 //! - [`device`]: availability probe, context, stream, kernels, device and pinned memory;
-//! - [`backend`]: [`CudaBackend`], the pipeline of both backends;
-//! - `params`: the parameter block the kernels read.
+//! - `launch`: typed device pointers and one argument struct per kernel;
+//! - [`backend`]: [`CudaBackend`], the pipeline of both backends, one file per stage;
+//! - [`params`]: the parameter block the kernels read.
 //!
 //! Without a CUDA driver, NVRTC or a device nothing here panics: the CUDA kinds return
 //! [`PhysicsError::Unavailable`] with the reason, and `auto` falls back to `cpu`.
@@ -14,7 +15,8 @@
 pub mod backend;
 pub mod compile;
 pub mod device;
-mod params;
+pub(crate) mod launch;
+pub mod params;
 
 pub use backend::CudaBackend;
 

@@ -1,31 +1,57 @@
 //! The parameter block the kernels read (`struct Params` in `kernels/common.cuh`).
+//!
+//! The block is uploaded as raw bytes, so this struct and the C++ one must agree field
+//! for field: same order, same offsets, same size. `tests/nvrtc.rs` checks every field's
+//! offset and size against the header with NVRTC, so a reordered or retyped field on
+//! either side fails there.
 
+use bytemuck::{Pod, Zeroable};
 use myriad_core::World;
 use myriad_physics::TickConstants;
 
 /// Per-tick constants, world bounds and terrain sampling constants, laid out exactly as
-/// the kernels' `Params` (23 four-byte fields, no padding).
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// the kernels' `Params` (23 four-byte fields, no padding). `Pod` lets the upload take
+/// the block's bytes without an unsafe cast; deriving it also proves there is no padding.
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
-pub(crate) struct DeviceParams {
+pub struct DeviceParams {
+    /// Gravity times dt² (`TickConstants::gravity_dt2`).
     pub gravity_dt2: f32,
+    /// Velocity kept each tick, `1 - air_drag`.
     pub air_keep: f32,
+    /// Horizontal velocity kept each tick on the ground, `1 - ground_friction`.
     pub ground_keep: f32,
+    /// Horizontal acceleration from a held direction, per tick².
     pub move_accel: f32,
+    /// Vertical velocity a jump sets, per tick.
     pub jump_velocity: f32,
+    /// `1 + restitution`.
     pub one_plus_e: f32,
+    /// How far above the terrain an object still stands on it.
     pub ground_tolerance: f32,
+    /// A contact normal with a y component above this supports the object above.
     pub support_min_y: f32,
+    /// NPC action period in ticks.
     pub npc_period: u32,
+    /// The world bounds' minimum corner.
     pub bmin: [f32; 3],
+    /// The world bounds' maximum corner.
     pub bmax: [f32; 3],
+    /// Terrain samples along x.
     pub t_width: u32,
+    /// Terrain samples along z.
     pub t_depth: u32,
+    /// The terrain's x origin in world units.
     pub origin_x: f32,
+    /// The terrain's z origin in world units.
     pub origin_z: f32,
+    /// Terrain sampling constant `inv_cell_x` (`Terrain::sampling_constants`).
     pub inv_cell_x: f32,
+    /// Terrain sampling constant `inv_cell_z`.
     pub inv_cell_z: f32,
+    /// Terrain sampling constant `height_scale` (height per sample unit).
     pub height_scale: f32,
+    /// The terrain's base height (`TerrainPlacement::base_y`).
     pub base_y: f32,
 }
 
@@ -57,42 +83,13 @@ impl DeviceParams {
             base_y: at.base_y,
         }
     }
-
-    /// The block as 4-byte words, for the upload.
-    pub fn words(&self) -> [u32; 23] {
-        let f = |v: f32| v.to_bits();
-        [
-            f(self.gravity_dt2),
-            f(self.air_keep),
-            f(self.ground_keep),
-            f(self.move_accel),
-            f(self.jump_velocity),
-            f(self.one_plus_e),
-            f(self.ground_tolerance),
-            f(self.support_min_y),
-            self.npc_period,
-            f(self.bmin[0]),
-            f(self.bmin[1]),
-            f(self.bmin[2]),
-            f(self.bmax[0]),
-            f(self.bmax[1]),
-            f(self.bmax[2]),
-            self.t_width,
-            self.t_depth,
-            f(self.origin_x),
-            f(self.origin_z),
-            f(self.inv_cell_x),
-            f(self.inv_cell_z),
-            f(self.height_scale),
-            f(self.base_y),
-        ]
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    // The field offsets are checked against the C++ header in `tests/nvrtc.rs`.
     #[test]
     fn block_is_23_packed_words() {
         assert_eq!(std::mem::size_of::<DeviceParams>(), 23 * 4);

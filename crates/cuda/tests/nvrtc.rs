@@ -51,3 +51,82 @@ fn cache_keys_depend_on_the_architecture() {
     assert_eq!(compile::cache_key(90), compile::cache_key(90));
     assert!(compile::program_source().contains("k_forces"));
 }
+
+/// The host's parameter block must match the kernels' `struct Params` byte for byte: it
+/// is uploaded as raw bytes. NVRTC compiles a program that includes the kernels' header
+/// and asserts, at compile time, every field's offset, size and C type, and the struct's
+/// size, with the numbers taken from `DeviceParams` here. A field reordered, retyped,
+/// added or removed on either side fails the compile, and the log names the field.
+#[test]
+fn the_params_block_matches_the_kernel_header_field_by_field() {
+    use myriad_cuda::params::DeviceParams;
+    use std::mem::{offset_of, size_of, size_of_val};
+
+    let z: DeviceParams = bytemuck::Zeroable::zeroed();
+    // (name, offset, size, C type) of every field, in declaration order.
+    macro_rules! fields {
+        ($($f:ident: $c:literal),* $(,)?) => {
+            vec![$((stringify!($f), offset_of!(DeviceParams, $f), size_of_val(&z.$f), $c)),*]
+        };
+    }
+    let fields = fields![
+        gravity_dt2: "float",
+        air_keep: "float",
+        ground_keep: "float",
+        move_accel: "float",
+        jump_velocity: "float",
+        one_plus_e: "float",
+        ground_tolerance: "float",
+        support_min_y: "float",
+        npc_period: "u32",
+        bmin: "float[3]",
+        bmax: "float[3]",
+        t_width: "u32",
+        t_depth: "u32",
+        origin_x: "float",
+        origin_z: "float",
+        inv_cell_x: "float",
+        inv_cell_z: "float",
+        height_scale: "float",
+        base_y: "float",
+    ];
+    // The list above must cover the whole struct, or a field added on the Rust side
+    // alone would go unchecked.
+    assert_eq!(fields.iter().map(|f| f.2).sum::<usize>(), size_of::<DeviceParams>(), "a field is missing above");
+
+    // NVRTC has no <cstddef> (so no `offsetof`) without extra headers, and no
+    // `__builtin_offsetof`; `__INTADDR__` is the constant-address builtin of its front
+    // end (EDG), the one EDG's own `offsetof` is built on.
+    let mut src = String::from(
+        "#include \"common.cuh\"\n\
+         #define OFFSET_OF(T, m) ((unsigned long long)__INTADDR__(&(((T*)0)->m)))\n\
+         template <class A, class B> struct same_type { static const bool value = false; };\n\
+         template <class A> struct same_type<A, A> { static const bool value = true; };\n",
+    );
+    for (name, offset, size, c_type) in &fields {
+        src.push_str(&format!(
+            "static_assert(OFFSET_OF(Params, {name}) == {offset}, \"Params::{name}: offset differs from DeviceParams ({offset})\");\n\
+             static_assert(sizeof(Params::{name}) == {size}, \"Params::{name}: size differs from DeviceParams ({size})\");\n\
+             static_assert(same_type<decltype(Params::{name}), {c_type}>::value, \"Params::{name}: not {c_type}\");\n"
+        ));
+    }
+    let size = size_of::<DeviceParams>();
+    src.push_str(&format!(
+        "static_assert(sizeof(Params) == {size}, \"sizeof(Params) differs from DeviceParams ({size})\");\n"
+    ));
+
+    if !compile::nvrtc_present() {
+        assert!(
+            std::env::var("MYRIAD_REQUIRE_CUDA").as_deref() != Ok("1"),
+            "MYRIAD_REQUIRE_CUDA=1 but NVRTC was not found"
+        );
+        eprintln!(
+            "skipping: the NVRTC library (libnvrtc.so) was not found, so the Params layout was checked \
+             only on the Rust side; set LD_LIBRARY_PATH to include it"
+        );
+        return;
+    }
+    if let Err(e) = compile::compile_source(&src, 90, &[]) {
+        panic!("DeviceParams and the kernels' Params disagree:\n{e}\n--- generated source ---\n{src}");
+    }
+}

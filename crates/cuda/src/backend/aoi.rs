@@ -1,0 +1,59 @@
+//! Area-of-interest queries on the device: the broad phase's count and write passes
+//! with the query boxes as queries and the dynamic objects as targets.
+
+use myriad_core::{Aabb, World};
+use myriad_physics::{AoiResults, PhysicsError};
+
+use super::CudaBackend;
+use super::broad::{Queries, count_pass, write_pass};
+
+impl CudaBackend {
+    /// The objects overlapping each box of `boxes`, as CSR lists in `out`.
+    pub(super) fn query_impl(
+        &mut self,
+        world: &World,
+        boxes: &[Aabb],
+        out: &mut AoiResults,
+    ) -> Result<(), PhysicsError> {
+        self.gpu.bind()?;
+        self.sync_world(world, None)?;
+        out.clear();
+        let nq = boxes.len();
+        if nq == 0 {
+            out.offsets.push(0);
+            return Ok(());
+        }
+        if self.n == 0 {
+            out.offsets.resize(nq + 1, 0);
+            return Ok(());
+        }
+        // The boxes of the last step (or query) serve as long as no one moved an object.
+        let generation = world.dynamics.generation();
+        if self.boxes_fresh != Some(generation) {
+            self.build_dynamic(world)?;
+            self.boxes_fresh = Some(generation);
+        }
+        let gpu = &self.gpu;
+        self.aoi_boxes.ensure(gpu, nq * 24, 1.25)?;
+        self.aoi_counts.ensure(gpu, (nq + 1) * 4, 1.25)?;
+        let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
+        gpu.upload(&self.aoi_boxes, &flat)?;
+        let qs = Queries::plain(nq, self.aoi_boxes.ptr());
+        count_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr())?;
+        self.scan.exclusive(gpu, self.aoi_counts.ptr(), nq + 1)?;
+        self.host.aoi_offsets.ensure(gpu, (nq + 1) * 4)?;
+        gpu.download_async(&mut self.host.aoi_offsets, 0, self.aoi_counts.ptr(), nq + 1)?;
+        gpu.sync()?;
+        let total = self.host.aoi_offsets.slice::<u32>(nq + 1)[nq] as usize;
+        self.aoi_out.ensure(gpu, total * 4, 1.25)?;
+        write_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr(), &self.aoi_out)?;
+        let h = &mut self.host;
+        h.aoi_objects.ensure(gpu, total * 4)?;
+        gpu.download_async(&mut h.aoi_objects, 0, self.aoi_out.ptr(), total)?;
+        gpu.sync()?;
+        gpu.collect_profile()?;
+        out.offsets.extend_from_slice(h.aoi_offsets.slice::<u32>(nq + 1));
+        out.objects.extend_from_slice(h.aoi_objects.slice::<u32>(total));
+        Ok(())
+    }
+}

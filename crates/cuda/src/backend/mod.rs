@@ -1,0 +1,204 @@
+//! The two CUDA backends, over one device-resident pipeline.
+//!
+//! # How it works
+//! World state lives on the device between steps; a step uploads only what the host
+//! changed (detected through the world's generation counters: everything after spawns or
+//! despawns, positions, actions and flags after teleports or new actions, the statics
+//! when they change) and downloads the new state into pinned buffers. Per tick:
+//!
+//! 1. `build_dynamic_bvh`: object boxes; for `cuda` also Morton codes, the radix sort,
+//!    Karras emission and the refit (`kernels/lbvh.cu`).
+//! 2. `broad_static`, `broad_dynamic`: each object counts the static primitives and the
+//!    other objects its box overlaps (tree walk for `cuda`, every target for
+//!    `cuda-naive`); an exclusive scan gives each object its exact range; the host reads
+//!    the two totals and grows the pair buffers to them (so no pair is ever dropped);
+//!    a second pass writes and sorts each range (`kernels/broad.cu`).
+//! 3. `narrow_static`, `narrow_dynamic`, `forces`: one thread per object sums its
+//!    responses in the CPU's order and integrates (`kernels/physics.cu`).
+//!
+//! The two backends differ only in how step 2 finds candidates.
+//!
+//! # Code map
+//! One file per stage, each adding methods to [`CudaBackend`] or holding the stage's
+//! device state:
+//! - `sync`: the device copies of the world and their uploads, the pinned download
+//!   buffers;
+//! - `tree`: the LBVH build (and the dynamic boxes of `cuda-naive`);
+//! - `scan`: exclusive prefix sums;
+//! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];
+//! - `narrow`, `forces`: the narrow-phase launches, the force and integration launch;
+//! - `step`: one tick in order, the download of the new state and the stage times;
+//! - `aoi`: area-of-interest queries.
+//!
+//! Every launch goes through the typed argument structs of the crate's `launch` module.
+//!
+//! # Performance note
+//! Stage times come from CUDA events; the host's own time in a step (launch calls, the
+//! mid-step read of the pair totals, copying the state into the `World`) is added to
+//! `upload`, so the stages sum to the wall-clock time of the step.
+
+mod aoi;
+mod broad;
+mod forces;
+mod narrow;
+mod scan;
+mod step;
+mod sync;
+mod tree;
+
+use myriad_core::{Aabb, World};
+use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport, TickConstants};
+
+use crate::device::{DevBuf, Event, Gpu, Pinned};
+use crate::params::DeviceParams;
+use scan::Scan;
+use sync::{Host, Objects, Prims};
+use tree::Tree;
+
+/// Events recorded per step (stage boundaries and the download's checkpoints).
+const EVENTS: usize = 15;
+
+/// A CUDA backend: `cuda` (LBVH) or `cuda-naive` (all pairs).
+pub struct CudaBackend {
+    kind: BackendKind,
+    n: usize,
+    /// (generation, layout generation, address of the id vector, tick, seed) of the
+    /// dynamics the device holds. The address, tick and seed tell two worlds with equal
+    /// generation counters apart (a backend moved from one world to another).
+    synced: Option<(u64, u64, usize, u64, u64)>,
+    /// (generation, primitive count, address of the positions) of the statics on the
+    /// device.
+    statics_key: Option<(u64, usize, usize)>,
+    /// (address, length) of the terrain samples uploaded.
+    terrain_key: Option<(usize, usize)>,
+    params_key: Option<DeviceParams>,
+    /// The dynamics generation the dynamic boxes (and tree) were built at.
+    boxes_fresh: Option<u64>,
+    obj: Objects,
+    prims: Prims,
+    dyn_tree: Tree,
+    static_tree: Tree,
+    scan: Scan,
+    static_pairs: DevBuf<u32>,
+    dynamic_pairs: DevBuf<u32>,
+    aoi_boxes: DevBuf<f32>,
+    aoi_counts: DevBuf<u32>,
+    aoi_out: DevBuf<u32>,
+    params: DevBuf<DeviceParams>,
+    counters: DevBuf<u32>,
+    samples: DevBuf<u16>,
+    host: Host,
+    events: Vec<Event>,
+    // Last: the context must outlive every buffer above (fields drop in order).
+    gpu: Gpu,
+}
+
+impl CudaBackend {
+    /// Probes the machine and sets up a backend of `kind` (`Cuda` or `CudaNaive`). Fails
+    /// with [`PhysicsError::Unavailable`] saying why when there is no driver, NVRTC or
+    /// device, or the kernels do not load.
+    pub fn new(kind: BackendKind) -> Result<CudaBackend, PhysicsError> {
+        let name = kind.name();
+        if !matches!(kind, BackendKind::Cuda | BackendKind::CudaNaive) {
+            return Err(PhysicsError::Unavailable { backend: name, reason: "not a CUDA backend kind".into() });
+        }
+        let gpu = Gpu::new().map_err(|reason| PhysicsError::Unavailable { backend: name, reason })?;
+        let events = (0..EVENTS).map(|_| Event::new(&gpu)).collect::<Result<Vec<_>, _>>()?;
+        let p = Pinned::empty;
+        Ok(CudaBackend {
+            kind,
+            n: 0,
+            synced: None,
+            statics_key: None,
+            terrain_key: None,
+            params_key: None,
+            boxes_fresh: None,
+            obj: Objects::new(),
+            prims: Prims::new(),
+            dyn_tree: Tree::new(),
+            static_tree: Tree::new(),
+            scan: Scan { sums: DevBuf::empty() },
+            static_pairs: DevBuf::empty(),
+            dynamic_pairs: DevBuf::empty(),
+            aoi_boxes: DevBuf::empty(),
+            aoi_counts: DevBuf::empty(),
+            aoi_out: DevBuf::empty(),
+            params: DevBuf::empty(),
+            counters: DevBuf::empty(),
+            samples: DevBuf::empty(),
+            host: Host { pos: p(), prev: p(), action: p(), flags: p(), small: p(), aoi_offsets: p(), aoi_objects: p() },
+            events,
+            gpu,
+        })
+    }
+
+    fn naive(&self) -> bool {
+        self.kind == BackendKind::CudaNaive
+    }
+
+    fn step_impl(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
+        // A step whose pair lists outgrew their buffers is redone once with buffers of
+        // the exact size (the world is only written after a complete step).
+        match self.try_step(world, k)? {
+            Some(report) => Ok(report),
+            None => self.try_step(world, k)?.ok_or(PhysicsError::Device {
+                stage: "broad phase",
+                message: "pair buffers still too small after growing them to the exact count".into(),
+            }),
+        }
+    }
+
+    /// The candidate pairs of the world as it is, without stepping: static pairs as
+    /// `object << 32 | primitive` sorted by (object, primitive), dynamic pairs as
+    /// `a << 32 | b` with `a < b`, sorted. For checking the broad phase against the CPU.
+    pub fn broad_pairs(&mut self, world: &World) -> Result<(Vec<u64>, Vec<u64>), PhysicsError> {
+        let r = self.broad_pairs_impl(world);
+        if r.is_err() {
+            self.synced = None;
+            self.n = usize::MAX;
+        }
+        r
+    }
+}
+
+impl Drop for CudaBackend {
+    fn drop(&mut self) {
+        if let Some(table) = self.gpu.profile_table() {
+            eprintln!("per-kernel device time, {} ({} objects):\n{table}", self.description(), self.n);
+        }
+    }
+}
+
+impl Backend for CudaBackend {
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+
+    fn kind(&self) -> BackendKind {
+        self.kind
+    }
+
+    fn description(&self) -> String {
+        let how = if self.naive() { "all pairs" } else { "LBVH, device-resident" };
+        format!("{} ({}, sm_{}, {how})", self.kind, self.gpu.info.name, self.gpu.info.arch)
+    }
+
+    fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
+        let r = self.step_impl(world, k);
+        if r.is_err() {
+            // The device copy may be half updated: make the next call upload everything.
+            self.synced = None;
+            self.n = usize::MAX;
+        }
+        r
+    }
+
+    fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
+        let r = self.query_impl(world, boxes, out);
+        if r.is_err() {
+            self.synced = None;
+            self.n = usize::MAX;
+        }
+        r
+    }
+}

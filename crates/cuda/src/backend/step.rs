@@ -1,0 +1,133 @@
+//! One tick: sync, boxes and tree, broad phase, narrow phase, forces, then the download
+//! of the new state into the `World`, with the stage times from the events.
+
+use std::time::Instant;
+
+use myriad_core::World;
+use myriad_physics::{PhysicsError, Stage, StepReport, TickConstants};
+
+use super::CudaBackend;
+use super::broad::write_pass;
+use super::sync::{flat3_mut, par_copy};
+
+impl CudaBackend {
+    /// One step, or `None` (world untouched) when a pair list did not fit: the buffers are
+    /// then grown to the exact totals and the device state is marked for re-upload.
+    pub(super) fn try_step(
+        &mut self,
+        world: &mut World,
+        k: &TickConstants,
+    ) -> Result<Option<StepReport>, PhysicsError> {
+        let wall = Instant::now();
+        self.gpu.bind()?;
+        let mut report = StepReport::default();
+        self.gpu.record(self.events[0].raw)?;
+        self.sync_world(world, Some(k))?;
+        let n = self.n;
+        if n == 0 {
+            // The backend's step is the single owner of the world's tick counter: no
+            // other code advances it.
+            world.tick += 1;
+            report.stage_ms[Stage::Upload as usize] = wall.elapsed().as_secs_f64() * 1e3;
+            return Ok(Some(report));
+        }
+        let ev = |s: &Self, i: usize| s.gpu.record(s.events[i].raw);
+        ev(self, 1)?;
+        self.build_dynamic(world)?;
+        ev(self, 2)?;
+
+        let (sc, dc) = (self.obj.static_counts.ptr(), self.obj.dynamic_counts.ptr());
+        let (qs_static, qs_dynamic) = self.count_pairs(|s| ev(s, 3))?;
+        ev(self, 4)?;
+        // No wait for the totals here: the write passes fill what fits, and the totals
+        // come back with the state at the end of the step.
+        self.static_pairs.ensure(&self.gpu, 4 * n, 1.0)?;
+        self.dynamic_pairs.ensure(&self.gpu, 4 * n, 1.0)?;
+        ev(self, 5)?;
+        write_pass(&self.gpu, qs_static, false, self.static_targets(), sc, &self.static_pairs)?;
+        ev(self, 6)?;
+        write_pass(&self.gpu, qs_dynamic, true, self.dynamic_targets(), dc, &self.dynamic_pairs)?;
+        ev(self, 7)?;
+        let caps = [self.static_pairs.capacity(), self.dynamic_pairs.capacity()];
+
+        self.counters.ensure(&self.gpu, 16, 1.0)?;
+        self.gpu.zero(self.counters.ptr(), 2)?;
+        self.narrow_static(caps[0])?;
+        ev(self, 8)?;
+        self.narrow_dynamic(caps[1])?;
+        ev(self, 9)?;
+        self.forces(world, k)?;
+        ev(self, 10)?;
+        let o = &self.obj;
+        let h = &mut self.host;
+        let gpu = &self.gpu;
+        h.pos.ensure(gpu, n * 12)?;
+        h.prev.ensure(gpu, n * 12)?;
+        h.action.ensure(gpu, n)?;
+        h.flags.ensure(gpu, n)?;
+        // The small totals first, then the state array by array, each followed by an
+        // event: the host checks the totals as soon as they land and copies each array
+        // into the World while the next one is still crossing the bus.
+        h.small.ensure(gpu, 64)?;
+        gpu.download_async(&mut h.small, 0, self.counters.ptr(), 2)?;
+        gpu.download_async(&mut h.small, 2, sc.add(n), 1)?;
+        gpu.download_async(&mut h.small, 3, dc.add(n), 1)?;
+        gpu.record(self.events[12].raw)?;
+        gpu.download_async(&mut h.pos, 0, o.pos.ptr(), 3 * n)?;
+        gpu.record(self.events[13].raw)?;
+        gpu.download_async(&mut h.prev, 0, o.prev.ptr(), 3 * n)?;
+        gpu.record(self.events[14].raw)?;
+        gpu.download_async(&mut h.action, 0, o.action.ptr(), n)?;
+        gpu.download_async(&mut h.flags, 0, o.flags.ptr(), n)?;
+        gpu.record(self.events[11].raw)?;
+        self.events[12].wait()?;
+
+        let small = h.small.slice::<u32>(4);
+        let (contacts, totals) = ([small[0], small[1]], [small[2], small[3]]);
+        if totals[0] > caps[0] || totals[1] > caps[1] {
+            // Some list did not fit: grow to the exact totals and redo from the world,
+            // which this step has not touched.
+            gpu.sync()?;
+            gpu.collect_profile()?;
+            self.static_pairs.ensure(gpu, totals[0] as usize * 4, 1.0)?;
+            self.dynamic_pairs.ensure(gpu, totals[1] as usize * 4, 1.0)?;
+            self.synced = None;
+            return Ok(None);
+        }
+        report.static_pairs = totals[0] as u64;
+        report.dynamic_pairs = totals[1] as u64 / 2;
+        report.static_contacts = contacts[0] as u64;
+        report.dynamic_contacts = contacts[1] as u64;
+        {
+            let st = world.dynamics.state_mut();
+            self.events[13].wait()?;
+            par_copy(flat3_mut(st.pos), h.pos.slice::<f32>(3 * n));
+            self.events[14].wait()?;
+            par_copy(flat3_mut(st.prev), h.prev.slice::<f32>(3 * n));
+            gpu.sync()?;
+            par_copy(st.action, h.action.slice::<u8>(n));
+            par_copy(st.flags, h.flags.slice::<u8>(n));
+        }
+        gpu.collect_profile()?;
+        // The backend's step is the single owner of the world's tick counter: no other
+        // code advances it, so every backend moves it exactly once per step.
+        world.tick += 1;
+        let d = &world.dynamics;
+        self.synced = Some((d.generation(), d.layout_generation(), d.ids().as_ptr() as usize, world.tick, world.seed));
+        self.boxes_fresh = None;
+
+        let e = &self.events;
+        let t = |a: usize, b: usize| e[a].ms_to(&e[b]);
+        let ms = &mut report.stage_ms;
+        ms[Stage::BuildDynamicBvh as usize] = t(1, 2)?;
+        ms[Stage::BroadStatic as usize] = t(2, 3)? + t(5, 6)?;
+        ms[Stage::BroadDynamic as usize] = t(3, 4)? + t(6, 7)?;
+        ms[Stage::NarrowStatic as usize] = t(7, 8)?;
+        ms[Stage::NarrowDynamic as usize] = t(8, 9)?;
+        ms[Stage::Forces as usize] = t(9, 10)?;
+        let device: f64 = ms.iter().sum();
+        let wall_ms = wall.elapsed().as_secs_f64() * 1e3;
+        ms[Stage::Upload as usize] = t(0, 1)? + t(10, 11)? + (wall_ms - device - t(0, 1)? - t(10, 11)?).max(0.0);
+        Ok(Some(report))
+    }
+}

@@ -1,0 +1,243 @@
+//! The device copies of the world, what the host downloads into, and the upload of
+//! whatever the host changed since the device last saw the world.
+
+use myriad_core::{Vec3, World};
+use myriad_physics::lbvh::morton::MortonFrame;
+use myriad_physics::{BackendKind, PhysicsError, TickConstants};
+use rayon::prelude::*;
+
+use super::CudaBackend;
+use super::broad::SLOTS;
+use crate::device::{DevBuf, Pinned};
+use crate::launch::KBoxes;
+use crate::params::DeviceParams;
+
+/// The most objects (or primitives) a tree can hold: leaf indices carry a flag in their
+/// top bit.
+const LEAF_LIMIT: usize = (1 << 31) - 1;
+
+/// Per-object device state.
+/// Vectors are packed floats (x, y, z), boxes six floats (min, max); enums are one byte.
+pub(super) struct Objects {
+    /// Positions, the state the kernels advance.
+    pub pos: DevBuf<f32>,
+    /// Positions one tick earlier (velocity is `pos - prev`).
+    pub prev: DevBuf<f32>,
+    /// Half extents of each shape's box.
+    pub half: DevBuf<f32>,
+    /// Sphere and capsule radii.
+    pub radius: DevBuf<f32>,
+    /// `ShapeKind` discriminants.
+    pub shape: DevBuf<u8>,
+    /// `ObjectKind` discriminants (NPC or user).
+    pub kind: DevBuf<u8>,
+    /// Object ids (they seed the NPCs' random numbers).
+    pub id: DevBuf<u32>,
+    /// Action bits (held directions, jump).
+    pub action: DevBuf<u8>,
+    /// Flag bits (on terrain, supported).
+    pub flags: DevBuf<u8>,
+    /// Boxes at the current positions, built each step.
+    pub boxes: DevBuf<f32>,
+    /// The narrow phase's summed responses, read by the forces.
+    pub acc: DevBuf<f32>,
+    /// Whether a contact supports the object from below.
+    pub sup: DevBuf<u8>,
+    /// Static pair counts, then (after the scan) each object's range start; `n + 1`.
+    pub static_counts: DevBuf<u32>,
+    /// As `static_counts`, for the dynamic pairs.
+    pub dynamic_counts: DevBuf<u32>,
+    /// The count passes' kept targets, `SLOTS` an object.
+    pub static_keep: DevBuf<u32>,
+    /// As `static_keep`, for the dynamic pairs.
+    pub dynamic_keep: DevBuf<u32>,
+}
+
+impl Objects {
+    /// Nothing allocated yet: the first sync sizes every buffer.
+    pub fn new() -> Objects {
+        Objects {
+            pos: DevBuf::empty(),
+            prev: DevBuf::empty(),
+            half: DevBuf::empty(),
+            radius: DevBuf::empty(),
+            shape: DevBuf::empty(),
+            kind: DevBuf::empty(),
+            id: DevBuf::empty(),
+            action: DevBuf::empty(),
+            flags: DevBuf::empty(),
+            boxes: DevBuf::empty(),
+            acc: DevBuf::empty(),
+            sup: DevBuf::empty(),
+            static_counts: DevBuf::empty(),
+            dynamic_counts: DevBuf::empty(),
+            static_keep: DevBuf::empty(),
+            dynamic_keep: DevBuf::empty(),
+        }
+    }
+}
+
+/// Static primitives on the device.
+pub(super) struct Prims {
+    /// Centres, packed floats.
+    pub pos: DevBuf<f32>,
+    /// Half extents, packed floats.
+    pub half: DevBuf<f32>,
+    /// Radii.
+    pub radius: DevBuf<f32>,
+    /// `ShapeKind` discriminants.
+    pub shape: DevBuf<u8>,
+    /// Boxes, built when the statics are uploaded.
+    pub boxes: DevBuf<f32>,
+    /// How many primitives are on the device.
+    pub count: usize,
+}
+
+impl Prims {
+    /// No primitives yet.
+    pub fn new() -> Prims {
+        Prims {
+            pos: DevBuf::empty(),
+            half: DevBuf::empty(),
+            radius: DevBuf::empty(),
+            shape: DevBuf::empty(),
+            boxes: DevBuf::empty(),
+            count: 0,
+        }
+    }
+}
+
+/// Pinned host buffers for what comes back each step.
+pub(super) struct Host {
+    /// New positions.
+    pub pos: Pinned,
+    /// New previous positions.
+    pub prev: Pinned,
+    /// New actions.
+    pub action: Pinned,
+    /// New flags.
+    pub flags: Pinned,
+    /// The contact counts and pair totals: read first, to decide whether to redo.
+    pub small: Pinned,
+    /// AOI range starts, one per query plus the total.
+    pub aoi_offsets: Pinned,
+    /// AOI results, the objects of every query.
+    pub aoi_objects: Pinned,
+}
+
+/// The vectors as packed floats (x, y, z, x, ...), without copying (glam's `Vec3` is
+/// `#[repr(C)]` of three `f32` and `Pod`).
+pub(super) fn flat3(v: &[Vec3]) -> &[f32] {
+    bytemuck::cast_slice(v)
+}
+
+/// [`flat3`] for writing.
+pub(super) fn flat3_mut(v: &mut [Vec3]) -> &mut [f32] {
+    bytemuck::cast_slice_mut(v)
+}
+
+/// `dst.copy_from_slice(src)`, on rayon's pool for large arrays: copying the state out
+/// of pinned memory into the `World` is the largest host cost of a step, and one core's
+/// memcpy bandwidth is a fraction of what the machine has.
+pub(super) fn par_copy<T: Copy + Send + Sync>(dst: &mut [T], src: &[T]) {
+    const CHUNK: usize = 1 << 16;
+    if dst.len() < 4 * CHUNK {
+        dst.copy_from_slice(src);
+    } else {
+        dst.par_chunks_mut(CHUNK).zip(src.par_chunks(CHUNK)).for_each(|(d, s)| d.copy_from_slice(s));
+    }
+}
+
+impl CudaBackend {
+    /// Uploads whatever the host changed since the device last saw the world.
+    pub(super) fn sync_world(&mut self, world: &World, k: Option<&TickConstants>) -> Result<(), PhysicsError> {
+        let gpu = &self.gpu;
+        let d = &world.dynamics;
+        let n = d.len();
+        if n > LEAF_LIMIT {
+            return Err(PhysicsError::TooManyObjects { count: n, max: LEAF_LIMIT });
+        }
+        let (generation, layout) = (d.generation(), d.layout_generation());
+        let identity = (d.ids().as_ptr() as usize, world.tick, world.seed);
+        let o = &mut self.obj;
+        if self.synced.map(|s| (s.1, s.2, s.3, s.4)) != Some((layout, identity.0, identity.1, identity.2))
+            || self.n != n
+        {
+            // Objects came or went: slots changed meaning, upload everything.
+            for b in [&mut o.pos, &mut o.prev, &mut o.half] {
+                b.ensure(gpu, n * 12, 1.25)?;
+            }
+            for b in [&mut o.boxes, &mut o.acc] {
+                b.ensure(gpu, n * 24, 1.25)?;
+            }
+            o.radius.ensure(gpu, n * 4, 1.25)?;
+            o.id.ensure(gpu, n * 4, 1.25)?;
+            for b in [&mut o.static_counts, &mut o.dynamic_counts] {
+                b.ensure(gpu, (n + 1) * 4, 1.25)?;
+            }
+            for b in [&mut o.static_keep, &mut o.dynamic_keep] {
+                b.ensure(gpu, n * SLOTS as usize * 4, 1.25)?;
+            }
+            for b in [&mut o.shape, &mut o.kind, &mut o.action, &mut o.flags, &mut o.sup] {
+                b.ensure(gpu, n, 1.25)?;
+            }
+            gpu.upload(&o.half, flat3(d.half_extents()))?;
+            gpu.upload(&o.radius, d.radii())?;
+            gpu.upload(&o.shape, &d.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
+            gpu.upload(&o.kind, &d.kinds().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
+            gpu.upload(&o.id, &d.ids().iter().map(|i| i.0).collect::<Vec<u32>>())?;
+            self.n = n;
+            self.synced = None;
+        }
+        if self.synced.map(|s| s.0) != Some(generation) {
+            gpu.upload(&o.pos, flat3(d.positions()))?;
+            gpu.upload(&o.prev, flat3(d.prev_positions()))?;
+            gpu.upload(&o.action, d.actions())?;
+            gpu.upload(&o.flags, d.flags())?;
+            self.boxes_fresh = None;
+        }
+        self.synced = Some((generation, layout, identity.0, identity.1, identity.2));
+
+        let st = &world.statics;
+        let key = (st.generation(), st.prim_count(), st.positions().as_ptr() as usize);
+        if self.statics_key != Some(key) {
+            let m = st.prim_count();
+            let p = &mut self.prims;
+            for b in [&mut p.pos, &mut p.half] {
+                b.ensure(gpu, m * 12, 1.25)?;
+            }
+            p.boxes.ensure(gpu, m * 24, 1.25)?;
+            p.radius.ensure(gpu, m * 4, 1.25)?;
+            p.shape.ensure(gpu, m, 1.25)?;
+            gpu.upload(&p.pos, flat3(st.positions()))?;
+            gpu.upload(&p.half, flat3(st.half_extents()))?;
+            gpu.upload(&p.radius, st.radii())?;
+            gpu.upload(&p.shape, &st.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
+            p.count = m;
+            if self.kind == BackendKind::CudaNaive {
+                gpu.launch(m, KBoxes { n: m as u32, pos: p.pos.ptr(), half: p.half.ptr(), boxes: p.boxes.ptr() })?;
+            } else {
+                let frame = MortonFrame::new(&world.bounds);
+                self.static_tree.build(gpu, m, p.pos.ptr(), p.half.ptr(), p.boxes.ptr(), &frame)?;
+            }
+            self.statics_key = Some(key);
+        }
+
+        let samples = world.terrain.samples();
+        let tkey = (samples.as_ptr() as usize, samples.len());
+        if self.terrain_key != Some(tkey) {
+            self.samples.ensure(gpu, samples.len() * 2, 1.0)?;
+            gpu.upload(&self.samples, samples)?;
+            self.terrain_key = Some(tkey);
+        }
+        if let Some(k) = k {
+            let params = DeviceParams::new(world, k);
+            if self.params_key != Some(params) {
+                self.params.ensure(gpu, std::mem::size_of::<DeviceParams>(), 1.0)?;
+                gpu.upload(&self.params, std::slice::from_ref(&params))?;
+                self.params_key = Some(params);
+            }
+        }
+        Ok(())
+    }
+}

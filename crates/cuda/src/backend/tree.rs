@@ -1,0 +1,171 @@
+//! The linear BVH on the device (`kernels/lbvh.cu`): boxes and Morton codes, the
+//! one-sweep radix sort, Karras emission and the refit; and the dynamic boxes (or tree)
+//! each step starts from.
+
+use myriad_core::World;
+use myriad_physics::PhysicsError;
+use myriad_physics::lbvh::morton::MortonFrame;
+
+use super::CudaBackend;
+use crate::device::{DevBuf, Gpu};
+use crate::launch::{DevPtr, KBoxes, KBoxesMorton, KEmit, KRadixCounts, KRadixPass, KRefit, Node};
+
+/// Passes of 8 bits over the 63-bit Morton codes.
+const RADIX_PASSES: u32 = 8;
+/// Keys per tile of a radix pass (one block of `k_radix_pass`).
+const RADIX_TILE: usize = 2048;
+/// Bytes of one internal node (`struct Node` in `kernels/lbvh.cu`).
+pub(super) const NODE_BYTES: usize = 64;
+
+const _: () = assert!(std::mem::size_of::<Node>() == NODE_BYTES);
+
+/// A linear BVH on the device (`kernels/lbvh.cu`).
+pub(super) struct Tree {
+    keys: DevBuf<u64>,
+    keys_tmp: DevBuf<u64>,
+    /// `order[leaf]`: the object (or primitive) in that leaf.
+    pub order: DevBuf<u32>,
+    order_tmp: DevBuf<u32>,
+    pub nodes: DevBuf<Node>,
+    node_parent: DevBuf<u32>,
+    leaf_parent: DevBuf<u32>,
+    arrivals: DevBuf<u32>,
+    hist: DevBuf<u32>,
+    pub leaves: usize,
+}
+
+impl Tree {
+    /// An empty tree; the first build allocates.
+    pub fn new() -> Tree {
+        Tree {
+            keys: DevBuf::empty(),
+            keys_tmp: DevBuf::empty(),
+            order: DevBuf::empty(),
+            order_tmp: DevBuf::empty(),
+            nodes: DevBuf::empty(),
+            node_parent: DevBuf::empty(),
+            leaf_parent: DevBuf::empty(),
+            arrivals: DevBuf::empty(),
+            hist: DevBuf::empty(),
+            leaves: 0,
+        }
+    }
+
+    /// Writes the boxes of the `n` objects at `pos ± half` into `boxes` and builds the
+    /// tree over them.
+    pub fn build(
+        &mut self,
+        gpu: &Gpu,
+        n: usize,
+        pos: DevPtr<f32>,
+        half: DevPtr<f32>,
+        boxes: DevPtr<f32>,
+        frame: &MortonFrame,
+    ) -> Result<(), PhysicsError> {
+        self.leaves = n;
+        if n == 0 {
+            return Ok(());
+        }
+        for b in [&mut self.keys, &mut self.keys_tmp] {
+            b.ensure(gpu, n * 8, 1.25)?;
+        }
+        for b in
+            [&mut self.order, &mut self.order_tmp, &mut self.leaf_parent, &mut self.node_parent, &mut self.arrivals]
+        {
+            b.ensure(gpu, n * 4, 1.25)?;
+        }
+        self.nodes.ensure(gpu, n * NODE_BYTES, 1.25)?;
+        let (m, s) = (frame.min, frame.scale);
+        gpu.launch(
+            n,
+            KBoxesMorton {
+                n: n as u32,
+                pos,
+                half,
+                boxes,
+                keys: self.keys.ptr(),
+                vals: self.order.ptr(),
+                mx: m.x,
+                my: m.y,
+                mz: m.z,
+                sx: s.x,
+                sy: s.y,
+                sz: s.z,
+            },
+        )?;
+        // One-sweep radix sort: the digit counts of all passes, then one launch a pass.
+        // `hist` holds the 8 x 256 counts, the 8 tile counters and 8 x 256 status words
+        // a tile, all zeroed at once.
+        let tiles = n.div_ceil(RADIX_TILE);
+        let words = RADIX_PASSES as usize * (256 + 1 + 256 * tiles);
+        self.hist.ensure(gpu, words * 4, 1.25)?;
+        gpu.zero(self.hist.ptr(), words)?;
+        let counters = self.hist.ptr().add(256 * RADIX_PASSES as usize);
+        let status = counters.add(RADIX_PASSES as usize);
+        let blocks = n.div_ceil(256).min(1024);
+        gpu.launch_grid(
+            blocks as u32,
+            256,
+            KRadixCounts { keys: self.keys.ptr(), n: n as u32, hist: self.hist.ptr() },
+        )?;
+        for pass in 0..RADIX_PASSES {
+            gpu.launch_grid(
+                tiles as u32,
+                256,
+                KRadixPass {
+                    keys_in: self.keys.ptr(),
+                    vals_in: self.order.ptr(),
+                    keys_out: self.keys_tmp.ptr(),
+                    vals_out: self.order_tmp.ptr(),
+                    n: n as u32,
+                    pass,
+                    hist: self.hist.ptr(),
+                    status: status.add(pass as usize * 256 * tiles),
+                    tile_counter: counters.add(pass as usize),
+                },
+            )?;
+            std::mem::swap(&mut self.keys, &mut self.keys_tmp);
+            std::mem::swap(&mut self.order, &mut self.order_tmp);
+        }
+        if n >= 2 {
+            gpu.launch(
+                n - 1,
+                KEmit {
+                    keys: self.keys.ptr(),
+                    n: n as u32,
+                    nodes: self.nodes.ptr(),
+                    node_parent: self.node_parent.ptr(),
+                    leaf_parent: self.leaf_parent.ptr(),
+                },
+            )?;
+            gpu.zero(self.arrivals.ptr(), n - 1)?;
+            gpu.launch(
+                n,
+                KRefit {
+                    n: n as u32,
+                    order: self.order.ptr(),
+                    boxes,
+                    nodes: self.nodes.ptr(),
+                    node_parent: self.node_parent.ptr(),
+                    leaf_parent: self.leaf_parent.ptr(),
+                    arrivals: self.arrivals.ptr(),
+                },
+            )?;
+        }
+        Ok(())
+    }
+}
+
+impl CudaBackend {
+    /// Dynamic boxes (and, for `cuda`, the dynamic tree) at the device's positions.
+    pub(super) fn build_dynamic(&mut self, world: &World) -> Result<(), PhysicsError> {
+        let n = self.n;
+        let o = &self.obj;
+        if self.naive() {
+            self.gpu.launch(n, KBoxes { n: n as u32, pos: o.pos.ptr(), half: o.half.ptr(), boxes: o.boxes.ptr() })
+        } else {
+            let frame = MortonFrame::new(&world.bounds);
+            self.dyn_tree.build(&self.gpu, n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr(), &frame)
+        }
+    }
+}

@@ -47,7 +47,7 @@ pub enum DecodeError {
     BadDisconnectReason(u8),
     /// An unassigned object kind in a state record.
     #[error("unknown object kind {0}")]
-    BadObjectKind(u8),
+    BadShapeKind(u8),
     /// Reserved bits of an extended record are not zero.
     #[error("reserved bits set in an extended record word 0x{0:08x}")]
     ReservedBits(u32),

@@ -33,8 +33,8 @@ use myriad_net::{Endpoint, RecvBatch};
 use myriad_physics::{AoiResults, Backend, Stage, TickConstants};
 use myriad_protocol::login::{RefusalReason, ShapeDesc};
 use myriad_protocol::{
-    ClientMessage, Direction, DisconnectReason, ErrorClass, ObjectKind as WireKind, Opener, ServerInfo, ServerMessage,
-    ServerSession, SessionKeys, peek_header,
+    ClientMessage, Direction, DisconnectReason, ErrorClass, Opener, ServerInfo, ServerMessage, ServerSession,
+    SessionKeys, ShapeKind as WireKind, peek_header,
 };
 use myriad_store::{MapId, Persister, PlayerState, UserId};
 use ring::rand::{SecureRandom, SystemRandom};

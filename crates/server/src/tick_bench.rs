@@ -27,7 +27,7 @@ use std::time::Instant;
 use myriad_core::{Aabb, ObjectKind, World};
 use myriad_net::{Endpoint, EndpointConfig, RecvBatch};
 use myriad_physics::{AoiResults, Backend};
-use myriad_protocol::{Action, ActionMask, ClientMessage, ClientSession, ServerMessage};
+use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage};
 use myriad_store::{MapId, UserId};
 
 use crate::config::ServerConfig;
@@ -189,7 +189,7 @@ impl TickBench {
                     [((tick / TURN_EVERY + i as u64) % 4) as usize];
                 let frame = self.bots[i].frame.wrapping_add(1);
                 self.bots[i].frame = frame;
-                let action = Action { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
+                let action = PlayerInput { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
                 self.send(i, &ClientMessage::Action(action))?;
                 actions_sent += 1;
             }

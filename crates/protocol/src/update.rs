@@ -17,7 +17,7 @@
 //! *Compact*, 10 bytes, used whenever it can represent the object exactly:
 //!
 //! ```text
-//!  0  4  word (u32): bits 0..=1 object kind (0 sphere, 1 box, 2 capsule),
+//!  0  4  word (u32): bits 0..=1 shape kind (0 sphere, 1 box, 2 capsule),
 //!                    bits 2..=31 id - id base (must be < 2^30)
 //!  4  6  dx, dy, dz (i16 each, 1/64 unit), position - origin (±512 units)
 //! ```
@@ -26,7 +26,7 @@
 //! position more than 512 units from the origin:
 //!
 //! ```text
-//!  0  4  word (u32): bits 0..=1 = 3 (escape), bits 2..=3 object kind, bits 4..=31 zero
+//!  0  4  word (u32): bits 0..=1 = 3 (escape), bits 2..=3 shape kind, bits 4..=31 zero
 //!  4  8  object id (u64), absolute
 //! 12 12  x, y, z (i32 each, 1/64 unit), absolute
 //! ```

@@ -39,6 +39,9 @@ pub enum DecodeError {
     /// A known packet kind that travels the other way.
     #[error("packet kind {0:?} is not valid in this direction")]
     WrongDirection(PacketKind),
+    /// The header's sequence number is `u64::MAX`, which no sender ever uses.
+    #[error("sequence number u64::MAX is never used")]
+    ReservedSequence,
     /// An action mask with bits above bit 4.
     #[error("action mask 0x{0:02x} has bits above bit 4")]
     BadActionMask(u8),

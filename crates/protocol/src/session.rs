@@ -401,9 +401,9 @@ impl Opener {
 
     /// Checks, decrypts in place and decodes `datagram` with `decode(kind, body)`.
     ///
-    /// Order: length, version, kind and direction, session id, replay window (all
-    /// without cryptography), then the tag, then `decode`; the sequence number is
-    /// recorded only when all passed. On any error the opener is unchanged. If the tag
+    /// Order: length, version, kind and direction, sequence not `u64::MAX`, session id,
+    /// replay window (all without cryptography), then the tag, then `decode`; the
+    /// sequence number is recorded only when all passed. On any error the opener is unchanged. If the tag
     /// verified, `datagram`'s body now holds plaintext; otherwise it is untouched.
     pub fn open_with<T>(
         &mut self,
@@ -490,9 +490,57 @@ impl ClientSession {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::ErrorClass;
 
     fn keys() -> SessionKeys {
         SessionKeys { session_id: 0x5eed, client_to_server: [0x11; 32], server_to_client: [0x22; 32] }
+    }
+
+    /// Seals a Ready datagram by hand, bypassing [`Sealer`], which refuses `sequence`
+    /// `u64::MAX`: what a buggy or malicious peer holding the key could send.
+    fn hand_sealed_ready(keys: &SessionKeys, sequence: u64) -> Vec<u8> {
+        let mut d = vec![0u8; MIN_DATAGRAM];
+        let (head, tag_space) = d.split_at_mut(HEADER_LEN);
+        let head: &mut [u8; HEADER_LEN] = head.try_into().unwrap();
+        Header { kind: PacketKind::Ready, session_id: keys.session_id, sequence }.write(head);
+        let cipher = ChaCha20Poly1305::new(&Array::from(keys.client_to_server));
+        let tag = cipher
+            .encrypt_inout_detached(&nonce(Direction::ClientToServer, sequence), head, (&mut [][..]).into())
+            .unwrap();
+        tag_space.copy_from_slice(&tag);
+        d
+    }
+
+    // Regression: an authentic datagram with sequence u64::MAX used to be accepted, after
+    // which the replay window sat at the top of the range and every later datagram of the
+    // session was rejected as replayed (the player froze).
+    #[test]
+    fn sequence_u64_max_is_rejected_before_cryptography_and_leaves_the_window() {
+        let keys = keys();
+        let mut server = ServerSession::new(&keys);
+        let mut client = ClientSession::new(&keys);
+        let mut first = Vec::new();
+        client.seal(&ClientMessage::Ready, &mut first).unwrap();
+        server.open(&mut first).unwrap();
+        let window_before = server.opener.window().clone();
+
+        let forged = hand_sealed_ready(&keys, u64::MAX);
+        // The tag is authentic (the same hand sealing one short of the top opens, below):
+        // only the sequence rule rejects it.
+        let mut d = forged.clone();
+        let err = server.open(&mut d).unwrap_err();
+        assert_eq!(err, OpenError::Malformed(DecodeError::ReservedSequence));
+        assert_eq!(err.class(), ErrorClass::Malformed);
+        assert_eq!(d, forged, "rejected before decryption: the datagram is untouched");
+        assert_eq!(server.opener.window(), &window_before);
+
+        // The session goes on: the client's next datagram is still accepted.
+        let mut next = Vec::new();
+        client.seal(&ClientMessage::KeepAlive, &mut next).unwrap();
+        assert_eq!(server.open(&mut next).unwrap().header.sequence, 1);
+        // The hand sealing is right: one short of the top opens.
+        let mut below = hand_sealed_ready(&keys, u64::MAX - 1);
+        assert_eq!(server.open(&mut below).unwrap().header.sequence, u64::MAX - 1);
     }
 
     #[test]

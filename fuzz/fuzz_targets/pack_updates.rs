@@ -4,7 +4,7 @@
 
 use libfuzzer_sys::fuzz_target;
 use myriad_protocol::{
-    DatagramBatch, HEADER_LEN, MAX_DATAGRAM, ObjectKind, PacketKind, QuantPos, ServerMessage, StateRecord, TAG_LEN,
+    DatagramBatch, HEADER_LEN, MAX_DATAGRAM, ShapeKind, PacketKind, QuantPos, ServerMessage, StateRecord, TAG_LEN,
     UpdateHeader, pack_updates,
 };
 
@@ -25,9 +25,9 @@ fuzz_target!(|data: &[u8]| {
         .map(|c| StateRecord {
             id: u64::from_le_bytes(c[0..8].try_into().expect("8 bytes")),
             kind: match c[8] % 3 {
-                0 => ObjectKind::Sphere,
-                1 => ObjectKind::Box,
-                _ => ObjectKind::Capsule,
+                0 => ShapeKind::Sphere,
+                1 => ShapeKind::Box,
+                _ => ShapeKind::Capsule,
             },
             pos: QuantPos::new(i32_at(&c[9..13]), i32_at(&c[13..17]), i32_at(&c[17..21])),
         })

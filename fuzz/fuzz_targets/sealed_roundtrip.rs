@@ -2,13 +2,14 @@
 //! the cryptography: the input is a kind byte, a byte position and a body. The body is
 //! framed and sealed with the right key; opening must succeed exactly when the body
 //! decodes, and the same datagram with one bit flipped (at the chosen position) must be
-//! rejected without changing the opener.
+//! rejected without changing the opener. The same datagram claiming sequence `u64::MAX`
+//! must be rejected as malformed before any cryptography.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
 use myriad_protocol::{
-    ClientMessage, ClientSession, Direction, HEADER_LEN, MAX_BODY, PacketKind, Sealer, ServerMessage, ServerSession,
-    SessionKeys, TAG_LEN,
+    ClientMessage, ClientSession, DecodeError, Direction, HEADER_LEN, MAX_BODY, OpenError, PacketKind, Sealer,
+    ServerMessage, ServerSession, SessionKeys, TAG_LEN,
 };
 
 fuzz_target!(|data: &[u8]| {
@@ -32,11 +33,15 @@ fuzz_target!(|data: &[u8]| {
     let flip = usize::from(u16::from_le_bytes([*flip_lo, *flip_hi])) % (frame.len() * 8);
     let mut damaged = frame.clone();
     damaged[flip / 8] ^= 1 << (flip % 8);
+    let mut top = frame.clone();
+    top[10..18].copy_from_slice(&u64::MAX.to_le_bytes());
+    let reserved = Err(OpenError::Malformed(DecodeError::ReservedSequence));
 
     match dir {
         Direction::ClientToServer => {
             let mut s = ServerSession::new(&keys);
             assert!(s.open(&mut damaged).is_err());
+            assert_eq!(s.open(&mut top).map(|_| ()), reserved);
             assert_eq!(s.opener.window().newest(), None);
             let expect = ClientMessage::decode_body(kind, body);
             let got = s.open(&mut frame).map(|o| o.message);
@@ -45,6 +50,7 @@ fuzz_target!(|data: &[u8]| {
         Direction::ServerToClient => {
             let mut c = ClientSession::new(&keys);
             assert!(c.open(&mut damaged).is_err());
+            assert_eq!(c.open(&mut top).map(|_| ()), reserved);
             assert_eq!(c.opener.window().newest(), None);
             let expect = ServerMessage::decode_body(kind, body);
             let got = c.open(&mut frame).map(|o| o.message);

@@ -8,7 +8,7 @@ use myriad_protocol::login::{
     FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, frame_len,
 };
 use myriad_protocol::{
-    Action, ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, OpenError,
+    ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, OpenError, PlayerInput,
     ServerInfo, ServerMessage, StateUpdateView,
 };
 use rustls::pki_types::ServerName;
@@ -277,7 +277,7 @@ impl Connection {
     pub async fn send_action(&mut self, mask: u8) -> Result<(), ClientError> {
         let mask = ActionMask::new(mask).ok_or_else(|| ClientError::Invalid(format!("action mask {mask:#x}")))?;
         self.frame = self.frame.wrapping_add(1);
-        self.send(ClientMessage::Action(Action { mask, client_frame: self.frame })).await
+        self.send(ClientMessage::Action(PlayerInput { mask, client_frame: self.frame })).await
     }
 
     /// Sends a keep-alive if nothing was sent for the keep-alive interval.

@@ -3,13 +3,13 @@
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-use myriad_protocol::{ObjectKind, StateRecord};
+use myriad_protocol::{ShapeKind, StateRecord};
 
 /// One object as last heard.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MirrorObject {
     /// Its shape kind.
-    pub kind: ObjectKind,
+    pub kind: ShapeKind,
     /// Its position (1/64-unit precision).
     pub position: [f32; 3],
     /// The server tick of this state.
@@ -106,7 +106,7 @@ mod tests {
     use myriad_protocol::QuantPos;
 
     fn rec(id: u64, x: f32) -> StateRecord {
-        StateRecord { id, kind: ObjectKind::Box, pos: QuantPos::from_f32([x, 0.0, 0.0]) }
+        StateRecord { id, kind: ShapeKind::Box, pos: QuantPos::from_f32([x, 0.0, 0.0]) }
     }
 
     #[test]

@@ -13,7 +13,7 @@ use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use myriad_interest::{AoiLists, InterestConfig, InterestManager, SoaObjects, Subscriber, TickInfo};
-use myriad_protocol::{ObjectKind, ServerSession, SessionKeys};
+use myriad_protocol::{ServerSession, SessionKeys, ShapeKind};
 
 struct Rng(u64);
 impl Rng {
@@ -30,7 +30,7 @@ impl Rng {
 
 struct Scenario {
     ids: Vec<u64>,
-    kinds: Vec<ObjectKind>,
+    kinds: Vec<ShapeKind>,
     positions: Vec<[f32; 3]>,
     offsets: Vec<u32>,
     objects: Vec<u32>,
@@ -77,7 +77,7 @@ fn scenario(objects: usize, players: usize, seed: u64) -> Scenario {
     }
     Scenario {
         ids: (0..objects as u64).collect(),
-        kinds: (0..objects).map(|i| [ObjectKind::Sphere, ObjectKind::Box, ObjectKind::Capsule][i % 3]).collect(),
+        kinds: (0..objects).map(|i| [ShapeKind::Sphere, ShapeKind::Box, ShapeKind::Capsule][i % 3]).collect(),
         positions,
         offsets,
         objects: list,

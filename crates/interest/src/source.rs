@@ -1,13 +1,13 @@
 //! The inputs: read access to the world's objects and the AOI query result.
 
-use myriad_protocol::ObjectKind;
+use myriad_protocol::ShapeKind;
 
 /// Read access to the world's dynamic objects by slot index (the index the physics
 /// AOI query returns). The server implements it over its structure-of-arrays world;
 /// [`SoaObjects`] is a ready-made implementation over plain slices.
 pub trait ObjectSource: Sync {
     /// The object in `slot`: its id, kind and position, or `None` for an invalid slot.
-    fn get(&self, slot: u32) -> Option<(u64, ObjectKind, [f32; 3])>;
+    fn get(&self, slot: u32) -> Option<(u64, ShapeKind, [f32; 3])>;
 
     /// Hints that `slot` will be read soon. AOI lists hit the object arrays at random
     /// slots, so the gather loop is bound by cache misses; prefetching a few slots
@@ -24,14 +24,14 @@ pub struct SoaObjects<'a> {
     /// Object ids, by slot.
     pub ids: &'a [u64],
     /// Object kinds, by slot.
-    pub kinds: &'a [ObjectKind],
+    pub kinds: &'a [ShapeKind],
     /// Positions in world units, by slot.
     pub positions: &'a [[f32; 3]],
 }
 
 impl ObjectSource for SoaObjects<'_> {
     #[inline]
-    fn get(&self, slot: u32) -> Option<(u64, ObjectKind, [f32; 3])> {
+    fn get(&self, slot: u32) -> Option<(u64, ShapeKind, [f32; 3])> {
         let i = slot as usize;
         Some((*self.ids.get(i)?, *self.kinds.get(i)?, *self.positions.get(i)?))
     }

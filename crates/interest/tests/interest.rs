@@ -4,7 +4,7 @@
 use std::collections::{HashMap, HashSet};
 
 use myriad_interest::*;
-use myriad_protocol::{ClientSession, ObjectKind, ServerMessage, ServerSession, SessionKeys, StateRecord};
+use myriad_protocol::{ClientSession, ServerMessage, ServerSession, SessionKeys, ShapeKind, StateRecord};
 
 /// A tiny deterministic generator (xorshift64*), so failures reproduce.
 struct Rng(u64);
@@ -25,7 +25,7 @@ impl Rng {
 
 struct World {
     ids: Vec<u64>,
-    kinds: Vec<ObjectKind>,
+    kinds: Vec<ShapeKind>,
     positions: Vec<[f32; 3]>,
 }
 
@@ -33,7 +33,7 @@ impl World {
     fn new(n: usize, rng: &mut Rng, id_offset: u64) -> Self {
         Self {
             ids: (0..n as u64).map(|i| id_offset + i * 3).collect(),
-            kinds: (0..n).map(|i| [ObjectKind::Sphere, ObjectKind::Box, ObjectKind::Capsule][i % 3]).collect(),
+            kinds: (0..n).map(|i| [ShapeKind::Sphere, ShapeKind::Box, ShapeKind::Capsule][i % 3]).collect(),
             positions: (0..n).map(|_| [rng.f(-100.0, 100.0), rng.f(0.0, 20.0), rng.f(-100.0, 100.0)]).collect(),
         }
     }
@@ -252,7 +252,7 @@ fn broken_inputs_are_skipped_not_fatal() {
 fn far_objects_and_huge_ids_use_extended_records_within_budget() {
     let world = World {
         ids: vec![1, u64::MAX, 1 << 50, 77],
-        kinds: vec![ObjectKind::Box; 4],
+        kinds: vec![ShapeKind::Box; 4],
         positions: vec![[0.0; 3], [5000.0, 0.0, 0.0], [-1e6, 3.0, 2.0], [1.0, 1.0, 1.0]],
     };
     let (mut sub, mut client) = subscriber(30, 0, [0.0; 3]);

@@ -4,7 +4,7 @@
 //! datagram opens.
 
 use myriad_interest::*;
-use myriad_protocol::{ClientSession, MAX_DATAGRAM, ObjectKind, ServerMessage, ServerSession, SessionKeys};
+use myriad_protocol::{ClientSession, MAX_DATAGRAM, ServerMessage, ServerSession, SessionKeys, ShapeKind};
 use proptest::prelude::*;
 
 fn keys(i: u64) -> SessionKeys {
@@ -25,7 +25,7 @@ proptest! {
     ) {
         let n = positions.len();
         let ids: Vec<u64> = (0..n as u64).map(|i| i.wrapping_mul(0x9e37_79b9_7f4a_7c15)).collect();
-        let kinds: Vec<ObjectKind> = (0..n).map(|i| [ObjectKind::Sphere, ObjectKind::Box, ObjectKind::Capsule][i % 3]).collect();
+        let kinds: Vec<ShapeKind> = (0..n).map(|i| [ShapeKind::Sphere, ShapeKind::Box, ShapeKind::Capsule][i % 3]).collect();
         let pos: Vec<[f32; 3]> = positions.iter().map(|&(x, y, z)| [x, y, z]).collect();
         let soa = SoaObjects { ids: &ids, kinds: &kinds, positions: &pos };
         let mut offsets = vec![0u32];

@@ -7,17 +7,17 @@ use std::collections::HashSet;
 use myriad_core::{Aabb, ObjectKind as Who, ScenarioSpec, ShapeKind, Vec3};
 use myriad_interest::{AoiLists, InterestConfig, InterestManager, SoaObjects, Subscriber, TickInfo};
 use myriad_physics::{AoiResults, BackendKind, TickConstants, create_cpu_backend};
-use myriad_protocol::{ClientSession, ObjectKind, ServerMessage, ServerSession, SessionKeys};
+use myriad_protocol::{ClientSession, ServerMessage, ServerSession, SessionKeys, ShapeKind as WireKind};
 
 fn keys(i: u64) -> SessionKeys {
     SessionKeys { session_id: i, client_to_server: [i as u8; 32], server_to_client: [(i as u8) ^ 0x5a; 32] }
 }
 
-fn kind(s: ShapeKind) -> ObjectKind {
+fn kind(s: ShapeKind) -> WireKind {
     match s {
-        ShapeKind::Sphere => ObjectKind::Sphere,
-        ShapeKind::Box => ObjectKind::Box,
-        ShapeKind::Capsule => ObjectKind::Capsule,
+        ShapeKind::Sphere => WireKind::Sphere,
+        ShapeKind::Box => WireKind::Box,
+        ShapeKind::Capsule => WireKind::Capsule,
     }
 }
 
@@ -47,7 +47,7 @@ fn every_player_receives_exactly_its_area_of_interest() {
         backend.query_aoi(&world, &boxes, &mut aoi).unwrap();
 
         let ids: Vec<u64> = d.ids().iter().map(|id| id.0 as u64).collect();
-        let kinds: Vec<ObjectKind> = d.shapes().iter().map(|s| kind(*s)).collect();
+        let kinds: Vec<WireKind> = d.shapes().iter().map(|s| kind(*s)).collect();
         let positions: Vec<[f32; 3]> = d.positions().iter().map(|p| p.to_array()).collect();
         let objects = SoaObjects { ids: &ids, kinds: &kinds, positions: &positions };
         let mut subs: Vec<Subscriber> = players

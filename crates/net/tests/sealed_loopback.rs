@@ -36,8 +36,10 @@ fn sealed_traffic_both_ways() {
     let mut wire = Vec::new();
     for frame in 0..100u32 {
         let mut d = Vec::new();
-        let msg =
-            ClientMessage::Action(Action { mask: ActionMask::new((frame % 32) as u8).unwrap(), client_frame: frame });
+        let msg = ClientMessage::Action(PlayerInput {
+            mask: ActionMask::new((frame % 32) as u8).unwrap(),
+            client_frame: frame,
+        });
         client.seal(&msg, &mut d).unwrap();
         wire.push(d);
     }
@@ -75,7 +77,7 @@ fn sealed_traffic_both_ways() {
 
     // The server answers with a two-datagram update.
     let records: Vec<StateRecord> = (0..200u64)
-        .map(|i| StateRecord { id: i, kind: ObjectKind::Sphere, pos: QuantPos::new(i as i32, 0, 0) })
+        .map(|i| StateRecord { id: i, kind: ShapeKind::Sphere, pos: QuantPos::new(i as i32, 0, 0) })
         .collect();
     let mut out = DatagramBatch::new();
     assert_eq!(pack_updates(&UpdateHeader::default(), &records, 2, &mut out), 200);

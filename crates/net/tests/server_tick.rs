@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use myriad_interest::{AoiLists, InterestConfig, InterestManager, SoaObjects, Subscriber, TickInfo};
 use myriad_net::{Endpoint, EndpointConfig, RecvBatch};
 use myriad_protocol::{
-    ClientMessage, ClientSession, Direction, ObjectKind, ServerMessage, ServerSession, SessionKeys, peek_header,
+    ClientMessage, ClientSession, Direction, ServerMessage, ServerSession, SessionKeys, ShapeKind, peek_header,
 };
 
 const CLIENTS: usize = 40;
@@ -27,7 +27,7 @@ fn keys(i: usize) -> SessionKeys {
 fn one_server_tick_end_to_end() {
     // World: 400 objects on a line; client i plays object i.
     let ids: Vec<u64> = (0..400u64).map(|i| (1 << 33) + i).collect();
-    let kinds = vec![ObjectKind::Capsule; 400];
+    let kinds = vec![ShapeKind::Capsule; 400];
     let positions: Vec<[f32; 3]> = (0..400).map(|i| [i as f32 * 0.5, 1.0, 0.0]).collect();
 
     let mut server_ep = Endpoint::bind(local()).unwrap();

@@ -7,7 +7,7 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use myriad_protocol::{
-    ClientSession, DatagramBatch, MAX_COMPACT_RECORDS, ObjectKind, QuantPos, ServerSession, SessionKeys, StateRecord,
+    ClientSession, DatagramBatch, MAX_COMPACT_RECORDS, QuantPos, ServerSession, SessionKeys, ShapeKind, StateRecord,
     UpdateHeader, pack_updates,
 };
 
@@ -19,7 +19,7 @@ fn records(n: usize) -> Vec<StateRecord> {
     (0..n as u64)
         .map(|i| StateRecord {
             id: 1000 + i * 7,
-            kind: ObjectKind::Capsule,
+            kind: ShapeKind::Capsule,
             pos: QuantPos::new((i as i32 * 37) % 6000, 300, -(i as i32 * 91) % 6000),
         })
         .collect()

@@ -39,15 +39,18 @@ pub enum DecodeError {
     /// A known packet kind that travels the other way.
     #[error("packet kind {0:?} is not valid in this direction")]
     WrongDirection(PacketKind),
+    /// The header's sequence number is `u64::MAX`, which no sender ever uses.
+    #[error("sequence number u64::MAX is never used")]
+    ReservedSequence,
     /// An action mask with bits above bit 4.
     #[error("action mask 0x{0:02x} has bits above bit 4")]
     BadActionMask(u8),
     /// An unassigned disconnect reason code.
     #[error("unknown disconnect reason {0}")]
     BadDisconnectReason(u8),
-    /// An unassigned object kind in a state record.
-    #[error("unknown object kind {0}")]
-    BadObjectKind(u8),
+    /// An unassigned shape kind in a state record or shape.
+    #[error("unknown shape kind {0}")]
+    BadShapeKind(u8),
     /// Reserved bits of an extended record are not zero.
     #[error("reserved bits set in an extended record word 0x{0:08x}")]
     ReservedBits(u32),
@@ -133,6 +136,19 @@ pub enum SealError {
     /// All 2^64 - 1 sequence numbers of this key were used: a new login is needed.
     #[error("sequence numbers exhausted; the session must be re-keyed")]
     SequenceExhausted,
+    /// A sealer made from a [`SealLease`](crate::SealLease) used every sequence number of
+    /// its lease; lease a new range from the session's sealer.
+    #[error("sequence numbers of the lease exhausted")]
+    LeaseExhausted,
+    /// [`Sealer::lease`](crate::Sealer::lease) asked for more sequence numbers than the
+    /// sealer has left.
+    #[error("lease of {requested} sequence numbers requested, {available} left")]
+    LeaseTooLarge {
+        /// Numbers asked for.
+        requested: u64,
+        /// Numbers the sealer still owns.
+        available: u64,
+    },
 }
 
 /// A message that cannot be encoded into one datagram.

@@ -127,8 +127,9 @@ impl Header {
     }
 }
 
-/// Checks a received datagram without any key: its length, version and kind (which
-/// must travel in `direction`), and returns its header.
+/// Checks a received datagram without any key: its length, version, kind (which must
+/// travel in `direction`) and sequence number (never `u64::MAX`), and returns its
+/// header.
 ///
 /// The server calls this first and drops the datagram on error; only then does it look
 /// up the session named by [`Header::session_id`].
@@ -149,7 +150,15 @@ pub fn peek_header(datagram: &[u8], direction: Direction) -> Result<Header, Deco
     if kind.direction() != direction {
         return Err(DecodeError::WrongDirection(kind));
     }
-    Ok(Header { kind, session_id: r.u64()?, sequence: r.u64()? })
+    let session_id = r.u64()?;
+    let sequence = r.u64()?;
+    // No sender ever uses u64::MAX (its sealer stops one short). Accepting it would
+    // push the receiver's replay window to the top, after which every later datagram of
+    // the session looks replayed; so it is rejected here, before any cryptography.
+    if sequence == u64::MAX {
+        return Err(DecodeError::ReservedSequence);
+    }
+    Ok(Header { kind, session_id, sequence })
 }
 
 #[cfg(test)]
@@ -186,5 +195,10 @@ mod tests {
         d[0] = PROTOCOL_VERSION;
         d[1] = 0x7f;
         assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::UnknownKind(0x7f)));
+        d[1] = PacketKind::Ready as u8;
+        d[10..18].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::ReservedSequence));
+        d[10..18].copy_from_slice(&(u64::MAX - 1).to_le_bytes());
+        assert_eq!(peek_header(&d, Direction::ClientToServer).map(|h| h.sequence), Ok(u64::MAX - 1));
     }
 }

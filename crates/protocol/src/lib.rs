@@ -45,12 +45,12 @@ pub use header::{
     peek_header,
 };
 pub use message::{
-    Action, ActionMask, ClientMessage, DisconnectReason, ServerInfo, ServerMessage, encode_client, encode_server,
+    ActionMask, ClientMessage, DisconnectReason, PlayerInput, ServerInfo, ServerMessage, encode_client, encode_server,
 };
 pub use quant::{POS_SCALE, QuantPos};
 pub use replay::{REPLAY_WINDOW, ReplayWindow};
-pub use session::{ClientSession, Opened, Opener, Sealer, ServerSession, SessionKeys};
+pub use session::{ClientSession, Opened, Opener, SealLease, Sealer, ServerSession, SessionKeys};
 pub use update::{
-    COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN, ID_WINDOW, MAX_COMPACT_RECORDS, ObjectKind, StateRecord, StateUpdate,
+    COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN, ID_WINDOW, MAX_COMPACT_RECORDS, ShapeKind, StateRecord, StateUpdate,
     StateUpdateView, UPDATE_HEADER_LEN, UpdateHeader, pack_updates,
 };

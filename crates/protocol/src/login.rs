@@ -13,7 +13,7 @@
 
 use crate::error::DecodeError;
 use crate::session::SessionKeys;
-use crate::update::ObjectKind;
+use crate::update::ShapeKind;
 use crate::wire::Reader;
 
 /// Version byte at the start of every login request.
@@ -186,7 +186,7 @@ impl LoginRequest {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShapeDesc {
     /// Sphere, box or capsule.
-    pub kind: ObjectKind,
+    pub kind: ShapeKind,
     /// Half extents of the bounding box.
     pub half: [f32; 3],
     /// Radius (spheres and capsules; 0 for boxes).
@@ -202,7 +202,7 @@ impl ShapeDesc {
 
     fn get(r: &mut Reader<'_>) -> Result<Self, DecodeError> {
         let code = r.u8()?;
-        let kind = ObjectKind::from_code(code).ok_or(DecodeError::BadObjectKind(code))?;
+        let kind = ShapeKind::from_code(code).ok_or(DecodeError::BadShapeKind(code))?;
         Ok(Self { kind, half: get_vec3(r)?, radius: get_f32(r)? })
     }
 }
@@ -511,7 +511,7 @@ mod tests {
             udp_port: 7777,
             entity_id: 1 << 33,
             position: [1.5, -2.0, 3.25],
-            shape: ShapeDesc { kind: ObjectKind::Capsule, half: [0.5, 1.0, 0.5], radius: 0.5 },
+            shape: ShapeDesc { kind: ShapeKind::Capsule, half: [0.5, 1.0, 0.5], radius: 0.5 },
             tick_rate_hz: 30,
             dilation_permille: 1000,
             tick: 12345,
@@ -573,7 +573,7 @@ mod tests {
             terrain_depth: 2,
             samples: vec![0, 1, 2, 3, 4, 65535],
             statics: vec![StaticPrimitive {
-                shape: ShapeDesc { kind: ObjectKind::Box, half: [1.0, 2.0, 3.0], radius: 0.0 },
+                shape: ShapeDesc { kind: ShapeKind::Box, half: [1.0, 2.0, 3.0], radius: 0.0 },
                 position: [10.0, 0.0, -4.0],
             }],
         };

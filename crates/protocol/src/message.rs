@@ -54,7 +54,7 @@ impl ActionMask {
 /// A player's input for one client frame. The server keeps the latest (by frame) and
 /// applies it during the next tick.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct Action {
+pub struct PlayerInput {
     /// Keys held.
     pub mask: ActionMask,
     /// The client's frame counter, so the server can ignore actions that arrive out of
@@ -66,7 +66,7 @@ pub struct Action {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum ClientMessage {
     /// Input for one frame.
-    Action(Action),
+    Action(PlayerInput),
     /// The client has loaded the world and wants state updates.
     Ready,
     /// Keeps the session alive while the client has nothing else to send.
@@ -101,7 +101,7 @@ impl ClientMessage {
             PacketKind::Action => {
                 let bits = r.u8()?;
                 let mask = ActionMask::new(bits).ok_or(DecodeError::BadActionMask(bits))?;
-                Self::Action(Action { mask, client_frame: r.u32()? })
+                Self::Action(PlayerInput { mask, client_frame: r.u32()? })
             }
             PacketKind::Ready => Self::Ready,
             PacketKind::ClientKeepAlive => Self::KeepAlive,

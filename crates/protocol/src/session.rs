@@ -13,6 +13,31 @@
 //! A [`Sealer`] numbers its packets 0, 1, 2, … so a (key, nonce) pair is never reused.
 //! An [`Opener`] runs the checks in cost order and commits the sequence number to its
 //! [`ReplayWindow`] only after the tag verified and the body decoded.
+//!
+//! # Nonce ownership
+//!
+//! ChaCha20-Poly1305 breaks if one (key, nonce) pair seals two different datagrams, so
+//! **every sequence number of a session's direction has at most one owner, and an owner
+//! uses each of its numbers at most once**:
+//!
+//! * The login creates one [`Sealer`] per session and direction; it owns every sequence
+//!   number from 0 up to, but not including, `u64::MAX` (which is never used, and which
+//!   an [`Opener`] rejects).
+//! * A sealer owns the range `[next_sequence, end_sequence)` and uses it in order.
+//! * [`Sealer::lease`] moves the first `count` numbers of that range to a [`SealLease`]
+//!   and advances the sealer past them, so the sealer can never use them again. A lease
+//!   can be sent to another thread, and either becomes a bounded [`Sealer`]
+//!   ([`SealLease::into_sealer`]), which refuses to seal past the lease's end with
+//!   [`SealError::LeaseExhausted`], or hands its key and range to a device that seals
+//!   by itself ([`SealLease::key_bytes`], [`SealLease::first_sequence`],
+//!   [`SealLease::end_sequence`]); such a device takes over the same obligation.
+//! * Neither [`Sealer`] nor [`SealLease`] is `Clone`: ownership of a range moves, it is
+//!   never copied. Dropping a lease (or a leased sealer) abandons its unused numbers;
+//!   they are simply never sent, which the receiver's replay window does not mind.
+//!
+//! Because the parent advances past a lease, datagrams sealed elsewhere carry sequence
+//! numbers that interleave with the parent's in time but not in value; the receiver's
+//! [`ReplayWindow`] accepts them in any order within its width.
 
 use chacha20poly1305::aead::array::Array;
 use chacha20poly1305::{AeadInOut, ChaCha20Poly1305, KeyInit};
@@ -50,6 +75,22 @@ impl std::fmt::Debug for SessionKeys {
     }
 }
 
+/// 32 bytes of key material: wiped when dropped, never printed.
+struct SecretKey([u8; 32]);
+
+impl Drop for SecretKey {
+    fn drop(&mut self) {
+        use zeroize::Zeroize;
+        self.0.zeroize();
+    }
+}
+
+impl std::fmt::Debug for SecretKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SecretKey(..)")
+    }
+}
+
 fn nonce(direction: Direction, sequence: u64) -> Array<u8, chacha20poly1305::consts::U12> {
     let mut n = [0u8; 12];
     n[0] = direction.nonce_byte();
@@ -60,12 +101,22 @@ fn nonce(direction: Direction, sequence: u64) -> Array<u8, chacha20poly1305::con
 /// Seals outgoing datagrams of one session and direction.
 ///
 /// Deliberately not `Clone`: two copies would hand out the same sequence numbers and so
-/// reuse nonces under one key, which breaks ChaCha20-Poly1305.
+/// reuse nonces under one key, which breaks ChaCha20-Poly1305. To seal on another thread
+/// or device, [`lease`](Self::lease) a range of sequence numbers instead (see the
+/// module docs on nonce ownership).
 pub struct Sealer {
     cipher: ChaCha20Poly1305,
+    /// Kept only to hand out leases.
+    key: SecretKey,
     session_id: u64,
     direction: Direction,
     next_sequence: u64,
+    /// First sequence number this sealer does not own: `u64::MAX` for a session's own
+    /// sealer, the lease's end for a leased one.
+    end_sequence: u64,
+    /// Whether this sealer was made from a [`SealLease`]; only changes which error an
+    /// exhausted range reports.
+    leased: bool,
 }
 
 impl std::fmt::Debug for Sealer {
@@ -74,19 +125,70 @@ impl std::fmt::Debug for Sealer {
             .field("session_id", &self.session_id)
             .field("direction", &self.direction)
             .field("next_sequence", &self.next_sequence)
+            .field("end_sequence", &self.end_sequence)
+            .field("leased", &self.leased)
             .finish_non_exhaustive()
     }
 }
 
 impl Sealer {
-    /// A sealer for `direction` with `key`, starting at sequence 0.
+    /// A sealer for `direction` with `key`, starting at sequence 0 and owning every
+    /// sequence number below `u64::MAX`.
     pub fn new(session_id: u64, direction: Direction, key: &[u8; 32]) -> Self {
-        Self { cipher: ChaCha20Poly1305::new(&Array::from(*key)), session_id, direction, next_sequence: 0 }
+        Self::with_range(session_id, direction, SecretKey(*key), 0, u64::MAX, false)
+    }
+
+    fn with_range(
+        session_id: u64,
+        direction: Direction,
+        key: SecretKey,
+        next_sequence: u64,
+        end_sequence: u64,
+        leased: bool,
+    ) -> Self {
+        let cipher = ChaCha20Poly1305::new(&Array::from(key.0));
+        Self { cipher, key, session_id, direction, next_sequence, end_sequence, leased }
     }
 
     /// The sequence number the next datagram gets.
     pub fn next_sequence(&self) -> u64 {
         self.next_sequence
+    }
+
+    /// The first sequence number this sealer may not use: `u64::MAX` for a session's
+    /// own sealer, the lease's end for one made by [`SealLease::into_sealer`].
+    pub fn end_sequence(&self) -> u64 {
+        self.end_sequence
+    }
+
+    /// How many datagrams this sealer can still seal.
+    pub fn remaining(&self) -> u64 {
+        self.end_sequence - self.next_sequence
+    }
+
+    /// Reserves the next `count` sequence numbers, `[next_sequence, next_sequence +
+    /// count)`, for sealing elsewhere, and advances this sealer past them: it never uses
+    /// them again. The lease carries a copy of the key, so another thread
+    /// ([`SealLease::into_sealer`]) or a device can seal with them.
+    ///
+    /// A lease never reaches past this sealer's own end (so never reaches `u64::MAX`).
+    /// Fails with [`SealError::LeaseTooLarge`], changing nothing, if fewer than `count`
+    /// numbers remain. A lease of 0 numbers is valid and seals nothing.
+    pub fn lease(&mut self, count: u64) -> Result<SealLease, SealError> {
+        let available = self.remaining();
+        if count > available {
+            return Err(SealError::LeaseTooLarge { requested: count, available });
+        }
+        let first = self.next_sequence;
+        let end = first + count;
+        self.next_sequence = end;
+        Ok(SealLease {
+            key: SecretKey(self.key.0),
+            session_id: self.session_id,
+            direction: self.direction,
+            first_sequence: first,
+            end_sequence: end,
+        })
     }
 
     /// Seals an unsealed frame in place: `datagram` is [`HEADER_LEN`] bytes whose
@@ -103,9 +205,10 @@ impl Sealer {
         let kind = PacketKind::from_byte(kind_byte)
             .filter(|k| k.direction() == self.direction)
             .ok_or(SealError::BadKind(kind_byte))?;
-        // u64::MAX is never used, so the counter cannot wrap to a used nonce.
-        if self.next_sequence == u64::MAX {
-            return Err(SealError::SequenceExhausted);
+        // The end is at most u64::MAX, which is never used, so the counter cannot wrap
+        // to a used nonce; a leased sealer stops at its lease's end.
+        if self.next_sequence >= self.end_sequence {
+            return Err(if self.leased { SealError::LeaseExhausted } else { SealError::SequenceExhausted });
         }
         let sequence = self.next_sequence;
         let (head, rest) = datagram.split_at_mut(HEADER_LEN);
@@ -152,6 +255,110 @@ impl Sealer {
     }
 }
 
+/// A range of one session's sequence numbers, with its key, reserved by
+/// [`Sealer::lease`] for sealing on another thread or device.
+///
+/// The parent sealer has already moved past `[first_sequence, end_sequence)`, so
+/// whoever holds the lease is the only one that may seal with those numbers, each at
+/// most once. Not `Clone`, for the same reason as [`Sealer`]. The key is wiped when the
+/// lease drops and never appears in `Debug` output.
+///
+/// ```
+/// use myriad_protocol::{Direction, SealError, Sealer, ServerMessage};
+///
+/// let mut sealer = Sealer::new(7, Direction::ServerToClient, &[9; 32]);
+/// let lease = sealer.lease(100).unwrap(); // numbers 0..100
+/// assert_eq!(sealer.next_sequence(), 100); // the parent skips them
+/// let worker = std::thread::spawn(move || {
+///     let mut leased = lease.into_sealer();
+///     let mut out = Vec::new();
+///     for _ in 0..100 {
+///         leased.seal_server_message(&ServerMessage::KeepAlive, &mut out).unwrap();
+///     }
+///     assert_eq!(leased.seal_server_message(&ServerMessage::KeepAlive, &mut out), Err(SealError::LeaseExhausted));
+///     out
+/// });
+/// assert_eq!(worker.join().unwrap().len(), 100 * 34);
+/// ```
+///
+/// A lease cannot be copied:
+///
+/// ```compile_fail
+/// # use myriad_protocol::{Direction, Sealer};
+/// let lease = Sealer::new(7, Direction::ServerToClient, &[9; 32]).lease(1).unwrap();
+/// let twice = lease.clone();
+/// ```
+pub struct SealLease {
+    key: SecretKey,
+    session_id: u64,
+    direction: Direction,
+    first_sequence: u64,
+    end_sequence: u64,
+}
+
+impl std::fmt::Debug for SealLease {
+    // The key never reaches logs.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SealLease")
+            .field("session_id", &self.session_id)
+            .field("direction", &self.direction)
+            .field("first_sequence", &self.first_sequence)
+            .field("end_sequence", &self.end_sequence)
+            .finish_non_exhaustive()
+    }
+}
+
+impl SealLease {
+    /// The session every datagram sealed under this lease must name.
+    pub fn session_id(&self) -> u64 {
+        self.session_id
+    }
+
+    /// The direction the datagrams travel in (part of the nonce).
+    pub fn direction(&self) -> Direction {
+        self.direction
+    }
+
+    /// The first sequence number of the lease.
+    pub fn first_sequence(&self) -> u64 {
+        self.first_sequence
+    }
+
+    /// The first sequence number after the lease (exclusive end); never above
+    /// `u64::MAX`, so `u64::MAX` itself is never in a lease.
+    pub fn end_sequence(&self) -> u64 {
+        self.end_sequence
+    }
+
+    /// How many sequence numbers the lease holds.
+    pub fn len(&self) -> u64 {
+        self.end_sequence - self.first_sequence
+    }
+
+    /// Whether the lease holds no sequence number at all.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The direction's ChaCha20-Poly1305 key, for a device that seals by itself.
+    ///
+    /// **Secret.** Copy it only into memory the device wipes after use, never log it, and
+    /// seal with it only under nonces whose sequence lies in
+    /// `[first_sequence, end_sequence)`, each at most once. The lease's own copy is wiped
+    /// when it drops.
+    pub fn key_bytes(&self) -> &[u8; 32] {
+        &self.key.0
+    }
+
+    /// A sealer that starts at [`first_sequence`](Self::first_sequence) and refuses,
+    /// with [`SealError::LeaseExhausted`], to seal at or past
+    /// [`end_sequence`](Self::end_sequence).
+    pub fn into_sealer(self) -> Sealer {
+        let Self { key, session_id, direction, first_sequence, end_sequence } = self;
+        Sealer::with_range(session_id, direction, key, first_sequence, end_sequence, true)
+    }
+}
+
 /// A datagram that passed every check.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Opened<T> {
@@ -194,9 +401,9 @@ impl Opener {
 
     /// Checks, decrypts in place and decodes `datagram` with `decode(kind, body)`.
     ///
-    /// Order: length, version, kind and direction, session id, replay window (all
-    /// without cryptography), then the tag, then `decode`; the sequence number is
-    /// recorded only when all passed. On any error the opener is unchanged. If the tag
+    /// Order: length, version, kind and direction, sequence not `u64::MAX`, session id,
+    /// replay window (all without cryptography), then the tag, then `decode`; the
+    /// sequence number is recorded only when all passed. On any error the opener is unchanged. If the tag
     /// verified, `datagram`'s body now holds plaintext; otherwise it is untouched.
     pub fn open_with<T>(
         &mut self,
@@ -277,5 +484,110 @@ impl ClientSession {
     /// Opens and decodes a server datagram.
     pub fn open(&mut self, datagram: &mut [u8]) -> Result<Opened<ServerMessage>, OpenError> {
         self.opener.open_with(datagram, ServerMessage::decode_body)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::error::ErrorClass;
+
+    fn keys() -> SessionKeys {
+        SessionKeys { session_id: 0x5eed, client_to_server: [0x11; 32], server_to_client: [0x22; 32] }
+    }
+
+    /// Seals a Ready datagram by hand, bypassing [`Sealer`], which refuses `sequence`
+    /// `u64::MAX`: what a buggy or malicious peer holding the key could send.
+    fn hand_sealed_ready(keys: &SessionKeys, sequence: u64) -> Vec<u8> {
+        let mut d = vec![0u8; MIN_DATAGRAM];
+        let (head, tag_space) = d.split_at_mut(HEADER_LEN);
+        let head: &mut [u8; HEADER_LEN] = head.try_into().unwrap();
+        Header { kind: PacketKind::Ready, session_id: keys.session_id, sequence }.write(head);
+        let cipher = ChaCha20Poly1305::new(&Array::from(keys.client_to_server));
+        let tag = cipher
+            .encrypt_inout_detached(&nonce(Direction::ClientToServer, sequence), head, (&mut [][..]).into())
+            .unwrap();
+        tag_space.copy_from_slice(&tag);
+        d
+    }
+
+    // Regression: an authentic datagram with sequence u64::MAX used to be accepted, after
+    // which the replay window sat at the top of the range and every later datagram of the
+    // session was rejected as replayed (the player froze).
+    #[test]
+    fn sequence_u64_max_is_rejected_before_cryptography_and_leaves_the_window() {
+        let keys = keys();
+        let mut server = ServerSession::new(&keys);
+        let mut client = ClientSession::new(&keys);
+        let mut first = Vec::new();
+        client.seal(&ClientMessage::Ready, &mut first).unwrap();
+        server.open(&mut first).unwrap();
+        let window_before = server.opener.window().clone();
+
+        let forged = hand_sealed_ready(&keys, u64::MAX);
+        // The tag is authentic (the same hand sealing one short of the top opens, below):
+        // only the sequence rule rejects it.
+        let mut d = forged.clone();
+        let err = server.open(&mut d).unwrap_err();
+        assert_eq!(err, OpenError::Malformed(DecodeError::ReservedSequence));
+        assert_eq!(err.class(), ErrorClass::Malformed);
+        assert_eq!(d, forged, "rejected before decryption: the datagram is untouched");
+        assert_eq!(server.opener.window(), &window_before);
+
+        // The session goes on: the client's next datagram is still accepted.
+        let mut next = Vec::new();
+        client.seal(&ClientMessage::KeepAlive, &mut next).unwrap();
+        assert_eq!(server.open(&mut next).unwrap().header.sequence, 1);
+        // The hand sealing is right: one short of the top opens.
+        let mut below = hand_sealed_ready(&keys, u64::MAX - 1);
+        assert_eq!(server.open(&mut below).unwrap().header.sequence, u64::MAX - 1);
+    }
+
+    #[test]
+    fn keys_never_reach_debug_output() {
+        let keys = keys();
+        let mut sealer = Sealer::new(keys.session_id, Direction::ServerToClient, &keys.server_to_client);
+        let lease = sealer.lease(10).unwrap();
+        let texts = [format!("{sealer:?}"), format!("{lease:?}"), format!("{:?}", lease.into_sealer())];
+        for text in texts {
+            assert!(!text.contains("34"), "{text}"); // 0x22 in decimal
+            assert!(!text.contains("22, 22"), "{text}");
+            assert!(!text.to_lowercase().contains("key"), "{text}");
+        }
+    }
+
+    #[test]
+    fn a_lease_at_the_top_stops_one_short_of_u64_max() {
+        let keys = keys();
+        let mut sealer = Sealer::with_range(
+            keys.session_id,
+            Direction::ServerToClient,
+            SecretKey(keys.server_to_client),
+            u64::MAX - 3,
+            u64::MAX,
+            false,
+        );
+        assert_eq!(sealer.lease(4).unwrap_err(), SealError::LeaseTooLarge { requested: 4, available: 3 });
+        assert_eq!(sealer.next_sequence(), u64::MAX - 3, "a refused lease changes nothing");
+        let lease = sealer.lease(3).unwrap();
+        assert_eq!((lease.first_sequence(), lease.end_sequence()), (u64::MAX - 3, u64::MAX));
+        assert_eq!(sealer.remaining(), 0);
+        assert!(sealer.lease(0).unwrap().is_empty());
+        assert_eq!(sealer.lease(1).unwrap_err(), SealError::LeaseTooLarge { requested: 1, available: 0 });
+        let mut out = Vec::new();
+        assert_eq!(sealer.seal_server_message(&ServerMessage::KeepAlive, &mut out), Err(SealError::SequenceExhausted));
+        assert!(out.is_empty());
+
+        let mut leased = lease.into_sealer();
+        let mut client = ClientSession::new(&keys);
+        for want in [u64::MAX - 3, u64::MAX - 2, u64::MAX - 1] {
+            out.clear();
+            assert_eq!(leased.seal_server_message(&ServerMessage::KeepAlive, &mut out), Ok(want));
+            assert_eq!(client.open(&mut out).unwrap().header.sequence, want);
+        }
+        out.clear();
+        assert_eq!(leased.seal_server_message(&ServerMessage::KeepAlive, &mut out), Err(SealError::LeaseExhausted));
+        assert!(out.is_empty());
+        assert_eq!(leased.next_sequence(), u64::MAX - 1 + 1);
     }
 }

@@ -17,7 +17,7 @@
 //! *Compact*, 10 bytes, used whenever it can represent the object exactly:
 //!
 //! ```text
-//!  0  4  word (u32): bits 0..=1 object kind (0 sphere, 1 box, 2 capsule),
+//!  0  4  word (u32): bits 0..=1 shape kind (0 sphere, 1 box, 2 capsule),
 //!                    bits 2..=31 id - id base (must be < 2^30)
 //!  4  6  dx, dy, dz (i16 each, 1/64 unit), position - origin (±512 units)
 //! ```
@@ -26,7 +26,7 @@
 //! position more than 512 units from the origin:
 //!
 //! ```text
-//!  0  4  word (u32): bits 0..=1 = 3 (escape), bits 2..=3 object kind, bits 4..=31 zero
+//!  0  4  word (u32): bits 0..=1 = 3 (escape), bits 2..=3 shape kind, bits 4..=31 zero
 //!  4  8  object id (u64), absolute
 //! 12 12  x, y, z (i32 each, 1/64 unit), absolute
 //! ```
@@ -57,7 +57,7 @@ const ESCAPE: u32 = 3;
 /// The three shapes a dynamic object can have.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 #[repr(u8)]
-pub enum ObjectKind {
+pub enum ShapeKind {
     /// A sphere.
     #[default]
     Sphere = 0,
@@ -67,7 +67,7 @@ pub enum ObjectKind {
     Capsule = 2,
 }
 
-impl ObjectKind {
+impl ShapeKind {
     /// Parses the two-bit kind code; 3 is not a kind.
     pub const fn from_code(code: u8) -> Option<Self> {
         match code {
@@ -85,7 +85,7 @@ pub struct StateRecord {
     /// The object's id.
     pub id: u64,
     /// Its shape.
-    pub kind: ObjectKind,
+    pub kind: ShapeKind,
     /// Its position, quantized.
     pub pos: QuantPos,
 }
@@ -154,7 +154,7 @@ fn write_update_header(h: &UpdateHeader, id_base: u64, count: u16, out: &mut [u8
 fn read_record(r: &mut Reader<'_>, id_base: u64, origin: QuantPos) -> Result<StateRecord, DecodeError> {
     let word = r.u32()?;
     if word & 3 != ESCAPE {
-        let kind = ObjectKind::from_code((word & 3) as u8).ok_or(DecodeError::BadObjectKind(3))?;
+        let kind = ShapeKind::from_code((word & 3) as u8).ok_or(DecodeError::BadShapeKind(3))?;
         let id = id_base.checked_add(u64::from(word >> 2)).ok_or(DecodeError::IdOverflow)?;
         let d = [r.i16()?, r.i16()?, r.i16()?];
         Ok(StateRecord { id, kind, pos: QuantPos::add_offset(origin, d) })
@@ -163,7 +163,7 @@ fn read_record(r: &mut Reader<'_>, id_base: u64, origin: QuantPos) -> Result<Sta
             return Err(DecodeError::ReservedBits(word));
         }
         let code = ((word >> 2) & 3) as u8;
-        let kind = ObjectKind::from_code(code).ok_or(DecodeError::BadObjectKind(code))?;
+        let kind = ShapeKind::from_code(code).ok_or(DecodeError::BadShapeKind(code))?;
         let id = r.u64()?;
         let pos = QuantPos::new(r.i32()?, r.i32()?, r.i32()?);
         Ok(StateRecord { id, kind, pos })
@@ -323,7 +323,7 @@ pub fn pack_updates(
 mod tests {
     use super::*;
 
-    fn rec(id: u64, kind: ObjectKind, p: (i32, i32, i32)) -> StateRecord {
+    fn rec(id: u64, kind: ShapeKind, p: (i32, i32, i32)) -> StateRecord {
         StateRecord { id, kind, pos: QuantPos::new(p.0, p.1, p.2) }
     }
 
@@ -331,7 +331,7 @@ mod tests {
     fn capacity_is_113_compact_records() {
         assert_eq!(MAX_COMPACT_RECORDS, 113);
         let h = UpdateHeader::default();
-        let recs: Vec<_> = (0..113 * 3 + 1).map(|i| rec(i, ObjectKind::Box, (i as i32, 0, 0))).collect();
+        let recs: Vec<_> = (0..113 * 3 + 1).map(|i| rec(i, ShapeKind::Box, (i as i32, 0, 0))).collect();
         let mut b = DatagramBatch::new();
         assert_eq!(pack_updates(&h, &recs, 10, &mut b), recs.len());
         assert_eq!(b.len(), 4);
@@ -345,15 +345,15 @@ mod tests {
     fn escapes_for_far_positions_and_large_ids() {
         let origin = QuantPos::new(100, 100, 100);
         let base = 1u64 << 40;
-        assert_eq!(record_len(&rec(base, ObjectKind::Sphere, (100, 100, 100)), base, origin), 10);
-        assert_eq!(record_len(&rec(base + ID_WINDOW - 1, ObjectKind::Sphere, (100, 100, 100)), base, origin), 10);
-        assert_eq!(record_len(&rec(base + ID_WINDOW, ObjectKind::Sphere, (100, 100, 100)), base, origin), 24);
-        assert_eq!(record_len(&rec(base, ObjectKind::Sphere, (100 + 32768, 100, 100)), base, origin), 24);
+        assert_eq!(record_len(&rec(base, ShapeKind::Sphere, (100, 100, 100)), base, origin), 10);
+        assert_eq!(record_len(&rec(base + ID_WINDOW - 1, ShapeKind::Sphere, (100, 100, 100)), base, origin), 10);
+        assert_eq!(record_len(&rec(base + ID_WINDOW, ShapeKind::Sphere, (100, 100, 100)), base, origin), 24);
+        assert_eq!(record_len(&rec(base, ShapeKind::Sphere, (100 + 32768, 100, 100)), base, origin), 24);
         let u = StateUpdate {
             header: UpdateHeader { tick: 9, dilation_permille: 1000, origin },
             records: vec![
-                rec(u64::MAX, ObjectKind::Capsule, (i32::MIN, i32::MAX, 0)),
-                rec(5, ObjectKind::Box, (100 - 32768, 100 + 32767, 100)),
+                rec(u64::MAX, ShapeKind::Capsule, (i32::MIN, i32::MAX, 0)),
+                rec(5, ShapeKind::Box, (100 - 32768, 100 + 32767, 100)),
             ],
         };
         let mut body = Vec::new();
@@ -366,7 +366,7 @@ mod tests {
     fn decoder_rejects_bad_records() {
         let u = StateUpdate {
             header: UpdateHeader::default(),
-            records: vec![rec(1, ObjectKind::Box, (0, 0, 0)), rec(2, ObjectKind::Sphere, (1, 2, 3))],
+            records: vec![rec(1, ShapeKind::Box, (0, 0, 0)), rec(2, ShapeKind::Sphere, (1, 2, 3))],
         };
         let mut body = Vec::new();
         u.encode_body(&mut body).unwrap();

@@ -10,8 +10,8 @@ fn keys() -> SessionKeys {
     SessionKeys { session_id: 0x1122_3344_5566_7788, client_to_server: [7; 32], server_to_client: [9; 32] }
 }
 
-fn arb_kind() -> impl Strategy<Value = ObjectKind> {
-    prop_oneof![Just(ObjectKind::Sphere), Just(ObjectKind::Box), Just(ObjectKind::Capsule)]
+fn arb_kind() -> impl Strategy<Value = ShapeKind> {
+    prop_oneof![Just(ShapeKind::Sphere), Just(ShapeKind::Box), Just(ShapeKind::Capsule)]
 }
 
 fn arb_pos() -> impl Strategy<Value = QuantPos> {
@@ -44,7 +44,7 @@ fn arb_update(max: usize) -> impl Strategy<Value = StateUpdate> {
 
 fn arb_client() -> impl Strategy<Value = ClientMessage> {
     prop_oneof![
-        (0u8..32, any::<u32>()).prop_map(|(m, client_frame)| ClientMessage::Action(Action {
+        (0u8..32, any::<u32>()).prop_map(|(m, client_frame)| ClientMessage::Action(PlayerInput {
             mask: ActionMask::new(m).expect("mask below 32"),
             client_frame
         })),
@@ -158,7 +158,7 @@ proptest! {
     fn compact_updates_use_the_fewest_datagrams(n in 1usize..1000, base in any::<u64>()) {
         let base = base.min(u64::MAX - 2000);
         let records: Vec<_> = (0..n as u64)
-            .map(|i| StateRecord { id: base + i, kind: ObjectKind::Capsule, pos: QuantPos::new(i as i32, -(i as i32), 3) })
+            .map(|i| StateRecord { id: base + i, kind: ShapeKind::Capsule, pos: QuantPos::new(i as i32, -(i as i32), 3) })
             .collect();
         let mut batch = DatagramBatch::new();
         prop_assert_eq!(pack_updates(&UpdateHeader::default(), &records, usize::MAX, &mut batch), n);
@@ -281,7 +281,7 @@ fn sealer_rejects_wrong_kind_and_length() {
     assert_eq!(sealer.seal_in_place(&mut [0u8; 10]), Err(SealError::BadLength(10)));
     let big = ServerMessage::StateUpdate(StateUpdate {
         header: UpdateHeader::default(),
-        records: vec![StateRecord { id: 0, kind: ObjectKind::Box, pos: QuantPos::default() }; 200],
+        records: vec![StateRecord { id: 0, kind: ShapeKind::Box, pos: QuantPos::default() }; 200],
     });
     let mut server = ServerSession::new(&k);
     let mut out = Vec::new();

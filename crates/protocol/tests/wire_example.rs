@@ -29,7 +29,7 @@ fn hex(bytes: &[u8]) -> String {
 fn action_packet() -> Vec<u8> {
     let mut client = ClientSession::new(&example_keys());
     let mut out = Vec::new();
-    let msg = ClientMessage::Action(Action {
+    let msg = ClientMessage::Action(PlayerInput {
         mask: ActionMask::new(ActionMask::FORWARD | ActionMask::JUMP).expect("valid mask"),
         client_frame: 42,
     });
@@ -43,8 +43,8 @@ fn action_packet() -> Vec<u8> {
 fn update_packet() -> (Vec<u8>, Vec<u8>) {
     let header = UpdateHeader { tick: 1000, dilation_permille: 1000, origin: QuantPos::from_f32([100.0, 20.0, -50.0]) };
     let records = [
-        StateRecord { id: 7, kind: ObjectKind::Sphere, pos: QuantPos::from_f32([101.0, 20.5, -50.0]) },
-        StateRecord { id: 1 << 40, kind: ObjectKind::Capsule, pos: QuantPos::from_f32([1000.0, 0.0, 0.0]) },
+        StateRecord { id: 7, kind: ShapeKind::Sphere, pos: QuantPos::from_f32([101.0, 20.5, -50.0]) },
+        StateRecord { id: 1 << 40, kind: ShapeKind::Capsule, pos: QuantPos::from_f32([1000.0, 0.0, 0.0]) },
     ];
     let mut batch = DatagramBatch::new();
     assert_eq!(pack_updates(&header, &records, 1, &mut batch), 2);

@@ -18,7 +18,7 @@ use std::time::Instant;
 use myriad_core::{Aabb, Vec3, World};
 use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource, Subscriber, TickInfo};
 use myriad_physics::{AoiResults, Backend};
-use myriad_protocol::ObjectKind as WireKind;
+use myriad_protocol::ShapeKind as WireKind;
 
 use crate::world::wire_kind;
 

@@ -47,7 +47,7 @@ use std::net::SocketAddr;
 
 use myriad_core::{ActionScript, World};
 use myriad_physics::Backend;
-use myriad_protocol::{Action as PlayerInput, ActionMask, ClientMessage, ClientSession, ServerMessage};
+use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage};
 use myriad_store::UserId;
 
 use crate::config::ServerConfig;

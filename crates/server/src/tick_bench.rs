@@ -28,7 +28,7 @@ use std::time::Instant;
 use myriad_core::{ObjectKind, World};
 use myriad_net::{Endpoint, EndpointConfig};
 use myriad_physics::Backend;
-use myriad_protocol::{Action, ActionMask, ClientMessage, ClientSession, ServerMessage};
+use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage};
 use myriad_store::UserId;
 
 use crate::config::ServerConfig;
@@ -161,7 +161,7 @@ impl TickBench {
                     [((tick / TURN_EVERY + i as u64) % 4) as usize];
                 let frame = self.bots[i].frame.wrapping_add(1);
                 self.bots[i].frame = frame;
-                let action = Action { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
+                let action = PlayerInput { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
                 self.send(i, &ClientMessage::Action(action))?;
                 actions_sent += 1;
             }

@@ -7,9 +7,7 @@ use std::time::Duration;
 
 use myriad_core::{Action, ScenarioSpec};
 use myriad_physics::{BackendKind, create_cpu_backend};
-use myriad_protocol::{
-    Action as PlayerInput, ActionMask, ClientMessage, ClientSession, DisconnectReason, Opened, ServerMessage,
-};
+use myriad_protocol::{ActionMask, ClientMessage, ClientSession, DisconnectReason, Opened, PlayerInput, ServerMessage};
 use myriad_store::{PlayerState, UserId};
 
 use super::{Command, StateSink, TickLoop};

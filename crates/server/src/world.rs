@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use myriad_core::terrain::TerrainPlacement;
 use myriad_core::{ObjectKind, Shape, ShapeKind, StaticKind, Terrain, Vec3, World};
-use myriad_protocol::ObjectKind as WireKind;
+use myriad_protocol::ShapeKind as WireKind;
 use myriad_protocol::login::{MapData, MapDescription, ShapeDesc, StaticPrimitive};
 use myriad_store::{Heightmap, MapId, NewMap, Store, StoreError, WorldBounds};
 
@@ -155,20 +155,20 @@ fn place_npc_grid(world: &mut World, count: u32, spacing: f32) -> Result<(), Ser
 }
 
 /// The world model's shape of a stored shape.
-pub fn core_shape(s: myriad_store::Shape) -> Shape {
+pub fn core_shape(s: myriad_store::StoredShape) -> Shape {
     match s {
-        myriad_store::Shape::Sphere { radius } => Shape::Sphere { radius },
-        myriad_store::Shape::Box { half_extents } => Shape::Box { half: Vec3::from_array(half_extents) },
-        myriad_store::Shape::Capsule { radius, half_height } => Shape::Capsule { radius, half_height },
+        myriad_store::StoredShape::Sphere { radius } => Shape::Sphere { radius },
+        myriad_store::StoredShape::Box { half_extents } => Shape::Box { half: Vec3::from_array(half_extents) },
+        myriad_store::StoredShape::Capsule { radius, half_height } => Shape::Capsule { radius, half_height },
     }
 }
 
 /// The stored form of a world-model shape.
-pub fn store_shape(s: Shape) -> myriad_store::Shape {
+pub fn store_shape(s: Shape) -> myriad_store::StoredShape {
     match s {
-        Shape::Sphere { radius } => myriad_store::Shape::Sphere { radius },
-        Shape::Box { half } => myriad_store::Shape::Box { half_extents: half.to_array() },
-        Shape::Capsule { radius, half_height } => myriad_store::Shape::Capsule { radius, half_height },
+        Shape::Sphere { radius } => myriad_store::StoredShape::Sphere { radius },
+        Shape::Box { half } => myriad_store::StoredShape::Box { half_extents: half.to_array() },
+        Shape::Capsule { radius, half_height } => myriad_store::StoredShape::Capsule { radius, half_height },
     }
 }
 

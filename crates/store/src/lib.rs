@@ -37,12 +37,12 @@ pub use config::{Database, SQLITE_FILE_NAME, StoreConfig};
 pub use error::{Result, StoreError};
 pub use maps::{MAX_HEIGHTMAP_PATH_LEN, MAX_HEIGHTMAP_SAMPLES, MAX_MAP_NAME_LEN};
 pub use model::{
-    Heightmap, LoginInfo, MapId, MapInfo, MapSummary, NewMap, PlayerState, SeedReport, Shape, StaticObject, UserId,
-    WorldBounds, now_ms,
+    Heightmap, LoginInfo, MapId, MapInfo, MapSummary, NewMap, PlayerState, SeedReport, StaticObject, StoredShape,
+    UserId, WorldBounds, now_ms,
 };
 pub use password::{
     HashCost, MAX_PASSWORD_LEN, MAX_USERNAME_LEN, hash_password, validate_password, validate_username, verify_password,
 };
 pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, SubmitError};
-pub use store::{Backend, Store};
+pub use store::{Dialect, Store};
 pub use users::{MAX_SEED_USERS, User};

@@ -5,7 +5,7 @@ use sqlx::any::AnyRow;
 use sqlx::{Any, QueryBuilder, Row};
 
 use crate::error::{Result, StoreError, is_unique_violation};
-use crate::model::{Heightmap, MapId, MapInfo, MapSummary, NewMap, Shape, StaticObject, WorldBounds, now_ms};
+use crate::model::{Heightmap, MapId, MapInfo, MapSummary, NewMap, StaticObject, StoredShape, WorldBounds, now_ms};
 use crate::store::Store;
 
 /// Longest accepted map name in bytes.
@@ -109,7 +109,7 @@ fn corrupt(msg: &str) -> StoreError {
 fn object_from_row(row: &AnyRow) -> Result<StaticObject> {
     Ok(StaticObject {
         object_id: row.try_get("object_id")?,
-        shape: Shape::from_columns(
+        shape: StoredShape::from_columns(
             row.try_get("shape_kind")?,
             row.try_get("radius")?,
             [row.try_get("half_x")?, row.try_get("half_y")?, row.try_get("half_z")?],

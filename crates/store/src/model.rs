@@ -18,7 +18,7 @@ pub struct MapId(pub i64);
 
 /// The collision shape of a player or static object, with its parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Shape {
+pub enum StoredShape {
     /// A sphere of the given radius.
     Sphere {
         /// Radius, > 0.
@@ -39,7 +39,7 @@ pub enum Shape {
     },
 }
 
-/// Column encoding of a [`Shape`]: `shape_kind`, `radius`, `half_x`, `half_y`, `half_z`.
+/// Column encoding of a [`StoredShape`]: `shape_kind`, `radius`, `half_x`, `half_y`, `half_z`.
 /// A capsule stores its half height in `half_y`; unused parameters are stored as 0.
 pub(crate) struct ShapeColumns {
     pub kind: i64,
@@ -47,7 +47,7 @@ pub(crate) struct ShapeColumns {
     pub half: [f64; 3],
 }
 
-impl Shape {
+impl StoredShape {
     /// Stored value of `shape_kind` for spheres.
     pub const KIND_SPHERE: i64 = 0;
     /// Stored value of `shape_kind` for boxes.
@@ -58,9 +58,9 @@ impl Shape {
     /// Checks that every parameter is finite and in range.
     pub fn validate(&self) -> Result<()> {
         let ok = match *self {
-            Shape::Sphere { radius } => radius.is_finite() && radius > 0.0,
-            Shape::Box { half_extents } => half_extents.iter().all(|h| h.is_finite() && *h > 0.0),
-            Shape::Capsule { radius, half_height } => {
+            StoredShape::Sphere { radius } => radius.is_finite() && radius > 0.0,
+            StoredShape::Box { half_extents } => half_extents.iter().all(|h| h.is_finite() && *h > 0.0),
+            StoredShape::Capsule { radius, half_height } => {
                 radius.is_finite() && radius > 0.0 && half_height.is_finite() && half_height >= 0.0
             }
         };
@@ -69,11 +69,13 @@ impl Shape {
 
     pub(crate) fn to_columns(self) -> ShapeColumns {
         match self {
-            Shape::Sphere { radius } => ShapeColumns { kind: Self::KIND_SPHERE, radius: radius.into(), half: [0.0; 3] },
-            Shape::Box { half_extents } => {
+            StoredShape::Sphere { radius } => {
+                ShapeColumns { kind: Self::KIND_SPHERE, radius: radius.into(), half: [0.0; 3] }
+            }
+            StoredShape::Box { half_extents } => {
                 ShapeColumns { kind: Self::KIND_BOX, radius: 0.0, half: half_extents.map(f64::from) }
             }
-            Shape::Capsule { radius, half_height } => {
+            StoredShape::Capsule { radius, half_height } => {
                 ShapeColumns { kind: Self::KIND_CAPSULE, radius: radius.into(), half: [0.0, half_height.into(), 0.0] }
             }
         }
@@ -81,12 +83,12 @@ impl Shape {
 
     /// Rebuilds a shape from its columns; an unknown kind is reported as a database error
     /// (the row was not written by this crate).
-    pub(crate) fn from_columns(kind: i64, radius: f64, half: [f64; 3]) -> Result<Shape> {
+    pub(crate) fn from_columns(kind: i64, radius: f64, half: [f64; 3]) -> Result<StoredShape> {
         // The values were written from f32, so the narrowing casts are exact.
         match kind {
-            Self::KIND_SPHERE => Ok(Shape::Sphere { radius: radius as f32 }),
-            Self::KIND_BOX => Ok(Shape::Box { half_extents: half.map(|h| h as f32) }),
-            Self::KIND_CAPSULE => Ok(Shape::Capsule { radius: radius as f32, half_height: half[1] as f32 }),
+            Self::KIND_SPHERE => Ok(StoredShape::Sphere { radius: radius as f32 }),
+            Self::KIND_BOX => Ok(StoredShape::Box { half_extents: half.map(|h| h as f32) }),
+            Self::KIND_CAPSULE => Ok(StoredShape::Capsule { radius: radius as f32, half_height: half[1] as f32 }),
             other => Err(StoreError::Database(sqlx::Error::Decode(format!("unknown shape_kind {other}").into()))),
         }
     }
@@ -100,7 +102,7 @@ pub struct PlayerState {
     /// The map this state belongs to.
     pub map_id: MapId,
     /// The player's collision shape.
-    pub shape: Shape,
+    pub shape: StoredShape,
     /// World position of the shape's centre.
     pub position: [f32; 3],
     /// When this state was taken, in milliseconds since the Unix epoch.
@@ -109,7 +111,7 @@ pub struct PlayerState {
 
 impl PlayerState {
     /// A state stamped with the current time.
-    pub fn new(user_id: UserId, map_id: MapId, shape: Shape, position: [f32; 3]) -> Self {
+    pub fn new(user_id: UserId, map_id: MapId, shape: StoredShape, position: [f32; 3]) -> Self {
         PlayerState { user_id, map_id, shape, position, updated_at_ms: now_ms() }
     }
 
@@ -203,7 +205,7 @@ pub struct StaticObject {
     /// Id of the object, unique within its map (chosen by the caller).
     pub object_id: i64,
     /// Collision shape.
-    pub shape: Shape,
+    pub shape: StoredShape,
     /// World position of the shape's centre.
     pub position: [f32; 3],
 }

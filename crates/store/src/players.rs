@@ -7,8 +7,8 @@ use sqlx::any::AnyRow;
 use sqlx::{Any, QueryBuilder, Row};
 
 use crate::error::{Result, StoreError, is_unique_violation};
-use crate::model::{MapId, PlayerState, Shape, UserId};
-use crate::store::{Backend, Store};
+use crate::model::{MapId, PlayerState, StoredShape, UserId};
+use crate::store::{Dialect, Store};
 
 /// Rows per multi-row upsert statement (11 binds per row, far below SQLite's 32766 and
 /// MySQL's 65535 placeholder limits). A fixed size keeps the prepared statements reused.
@@ -40,7 +40,7 @@ const MYSQL_UPSERT: &str = " ON DUPLICATE KEY UPDATE \
     updated_at = GREATEST(updated_at, VALUES(updated_at))";
 
 fn state_from_row(row: &AnyRow) -> Result<PlayerState> {
-    let shape = Shape::from_columns(
+    let shape = StoredShape::from_columns(
         row.try_get("shape_kind")?,
         row.try_get("radius")?,
         [row.try_get("half_x")?, row.try_get("half_y")?, row.try_get("half_z")?],
@@ -185,9 +185,9 @@ impl Store {
         // deadlocks on MySQL) and keeps the index insertions sequential.
         rows.sort_unstable_by_key(|s| (s.user_id.0, s.map_id.0));
 
-        let tail = match self.backend {
-            Backend::Sqlite => SQLITE_UPSERT,
-            Backend::MySql => MYSQL_UPSERT,
+        let tail = match self.dialect {
+            Dialect::Sqlite => SQLITE_UPSERT,
+            Dialect::MySql => MYSQL_UPSERT,
         };
         let mut tx = self.pool.begin().await?;
         for chunk in rows.chunks(UPSERT_CHUNK) {

@@ -14,7 +14,7 @@ use crate::password::{self, HashCost};
 
 /// The database engine behind a [`Store`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Backend {
+pub enum Dialect {
     /// Embedded SQLite.
     Sqlite,
     /// MySQL or MariaDB.
@@ -24,11 +24,11 @@ pub enum Backend {
 const SQLITE_INIT: &str = include_str!("../migrations/sqlite/0001_init.sql");
 const MYSQL_INIT: &str = include_str!("../migrations/mysql/0001_init.sql");
 
-/// The embedded migrations of one backend.
-fn migrator(backend: Backend) -> Migrator {
-    let init = match backend {
-        Backend::Sqlite => SQLITE_INIT,
-        Backend::MySql => MYSQL_INIT,
+/// The embedded migrations of one dialect.
+fn migrator(dialect: Dialect) -> Migrator {
+    let init = match dialect {
+        Dialect::Sqlite => SQLITE_INIT,
+        Dialect::MySql => MYSQL_INIT,
     };
     Migrator::with_migrations(vec![Migration::new(
         1,
@@ -47,7 +47,7 @@ fn migrator(backend: Backend) -> Migrator {
 /// # How it works
 /// Both backends go through one [`AnyPool`], so every query is written once with `?`
 /// placeholders and only basic types (i64, f64, text, blobs). The few statements whose
-/// syntax differs (upserts, insert-or-ignore) pick their text from [`Backend`]. The schema
+/// syntax differs (upserts, insert-or-ignore) pick their text from [`Dialect`]. The schema
 /// is embedded at compile time, one folder per backend under `migrations/`, and applied
 /// by sqlx's migrator when the store opens (it records applied versions in
 /// `_sqlx_migrations`, so reopening is a no-op).
@@ -58,7 +58,7 @@ fn migrator(backend: Backend) -> Migrator {
 #[derive(Clone)]
 pub struct Store {
     pub(crate) pool: AnyPool,
-    pub(crate) backend: Backend,
+    pub(crate) dialect: Dialect,
     pub(crate) hash_cost: HashCost,
     /// A hash of a fixed string at the configured cost, verified when a username does not
     /// exist so that a failed login costs the same time whether or not the user exists.
@@ -69,7 +69,7 @@ impl std::fmt::Debug for Store {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         // The dummy hash is harmless, but hashes are never printed on principle.
         f.debug_struct("Store")
-            .field("backend", &self.backend)
+            .field("dialect", &self.dialect)
             .field("hash_cost", &self.hash_cost)
             .finish_non_exhaustive()
     }
@@ -86,12 +86,12 @@ impl Store {
         sqlx::any::install_default_drivers();
         config.hash_cost.validate()?;
 
-        let (backend, options) = connect_options(&config.database).await?;
+        let (dialect, options) = connect_options(&config.database).await?;
         let busy_ms = i64::try_from(config.sqlite_busy_timeout.as_millis()).unwrap_or(i64::MAX);
         let mut pool_options = AnyPoolOptions::new()
             .max_connections(config.max_connections.max(1))
             .acquire_timeout(config.acquire_timeout);
-        if backend == Backend::Sqlite {
+        if dialect == Dialect::Sqlite {
             pool_options = pool_options.after_connect(move |conn, _meta| {
                 Box::pin(async move {
                     let pragmas = format!(
@@ -104,19 +104,19 @@ impl Store {
             });
         }
         let pool = pool_options.connect_with(options).await?;
-        migrator(backend).run(&pool).await?;
+        migrator(dialect).run(&pool).await?;
 
         let cost = config.hash_cost;
         let dummy_hash =
             password::spawn_blocking(move || password::hash_blocking(cost, b"myriad/no-such-user")).await??;
 
-        tracing::info!(?backend, "store opened");
-        Ok(Store { pool, backend, hash_cost: cost, dummy_hash: dummy_hash.into() })
+        tracing::info!(?dialect, "store opened");
+        Ok(Store { pool, dialect, hash_cost: cost, dummy_hash: dummy_hash.into() })
     }
 
     /// The engine behind this store.
-    pub fn backend(&self) -> Backend {
-        self.backend
+    pub fn dialect(&self) -> Dialect {
+        self.dialect
     }
 
     /// The cost used for new password hashes.
@@ -132,7 +132,7 @@ impl Store {
 }
 
 /// Parses the configured location into connect options, creating the SQLite directory.
-async fn connect_options(database: &Database) -> Result<(Backend, AnyConnectOptions)> {
+async fn connect_options(database: &Database) -> Result<(Dialect, AnyConnectOptions)> {
     match database {
         Database::SqliteDir(dir) => {
             tokio::fs::create_dir_all(dir).await.map_err(|e| {
@@ -141,13 +141,13 @@ async fn connect_options(database: &Database) -> Result<(Backend, AnyConnectOpti
             // Build the URL from the path so that spaces, `?` and `#` are escaped.
             let url =
                 SqliteConnectOptions::new().filename(dir.join(SQLITE_FILE_NAME)).create_if_missing(true).to_url_lossy();
-            Ok((Backend::Sqlite, AnyConnectOptions::from_url(&url)?))
+            Ok((Dialect::Sqlite, AnyConnectOptions::from_url(&url)?))
         }
         Database::Url(url) => {
-            let backend = if url.starts_with("mysql:") || url.starts_with("mariadb:") {
-                Backend::MySql
+            let dialect = if url.starts_with("mysql:") || url.starts_with("mariadb:") {
+                Dialect::MySql
             } else if url.starts_with("sqlite:") {
-                Backend::Sqlite
+                Dialect::Sqlite
             } else {
                 return Err(StoreError::InvalidInput(
                     "database URL must start with mysql:, mariadb: or sqlite:".into(),
@@ -155,11 +155,11 @@ async fn connect_options(database: &Database) -> Result<(Backend, AnyConnectOpti
             };
             let mut options: AnyConnectOptions =
                 url.parse().map_err(|e: sqlx::Error| StoreError::InvalidInput(format!("bad database URL: {e}")))?;
-            if backend == Backend::Sqlite && !url.contains("mode=") {
+            if dialect == Dialect::Sqlite && !url.contains("mode=") {
                 // Like the data-directory form, create the file on first use.
                 options.database_url.query_pairs_mut().append_pair("mode", "rwc");
             }
-            Ok((backend, options))
+            Ok((dialect, options))
         }
     }
 }

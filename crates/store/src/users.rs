@@ -7,7 +7,7 @@ use sqlx::{Any, QueryBuilder, Row};
 use crate::error::{Result, StoreError, is_unique_violation};
 use crate::model::{LoginInfo, MapId, SeedReport, UserId, now_ms};
 use crate::password::{self, validate_password, validate_username};
-use crate::store::{Backend, Store};
+use crate::store::{Dialect, Store};
 
 /// Most users one `seed_users` call creates (test worlds; keeps memory bounded).
 pub const MAX_SEED_USERS: u32 = 1_000_000;
@@ -182,9 +182,9 @@ impl Store {
         for chunk in hashed.chunks(SEED_CHUNK) {
             // Insert-or-ignore: a user created concurrently since the check is skipped
             // rather than failing the whole batch.
-            let head = match self.backend {
-                Backend::Sqlite => "INSERT OR IGNORE INTO users (username, password_hash, created_at) ",
-                Backend::MySql => "INSERT IGNORE INTO users (username, password_hash, created_at) ",
+            let head = match self.dialect {
+                Dialect::Sqlite => "INSERT OR IGNORE INTO users (username, password_hash, created_at) ",
+                Dialect::MySql => "INSERT IGNORE INTO users (username, password_hash, created_at) ",
             };
             let mut qb: QueryBuilder<Any> = QueryBuilder::new(head);
             qb.push_values(chunk, |mut row, (name, hash)| {

@@ -13,7 +13,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::TestDb;
-use myriad_store::{HashCost, MapId, Persister, PersisterConfig, PlayerState, Shape, Store, StoreError, UserId};
+use myriad_store::{HashCost, MapId, Persister, PersisterConfig, PlayerState, Store, StoreError, StoredShape, UserId};
 
 const PLAYERS: u32 = 10_000;
 const ROUNDS: i64 = 7;
@@ -29,7 +29,7 @@ async fn players(db: &TestDb) -> (MapId, Vec<UserId>) {
     let map = db.map("bench").await;
     let t = Instant::now();
     db.store.seed_users(PLAYERS).await.unwrap();
-    eprintln!("[{:?}] seed_users({PLAYERS}) at the test cost: {:.2} s", db.backend(), t.elapsed().as_secs_f64());
+    eprintln!("[{:?}] seed_users({PLAYERS}) at the test cost: {:.2} s", db.dialect(), t.elapsed().as_secs_f64());
     let mut users = Vec::new();
     for i in 0..PLAYERS {
         users.push(db.store.find_user(&format!("user{i}")).await.unwrap().unwrap().id);
@@ -44,7 +44,7 @@ fn round(users: &[UserId], map: MapId, r: i64) -> Vec<PlayerState> {
         .map(|(i, &u)| PlayerState {
             user_id: u,
             map_id: map,
-            shape: Shape::Capsule { radius: 0.5, half_height: 0.9 },
+            shape: StoredShape::Capsule { radius: 0.5, half_height: 0.9 },
             position: [i as f32 + r as f32, 1.0, r as f32 * 0.5],
             updated_at_ms: 1_000 + r,
         })
@@ -79,7 +79,7 @@ async fn bench_persistence(db: TestDb) {
         }
         eprintln!(
             "[{:?}] save_player_states, {batch} rows per call, {PLAYERS} rows per round: {} rows/s",
-            db.backend(),
+            db.dialect(),
             summary(rates)
         );
     }
@@ -103,7 +103,7 @@ async fn bench_persistence(db: TestDb) {
     eprintln!(
         "[{:?}] Persister submit_many + flush, {PLAYERS} rows per round: {} rows/s; \
          submit_many on the caller's thread: best {:.0} / median {:.0} ns per state",
-        db.backend(),
+        db.dialect(),
         summary(rates),
         -submit_ns[submit_ns.len() - 1],
         -submit_ns[submit_ns.len() / 2],
@@ -119,7 +119,7 @@ async fn bench_login(db: TestDb) {
     store.seed_users(users).await.unwrap();
     eprintln!(
         "[{:?}] seed_users({users}) at the default cost {:?}: {:.2} s",
-        db.backend(),
+        db.dialect(),
         HashCost::DEFAULT,
         t.elapsed().as_secs_f64()
     );
@@ -157,7 +157,7 @@ async fn bench_login(db: TestDb) {
         }
         eprintln!(
             "[{:?}] check_credentials ({label}), {workers} concurrent callers: {} logins/s",
-            db.backend(),
+            db.dialect(),
             summary_with(rates, 1),
         );
     }
@@ -178,7 +178,7 @@ async fn bench_login(db: TestDb) {
     eprintln!(
         "[{:?}] one failed login, sequential, fastest / median of 16: known user {:.1} / {:.1} ms, \
          unknown user {:.1} / {:.1} ms",
-        db.backend(),
+        db.dialect(),
         known[0].as_secs_f64() * 1000.0,
         known[8].as_secs_f64() * 1000.0,
         unknown[0].as_secs_f64() * 1000.0,

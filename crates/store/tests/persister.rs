@@ -5,7 +5,7 @@ mod common;
 use std::time::Duration;
 
 use common::{TestDb, wait_for};
-use myriad_store::{MapId, Persister, PersisterConfig, PlayerState, Shape, StoreError, SubmitError, UserId};
+use myriad_store::{MapId, Persister, PersisterConfig, PlayerState, StoreError, StoredShape, SubmitError, UserId};
 
 backend_tests!(
     coalesces_per_player,
@@ -22,7 +22,7 @@ fn snap(user: UserId, map: MapId, x: f32, t: i64) -> PlayerState {
     PlayerState {
         user_id: user,
         map_id: map,
-        shape: Shape::Sphere { radius: 0.5 },
+        shape: StoredShape::Sphere { radius: 0.5 },
         position: [x, 1.0, 2.0],
         updated_at_ms: t,
     }

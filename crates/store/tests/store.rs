@@ -3,7 +3,7 @@
 mod common;
 
 use common::TestDb;
-use myriad_store::{Heightmap, MapId, NewMap, PlayerState, Shape, StaticObject, StoreError, UserId, WorldBounds};
+use myriad_store::{Heightmap, MapId, NewMap, PlayerState, StaticObject, StoreError, StoredShape, UserId, WorldBounds};
 
 backend_tests!(
     create_user_then_login,
@@ -22,15 +22,15 @@ backend_tests!(
     password_change_and_user_deletion,
 );
 
-fn sphere(r: f32) -> Shape {
-    Shape::Sphere { radius: r }
+fn sphere(r: f32) -> StoredShape {
+    StoredShape::Sphere { radius: r }
 }
 
 fn state(user: UserId, map: MapId, pos: [f32; 3], t: i64) -> PlayerState {
     PlayerState {
         user_id: user,
         map_id: map,
-        shape: Shape::Capsule { radius: 0.5, half_height: 0.9 },
+        shape: StoredShape::Capsule { radius: 0.5, half_height: 0.9 },
         position: pos,
         updated_at_ms: t,
     }
@@ -119,7 +119,7 @@ async fn invalid_input_is_rejected(db: TestDb) {
         PlayerState { position: [0.0, f32::INFINITY, 0.0], ..state(user, map, [0.0; 3], 1) },
         PlayerState { shape: sphere(0.0), ..state(user, map, [0.0; 3], 1) },
         PlayerState { shape: sphere(-1.0), ..state(user, map, [0.0; 3], 1) },
-        PlayerState { shape: Shape::Box { half_extents: [1.0, f32::NAN, 1.0] }, ..state(user, map, [0.0; 3], 1) },
+        PlayerState { shape: StoredShape::Box { half_extents: [1.0, f32::NAN, 1.0] }, ..state(user, map, [0.0; 3], 1) },
     ] {
         let err = db.store.create_player_state(&bad).await.unwrap_err();
         assert!(matches!(err, StoreError::InvalidInput(_)), "{bad:?}: {err:?}");
@@ -170,8 +170,8 @@ async fn player_state_round_trip(db: TestDb) {
     // Every shape kind survives the trip, with awkward f32 values.
     for shape in [
         sphere(0.1),
-        Shape::Box { half_extents: [0.3, 1.0e-3, 7.123_456] },
-        Shape::Capsule { radius: 0.25, half_height: 0.0 },
+        StoredShape::Box { half_extents: [0.3, 1.0e-3, 7.123_456] },
+        StoredShape::Capsule { radius: 0.25, half_height: 0.0 },
     ] {
         let s2 = PlayerState { shape, position: [-0.1, 1.0e7, std::f32::consts::PI], updated_at_ms: 6, ..s };
         db.store.update_player_state(&s2).await.unwrap();
@@ -248,8 +248,8 @@ fn objects(n: i64) -> Vec<StaticObject> {
             object_id: i,
             shape: match i % 3 {
                 0 => sphere(1.0 + i as f32 * 0.01),
-                1 => Shape::Box { half_extents: [1.0, 2.0, 0.5 + i as f32] },
-                _ => Shape::Capsule { radius: 0.3, half_height: i as f32 },
+                1 => StoredShape::Box { half_extents: [1.0, 2.0, 0.5 + i as f32] },
+                _ => StoredShape::Capsule { radius: 0.3, half_height: i as f32 },
             },
             position: [i as f32, -1.5, 0.125 * i as f32],
         })

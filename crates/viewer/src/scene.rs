@@ -14,7 +14,7 @@
 
 use std::collections::HashSet;
 
-use myriad_protocol::ObjectKind;
+use myriad_protocol::ShapeKind;
 use myriad_protocol::login::{MapData, MapDescription, ShapeDesc, StaticPrimitive};
 use three_d::{CpuMesh, Indices, Mat4, Positions, Srgba, Vec3, vec3};
 
@@ -196,12 +196,12 @@ pub enum Part {
 pub fn for_each_part(shape: &ShapeDesc, centre: [f32; 3], mut f: impl FnMut(Part, Mat4)) {
     let c = to_render(centre);
     match shape.kind {
-        ObjectKind::Sphere => f(Part::Sphere, Mat4::from_translation(c) * Mat4::from_scale(shape.radius)),
-        ObjectKind::Box => f(
+        ShapeKind::Sphere => f(Part::Sphere, Mat4::from_translation(c) * Mat4::from_scale(shape.radius)),
+        ShapeKind::Box => f(
             Part::Cube,
             Mat4::from_translation(c) * Mat4::from_nonuniform_scale(shape.half[0], shape.half[1], shape.half[2]),
         ),
-        ObjectKind::Capsule => {
+        ShapeKind::Capsule => {
             let r = shape.radius;
             let seg = (shape.half[1] - r).max(0.0);
             if seg > 0.0 {
@@ -294,14 +294,14 @@ fn column_key(p: [f32; 3]) -> (i64, i64) {
 /// boxes are crates and rocks.
 pub fn static_batches(statics: &[StaticPrimitive]) -> Batches {
     let trunks: HashSet<(i64, i64)> =
-        statics.iter().filter(|p| p.shape.kind == ObjectKind::Capsule).map(|p| column_key(p.position)).collect();
+        statics.iter().filter(|p| p.shape.kind == ShapeKind::Capsule).map(|p| column_key(p.position)).collect();
     let mut out = Batches::default();
     for p in statics {
         let color = match p.shape.kind {
-            ObjectKind::Capsule => palette::TRUNK,
-            ObjectKind::Box if trunks.contains(&column_key(p.position)) => palette::CROWN,
-            ObjectKind::Box => palette::STATIC_BOX,
-            ObjectKind::Sphere => palette::STATIC_SPHERE,
+            ShapeKind::Capsule => palette::TRUNK,
+            ShapeKind::Box if trunks.contains(&column_key(p.position)) => palette::CROWN,
+            ShapeKind::Box => palette::STATIC_BOX,
+            ShapeKind::Sphere => palette::STATIC_SPHERE,
         };
         out.push_shape(&p.shape, p.position, color);
     }
@@ -312,20 +312,20 @@ pub fn static_batches(statics: &[StaticPrimitive]) -> Batches {
 /// objects are drawn at the server's NPC sizes (`myriad-server`'s NPC grid and the
 /// player capsule: sphere radius 0.5, box half extent 0.5, capsule radius 0.4 with a
 /// segment half length of 0.5).
-pub fn nominal_shape(kind: ObjectKind) -> ShapeDesc {
+pub fn nominal_shape(kind: ShapeKind) -> ShapeDesc {
     match kind {
-        ObjectKind::Sphere => ShapeDesc { kind, half: [0.5; 3], radius: 0.5 },
-        ObjectKind::Box => ShapeDesc { kind, half: [0.5; 3], radius: 0.0 },
-        ObjectKind::Capsule => ShapeDesc { kind, half: [0.4, 0.9, 0.4], radius: 0.4 },
+        ShapeKind::Sphere => ShapeDesc { kind, half: [0.5; 3], radius: 0.5 },
+        ShapeKind::Box => ShapeDesc { kind, half: [0.5; 3], radius: 0.0 },
+        ShapeKind::Capsule => ShapeDesc { kind, half: [0.4, 0.9, 0.4], radius: 0.4 },
     }
 }
 
 /// The colour of a dynamic object of `kind` that is not the player's.
-pub fn kind_color(kind: ObjectKind) -> Srgba {
+pub fn kind_color(kind: ShapeKind) -> Srgba {
     match kind {
-        ObjectKind::Sphere => palette::SPHERE,
-        ObjectKind::Box => palette::BOX,
-        ObjectKind::Capsule => palette::CAPSULE,
+        ShapeKind::Sphere => palette::SPHERE,
+        ShapeKind::Box => palette::BOX,
+        ShapeKind::Capsule => palette::CAPSULE,
     }
 }
 
@@ -335,7 +335,7 @@ pub struct ViewObject {
     /// Object id.
     pub id: u64,
     /// Shape kind.
-    pub kind: ObjectKind,
+    pub kind: ShapeKind,
     /// World position of its centre.
     pub position: [f32; 3],
     /// No news for longer than the stale time.
@@ -420,7 +420,7 @@ pub fn synthetic_objects(
     let z0 = centre[2] + 3.0;
     (0..n)
         .map(|k| {
-            let kind = [ObjectKind::Sphere, ObjectKind::Box, ObjectKind::Capsule][k % 3];
+            let kind = [ShapeKind::Sphere, ShapeKind::Box, ShapeKind::Capsule][k % 3];
             let (x, z) = (x0 + (k % side) as f32 * spacing, z0 + (k / side) as f32 * spacing);
             let y = ground(x, z) + nominal_shape(kind).half[1];
             ViewObject { id: (1 << 62) + k as u64, kind, position: [x, y, z], stale: false }
@@ -564,14 +564,14 @@ mod tests {
     #[test]
     fn box_and_sphere_instances() {
         let mut b = Batches::default();
-        let boxy = ShapeDesc { kind: ObjectKind::Box, half: [1.0, 2.0, 3.0], radius: 0.0 };
+        let boxy = ShapeDesc { kind: ShapeKind::Box, half: [1.0, 2.0, 3.0], radius: 0.0 };
         b.push_shape(&boxy, [5.0, 6.0, 7.0], palette::BOX);
         assert_eq!((b.cubes.len(), b.spheres.len(), b.cylinders.len()), (1, 0, 0));
         let m = b.cubes.transforms[0];
         assert_eq!(origin(m), vec3(-5.0, 6.0, 7.0));
         // The unit cube's corner lands on the box's corner.
         assert_eq!(apply(m, vec3(1.0, 1.0, 1.0)), vec3(-4.0, 8.0, 10.0));
-        let ball = ShapeDesc { kind: ObjectKind::Sphere, half: [0.7; 3], radius: 0.7 };
+        let ball = ShapeDesc { kind: ShapeKind::Sphere, half: [0.7; 3], radius: 0.7 };
         b.push_shape(&ball, [0.0, 1.0, 0.0], palette::SPHERE);
         let top = apply(b.spheres.transforms[0], vec3(0.0, 1.0, 0.0));
         assert!((top - vec3(0.0, 1.7, 0.0)).magnitude() < 1e-6);
@@ -580,7 +580,7 @@ mod tests {
 
     #[test]
     fn capsule_is_a_cylinder_and_two_spheres() {
-        let cap = ShapeDesc { kind: ObjectKind::Capsule, half: [0.4, 0.9, 0.4], radius: 0.4 };
+        let cap = ShapeDesc { kind: ShapeKind::Capsule, half: [0.4, 0.9, 0.4], radius: 0.4 };
         let mut b = Batches::default();
         b.push_shape(&cap, [1.0, 10.0, 2.0], palette::CAPSULE);
         assert_eq!((b.cylinders.len(), b.spheres.len(), b.cubes.len()), (1, 2, 0));
@@ -602,8 +602,8 @@ mod tests {
 
     #[test]
     fn statics_are_coloured_by_role() {
-        let trunk = ShapeDesc { kind: ObjectKind::Capsule, half: [0.3, 1.8, 0.3], radius: 0.3 };
-        let crown = ShapeDesc { kind: ObjectKind::Box, half: [1.2, 0.6, 1.2], radius: 0.0 };
+        let trunk = ShapeDesc { kind: ShapeKind::Capsule, half: [0.3, 1.8, 0.3], radius: 0.3 };
+        let crown = ShapeDesc { kind: ShapeKind::Box, half: [1.2, 0.6, 1.2], radius: 0.0 };
         let statics = [
             StaticPrimitive { shape: trunk, position: [100.0, 5.0, 200.0] },
             StaticPrimitive { shape: crown, position: [100.0, 8.0, 200.0] },
@@ -617,20 +617,20 @@ mod tests {
         assert_eq!(b.total(), 5);
     }
 
-    fn obj(id: u64, kind: ObjectKind, x: f32, stale: bool) -> ViewObject {
+    fn obj(id: u64, kind: ShapeKind, x: f32, stale: bool) -> ViewObject {
         ViewObject { id, kind, position: [x, 0.0, 0.0], stale }
     }
 
     #[test]
     fn dynamic_filter_hides_stale_and_far_objects_and_keeps_the_player() {
-        let own_shape = ShapeDesc { kind: ObjectKind::Capsule, half: [0.5, 1.0, 0.5], radius: 0.5 };
+        let own_shape = ShapeDesc { kind: ShapeKind::Capsule, half: [0.5, 1.0, 0.5], radius: 0.5 };
         let filter = ViewFilter { own_id: 7, own_shape, eye: [0.0; 3], far: 100.0 };
         let objects = [
-            obj(1, ObjectKind::Sphere, 10.0, false),
-            obj(2, ObjectKind::Box, 20.0, true),   // stale
-            obj(3, ObjectKind::Box, 150.0, false), // beyond the far plane
-            obj(4, ObjectKind::Capsule, -99.0, false),
-            obj(7, ObjectKind::Capsule, 500.0, true), // own: always, even stale and far
+            obj(1, ShapeKind::Sphere, 10.0, false),
+            obj(2, ShapeKind::Box, 20.0, true),   // stale
+            obj(3, ShapeKind::Box, 150.0, false), // beyond the far plane
+            obj(4, ShapeKind::Capsule, -99.0, false),
+            obj(7, ShapeKind::Capsule, 500.0, true), // own: always, even stale and far
         ];
         let mut out = Batches::default();
         assert_eq!(dynamic_batches(&objects, &filter, &mut out), 3);
@@ -684,7 +684,7 @@ mod tests {
         // 4 per side, centred on x = 100.
         assert_eq!(objs[0].position, [97.0, 7.5, 53.0]);
         assert_eq!(objs[5].position, [99.0, 7.9, 55.0]);
-        assert_eq!(objs[2].kind, ObjectKind::Capsule);
+        assert_eq!(objs[2].kind, ShapeKind::Capsule);
         assert_eq!(objs[2].position[1], 7.9);
         assert!(objs.iter().all(|o| o.id >= 1 << 62 && !o.stale));
     }

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use myriad_client::{ClientConfig, Credentials, Trust};
 use myriad_server::{ServerConfig, ServerHandle};
-use myriad_store::{HashCost, MapId, PlayerState, Shape, Store};
+use myriad_store::{HashCost, MapId, PlayerState, Store, StoredShape};
 use myriad_viewer::scene::{palette, terrain_height};
 
 const VIEWER: &str = env!("CARGO_BIN_EXE_myriad-viewer");
@@ -110,7 +110,7 @@ fn place_player(rt: &tokio::runtime::Runtime, server: &ServerHandle) -> [f32; 3]
         let pos = [x, terrain_height(d, &map, x, z) + 1.0, z];
         let store = server.store();
         let user = store.find_user("user0").await.unwrap().unwrap();
-        let shape = Shape::Capsule { radius: 0.4, half_height: 0.5 };
+        let shape = StoredShape::Capsule { radius: 0.4, half_height: 0.5 };
         store.create_player_state(&PlayerState::new(user.id, MapId(d.map_id), shape, pos)).await.unwrap();
         pos
     })

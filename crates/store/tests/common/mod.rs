@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::time::Duration;
 
-use myriad_store::{Backend, Database, HashCost, Heightmap, MapId, NewMap, Store, StoreConfig, UserId, WorldBounds};
+use myriad_store::{Database, Dialect, HashCost, Heightmap, MapId, NewMap, Store, StoreConfig, UserId, WorldBounds};
 use sqlx::{Connection, Executor};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::watch;
@@ -77,7 +77,7 @@ impl TestDb {
         let dir = tempfile::tempdir().expect("temp dir");
         let config = test_config(Database::SqliteDir(dir.path().join("data")));
         let store = Store::open(&config).await.expect("open sqlite store");
-        assert_eq!(store.backend(), Backend::Sqlite);
+        assert_eq!(store.dialect(), Dialect::Sqlite);
         TestDb { store, config, kind: Arc::new(Kind::Sqlite { dir }) }
     }
 
@@ -105,12 +105,12 @@ impl TestDb {
         let url = with_database(&admin_url, &db_name);
         let config = test_config(Database::Url(url.clone()));
         let store = Store::open(&config).await.expect("open mysql store");
-        assert_eq!(store.backend(), Backend::MySql);
+        assert_eq!(store.dialect(), Dialect::MySql);
         Some(TestDb { store, config, kind: Arc::new(Kind::MySql { admin_url, db_name, url }) })
     }
 
-    pub fn backend(&self) -> Backend {
-        self.store.backend()
+    pub fn dialect(&self) -> Dialect {
+        self.store.dialect()
     }
 
     /// Opens a second store on the same database (another pool, migrations re-checked).

@@ -14,7 +14,10 @@
 //! 1. Gather the player's own object and every valid object of its AOI list (duplicate
 //!    and out-of-range slots are skipped), quantize positions relative to the AOI
 //!    centre.
-//! 2. If everything fits `max_datagrams`, pack it all (own object first).
+//! 2. If everything fits `max_datagrams`, pack it all. The own object leads **every**
+//!    datagram, so each one alone tells the player where it is (a lost datagram never
+//!    leaves it without its own position); the budget for other objects is
+//!    `max_datagrams × 112` compact records.
 //! 3. Otherwise the update is *over budget*: send the own object, then the `K` nearest
 //!    objects (`K` = `near_share` of the budget), then the `R` stalest of the rest
 //!    (*staleness*: the tick an object was last sent, or entered the view). The
@@ -26,8 +29,8 @@
 //!
 //! # Refresh bound
 //!
-//! With `N` objects in view (own excluded) and `R` rotation records per tick (budget
-//! minus own minus `K`), every object that stays in view is sent at least once in
+//! With `N` objects in view (own excluded) and `R` rotation records per tick (the
+//! budget for others minus `K`), every object that stays in view is sent at least once in
 //! every `ceil(N / R)` consecutive ticks, and an object entering the view is sent
 //! within `ceil(N / R)` ticks. Why: serving the stalest first is earliest-deadline-first;
 //! the objects ahead of a waiting object are all in view (at most `N - 1`), every tick

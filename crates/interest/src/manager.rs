@@ -6,7 +6,7 @@ use std::cell::RefCell;
 use myriad_protocol::update::record_len;
 use myriad_protocol::{
     COMPACT_RECORD_LEN, DatagramBatch, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader,
-    pack_updates,
+    pack_updates_pinned,
 };
 use rayon::prelude::*;
 use thiserror::Error;
@@ -210,9 +210,10 @@ impl InterestManager {
     }
 }
 
-/// Datagrams greedy packing needs for `sizes` (each at most the record area).
-fn datagrams_needed(sizes: impl Iterator<Item = usize>) -> usize {
-    let area = MAX_BODY - UPDATE_HEADER_LEN;
+/// Datagrams greedy packing needs for `sizes` (each at most the record area) when
+/// every datagram also carries a pinned record of `pinned` bytes.
+fn datagrams_needed(pinned: usize, sizes: impl Iterator<Item = usize>) -> usize {
+    let area = MAX_BODY - UPDATE_HEADER_LEN - pinned;
     let (mut datagrams, mut used) = (0usize, area);
     for size in sizes {
         if used + size > area {
@@ -270,10 +271,10 @@ fn build_one<O: ObjectSource>(
     }
     let id_base = own.iter().map(|o| o.id).chain(cands.iter().map(|c| c.rec.id)).min().unwrap_or(0);
     let size = |r: &StateRecord| record_len(r, id_base, origin);
-    records.extend(own);
+    let own_size = own.as_ref().map_or(0, size);
 
     // 2. Everything fits? (Duplicates, if any, only make this estimate conservative.)
-    let needed = datagrams_needed(own.iter().chain(cands.iter().map(|c| &c.rec)).map(size));
+    let needed = datagrams_needed(own_size, cands.iter().map(|c| &c.rec).map(size));
     if needed <= config.max_datagrams.max(1) {
         report.in_view = cands.len();
         records.extend(cands.iter().map(|c| c.rec));
@@ -313,7 +314,8 @@ fn build_one<O: ObjectSource>(
             rest.select_nth_unstable_by(r, stalest);
         }
         // Order inside the two groups only matters if not all of them fit, which
-        // takes an extended record: with compact ones, 1 + K + R is the capacity.
+        // takes an extended record: with compact ones, K + R is the capacity beside the
+        // own object.
         let all_compact = own.iter().all(|o| size(o) == COMPACT_RECORD_LEN)
             && near.iter().chain(rest[..r].iter()).all(|&i| size(&cands[i as usize].rec) == COMPACT_RECORD_LEN);
         if !all_compact {
@@ -323,11 +325,10 @@ fn build_one<O: ObjectSource>(
         records.extend(order[..k + r].iter().map(|&i| cands[i as usize].rec));
     }
 
-    // Pack and stamp what was sent.
-    let packed = pack_updates(&header, records, config.max_datagrams.max(1), &mut sub.datagrams);
+    // Pack (the own object first in every datagram) and stamp what was sent.
+    let packed = pack_updates_pinned(&header, own.as_ref(), records, config.max_datagrams.max(1), &mut sub.datagrams);
     if report.over_budget {
-        let skip_own = usize::from(own.is_some());
-        for &i in order.iter().take(packed.saturating_sub(skip_own)) {
+        for &i in order.iter().take(packed) {
             cands[i as usize].key = tick.tick;
         }
         sub.rotation.clear();
@@ -336,7 +337,7 @@ fn build_one<O: ObjectSource>(
             (c.rec.id, c.key)
         }));
     }
-    report.records = packed;
+    report.records = packed + usize::from(own.is_some()) * sub.datagrams.len();
 
     // 4. Seal.
     if sub.sealer.seal_batch(&mut sub.datagrams).is_err() {

@@ -84,13 +84,15 @@ fn small_views_are_sent_whole_with_own_object_first() {
         .build(tick, &world.soa(), AoiLists { offsets: &offsets, objects: &list }, std::slice::from_mut(&mut sub))
         .unwrap();
     let (records, ticks) = receive(&sub, &mut client);
-    assert_eq!(records.len(), 150);
+    // 149 others and the own object, which leads each of the two datagrams.
+    assert_eq!(records.len(), 151);
     assert_eq!(records[0].id, world.ids[10]);
+    assert_eq!(records.iter().filter(|r| r.id == world.ids[10]).count(), 2);
     let got: HashSet<u64> = records.iter().map(|r| r.id).collect();
     assert_eq!(got, list.iter().map(|&s| world.ids[s as usize]).collect());
     assert!(ticks.iter().all(|&t| t == 5));
     assert_eq!(report.datagrams, 2);
-    assert_eq!(report.records, 150);
+    assert_eq!(report.records, 151);
     assert!(!sub.report().over_budget);
     // Positions arrive at 1/64 resolution.
     for r in &records {
@@ -122,7 +124,7 @@ fn over_budget_sends_own_then_the_nearest() {
         .unwrap();
     let (records, _) = receive(&sub, &mut client);
     assert_eq!(sub.datagrams().len(), 1);
-    assert_eq!(records.len(), config.capacity());
+    assert_eq!(records.len(), config.capacity() + 1, "the own object and a full datagram of others");
     assert_eq!(records[0].id, world.ids[999]);
     let dist = |slot: usize| {
         let p = world.positions[slot];

@@ -287,13 +287,29 @@ pub fn pack_updates(
     max_datagrams: usize,
     out: &mut DatagramBatch,
 ) -> usize {
-    let Some(id_base) = records.iter().map(|r| r.id).min() else {
+    pack_updates_pinned(header, None, records, max_datagrams, out)
+}
+
+/// Like [`pack_updates`], with `pinned` (a player's own object) written first in
+/// **every** datagram, so each datagram alone tells the player where it is: a lost
+/// datagram never leaves it without its own position. Returns how many of `records` (a
+/// prefix) were packed; `pinned` is not counted. With a pinned record, every datagram
+/// holds it even when `records` is empty (one datagram then).
+pub fn pack_updates_pinned(
+    header: &UpdateHeader,
+    pinned: Option<&StateRecord>,
+    records: &[StateRecord],
+    max_datagrams: usize,
+    out: &mut DatagramBatch,
+) -> usize {
+    let Some(id_base) = pinned.iter().map(|r| r.id).chain(records.iter().map(|r| r.id)).min() else {
         return 0;
     };
     let origin = header.origin;
     let mut packed = 0;
     let mut datagrams = 0;
-    while packed < records.len() && datagrams < max_datagrams {
+    // With a pinned record, the first datagram is made even if `records` is empty.
+    while (packed < records.len() || (pinned.is_some() && datagrams == 0)) && datagrams < max_datagrams {
         let buf = out.begin(MAX_DATAGRAM);
         buf[0] = PROTOCOL_VERSION;
         buf[1] = PacketKind::StateUpdate as u8;
@@ -301,11 +317,20 @@ pub fn pack_updates(
         let mut pos = body_start + UPDATE_HEADER_LEN;
         let limit = HEADER_LEN + MAX_BODY;
         let mut count = 0u16;
+        if let Some(own) = pinned {
+            // Any record fits an empty body (an extended one is 24 bytes).
+            if let Some(len) = write_record(own, id_base, origin, &mut buf[pos..limit]) {
+                pos += len;
+                count += 1;
+            }
+        }
+        let before = packed;
         for rec in &records[packed..] {
             match write_record(rec, id_base, origin, &mut buf[pos..limit]) {
                 Some(len) => {
                     pos += len;
                     count += 1;
+                    packed += 1;
                 }
                 None => break,
             }
@@ -313,8 +338,12 @@ pub fn pack_updates(
         write_update_header(header, id_base, count, &mut buf[body_start..]);
         // The tag space after `pos` is still zero from `begin`.
         out.finish(pos + TAG_LEN);
-        packed += usize::from(count);
         datagrams += 1;
+        if packed == before {
+            // Only the pinned record went in: nothing left, or (impossible, any record
+            // fits beside it) a record that fits nowhere. Never loop on it.
+            break;
+        }
     }
     packed
 }
@@ -385,5 +414,28 @@ mod tests {
         let mut bad = body.clone();
         bad.push(0);
         assert_eq!(StateUpdate::decode_body(&bad), Err(DecodeError::TrailingBytes { extra: 1 }));
+    }
+
+    #[test]
+    fn pinned_record_is_in_every_datagram() {
+        let h = UpdateHeader::default();
+        let own = rec(500, ShapeKind::Capsule, (0, 0, 0));
+        let recs: Vec<_> = (0..300).map(|i| rec(i, ShapeKind::Box, (i as i32, 0, 0))).collect();
+        let mut b = DatagramBatch::new();
+        // 112 others beside the pinned record in each datagram.
+        assert_eq!(pack_updates_pinned(&h, Some(&own), &recs, 2, &mut b), 224);
+        assert_eq!(b.len(), 2);
+        for d in b.iter() {
+            let view = StateUpdateView::parse(&d[HEADER_LEN..d.len() - TAG_LEN]).unwrap();
+            let got: Vec<_> = view.records().collect();
+            assert_eq!(got[0], own);
+            assert_eq!(got.len(), MAX_COMPACT_RECORDS);
+        }
+        let mut b = DatagramBatch::new();
+        assert_eq!(pack_updates_pinned(&h, Some(&own), &[], 2, &mut b), 0);
+        assert_eq!(b.len(), 1, "the pinned record alone still makes a datagram");
+        let mut b = DatagramBatch::new();
+        assert_eq!(pack_updates_pinned(&h, None, &[], 2, &mut b), 0);
+        assert!(b.is_empty());
     }
 }

@@ -64,6 +64,8 @@ pub struct Dynamics {
     generation: u64,
     /// Bumped when objects are added or removed (slots change meaning).
     layout_generation: u64,
+    /// Bumped (with `generation`) by [`Dynamics::set_action`] alone.
+    action_generation: u64,
 }
 
 /// Mutable views of the per-slot state a physics step writes, borrowed together.
@@ -160,6 +162,7 @@ impl Dynamics {
         let Some(s) = self.slot(id) else { return false };
         self.action[s] = action.bits();
         self.generation += 1;
+        self.action_generation += 1;
         true
     }
 
@@ -243,6 +246,14 @@ impl Dynamics {
     /// A counter bumped whenever objects are added or removed.
     pub fn layout_generation(&self) -> u64 {
         self.layout_generation
+    }
+    /// A counter bumped, together with [`Dynamics::generation`], by every
+    /// [`Dynamics::set_action`] and by nothing else. A backend that last saw generations
+    /// `(g, a)` knows that only actions changed since when
+    /// `generation() - g == action_generation() - a`: then it need copy nothing but the
+    /// actions (a server sets a few thousand actions a tick, and nothing else).
+    pub fn action_generation(&self) -> u64 {
+        self.action_generation
     }
 }
 
@@ -436,8 +447,12 @@ mod tests {
         assert_eq!(d.positions()[0], Vec3::Y);
         assert_eq!(d.slot(b), Some(1));
         assert_eq!(d.shape_of(0), Shape::Capsule { radius: 0.5, half_height: 1.0 });
+        let (g, a) = (d.generation(), d.action_generation());
         assert!(d.set_action(b, Action::from_bits(Action::JUMP).unwrap()));
         assert_eq!(d.actions()[1], Action::JUMP);
+        assert_eq!((d.generation() - g, d.action_generation() - a), (1, 1), "only an action changed");
+        assert!(d.teleport(b, Vec3::ONE));
+        assert_ne!(d.generation() - g, d.action_generation() - a, "a teleport is more than an action");
         assert!(d.spawn(Shape::Sphere { radius: -1.0 }, Vec3::ZERO, ObjectKind::Npc).is_err());
         assert!(d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::NAN, ObjectKind::Npc).is_err());
     }

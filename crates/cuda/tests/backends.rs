@@ -16,6 +16,15 @@ fn every_backend_produces_the_same_world_bit_for_bit() {
     conformance::same_world_bit_for_bit(cpu.as_mut(), &mut gpus);
 }
 
+/// Actions set between steps (only they travel to the device then), teleports, spawns
+/// and removals: the CUDA backends see each and keep the CPU's world.
+#[test]
+fn host_changes_between_steps_are_seen() {
+    let Some(mut gpus) = cuda_backends("host_changes_between_steps_are_seen") else { return };
+    let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
+    conformance::host_changes_between_steps_are_seen(cpu.as_mut(), &mut gpus);
+}
+
 #[test]
 fn stacked_duplicates_agree_and_separate() {
     let Some(mut gpus) = cuda_backends("stacked_duplicates_agree_and_separate") else { return };

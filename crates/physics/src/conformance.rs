@@ -6,7 +6,8 @@
 //! backend whose world the others must reproduce bit for bit. A check panics with a
 //! message naming the backend when the contract is broken: these are test helpers.
 
-use myriad_core::{Aabb, ObjectKind, Placement, ScenarioSpec, Shape, Vec3, World};
+use myriad_core::rng::hash3;
+use myriad_core::{Aabb, Action, ObjectKind, Placement, ScenarioSpec, Shape, Vec3, World};
 
 use crate::{AoiResults, Backend, StepReport, TickConstants};
 
@@ -67,6 +68,43 @@ pub fn same_world_bit_for_bit(reference: &mut dyn Backend, others: &mut [Box<dyn
                 b.kind()
             );
         }
+    }
+}
+
+/// A server's pattern: between steps the host sets actions (every tick, on a third of
+/// the users), and now and then teleports an object or spawns and removes one. Every
+/// backend must see each change and end with the reference's world, bit for bit —
+/// including a backend that copies only the actions when nothing else changed.
+pub fn host_changes_between_steps_are_seen(reference: &mut dyn Backend, others: &mut [Box<dyn Backend>]) {
+    let start = crowded(21, Placement::Uniform);
+    let k = TickConstants::default();
+    let drive = |b: &mut dyn Backend| {
+        let mut w = start.clone();
+        let ids: Vec<_> = w.dynamics.ids().to_vec();
+        for t in 0..90u64 {
+            for (i, id) in ids.iter().enumerate().filter(|(i, _)| (*i as u64 + t).is_multiple_of(3)) {
+                let bits = (hash3(7, i as u64, t / 10) & 0x1f) as u8;
+                w.dynamics.set_action(*id, Action::from_bits_truncate(bits));
+            }
+            if t % 25 == 7 {
+                let id = ids[(t as usize * 13) % ids.len()];
+                let c = w.bounds.center();
+                w.dynamics.teleport(id, Vec3::new(c.x, c.y + 5.0, c.z));
+            }
+            if t == 40 {
+                let extra = w.dynamics.spawn(Shape::Sphere { radius: 0.5 }, w.bounds.center(), ObjectKind::User);
+                let extra = extra.expect("spawn");
+                b.step(&mut w, &k).expect("a step succeeds");
+                w.dynamics.despawn(extra);
+            }
+            b.step(&mut w, &k).expect("a step succeeds");
+        }
+        w
+    };
+    let want = drive(reference);
+    for b in others {
+        let got = drive(b.as_mut());
+        assert_eq!(got.state_hash(), want.state_hash(), "{} misses host changes between steps", b.kind());
     }
 }
 

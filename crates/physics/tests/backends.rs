@@ -26,6 +26,12 @@ fn every_backend_produces_the_same_world_bit_for_bit() {
 }
 
 #[test]
+fn host_changes_between_steps_are_seen() {
+    let (mut reference, mut others) = reference_and_others();
+    conformance::host_changes_between_steps_are_seen(reference.as_mut(), &mut others);
+}
+
+#[test]
 fn results_do_not_depend_on_thread_count_or_run() {
     let start = crowded(12, Placement::Clustered { hotspots: 3, fraction: 0.9, spread: 4.0 });
     let hash = |threads: usize| {

@@ -58,14 +58,39 @@ use tree::Tree;
 /// Events recorded per step (stage boundaries and the download's checkpoints).
 const EVENTS: usize = 15;
 
+/// What the device copy of the dynamics was made from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct Synced {
+    /// `Dynamics::generation` (every host-side change).
+    pub generation: u64,
+    /// `Dynamics::action_generation` (actions set by the host).
+    pub action_generation: u64,
+    /// `Dynamics::layout_generation` (objects added or removed).
+    pub layout: u64,
+    /// The address of the id vector, the tick and the seed: they tell two worlds with
+    /// equal generation counters apart (a backend moved from one world to another).
+    pub identity: (usize, u64, u64),
+}
+
+impl Synced {
+    /// The state of `world` now.
+    pub fn of(world: &myriad_core::World) -> Synced {
+        let d = &world.dynamics;
+        Synced {
+            generation: d.generation(),
+            action_generation: d.action_generation(),
+            layout: d.layout_generation(),
+            identity: (d.ids().as_ptr() as usize, world.tick, world.seed),
+        }
+    }
+}
+
 /// A CUDA backend: `cuda` (LBVH) or `cuda-naive` (all pairs).
 pub struct CudaBackend {
     kind: BackendKind,
     n: usize,
-    /// (generation, layout generation, address of the id vector, tick, seed) of the
-    /// dynamics the device holds. The address, tick and seed tell two worlds with equal
-    /// generation counters apart (a backend moved from one world to another).
-    synced: Option<(u64, u64, usize, u64, u64)>,
+    /// Which dynamics the device holds; `None`: upload everything.
+    synced: Option<Synced>,
     /// (generation, primitive count, address of the positions) of the statics on the
     /// device.
     statics_key: Option<(u64, usize, usize)>,

@@ -6,9 +6,9 @@ use std::time::Instant;
 use myriad_core::World;
 use myriad_physics::{PhysicsError, Stage, StepReport, TickConstants};
 
-use super::CudaBackend;
 use super::broad::write_pass;
 use super::sync::{flat3_mut, par_copy};
+use super::{CudaBackend, Synced};
 
 impl CudaBackend {
     /// One step, or `None` (world untouched) when a pair list did not fit: the buffers are
@@ -112,8 +112,7 @@ impl CudaBackend {
         // The backend's step is the single owner of the world's tick counter: no other
         // code advances it, so every backend moves it exactly once per step.
         world.tick += 1;
-        let d = &world.dynamics;
-        self.synced = Some((d.generation(), d.layout_generation(), d.ids().as_ptr() as usize, world.tick, world.seed));
+        self.synced = Some(Synced::of(world));
         self.boxes_fresh = None;
 
         let e = &self.events;

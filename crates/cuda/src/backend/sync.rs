@@ -6,8 +6,8 @@ use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{BackendKind, PhysicsError, TickConstants};
 use rayon::prelude::*;
 
-use super::CudaBackend;
 use super::broad::SLOTS;
+use super::{CudaBackend, Synced};
 use crate::device::{DevBuf, Pinned};
 use crate::launch::KBoxes;
 use crate::params::DeviceParams;
@@ -157,12 +157,9 @@ impl CudaBackend {
         if n > LEAF_LIMIT {
             return Err(PhysicsError::TooManyObjects { count: n, max: LEAF_LIMIT });
         }
-        let (generation, layout) = (d.generation(), d.layout_generation());
-        let identity = (d.ids().as_ptr() as usize, world.tick, world.seed);
+        let now = Synced::of(world);
         let o = &mut self.obj;
-        if self.synced.map(|s| (s.1, s.2, s.3, s.4)) != Some((layout, identity.0, identity.1, identity.2))
-            || self.n != n
-        {
+        if self.synced.map(|s| (s.layout, s.identity)) != Some((now.layout, now.identity)) || self.n != n {
             // Objects came or went: slots changed meaning, upload everything.
             for b in [&mut o.pos, &mut o.prev, &mut o.half] {
                 b.ensure(gpu, n * 12, 1.25)?;
@@ -189,14 +186,22 @@ impl CudaBackend {
             self.n = n;
             self.synced = None;
         }
-        if self.synced.map(|s| s.0) != Some(generation) {
-            gpu.upload(&o.pos, flat3(d.positions()))?;
-            gpu.upload(&o.prev, flat3(d.prev_positions()))?;
-            gpu.upload(&o.action, d.actions())?;
-            gpu.upload(&o.flags, d.flags())?;
-            self.boxes_fresh = None;
+        match self.synced {
+            Some(s) if s.generation == now.generation => {}
+            // Every change since the last sync was a `set_action` (a server's players):
+            // only the actions travel, not the whole state.
+            Some(s) if now.generation - s.generation == now.action_generation - s.action_generation => {
+                gpu.upload(&o.action, d.actions())?;
+            }
+            _ => {
+                gpu.upload(&o.pos, flat3(d.positions()))?;
+                gpu.upload(&o.prev, flat3(d.prev_positions()))?;
+                gpu.upload(&o.action, d.actions())?;
+                gpu.upload(&o.flags, d.flags())?;
+                self.boxes_fresh = None;
+            }
         }
-        self.synced = Some((generation, layout, identity.0, identity.1, identity.2));
+        self.synced = Some(now);
 
         let st = &world.statics;
         let key = (st.generation(), st.prim_count(), st.positions().as_ptr() as usize);

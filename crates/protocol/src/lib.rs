@@ -26,6 +26,7 @@
 //! buffers back. The transport lives in `myriad-net`, the choice of what to send in
 //! `myriad-interest`.
 
+mod aead;
 pub mod batch;
 pub mod error;
 pub mod header;

@@ -39,8 +39,7 @@
 //! numbers that interleave with the parent's in time but not in value; the receiver's
 //! [`ReplayWindow`] accepts them in any order within its width.
 
-use chacha20poly1305::aead::array::Array;
-use chacha20poly1305::{AeadInOut, ChaCha20Poly1305, KeyInit};
+use crate::aead::Aead;
 
 use crate::batch::DatagramBatch;
 use crate::error::{DecodeError, OpenError, SealError};
@@ -91,13 +90,6 @@ impl std::fmt::Debug for SecretKey {
     }
 }
 
-fn nonce(direction: Direction, sequence: u64) -> Array<u8, chacha20poly1305::consts::U12> {
-    let mut n = [0u8; 12];
-    n[0] = direction.nonce_byte();
-    n[4..].copy_from_slice(&sequence.to_le_bytes());
-    Array::from(n)
-}
-
 /// Seals outgoing datagrams of one session and direction.
 ///
 /// Deliberately not `Clone`: two copies would hand out the same sequence numbers and so
@@ -105,7 +97,7 @@ fn nonce(direction: Direction, sequence: u64) -> Array<u8, chacha20poly1305::con
 /// or device, [`lease`](Self::lease) a range of sequence numbers instead (see the
 /// module docs on nonce ownership).
 pub struct Sealer {
-    cipher: ChaCha20Poly1305,
+    cipher: Aead,
     /// Kept only to hand out leases.
     key: SecretKey,
     session_id: u64,
@@ -146,7 +138,7 @@ impl Sealer {
         end_sequence: u64,
         leased: bool,
     ) -> Self {
-        let cipher = ChaCha20Poly1305::new(&Array::from(key.0));
+        let cipher = Aead::new(&key.0);
         Self { cipher, key, session_id, direction, next_sequence, end_sequence, leased }
     }
 
@@ -215,11 +207,7 @@ impl Sealer {
         let (body, tag_space) = rest.split_at_mut(len - MIN_DATAGRAM);
         let header: &mut [u8; HEADER_LEN] = head.try_into().map_err(|_| SealError::BadLength(len))?;
         Header { kind, session_id: self.session_id, sequence }.write(header);
-        let tag = self
-            .cipher
-            .encrypt_inout_detached(&nonce(self.direction, sequence), header, body.into())
-            // Only fails for bodies of 256 GiB and more.
-            .map_err(|_| SealError::BadLength(len))?;
+        let tag = self.cipher.seal(self.direction, sequence, header, body);
         tag_space.copy_from_slice(&tag);
         self.next_sequence += 1;
         Ok(sequence)
@@ -372,7 +360,7 @@ pub struct Opened<T> {
 ///
 /// Not `Clone`: two copies would each accept the same packet once.
 pub struct Opener {
-    cipher: ChaCha20Poly1305,
+    cipher: Aead,
     session_id: u64,
     direction: Direction,
     window: ReplayWindow,
@@ -391,7 +379,7 @@ impl std::fmt::Debug for Opener {
 impl Opener {
     /// An opener for datagrams travelling in `direction`, sealed with `key`.
     pub fn new(session_id: u64, direction: Direction, key: &[u8; 32]) -> Self {
-        Self { cipher: ChaCha20Poly1305::new(&Array::from(*key)), session_id, direction, window: ReplayWindow::new() }
+        Self { cipher: Aead::new(key), session_id, direction, window: ReplayWindow::new() }
     }
 
     /// The replay window (read only).
@@ -403,8 +391,10 @@ impl Opener {
     ///
     /// Order: length, version, kind and direction, sequence not `u64::MAX`, session id,
     /// replay window (all without cryptography), then the tag, then `decode`; the
-    /// sequence number is recorded only when all passed. On any error the opener is unchanged. If the tag
-    /// verified, `datagram`'s body now holds plaintext; otherwise it is untouched.
+    /// sequence number is recorded only when all passed. On any error the opener is
+    /// unchanged. If the tag verified, `datagram`'s body now holds plaintext; a datagram
+    /// rejected before the tag check is untouched, and one whose tag failed has an
+    /// unspecified body (it is garbage either way).
     pub fn open_with<T>(
         &mut self,
         datagram: &mut [u8],
@@ -418,10 +408,8 @@ impl Opener {
         let len = datagram.len();
         let (head, rest) = datagram.split_at_mut(HEADER_LEN);
         let (body, tag) = rest.split_at_mut(len - MIN_DATAGRAM);
-        let tag = Array::try_from(&*tag).map_err(|_| OpenError::Authentication)?;
-        self.cipher
-            .decrypt_inout_detached(&nonce(self.direction, header.sequence), head, body.into(), &tag)
-            .map_err(|_| OpenError::Authentication)?;
+        // On failure the body may be partly decrypted: the caller drops the datagram.
+        self.cipher.open(self.direction, header.sequence, head, body, tag).map_err(|_| OpenError::Authentication)?;
         let message = decode(header.kind, body)?;
         self.window.commit(header.sequence)?;
         Ok(Opened { header, message })
@@ -503,10 +491,7 @@ mod tests {
         let (head, tag_space) = d.split_at_mut(HEADER_LEN);
         let head: &mut [u8; HEADER_LEN] = head.try_into().unwrap();
         Header { kind: PacketKind::Ready, session_id: keys.session_id, sequence }.write(head);
-        let cipher = ChaCha20Poly1305::new(&Array::from(keys.client_to_server));
-        let tag = cipher
-            .encrypt_inout_detached(&nonce(Direction::ClientToServer, sequence), head, (&mut [][..]).into())
-            .unwrap();
+        let tag = Aead::new(&keys.client_to_server).seal(Direction::ClientToServer, sequence, head, &mut []);
         tag_space.copy_from_slice(&tag);
         d
     }

@@ -68,9 +68,10 @@ pub struct BenchArgs {
     /// the `packets`, `send` and `receive` columns).
     #[arg(long)]
     pub physics_only: bool,
-    /// Area-of-interest edge length of the server tick, in world units.
-    #[arg(long, default_value_t = ServerConfig::default().aoi_size)]
-    pub aoi_size: f32,
+    /// Area-of-interest edge lengths of the server tick, in world units (comma-separated:
+    /// one server-tick row per size, e.g. `14,100`).
+    #[arg(long, value_delimiter = ',', default_values_t = [ServerConfig::default().aoi_size])]
+    pub aoi_size: Vec<f32>,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -132,6 +133,8 @@ struct ServerTick {
     bytes: u64,
     records: u64,
     actions_received: u64,
+    /// Bytes sent per player and second at the nominal tick rate.
+    bytes_per_player_s: f64,
     delivered: u64,
     rejected: u64,
     /// Smallest number over the measured ticks of players whose update held their own
@@ -150,9 +153,12 @@ impl Row {
         self.mode == SERVER
     }
 
-    /// The backend, with "server tick" on server-tick rows.
+    /// The backend, with "server tick" and the AOI edge on server-tick rows.
     pub fn label(&self) -> String {
-        if self.is_server() { format!("{} server tick", self.backend) } else { self.backend.clone() }
+        match &self.server {
+            Some(t) => format!("{} server tick, AOI {}", self.backend, t.aoi_size),
+            None => self.backend.clone(),
+        }
     }
 
     /// The stage times in the order of [`reference::STAGES`].
@@ -306,13 +312,20 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, pr
 }
 
 /// The whole server tick on `kind` with one bot per user of the world.
-fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, progress: &Progress) -> Result<Row> {
-    progress.start(format!("scenario {label} · {kind} server tick"));
+fn server_one(
+    label: &str,
+    world: &World,
+    kind: BackendKind,
+    aoi: f32,
+    args: &BenchArgs,
+    progress: &Progress,
+) -> Result<Row> {
+    progress.start(format!("scenario {label} · {kind} server tick, AOI {aoi}"));
     let backend = create_backend(kind)?;
     let mut row = empty_row(label, world, kind, backend.description(), SERVER);
     row.ticks = args.ticks;
     row.warmup = args.warmup;
-    let config = ServerConfig { aoi_size: args.aoi_size, ..ServerConfig::default() };
+    let config = ServerConfig { aoi_size: aoi, ..ServerConfig::default() };
     let mut bench = TickBench::new(config, world.clone(), backend).context("starting the server tick")?;
     for _ in 0..args.warmup {
         bench.tick()?;
@@ -338,14 +351,17 @@ fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, p
     row.total_ms = median(samples.iter().map(TickSample::total_ms).collect());
     row.state_hash = format!("{:016x}", bench.world().state_hash());
     let m = |f: fn(&TickSample) -> u64| median_u64(samples.iter().map(f));
+    let bytes = m(|s| s.work.bytes);
+    let tick_rate = f64::from(ServerConfig::default().tick_rate);
     let server = ServerTick {
         players: bench.players(),
-        aoi_size: args.aoi_size,
+        aoi_size: aoi,
         aoi_query: median(samples.iter().map(|s| s.work.aoi_ms).collect()),
         datagrams: m(|s| s.work.datagrams),
-        bytes: m(|s| s.work.bytes),
+        bytes,
         records: m(|s| s.work.records as u64),
         actions_received: m(|s| s.work.received),
+        bytes_per_player_s: bytes as f64 * tick_rate / bench.players().max(1) as f64,
         delivered: m(|s| s.delivered),
         rejected: samples.iter().map(|s| s.rejected).sum(),
         min_saw_own: samples.iter().map(|s| s.saw_own).min().unwrap_or(0),
@@ -354,7 +370,7 @@ fn server_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, p
         anyhow::bail!("{} datagrams the bots could not open: the server tick is broken", server.rejected);
     }
     progress.log(format!(
-        "  {kind} server tick: {:.3} ms (packets {:.3}, send {:.3}, receive {:.3}), {} players, {} datagrams a tick",
+        "  {kind} server tick, AOI {aoi}: {:.3} ms (packets {:.3}, send {:.3}, receive {:.3}), {} players, {} datagrams a tick",
         row.total_ms, row.packets, row.send, row.receive, server.players, server.datagrams
     ));
     row.server = Some(server);
@@ -401,7 +417,11 @@ fn is_naive(kind: BackendKind) -> bool {
 /// Runs the benchmark and returns its rows.
 pub fn measure(args: &BenchArgs) -> Result<Vec<Row>> {
     let per_run = args.warmup.max(1) + args.ticks;
-    let server_runs = if args.physics_only { 0 } else { args.backend.iter().filter(|k| !is_naive(**k)).count() };
+    let server_runs = if args.physics_only {
+        0
+    } else {
+        args.backend.iter().filter(|k| !is_naive(**k)).count() * args.aoi_size.len()
+    };
     let runs = args.scenario.len() * (args.backend.len() + server_runs) + args.sweep.len() * args.backend.len();
     let progress = Progress::new(runs as u64 * per_run);
     let mut rows = Vec::new();
@@ -429,13 +449,15 @@ pub fn measure(args: &BenchArgs) -> Result<Vec<Row>> {
             let physics_skipped =
                 rows.iter().any(|r| r.scenario == spec.name && r.backend == kind.to_string() && r.skipped.is_some());
             if physics_skipped {
-                progress.skip(per_run);
+                progress.skip(per_run * args.aoi_size.len() as u64);
                 continue;
             }
-            rows.push(
-                server_one(&spec.name, &world, kind, args, &progress)
-                    .with_context(|| format!("server tick of scenario {} on {kind}", spec.name))?,
-            );
+            for &aoi in &args.aoi_size {
+                rows.push(
+                    server_one(&spec.name, &world, kind, aoi, args, &progress)
+                        .with_context(|| format!("server tick of scenario {} on {kind}, AOI {aoi}", spec.name))?,
+                );
+            }
         }
     }
     for &n in &args.sweep {
@@ -541,16 +563,17 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         );
         let _ = writeln!(
             s,
-            "| scenario | backend | players | tick | server CPU | receive | packets | of which AOI query | send | datagrams | KiB sent | records | actions in | opened by bots | min. players seeing themselves |"
+            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which AOI query | send | datagrams | KiB sent | kB/s per player | records | actions in | opened by bots | min. players seeing themselves |"
         );
-        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(13));
+        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(15));
         for r in &server_rows {
             let Some(t) = &r.server else { continue };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {} | {} | {} | {} |",
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} |",
                 r.scenario,
                 r.backend,
+                t.aoi_size,
                 t.players,
                 fmt_ms(r.total_ms),
                 fmt_ms(r.cpu_ms),
@@ -560,6 +583,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
                 fmt_ms(r.send),
                 t.datagrams,
                 t.bytes as f64 / 1024.0,
+                t.bytes_per_player_s / 1000.0,
                 t.records,
                 t.actions_received,
                 t.delivered,
@@ -569,8 +593,9 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         let _ = writeln!(
             s,
             "\n`tick` is the sum of the stages (receive included); `server CPU` is the process's CPU time less the bots'. \
-             AOI edge {} units; each bot sends an action every {} ticks. cpu threads: {threads}.",
-            server_rows[0].server.as_ref().map_or(0.0, |t| t.aoi_size),
+             `kB/s per player`: bytes sent per tick and player at the nominal tick rate ({} Hz). \
+             Each bot sends an action every {} ticks. cpu threads: {threads}.",
+            ServerConfig::default().tick_rate,
             myriad_server::tick_bench::ACTION_EVERY
         );
     }

@@ -52,17 +52,36 @@ fn sim_prints_the_same_hash_on_both_backends() {
 #[test]
 fn bench_reports_every_stage_and_the_table_columns() {
     let dir = std::env::temp_dir().join(format!("myriad-bench-{}", std::process::id()));
-    let mut args =
-        vec!["bench", "--format", "json", "--ticks", "5", "--warmup", "1", "--backend", "cpu,cpu-naive", "--out"];
+    let mut args = vec![
+        "bench",
+        "--format",
+        "json",
+        "--ticks",
+        "5",
+        "--warmup",
+        "1",
+        "--backend",
+        "cpu,cpu-naive",
+        "--aoi-size",
+        "14,100",
+        "--out",
+    ];
     let dir_s = dir.to_string_lossy().to_string();
     args.push(&dir_s);
     args.extend_from_slice(SMALL);
     let out = myriad(&args);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let rows = json_lines(&out.stdout);
-    // Two physics rows, then the whole server tick on the non-naive backend.
-    assert_eq!(rows.len(), 3);
-    assert_eq!([&rows[0]["mode"], &rows[1]["mode"], &rows[2]["mode"]], ["physics", "physics", "server"]);
+    // Two physics rows, then the whole server tick on the non-naive backend, once per
+    // AOI size.
+    assert_eq!(rows.len(), 4);
+    assert_eq!(
+        [&rows[0]["mode"], &rows[1]["mode"], &rows[2]["mode"], &rows[3]["mode"]],
+        ["physics", "physics", "server", "server"]
+    );
+    assert_eq!([&rows[2]["server"]["aoi_size"], &rows[3]["server"]["aoi_size"]], [14.0, 100.0]);
+    let per_player = |r: &serde_json::Value| r["server"]["bytes_per_player_s"].as_f64().unwrap();
+    assert!(per_player(&rows[3]) > per_player(&rows[2]), "a larger view sends more");
     for r in &rows {
         for key in [
             "upload",
@@ -119,7 +138,8 @@ fn bench_reports_every_stage_and_the_table_columns() {
     assert!(lines.iter().all(|l| fields(l) == fields(lines[0])), "{csv}");
     let md = std::fs::read_to_string(dir.join("bench.md")).unwrap();
     assert!(md.contains("396.5"), "the reference's Table 1 is printed beside ours");
-    assert!(md.contains("Table 3") && md.contains("cpu server tick"), "{md}");
+    assert!(md.contains("Table 3") && md.contains("cpu server tick, AOI 14"), "{md}");
+    assert!(md.contains("kB/s per player"), "{md}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -25,6 +25,9 @@ pub struct ServerConfig {
     pub tick_rate: f32,
     /// UDP address of the game traffic (the reference's UDP port).
     pub udp_addr: SocketAddr,
+    /// UDP sockets on `udp_addr` (`SO_REUSEPORT`), each sending its share of a tick's
+    /// datagrams on its own core; 0 picks one per core, at most 8.
+    pub udp_sockets: usize,
     /// TCP address of the TLS login service.
     pub login_addr: SocketAddr,
     /// Address of the Prometheus `/metrics` endpoint; none disables it.
@@ -96,6 +99,7 @@ impl Default for ServerConfig {
         ServerConfig {
             tick_rate: 30.0,
             udp_addr: "0.0.0.0:7777".parse().expect("valid literal"),
+            udp_sockets: 0,
             login_addr: "0.0.0.0:7778".parse().expect("valid literal"),
             metrics_addr: None,
             player_speed: 5.0,
@@ -194,6 +198,9 @@ impl ServerConfig {
         if !(self.aoi_size.is_finite() && self.aoi_size > 0.0) {
             return bad("aoi_size", format!("{} (> 0)", self.aoi_size));
         }
+        if self.udp_sockets > 64 {
+            return bad("udp_sockets", format!("{} (0 for one per core, or 1 to 64)", self.udp_sockets));
+        }
         if !(1..=64).contains(&self.max_datagrams_per_player) {
             return bad("max_datagrams_per_player", format!("{} (1 to 64)", self.max_datagrams_per_player));
         }
@@ -222,6 +229,14 @@ impl ServerConfig {
             return bad("log_stages_every_s", format!("{}", self.log_stages_every_s));
         }
         self.physics().validate().map_err(|e| ConfigError::Value { key: "physics".into(), reason: e.to_string() })
+    }
+
+    /// UDP sockets to open: `udp_sockets`, or one per core (at most 8) when it is 0.
+    pub fn udp_socket_count(&self) -> usize {
+        match self.udp_sockets {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()).min(8),
+            n => n,
+        }
     }
 
     /// The Argon2id cost of new password hashes.

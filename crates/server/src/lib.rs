@@ -134,8 +134,8 @@ impl ServerHandle {
             statics = prepared.description.static_primitives,
             "world ready"
         );
-        let endpoint = Endpoint::bind(EndpointConfig::new(config.udp_addr))?;
-        let udp_addr = endpoint.local_addr();
+        let endpoints = Endpoint::bind_group(EndpointConfig::new(config.udp_addr), config.udp_socket_count())?;
+        let udp_addr = endpoints[0].local_addr();
         let certificate = tls::certificate_paths(&config)?.0;
         let acceptor = tokio_rustls::TlsAcceptor::from(tls::server_config(&config)?);
         let listener = runtime
@@ -194,7 +194,7 @@ impl ServerHandle {
                         return;
                     }
                 };
-                let transport = Box::new(transport::UdpTransport::new(endpoint));
+                let transport = Box::new(transport::UdpTransport::group(endpoints));
                 let tick_loop = tick::TickLoop::builder(tick_config, world, backend, transport)
                     .persister(Box::new(persister_for_tick), map_id)
                     .commands(receiver)

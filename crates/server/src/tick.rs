@@ -388,32 +388,19 @@ impl TickLoop {
                 out.extend(p.view.datagrams().iter().map(|d| (addr, d)));
             }
         }
-        let (mut sent, mut bytes, mut stalls) = (0, 0u64, 0);
-        while sent < out.len() {
-            match self.transport.send(&out[sent..]) {
-                Ok(0) => {
-                    stalls += 1;
-                    if stalls > 3 {
-                        break;
-                    }
-                    std::thread::yield_now();
-                }
-                Ok(n) => {
-                    bytes += out[sent..sent + n].iter().map(|(_, d)| d.len() as u64).sum::<u64>();
-                    sent += n;
-                }
-                Err(e) => {
-                    tracing::warn!(error = %e, "send failed");
-                    break;
-                }
+        let sent = match self.transport.send(&out) {
+            Ok(sent) => sent,
+            Err(e) => {
+                tracing::warn!(error = %e, "send failed");
+                crate::transport::Sent::default()
             }
-        }
-        if sent < out.len() {
+        };
+        if sent.datagrams < out.len() {
             metrics::counter!("myriad_packets_dropped_total", "reason" => "send_buffer_full")
-                .increment((out.len() - sent) as u64);
+                .increment((out.len() - sent.datagrams) as u64);
         }
         self.sessions.clear_control();
-        (bytes, sent as u64)
+        (sent.bytes, sent.datagrams as u64)
     }
 
     /// Hands player states to the persister, if there is one.

@@ -103,8 +103,9 @@ impl TickBench {
     /// (tick rate, AOI size, datagrams per player, session timeout).
     pub fn new(config: ServerConfig, world: World, backend: Box<dyn Backend>) -> Result<TickBench, ServerError> {
         config.validate()?;
-        let endpoint = Endpoint::bind(EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0))))?;
-        let server_addr = endpoint.local_addr();
+        let loopback = EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)));
+        let endpoints = Endpoint::bind_group(loopback, config.udp_socket_count())?;
+        let server_addr = endpoints[0].local_addr();
         let users: Vec<_> = world
             .dynamics
             .ids()
@@ -113,7 +114,7 @@ impl TickBench {
             .filter(|(_, k)| **k == ObjectKind::User)
             .map(|(id, _)| *id)
             .collect();
-        let mut tick = TickLoop::builder(config, world, backend, Box::new(UdpTransport::new(endpoint))).build();
+        let mut tick = TickLoop::builder(config, world, backend, Box::new(UdpTransport::group(endpoints))).build();
         let mut bots = Vec::with_capacity(users.len());
         for (i, entity) in users.into_iter().enumerate() {
             let joined = tick

@@ -8,56 +8,136 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use myriad_net::{Endpoint, RecvBatch};
+use rayon::prelude::*;
 
 /// Datagrams taken from the socket per `recvmmsg` call.
 pub const RECV_BATCH: usize = 1024;
 
+/// What one [`Transport::send`] did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Sent {
+    /// Datagrams handed to the network.
+    pub datagrams: usize,
+    /// Their bytes.
+    pub bytes: u64,
+}
+
 /// A datagram transport as the tick loop uses it: non-blocking batches in and out.
 pub trait Transport: Send {
-    /// Receives one batch of queued datagrams (at most [`RECV_BATCH`]), calling `each`
-    /// with the sender and the bytes (which it may decrypt in place) for every one.
-    /// Returns how many were taken; 0 means nothing is queued. Never blocks.
+    /// Receives one batch of queued datagrams per socket (at most [`RECV_BATCH`] each),
+    /// calling `each` with the sender and the bytes (which it may decrypt in place) for
+    /// every one. Returns how many were taken; 0 means nothing is queued. Never blocks.
     fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize>;
 
-    /// Sends a prefix of `out`, as much as the transport takes now; returns its length
-    /// (0 when the transport is full). Never blocks.
-    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<usize>;
+    /// Sends as much of `out` as the network takes now, retrying briefly while a socket
+    /// buffer is full; what is left is dropped (the caller counts it). Never blocks for
+    /// long. The datagrams sent need not be a prefix of `out` when several sockets send
+    /// in parallel.
+    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent>;
 
     /// The address clients send to.
     fn local_addr(&self) -> SocketAddr;
 }
 
-/// The UDP endpoint (`recvmmsg`/`sendmmsg`) as a [`Transport`].
+/// Below this many datagrams a tick's send stays on one socket: waking the other
+/// senders costs more than it saves.
+const PARALLEL_SEND_MIN: usize = 256;
+
+/// Times a socket may report itself full in a row before the rest of its share is
+/// dropped.
+const SEND_STALLS: usize = 3;
+
+/// The UDP endpoints (`recvmmsg`/`sendmmsg`) as a [`Transport`]: one socket, or a
+/// `SO_REUSEPORT` group on one port. A group sends in parallel, one socket per worker of
+/// the rayon pool, each with its own contiguous share of the tick's datagrams; clients
+/// see one server address either way.
 #[derive(Debug)]
 pub struct UdpTransport {
-    endpoint: Endpoint,
+    endpoints: Vec<Endpoint>,
     batch: RecvBatch,
 }
 
 impl UdpTransport {
-    /// Wraps a bound endpoint.
+    /// Wraps one bound endpoint.
     pub fn new(endpoint: Endpoint) -> Self {
-        UdpTransport { endpoint, batch: RecvBatch::new(RECV_BATCH) }
+        Self::group(vec![endpoint])
     }
+
+    /// Wraps a group of endpoints bound to one address with `SO_REUSEPORT`
+    /// ([`Endpoint::bind_group`]); at least one.
+    pub fn group(endpoints: Vec<Endpoint>) -> Self {
+        assert!(!endpoints.is_empty(), "a transport needs a socket");
+        UdpTransport { endpoints, batch: RecvBatch::new(RECV_BATCH) }
+    }
+
+    /// Sockets in the group.
+    pub fn sockets(&self) -> usize {
+        self.endpoints.len()
+    }
+}
+
+/// Sends all of `out` on `endpoint`, retrying while its buffer is full, at most
+/// [`SEND_STALLS`] times in a row.
+fn send_all(endpoint: &mut Endpoint, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
+    let mut sent = Sent::default();
+    let mut stalls = 0;
+    while sent.datagrams < out.len() {
+        match endpoint.send_batch(&out[sent.datagrams..])? {
+            0 => {
+                stalls += 1;
+                if stalls > SEND_STALLS {
+                    break;
+                }
+                std::thread::yield_now();
+            }
+            n => {
+                let range = sent.datagrams..sent.datagrams + n;
+                sent.bytes += out[range].iter().map(|(_, d)| d.len() as u64).sum::<u64>();
+                sent.datagrams += n;
+                stalls = 0;
+            }
+        }
+    }
+    Ok(sent)
 }
 
 impl Transport for UdpTransport {
     fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize> {
-        let n = self.endpoint.recv_batch(&mut self.batch)?;
-        for i in 0..n {
-            if let Some((from, bytes)) = self.batch.get_mut(i) {
-                each(from, bytes);
+        let mut total = 0;
+        for endpoint in &mut self.endpoints {
+            let n = endpoint.recv_batch(&mut self.batch)?;
+            for i in 0..n {
+                if let Some((from, bytes)) = self.batch.get_mut(i) {
+                    each(from, bytes);
+                }
             }
+            total += n;
         }
-        Ok(n)
+        Ok(total)
     }
 
-    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<usize> {
-        self.endpoint.send_batch(out)
+    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
+        if self.endpoints.len() == 1 || out.len() < PARALLEL_SEND_MIN {
+            return send_all(&mut self.endpoints[0], out);
+        }
+        let share = out.len().div_ceil(self.endpoints.len());
+        let results: Vec<io::Result<Sent>> = self
+            .endpoints
+            .par_iter_mut()
+            .zip(out.par_chunks(share))
+            .map(|(endpoint, chunk)| send_all(endpoint, chunk))
+            .collect();
+        let mut sent = Sent::default();
+        for r in results {
+            let r = r?;
+            sent.datagrams += r.datagrams;
+            sent.bytes += r.bytes;
+        }
+        Ok(sent)
     }
 
     fn local_addr(&self) -> SocketAddr {
-        self.endpoint.local_addr()
+        self.endpoints[0].local_addr()
     }
 }
 
@@ -120,12 +200,12 @@ impl Transport for MemoryTransport {
         Ok(batch.len())
     }
 
-    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<usize> {
+    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
         let mut q = self.queues();
         let room = q.send_capacity.map_or(out.len(), |c| c.saturating_sub(q.outbox.len()));
         let n = room.min(out.len());
         q.outbox.extend(out[..n].iter().map(|(to, d)| (*to, d.to_vec())));
-        Ok(n)
+        Ok(Sent { datagrams: n, bytes: out[..n].iter().map(|(_, d)| d.len() as u64).sum() })
     }
 
     fn local_addr(&self) -> SocketAddr {
@@ -153,9 +233,50 @@ mod tests {
 
         test_side.queues().send_capacity = Some(1);
         let out = [(client, &[9u8][..]), (client, &[8u8][..])];
-        assert_eq!(server_side.send(&out).unwrap(), 1);
-        assert_eq!(server_side.send(&out[1..]).unwrap(), 0, "full");
+        assert_eq!(server_side.send(&out).unwrap(), Sent { datagrams: 1, bytes: 1 });
+        assert_eq!(server_side.send(&out[1..]).unwrap().datagrams, 0, "full");
         assert_eq!(test_side.take_sent(), vec![(client, vec![9])]);
         assert_eq!(server_side.local_addr(), addr);
+    }
+
+    #[test]
+    fn a_socket_group_sends_everything_in_parallel_from_one_address() {
+        use myriad_net::EndpointConfig;
+        let group = Endpoint::bind_group(EndpointConfig::new("127.0.0.1:0".parse().unwrap()), 3).unwrap();
+        let mut transport = UdpTransport::group(group);
+        assert_eq!(transport.sockets(), 3);
+        let server = transport.local_addr();
+        let clients: Vec<std::net::UdpSocket> =
+            (0..4).map(|_| std::net::UdpSocket::bind("127.0.0.1:0").unwrap()).collect();
+        let payloads: Vec<Vec<u8>> = (0..1000u32).map(|i| i.to_le_bytes().to_vec()).collect();
+        let out: Vec<(SocketAddr, &[u8])> =
+            payloads.iter().enumerate().map(|(i, p)| (clients[i % 4].local_addr().unwrap(), p.as_slice())).collect();
+        let sent = transport.send(&out).unwrap();
+        assert_eq!(sent, Sent { datagrams: 1000, bytes: 4000 });
+        let mut got = Vec::new();
+        let mut buf = [0u8; 16];
+        for c in &clients {
+            c.set_read_timeout(Some(std::time::Duration::from_secs(2))).unwrap();
+            for _ in 0..250 {
+                let (n, from) = c.recv_from(&mut buf).unwrap();
+                assert_eq!(from, server, "every socket of the group sends from the one address");
+                got.push(u32::from_le_bytes(buf[..n].try_into().unwrap()));
+            }
+        }
+        got.sort_unstable();
+        assert_eq!(got, (0..1000).collect::<Vec<_>>());
+        // And a client's datagrams reach the group, whichever socket the kernel picks.
+        for c in &clients {
+            c.send_to(b"hi", server).unwrap();
+        }
+        let mut seen = 0;
+        for _ in 0..100 {
+            seen += transport.receive(&mut |_, b| assert_eq!(b, b"hi")).unwrap();
+            if seen == 4 {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        assert_eq!(seen, 4);
     }
 }

@@ -83,27 +83,24 @@ pub(crate) trait DeviceItem {
     const C_TYPE: &'static str;
 }
 
-impl DeviceItem for f32 {
-    const C_TYPE: &'static str = "float";
+/// `impl DeviceItem` for each Rust type with its C name.
+macro_rules! device_items {
+    ($($t:ty => $c:literal),* $(,)?) => {
+        $(impl DeviceItem for $t {
+            const C_TYPE: &'static str = $c;
+        })*
+    };
 }
-impl DeviceItem for u32 {
-    const C_TYPE: &'static str = "u32";
-}
-impl DeviceItem for u64 {
-    const C_TYPE: &'static str = "u64";
-}
-impl DeviceItem for u8 {
-    const C_TYPE: &'static str = "u8";
-}
-impl DeviceItem for u16 {
-    const C_TYPE: &'static str = "unsigned short";
-}
-impl DeviceItem for Node {
-    const C_TYPE: &'static str = "Node";
-}
-impl DeviceItem for DeviceParams {
-    const C_TYPE: &'static str = "Params";
-}
+
+device_items!(
+    f32 => "float",
+    u32 => "u32",
+    u64 => "u64",
+    u8 => "u8",
+    u16 => "unsigned short",
+    Node => "Node",
+    DeviceParams => "Params",
+);
 
 /// A value that can be passed as one kernel parameter.
 pub(crate) trait KernelParam: Copy {

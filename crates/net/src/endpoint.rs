@@ -120,7 +120,14 @@ impl Endpoint {
     /// Opens `count` endpoints on one address with `SO_REUSEPORT`, one per I/O
     /// thread; the kernel spreads senders over them by address hash. With port 0 the
     /// first socket picks the port and the others join it.
+    ///
+    /// A fixed port must be free: a plain socket is bound to it first (and closed), so
+    /// a second server started on a port a running one holds fails as it would without
+    /// `SO_REUSEPORT`, instead of silently taking half of its traffic.
     pub fn bind_group(config: EndpointConfig, count: usize) -> Result<Vec<Self>, NetError> {
+        if config.bind.port() != 0 {
+            drop(Self::bind(EndpointConfig { reuse_port: false, ..config })?);
+        }
         let mut config = EndpointConfig { reuse_port: true, ..config };
         let mut group = Vec::with_capacity(count);
         for _ in 0..count {
@@ -294,5 +301,13 @@ mod tests {
         let mut plain = local();
         plain.bind = group[0].local_addr();
         assert!(matches!(Endpoint::bind(plain), Err(NetError::Socket { action: "bind", .. })));
+        // Nor can a second group join a port a running group holds.
+        assert!(matches!(Endpoint::bind_group(plain, 2), Err(NetError::Socket { action: "bind", .. })));
+        // A fixed port that is free is fine.
+        let port = group[0].local_addr();
+        drop(group);
+        let mut again = local();
+        again.bind = port;
+        assert_eq!(Endpoint::bind_group(again, 2).unwrap().len(), 2);
     }
 }

@@ -39,7 +39,7 @@ mod tests;
 
 use crate::config::ServerConfig;
 use crate::dilation::DilationController;
-use crate::inbound;
+use crate::inbound::{self, ReceiveLimits};
 use crate::outbound::{CpuOutbound, Outbound, Recipient};
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
 use crate::stages::{StageTimes, TickStage};
@@ -94,6 +94,11 @@ pub struct TickWork {
     pub received: u64,
     /// Actions applied to the world.
     pub actions: u64,
+    /// Received datagrams that reached the tag check.
+    pub tag_checks: u64,
+    /// Received datagrams dropped over their session's receive budget, before any
+    /// cryptography.
+    pub over_budget: u64,
 }
 
 /// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
@@ -282,7 +287,9 @@ impl TickLoop {
             dilation_permille: self.dilation.permille(),
         };
         let now = Instant::now();
-        let inbound = inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, now);
+        let limits = self.receive_limits();
+        let inbound =
+            inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, &limits, now);
         let mut left: Vec<PlayerState> = inbound
             .leaving
             .iter()
@@ -292,6 +299,8 @@ impl TickLoop {
         left.extend(self.sessions.expire(&mut self.world, now, timeout));
         work.received = inbound.received;
         work.actions = inbound.actions;
+        work.tag_checks = inbound.tag_checks;
+        work.over_budget = inbound.over_budget;
         work.stages[TickStage::Receive] = ms(t.elapsed());
 
         let k = TickConstants::new(&self.config.physics(), 1.0);
@@ -315,6 +324,17 @@ impl TickLoop {
             self.hand_off(&left);
         }
         work
+    }
+
+    /// The receive budget of this tick (`receive_*` keys); the time share is of the
+    /// nominal period, so a dilated tick does not receive for longer.
+    fn receive_limits(&self) -> ReceiveLimits {
+        let period = Duration::from_secs_f64(1.0 / f64::from(self.config.tick_rate));
+        ReceiveLimits {
+            per_session: self.config.receive_per_session,
+            other_address: self.config.receive_other_address,
+            time: period.mul_f64(f64::from(self.config.receive_time_percent) / 100.0),
+        }
     }
 
     fn drain_commands(&mut self) {

@@ -90,11 +90,7 @@ async fn login_inner(
     config: &ClientConfig,
     credentials: &Credentials,
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
-    let request = LoginRequest {
-        username: credentials.username.clone(),
-        password: credentials.password.clone(),
-        want_map: config.want_map,
-    };
+    let request = LoginRequest::new(credentials.username.clone(), credentials.password.clone(), config.want_map);
     let mut frame = Vec::new();
     request.encode(&mut frame).map_err(|e| ClientError::Invalid(e.to_string()))?;
     let tcp =

@@ -120,6 +120,12 @@ impl ServerHandle {
         config.validate()?;
         std::fs::create_dir_all(&config.data_dir)
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
+        // The verification pool takes its size at its first use; a second server in the
+        // same process (tests) shares the first one's pool.
+        let hashing_threads = config.hashing_threads();
+        if !myriad_store::configure_hash_pool(hashing_threads) {
+            tracing::debug!("the password-verification pool was already running");
+        }
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .thread_name("myriad-io")
@@ -169,8 +175,15 @@ impl ServerHandle {
                 config.login_failures_per_addr,
                 config.login_failures_per_account,
             ),
-            hashing: tokio::sync::Semaphore::new(config.login_concurrency),
+            hashing: login::HashGate::new(
+                hashing_threads,
+                config.login_queue,
+                Duration::from_millis(config.login_queue_deadline_ms),
+            ),
             connections: Arc::new(tokio::sync::Semaphore::new(MAX_LOGIN_CONNECTIONS)),
+            per_addr: Arc::default(),
+            per_addr_cap: config.login_connections_per_addr,
+            handshake_timeout: Duration::from_millis(config.login_handshake_timeout_ms),
             shared: shared.clone(),
         });
         runtime.spawn(service.serve(listener));
@@ -271,6 +284,11 @@ impl ServerHandle {
     /// The store the server uses (for tests and tools in the same process).
     pub fn store(&self) -> &Store {
         &self.store
+    }
+
+    /// What the abuse defences did since start (receive budget, login limits).
+    pub fn defence(&self) -> status::DefenceStats {
+        self.shared.defence.snapshot()
     }
 
     /// Adds busy time to every tick, as if the world had more work (load tests).

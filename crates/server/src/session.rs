@@ -301,6 +301,15 @@ impl Sessions {
         }
     }
 
+    /// Queues `msg` for every player that gets state updates (ready, address known).
+    pub fn queue_to_active(&mut self, msg: &ServerMessage) {
+        for idx in 0..self.players.len() {
+            if self.players[idx].active() {
+                self.queue_message(idx, msg);
+            }
+        }
+    }
+
     /// Queues a disconnect for every player (shutdown).
     pub fn disconnect_all(&mut self, reason: DisconnectReason) {
         for idx in 0..self.players.len() {

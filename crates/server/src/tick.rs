@@ -30,7 +30,7 @@ use std::time::{Duration, Instant};
 use myriad_core::World;
 use myriad_interest::TickInfo;
 use myriad_physics::{Backend, TickConstants};
-use myriad_protocol::{DisconnectReason, ServerInfo};
+use myriad_protocol::{DisconnectReason, ServerInfo, ServerMessage};
 use myriad_store::{MapId, Persister, PlayerState, UserId};
 
 #[cfg(test)]
@@ -241,6 +241,7 @@ impl TickLoop {
             let elapsed = start.elapsed();
             if self.dilation.record(elapsed) {
                 tracing::info!(dilation_permille = self.dilation.permille(), "time dilation changed");
+                self.announce_server_info();
             }
             self.publish(&work, elapsed);
             if self.window.elapsed() >= Duration::from_secs(1) {
@@ -282,10 +283,7 @@ impl TickLoop {
         self.drain_commands();
 
         let t = Instant::now();
-        let info = ServerInfo {
-            tick_rate_hz: self.config.tick_rate.round() as u16,
-            dilation_permille: self.dilation.permille(),
-        };
+        let info = self.server_info();
         let now = Instant::now();
         let limits = self.receive_limits();
         let inbound =
@@ -324,6 +322,17 @@ impl TickLoop {
             self.hand_off(&left);
         }
         work
+    }
+
+    /// The ServerInfo every player is told (tick rate, current dilation).
+    fn server_info(&self) -> ServerInfo {
+        ServerInfo { tick_rate_hz: self.config.tick_rate.round() as u16, dilation_permille: self.dilation.permille() }
+    }
+
+    /// Queues ServerInfo for every ready player (sent with the next tick's datagrams):
+    /// the protocol promises it whenever the tick rate or the dilation changes.
+    fn announce_server_info(&mut self) {
+        self.sessions.queue_to_active(&ServerMessage::ServerInfo(self.server_info()));
     }
 
     /// The receive budget of this tick (`receive_*` keys); the time share is of the
@@ -464,6 +473,9 @@ impl TickLoop {
 
     /// Shared counters, the status window and the per-tick metrics.
     fn publish(&mut self, work: &TickWork, elapsed: Duration) {
+        let defence = &self.shared.defence;
+        defence.tag_checks.fetch_add(work.tag_checks, Ordering::Relaxed);
+        defence.over_budget.fetch_add(work.over_budget, Ordering::Relaxed);
         self.shared.dilation_permille.store(u32::from(self.dilation.permille()), Ordering::Relaxed);
         self.shared.tick.store(self.world.tick, Ordering::Relaxed);
         self.shared.players.store(self.sessions.len(), Ordering::Relaxed);

@@ -106,6 +106,7 @@ pub(crate) fn hash_blocking(cost: HashCost, password: &[u8]) -> Result<String> {
 
 /// Verifies synchronously; call only from a blocking context. A malformed stored hash
 /// counts as a mismatch (and is logged without its content).
+#[cfg(test)]
 pub(crate) fn verify_blocking(password: &[u8], phc: &str) -> bool {
     verify_with_memory(password, phc, &mut Vec::new())
 }

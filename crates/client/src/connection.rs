@@ -37,6 +37,9 @@ pub struct ClientConfig {
     pub login_timeout: Duration,
     /// Ask for the terrain and static objects at login.
     pub want_map: bool,
+    /// Local address to connect from (none: the system picks). Lets a test or the flood
+    /// tool log in from `127.0.0.2` and so on, as another client would.
+    pub local_ip: Option<std::net::IpAddr>,
 }
 
 impl ClientConfig {
@@ -50,6 +53,7 @@ impl ClientConfig {
             keepalive_every: Duration::from_secs(1),
             login_timeout: Duration::from_secs(30),
             want_map: false,
+            local_ip: None,
         })
     }
 }
@@ -93,8 +97,9 @@ async fn login_inner(
     let request = LoginRequest::new(credentials.username.clone(), credentials.password.clone(), config.want_map);
     let mut frame = Vec::new();
     request.encode(&mut frame).map_err(|e| ClientError::Invalid(e.to_string()))?;
-    let tcp =
-        TcpStream::connect(config.login_addr).await.map_err(ClientError::io("connecting to the login service"))?;
+    let tcp = connect_from(config.local_ip, config.login_addr)
+        .await
+        .map_err(ClientError::io("connecting to the login service"))?;
     let _ = tcp.set_nodelay(true);
     let name = ServerName::try_from(config.server_name.clone())
         .map_err(|e| ClientError::Invalid(format!("server name {:?}: {e}", config.server_name)))?;
@@ -115,6 +120,14 @@ async fn login_inner(
         None
     };
     Ok((accepted, map))
+}
+
+/// A TCP connection to `to`, from `local` (any port) when given.
+pub(crate) async fn connect_from(local: Option<std::net::IpAddr>, to: SocketAddr) -> std::io::Result<TcpStream> {
+    let Some(ip) = local else { return TcpStream::connect(to).await };
+    let socket = if to.is_ipv4() { tokio::net::TcpSocket::new_v4()? } else { tokio::net::TcpSocket::new_v6()? };
+    socket.bind(SocketAddr::new(ip, 0))?;
+    socket.connect(to).await
 }
 
 async fn read_frame<S: AsyncReadExt + Unpin>(s: &mut S) -> Result<Vec<u8>, ClientError> {

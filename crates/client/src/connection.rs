@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use myriad_protocol::login::{
-    FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, frame_len,
+    FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, RefusalReason, frame_len,
 };
 use myriad_protocol::{
     ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, OpenError, PlayerInput,
@@ -40,6 +40,10 @@ pub struct ClientConfig {
     /// Local address to connect from (none: the system picks). Lets a test or the flood
     /// tool log in from `127.0.0.2` and so on, as another client would.
     pub local_ip: Option<std::net::IpAddr>,
+    /// Login request version to send first ([`myriad_protocol::login::LOGIN_VERSION`]).
+    /// A server older than version 2 answers a version-2 request "malformed"; the
+    /// client then repeats it once as version 1.
+    pub login_version: u8,
 }
 
 impl ClientConfig {
@@ -54,6 +58,7 @@ impl ClientConfig {
             login_timeout: Duration::from_secs(30),
             want_map: false,
             local_ip: None,
+            login_version: myriad_protocol::login::LOGIN_VERSION,
         })
     }
 }
@@ -85,16 +90,28 @@ pub async fn login(
     config: &ClientConfig,
     credentials: &Credentials,
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
-    tokio::time::timeout(config.login_timeout, login_inner(config, credentials))
-        .await
-        .map_err(|_| ClientError::Timeout("login"))?
+    tokio::time::timeout(config.login_timeout, async {
+        match login_inner(config, credentials, config.login_version).await {
+            // A server that predates login version 2 calls a version-2 request malformed.
+            Err(ClientError::Refused { reason: RefusalReason::BadRequest, .. })
+                if config.login_version > myriad_protocol::login::MIN_LOGIN_VERSION =>
+            {
+                login_inner(config, credentials, myriad_protocol::login::MIN_LOGIN_VERSION).await
+            }
+            other => other,
+        }
+    })
+    .await
+    .map_err(|_| ClientError::Timeout("login"))?
 }
 
 async fn login_inner(
     config: &ClientConfig,
     credentials: &Credentials,
+    version: u8,
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
-    let request = LoginRequest::new(credentials.username.clone(), credentials.password.clone(), config.want_map);
+    let mut request = LoginRequest::new(credentials.username.clone(), credentials.password.clone(), config.want_map);
+    request.version = version;
     let mut frame = Vec::new();
     request.encode(&mut frame).map_err(|e| ClientError::Invalid(e.to_string()))?;
     let tcp = connect_from(config.local_ip, config.login_addr)

@@ -105,6 +105,11 @@ pub struct FloodArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
+    /// Login request version the attack and the probe send (1 for a server that
+    /// predates version 2; the client falls back to 1 by itself, at the cost of one more
+    /// connection per login).
+    #[arg(long, default_value_t = myriad_protocol::login::LOGIN_VERSION)]
+    login_version: u8,
 }
 
 /// Tick figures over a window, from the server's metrics.
@@ -156,6 +161,7 @@ pub fn run(args: FloodArgs) -> Result<()> {
     let trust = Trust::pin_file(&cert).with_context(|| format!("reading the certificate {}", cert.display()))?;
     let mut cc = ClientConfig::new(login_addr, &trust)?;
     cc.login_timeout = Duration::from_secs(20);
+    cc.login_version = args.login_version;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     rt.block_on(attack(args, cc, udp_addr))
 }

@@ -210,21 +210,28 @@ fn a_wrong_password_storm_gets_busy_answers_and_a_legitimate_login_gets_in() {
         login_concurrency: 1,
         login_queue: 2,
         login_queue_deadline_ms: 300,
+        // No limit stops this storm: every attempt reaches the queue.
         login_failures_per_account: 1000,
+        login_failures_per_addr: 100_000,
         ..config(dir.path())
     };
     let (rt, server, cc) = start(cfg, 2);
     rt.block_on(async {
-        let sources = flood::loopback_sources(10, 500);
-        let bounds = Bounds { count: 600, rate: 0.0, duration: Duration::from_secs(4) };
+        let sources = flood::loopback_sources(10, 20);
+        let bounds = Bounds { count: 0, rate: 0.0, duration: Duration::from_secs(2) };
         let storm_cc = cc.clone();
         let storm = tokio::spawn(async move {
             flood::login_storm(&storm_cc, &sources, StormAccounts::One("user1".into()), 48, bounds).await.unwrap()
         });
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        let probe = login_with_retries(&cc, &Credentials::test_user(0), ip("127.0.0.2")).await;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        // The storm's addresses have failures by now; one with none goes to the front of
+        // the queue: in at the first try.
+        let probe = flood::probe_login(&cc, &Credentials::test_user(0), ip("127.0.0.2")).await;
         let report = storm.await.unwrap();
         assert!(probe.result.is_ok(), "the legitimate login failed: {:?} ({report:?})", probe.result);
+        assert!(report.seconds >= 1.9, "the storm lasted past the probe: {report:?}");
+        // And again with retries after the storm (nothing left behind).
+        assert!(login_with_retries(&cc, &Credentials::test_user(0), ip("127.0.0.3")).await.result.is_ok());
         let busy = report.answers.get(&RefusalReason::Busy.to_string()).copied().unwrap_or(0);
         assert!(busy > 0, "the queue filled and said so: {report:?}");
         assert!(server.defence().logins_busy >= busy);

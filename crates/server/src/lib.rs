@@ -183,6 +183,7 @@ impl ServerHandle {
             connections: Arc::new(tokio::sync::Semaphore::new(MAX_LOGIN_CONNECTIONS)),
             per_addr: Arc::default(),
             per_addr_cap: config.login_connections_per_addr,
+            accounts_in_flight: Arc::default(),
             handshake_timeout: Duration::from_millis(config.login_handshake_timeout_ms),
             shared: shared.clone(),
         });

@@ -28,7 +28,9 @@
 //!    that many at once, at most `login_queue` waiting, each for at most
 //!    `login_queue_deadline_ms`; beyond that the answer is "busy, retry" (with a
 //!    retry hint) at once. The queue serves addresses with fewer recent failures first,
-//!    so a storm of wrong passwords cannot crowd out a client whose address has none.
+//!    so a storm of wrong passwords cannot crowd out a client whose address has none,
+//!    and at most [`ACCOUNT_CHECKS_IN_FLIGHT`] checks of one account are in flight (a
+//!    storm on one account is refused before hashing beyond that).
 //!
 //! Passwords never reach a log: [`LoginRequest`]'s `Debug` hides them and only the
 //! username and address are logged.
@@ -316,6 +318,48 @@ impl HashGate {
     }
 }
 
+/// Password checks of one account that may be queued or running at once; more are
+/// refused with "busy" before any hashing.
+pub(crate) const ACCOUNT_CHECKS_IN_FLIGHT: u32 = 2;
+
+/// Password checks in flight per (case-folded) account.
+#[derive(Debug, Default)]
+pub(crate) struct AccountsInFlight {
+    counts: Mutex<HashMap<String, u32>>,
+}
+
+/// One check counted against its account; released on drop.
+pub(crate) struct AccountSlot {
+    owner: Arc<AccountsInFlight>,
+    account: String,
+}
+
+impl AccountsInFlight {
+    /// A slot for one more check of `account`, unless `cap` are in flight.
+    pub fn try_take(self: &Arc<Self>, account: &str, cap: u32) -> Option<AccountSlot> {
+        let account = account.to_ascii_lowercase();
+        let mut map = self.counts.lock().unwrap_or_else(|p| p.into_inner());
+        let n = map.entry(account.clone()).or_insert(0);
+        if *n >= cap {
+            return None;
+        }
+        *n += 1;
+        Some(AccountSlot { owner: self.clone(), account })
+    }
+}
+
+impl Drop for AccountSlot {
+    fn drop(&mut self) {
+        let mut map = self.owner.counts.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(n) = map.get_mut(&self.account) {
+            *n -= 1;
+            if *n == 0 {
+                map.remove(&self.account);
+            }
+        }
+    }
+}
+
 /// Login connections in flight per client address (see [`limit_key`]).
 #[derive(Debug, Default)]
 pub(crate) struct ConnectionCounts {
@@ -374,6 +418,8 @@ pub(crate) struct LoginService {
     pub per_addr_cap: u32,
     /// Deadline of the TLS handshake and the request.
     pub handshake_timeout: Duration,
+    /// Password checks in flight (queued or running) per account.
+    pub accounts_in_flight: Arc<AccountsInFlight>,
     pub shared: Arc<Shared>,
 }
 
@@ -496,6 +542,11 @@ impl LoginService {
             }
         }
         let info = {
+            // One account's checks in flight are capped: a storm on one account takes
+            // at most that much of the pool, and the rest is refused before hashing.
+            let Some(_account_slot) = self.accounts_in_flight.try_take(&req.username, ACCOUNT_CHECKS_IN_FLIGHT) else {
+                return refuse(RefusalReason::Busy, millis(self.hashing.typical().max(Duration::from_millis(100))));
+            };
             // Addresses without failures go first (see `HashGate`).
             let priority = self.limiter.address_failures(peer.ip(), Instant::now());
             let _permit = match self.hashing.enter(priority).await {
@@ -660,6 +711,13 @@ mod tests {
 
     #[test]
     fn connection_caps_are_per_address_and_released() {
+        let accounts = Arc::new(AccountsInFlight::default());
+        let two: Vec<_> = (0..2).map(|_| accounts.try_take("Bob", 2).unwrap()).collect();
+        assert!(accounts.try_take("bob", 2).is_none(), "case-folded, capped");
+        assert!(accounts.try_take("alice", 2).is_some());
+        drop(two);
+        assert!(accounts.try_take("BOB", 2).is_some());
+
         let counts = Arc::new(ConnectionCounts::default());
         let a: IpAddr = "127.0.0.1".parse().unwrap();
         let b: IpAddr = "127.0.0.2".parse().unwrap();

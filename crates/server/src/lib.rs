@@ -129,6 +129,7 @@ impl ServerHandle {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .thread_name("myriad-io")
+            .on_thread_start(lower_thread_priority)
             .enable_all()
             .build()
             .map_err(|e| ServerError::io("starting the async runtime", e))?;
@@ -342,6 +343,26 @@ impl Drop for ServerHandle {
             && let Err(e) = self.stop_gracefully()
         {
             tracing::warn!(error = %e, "shutdown left positions unwritten");
+        }
+    }
+}
+
+/// Niceness of the async runtime's threads (TLS handshakes, login checks, the database
+/// writer, metrics): under a login storm they yield the CPU to the tick thread, which
+/// keeps the default priority.
+const IO_THREAD_NICE: i32 = 10;
+
+/// Lowers the calling thread's scheduling priority to [`IO_THREAD_NICE`] (Linux: the
+/// nice value is per thread). Failure only costs the tick its head start, so it is
+/// logged, not fatal.
+fn lower_thread_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: setpriority has no memory-safety preconditions; `who` = 0 is the
+        // calling thread on Linux.
+        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, IO_THREAD_NICE) };
+        if rc != 0 {
+            tracing::debug!("could not lower the priority of an I/O thread");
         }
     }
 }

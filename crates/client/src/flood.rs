@@ -418,7 +418,8 @@ pub async fn login_storm(
                 }
                 let mut c = config.clone();
                 c.local_ip = Some(sources[n as usize % sources.len()]);
-                c.login_timeout = c.login_timeout.min(end.saturating_duration_since(Instant::now()) + Duration::from_secs(2));
+                c.login_timeout =
+                    c.login_timeout.min(end.saturating_duration_since(Instant::now()) + Duration::from_secs(2));
                 let username = match &accounts {
                     StormAccounts::Unknown => format!("ghost{n}"),
                     StormAccounts::One(name) => name.clone(),
@@ -485,7 +486,12 @@ mod tests {
         for bad in ["10.0.0.1", "192.168.1.1", "8.8.8.8", "::", "0.0.0.0", "2001:db8::1"] {
             assert!(check_loopback(bad.parse().unwrap()).is_err(), "{bad}");
         }
-        let r = udp_flood("8.8.8.8:7777".parse().unwrap(), "127.0.0.1".parse().unwrap(), UdpKind::Garbage, Bounds::for_time(Duration::from_millis(1)));
+        let r = udp_flood(
+            "8.8.8.8:7777".parse().unwrap(),
+            "127.0.0.1".parse().unwrap(),
+            UdpKind::Garbage,
+            Bounds::for_time(Duration::from_millis(1)),
+        );
         assert!(r.is_err(), "a non-loopback target is refused before anything is sent");
     }
 

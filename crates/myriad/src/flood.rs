@@ -323,7 +323,8 @@ async fn scrape(addr: SocketAddr) -> Result<Scrape> {
 }
 
 fn scrape_blocking(addr: SocketAddr) -> Result<Scrape> {
-    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2)).with_context(|| format!("metrics at {addr}"))?;
+    let mut s =
+        TcpStream::connect_timeout(&addr, Duration::from_secs(2)).with_context(|| format!("metrics at {addr}"))?;
     s.set_read_timeout(Some(Duration::from_secs(5)))?;
     write!(s, "GET /metrics HTTP/1.0\r\nHost: {addr}\r\n\r\n")?;
     let mut text = String::new();

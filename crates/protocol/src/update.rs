@@ -352,7 +352,8 @@ fn fit(pinned: Option<&StateRecord>, records: &[StateRecord], origin: QuantPos, 
     let Some(first) = pinned.or(records.first()) else { return (0, 0) };
     let mut base = first.id;
     let size = |recs: &[StateRecord], base: u64| -> usize {
-        pinned.map_or(0, |p| record_len(p, base, origin)) + recs.iter().map(|r| record_len(r, base, origin)).sum::<usize>()
+        pinned.map_or(0, |p| record_len(p, base, origin))
+            + recs.iter().map(|r| record_len(r, base, origin)).sum::<usize>()
     };
     let mut used = pinned.map_or(0, |p| record_len(p, base, origin));
     let mut take = 0;

@@ -225,13 +225,7 @@ impl Drop for GatePermit<'_> {
 impl HashGate {
     /// A gate for `threads` hashing threads, `queue` waiters and a wait `deadline`.
     pub fn new(threads: usize, queue: usize, deadline: Duration) -> Self {
-        HashGate {
-            state: Mutex::default(),
-            threads: threads.max(1),
-            queue,
-            deadline,
-            mean_us: AtomicU64::new(25_000),
-        }
+        HashGate { state: Mutex::default(), threads: threads.max(1), queue, deadline, mean_us: AtomicU64::new(25_000) }
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, GateState> {

@@ -289,7 +289,11 @@ fn a_flood_on_a_live_session_costs_at_most_its_budget_of_tag_checks() {
     r.action(&mut victim, ActionMask::RIGHT);
     let work = r.tick.tick_once();
     assert_eq!(work.received, 1001);
-    assert_eq!(work.tag_checks, 8 + 2 + 1, "own budget of the attacker, other-address budget of the victim, the action");
+    assert_eq!(
+        work.tag_checks,
+        8 + 2 + 1,
+        "own budget of the attacker, other-address budget of the victim, the action"
+    );
     assert_eq!(work.over_budget, 1001 - 11);
     assert_eq!(work.actions, 1, "the victim's own datagram still gets in");
     assert_eq!(r.action_of(&victim).bits(), Action::RIGHT);
@@ -327,10 +331,7 @@ fn a_changed_dilation_is_announced_to_ready_players() {
     r.tick.announce_server_info();
     r.tick.tick_once();
     let sent = r.net.take_sent();
-    let infos: Vec<_> = r
-        .received(&sent, &mut c)
-        .into_iter()
-        .filter(|o| matches!(o.message, ServerMessage::ServerInfo(_)))
-        .collect();
+    let infos: Vec<_> =
+        r.received(&sent, &mut c).into_iter().filter(|o| matches!(o.message, ServerMessage::ServerInfo(_))).collect();
     assert_eq!(infos.len(), 1, "one ServerInfo with the tick's updates");
 }

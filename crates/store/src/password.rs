@@ -17,9 +17,9 @@
 //! caller (the login service) bounds what it submits and how long it waits. Creating
 //! hashes (new users, password changes) is rare and stays on the blocking pool.
 
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex, OnceLock};
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 use argon2::{Algorithm, Argon2, Block, Params, PasswordHash, PasswordHasher, Version};
 

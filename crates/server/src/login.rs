@@ -24,12 +24,12 @@
 //! 4. **Unknown users** are refused without hashing, after a pause as long as a typical
 //!    verification, so the answer's timing still does not tell them apart.
 //! 5. **Password checks** run on the store's verification pool (`hashing_threads()`
-//!    threads, the cores less one for the tick by default), behind [`HashGate`]: at most
+//!    threads, the cores less one for the tick by default), behind `HashGate`: at most
 //!    that many at once, at most `login_queue` waiting, each for at most
 //!    `login_queue_deadline_ms`; beyond that the answer is "busy, retry" (with a
 //!    retry hint) at once. The queue serves addresses with fewer recent failures first,
 //!    so a storm of wrong passwords cannot crowd out a client whose address has none,
-//!    and at most [`ACCOUNT_CHECKS_IN_FLIGHT`] checks of one account are in flight (a
+//!    and at most `ACCOUNT_CHECKS_IN_FLIGHT` (2) checks of one account are in flight (a
 //!    storm on one account is refused before hashing beyond that).
 //!
 //! Passwords never reach a log: [`LoginRequest`]'s `Debug` hides them and only the

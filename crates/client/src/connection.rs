@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use myriad_protocol::login::{
-    FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, frame_len,
+    FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, RefusalReason, frame_len,
 };
 use myriad_protocol::{
     ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, OpenError, PlayerInput,
@@ -37,6 +37,13 @@ pub struct ClientConfig {
     pub login_timeout: Duration,
     /// Ask for the terrain and static objects at login.
     pub want_map: bool,
+    /// Local address to connect from (none: the system picks). Lets a test or the flood
+    /// tool log in from `127.0.0.2` and so on, as another client would.
+    pub local_ip: Option<std::net::IpAddr>,
+    /// Login request version to send first ([`myriad_protocol::login::LOGIN_VERSION`]).
+    /// A server older than version 2 answers a version-2 request "malformed"; the
+    /// client then repeats it once as version 1.
+    pub login_version: u8,
 }
 
 impl ClientConfig {
@@ -50,6 +57,8 @@ impl ClientConfig {
             keepalive_every: Duration::from_secs(1),
             login_timeout: Duration::from_secs(30),
             want_map: false,
+            local_ip: None,
+            login_version: myriad_protocol::login::LOGIN_VERSION,
         })
     }
 }
@@ -81,24 +90,33 @@ pub async fn login(
     config: &ClientConfig,
     credentials: &Credentials,
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
-    tokio::time::timeout(config.login_timeout, login_inner(config, credentials))
-        .await
-        .map_err(|_| ClientError::Timeout("login"))?
+    tokio::time::timeout(config.login_timeout, async {
+        match login_inner(config, credentials, config.login_version).await {
+            // A server that predates login version 2 calls a version-2 request malformed.
+            Err(ClientError::Refused { reason: RefusalReason::BadRequest, .. })
+                if config.login_version > myriad_protocol::login::MIN_LOGIN_VERSION =>
+            {
+                login_inner(config, credentials, myriad_protocol::login::MIN_LOGIN_VERSION).await
+            }
+            other => other,
+        }
+    })
+    .await
+    .map_err(|_| ClientError::Timeout("login"))?
 }
 
 async fn login_inner(
     config: &ClientConfig,
     credentials: &Credentials,
+    version: u8,
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
-    let request = LoginRequest {
-        username: credentials.username.clone(),
-        password: credentials.password.clone(),
-        want_map: config.want_map,
-    };
+    let mut request = LoginRequest::new(credentials.username.clone(), credentials.password.clone(), config.want_map);
+    request.version = version;
     let mut frame = Vec::new();
     request.encode(&mut frame).map_err(|e| ClientError::Invalid(e.to_string()))?;
-    let tcp =
-        TcpStream::connect(config.login_addr).await.map_err(ClientError::io("connecting to the login service"))?;
+    let tcp = connect_from(config.local_ip, config.login_addr)
+        .await
+        .map_err(ClientError::io("connecting to the login service"))?;
     let _ = tcp.set_nodelay(true);
     let name = ServerName::try_from(config.server_name.clone())
         .map_err(|e| ClientError::Invalid(format!("server name {:?}: {e}", config.server_name)))?;
@@ -119,6 +137,14 @@ async fn login_inner(
         None
     };
     Ok((accepted, map))
+}
+
+/// A TCP connection to `to`, from `local` (any port) when given.
+pub(crate) async fn connect_from(local: Option<std::net::IpAddr>, to: SocketAddr) -> std::io::Result<TcpStream> {
+    let Some(ip) = local else { return TcpStream::connect(to).await };
+    let socket = if to.is_ipv4() { tokio::net::TcpSocket::new_v4()? } else { tokio::net::TcpSocket::new_v6()? };
+    socket.bind(SocketAddr::new(ip, 0))?;
+    socket.connect(to).await
 }
 
 async fn read_frame<S: AsyncReadExt + Unpin>(s: &mut S) -> Result<Vec<u8>, ClientError> {

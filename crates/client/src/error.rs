@@ -42,12 +42,18 @@ impl ClientError {
         move |source| ClientError::Io { what, source }
     }
 
-    /// Whether trying again later may succeed (rate limit, server full, database down,
+    /// Whether trying again later may succeed (rate limit, server full, database down, busy,
     /// network trouble).
     pub fn is_retryable(&self) -> bool {
         match self {
             ClientError::Refused { reason, .. } => {
-                matches!(reason, RefusalReason::RateLimited | RefusalReason::ServerFull | RefusalReason::Unavailable)
+                matches!(
+                    reason,
+                    RefusalReason::RateLimited
+                        | RefusalReason::ServerFull
+                        | RefusalReason::Unavailable
+                        | RefusalReason::Busy
+                )
             }
             ClientError::Io { .. } | ClientError::Timeout(_) => true,
             _ => false,

@@ -8,6 +8,8 @@
 //!   rule of docs/protocol.md §5.5) and stale marking.
 //! - [`stats`]: [`ClientStats`] (updates, bytes, last tick, loss from sequence gaps).
 //! - [`swarm`]: many bots on one tokio runtime, each with its own socket.
+//! - [`flood`]: bounded, loopback-only attack traffic (the server's abuse tests and
+//!   `myriad flood`).
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), myriad_client::ClientError> {
@@ -24,6 +26,7 @@
 
 pub mod connection;
 pub mod error;
+pub mod flood;
 pub mod mirror;
 pub mod stats;
 pub mod swarm;

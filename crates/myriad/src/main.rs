@@ -8,6 +8,7 @@ mod admin;
 mod bench;
 mod bots;
 mod demo;
+mod flood;
 mod plots;
 mod reference;
 mod scenario_args;
@@ -40,6 +41,8 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Run a swarm of bots (`user<i>` / `password<i>`) against a server.
     Bots(bots::BotsArgs),
+    /// Attack a server on this machine (loopback only, bounded) and measure the cost.
+    Flood(flood::FloodArgs),
     /// Manage accounts.
     #[command(subcommand)]
     User(admin::UserCommand),
@@ -66,6 +69,7 @@ fn main() -> Result<()> {
         Command::Serve(a) => serve::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Bots(a) => bots::run(a),
+        Command::Flood(a) => flood::run(a),
         Command::User(c) => admin::user(c),
         Command::Map(c) => admin::map(c),
     }

@@ -16,8 +16,13 @@ use crate::session::SessionKeys;
 use crate::update::ShapeKind;
 use crate::wire::Reader;
 
-/// Version byte at the start of every login request.
-pub const LOGIN_VERSION: u8 = 1;
+/// Version byte at the start of every login request this crate sends. Version 2 adds
+/// nothing to the request; it tells the server the client understands
+/// [`RefusalReason::Busy`].
+pub const LOGIN_VERSION: u8 = 2;
+/// Oldest login request version a server accepts (version 1: no `Busy` refusal; a
+/// server answers such a client `Unavailable` with a retry hint instead).
+pub const MIN_LOGIN_VERSION: u8 = 1;
 /// Bytes of the length prefix of a frame.
 pub const FRAME_PREFIX_LEN: usize = 4;
 /// Largest request frame a server accepts (kind + payload): a version, two short strings
@@ -133,11 +138,25 @@ pub struct LoginRequest {
     pub password: String,
     /// Whether the client wants the terrain and static objects ([`MapData`]).
     pub want_map: bool,
+    /// The request's version ([`MIN_LOGIN_VERSION`] to [`LOGIN_VERSION`]); it says which
+    /// refusal reasons the client understands ([`RefusalReason::understood_by`]).
+    pub version: u8,
+}
+
+impl LoginRequest {
+    /// A request of the current version ([`LOGIN_VERSION`]).
+    pub fn new(username: impl Into<String>, password: impl Into<String>, want_map: bool) -> Self {
+        LoginRequest { username: username.into(), password: password.into(), want_map, version: LOGIN_VERSION }
+    }
 }
 
 impl std::fmt::Debug for LoginRequest {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LoginRequest").field("username", &self.username).field("want_map", &self.want_map).finish()
+        f.debug_struct("LoginRequest")
+            .field("username", &self.username)
+            .field("want_map", &self.want_map)
+            .field("version", &self.version)
+            .finish()
     }
 }
 
@@ -150,8 +169,11 @@ impl LoginRequest {
         if self.password.len() > MAX_PASSWORD {
             return Err(DecodeError::TooLong { len: self.password.len(), max: MAX_PASSWORD });
         }
+        if !(MIN_LOGIN_VERSION..=LOGIN_VERSION).contains(&self.version) {
+            return Err(DecodeError::BadVersion(self.version));
+        }
         let start = begin_frame(LoginFrameKind::Request, out);
-        out.push(LOGIN_VERSION);
+        out.push(self.version);
         put_str(out, &self.username);
         put_str(out, &self.password);
         out.push(u8::from(self.want_map));
@@ -163,7 +185,7 @@ impl LoginRequest {
     pub fn decode(body: &[u8]) -> Result<Self, DecodeError> {
         let mut r = expect_kind(body, LoginFrameKind::Request)?;
         let version = r.u8()?;
-        if version != LOGIN_VERSION {
+        if !(MIN_LOGIN_VERSION..=LOGIN_VERSION).contains(&version) {
             return Err(DecodeError::BadVersion(version));
         }
         let username = get_str(&mut r, MAX_USERNAME)?;
@@ -177,7 +199,7 @@ impl LoginRequest {
             other => return Err(DecodeError::ReservedBits(other as u32)),
         };
         r.finish()?;
-        Ok(Self { username, password, want_map })
+        Ok(Self { username, password, want_map, version })
     }
 }
 
@@ -332,6 +354,8 @@ pub enum RefusalReason {
     Unavailable = 5,
     /// The server is shutting down.
     ShuttingDown = 6,
+    /// Too many password checks are waiting; retry after the hint (login version 2).
+    Busy = 7,
 }
 
 impl RefusalReason {
@@ -343,8 +367,19 @@ impl RefusalReason {
             4 => Self::BadRequest,
             5 => Self::Unavailable,
             6 => Self::ShuttingDown,
+            7 => Self::Busy,
             _ => return None,
         })
+    }
+
+    /// This reason as a client of login version `version` understands it: a version-1
+    /// client does not know [`RefusalReason::Busy`] and gets
+    /// [`RefusalReason::Unavailable`] (which it already retries) instead.
+    pub fn understood_by(self, version: u8) -> RefusalReason {
+        match self {
+            Self::Busy if version < 2 => Self::Unavailable,
+            other => other,
+        }
     }
 }
 
@@ -357,6 +392,7 @@ impl std::fmt::Display for RefusalReason {
             Self::BadRequest => "malformed login request",
             Self::Unavailable => "the account database is unavailable",
             Self::ShuttingDown => "the server is shutting down",
+            Self::Busy => "the server is busy checking other logins, retry later",
         })
     }
 }
@@ -530,7 +566,7 @@ mod tests {
 
     #[test]
     fn request_round_trip_and_debug_hides_password() {
-        let req = LoginRequest { username: "user7".into(), password: "password7".into(), want_map: true };
+        let req = LoginRequest::new("user7", "password7", true);
         let mut out = Vec::new();
         req.encode(&mut out).unwrap();
         assert_eq!(LoginRequest::decode(body(&out)).unwrap(), req);
@@ -540,10 +576,10 @@ mod tests {
 
     #[test]
     fn request_rejects_bad_fields() {
-        let long = LoginRequest { username: "u".repeat(33), password: String::new(), want_map: false };
+        let long = LoginRequest::new("u".repeat(33), "", false);
         assert!(long.encode(&mut Vec::new()).is_err());
         let mut out = Vec::new();
-        LoginRequest { username: "a".into(), password: "b".into(), want_map: false }.encode(&mut out).unwrap();
+        LoginRequest::new("a", "b", false).encode(&mut out).unwrap();
         let mut bad = out[4..].to_vec();
         *bad.last_mut().unwrap() = 2;
         assert!(LoginRequest::decode(&bad).is_err());
@@ -555,10 +591,33 @@ mod tests {
     }
 
     #[test]
+    fn version_1_requests_still_decode_and_never_see_busy() {
+        // A version-1 client (before `Busy` existed) sends exactly this; the server must
+        // still read it, and must not answer it with a reason code it cannot decode.
+        let mut v1 = LoginRequest::new("user7", "pw", false);
+        v1.version = 1;
+        let mut out = Vec::new();
+        v1.encode(&mut out).unwrap();
+        assert_eq!(out[5], 1, "the version byte follows the frame prefix and kind");
+        assert_eq!(LoginRequest::decode(body(&out)).unwrap(), v1);
+        assert_eq!(RefusalReason::Busy.understood_by(1), RefusalReason::Unavailable);
+        assert_eq!(RefusalReason::Busy.understood_by(LOGIN_VERSION), RefusalReason::Busy);
+        assert_eq!(RefusalReason::RateLimited.understood_by(1), RefusalReason::RateLimited);
+        let mut bad = out[4..].to_vec();
+        bad[1] = 3;
+        assert_eq!(LoginRequest::decode(&bad), Err(DecodeError::BadVersion(3)));
+        // Busy has its own code, 7, with the retry hint.
+        let mut out = Vec::new();
+        LoginRefused { reason: RefusalReason::Busy, retry_after_ms: 250 }.encode(&mut out);
+        assert_eq!(&out[4..], &[0x82, 7, 250, 0, 0, 0]);
+    }
+
+    #[test]
     fn responses_round_trip() {
         for resp in [
             LoginResponse::Accepted(Box::new(accepted())),
             LoginResponse::Refused(LoginRefused { reason: RefusalReason::RateLimited, retry_after_ms: 500 }),
+            LoginResponse::Refused(LoginRefused { reason: RefusalReason::Busy, retry_after_ms: 250 }),
         ] {
             let mut out = Vec::new();
             resp.encode(&mut out);

@@ -7,7 +7,7 @@
 //!      0     8  server tick (u64); a client ignores a record older than what it has
 //!      8     2  time dilation in 1/1000 (u16; 1000 = real time)
 //!     10    12  origin x, y, z (i32 each, 1/64 unit), normally the AOI centre
-//!     22     8  id base (u64), the smallest object id in this update
+//!     22     8  id base (u64), the smallest object id in this datagram
 //!     30     2  record count (u16)
 //!     32     …  records
 //! ```
@@ -277,7 +277,8 @@ impl<'a> StateUpdateView<'a> {
 /// [`Sealer::seal_batch`](crate::Sealer::seal_batch). Returns how many records (a
 /// prefix of `records`) were packed; the caller decides what to do with the rest.
 ///
-/// All datagrams share `header` and an id base, the smallest id in `records`.
+/// All datagrams share `header`; each has its own id base, the smallest id among the
+/// records it carries.
 /// Datagrams are filled greedily in order, so with compact records each holds
 /// [`MAX_COMPACT_RECORDS`]. No allocation happens beyond growing `out`, which a caller
 /// reuses from tick to tick.
@@ -302,14 +303,18 @@ pub fn pack_updates_pinned(
     max_datagrams: usize,
     out: &mut DatagramBatch,
 ) -> usize {
-    let Some(id_base) = pinned.iter().map(|r| r.id).chain(records.iter().map(|r| r.id)).min() else {
+    if pinned.is_none() && records.is_empty() {
         return 0;
-    };
+    }
     let origin = header.origin;
+    let room = MAX_BODY - UPDATE_HEADER_LEN;
     let mut packed = 0;
     let mut datagrams = 0;
     // With a pinned record, the first datagram is made even if `records` is empty.
     while (packed < records.len() || (pinned.is_some() && datagrams == 0)) && datagrams < max_datagrams {
+        // Which records go in decides the id base, and the base decides their sizes:
+        // fit first, then write against the smallest id actually sent.
+        let (take, id_base) = fit(pinned, &records[packed..], origin, room);
         let buf = out.begin(MAX_DATAGRAM);
         buf[0] = PROTOCOL_VERSION;
         buf[1] = PacketKind::StateUpdate as u8;
@@ -317,35 +322,59 @@ pub fn pack_updates_pinned(
         let mut pos = body_start + UPDATE_HEADER_LEN;
         let limit = HEADER_LEN + MAX_BODY;
         let mut count = 0u16;
-        if let Some(own) = pinned {
-            // Any record fits an empty body (an extended one is 24 bytes).
-            if let Some(len) = write_record(own, id_base, origin, &mut buf[pos..limit]) {
+        for rec in pinned.into_iter().chain(&records[packed..packed + take]) {
+            // `fit` measured these against this base: each one fits.
+            if let Some(len) = write_record(rec, id_base, origin, &mut buf[pos..limit]) {
                 pos += len;
                 count += 1;
             }
         }
-        let before = packed;
-        for rec in &records[packed..] {
-            match write_record(rec, id_base, origin, &mut buf[pos..limit]) {
-                Some(len) => {
-                    pos += len;
-                    count += 1;
-                    packed += 1;
-                }
-                None => break,
-            }
-        }
+        packed += take;
         write_update_header(header, id_base, count, &mut buf[body_start..]);
         // The tag space after `pos` is still zero from `begin`.
         out.finish(pos + TAG_LEN);
         datagrams += 1;
-        if packed == before {
+        if take == 0 {
             // Only the pinned record went in: nothing left, or (impossible, any record
             // fits beside it) a record that fits nowhere. Never loop on it.
             break;
         }
     }
     packed
+}
+
+/// How many of `records` (a prefix) fit in `room` bytes of records after `pinned`, and
+/// the id base they are written against: the smallest id among `pinned` and them. A
+/// record with a smaller id lowers the base, which can turn earlier compact records into
+/// extended ones; the sizes are then recomputed, and the record waits for the next
+/// datagram if the prefix no longer fits.
+fn fit(pinned: Option<&StateRecord>, records: &[StateRecord], origin: QuantPos, room: usize) -> (usize, u64) {
+    let Some(first) = pinned.or(records.first()) else { return (0, 0) };
+    let mut base = first.id;
+    let size = |recs: &[StateRecord], base: u64| -> usize {
+        pinned.map_or(0, |p| record_len(p, base, origin))
+            + recs.iter().map(|r| record_len(r, base, origin)).sum::<usize>()
+    };
+    let mut used = pinned.map_or(0, |p| record_len(p, base, origin));
+    let mut take = 0;
+    for (i, rec) in records.iter().enumerate() {
+        if rec.id < base {
+            let lower = size(&records[..=i], rec.id);
+            if lower > room {
+                break;
+            }
+            base = rec.id;
+            used = lower;
+        } else {
+            let len = record_len(rec, base, origin);
+            if used + len > room {
+                break;
+            }
+            used += len;
+        }
+        take = i + 1;
+    }
+    (take, base)
 }
 
 #[cfg(test)]
@@ -437,5 +466,40 @@ mod tests {
         let mut b = DatagramBatch::new();
         assert_eq!(pack_updates_pinned(&h, None, &[], 2, &mut b), 0);
         assert!(b.is_empty());
+    }
+
+    // Issue 14: the id base was the smallest id of every record offered, computed before
+    // the records were cut to fit, so a datagram could carry a base no record of it had.
+    #[test]
+    fn each_datagram_is_based_on_the_smallest_id_it_actually_carries() {
+        let h = UpdateHeader::default();
+        let own = rec(5_000, ShapeKind::Capsule, (0, 0, 0));
+        // Ids 10,000.. first; the one small id comes last and does not fit in two
+        // datagrams.
+        let mut recs: Vec<_> = (0..300).map(|i| rec(10_000 + i, ShapeKind::Box, (i as i32, 0, 0))).collect();
+        recs.push(rec(3, ShapeKind::Sphere, (0, 0, 0)));
+        let mut b = DatagramBatch::new();
+        assert_eq!(pack_updates_pinned(&h, Some(&own), &recs, 2, &mut b), 224);
+        for d in b.iter() {
+            let view = StateUpdateView::parse(&d[HEADER_LEN..d.len() - TAG_LEN]).unwrap();
+            let smallest = view.records().map(|r| r.id).min().unwrap();
+            assert_eq!(view.id_base(), smallest);
+            assert_eq!(smallest, 5_000, "the pinned record is the smallest here");
+        }
+        // Without a pinned record, each datagram gets its own base; a small id that
+        // would turn the records before it into extended ones waits for the next one.
+        let mut recs: Vec<_> = (0..113).map(|i| rec((1 << 31) + i, ShapeKind::Box, (i as i32, 0, 0))).collect();
+        recs.push(rec(1, ShapeKind::Sphere, (0, 0, 0)));
+        let mut b = DatagramBatch::new();
+        assert_eq!(pack_updates(&h, &recs, 3, &mut b), 114);
+        let mut all = Vec::new();
+        for d in b.iter() {
+            let view = StateUpdateView::parse(&d[HEADER_LEN..d.len() - TAG_LEN]).unwrap();
+            let ids: Vec<_> = view.records().map(|r| r.id).collect();
+            assert_eq!(view.id_base(), *ids.iter().min().unwrap());
+            all.extend(view.records());
+        }
+        assert_eq!(all, recs, "every record arrives exactly");
+        assert_eq!(b.len(), 2);
     }
 }

@@ -70,7 +70,9 @@ pub struct ServerConfig {
     pub login_failures_per_account: u32,
     /// Window of the failed-login limits, in seconds.
     pub login_window_s: u64,
-    /// Logins verified at once (each Argon2id check takes a core for tens of ms).
+    /// Password checks running at once: the threads of the hashing pool (each Argon2id
+    /// check takes a core for tens of ms). 0 sizes it from the cores, leaving one for
+    /// the tick: `cores - 1`, at least 1.
     pub login_concurrency: usize,
     /// Argon2id memory cost of new password hashes, in KiB.
     pub hash_memory_kib: u32,
@@ -92,6 +94,26 @@ pub struct ServerConfig {
     pub dilation_min_permille: u16,
     /// Seconds between per-stage timing lines in the log (0 = never).
     pub log_stages_every_s: f32,
+
+    // Abuse limits (issue 14): receive budget, hashing queue, login connections.
+    /// Datagrams per session per tick from the session's own address that may reach the
+    /// tag check; more are dropped before any cryptography.
+    pub receive_per_session: u16,
+    /// Datagrams per session per tick from any other address (address migration, the
+    /// first Ready) that may reach the tag check.
+    pub receive_other_address: u16,
+    /// Share of the nominal tick period the receive stage may take, in percent.
+    pub receive_time_percent: u8,
+    /// Password checks that may wait for a hashing thread; beyond that a login is
+    /// refused at once with "busy, retry".
+    pub login_queue: usize,
+    /// Longest a password check may wait for a hashing thread, in milliseconds; then
+    /// the login is refused with "busy, retry".
+    pub login_queue_deadline_ms: u64,
+    /// Login connections one client address may hold open; more are closed at once.
+    pub login_connections_per_addr: u32,
+    /// Deadline of the TLS handshake and the login request, in milliseconds.
+    pub login_handshake_timeout_ms: u64,
 }
 
 impl Default for ServerConfig {
@@ -119,7 +141,7 @@ impl Default for ServerConfig {
             login_failures_per_addr: 20,
             login_failures_per_account: 5,
             login_window_s: 60,
-            login_concurrency: 64,
+            login_concurrency: 0,
             hash_memory_kib: HashCost::DEFAULT.m_kib,
             hash_passes: HashCost::DEFAULT.t,
             hash_lanes: HashCost::DEFAULT.p,
@@ -129,6 +151,13 @@ impl Default for ServerConfig {
             dilation: true,
             dilation_min_permille: 100,
             log_stages_every_s: 10.0,
+            receive_per_session: 8,
+            receive_other_address: 2,
+            receive_time_percent: 25,
+            login_queue: 32,
+            login_queue_deadline_ms: 1500,
+            login_connections_per_addr: 16,
+            login_handshake_timeout_ms: 5000,
         }
     }
 }
@@ -213,8 +242,8 @@ impl ServerConfig {
         if self.login_window_s == 0 {
             return bad("login_window_s", "must be at least 1".into());
         }
-        if self.login_concurrency == 0 {
-            return bad("login_concurrency", "must be at least 1".into());
+        if self.login_concurrency > 1024 {
+            return bad("login_concurrency", format!("{} (0 = from the cores, up to 1024)", self.login_concurrency));
         }
         if let Err(e) = self.hash_cost().validate() {
             return bad("hash_memory_kib", e.to_string());
@@ -228,6 +257,7 @@ impl ServerConfig {
         if !(self.log_stages_every_s.is_finite() && self.log_stages_every_s >= 0.0) {
             return bad("log_stages_every_s", format!("{}", self.log_stages_every_s));
         }
+        self.validate_abuse_limits()?;
         self.physics().validate().map_err(|e| ConfigError::Value { key: "physics".into(), reason: e.to_string() })
     }
 
@@ -237,6 +267,41 @@ impl ServerConfig {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()).min(8),
             n => n,
         }
+    }
+
+    fn validate_abuse_limits(&self) -> Result<(), ConfigError> {
+        let bad = |key: &str, reason: String| Err(ConfigError::Value { key: key.into(), reason });
+        if !(1..=1024).contains(&self.receive_per_session) {
+            return bad("receive_per_session", format!("{} (1 to 1024)", self.receive_per_session));
+        }
+        if !(1..=1024).contains(&self.receive_other_address) {
+            return bad("receive_other_address", format!("{} (1 to 1024)", self.receive_other_address));
+        }
+        if !(1..=100).contains(&self.receive_time_percent) {
+            return bad("receive_time_percent", format!("{} (1 to 100)", self.receive_time_percent));
+        }
+        if self.login_queue > 100_000 {
+            return bad("login_queue", format!("{} (0 to 100000)", self.login_queue));
+        }
+        if !(1..=60_000).contains(&self.login_queue_deadline_ms) {
+            return bad("login_queue_deadline_ms", format!("{} (1 to 60000)", self.login_queue_deadline_ms));
+        }
+        if self.login_connections_per_addr == 0 {
+            return bad("login_connections_per_addr", "must be at least 1".into());
+        }
+        if !(100..=60_000).contains(&self.login_handshake_timeout_ms) {
+            return bad("login_handshake_timeout_ms", format!("{} (100 to 60000)", self.login_handshake_timeout_ms));
+        }
+        Ok(())
+    }
+
+    /// Threads of the password-hashing pool: `login_concurrency`, or when it is 0 the
+    /// cores less one for the tick (at least 1).
+    pub fn hashing_threads(&self) -> usize {
+        if self.login_concurrency > 0 {
+            return self.login_concurrency;
+        }
+        std::thread::available_parallelism().map_or(1, |n| n.get().saturating_sub(1)).max(1)
     }
 
     /// The Argon2id cost of new password hashes.
@@ -310,5 +375,25 @@ mod tests {
         assert!(c.set("nope", "1").unwrap_err().to_string().contains("nope"));
         assert!(c.set("max_players", "0").unwrap_err().to_string().contains("max_players"));
         assert_eq!(c.max_players, 10_000, "a failed set leaves the config unchanged");
+    }
+
+    #[test]
+    fn abuse_limits_are_checked_and_named() {
+        let mut c = ServerConfig::default();
+        for (key, value) in [
+            ("receive_per_session", "0"),
+            ("receive_other_address", "0"),
+            ("receive_time_percent", "0"),
+            ("receive_time_percent", "101"),
+            ("login_queue_deadline_ms", "0"),
+            ("login_connections_per_addr", "0"),
+            ("login_handshake_timeout_ms", "10"),
+            ("login_concurrency", "5000"),
+        ] {
+            assert!(c.set(key, value).unwrap_err().to_string().contains(key), "{key} = {value}");
+        }
+        assert!(c.hashing_threads() >= 1, "0 sizes the pool from the cores");
+        c.set("login_concurrency", "3").unwrap();
+        assert_eq!(c.hashing_threads(), 3);
     }
 }

@@ -120,9 +120,16 @@ impl ServerHandle {
         config.validate()?;
         std::fs::create_dir_all(&config.data_dir)
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
+        // The verification pool takes its size at its first use; a second server in the
+        // same process (tests) shares the first one's pool.
+        let hashing_threads = config.hashing_threads();
+        if !myriad_store::configure_hash_pool(hashing_threads) {
+            tracing::debug!("the password-verification pool was already running");
+        }
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .thread_name("myriad-io")
+            .on_thread_start(lower_thread_priority)
             .enable_all()
             .build()
             .map_err(|e| ServerError::io("starting the async runtime", e))?;
@@ -169,8 +176,16 @@ impl ServerHandle {
                 config.login_failures_per_addr,
                 config.login_failures_per_account,
             ),
-            hashing: tokio::sync::Semaphore::new(config.login_concurrency),
+            hashing: login::HashGate::new(
+                hashing_threads,
+                config.login_queue,
+                Duration::from_millis(config.login_queue_deadline_ms),
+            ),
             connections: Arc::new(tokio::sync::Semaphore::new(MAX_LOGIN_CONNECTIONS)),
+            per_addr: Arc::default(),
+            per_addr_cap: config.login_connections_per_addr,
+            accounts_in_flight: Arc::default(),
+            handshake_timeout: Duration::from_millis(config.login_handshake_timeout_ms),
             shared: shared.clone(),
         });
         runtime.spawn(service.serve(listener));
@@ -273,6 +288,11 @@ impl ServerHandle {
         &self.store
     }
 
+    /// What the abuse defences did since start (receive budget, login limits).
+    pub fn defence(&self) -> status::DefenceStats {
+        self.shared.defence.snapshot()
+    }
+
     /// Adds busy time to every tick, as if the world had more work (load tests).
     pub fn set_artificial_load(&self, per_tick: Duration) {
         let us = per_tick.as_micros().min(u32::MAX as u128) as u32;
@@ -323,6 +343,26 @@ impl Drop for ServerHandle {
             && let Err(e) = self.stop_gracefully()
         {
             tracing::warn!(error = %e, "shutdown left positions unwritten");
+        }
+    }
+}
+
+/// Niceness of the async runtime's threads (TLS handshakes, login checks, the database
+/// writer, metrics): under a login storm they yield the CPU to the tick thread, which
+/// keeps the default priority.
+const IO_THREAD_NICE: i32 = 10;
+
+/// Lowers the calling thread's scheduling priority to [`IO_THREAD_NICE`] (Linux: the
+/// nice value is per thread). Failure only costs the tick its head start, so it is
+/// logged, not fatal.
+fn lower_thread_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: setpriority has no memory-safety preconditions; `who` = 0 is the
+        // calling thread on Linux.
+        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, IO_THREAD_NICE) };
+        if rc != 0 {
+            tracing::debug!("could not lower the priority of an I/O thread");
         }
     }
 }

@@ -22,6 +22,7 @@ use myriad_protocol::{DisconnectReason, Opener, ServerMessage, ServerSession, Se
 use myriad_store::{MapId, PlayerState, UserId};
 use ring::rand::{SecureRandom, SystemRandom};
 
+use crate::inbound::ReceiveBudget;
 use crate::world::{clamp_into_world, shape_desc, spawn_point, store_shape};
 
 /// The default player shape (a person-sized capsule).
@@ -58,6 +59,8 @@ pub(crate) struct Player {
     pub last_heard: Instant,
     /// Newest client frame applied (actions of older frames are ignored).
     last_frame: Option<u32>,
+    /// What this tick's receive may still spend on this session's datagrams.
+    pub budget: ReceiveBudget,
 }
 
 impl Player {
@@ -252,6 +255,7 @@ impl Sessions {
             ready: false,
             last_heard: Instant::now(),
             last_frame: None,
+            budget: ReceiveBudget::default(),
         });
         let idx = self.players.len() - 1;
         self.by_user.insert(user_id.0, idx);
@@ -294,6 +298,15 @@ impl Sessions {
     pub fn queue_message_to(&mut self, session_id: u64, msg: &ServerMessage) {
         if let Some(&idx) = self.by_session.get(&session_id) {
             self.queue_message(idx, msg);
+        }
+    }
+
+    /// Queues `msg` for every player that gets state updates (ready, address known).
+    pub fn queue_to_active(&mut self, msg: &ServerMessage) {
+        for idx in 0..self.players.len() {
+            if self.players[idx].active() {
+                self.queue_message(idx, msg);
+            }
         }
     }
 

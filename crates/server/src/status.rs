@@ -26,6 +26,73 @@ pub struct Shared {
     pub artificial_load_us: AtomicU32,
     /// The last one-second summary.
     pub status: Mutex<ServerStatus>,
+    /// What the abuse defences did.
+    pub defence: DefenceCounters,
+}
+
+/// Counters of the abuse defences since start (also in the metrics; kept here so tests
+/// and tools in the same process can read them without a metrics endpoint).
+#[derive(Debug, Default)]
+pub struct DefenceCounters {
+    /// Datagrams that reached the tag check (the cryptography paid for).
+    pub tag_checks: AtomicU64,
+    /// Datagrams dropped over a session's receive budget, before any cryptography.
+    pub over_budget: AtomicU64,
+    /// Logins refused because the hashing queue was full or its deadline passed.
+    pub logins_busy: AtomicU64,
+    /// Logins refused by the failed-login limits (without checking the password).
+    pub logins_rate_limited: AtomicU64,
+    /// Logins for unknown users refused without hashing.
+    pub unknown_users_refused: AtomicU64,
+    /// Login connections closed at once (per-address or global cap).
+    pub connections_refused: AtomicU64,
+    /// Login connections closed at the handshake-and-request deadline.
+    pub handshake_timeouts: AtomicU64,
+    /// Malformed login requests.
+    pub bad_requests: AtomicU64,
+}
+
+/// A snapshot of [`DefenceCounters`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct DefenceStats {
+    /// See [`DefenceCounters::tag_checks`].
+    pub tag_checks: u64,
+    /// See [`DefenceCounters::over_budget`].
+    pub over_budget: u64,
+    /// See [`DefenceCounters::logins_busy`].
+    pub logins_busy: u64,
+    /// See [`DefenceCounters::logins_rate_limited`].
+    pub logins_rate_limited: u64,
+    /// See [`DefenceCounters::unknown_users_refused`].
+    pub unknown_users_refused: u64,
+    /// See [`DefenceCounters::connections_refused`].
+    pub connections_refused: u64,
+    /// See [`DefenceCounters::handshake_timeouts`].
+    pub handshake_timeouts: u64,
+    /// See [`DefenceCounters::bad_requests`].
+    pub bad_requests: u64,
+}
+
+impl DefenceCounters {
+    /// The counters now.
+    pub fn snapshot(&self) -> DefenceStats {
+        let r = |c: &AtomicU64| c.load(std::sync::atomic::Ordering::Relaxed);
+        DefenceStats {
+            tag_checks: r(&self.tag_checks),
+            over_budget: r(&self.over_budget),
+            logins_busy: r(&self.logins_busy),
+            logins_rate_limited: r(&self.logins_rate_limited),
+            unknown_users_refused: r(&self.unknown_users_refused),
+            connections_refused: r(&self.connections_refused),
+            handshake_timeouts: r(&self.handshake_timeouts),
+            bad_requests: r(&self.bad_requests),
+        }
+    }
+}
+
+/// Adds one to a defence counter.
+pub(crate) fn bump(counter: &AtomicU64) {
+    counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
 }
 
 /// One second of the server, averaged.

@@ -30,7 +30,7 @@ use std::time::{Duration, Instant};
 use myriad_core::World;
 use myriad_interest::TickInfo;
 use myriad_physics::{Backend, TickConstants};
-use myriad_protocol::{DisconnectReason, ServerInfo};
+use myriad_protocol::{DisconnectReason, ServerInfo, ServerMessage};
 use myriad_store::{MapId, Persister, PlayerState, UserId};
 
 #[cfg(test)]
@@ -39,7 +39,7 @@ mod tests;
 
 use crate::config::ServerConfig;
 use crate::dilation::DilationController;
-use crate::inbound;
+use crate::inbound::{self, ReceiveLimits};
 use crate::outbound::{CpuOutbound, Outbound, Recipient};
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
 use crate::stages::{StageTimes, TickStage};
@@ -94,6 +94,11 @@ pub struct TickWork {
     pub received: u64,
     /// Actions applied to the world.
     pub actions: u64,
+    /// Received datagrams that reached the tag check.
+    pub tag_checks: u64,
+    /// Received datagrams dropped over their session's receive budget, before any
+    /// cryptography.
+    pub over_budget: u64,
 }
 
 /// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
@@ -236,6 +241,7 @@ impl TickLoop {
             let elapsed = start.elapsed();
             if self.dilation.record(elapsed) {
                 tracing::info!(dilation_permille = self.dilation.permille(), "time dilation changed");
+                self.announce_server_info();
             }
             self.publish(&work, elapsed);
             if self.window.elapsed() >= Duration::from_secs(1) {
@@ -277,12 +283,11 @@ impl TickLoop {
         self.drain_commands();
 
         let t = Instant::now();
-        let info = ServerInfo {
-            tick_rate_hz: self.config.tick_rate.round() as u16,
-            dilation_permille: self.dilation.permille(),
-        };
+        let info = self.server_info();
         let now = Instant::now();
-        let inbound = inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, now);
+        let limits = self.receive_limits();
+        let inbound =
+            inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, &limits, now);
         let mut left: Vec<PlayerState> = inbound
             .leaving
             .iter()
@@ -292,6 +297,8 @@ impl TickLoop {
         left.extend(self.sessions.expire(&mut self.world, now, timeout));
         work.received = inbound.received;
         work.actions = inbound.actions;
+        work.tag_checks = inbound.tag_checks;
+        work.over_budget = inbound.over_budget;
         work.stages[TickStage::Receive] = ms(t.elapsed());
 
         let k = TickConstants::new(&self.config.physics(), 1.0);
@@ -315,6 +322,28 @@ impl TickLoop {
             self.hand_off(&left);
         }
         work
+    }
+
+    /// The ServerInfo every player is told (tick rate, current dilation).
+    fn server_info(&self) -> ServerInfo {
+        ServerInfo { tick_rate_hz: self.config.tick_rate.round() as u16, dilation_permille: self.dilation.permille() }
+    }
+
+    /// Queues ServerInfo for every ready player (sent with the next tick's datagrams):
+    /// the protocol promises it whenever the tick rate or the dilation changes.
+    fn announce_server_info(&mut self) {
+        self.sessions.queue_to_active(&ServerMessage::ServerInfo(self.server_info()));
+    }
+
+    /// The receive budget of this tick (`receive_*` keys); the time share is of the
+    /// nominal period, so a dilated tick does not receive for longer.
+    fn receive_limits(&self) -> ReceiveLimits {
+        let period = Duration::from_secs_f64(1.0 / f64::from(self.config.tick_rate));
+        ReceiveLimits {
+            per_session: self.config.receive_per_session,
+            other_address: self.config.receive_other_address,
+            time: period.mul_f64(f64::from(self.config.receive_time_percent) / 100.0),
+        }
     }
 
     fn drain_commands(&mut self) {
@@ -431,6 +460,9 @@ impl TickLoop {
 
     /// Shared counters, the status window and the per-tick metrics.
     fn publish(&mut self, work: &TickWork, elapsed: Duration) {
+        let defence = &self.shared.defence;
+        defence.tag_checks.fetch_add(work.tag_checks, Ordering::Relaxed);
+        defence.over_budget.fetch_add(work.over_budget, Ordering::Relaxed);
         self.shared.dilation_permille.store(u32::from(self.dilation.permille()), Ordering::Relaxed);
         self.shared.tick.store(self.world.tick, Ordering::Relaxed);
         self.shared.players.store(self.sessions.len(), Ordering::Relaxed);

@@ -258,3 +258,80 @@ fn every_update_datagram_of_a_player_contains_its_own_object() {
     }
     assert!(updates > 40 && multi > 0, "the view spans several datagrams: {updates} updates, {multi} multi");
 }
+
+/// A datagram with `c`'s live session id and a fresh sequence number but a wrong tag:
+/// what anyone who knows (or sniffed) a session id can send.
+fn forged(c: &mut Client) -> Vec<u8> {
+    let mut d = Rig::seal(c, &ClientMessage::KeepAlive);
+    let n = d.len();
+    d[n - 1] ^= 1;
+    d
+}
+
+// Issue 14: every datagram naming a live session cost a Poly1305 check; a flood of them
+// from one socket brought the tick from 30 to 5 per second.
+#[test]
+fn a_flood_on_a_live_session_costs_at_most_its_budget_of_tag_checks() {
+    let config = ServerConfig { receive_per_session: 8, receive_other_address: 2, ..ServerConfig::default() };
+    let mut r = rig(config);
+    let mut victim = r.join(1, 40_001);
+    let mut attacker = r.join(2, 40_002);
+    r.net.take_sent();
+    // The attacker floods its own session from its own address, and the victim's
+    // session from its own address too (a different address from the victim's).
+    for _ in 0..500 {
+        let d = forged(&mut attacker);
+        r.net.push(attacker.addr, d);
+        let d = forged(&mut victim);
+        r.net.push(attacker.addr, d);
+    }
+    // The victim's own action arrives last, behind the whole flood.
+    r.action(&mut victim, ActionMask::RIGHT);
+    let work = r.tick.tick_once();
+    assert_eq!(work.received, 1001);
+    assert_eq!(
+        work.tag_checks,
+        8 + 2 + 1,
+        "own budget of the attacker, other-address budget of the victim, the action"
+    );
+    assert_eq!(work.over_budget, 1001 - 11);
+    assert_eq!(work.actions, 1, "the victim's own datagram still gets in");
+    assert_eq!(r.action_of(&victim).bits(), Action::RIGHT);
+    // The budget is per tick: the next tick serves both again.
+    r.action(&mut victim, ActionMask::LEFT);
+    r.action(&mut attacker, ActionMask::LEFT);
+    let work = r.tick.tick_once();
+    assert_eq!((work.tag_checks, work.actions, work.over_budget), (2, 2, 0));
+}
+
+#[test]
+fn a_session_floods_only_itself() {
+    let mut r = rig(ServerConfig { receive_per_session: 4, ..ServerConfig::default() });
+    let mut a = r.join(1, 40_001);
+    let mut b = r.join(2, 40_002);
+    for _ in 0..100 {
+        let d = forged(&mut a);
+        r.net.push(a.addr, d);
+    }
+    r.action(&mut a, ActionMask::FORWARD);
+    r.action(&mut b, ActionMask::FORWARD);
+    let work = r.tick.tick_once();
+    assert_eq!(work.tag_checks, 4 + 1);
+    assert_eq!(work.actions, 1, "the flooder's own action is crowded out, the other player's is not");
+    assert_eq!(r.action_of(&b).bits(), Action::FORWARD);
+    assert_eq!(r.action_of(&a), Action::NONE);
+}
+
+#[test]
+fn a_changed_dilation_is_announced_to_ready_players() {
+    let mut r = rig(ServerConfig::default());
+    let mut c = r.join(1, 40_001);
+    r.tick.tick_once();
+    r.net.take_sent();
+    r.tick.announce_server_info();
+    r.tick.tick_once();
+    let sent = r.net.take_sent();
+    let infos: Vec<_> =
+        r.received(&sent, &mut c).into_iter().filter(|o| matches!(o.message, ServerMessage::ServerInfo(_))).collect();
+    assert_eq!(infos.len(), 1, "one ServerInfo with the tick's updates");
+}

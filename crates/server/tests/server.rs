@@ -296,6 +296,34 @@ fn time_dilation_engages_under_load_and_recovers() {
     server.shutdown().unwrap();
 }
 
+// Issue 14: docs/protocol.md promised ServerInfo whenever the dilation changes; the
+// server only ever sent it in answer to Ready.
+#[test]
+fn server_info_is_sent_again_when_the_dilation_changes() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rt, server, cc) = start(config(dir.path()), 1);
+    rt.block_on(async {
+        let mut c = Connection::connect(cc, Credentials::test_user(0)).await.unwrap();
+        wait_own_position(&mut c).await;
+        server.set_artificial_load(Duration::from_millis(60));
+        let end = Instant::now() + Duration::from_secs(15);
+        let mut infos = Vec::new();
+        let mut next_keepalive = Instant::now();
+        while Instant::now() < end && !infos.iter().any(|&d| d < 1000) {
+            if Instant::now() >= next_keepalive {
+                c.send_action(0).await.unwrap();
+                next_keepalive += Duration::from_millis(200);
+            }
+            if let Ok(Some(Event::Info(info))) = c.recv(Duration::from_millis(20)).await {
+                infos.push(info.dilation_permille);
+            }
+        }
+        assert!(infos.iter().any(|&d| d < 1000), "no ServerInfo announced the dilation: {infos:?}");
+        server.set_artificial_load(Duration::ZERO);
+    });
+    server.shutdown().unwrap();
+}
+
 #[test]
 fn two_hundred_bots_end_to_end() {
     let dir = tempfile::tempdir().unwrap();

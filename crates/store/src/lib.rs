@@ -43,6 +43,7 @@ pub use model::{
 pub use password::{
     HashCost, MAX_PASSWORD_LEN, MAX_USERNAME_LEN, hash_password, validate_password, validate_username, verify_password,
 };
+pub use password::{HashPoolStats, configure_hash_pool, hash_pool_stats};
 pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, SubmitError};
 pub use store::{Dialect, Store};
 pub use users::{MAX_SEED_USERS, User};

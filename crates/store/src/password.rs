@@ -2,11 +2,26 @@
 //!
 //! Hashes are PHC strings (`$argon2id$v=19$m=...,t=...,p=...$salt$hash`): the cost is
 //! stored with each hash, so raising [`HashCost`] later only affects new hashes and old
-//! ones still verify. Hashing takes tens to hundreds of milliseconds by design, so every
-//! call goes through [`tokio::task::spawn_blocking`] and never stalls a runtime worker
-//! (or the server's tick thread).
+//! ones still verify. Hashing takes tens to hundreds of milliseconds by design, so it
+//! never runs on a runtime worker (or the server's tick thread).
+//!
+//! # The verification pool
+//!
+//! Verifications ([`verify_password`], so every login) run on one process-wide pool of
+//! threads ([`configure_hash_pool`]; by default the cores less one, at least one), not on
+//! tokio's blocking pool. Each pool thread keeps its Argon2 working memory (19 MiB at the
+//! default cost) and reuses it for the next verification
+//! (`Argon2::hash_password_into_with_memory`): the process's memory for hashing is
+//! `threads × m_kib`, allocated once, instead of a fresh block per login that the
+//! allocator may keep after it is freed. The pool's queue is not bounded here: the
+//! caller (the login service) bounds what it submits and how long it waits. Creating
+//! hashes (new users, password changes) is rare and stays on the blocking pool.
 
-use argon2::{Algorithm, Argon2, Params, PasswordHasher, PasswordVerifier, Version};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex, OnceLock};
+
+use argon2::{Algorithm, Argon2, Block, Params, PasswordHash, PasswordHasher, Version};
 
 use crate::error::{Result, StoreError};
 
@@ -91,16 +106,139 @@ pub(crate) fn hash_blocking(cost: HashCost, password: &[u8]) -> Result<String> {
 
 /// Verifies synchronously; call only from a blocking context. A malformed stored hash
 /// counts as a mismatch (and is logged without its content).
+#[cfg(test)]
 pub(crate) fn verify_blocking(password: &[u8], phc: &str) -> bool {
-    // The parameters come from the PHC string itself, not from the configured cost.
-    match Argon2::default().verify_password(password, phc) {
-        Ok(()) => true,
-        Err(argon2::password_hash::Error::PasswordInvalid) => false,
+    verify_with_memory(password, phc, &mut Vec::new())
+}
+
+/// Verifies `password` against a PHC string with `memory` as Argon2's working memory,
+/// grown when the hash's cost needs more and otherwise reused as is. The comparison of
+/// the outputs is constant-time.
+fn verify_with_memory(password: &[u8], phc: &str, memory: &mut Vec<Block>) -> bool {
+    match try_verify(password, phc, memory) {
+        Ok(matches) => matches,
         Err(e) => {
             tracing::warn!(error = %e, "stored password hash could not be verified");
             false
         }
     }
+}
+
+fn try_verify(password: &[u8], phc: &str, memory: &mut Vec<Block>) -> std::result::Result<bool, String> {
+    // The parameters come from the PHC string itself, not from the configured cost.
+    let parsed = PasswordHash::new(phc).map_err(|e| e.to_string())?;
+    let (Some(salt), Some(expected)) = (&parsed.salt, &parsed.hash) else {
+        return Err("the stored hash has no salt or no output".into());
+    };
+    let algorithm = Algorithm::new(parsed.algorithm.as_str()).map_err(|e| e.to_string())?;
+    let version = match parsed.version {
+        Some(v) => Version::try_from(v).map_err(|e| e.to_string())?,
+        None => Version::default(),
+    };
+    let params = Params::try_from(&parsed).map_err(|e| e.to_string())?;
+    let blocks = params.block_count();
+    if memory.len() < blocks {
+        memory.resize(blocks, Block::default());
+    }
+    let mut out = vec![0u8; expected.len()];
+    Argon2::new(algorithm, version, params)
+        .hash_password_into_with_memory(password, salt, &mut out, &mut memory[..blocks])
+        .map_err(|e| e.to_string())?;
+    // `Output`'s equality is constant-time.
+    let computed = argon2::password_hash::phc::Output::new(&out).map_err(|e| e.to_string())?;
+    Ok(computed == *expected)
+}
+
+type Job = Box<dyn FnOnce(&mut Vec<Block>) + Send>;
+
+/// The process-wide verification pool; see the module docs.
+struct HashPool {
+    jobs: Mutex<mpsc::Sender<Job>>,
+    threads: usize,
+}
+
+static POOL: OnceLock<HashPool> = OnceLock::new();
+/// Threads the pool will start with (0: the cores less one).
+static POOL_THREADS: AtomicUsize = AtomicUsize::new(0);
+/// Bytes of Argon2 working memory held by the pool's threads, together.
+static POOL_MEMORY: AtomicU64 = AtomicU64::new(0);
+/// Verifications the pool has run.
+static POOL_VERIFIED: AtomicU64 = AtomicU64::new(0);
+
+/// Sets the number of threads of the verification pool. Takes effect only before the
+/// pool's first use (it starts on the first verification); returns whether it did.
+pub fn configure_hash_pool(threads: usize) -> bool {
+    POOL_THREADS.store(threads.max(1), Ordering::Relaxed);
+    POOL.get().is_none()
+}
+
+/// What the verification pool holds: its threads, the bytes of Argon2 working memory
+/// they keep (together), and verifications run so far.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HashPoolStats {
+    /// Threads of the pool (0 before its first use).
+    pub threads: usize,
+    /// Bytes of working memory held, over all threads.
+    pub memory_bytes: u64,
+    /// Verifications run.
+    pub verified: u64,
+}
+
+/// The verification pool's figures now.
+pub fn hash_pool_stats() -> HashPoolStats {
+    HashPoolStats {
+        threads: POOL.get().map_or(0, |p| p.threads),
+        memory_bytes: POOL_MEMORY.load(Ordering::Relaxed),
+        verified: POOL_VERIFIED.load(Ordering::Relaxed),
+    }
+}
+
+fn pool() -> &'static HashPool {
+    POOL.get_or_init(|| {
+        let threads = match POOL_THREADS.load(Ordering::Relaxed) {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get().saturating_sub(1)).max(1),
+            n => n,
+        };
+        let (jobs, receiver) = mpsc::channel::<Job>();
+        let receiver = Arc::new(Mutex::new(receiver));
+        for i in 0..threads {
+            let receiver = receiver.clone();
+            let spawned = std::thread::Builder::new().name(format!("myriad-hash-{i}")).spawn(move || {
+                let mut memory: Vec<Block> = Vec::new();
+                loop {
+                    // Hold the lock only to take a job, never while hashing.
+                    let job = receiver.lock().unwrap_or_else(|p| p.into_inner()).recv();
+                    let Ok(job) = job else { return };
+                    let before = memory.len();
+                    job(&mut memory);
+                    if memory.len() > before {
+                        let grown = (memory.len() - before) * Block::SIZE;
+                        POOL_MEMORY.fetch_add(grown as u64, Ordering::Relaxed);
+                    }
+                    POOL_VERIFIED.fetch_add(1, Ordering::Relaxed);
+                }
+            });
+            if let Err(e) = spawned {
+                tracing::error!(error = %e, "cannot start a password-hashing thread");
+            }
+        }
+        HashPool { jobs: Mutex::new(jobs), threads }
+    })
+}
+
+/// Runs `f` on the verification pool with the thread's reusable working memory.
+async fn on_pool<T: Send + 'static>(f: impl FnOnce(&mut Vec<Block>) -> T + Send + 'static) -> Result<T> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let job: Job = Box::new(move |memory| {
+        let _ = tx.send(f(memory));
+    });
+    pool()
+        .jobs
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .send(job)
+        .map_err(|_| StoreError::Internal("the password-hashing pool has stopped".into()))?;
+    rx.await.map_err(|_| StoreError::Internal("a password-hashing thread failed".into()))
 }
 
 /// Hashes `password` with `cost` on the blocking pool.
@@ -109,10 +247,10 @@ pub async fn hash_password(cost: HashCost, password: &str) -> Result<String> {
     spawn_blocking(move || hash_blocking(cost, &password)).await?
 }
 
-/// Verifies `password` against a PHC string on the blocking pool.
+/// Verifies `password` against a PHC string on the verification pool (module docs).
 pub async fn verify_password(password: &str, phc: String) -> Result<bool> {
     let password = password.as_bytes().to_vec();
-    spawn_blocking(move || verify_blocking(&password, &phc)).await
+    on_pool(move |memory| verify_with_memory(&password, &phc, memory)).await
 }
 
 /// Runs `f` on the blocking pool and turns a panic or cancellation into an error.
@@ -155,6 +293,29 @@ mod tests {
         // A malformed stored hash is a mismatch, not a panic.
         assert!(!verify_blocking(b"x", "not a hash"));
         assert!(!verify_blocking(b"x", ""));
+    }
+
+    #[tokio::test]
+    async fn the_pool_verifies_and_reuses_its_memory() {
+        let cost = HashCost { m_kib: 256, t: 1, p: 1 };
+        let hash = hash_blocking(cost, b"secret").unwrap();
+        assert!(verify_password("secret", hash.clone()).await.unwrap());
+        assert!(!verify_password("secret!", hash.clone()).await.unwrap());
+        let held = hash_pool_stats().memory_bytes;
+        assert!(held >= 256 * 1024, "the working memory is kept: {held}");
+        for _ in 0..8 {
+            assert!(verify_password("secret", hash.clone()).await.unwrap());
+        }
+        let stats = hash_pool_stats();
+        // Every thread grows its memory to the largest cost it has seen, once: no
+        // verification of the same cost allocates again.
+        assert!(stats.memory_bytes <= stats.threads as u64 * 256 * 1024, "{stats:?}");
+        assert!(stats.verified >= 10);
+        // A hash made by argon2's own API verifies with the reused memory, and a
+        // malformed one is a mismatch.
+        let other = cost.hasher().unwrap().hash_password(b"x").unwrap().to_string();
+        assert!(verify_password("x", other).await.unwrap());
+        assert!(!verify_password("x", "$argon2id$garbage".into()).await.unwrap());
     }
 
     #[test]

@@ -75,8 +75,6 @@ use crate::status::Shared;
 /// Login connections handled at once; more are closed immediately.
 const MAX_LOGIN_CONNECTIONS: usize = 4096;
 
-/// How long shutdown keeps trying to write the last positions.
-const SHUTDOWN_FLUSH: Duration = Duration::from_secs(10);
 
 /// A running server. Dropping it shuts it down gracefully (as [`ServerHandle::shutdown`]).
 pub struct ServerHandle {
@@ -88,6 +86,7 @@ pub struct ServerHandle {
     login_addr: SocketAddr,
     udp_addr: SocketAddr,
     certificate: PathBuf,
+    shutdown_flush: Duration,
 }
 
 impl std::fmt::Debug for ServerHandle {
@@ -127,6 +126,9 @@ impl ServerHandle {
             .build()
             .map_err(|e| ServerError::io("starting the async runtime", e))?;
         let store = runtime.block_on(Store::open(&store_config(&config)))?;
+        // A real write before any player is accepted: a store that cannot write stops
+        // the start here, with the database's own error.
+        runtime.block_on(store.check_writable()).map_err(ServerError::NotWritable)?;
         let prepared = runtime.block_on(world::prepare(&config, &store))?;
         tracing::info!(
             map = %prepared.description.name,
@@ -225,6 +227,7 @@ impl ServerHandle {
             login_addr,
             udp_addr,
             certificate,
+            shutdown_flush: Duration::from_secs_f32(config.shutdown_flush_s),
         })
     }
 
@@ -280,7 +283,8 @@ impl ServerHandle {
     }
 
     /// Stops gracefully: disconnects every player, writes every position, closes the
-    /// store. Returns what the last flush wrote.
+    /// store. Returns what the last flush wrote, or [`ServerError::PositionsLost`] (how
+    /// many, and why) when the database did not take them within `shutdown_flush_s`.
     pub fn shutdown(mut self) -> Result<FlushReport, ServerError> {
         self.stop_gracefully()
     }
@@ -295,11 +299,34 @@ impl ServerHandle {
         let Some(runtime) = self.runtime.take() else {
             return Ok(FlushReport::default());
         };
-        let report = runtime.block_on(self.persister.shutdown(SHUTDOWN_FLUSH));
-        runtime.block_on(self.store.close());
+        let report = runtime.block_on(self.persister.shutdown(self.shutdown_flush));
+        // Closing waits for connections in flight; a frozen database must not hold the
+        // exit past the deadline.
+        if runtime.block_on(tokio::time::timeout(Duration::from_secs(1), self.store.close())).is_err() {
+            tracing::warn!("the database connections did not close within 1 s; abandoned");
+        }
         runtime.shutdown_timeout(Duration::from_secs(1));
-        tracing::info!("server stopped");
-        Ok(report?)
+        let stats = self.persister.stats();
+        match report {
+            Ok(report) => {
+                tracing::info!(
+                    written = report.rows_written,
+                    dropped_while_running = stats.dropped_total(),
+                    "server stopped; every position saved"
+                );
+                Ok(report)
+            }
+            Err(loss) => {
+                tracing::error!(
+                    lost = loss.lost,
+                    written = loss.rows_written,
+                    dropped_while_running = stats.dropped_total() - loss.lost,
+                    error = %loss.cause,
+                    "server stopped; player positions lost"
+                );
+                Err(ServerError::PositionsLost(loss))
+            }
+        }
     }
 
     /// Stops abruptly, as a `kill -9` would: no final positions, no flush, the database

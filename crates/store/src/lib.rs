@@ -27,6 +27,7 @@ mod config;
 mod error;
 mod maps;
 mod model;
+mod names;
 mod password;
 mod persister;
 mod players;
@@ -41,8 +42,9 @@ pub use model::{
     UserId, WorldBounds, now_ms,
 };
 pub use password::{
-    HashCost, MAX_PASSWORD_LEN, MAX_USERNAME_LEN, hash_password, validate_password, validate_username, verify_password,
+    HashCost, MAX_PASSWORD_LEN, hash_password, validate_password, verify_password,
 };
-pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, SubmitError};
+pub use names::{MAX_USERNAME_LEN, validate_username};
+pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, ShutdownLoss, SubmitError};
 pub use store::{Dialect, Store};
 pub use users::{MAX_SEED_USERS, User};

@@ -8,14 +8,17 @@
 #   -n  bots (default 300)         -d  seconds the bots play (default 60)
 #   -c  logins in flight (default 32; 1000 with -n 1000 is a login burst)
 #   -s  seconds between RSS samples (default 5)
+#   -m  stop the drill if the server's RSS passes this many MiB (default 6000), so a
+#       leaking build cannot take the machine down
 # Prints: RSS of the fresh server (world built, nobody logged in), after the logins, peak
 # and at the end; tick percentiles from the `myriad_tick_duration_seconds` histogram
 # (bucket upper bounds) over the bots' run; ticks over 50 ms and 100 ms; and, when the
 # binary exports it, `myriad_slow_ticks_total` (ticks over twice the dilated period).
+# KEEP_LOG=FILE keeps the server's log; SERVE_ARGS="--set k=v ..." adds server flags.
 set -euo pipefail
-BIN=target/release/myriad; BOTS=300; DUR=60; CONC=32; SAMPLE=5
-while getopts "b:n:d:c:s:" o; do case $o in
-  b) BIN=$OPTARG;; n) BOTS=$OPTARG;; d) DUR=$OPTARG;; c) CONC=$OPTARG;; s) SAMPLE=$OPTARG;;
+BIN=target/release/myriad; BOTS=300; DUR=60; CONC=32; SAMPLE=5; MAXMIB=6000
+while getopts "b:n:d:c:s:m:" o; do case $o in
+  b) BIN=$OPTARG;; n) BOTS=$OPTARG;; d) DUR=$OPTARG;; c) CONC=$OPTARG;; s) SAMPLE=$OPTARG;; m) MAXMIB=$OPTARG;;
   *) sed -n 2,14p "$0"; exit 2;; esac; done
 (( DUR <= 3600 && BOTS <= 10000 )) || { echo "bounded: at most 3600 s and 10000 bots" >&2; exit 2; }
 DIR=$(mktemp -d); trap 'kill $SRV 2>/dev/null || true; rm -rf "$DIR"' EXIT
@@ -23,7 +26,7 @@ P=$((20000 + RANDOM % 20000))
 UDP=127.0.0.1:$P LOGIN=127.0.0.1:$((P+1)) MET=127.0.0.1:$((P+2))
 "$BIN" user seed --count "$BOTS" --data-dir "$DIR" >/dev/null
 "$BIN" serve --data-dir "$DIR" --udp $UDP --login $LOGIN --metrics $MET --backend cpu \
-  --set log_stages_every_s=1 >"$DIR/serve.log" 2>&1 & SRV=$!
+  --set log_stages_every_s=1 ${SERVE_ARGS:-} >"$DIR/serve.log" 2>&1 & SRV=$!
 for _ in $(seq 1 120); do grep -q "server started" "$DIR/serve.log" && break; sleep 0.5; done
 rss() { awk '/VmRSS/ {print int($2/1024)}' /proc/$SRV/status; }
 metrics() { curl -s "http://$MET/metrics"; }
@@ -33,10 +36,12 @@ sleep 3; FRESH=$(rss); metrics >"$DIR/m0"
 PEAK=$FRESH; AFTER_LOGIN=""; T0=$(date +%s)
 while kill -0 $BOTSPID 2>/dev/null; do
   R=$(rss); (( R > PEAK )) && PEAK=$R
-  if [[ -z $AFTER_LOGIN ]] && grep -q "bots $BOTS/$BOTS" "$DIR/bots.log" 2>/dev/null; then AFTER_LOGIN=$R; fi
+  if (( R > MAXMIB )); then echo "RSS ${R} MiB over the -m limit ${MAXMIB}: stopping"; kill $BOTSPID; break; fi
+  if [[ -z $AFTER_LOGIN ]] && grep -q "^logins: " "$DIR/bots.log" 2>/dev/null; then AFTER_LOGIN=$R; fi
   echo "t=$(( $(date +%s) - T0 ))s rss=${R}MiB"
   sleep "$SAMPLE"
 done
+wait $BOTSPID 2>/dev/null || true
 metrics >"$DIR/m1"; END=$(rss)
 python3 - "$DIR/m0" "$DIR/m1" <<'PY'
 import sys, re
@@ -62,5 +67,8 @@ if s1 is not None: print(f"ticks over twice the dilated period (myriad_slow_tick
 PY
 echo "dilation seen: $(grep -o 'dilation [0-9]*' "$DIR/serve.log" | sort -u | tr '\n' ' ')"
 echo "max tick per 1 s window (ms): $(grep -o 'max [0-9.]*' "$DIR/serve.log" | awk '{print $2}' | sort -n | tail -3 | tr '\n' ' ')"
+echo "the window with the longest tick:"
+grep 'myriad::stages' "$DIR/serve.log" | sed 's/.*myriad::stages[^ ]* //' | awk -F'max ' '{split($2, a, ")"); print a[1] "\t" $0}' | sort -n | tail -1 | cut -f2-
+[[ -n ${KEEP_LOG:-} ]] && cp "$DIR/serve.log" "$KEEP_LOG"
 tail -2 "$DIR/bots.log"
 echo "RSS MiB: fresh $FRESH, after $BOTS logins ${AFTER_LOGIN:-?}, peak $PEAK, end $END"

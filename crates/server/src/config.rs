@@ -96,6 +96,10 @@ pub struct ServerConfig {
     /// trees, per-player interest state), so a typo cannot make the server allocate until
     /// the machine runs out. Raise it to serve more.
     pub max_objects: u32,
+    /// Run the async runtime's blocking threads (password hashing, file work) at the
+    /// lowest normal priority (nice 19 on Linux), so that they mostly take CPU the tick
+    /// does not want and a login storm stretches ticks less.
+    pub background_low_priority: bool,
     /// Limit on the memory that password checks may take at once,
     /// `login_concurrency × hash_memory_kib`, in MiB. Raise it for a bigger pool.
     pub max_hash_memory_mib: u32,
@@ -142,6 +146,7 @@ impl Default for ServerConfig {
             shutdown_flush_s: 10.0,
             max_objects: 1_000_000,
             max_hash_memory_mib: 4096,
+            background_low_priority: true,
         }
     }
 }

@@ -119,9 +119,18 @@ impl ServerHandle {
         config.validate()?;
         std::fs::create_dir_all(&config.data_dir)
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
+        let started = std::sync::atomic::AtomicUsize::new(0);
+        let background_low_priority = config.background_low_priority;
         let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
+            .worker_threads(IO_WORKERS)
             .thread_name("myriad-io")
+            .on_thread_start(move || {
+                // Tokio starts its worker threads first, when the runtime is built; every
+                // later thread is a blocking-pool thread (password hashing on it).
+                if background_low_priority && started.fetch_add(1, Ordering::Relaxed) >= IO_WORKERS {
+                    yield_cpu_to_the_tick();
+                }
+            })
             .enable_all()
             .build()
             .map_err(|e| ServerError::io("starting the async runtime", e))?;
@@ -354,9 +363,29 @@ impl Drop for ServerHandle {
     }
 }
 
+/// Worker threads of the async runtime (login I/O, database writer, metrics).
+const IO_WORKERS: usize = 2;
+
+/// Gives the calling thread the lowest normal priority (nice 19): it gets the CPU the
+/// tick thread and its physics threads do not want, yet still runs every few
+/// milliseconds. Not `SCHED_IDLE`: measured, an idle-class hashing thread that holds an
+/// allocator lock while a busy machine never lets it run stalls the tick for seconds
+/// (priority inversion). Lowering one's own priority needs no privilege.
+fn yield_cpu_to_the_tick() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: plain system calls on the calling thread (Linux nice values are per
+        // thread; `gettid` names this one).
+        let done = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, 19) };
+        if done != 0 {
+            tracing::warn!(error = %std::io::Error::last_os_error(), "cannot lower a blocking thread's priority");
+        }
+    }
+}
+
 fn install_metrics(addr: SocketAddr) -> Result<(), ServerError> {
     use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
-    let tick_buckets = [0.001, 0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2, 0.5, 1.0];
+    let tick_buckets = [0.001, 0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0];
     PrometheusBuilder::new()
         .with_http_listener(addr)
         .set_buckets_for_metric(Matcher::Suffix("duration_seconds".into()), &tick_buckets)

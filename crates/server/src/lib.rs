@@ -156,7 +156,10 @@ impl ServerHandle {
         let persister = {
             let _guard = runtime.enter();
             let interval = Duration::from_millis(config.persist_interval_ms);
-            Persister::start(store.clone(), PersisterConfig { interval, ..PersisterConfig::default() })?
+            // Retries at most 2 s apart, so that the log says "back up" soon after the
+            // database returns (the default backoff grows to 10 s).
+            let retry_max = Duration::from_secs(2);
+            Persister::start(store.clone(), PersisterConfig { interval, retry_max, ..PersisterConfig::default() })?
         };
         if let Some(addr) = config.metrics_addr {
             let _guard = runtime.enter();
@@ -309,12 +312,14 @@ impl ServerHandle {
             return Ok(FlushReport::default());
         };
         let report = runtime.block_on(self.persister.shutdown(self.shutdown_flush));
-        // Closing waits for connections in flight; a frozen database must not hold the
-        // exit past the deadline.
-        if runtime.block_on(tokio::time::timeout(Duration::from_secs(1), self.store.close())).is_err() {
-            tracing::warn!("the database connections did not close within 1 s; abandoned");
+        // Closing waits for connections in flight; when the database already failed the
+        // deadline, nothing more is waited for (the deadline is the whole shutdown's).
+        let grace = if report.is_ok() { Duration::from_secs(1) } else { Duration::from_millis(100) };
+        let store = &self.store;
+        if runtime.block_on(async { tokio::time::timeout(grace, store.close()).await }).is_err() {
+            tracing::warn!(?grace, "the database connections did not close in time; abandoned");
         }
-        runtime.shutdown_timeout(Duration::from_secs(1));
+        runtime.shutdown_timeout(grace);
         let stats = self.persister.stats();
         match report {
             Ok(report) => {

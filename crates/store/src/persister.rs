@@ -188,7 +188,7 @@ impl Shared {
 
 enum Command {
     Flush(oneshot::Sender<Result<FlushReport>>),
-    Shutdown(Duration, oneshot::Sender<(u64, Result<()>)>),
+    Shutdown(Instant, oneshot::Sender<(u64, Result<()>)>),
 }
 
 /// Write-behind queue of player states: the tick thread submits, a task writes.
@@ -332,14 +332,28 @@ impl Persister {
     /// left unwritten the answer says how many ([`ShutdownLoss`]), and they are counted
     /// in [`PersisterStats::lost_at_shutdown`].
     pub async fn shutdown(&self, timeout: Duration) -> Result<FlushReport, ShutdownLoss> {
-        let loss = |cause| ShutdownLoss { rows_written: 0, lost: self.stats().queued, deadline: timeout, cause };
+        // The deadline runs from this call, even if the writer is still inside a write
+        // that waits on a stalled database when the command is sent.
+        let deadline = after(timeout);
+        self.shared.lock().closed = true;
+        let loss = |cause| {
+            let lost = self.stats().queued;
+            Shared::bump(&self.shared.counters.lost_at_shutdown, lost);
+            ShutdownLoss { rows_written: 0, lost, deadline: timeout, cause }
+        };
         let (reply, answer) = oneshot::channel();
-        if self.commands.send(Command::Shutdown(timeout, reply)).await.is_err() {
-            return Err(loss(StoreError::Internal("persister already shut down".into())));
-        }
-        let (written, result) = match answer.await {
-            Ok(r) => r,
-            Err(_) => return Err(loss(StoreError::Internal("persister task is gone".into()))),
+        let asked = async {
+            self.commands.send(Command::Shutdown(deadline, reply)).await.map_err(|_| "persister already shut down")?;
+            answer.await.map_err(|_| "persister task is gone")
+        };
+        let (written, result) = match tokio::time::timeout_at(deadline, asked).await {
+            Ok(Ok(r)) => r,
+            Ok(Err(why)) => return Err(loss(StoreError::Internal(why.into()))),
+            Err(_) => {
+                return Err(loss(StoreError::Internal(
+                    "the writer was still waiting on the database at the deadline (timed out)".into(),
+                )));
+            }
         };
         match result {
             Ok(()) => Ok(FlushReport { rows_written: written }),
@@ -412,9 +426,9 @@ impl Writer {
                         let _ = reply.send(result);
                         false
                     }
-                    Some(Command::Shutdown(timeout, reply)) => {
+                    Some(Command::Shutdown(deadline, reply)) => {
                         self.shared.lock().closed = true;
-                        let _ = reply.send(self.drain_until(after(timeout)).await);
+                        let _ = reply.send(self.drain_until(deadline).await);
                         return;
                     }
                     None => {

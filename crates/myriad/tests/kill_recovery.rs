@@ -114,7 +114,9 @@ fn kill_9_loses_at_most_the_stated_bound() {
     let rows = rt.block_on(store.list_player_states(map)).unwrap();
     assert_eq!(rows.len(), BOTS);
     let worst_at_kill = rows.iter().map(|s| killed_at - s.updated_at_ms).max().unwrap();
-    eprintln!("oldest saved position: {worst_sampled} ms while playing, {worst_at_kill} ms at the kill (bound {bound} ms)");
+    eprintln!(
+        "oldest saved position: {worst_sampled} ms while playing, {worst_at_kill} ms at the kill (bound {bound} ms)"
+    );
     assert!(worst_sampled <= bound, "a saved position was {worst_sampled} ms old while playing (bound {bound} ms)");
     assert!(worst_at_kill <= bound, "a saved position was {worst_at_kill} ms old at the kill (bound {bound} ms)");
     rt.block_on(store.close());

@@ -75,7 +75,6 @@ use crate::status::Shared;
 /// Login connections handled at once; more are closed immediately.
 const MAX_LOGIN_CONNECTIONS: usize = 4096;
 
-
 /// A running server. Dropping it shuts it down gracefully (as [`ServerHandle::shutdown`]).
 pub struct ServerHandle {
     runtime: Option<tokio::runtime::Runtime>,

@@ -41,10 +41,8 @@ pub use model::{
     Heightmap, LoginInfo, MapId, MapInfo, MapSummary, NewMap, PlayerState, SeedReport, StaticObject, StoredShape,
     UserId, WorldBounds, now_ms,
 };
-pub use password::{
-    HashCost, MAX_PASSWORD_LEN, hash_password, validate_password, verify_password,
-};
 pub use names::{MAX_USERNAME_LEN, validate_username};
+pub use password::{HashCost, MAX_PASSWORD_LEN, hash_password, validate_password, verify_password};
 pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, ShutdownLoss, SubmitError};
 pub use store::{Dialect, Store};
 pub use users::{MAX_SEED_USERS, User};

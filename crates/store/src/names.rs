@@ -45,8 +45,26 @@ mod tests {
             assert!(validate_username(ok).is_ok(), "{ok:?}");
         }
         let bad = [
-            "", ".", "..", "...", ".hidden", "trailing.", "a..b", "a._b", "-x", "x_", "a b", "tab\tx", "nul\0x",
-            "zero\u{200b}width", "bidi\u{202e}x", "caf\u{e9}", "\u{430}dmin", "a/b", "a\\b", &"a".repeat(33),
+            "",
+            ".",
+            "..",
+            "...",
+            ".hidden",
+            "trailing.",
+            "a..b",
+            "a._b",
+            "-x",
+            "x_",
+            "a b",
+            "tab\tx",
+            "nul\0x",
+            "zero\u{200b}width",
+            "bidi\u{202e}x",
+            "caf\u{e9}",
+            "\u{430}dmin",
+            "a/b",
+            "a\\b",
+            &"a".repeat(33),
         ];
         for b in bad {
             assert!(matches!(validate_username(b), Err(StoreError::InvalidInput(_))), "{b:?}");

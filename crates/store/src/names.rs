@@ -19,7 +19,13 @@ use crate::password;
 
 pub use crate::password::MAX_USERNAME_LEN;
 
-/// Checks `username` against [the rule](self); the error says which part failed.
+/// Checks `username` against the one rule for user names; the error says which part
+/// failed.
+///
+/// A user name is 1 to [`MAX_USERNAME_LEN`] bytes of ASCII letters, digits, `_`, `-` and
+/// `.`, starting and ending with a letter or a digit, with no two of `_`, `-`, `.` in a
+/// row (so no `.`, `..` or `a..b`). Being ASCII, it has no control, invisible or
+/// look-alike characters. Names compare case-insensitively.
 pub fn validate_username(username: &str) -> Result<()> {
     // Length and the character set (shared with the hashing code's own check).
     password::validate_username(username)?;

@@ -49,6 +49,45 @@ pub struct TerrainPlacement {
     pub base_y: f32,
 }
 
+/// Largest heightmap accepted, in samples (4096 × 4096 = 16.8 million, 32 MiB of `u16`):
+/// the same cap as the store's (`myriad_store::MAX_HEIGHTMAP_SAMPLES`). Larger grids are
+/// refused from the file's header, before anything is allocated; resample the image (a
+/// 4096² heightmap over a 10 km map is already one sample per 2.4 m).
+pub const MAX_TERRAIN_SAMPLES: u64 = 4096 * 4096;
+
+/// Largest heightmap file read (a 4096² 16-bit PNG, uncompressed, plus room for chunks).
+pub const MAX_HEIGHTMAP_FILE_BYTES: u64 = 2 * MAX_TERRAIN_SAMPLES + (1 << 20);
+
+/// Largest extent of a terrain (and so of a served map) along x or z, and largest
+/// `max_height`, in world units: beyond 65,536 an `f32` position resolves coarser than
+/// 1/256 unit and the physics' contact depths lose their precision.
+pub const MAX_WORLD_EXTENT: f32 = 65_536.0;
+
+/// Refuses a grid over [`MAX_TERRAIN_SAMPLES`], naming the limit.
+fn check_dimensions(width: u32, depth: u32) -> Result<(), String> {
+    let n = u64::from(width) * u64::from(depth);
+    if n > MAX_TERRAIN_SAMPLES {
+        return Err(format!(
+            "{width}x{depth} = {n} samples exceeds the limit of {MAX_TERRAIN_SAMPLES} (4096x4096); \
+             resample the heightmap to at most 4096x4096"
+        ));
+    }
+    Ok(())
+}
+
+/// Reads a heightmap file whose size is at most `limit` bytes, checked before reading.
+fn read_bounded(path: &Path, limit: u64) -> Result<Vec<u8>, CoreError> {
+    let io = |source| CoreError::HeightmapIo { path: path.into(), source };
+    let len = std::fs::metadata(path).map_err(io)?.len();
+    if len > limit {
+        return Err(CoreError::invalid(
+            "heightmap file",
+            format!("{} is {len} bytes, over the limit of {limit} (a 4096x4096 16-bit heightmap)", path.display()),
+        ));
+    }
+    std::fs::read(path).map_err(io)
+}
+
 impl Terrain {
     /// A terrain from raw samples. Fails if the sizes do not match or a parameter is not
     /// finite and positive.
@@ -62,6 +101,7 @@ impl Terrain {
         if width < 2 || depth < 2 {
             return Err(CoreError::invalid("heightmap size", format!("{width}x{depth}: need at least 2x2 samples")));
         }
+        check_dimensions(width, depth).map_err(|e| CoreError::invalid("heightmap size", e))?;
         if samples.len() as u64 != width as u64 * depth as u64 {
             return Err(CoreError::invalid(
                 "heightmap",
@@ -74,6 +114,16 @@ impl Terrain {
         let finite_pos = |v: f32| v.is_finite() && v > 0.0;
         if !finite_pos(at.extent_x) || !finite_pos(at.extent_z) {
             return Err(CoreError::invalid("terrain extent", format!("{} x {}", at.extent_x, at.extent_z)));
+        }
+        if at.extent_x > MAX_WORLD_EXTENT || at.extent_z > MAX_WORLD_EXTENT || max_height > MAX_WORLD_EXTENT {
+            return Err(CoreError::invalid(
+                "world size",
+                format!(
+                    "{} x {} units, max height {max_height}: over the limit of {MAX_WORLD_EXTENT} units \
+                     (f32 precision); split the world into several maps",
+                    at.extent_x, at.extent_z
+                ),
+            ));
         }
         if !(at.origin_x.is_finite() && at.origin_z.is_finite() && at.base_y.is_finite()) {
             return Err(CoreError::invalid("terrain origin", "not finite"));
@@ -113,6 +163,7 @@ impl Terrain {
         if width < 2 || depth < 2 {
             return Err(CoreError::invalid("heightmap size", format!("{width}x{depth}")));
         }
+        check_dimensions(width, depth).map_err(|e| CoreError::invalid("heightmap size", e))?;
         const OCTAVES: u32 = 6;
         const BASE_CELLS: f64 = 4.0; // hills across the whole map at the lowest octave
         let mut raw = vec![0f64; width as usize * depth as usize];
@@ -137,12 +188,16 @@ impl Terrain {
         Terrain::new(width, depth, samples, max_height, at)
     }
 
-    /// Loads a 16-bit (or 8-bit, scaled by 257) grayscale PNG.
+    /// Loads a 16-bit (or 8-bit, scaled by 257) grayscale PNG. The dimensions are
+    /// checked from the header against [`MAX_TERRAIN_SAMPLES`] before any sample buffer
+    /// is allocated, and the file size against [`MAX_HEIGHTMAP_FILE_BYTES`] before reading.
     pub fn from_png(path: &Path, max_height: f32, at: TerrainPlacement) -> Result<Terrain, CoreError> {
-        let bytes = std::fs::read(path).map_err(|source| CoreError::HeightmapIo { path: path.into(), source })?;
+        let bytes = read_bounded(path, MAX_HEIGHTMAP_FILE_BYTES)?;
         let bad = |reason: String| CoreError::HeightmapPng { path: path.into(), reason };
         let decoder = png::Decoder::new(std::io::Cursor::new(bytes));
         let mut reader = decoder.read_info().map_err(|e| bad(e.to_string()))?;
+        let header = reader.info();
+        check_dimensions(header.width, header.height).map_err(bad)?;
         let size = reader.output_buffer_size().ok_or_else(|| bad("image too large".into()))?;
         let mut buf = vec![0u8; size];
         let info = reader.next_frame(&mut buf).map_err(|e| bad(e.to_string()))?;
@@ -167,7 +222,7 @@ impl Terrain {
         max_height: f32,
         at: TerrainPlacement,
     ) -> Result<Terrain, CoreError> {
-        let bytes = std::fs::read(path).map_err(|source| CoreError::HeightmapIo { path: path.into(), source })?;
+        let bytes = read_bounded(path, 2 * MAX_TERRAIN_SAMPLES)?;
         let n = bytes.len() as u64;
         let (w, d) = match dims {
             Some((w, d)) if n == 2 * w as u64 * d as u64 => (w, d),
@@ -349,6 +404,35 @@ mod tests {
             Err(CoreError::HeightmapIo { .. })
         ));
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn huge_png_header_is_refused_before_allocating() {
+        // A valid PNG whose header claims 60000x60000 16-bit samples (7.2 GB decoded);
+        // the file itself is tiny. Refused from the header, naming the limit.
+        let dir = std::env::temp_dir().join(format!("myriad-terrain-huge-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("huge.png");
+        let mut file = Vec::new();
+        {
+            let mut enc = png::Encoder::new(&mut file, 60_000, 60_000);
+            enc.set_color(png::ColorType::Grayscale);
+            enc.set_depth(png::BitDepth::Sixteen);
+            let mut writer = enc.write_header().unwrap();
+            // A few bytes of image data (a 1 KB file, as in the drill): the decoder reads
+            // the header up to the first data chunk.
+            writer.write_chunk(png::chunk::IDAT, &[0x78, 0x9c, 0x03, 0x00]).unwrap();
+            drop(writer);
+        }
+        std::fs::write(&path, &file).unwrap();
+        let err = Terrain::from_png(&path, 10.0, placement()).unwrap_err().to_string();
+        assert!(err.contains("60000x60000") && err.contains("limit"), "{err}");
+        let err = Terrain::generate(1, 5000, 5000, 10.0, placement()).unwrap_err().to_string();
+        assert!(err.contains("limit"), "{err}");
+        let huge = TerrainPlacement { extent_x: 1e9, ..placement() };
+        let err = Terrain::new(2, 2, vec![0; 4], 10.0, huge).unwrap_err().to_string();
+        assert!(err.contains("world size") && err.contains("limit"), "{err}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

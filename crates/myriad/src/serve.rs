@@ -161,6 +161,6 @@ pub fn run(args: ServeArgs) -> Result<()> {
     wait_for_shutdown(None)?;
     eprintln!("myriad: shutting down, writing every position");
     let report = server.shutdown()?;
-    eprintln!("myriad: stopped ({} positions written in the last flush)", report.rows_written);
+    eprintln!("myriad: stopped; every position saved ({} written in the last flush)", report.rows_written);
     Ok(())
 }

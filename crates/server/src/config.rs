@@ -114,7 +114,25 @@ pub struct ServerConfig {
     pub login_connections_per_addr: u32,
     /// Deadline of the TLS handshake and the login request, in milliseconds.
     pub login_handshake_timeout_ms: u64,
+    /// How long shutdown keeps trying to write the last positions before it gives up and
+    /// reports how many were lost (a hard deadline, database waits included).
+    pub shutdown_flush_s: f32,
+    /// Limit on `npc_count + max_players`: every object costs memory (world arrays,
+    /// trees, per-player interest state), so a typo cannot make the server allocate until
+    /// the machine runs out. Raise it to serve more.
+    pub max_objects: u32,
+    /// Run the async runtime's blocking threads (password hashing, file work) at the
+    /// lowest normal priority (nice 19 on Linux), so that they mostly take CPU the tick
+    /// does not want and a login storm stretches ticks less.
+    pub background_low_priority: bool,
+    /// Limit on the memory that password checks may take at once,
+    /// `login_concurrency × hash_memory_kib`, in MiB. Raise it for a bigger pool.
+    pub max_hash_memory_mib: u32,
 }
+
+/// The highest `max_objects` accepted: the slot and entity indices are 32-bit and a
+/// million objects already take gigabytes with their players' interest state.
+pub const MAX_OBJECTS_CEILING: u32 = 100_000_000;
 
 impl Default for ServerConfig {
     fn default() -> Self {
@@ -158,6 +176,10 @@ impl Default for ServerConfig {
             login_queue_deadline_ms: 1500,
             login_connections_per_addr: 16,
             login_handshake_timeout_ms: 5000,
+            shutdown_flush_s: 10.0,
+            max_objects: 1_000_000,
+            max_hash_memory_mib: 4096,
+            background_low_priority: true,
         }
     }
 }
@@ -258,6 +280,7 @@ impl ServerConfig {
             return bad("log_stages_every_s", format!("{}", self.log_stages_every_s));
         }
         self.validate_abuse_limits()?;
+        self.validate_limits()?;
         self.physics().validate().map_err(|e| ConfigError::Value { key: "physics".into(), reason: e.to_string() })
     }
 
@@ -291,6 +314,45 @@ impl ServerConfig {
         }
         if !(100..=60_000).contains(&self.login_handshake_timeout_ms) {
             return bad("login_handshake_timeout_ms", format!("{} (100 to 60000)", self.login_handshake_timeout_ms));
+        }
+        Ok(())
+    }
+
+    /// The limits on what scales memory: each error names the value, the limit and the
+    /// key that raises it.
+    fn validate_limits(&self) -> Result<(), ConfigError> {
+        let bad = |key: &str, reason: String| Err(ConfigError::Value { key: key.into(), reason });
+        if !(self.shutdown_flush_s.is_finite() && (0.1..=3600.0).contains(&self.shutdown_flush_s)) {
+            return bad("shutdown_flush_s", format!("{} (0.1 to 3600 seconds)", self.shutdown_flush_s));
+        }
+        if self.max_objects == 0 || self.max_objects > MAX_OBJECTS_CEILING {
+            return bad("max_objects", format!("{} (1 to {MAX_OBJECTS_CEILING})", self.max_objects));
+        }
+        let objects = u64::from(self.npc_count) + u64::from(self.max_players);
+        if objects > u64::from(self.max_objects) {
+            let key = if u64::from(self.npc_count) > u64::from(self.max_objects) { "npc_count" } else { "max_players" };
+            return bad(
+                key,
+                format!(
+                    "npc_count {} + max_players {} = {objects} objects exceeds the limit max_objects = {}; \
+                     raise max_objects (up to {MAX_OBJECTS_CEILING}) if the machine has the memory for it",
+                    self.npc_count, self.max_players, self.max_objects
+                ),
+            );
+        }
+        let hash_mib = self.hashing_threads() as u64 * u64::from(self.hash_memory_kib) / 1024;
+        if hash_mib > u64::from(self.max_hash_memory_mib) {
+            return bad(
+                "login_concurrency",
+                format!(
+                    "{} hashing threads (login_concurrency) × hash_memory_kib {} = {hash_mib} MiB of \
+                     password-hash memory exceeds the limit max_hash_memory_mib = {}; lower one of them or raise \
+                     max_hash_memory_mib",
+                    self.hashing_threads(),
+                    self.hash_memory_kib,
+                    self.max_hash_memory_mib
+                ),
+            );
         }
         Ok(())
     }
@@ -395,5 +457,21 @@ mod tests {
         assert!(c.hashing_threads() >= 1, "0 sizes the pool from the cores");
         c.set("login_concurrency", "3").unwrap();
         assert_eq!(c.hashing_threads(), 3);
+    }
+
+    #[test]
+    fn limits_name_the_limit_and_how_to_raise_it() {
+        let err = ServerConfig::from_toml("npc_count = 4000000000\n").unwrap_err().to_string();
+        assert!(err.contains("npc_count") && err.contains("max_objects = 1000000") && err.contains("raise"), "{err}");
+        let ok = ServerConfig::from_toml("npc_count = 2000000\nmax_objects = 3000000\n").unwrap();
+        assert_eq!(ok.npc_count, 2_000_000);
+        let err = ServerConfig::from_toml("max_players = 2000000\n").unwrap_err().to_string();
+        assert!(err.contains("max_players") && err.contains("max_objects"), "{err}");
+        let err = ServerConfig::from_toml("max_objects = 4000000000\n").unwrap_err().to_string();
+        assert!(err.contains("max_objects") && err.contains("100000000"), "{err}");
+        let err = ServerConfig::from_toml("login_concurrency = 100000\n").unwrap_err().to_string();
+        assert!(err.contains("max_hash_memory_mib") && err.contains("login_concurrency"), "{err}");
+        let err = ServerConfig::from_toml("shutdown_flush_s = 0\n").unwrap_err().to_string();
+        assert!(err.contains("shutdown_flush_s"), "{err}");
     }
 }

@@ -46,6 +46,13 @@ pub enum ServerError {
     /// The database failed.
     #[error("store: {0}")]
     Store(#[from] myriad_store::StoreError),
+    /// The store opened but refused the start-up write (read-only file, full disk, no
+    /// write grant): the server does not start rather than drop every position.
+    #[error("store cannot write (checked at start-up with a real write): {0}")]
+    NotWritable(#[source] myriad_store::StoreError),
+    /// Shutdown could not save every position before its deadline.
+    #[error("shutdown: {0}")]
+    PositionsLost(#[source] myriad_store::ShutdownLoss),
     /// Building the world failed.
     #[error("world: {0}")]
     World(#[from] myriad_core::CoreError),

@@ -75,9 +75,6 @@ use crate::status::Shared;
 /// Login connections handled at once; more are closed immediately.
 const MAX_LOGIN_CONNECTIONS: usize = 4096;
 
-/// How long shutdown keeps trying to write the last positions.
-const SHUTDOWN_FLUSH: Duration = Duration::from_secs(10);
-
 /// A running server. Dropping it shuts it down gracefully (as [`ServerHandle::shutdown`]).
 pub struct ServerHandle {
     runtime: Option<tokio::runtime::Runtime>,
@@ -88,6 +85,7 @@ pub struct ServerHandle {
     login_addr: SocketAddr,
     udp_addr: SocketAddr,
     certificate: PathBuf,
+    shutdown_flush: Duration,
 }
 
 impl std::fmt::Debug for ServerHandle {
@@ -126,14 +124,28 @@ impl ServerHandle {
         if !myriad_store::configure_hash_pool(hashing_threads) {
             tracing::debug!("the password-verification pool was already running");
         }
+        let started = std::sync::atomic::AtomicUsize::new(0);
+        let background_low_priority = config.background_low_priority;
         let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
+            .worker_threads(IO_WORKERS)
             .thread_name("myriad-io")
-            .on_thread_start(lower_thread_priority)
+            .on_thread_start(move || {
+                // Tokio starts its worker threads first, when the runtime is built; every
+                // later thread is a blocking-pool thread (file work, the database's
+                // blocking calls): those go lowest, the workers a little below the tick.
+                if background_low_priority && started.fetch_add(1, Ordering::Relaxed) >= IO_WORKERS {
+                    yield_cpu_to_the_tick();
+                } else {
+                    lower_thread_priority();
+                }
+            })
             .enable_all()
             .build()
             .map_err(|e| ServerError::io("starting the async runtime", e))?;
         let store = runtime.block_on(Store::open(&store_config(&config)))?;
+        // A real write before any player is accepted: a store that cannot write stops
+        // the start here, with the database's own error.
+        runtime.block_on(store.check_writable()).map_err(ServerError::NotWritable)?;
         let prepared = runtime.block_on(world::prepare(&config, &store))?;
         tracing::info!(
             map = %prepared.description.name,
@@ -152,7 +164,10 @@ impl ServerHandle {
         let persister = {
             let _guard = runtime.enter();
             let interval = Duration::from_millis(config.persist_interval_ms);
-            Persister::start(store.clone(), PersisterConfig { interval, ..PersisterConfig::default() })?
+            // Retries at most 2 s apart, so that the log says "back up" soon after the
+            // database returns (the default backoff grows to 10 s).
+            let retry_max = Duration::from_secs(2);
+            Persister::start(store.clone(), PersisterConfig { interval, retry_max, ..PersisterConfig::default() })?
         };
         if let Some(addr) = config.metrics_addr {
             let _guard = runtime.enter();
@@ -240,6 +255,7 @@ impl ServerHandle {
             login_addr,
             udp_addr,
             certificate,
+            shutdown_flush: Duration::from_secs_f32(config.shutdown_flush_s),
         })
     }
 
@@ -300,7 +316,8 @@ impl ServerHandle {
     }
 
     /// Stops gracefully: disconnects every player, writes every position, closes the
-    /// store. Returns what the last flush wrote.
+    /// store. Returns what the last flush wrote, or [`ServerError::PositionsLost`] (how
+    /// many, and why) when the database did not take them within `shutdown_flush_s`.
     pub fn shutdown(mut self) -> Result<FlushReport, ServerError> {
         self.stop_gracefully()
     }
@@ -315,11 +332,36 @@ impl ServerHandle {
         let Some(runtime) = self.runtime.take() else {
             return Ok(FlushReport::default());
         };
-        let report = runtime.block_on(self.persister.shutdown(SHUTDOWN_FLUSH));
-        runtime.block_on(self.store.close());
-        runtime.shutdown_timeout(Duration::from_secs(1));
-        tracing::info!("server stopped");
-        Ok(report?)
+        let report = runtime.block_on(self.persister.shutdown(self.shutdown_flush));
+        // Closing waits for connections in flight; when the database already failed the
+        // deadline, nothing more is waited for (the deadline is the whole shutdown's).
+        let grace = if report.is_ok() { Duration::from_secs(1) } else { Duration::from_millis(100) };
+        let store = &self.store;
+        if runtime.block_on(async { tokio::time::timeout(grace, store.close()).await }).is_err() {
+            tracing::warn!(?grace, "the database connections did not close in time; abandoned");
+        }
+        runtime.shutdown_timeout(grace);
+        let stats = self.persister.stats();
+        match report {
+            Ok(report) => {
+                tracing::info!(
+                    written = report.rows_written,
+                    dropped_while_running = stats.dropped_total(),
+                    "server stopped; every position saved"
+                );
+                Ok(report)
+            }
+            Err(loss) => {
+                tracing::error!(
+                    lost = loss.lost,
+                    written = loss.rows_written,
+                    dropped_while_running = stats.dropped_total() - loss.lost,
+                    error = %loss.cause,
+                    "server stopped; player positions lost"
+                );
+                Err(ServerError::PositionsLost(loss))
+            }
+        }
     }
 
     /// Stops abruptly, as a `kill -9` would: no final positions, no flush, the database
@@ -367,9 +409,29 @@ fn lower_thread_priority() {
     }
 }
 
+/// Worker threads of the async runtime (login I/O, database writer, metrics).
+const IO_WORKERS: usize = 2;
+
+/// Gives the calling thread the lowest normal priority (nice 19): it gets the CPU the
+/// tick thread and its physics threads do not want, yet still runs every few
+/// milliseconds. Not `SCHED_IDLE`: measured, an idle-class hashing thread that holds an
+/// allocator lock while a busy machine never lets it run stalls the tick for seconds
+/// (priority inversion). Lowering one's own priority needs no privilege.
+fn yield_cpu_to_the_tick() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: plain system calls on the calling thread (Linux nice values are per
+        // thread; `gettid` names this one).
+        let done = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, 19) };
+        if done != 0 {
+            tracing::warn!(error = %std::io::Error::last_os_error(), "cannot lower a blocking thread's priority");
+        }
+    }
+}
+
 fn install_metrics(addr: SocketAddr) -> Result<(), ServerError> {
     use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
-    let tick_buckets = [0.001, 0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2, 0.5, 1.0];
+    let tick_buckets = [0.001, 0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0];
     PrometheusBuilder::new()
         .with_http_listener(addr)
         .set_buckets_for_metric(Matcher::Suffix("duration_seconds".into()), &tick_buckets)

@@ -62,6 +62,13 @@ pub(crate) enum Command {
 pub(crate) trait StateSink: Send {
     /// Queues `states` for writing; never blocks the tick.
     fn submit(&self, states: &[PlayerState]) -> Result<(), String>;
+    /// Queues `states` and has them written now: the periodic checkpoint. The tick's
+    /// clock alone decides when positions are taken, and each checkpoint is committed
+    /// right after (one write later), so a crash loses at most `persist_interval_ms`
+    /// plus one tick plus one write.
+    fn checkpoint(&self, states: &[PlayerState]) -> Result<(), String> {
+        self.submit(states)
+    }
     /// The writer's counters, for the metrics (none for a sink without them).
     fn stats(&self) -> Option<myriad_store::PersisterStats> {
         None
@@ -71,6 +78,9 @@ pub(crate) trait StateSink: Send {
 impl StateSink for Persister {
     fn submit(&self, states: &[PlayerState]) -> Result<(), String> {
         self.submit_many(states).map(|_| ()).map_err(|e| e.to_string())
+    }
+    fn checkpoint(&self, states: &[PlayerState]) -> Result<(), String> {
+        Persister::checkpoint(self, states).map(|_| ()).map_err(|e| e.to_string())
     }
     fn stats(&self) -> Option<myriad_store::PersisterStats> {
         Some(Persister::stats(self))
@@ -226,19 +236,29 @@ impl TickLoop {
     pub fn run(mut self) {
         tracing::info!(backend = %self.backend.description(), outbound = %self.outbound.description(), "tick loop ready");
         let persist_every = Duration::from_millis(self.config.persist_interval_ms);
-        let mut last_persist = Instant::now();
+        // One clock for the checkpoints: due every `persist_every` on the tick's clock,
+        // never drifting by the tick's length (see `StateSink::checkpoint`).
+        let mut next_persist = Instant::now() + persist_every;
         let mut next = Instant::now();
         let log_every = Duration::from_secs_f32(self.config.log_stages_every_s);
         let mut last_log = Instant::now();
         while !self.shared.stop.load(Ordering::Acquire) {
             let start = Instant::now();
             let work = self.tick_once();
-            if last_persist.elapsed() >= persist_every {
+            if Instant::now() >= next_persist {
                 self.persist_all();
-                last_persist = Instant::now();
+                next_persist += persist_every;
+                // After a long stall, restart the schedule instead of checkpointing in a burst.
+                next_persist = next_persist.max(Instant::now());
             }
             self.burn_artificial_load();
             let elapsed = start.elapsed();
+            // A tick longer than twice the period the world is announced to run at (the
+            // dilated one) is a stall that dilation did not cover.
+            if elapsed > self.dilation.period() * 2 {
+                metrics::counter!("myriad_slow_ticks_total").increment(1);
+                tracing::debug!(tick_ms = ms(elapsed), "tick over twice its period");
+            }
             if self.dilation.record(elapsed) {
                 tracing::info!(dilation_permille = self.dilation.permille(), "time dilation changed");
                 self.announce_server_info();
@@ -441,9 +461,13 @@ impl TickLoop {
         }
     }
 
+    /// The periodic checkpoint (and the final one at shutdown): every player's state,
+    /// written right away.
     fn persist_all(&self) {
-        if self.persister.is_some() {
-            self.hand_off(&self.sessions.states(&self.world));
+        if let Some(persister) = &self.persister
+            && let Err(e) = persister.checkpoint(&self.sessions.states(&self.world))
+        {
+            tracing::warn!(error = %e, "positions not queued for the database");
         }
     }
 
@@ -484,7 +508,8 @@ impl TickLoop {
             metrics::gauge!("myriad_persist_queued").set(p.queued as f64);
             metrics::gauge!("myriad_persist_rows_written").set(p.rows_written as f64);
             metrics::gauge!("myriad_persist_failures").set(p.failures as f64);
-            metrics::gauge!("myriad_persist_dropped").set(p.dropped_overflow as f64);
+            metrics::gauge!("myriad_persist_dropped").set(p.dropped_total() as f64);
+            metrics::gauge!("myriad_persist_healthy").set(if p.healthy { 1.0 } else { 0.0 });
         }
     }
 }

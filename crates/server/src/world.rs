@@ -69,7 +69,9 @@ pub async fn prepare(config: &ServerConfig, store: &Store) -> Result<PreparedWor
             base_y: min.y,
         };
         let terrain = match &info.heightmap {
-            Heightmap::None => Terrain::flat(at),
+            // Not `Terrain::flat`: the bounds come from the database, and an absurd size
+            // must be an error naming the limit, not a panic.
+            Heightmap::None => Terrain::new(2, 2, vec![0; 4], 0.0, at)?,
             Heightmap::Inline { width, height, samples } => {
                 Terrain::new(*width, *height, samples.clone(), info.max_height, at)?
             }

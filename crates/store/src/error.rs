@@ -47,9 +47,11 @@ impl StoreError {
 }
 
 /// SQLite result codes that mean "try again later" rather than "this statement is wrong":
-/// SQLITE_BUSY (5), SQLITE_LOCKED (6), SQLITE_IOERR (10), SQLITE_FULL (13) and
-/// SQLITE_CANTOPEN (14), with their extended variants (the low byte is the primary code).
-const SQLITE_TRANSIENT: [i64; 5] = [5, 6, 10, 13, 14];
+/// SQLITE_BUSY (5), SQLITE_LOCKED (6), SQLITE_READONLY (8: the file or its directory lost
+/// write permission, an operator can give it back), SQLITE_IOERR (10), SQLITE_FULL (13)
+/// and SQLITE_CANTOPEN (14), with their extended variants (the low byte is the primary
+/// code). The persister keeps states queued and retries these instead of dropping rows.
+const SQLITE_TRANSIENT: [i64; 6] = [5, 6, 8, 10, 13, 14];
 
 /// MySQL/MariaDB server errors that mean the server is going away or overloaded:
 /// ER_CON_COUNT_ERROR (1040), ER_SERVER_SHUTDOWN (1053), ER_LOCK_WAIT_TIMEOUT (1205),

@@ -27,6 +27,7 @@ mod config;
 mod error;
 mod maps;
 mod model;
+mod names;
 mod password;
 mod persister;
 mod players;
@@ -40,10 +41,9 @@ pub use model::{
     Heightmap, LoginInfo, MapId, MapInfo, MapSummary, NewMap, PlayerState, SeedReport, StaticObject, StoredShape,
     UserId, WorldBounds, now_ms,
 };
-pub use password::{
-    HashCost, MAX_PASSWORD_LEN, MAX_USERNAME_LEN, hash_password, validate_password, validate_username, verify_password,
-};
+pub use names::{MAX_USERNAME_LEN, validate_username};
+pub use password::{HashCost, MAX_PASSWORD_LEN, hash_password, validate_password, verify_password};
 pub use password::{HashPoolStats, configure_hash_pool, hash_pool_stats};
-pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, SubmitError};
+pub use persister::{FlushReport, Persister, PersisterConfig, PersisterStats, ShutdownLoss, SubmitError};
 pub use store::{Dialect, Store};
 pub use users::{MAX_SEED_USERS, User};

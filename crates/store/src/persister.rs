@@ -15,7 +15,10 @@ use crate::store::Store;
 /// Settings of a [`Persister`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PersisterConfig {
-    /// Time between periodic writes. At most this much progress is lost on a crash.
+    /// Longest time a submitted snapshot waits before the writer picks it up when nobody
+    /// calls [`Persister::checkpoint`]. A caller that checkpoints on its own clock (the
+    /// server's tick does) gets its states written right after each checkpoint, so its
+    /// loss bound is its own interval plus one write, whatever this is.
     pub interval: Duration,
     /// Most rows per transaction.
     pub batch_size: usize,
@@ -71,15 +74,72 @@ pub struct PersisterStats {
     pub rejected_rows: u64,
     /// Snapshots dropped because the queue was full.
     pub dropped_overflow: u64,
+    /// Snapshots refused by `submit_many` because the state was invalid (non-finite
+    /// position, bad shape).
+    pub dropped_invalid: u64,
+    /// Snapshots still queued when [`Persister::shutdown`] gave up (lost).
+    pub lost_at_shutdown: u64,
+    /// Whether the last write attempt succeeded (true before the first attempt).
+    pub healthy: bool,
     /// States waiting to be written right now, in flight included.
     pub queued: u64,
 }
 
-/// Report of a successful [`Persister::flush`].
+impl PersisterStats {
+    /// Every snapshot dropped so far, whatever the reason: refused by the database for
+    /// good, queue full, invalid, or still queued when shutdown gave up.
+    pub fn dropped_total(&self) -> u64 {
+        self.rejected_rows + self.dropped_overflow + self.dropped_invalid + self.lost_at_shutdown
+    }
+}
+
+/// Report of a successful [`Persister::flush`] (or of a [`Persister::shutdown`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct FlushReport {
     /// Rows written by this flush.
     pub rows_written: u64,
+}
+
+/// Why a [`Persister::shutdown`] left positions unwritten.
+#[derive(Debug, thiserror::Error)]
+#[error("{lost} player positions were not saved before the {deadline:?} deadline: {cause}")]
+pub struct ShutdownLoss {
+    /// Rows written before giving up.
+    pub rows_written: u64,
+    /// Snapshots still queued (lost).
+    pub lost: u64,
+    /// The deadline that ran out.
+    pub deadline: Duration,
+    /// The last error (or the deadline itself when the attempt was cut short).
+    pub cause: StoreError,
+}
+
+/// How the database looks to the writer; logged once per change.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Health {
+    Up,
+    /// The database answered with an error (connection refused, read-only file, ...).
+    Refused,
+    /// The database did not answer in time (pool timeout, a write cut by a deadline).
+    Stalled,
+}
+
+impl Health {
+    fn of(error: &StoreError) -> Health {
+        match error {
+            StoreError::Unavailable(sqlx::Error::PoolTimedOut) => Health::Stalled,
+            StoreError::Unavailable(sqlx::Error::Io(e)) if e.kind() == std::io::ErrorKind::TimedOut => Health::Stalled,
+            StoreError::Internal(m) if m.contains("timed out") => Health::Stalled,
+            _ => Health::Refused,
+        }
+    }
+    fn word(self) -> &'static str {
+        match self {
+            Health::Up => "up",
+            Health::Refused => "refused",
+            Health::Stalled => "stalled",
+        }
+    }
 }
 
 #[derive(Default)]
@@ -89,6 +149,8 @@ struct Pending {
     entries: BTreeMap<(i64, i64), PlayerState>,
     in_flight: usize,
     closed: bool,
+    /// The writer's view of the database, and since when it has been down.
+    health: Option<(Health, std::time::Instant)>,
 }
 
 #[derive(Default)]
@@ -100,12 +162,16 @@ struct Counters {
     failures: AtomicU64,
     rejected_rows: AtomicU64,
     dropped_overflow: AtomicU64,
+    dropped_invalid: AtomicU64,
+    lost_at_shutdown: AtomicU64,
 }
 
 struct Shared {
     config: PersisterConfig,
     pending: Mutex<Pending>,
     counters: Counters,
+    /// Wakes the writer right after a [`Persister::checkpoint`].
+    wake: tokio::sync::Notify,
 }
 
 impl Shared {
@@ -122,7 +188,7 @@ impl Shared {
 
 enum Command {
     Flush(oneshot::Sender<Result<FlushReport>>),
-    Shutdown(Duration, oneshot::Sender<Result<FlushReport>>),
+    Shutdown(Instant, oneshot::Sender<(u64, Result<()>)>),
 }
 
 /// Write-behind queue of player states: the tick thread submits, a task writes.
@@ -178,8 +244,12 @@ impl Persister {
         }
         let runtime = tokio::runtime::Handle::try_current()
             .map_err(|_| StoreError::Internal("Persister::start needs a tokio runtime".into()))?;
-        let shared =
-            Arc::new(Shared { config, pending: Mutex::new(Pending::default()), counters: Counters::default() });
+        let shared = Arc::new(Shared {
+            config,
+            pending: Mutex::new(Pending::default()),
+            counters: Counters::default(),
+            wake: tokio::sync::Notify::new(),
+        });
         let (commands, receiver) = mpsc::channel(16);
         let writer = Writer { store, shared: shared.clone() };
         runtime.spawn(writer.run(receiver));
@@ -201,6 +271,7 @@ impl Persister {
         let mut accepted = 0;
         for state in states {
             if state.validate().is_err() {
+                Shared::bump(&self.shared.counters.dropped_invalid, 1);
                 continue;
             }
             match self.insert(&mut pending, *state) {
@@ -209,6 +280,18 @@ impl Persister {
                 Err(_) => {}
             }
         }
+        Ok(accepted)
+    }
+
+    /// Queues `states` (as [`Persister::submit_many`]) and has the writer write them now.
+    ///
+    /// This is how the loss bound holds by construction: the caller's clock alone decides
+    /// when states are taken, and each checkpoint is committed right away (one write
+    /// later), so a crash loses at most the caller's interval plus one write. With a
+    /// separate writer timer the two clocks drift apart and the bound doubles.
+    pub fn checkpoint<'a>(&self, states: impl IntoIterator<Item = &'a PlayerState>) -> Result<usize, SubmitError> {
+        let accepted = self.submit_many(states)?;
+        self.shared.wake.notify_one();
         Ok(accepted)
     }
 
@@ -244,22 +327,49 @@ impl Persister {
     }
 
     /// Stops accepting snapshots, then keeps trying (with backoff) to write what is queued
-    /// until it succeeds or `timeout` elapses, and stops the task. Returns the error of the
-    /// last attempt when states are left unwritten (see [`PersisterStats::queued`]).
-    pub async fn shutdown(&self, timeout: Duration) -> Result<FlushReport> {
+    /// until it succeeds or `timeout` elapses, and stops the task. The deadline is hard:
+    /// a write still waiting on the database when it passes is abandoned. When states are
+    /// left unwritten the answer says how many ([`ShutdownLoss`]), and they are counted
+    /// in [`PersisterStats::lost_at_shutdown`].
+    pub async fn shutdown(&self, timeout: Duration) -> Result<FlushReport, ShutdownLoss> {
+        // The deadline runs from this call, even if the writer is still inside a write
+        // that waits on a stalled database when the command is sent.
+        let deadline = after(timeout);
+        self.shared.lock().closed = true;
+        let loss = |cause| {
+            let lost = self.stats().queued;
+            Shared::bump(&self.shared.counters.lost_at_shutdown, lost);
+            ShutdownLoss { rows_written: 0, lost, deadline: timeout, cause }
+        };
         let (reply, answer) = oneshot::channel();
-        self.commands
-            .send(Command::Shutdown(timeout, reply))
-            .await
-            .map_err(|_| StoreError::Internal("persister already shut down".into()))?;
-        answer.await.map_err(|_| StoreError::Internal("persister task is gone".into()))?
+        let asked = async {
+            self.commands.send(Command::Shutdown(deadline, reply)).await.map_err(|_| "persister already shut down")?;
+            answer.await.map_err(|_| "persister task is gone")
+        };
+        let (written, result) = match tokio::time::timeout_at(deadline, asked).await {
+            Ok(Ok(r)) => r,
+            Ok(Err(why)) => return Err(loss(StoreError::Internal(why.into()))),
+            Err(_) => {
+                return Err(loss(StoreError::Internal(
+                    "the writer was still waiting on the database at the deadline (timed out)".into(),
+                )));
+            }
+        };
+        match result {
+            Ok(()) => Ok(FlushReport { rows_written: written }),
+            Err(cause) => {
+                let lost = self.stats().queued;
+                Shared::bump(&self.shared.counters.lost_at_shutdown, lost);
+                Err(ShutdownLoss { rows_written: written, lost, deadline: timeout, cause })
+            }
+        }
     }
 
     /// Current counters.
     pub fn stats(&self) -> PersisterStats {
-        let queued = {
+        let (queued, healthy) = {
             let p = self.shared.lock();
-            (p.entries.len() + p.in_flight) as u64
+            ((p.entries.len() + p.in_flight) as u64, p.health)
         };
         let c = &self.shared.counters;
         let get = |a: &AtomicU64| a.load(Ordering::Relaxed);
@@ -271,6 +381,9 @@ impl Persister {
             failures: get(&c.failures),
             rejected_rows: get(&c.rejected_rows),
             dropped_overflow: get(&c.dropped_overflow),
+            dropped_invalid: get(&c.dropped_invalid),
+            lost_at_shutdown: get(&c.lost_at_shutdown),
+            healthy: healthy.is_none_or(|(h, _)| h == Health::Up),
             queued,
         }
     }
@@ -294,33 +407,28 @@ impl Writer {
         let config = self.shared.config;
         let mut retry_delay = config.retry_min;
         let mut next_write = after(config.interval);
+        // While a retry is scheduled, checkpoints do not trigger extra attempts: the
+        // backoff decides, so a dead database is not hammered twice a second.
+        let mut backing_off = false;
         loop {
-            tokio::select! {
-                _ = tokio::time::sleep_until(next_write) => {
-                    match self.write_all().await {
-                        Ok(_) => {
-                            retry_delay = config.retry_min;
-                            next_write = after(config.interval);
-                        }
-                        Err(e) => {
-                            tracing::warn!(error = %e, retry_in = ?retry_delay, "saving player states failed");
-                            next_write = after(retry_delay);
-                            retry_delay = retry_delay.saturating_mul(2).min(config.retry_max);
-                        }
-                    }
-                }
+            let scheduled = tokio::select! {
+                _ = self.shared.wake.notified(), if !backing_off => true,
+                _ = tokio::time::sleep_until(next_write) => true,
                 command = commands.recv() => match command {
                     Some(Command::Flush(reply)) => {
                         let result = self.write_all().await;
+                        self.note(result.as_ref().err());
                         if result.is_ok() {
                             retry_delay = config.retry_min;
+                            backing_off = false;
                         }
                         // The caller may have given up waiting; nothing to do then.
                         let _ = reply.send(result);
+                        false
                     }
-                    Some(Command::Shutdown(timeout, reply)) => {
+                    Some(Command::Shutdown(deadline, reply)) => {
                         self.shared.lock().closed = true;
-                        let _ = reply.send(self.drain_until(after(timeout)).await);
+                        let _ = reply.send(self.drain_until(deadline).await);
                         return;
                     }
                     None => {
@@ -332,24 +440,102 @@ impl Writer {
                         return;
                     }
                 }
+            };
+            if !scheduled {
+                continue;
+            }
+            let result = self.write_all().await;
+            self.note(result.as_ref().err());
+            match result {
+                Ok(_) => {
+                    retry_delay = config.retry_min;
+                    next_write = after(config.interval);
+                    backing_off = false;
+                }
+                Err(e) => {
+                    tracing::debug!(error = %e, retry_in = ?retry_delay, "saving player states failed");
+                    next_write = after(retry_delay);
+                    retry_delay = retry_delay.saturating_mul(2).min(config.retry_max);
+                    backing_off = true;
+                }
             }
         }
     }
 
-    /// Retries `write_all` with backoff until it succeeds or the deadline passes.
-    async fn drain_until(&self, deadline: Instant) -> Result<FlushReport> {
+    /// Records the outcome of a write attempt and logs once per change of the database's
+    /// state: down (naming refused or stalled, with the cause), back up (with how long it
+    /// was down), or a change of the failure's kind.
+    fn note(&self, error: Option<&StoreError>) {
+        let now = match error {
+            None => Health::Up,
+            Some(e) => Health::of(e),
+        };
+        let (before, queued) = {
+            let mut p = self.shared.lock();
+            let before = p.health;
+            let since = match before {
+                Some((h, since)) if h != Health::Up && now != Health::Up => since,
+                _ => std::time::Instant::now(),
+            };
+            p.health = Some((now, since));
+            (before, p.entries.len() + p.in_flight)
+        };
+        let was = before.map_or(Health::Up, |(h, _)| h);
+        if was == now {
+            return;
+        }
+        let dropped = {
+            let c = &self.shared.counters;
+            c.rejected_rows.load(Ordering::Relaxed) + c.dropped_overflow.load(Ordering::Relaxed)
+        };
+        match (was, error) {
+            (Health::Up, Some(e)) => tracing::error!(
+                state = now.word(),
+                error = %e,
+                queued,
+                "database writes failing ({}): player positions are kept in memory (newest per player) and retried",
+                now.word()
+            ),
+            (_, Some(e)) => tracing::error!(
+                state = now.word(),
+                error = %e,
+                queued,
+                "database writes still failing, now {}",
+                now.word()
+            ),
+            (_, None) => tracing::info!(
+                down_for = ?before.map(|(_, since)| since.elapsed()).unwrap_or_default(),
+                dropped_so_far = dropped,
+                "database writes back up"
+            ),
+        }
+    }
+
+    /// Retries `write_all` with backoff until it succeeds or the deadline passes; the
+    /// deadline also cuts short an attempt still waiting on the database. Answers the rows
+    /// written meanwhile and the outcome.
+    async fn drain_until(&self, deadline: Instant) -> (u64, Result<()>) {
+        let rows_before = self.shared.counters.rows_written.load(Ordering::Relaxed);
+        let written = || self.shared.counters.rows_written.load(Ordering::Relaxed) - rows_before;
         let mut delay = self.shared.config.retry_min;
-        let mut total = 0;
         loop {
-            match self.write_all().await {
-                Ok(report) => {
-                    total += report.rows_written;
-                    return Ok(FlushReport { rows_written: total });
+            match tokio::time::timeout_at(deadline, self.write_all()).await {
+                Ok(Ok(_)) => {
+                    self.note(None);
+                    return (written(), Ok(()));
                 }
-                Err(e) if after(delay) >= deadline => return Err(e),
-                Err(_) => {
+                Ok(Err(e)) => {
+                    self.note(Some(&e));
+                    if after(delay) >= deadline {
+                        return (written(), Err(e));
+                    }
                     tokio::time::sleep(delay).await;
                     delay = delay.saturating_mul(2).min(self.shared.config.retry_max);
+                }
+                Err(_) => {
+                    let e = StoreError::Internal("the last write was still waiting on the database (timed out)".into());
+                    self.note(Some(&e));
+                    return (written(), Err(e));
                 }
             }
         }
@@ -394,7 +580,7 @@ impl Writer {
             Err(e) if e.is_transient() => Outcome { written: 0, handled: 0, error: Some(e) },
             Err(e) => {
                 Shared::bump(&counters.failures, 1);
-                tracing::warn!(error = %e, rows = states.len(), "batch refused; saving row by row");
+                tracing::debug!(error = %e, rows = states.len(), "batch refused; saving row by row");
                 self.write_rows_individually(&states).await
             }
         };
@@ -419,24 +605,32 @@ impl Writer {
     async fn write_rows_individually(&self, states: &[PlayerState]) -> Outcome {
         let counters = &self.shared.counters;
         let mut written = 0;
+        let mut refused = 0u64;
+        let mut first_refusal = None;
+        let report = |refused: u64, first: Option<(StoreError, i64)>| {
+            if let Some((e, user)) = first {
+                // One line per batch, not one per row: the count and the first cause.
+                tracing::warn!(error = %e, first_user = user, refused, "player states refused by the database; dropped");
+            }
+        };
         for (handled, state) in states.iter().enumerate() {
             match self.store.save_player_states(std::slice::from_ref(state)).await {
                 Ok(n) => {
                     written += n;
                     Shared::bump(&counters.batches_written, 1);
                 }
-                Err(e) if e.is_transient() => return Outcome { written, handled, error: Some(e) },
+                Err(e) if e.is_transient() => {
+                    report(refused, first_refusal);
+                    return Outcome { written, handled, error: Some(e) };
+                }
                 Err(e) => {
                     Shared::bump(&counters.rejected_rows, 1);
-                    tracing::warn!(
-                        error = %e,
-                        user = state.user_id.0,
-                        map = state.map_id.0,
-                        "player state refused by the database; dropped"
-                    );
+                    refused += 1;
+                    first_refusal.get_or_insert((e, state.user_id.0));
                 }
             }
         }
+        report(refused, first_refusal);
         Outcome { written, handled: states.len(), error: None }
     }
 }

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use sqlx::any::{AnyConnectOptions, AnyPoolOptions};
 use sqlx::migrate::{Migration, MigrationType, Migrator};
 use sqlx::sqlite::SqliteConnectOptions;
-use sqlx::{AnyPool, AssertSqlSafe, ConnectOptions, Executor, SqlSafeStr};
+use sqlx::{AnyConnection, AnyPool, AssertSqlSafe, ConnectOptions, Connection, Executor, SqlSafeStr};
 
 use crate::config::{Database, SQLITE_FILE_NAME, StoreConfig};
 use crate::error::{Result, StoreError};
@@ -23,20 +23,19 @@ pub enum Dialect {
 
 const SQLITE_INIT: &str = include_str!("../migrations/sqlite/0001_init.sql");
 const MYSQL_INIT: &str = include_str!("../migrations/mysql/0001_init.sql");
+const SQLITE_PROBE: &str = include_str!("../migrations/sqlite/0002_probe.sql");
+const MYSQL_PROBE: &str = include_str!("../migrations/mysql/0002_probe.sql");
 
 /// The embedded migrations of one dialect.
 fn migrator(dialect: Dialect) -> Migrator {
-    let init = match dialect {
-        Dialect::Sqlite => SQLITE_INIT,
-        Dialect::MySql => MYSQL_INIT,
+    let (init, probe) = match dialect {
+        Dialect::Sqlite => (SQLITE_INIT, SQLITE_PROBE),
+        Dialect::MySql => (MYSQL_INIT, MYSQL_PROBE),
     };
-    Migrator::with_migrations(vec![Migration::new(
-        1,
-        Cow::Borrowed("init"),
-        MigrationType::Simple,
-        init.into_sql_str(),
-        false,
-    )])
+    let migration = |version, name, sql: &'static str| {
+        Migration::new(version, Cow::Borrowed(name), MigrationType::Simple, sql.into_sql_str(), false)
+    };
+    Migrator::with_migrations(vec![migration(1, "init", init), migration(2, "probe", probe)])
 }
 
 /// Handle to the database: cheap to clone (the pool is shared), safe to use from any task.
@@ -88,16 +87,32 @@ impl Store {
 
         let (dialect, options) = connect_options(&config.database).await?;
         let busy_ms = i64::try_from(config.sqlite_busy_timeout.as_millis()).unwrap_or(i64::MAX);
+        let pragmas = format!(
+            "PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; \
+             PRAGMA foreign_keys = ON; PRAGMA busy_timeout = {busy_ms};"
+        );
+        // One connection by hand first: the pool retries a failing connect until its
+        // acquire timeout and then only says "pool timed out", while the operator needs
+        // the real cause ("file is not a database", "access denied", "connection
+        // refused").
+        {
+            let mut first = tokio::time::timeout(config.acquire_timeout, AnyConnection::connect_with(&options))
+                .await
+                .map_err(|_| StoreError::Unavailable(sqlx::Error::PoolTimedOut))??;
+            if dialect == Dialect::Sqlite {
+                first.execute(AssertSqlSafe(pragmas.clone())).await?;
+                // Reading the schema fails on a file that is not a database.
+                first.execute("SELECT count(*) FROM sqlite_master").await?;
+            }
+            first.close().await?;
+        }
         let mut pool_options = AnyPoolOptions::new()
             .max_connections(config.max_connections.max(1))
             .acquire_timeout(config.acquire_timeout);
         if dialect == Dialect::Sqlite {
             pool_options = pool_options.after_connect(move |conn, _meta| {
+                let pragmas = pragmas.clone();
                 Box::pin(async move {
-                    let pragmas = format!(
-                        "PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; \
-                         PRAGMA foreign_keys = ON; PRAGMA busy_timeout = {busy_ms};"
-                    );
                     conn.execute(AssertSqlSafe(pragmas)).await?;
                     Ok(())
                 })
@@ -112,6 +127,21 @@ impl Store {
 
         tracing::info!(?dialect, "store opened");
         Ok(Store { pool, dialect, hash_cost: cost, dummy_hash: dummy_hash.into() })
+    }
+
+    /// Proves that the database accepts writes: rewrites the one row of `store_probe` in a
+    /// committed transaction. The server calls it before it accepts players, so a
+    /// read-only file, a full disk or a user without write grants stops the start with
+    /// the database's own error instead of dropping every position later.
+    pub async fn check_writable(&self) -> Result<()> {
+        let mut tx = self.pool.begin().await?;
+        sqlx::query("DELETE FROM store_probe").execute(&mut *tx).await?;
+        sqlx::query("INSERT INTO store_probe (id, written_at) VALUES (1, ?)")
+            .bind(crate::model::now_ms())
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
     }
 
     /// The engine behind this store.

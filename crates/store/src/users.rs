@@ -6,7 +6,8 @@ use sqlx::{Any, QueryBuilder, Row};
 
 use crate::error::{Result, StoreError, is_unique_violation};
 use crate::model::{LoginInfo, MapId, SeedReport, UserId, now_ms};
-use crate::password::{self, validate_password, validate_username};
+use crate::names::validate_username;
+use crate::password::{self, validate_password};
 use crate::store::{Dialect, Store};
 
 /// Most users one `seed_users` call creates (test worlds; keeps memory bounded).

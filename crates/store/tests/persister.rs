@@ -16,6 +16,8 @@ backend_tests!(
     shutdown_flushes_and_closes,
     survives_a_database_outage,
     dropping_the_last_handle_writes_the_queue,
+    checkpoint_writes_at_once,
+    shutdown_on_a_dead_database_keeps_its_deadline_and_counts_the_loss,
 );
 
 fn snap(user: UserId, map: MapId, x: f32, t: i64) -> PlayerState {
@@ -245,4 +247,47 @@ async fn start_rejects_zero_sizes() {
     .unwrap();
     assert_eq!(p.flush().await.unwrap().rows_written, 0);
     p.shutdown(Duration::MAX).await.unwrap();
+}
+
+/// Issue 15: a checkpoint is written right away, whatever the writer's own interval, so
+/// the caller's clock alone sets the loss bound.
+async fn checkpoint_writes_at_once(db: TestDb) {
+    let user = db.user("checkpointed").await;
+    let map = db.map("checkpoint").await;
+    let p = Persister::start(db.store.clone(), manual()).unwrap();
+    let started = std::time::Instant::now();
+    p.checkpoint(&[snap(user, map, 4.0, 4)]).unwrap();
+    assert!(wait_for(Duration::from_secs(5), || p.stats().rows_written == 1).await, "{:?}", p.stats());
+    assert!(started.elapsed() < Duration::from_secs(2), "written at once, not after the hour-long interval");
+    assert!(p.stats().healthy);
+    p.shutdown(Duration::from_secs(5)).await.unwrap();
+}
+
+/// Issue 15: shutdown while the database is down gives up at its deadline (not at the
+/// deadline plus a pool timeout) and says how many positions were lost; the writer
+/// reports the database unhealthy meanwhile.
+async fn shutdown_on_a_dead_database_keeps_its_deadline_and_counts_the_loss(db: TestDb) {
+    let map = db.map("dead-shutdown").await;
+    db.store.seed_users(10).await.unwrap();
+    let mut users = Vec::new();
+    for i in 0..10 {
+        users.push(db.store.find_user(&format!("user{i}")).await.unwrap().unwrap().id);
+    }
+    let (store, mut outage) = db.store_with_outage().await;
+    let config = PersisterConfig { retry_min: Duration::from_millis(20), ..manual() };
+    let p = Persister::start(store, config).unwrap();
+    outage.cut().await;
+    let states: Vec<_> = users.iter().map(|&u| snap(u, map, 5.0, 5)).collect();
+    p.checkpoint(&states).unwrap();
+    assert!(wait_for(Duration::from_secs(15), || !p.stats().healthy).await, "{:?}", p.stats());
+    let deadline = Duration::from_millis(400);
+    let started = std::time::Instant::now();
+    let loss = p.shutdown(deadline).await.unwrap_err();
+    let took = started.elapsed();
+    assert_eq!(loss.lost, 10, "{loss}");
+    assert!(loss.to_string().contains("10 player positions were not saved"), "{loss}");
+    assert!(took < deadline + Duration::from_millis(300), "shutdown took {took:?} for a {deadline:?} deadline");
+    assert_eq!(p.stats().lost_at_shutdown, 10);
+    assert_eq!(p.stats().dropped_total(), 10);
+    outage.restore().await;
 }

@@ -469,7 +469,7 @@ mod tests {
         assert!(err.contains("max_players") && err.contains("max_objects"), "{err}");
         let err = ServerConfig::from_toml("max_objects = 4000000000\n").unwrap_err().to_string();
         assert!(err.contains("max_objects") && err.contains("100000000"), "{err}");
-        let err = ServerConfig::from_toml("login_concurrency = 100000\n").unwrap_err().to_string();
+        let err = ServerConfig::from_toml("login_concurrency = 1000\n").unwrap_err().to_string();
         assert!(err.contains("max_hash_memory_mib") && err.contains("login_concurrency"), "{err}");
         let err = ServerConfig::from_toml("shutdown_flush_s = 0\n").unwrap_err().to_string();
         assert!(err.contains("shutdown_flush_s"), "{err}");

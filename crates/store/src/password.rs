@@ -209,13 +209,7 @@ fn pool() -> &'static HashPool {
                     // Hold the lock only to take a job, never while hashing.
                     let job = receiver.lock().unwrap_or_else(|p| p.into_inner()).recv();
                     let Ok(job) = job else { return };
-                    let before = memory.len();
                     job(&mut memory);
-                    if memory.len() > before {
-                        let grown = (memory.len() - before) * Block::SIZE;
-                        POOL_MEMORY.fetch_add(grown as u64, Ordering::Relaxed);
-                    }
-                    POOL_VERIFIED.fetch_add(1, Ordering::Relaxed);
                 }
             });
             if let Err(e) = spawned {
@@ -230,7 +224,16 @@ fn pool() -> &'static HashPool {
 async fn on_pool<T: Send + 'static>(f: impl FnOnce(&mut Vec<Block>) -> T + Send + 'static) -> Result<T> {
     let (tx, rx) = tokio::sync::oneshot::channel();
     let job: Job = Box::new(move |memory| {
-        let _ = tx.send(f(memory));
+        let before = memory.len();
+        let out = f(memory);
+        // Counted before the answer goes back, so a caller that reads the figures after
+        // its answer sees its own verification in them.
+        if memory.len() > before {
+            let grown = (memory.len() - before) * Block::SIZE;
+            POOL_MEMORY.fetch_add(grown as u64, Ordering::Relaxed);
+        }
+        POOL_VERIFIED.fetch_add(1, Ordering::Relaxed);
+        let _ = tx.send(out);
     });
     pool()
         .jobs

@@ -65,7 +65,10 @@ pub struct SwarmConfig {
     pub behaviour: Behaviour,
     /// Logins in flight at once.
     pub login_concurrency: usize,
-    /// Login attempts per bot before giving up (refusals that may pass later).
+    /// Login attempts per bot before giving up (refusals that may pass later: busy, rate
+    /// limited, server full, unavailable; each waits the server's hint, at most 5 s). A
+    /// server protects its tick by verifying few passwords at once, so a burst of
+    /// logins takes a while: bots keep trying, as players would.
     pub login_attempts: u32,
     /// A bot that hears nothing for this long logs in again.
     pub silence_reconnect: Duration,
@@ -81,7 +84,7 @@ impl SwarmConfig {
             rate_hz: 30.0,
             behaviour: Behaviour::Random,
             login_concurrency: 32,
-            login_attempts: 20,
+            login_attempts: 200,
             silence_reconnect: Duration::from_secs(5),
         }
     }

@@ -15,7 +15,7 @@ use myriad_client::flood::{self, Bounds, StormAccounts, UdpKind};
 use myriad_client::{ClientConfig, ClientError, Connection, Credentials, Event, Trust};
 use myriad_protocol::login::RefusalReason;
 use myriad_server::{ServerConfig, ServerHandle};
-use myriad_store::{HashCost, Store};
+use myriad_store::Store;
 
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
@@ -23,19 +23,10 @@ fn serial() -> std::sync::MutexGuard<'static, ()> {
     ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner())
 }
 
+mod common;
+
 fn config(dir: &Path) -> ServerConfig {
-    let fast = HashCost::INSECURE_FAST;
-    ServerConfig {
-        udp_addr: "127.0.0.1:0".parse().unwrap(),
-        login_addr: "127.0.0.1:0".parse().unwrap(),
-        npc_count: 300,
-        data_dir: dir.to_path_buf(),
-        hash_memory_kib: fast.m_kib,
-        hash_passes: fast.t,
-        hash_lanes: fast.p,
-        log_stages_every_s: 0.0,
-        ..ServerConfig::default()
-    }
+    common::small_server(dir, 300)
 }
 
 fn runtime() -> tokio::runtime::Runtime {

@@ -9,23 +9,14 @@ use myriad_client::{ClientConfig, ClientError, Connection, Credentials, Event, S
 use myriad_protocol::login::RefusalReason;
 use myriad_protocol::{ActionMask, DisconnectReason};
 use myriad_server::{ServerConfig, ServerHandle};
-use myriad_store::{HashCost, Store};
+use myriad_store::Store;
 
-/// A small, fast server: scenario 1's map with few NPCs, cheap password hashes.
+mod common;
+
+/// A small, fast server: scenario 1's map with few NPCs, cheap password hashes, frequent
+/// persistence.
 fn config(dir: &Path) -> ServerConfig {
-    let fast = HashCost::INSECURE_FAST;
-    ServerConfig {
-        udp_addr: "127.0.0.1:0".parse().unwrap(),
-        login_addr: "127.0.0.1:0".parse().unwrap(),
-        npc_count: 300,
-        data_dir: dir.to_path_buf(),
-        hash_memory_kib: fast.m_kib,
-        hash_passes: fast.t,
-        hash_lanes: fast.p,
-        persist_interval_ms: 100,
-        log_stages_every_s: 0.0,
-        ..ServerConfig::default()
-    }
+    ServerConfig { persist_interval_ms: 100, ..common::small_server(dir, 300) }
 }
 
 fn runtime() -> tokio::runtime::Runtime {

@@ -2,22 +2,12 @@
 //! the database's own error; a garbage database file names its cause.
 
 use myriad_server::{ServerConfig, ServerError, ServerHandle};
-use myriad_store::{HashCost, SQLITE_FILE_NAME, Store};
+use myriad_store::{SQLITE_FILE_NAME, Store};
+
+mod common;
 
 fn config(dir: &std::path::Path) -> ServerConfig {
-    let fast = HashCost::INSECURE_FAST;
-    ServerConfig {
-        udp_addr: "127.0.0.1:0".parse().unwrap(),
-        login_addr: "127.0.0.1:0".parse().unwrap(),
-        npc_count: 50,
-        data_dir: dir.to_path_buf(),
-        hash_memory_kib: fast.m_kib,
-        hash_passes: fast.t,
-        hash_lanes: fast.p,
-        log_stages_every_s: 0.0,
-        backend: myriad_server::BackendKind::Cpu,
-        ..ServerConfig::default()
-    }
+    ServerConfig { backend: myriad_server::BackendKind::Cpu, ..common::small_server(dir, 50) }
 }
 
 #[test]

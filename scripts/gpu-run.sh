@@ -49,8 +49,8 @@ fi
 
 if [[ $mode == all || $mode == bench ]]; then
     # Tables 1 to 3: physics on every backend, then the whole server tick (one bot per
-    # user on loopback) on cuda and cpu; plots into $out/bench.
-    .carry/myriad bench --scenario 1,2,3 --backend cuda,cuda-naive,cpu --ticks 30 --warmup 3 \
+    # user on loopback, at AOI 14 and 100) on cuda and cpu; plots into $out/bench.
+    .carry/myriad bench --scenario 1,2,3 --backend cuda,cuda-naive,cpu --ticks 30 --warmup 3 --aoi-size 14,100 \
         --out "$out/bench" > "$out/bench-ref.md" 2> "$out/bench.log" || status=1
     sed -n '1,/#### The reference/p' "$out/bench-ref.md"
     # Scale sweep: dynamic N, static N/2, world area grows with N (density of scenario 3:

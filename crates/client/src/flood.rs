@@ -21,12 +21,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use chacha20poly1305::aead::array::Array;
-use chacha20poly1305::{AeadInOut, ChaCha20Poly1305, KeyInit};
 use myriad_protocol::login::LoginAccepted;
 use myriad_protocol::{
     ClientMessage, ClientSession, HEADER_LEN, Header, MAX_DATAGRAM, MIN_DATAGRAM, PacketKind, ServerMessage,
-    SessionKeys,
 };
 
 use crate::connection::{ClientConfig, Credentials, connect_from, login};
@@ -216,25 +213,6 @@ pub fn udp_flood(target: SocketAddr, source: IpAddr, kind: UdpKind, bounds: Boun
     Ok(report)
 }
 
-/// A datagram sealed like any other with the session's client key, but with sequence
-/// `u64::MAX`, which no sealer will use: what a buggy or malicious client could send.
-pub fn hand_sealed(keys: &SessionKeys, kind: PacketKind, sequence: u64) -> Vec<u8> {
-    let mut head = [0u8; HEADER_LEN];
-    Header { kind, session_id: keys.session_id, sequence }.write(&mut head);
-    // Nonce: direction 0 (client to server), three zero bytes, the sequence.
-    let mut nonce = [0u8; 12];
-    nonce[4..].copy_from_slice(&sequence.to_le_bytes());
-    let cipher = ChaCha20Poly1305::new(&Array::from(keys.client_to_server));
-    let mut d = head.to_vec();
-    // An empty body cannot fail to seal; a zero tag (never valid) if it somehow did.
-    match cipher.encrypt_inout_detached(&Array::from(nonce), &head, (&mut [][..]).into()) {
-        Ok(tag) => d.extend_from_slice(&tag),
-        Err(_) => d.extend_from_slice(&[0u8; 16]),
-    }
-    debug_assert_eq!(d.len(), MIN_DATAGRAM);
-    d
-}
-
 /// What [`max_sequence`] saw.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MaxSequenceReport {
@@ -253,7 +231,7 @@ pub async fn max_sequence(config: &ClientConfig, credentials: &Credentials) -> R
     let socket = tokio::net::UdpSocket::bind(SocketAddr::new(config.login_addr.ip(), 0))
         .await
         .map_err(ClientError::io("binding a UDP socket"))?;
-    let forged = hand_sealed(&accepted.keys, PacketKind::Ready, u64::MAX);
+    let forged = myriad_protocol::session::forge_sealed(&accepted.keys, PacketKind::Ready, u64::MAX);
     socket.send_to(&forged, udp).await.map_err(ClientError::io("sending"))?;
     let mut buf = [0u8; 2048];
     let answered_forged =

@@ -416,6 +416,21 @@ impl Opener {
     }
 }
 
+/// Seals a body-less client datagram of `kind` at any `sequence`, `u64::MAX` included,
+/// with the session's client-to-server key: what a buggy or malicious client holding
+/// the key could send. It bypasses the nonce-ownership rules (module docs), so it exists
+/// only for tests and attack tools (cargo feature `forge`).
+#[cfg(any(test, feature = "forge"))]
+pub fn forge_sealed(keys: &SessionKeys, kind: PacketKind, sequence: u64) -> Vec<u8> {
+    let mut d = vec![0u8; MIN_DATAGRAM];
+    let (head, tag_space) = d.split_at_mut(HEADER_LEN);
+    let head: &mut [u8; HEADER_LEN] = head.try_into().expect("the header's length");
+    Header { kind, session_id: keys.session_id, sequence }.write(head);
+    let tag = Aead::new(&keys.client_to_server).seal(Direction::ClientToServer, sequence, head, &mut []);
+    tag_space.copy_from_slice(&tag);
+    d
+}
+
 /// The server's end of a session: seals server-to-client, opens client-to-server.
 #[derive(Debug)]
 pub struct ServerSession {
@@ -484,18 +499,6 @@ mod tests {
         SessionKeys { session_id: 0x5eed, client_to_server: [0x11; 32], server_to_client: [0x22; 32] }
     }
 
-    /// Seals a Ready datagram by hand, bypassing [`Sealer`], which refuses `sequence`
-    /// `u64::MAX`: what a buggy or malicious peer holding the key could send.
-    fn hand_sealed_ready(keys: &SessionKeys, sequence: u64) -> Vec<u8> {
-        let mut d = vec![0u8; MIN_DATAGRAM];
-        let (head, tag_space) = d.split_at_mut(HEADER_LEN);
-        let head: &mut [u8; HEADER_LEN] = head.try_into().unwrap();
-        Header { kind: PacketKind::Ready, session_id: keys.session_id, sequence }.write(head);
-        let tag = Aead::new(&keys.client_to_server).seal(Direction::ClientToServer, sequence, head, &mut []);
-        tag_space.copy_from_slice(&tag);
-        d
-    }
-
     // Regression: an authentic datagram with sequence u64::MAX used to be accepted, after
     // which the replay window sat at the top of the range and every later datagram of the
     // session was rejected as replayed (the player froze).
@@ -509,7 +512,7 @@ mod tests {
         server.open(&mut first).unwrap();
         let window_before = server.opener.window().clone();
 
-        let forged = hand_sealed_ready(&keys, u64::MAX);
+        let forged = forge_sealed(&keys, PacketKind::Ready, u64::MAX);
         // The tag is authentic (the same hand sealing one short of the top opens, below):
         // only the sequence rule rejects it.
         let mut d = forged.clone();
@@ -524,7 +527,7 @@ mod tests {
         client.seal(&ClientMessage::KeepAlive, &mut next).unwrap();
         assert_eq!(server.open(&mut next).unwrap().header.sequence, 1);
         // The hand sealing is right: one short of the top opens.
-        let mut below = hand_sealed_ready(&keys, u64::MAX - 1);
+        let mut below = forge_sealed(&keys, PacketKind::Ready, u64::MAX - 1);
         assert_eq!(server.open(&mut below).unwrap().header.sequence, u64::MAX - 1);
     }
 

@@ -121,9 +121,10 @@ pub struct ServerConfig {
     /// trees, per-player interest state), so a typo cannot make the server allocate until
     /// the machine runs out. Raise it to serve more.
     pub max_objects: u32,
-    /// Run the async runtime's blocking threads (password hashing, file work) at the
+    /// Run the async runtime's blocking threads (hashing new passwords, file work) at the
     /// lowest normal priority (nice 19 on Linux), so that they mostly take CPU the tick
-    /// does not want and a login storm stretches ticks less.
+    /// does not want. Login checks run on the store's verification pool instead, sized
+    /// by `login_concurrency` (the cores less one by default).
     pub background_low_priority: bool,
     /// Limit on the memory that password checks may take at once,
     /// `login_concurrency × hash_memory_kib`, in MiB. Raise it for a bigger pool.

@@ -104,17 +104,14 @@ pub(crate) fn receive(
     now: Instant,
 ) -> InboundReport {
     let mut report = InboundReport::default();
-    let tick = world.tick;
+    let ctx = Ctx { info, limits, tick: world.tick, now };
     for _ in 0..MAX_BATCHES {
         if now.elapsed() >= limits.time {
             report.out_of_time = true;
             metrics::counter!("myriad_receive_out_of_time_total").increment(1);
             break;
         }
-        let mut each = |from: SocketAddr, bytes: &mut [u8]| {
-            let ctx = Ctx { info, limits, tick, now };
-            handle(sessions, world, &ctx, &mut report, from, bytes)
-        };
+        let mut each = |from: SocketAddr, bytes: &mut [u8]| handle(sessions, world, &ctx, &mut report, from, bytes);
         match transport.receive(&mut each) {
             Ok(0) => break,
             Ok(n) => {

@@ -133,11 +133,12 @@ impl ServerHandle {
                 // Tokio starts its worker threads first, when the runtime is built; every
                 // later thread is a blocking-pool thread (file work, the database's
                 // blocking calls): those go lowest, the workers a little below the tick.
-                if background_low_priority && started.fetch_add(1, Ordering::Relaxed) >= IO_WORKERS {
-                    yield_cpu_to_the_tick();
+                let blocking = started.fetch_add(1, Ordering::Relaxed) >= IO_WORKERS;
+                set_thread_nice(if blocking && background_low_priority {
+                    BLOCKING_THREAD_NICE
                 } else {
-                    lower_thread_priority();
-                }
+                    IO_THREAD_NICE
+                });
             })
             .enable_all()
             .build()
@@ -389,44 +390,35 @@ impl Drop for ServerHandle {
     }
 }
 
-/// Niceness of the async runtime's threads (TLS handshakes, login checks, the database
-/// writer, metrics): under a login storm they yield the CPU to the tick thread, which
-/// keeps the default priority.
+/// Niceness of the async runtime's worker threads (TLS handshakes, login checks, the
+/// database writer, metrics): under a login storm they yield the CPU to the tick thread,
+/// which keeps the default priority.
 const IO_THREAD_NICE: i32 = 10;
-
-/// Lowers the calling thread's scheduling priority to [`IO_THREAD_NICE`] (Linux: the
-/// nice value is per thread). Failure only costs the tick its head start, so it is
-/// logged, not fatal.
-fn lower_thread_priority() {
-    #[cfg(target_os = "linux")]
-    {
-        // SAFETY: setpriority has no memory-safety preconditions; `who` = 0 is the
-        // calling thread on Linux.
-        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, IO_THREAD_NICE) };
-        if rc != 0 {
-            tracing::debug!("could not lower the priority of an I/O thread");
-        }
-    }
-}
 
 /// Worker threads of the async runtime (login I/O, database writer, metrics).
 const IO_WORKERS: usize = 2;
 
-/// Gives the calling thread the lowest normal priority (nice 19): it gets the CPU the
-/// tick thread and its physics threads do not want, yet still runs every few
-/// milliseconds. Not `SCHED_IDLE`: measured, an idle-class hashing thread that holds an
-/// allocator lock while a busy machine never lets it run stalls the tick for seconds
-/// (priority inversion). Lowering one's own priority needs no privilege.
-fn yield_cpu_to_the_tick() {
+/// Niceness of the runtime's blocking threads with `background_low_priority`: the
+/// lowest normal priority, so they get the CPU the tick and its physics threads do not
+/// want, yet still run every few milliseconds. Not `SCHED_IDLE`: measured, an idle-class
+/// thread that holds an allocator lock while a busy machine never lets it run stalls the
+/// tick for seconds (priority inversion).
+const BLOCKING_THREAD_NICE: i32 = 19;
+
+/// Sets the calling thread's nice value (Linux: nice values are per thread; lowering
+/// one's own priority needs no privilege). Failure only costs the tick its head start,
+/// so it is logged, not fatal.
+fn set_thread_nice(nice: i32) {
     #[cfg(target_os = "linux")]
     {
-        // SAFETY: plain system calls on the calling thread (Linux nice values are per
-        // thread; `gettid` names this one).
-        let done = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, 19) };
-        if done != 0 {
-            tracing::warn!(error = %std::io::Error::last_os_error(), "cannot lower a blocking thread's priority");
+        // SAFETY: a plain system call on the calling thread (`gettid` names it).
+        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, nice) };
+        if rc != 0 {
+            tracing::debug!(error = %std::io::Error::last_os_error(), nice, "cannot lower a thread's priority");
         }
     }
+    #[cfg(not(target_os = "linux"))]
+    let _ = nice;
 }
 
 fn install_metrics(addr: SocketAddr) -> Result<(), ServerError> {

@@ -163,7 +163,16 @@ impl TickLoopBuilder {
         // Without a login service nothing joins: a receiver whose sender is gone reads
         // as empty.
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
+        // The receive budget's time share is of the nominal period, so a dilated tick does
+        // not receive for longer.
+        let limits = ReceiveLimits {
+            per_session: config.receive_per_session,
+            other_address: config.receive_other_address,
+            time: nominal.mul_f64(f64::from(config.receive_time_percent) / 100.0),
+        };
         TickLoop {
+            constants: TickConstants::new(&config.physics(), 1.0),
+            limits,
             dilation: DilationController::new(nominal, config.dilation, config.dilation_min_permille),
             sessions: Sessions::new(config.max_players as usize, self.map_id),
             world: self.world,
@@ -192,6 +201,10 @@ pub(crate) struct TickLoop {
     shared: Arc<Shared>,
     dilation: DilationController,
     window: StatusWindow,
+    /// The physics constants of every step (the configuration does not change).
+    constants: TickConstants,
+    /// The receive budget of every tick (`receive_*` keys).
+    limits: ReceiveLimits,
 }
 
 impl TickLoop {
@@ -305,9 +318,8 @@ impl TickLoop {
         let t = Instant::now();
         let info = self.server_info();
         let now = Instant::now();
-        let limits = self.receive_limits();
         let inbound =
-            inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, &limits, now);
+            inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, &self.limits, now);
         let mut left: Vec<PlayerState> = inbound
             .leaving
             .iter()
@@ -321,8 +333,7 @@ impl TickLoop {
         work.over_budget = inbound.over_budget;
         work.stages[TickStage::Receive] = ms(t.elapsed());
 
-        let k = TickConstants::new(&self.config.physics(), 1.0);
-        match self.backend.step(&mut self.world, &k) {
+        match self.backend.step(&mut self.world, &self.constants) {
             Ok(report) => work.stages.set_physics(&report),
             Err(e) => {
                 tracing::error!(error = %e, "physics step failed");
@@ -353,17 +364,6 @@ impl TickLoop {
     /// the protocol promises it whenever the tick rate or the dilation changes.
     fn announce_server_info(&mut self) {
         self.sessions.queue_to_active(&ServerMessage::ServerInfo(self.server_info()));
-    }
-
-    /// The receive budget of this tick (`receive_*` keys); the time share is of the
-    /// nominal period, so a dilated tick does not receive for longer.
-    fn receive_limits(&self) -> ReceiveLimits {
-        let period = Duration::from_secs_f64(1.0 / f64::from(self.config.tick_rate));
-        ReceiveLimits {
-            per_session: self.config.receive_per_session,
-            other_address: self.config.receive_other_address,
-            time: period.mul_f64(f64::from(self.config.receive_time_percent) / 100.0),
-        }
     }
 
     fn drain_commands(&mut self) {

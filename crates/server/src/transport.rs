@@ -204,10 +204,11 @@ impl Transport for MemoryTransport {
             let n = q.inbox.len().min(RECV_BATCH);
             q.inbox.drain(..n).collect()
         };
-        for (from, mut bytes) in batch.iter().cloned() {
+        let n = batch.len();
+        for (from, mut bytes) in batch {
             each(from, &mut bytes);
         }
-        Ok(batch.len())
+        Ok(n)
     }
 
     fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {

@@ -112,14 +112,13 @@ pub struct TickWork {
 }
 
 /// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
-/// rest has defaults (the host outbound from the config, no persister, map 0, no login
-/// service, fresh shared state).
+/// rest has defaults (no persister, map 0, no login service, fresh shared state). The
+/// outbound is the host one ([`CpuOutbound`]) from the config's AOI size and budget.
 pub(crate) struct TickLoopBuilder {
     config: ServerConfig,
     world: World,
     backend: Box<dyn Backend>,
     transport: Box<dyn Transport>,
-    outbound: Option<Box<dyn Outbound>>,
     persister: Option<Box<dyn StateSink>>,
     map_id: MapId,
     commands: Option<Receiver<Command>>,
@@ -127,13 +126,6 @@ pub(crate) struct TickLoopBuilder {
 }
 
 impl TickLoopBuilder {
-    /// The outbound (default: [`CpuOutbound`] with the config's AOI size and budget).
-    #[allow(dead_code)] // The GPU outbound plugs in here.
-    pub fn outbound(mut self, outbound: Box<dyn Outbound>) -> Self {
-        self.outbound = Some(outbound);
-        self
-    }
-
     /// Where player positions go (the database writer), and the map they are on.
     pub fn persister(mut self, persister: Box<dyn StateSink>, map_id: MapId) -> Self {
         self.persister = Some(persister);
@@ -157,9 +149,7 @@ impl TickLoopBuilder {
     pub fn build(self) -> TickLoop {
         let config = self.config;
         let nominal = Duration::from_secs_f64(1.0 / f64::from(config.tick_rate));
-        let outbound = self
-            .outbound
-            .unwrap_or_else(|| Box::new(CpuOutbound::new(config.aoi_size, config.max_datagrams_per_player)));
+        let outbound = Box::new(CpuOutbound::new(config.aoi_size, config.max_datagrams_per_player));
         // Without a login service nothing joins: a receiver whose sender is gone reads
         // as empty.
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
@@ -220,7 +210,6 @@ impl TickLoop {
             world,
             backend,
             transport,
-            outbound: None,
             persister: None,
             map_id: MapId(0),
             commands: None,

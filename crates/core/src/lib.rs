@@ -36,4 +36,4 @@ pub use scenario::{Placement, ScenarioSpec};
 pub use script::{ActionScript, ScriptError, ScriptedAction};
 pub use shape::{Shape, ShapeKind};
 pub use terrain::Terrain;
-pub use world::{Dynamics, EntityId, ObjectKind, StaticKind, Statics, World};
+pub use world::{Dynamics, EntityId, ObjectKind, ObjectState, StaticKind, Statics, World, hash_state};

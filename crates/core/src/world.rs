@@ -68,6 +68,57 @@ pub struct Dynamics {
     action_generation: u64,
 }
 
+/// One dynamic object's whole state, detached from any world: what a zone hands to its
+/// neighbour when the object crosses a boundary, what it lends as a ghost, and what a
+/// checkpoint stores. [`Dynamics::state_of`] reads one, [`Dynamics::insert`] puts one
+/// back under the same id.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ObjectState {
+    /// Stable identity.
+    pub id: EntityId,
+    /// NPC or user.
+    pub kind: ObjectKind,
+    /// Shape kind (compact form with `half` and `radius`).
+    pub shape: ShapeKind,
+    /// Bounding-box half extents.
+    pub half: Vec3,
+    /// Radius (0 for boxes).
+    pub radius: f32,
+    /// Current position.
+    pub pos: Vec3,
+    /// Position one step ago.
+    pub prev: Vec3,
+    /// Held action mask.
+    pub action: u8,
+    /// Flag bits (see [`flags`]).
+    pub flags: u8,
+}
+
+impl ObjectState {
+    /// Checks what [`Dynamics::insert`] needs: a valid compact shape, finite positions,
+    /// an action of the five known bits and only known flag bits.
+    pub fn validate(&self) -> Result<(), CoreError> {
+        // The compact form itself is checked (rebuilding a capsule's half height and
+        // back need not round-trip bit for bit).
+        let r = self.radius;
+        let consistent = match self.shape {
+            ShapeKind::Sphere => self.half == Vec3::splat(r),
+            ShapeKind::Box => r == 0.0,
+            ShapeKind::Capsule => self.half.x == r && self.half.z == r && self.half.y >= r,
+        };
+        if !consistent || !Shape::from_compact(self.shape, self.half, r).is_valid() {
+            return Err(CoreError::invalid("shape", format!("{:?} {} {r}", self.shape, self.half)));
+        }
+        if !self.pos.is_finite() || !self.prev.is_finite() {
+            return Err(CoreError::invalid("position", format!("{} (previous {})", self.pos, self.prev)));
+        }
+        if Action::from_bits(self.action).is_none() || self.flags & !(flags::ON_TERRAIN | flags::SUPPORTED) != 0 {
+            return Err(CoreError::invalid("action or flags", format!("{} {}", self.action, self.flags)));
+        }
+        Ok(())
+    }
+}
+
 /// Mutable views of the per-slot state a physics step writes, borrowed together.
 pub struct DynamicsMut<'a> {
     /// Current positions.
@@ -150,6 +201,64 @@ impl Dynamics {
         self.generation += 1;
         self.layout_generation += 1;
         true
+    }
+
+    /// The whole state of the object in `slot`.
+    pub fn state_of(&self, slot: usize) -> ObjectState {
+        ObjectState {
+            id: self.id[slot],
+            kind: self.kind[slot],
+            shape: self.shape[slot],
+            half: self.half[slot],
+            radius: self.radius[slot],
+            pos: self.pos[slot],
+            prev: self.prev[slot],
+            action: self.action[slot],
+            flags: self.flags[slot],
+        }
+    }
+
+    /// Adds an object with a state taken from elsewhere (another zone, a checkpoint),
+    /// keeping its id. Fails, adding nothing, when the id is already here or is
+    /// `u32::MAX` (which would leave no id for [`Dynamics::spawn`]), or when the shape,
+    /// the positions, the action or the flags are not valid.
+    pub fn insert(&mut self, s: &ObjectState) -> Result<(), CoreError> {
+        s.validate()?;
+        if s.id.0 == u32::MAX || self.slot_of.contains_key(&s.id) {
+            return Err(CoreError::invalid("entity id", format!("{} is taken or reserved", s.id.0)));
+        }
+        let slot = self.id.len() as u32;
+        self.id.push(s.id);
+        self.pos.push(s.pos);
+        self.prev.push(s.prev);
+        self.half.push(s.half);
+        self.radius.push(s.radius);
+        self.shape.push(s.shape);
+        self.kind.push(s.kind);
+        self.action.push(s.action);
+        self.flags.push(s.flags);
+        self.slot_of.insert(s.id, slot);
+        self.next_id = self.next_id.max(s.id.0 + 1);
+        self.generation += 1;
+        self.layout_generation += 1;
+        Ok(())
+    }
+
+    /// Removes every object. Ids are not reused afterwards, and the generations move on
+    /// (never back), so a backend still notices the change.
+    pub fn clear(&mut self) {
+        self.id.clear();
+        self.pos.clear();
+        self.prev.clear();
+        self.half.clear();
+        self.radius.clear();
+        self.shape.clear();
+        self.kind.clear();
+        self.action.clear();
+        self.flags.clear();
+        self.slot_of.clear();
+        self.generation += 1;
+        self.layout_generation += 1;
     }
 
     /// The slot of an entity, if it exists.
@@ -318,6 +427,28 @@ impl Statics {
         Ok(index)
     }
 
+    /// The objects `keep` accepts (by index), in their order, primitives copied in
+    /// compact form bit for bit (a zone holds the scenery within its reach this way, and
+    /// each object's static responses keep their order).
+    pub fn subset(&self, mut keep: impl FnMut(usize, &StaticObject) -> bool) -> Statics {
+        let mut out = Statics::default();
+        for (i, obj) in self.objects.iter().enumerate() {
+            if !keep(i, obj) {
+                continue;
+            }
+            let index = out.objects.len() as u32;
+            out.objects.push(StaticObject { first: out.pos.len() as u32, ..*obj });
+            let prims = obj.first as usize..(obj.first + obj.count) as usize;
+            out.pos.extend_from_slice(&self.pos[prims.clone()]);
+            out.half.extend_from_slice(&self.half[prims.clone()]);
+            out.radius.extend_from_slice(&self.radius[prims.clone()]);
+            out.shape.extend_from_slice(&self.shape[prims.clone()]);
+            out.owner.extend(prims.map(|_| index));
+        }
+        out.generation = 1;
+        out
+    }
+
     /// The objects.
     pub fn objects(&self) -> &[StaticObject] {
         &self.objects
@@ -400,20 +531,26 @@ impl World {
     /// every platform.
     pub fn state_hash(&self) -> u64 {
         let d = &self.dynamics;
-        let mut h = Xxh3::new();
-        h.update(&self.tick.to_le_bytes());
-        h.update(&(d.len() as u64).to_le_bytes());
-        for s in 0..d.len() {
-            h.update(&d.id[s].0.to_le_bytes());
-            for v in [d.pos[s], d.prev[s]] {
-                for c in v.to_array() {
-                    h.update(&c.to_bits().to_le_bytes());
-                }
-            }
-            h.update(&[d.action[s], d.flags[s]]);
-        }
-        h.digest()
+        hash_state((0..d.len()).map(|s| d.state_of(s)), self.tick, d.len())
     }
+}
+
+/// [`World::state_hash`] of a world at `tick` whose slots hold `objects` in this order
+/// (`len` of them): how a world split over several zones is compared with one process.
+pub fn hash_state(objects: impl Iterator<Item = ObjectState>, tick: u64, len: usize) -> u64 {
+    let mut h = Xxh3::new();
+    h.update(&tick.to_le_bytes());
+    h.update(&(len as u64).to_le_bytes());
+    for o in objects {
+        h.update(&o.id.0.to_le_bytes());
+        for v in [o.pos, o.prev] {
+            for c in v.to_array() {
+                h.update(&c.to_bits().to_le_bytes());
+            }
+        }
+        h.update(&[o.action, o.flags]);
+    }
+    h.digest()
 }
 
 #[cfg(test)]
@@ -455,6 +592,37 @@ mod tests {
         assert_ne!(d.generation() - g, d.action_generation() - a, "a teleport is more than an action");
         assert!(d.spawn(Shape::Sphere { radius: -1.0 }, Vec3::ZERO, ObjectKind::Npc).is_err());
         assert!(d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::NAN, ObjectKind::Npc).is_err());
+    }
+
+    #[test]
+    fn insert_keeps_the_id_and_refuses_bad_states() {
+        let mut w = world();
+        let a = w.dynamics.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap();
+        let mut s = w.dynamics.state_of(0);
+        assert_eq!(s.id, a);
+        assert!(w.dynamics.insert(&s).is_err(), "the id is taken");
+        s.id = EntityId(40);
+        s.prev = Vec3::X;
+        let g = w.dynamics.generation();
+        w.dynamics.insert(&s).unwrap();
+        assert!(w.dynamics.generation() > g);
+        assert_eq!(w.dynamics.state_of(1), s);
+        assert_eq!(w.dynamics.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap(), EntityId(41));
+        for bad in [
+            ObjectState { id: EntityId(50), pos: Vec3::NAN, ..s },
+            ObjectState { id: EntityId(50), radius: -1.0, ..s },
+            ObjectState { id: EntityId(50), half: Vec3::new(2.0, 1.0, 1.0), ..s },
+            ObjectState { id: EntityId(50), action: 32, ..s },
+            ObjectState { id: EntityId(50), flags: 4, ..s },
+            ObjectState { id: EntityId(u32::MAX), ..s },
+        ] {
+            assert!(w.dynamics.insert(&bad).is_err(), "{bad:?}");
+        }
+        assert_eq!(w.dynamics.len(), 3);
+        let h = w.state_hash();
+        w.dynamics.clear();
+        assert!(w.dynamics.is_empty());
+        assert_ne!(w.state_hash(), h);
     }
 
     #[test]

@@ -1,0 +1,32 @@
+//! One world on many servers: zones with ghosts and hand-offs over a message fabric,
+//! ending in the same state hash as one process.
+//!
+//! - [`layout`]: where zones are (a grid whose cuts are data), who sees what, who
+//!   neighbours whom.
+//! - [`zone`]: one zone's tick: send border states, gather the neighbours', step owned
+//!   objects with ghosts, keep the owned results.
+//! - [`wire`]: the fabric's messages: versioned, length-checked, signed (HMAC-SHA256).
+//! - [`fabric`]: the [`Fabric`] trait and the in-process [`MemoryFabric`]; [`nats`]: the
+//!   [`NatsFabric`] between processes.
+//! - [`local`]: K zones on threads, reassembled ([`run_zoned`]).
+//! - [`stats`]: per-zone counters and their Prometheus form.
+//!
+//! Design, subjects, message layouts and measurements: `docs/zones.md`.
+
+pub mod error;
+pub mod fabric;
+pub mod layout;
+pub mod local;
+pub mod nats;
+pub mod stats;
+pub mod wire;
+pub mod zone;
+
+pub use error::ZoneError;
+pub use fabric::{Fabric, MemoryFabric};
+pub use layout::{Rect, ZoneId, ZoneLayout};
+pub use local::{ZonedRun, pair_reach, run_zoned};
+pub use nats::NatsFabric;
+pub use stats::ZoneStats;
+pub use wire::{ClusterKey, WireError};
+pub use zone::{Zone, ZoneConfig};

@@ -1,0 +1,106 @@
+//! K zones of one world on threads of this process, over any fabric: what
+//! `myriad sim --zones K` runs (with [`MemoryFabric`](crate::MemoryFabric)s, or
+//! [`NatsFabric`](crate::NatsFabric)s with `--nats`), and what the equality tests check
+//! against one process.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use myriad_core::{ActionScript, ObjectState, World, hash_state};
+use myriad_physics::{Backend, TickConstants};
+
+use crate::error::ZoneError;
+use crate::fabric::Fabric;
+use crate::layout::{ZoneId, ZoneLayout};
+use crate::stats::ZoneStats;
+use crate::wire::ClusterKey;
+use crate::zone::{Zone, ZoneConfig};
+
+/// The outcome of a zoned run.
+#[derive(Debug)]
+pub struct ZonedRun {
+    /// [`World::state_hash`] of the reassembled world: comparable with one process's.
+    pub state_hash: u64,
+    /// The tick reached.
+    pub tick: u64,
+    /// Every object's final state, by id.
+    pub objects: Vec<ObjectState>,
+    /// Scripted actions applied (each by the one zone that owned its object).
+    pub actions: usize,
+    /// Each zone's counters.
+    pub stats: Vec<ZoneStats>,
+    /// Static primitives each zone held.
+    pub static_prims: Vec<usize>,
+}
+
+/// Runs `world` split by `layout` for `ticks` ticks, one thread per zone, each with the
+/// backend `backend(zone)` and the fabric `fabrics[zone]`, and reassembles the result.
+pub fn run_zoned(
+    world: &World,
+    layout: ZoneLayout,
+    ticks: u64,
+    script: &ActionScript,
+    k: &TickConstants,
+    backend: &(dyn Fn(ZoneId) -> Result<Box<dyn Backend>, ZoneError> + Sync),
+    fabrics: Vec<Box<dyn Fabric>>,
+    wait: Duration,
+) -> Result<ZonedRun, ZoneError> {
+    if fabrics.len() != layout.len() {
+        return Err(ZoneError::Layout(format!("{} fabrics for {} zones", fabrics.len(), layout.len())));
+    }
+    let layout = Arc::new(layout);
+    let key = ClusterKey::random();
+    let run = world.seed ^ u64::from(std::process::id()) << 32 ^ world.tick;
+    let results: Vec<Result<(Vec<ObjectState>, usize, ZoneStats, usize), ZoneError>> = std::thread::scope(|s| {
+        let handles: Vec<_> = fabrics
+            .into_iter()
+            .enumerate()
+            .map(|(i, fabric)| {
+                let (layout, key) = (layout.clone(), key.clone());
+                s.spawn(move || {
+                    let id = ZoneId(i as u16);
+                    let cfg = ZoneConfig { id, run, key, wait };
+                    let mut zone = Zone::new(cfg, layout, world, backend(id)?, fabric)?;
+                    let mut actions = 0;
+                    for _ in 0..ticks {
+                        let t = zone.tick();
+                        actions += zone.step(script.at(t), k)?;
+                    }
+                    let prims = zone.static_prims();
+                    Ok((zone.advanced().to_vec(), actions, zone.stats().clone(), prims))
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().expect("a zone thread panicked")).collect()
+    });
+    // A zone that failed makes its neighbours stall; report the cause, not the stalls.
+    if let Some(e) = results.iter().position(|r| matches!(r, Err(e) if !matches!(e, ZoneError::Stalled { .. }))) {
+        return Err(results.into_iter().nth(e).expect("index").err().expect("an error"));
+    }
+    let mut objects = Vec::with_capacity(world.dynamics.len());
+    let (mut actions, mut stats, mut static_prims) = (0, Vec::new(), Vec::new());
+    for r in results {
+        let (o, a, s, p) = r?;
+        objects.extend(o);
+        actions += a;
+        stats.push(s);
+        static_prims.push(p);
+    }
+    objects.sort_unstable_by_key(|o| o.id);
+    if let Some(w) = objects.windows(2).find(|w| w[0].id == w[1].id) {
+        return Err(ZoneError::Duplicate(w[0].id, world.tick + ticks));
+    }
+    if objects.len() != world.dynamics.len() {
+        return Err(ZoneError::Layout(format!("{} objects came back of {}", objects.len(), world.dynamics.len())));
+    }
+    let tick = world.tick + ticks;
+    let state_hash = hash_state(objects.iter().copied(), tick, objects.len());
+    Ok(ZonedRun { state_hash, tick, objects, actions, stats, static_prims })
+}
+
+/// The reach a world needs for its pairs: twice the largest horizontal half extent of
+/// any dynamic object, plus a little slack against rounding at the edges.
+pub fn pair_reach(world: &World) -> f32 {
+    let h = world.dynamics.half_extents().iter().fold(0.0f32, |m, h| m.max(h.x).max(h.z));
+    2.0 * h + 0.25
+}

@@ -1,0 +1,327 @@
+//! The fabric's message format: what zones (and later gateways) say to each other.
+//!
+//! Every message is a fixed header, a body of fixed-size records and an HMAC-SHA256 tag
+//! over both with the cluster's key. The tag is checked before anything else is read, so
+//! a message from outside the cluster (or a corrupted one) is never parsed, let alone
+//! applied. Replays and reordering are caught above this layer, by the receiver's inbox
+//! (`crate::zone`), from the header's run id and tick. Byte layout: `docs/zones.md`.
+//!
+//! ```
+//! use myriad_zone::wire::{Border, ClusterKey, decode, encode_border};
+//! use myriad_zone::ZoneId;
+//! let key = ClusterKey::new(b"a key of at least sixteen bytes!").unwrap();
+//! let m = Border { run: 7, tick: 3, from: ZoneId(0), to: ZoneId(1), part: 0, parts: 1, objects: vec![] };
+//! let bytes = encode_border(&key, &m).unwrap();
+//! assert_eq!(decode(&key, &bytes).unwrap(), m);
+//! assert!(decode(&key, &bytes[..bytes.len() - 1]).is_err());
+//! ```
+
+use myriad_core::world::flags;
+use myriad_core::{EntityId, ObjectKind, ObjectState, ShapeKind, Vec3};
+use ring::hmac;
+
+use crate::layout::ZoneId;
+
+/// First two bytes of every message.
+pub const MAGIC: [u8; 2] = *b"MZ";
+/// The format's version; a message of another version is refused.
+pub const VERSION: u8 = 1;
+/// Bytes before the body.
+pub const HEADER_LEN: usize = 32;
+/// Bytes of one object record.
+pub const RECORD_LEN: usize = 48;
+/// Bytes of the tag.
+pub const TAG_LEN: usize = 32;
+/// Message kind: a zone's border state for a neighbour.
+pub const KIND_BORDER: u8 = 1;
+/// Bit of a record's flag byte that hands the object to the receiver.
+const YOURS: u8 = 1 << 7;
+
+/// Why bytes from the fabric are not a message.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum WireError {
+    /// Shorter than a header and a tag.
+    #[error("truncated: {0} bytes")]
+    Truncated(usize),
+    /// Not a Myriad fabric message.
+    #[error("bad magic")]
+    Magic,
+    /// Another version of the format.
+    #[error("version {0}, expected {VERSION}")]
+    Version(u8),
+    /// The tag does not match: not from the cluster, or altered.
+    #[error("bad tag")]
+    Tag,
+    /// An unknown message kind.
+    #[error("unknown kind {0}")]
+    Kind(u8),
+    /// The body's length disagrees with the header's count.
+    #[error("body of {actual} bytes for {count} records")]
+    Length {
+        /// Records the header announces.
+        count: u32,
+        /// Bytes the body has.
+        actual: usize,
+    },
+    /// Part numbers out of range.
+    #[error("part {part} of {parts}")]
+    Part {
+        /// This part.
+        part: u16,
+        /// Parts in all.
+        parts: u16,
+    },
+    /// A record is not a valid object state.
+    #[error("record {index}: {reason}")]
+    Record {
+        /// Its index in the message.
+        index: usize,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A key shorter than 16 bytes.
+    #[error("a cluster key needs at least 16 bytes")]
+    WeakKey,
+}
+
+impl WireError {
+    /// A short stable name, for metrics labels.
+    pub fn label(&self) -> &'static str {
+        match self {
+            WireError::Truncated(_) => "truncated",
+            WireError::Magic => "magic",
+            WireError::Version(_) => "version",
+            WireError::Tag => "tag",
+            WireError::Kind(_) => "kind",
+            WireError::Length { .. } => "length",
+            WireError::Part { .. } => "part",
+            WireError::Record { .. } => "record",
+            WireError::WeakKey => "key",
+        }
+    }
+}
+
+/// The secret every process of a cluster shares; it signs and checks every message.
+#[derive(Clone)]
+pub struct ClusterKey(hmac::Key);
+
+impl ClusterKey {
+    /// A key from secret bytes (at least 16).
+    pub fn new(secret: &[u8]) -> Result<ClusterKey, WireError> {
+        if secret.len() < 16 {
+            return Err(WireError::WeakKey);
+        }
+        Ok(ClusterKey(hmac::Key::new(hmac::HMAC_SHA256, secret)))
+    }
+
+    /// A fresh random key, for a cluster that lives in one process.
+    pub fn random() -> ClusterKey {
+        let mut secret = [0u8; 32];
+        ring::rand::SecureRandom::fill(&ring::rand::SystemRandom::new(), &mut secret)
+            .expect("the system's random source works");
+        ClusterKey(hmac::Key::new(hmac::HMAC_SHA256, &secret))
+    }
+}
+
+impl std::fmt::Debug for ClusterKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ClusterKey(..)")
+    }
+}
+
+/// One part of a zone's border state for one neighbour at one tick: the objects the
+/// neighbour must see (ghosts) and those it now owns (hand-offs, `yours`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Border {
+    /// The run (a cluster's epoch): messages of another run are refused.
+    pub run: u64,
+    /// The tick whose step these states start.
+    pub tick: u64,
+    /// The sender.
+    pub from: ZoneId,
+    /// The receiver.
+    pub to: ZoneId,
+    /// This part's index.
+    pub part: u16,
+    /// How many parts the sender sends this tick (at least 1, even with no objects).
+    pub parts: u16,
+    /// The objects, each with whether it is handed to the receiver.
+    pub objects: Vec<(ObjectState, bool)>,
+}
+
+/// Encodes and signs a border message.
+pub fn encode_border(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError> {
+    if m.parts == 0 || m.part >= m.parts {
+        return Err(WireError::Part { part: m.part, parts: m.parts });
+    }
+    let count = u32::try_from(m.objects.len()).map_err(|_| WireError::Length { count: u32::MAX, actual: 0 })?;
+    let mut b = Vec::with_capacity(HEADER_LEN + m.objects.len() * RECORD_LEN + TAG_LEN);
+    b.extend_from_slice(&MAGIC);
+    b.push(VERSION);
+    b.push(KIND_BORDER);
+    b.extend_from_slice(&m.run.to_le_bytes());
+    b.extend_from_slice(&m.tick.to_le_bytes());
+    b.extend_from_slice(&m.from.0.to_le_bytes());
+    b.extend_from_slice(&m.to.0.to_le_bytes());
+    b.extend_from_slice(&m.part.to_le_bytes());
+    b.extend_from_slice(&m.parts.to_le_bytes());
+    b.extend_from_slice(&count.to_le_bytes());
+    for (o, yours) in &m.objects {
+        b.extend_from_slice(&o.id.0.to_le_bytes());
+        b.push(o.kind as u8);
+        b.push(o.shape as u8);
+        b.push(o.action);
+        b.push(o.flags | if *yours { YOURS } else { 0 });
+        for v in [o.half.x, o.half.y, o.half.z, o.radius, o.pos.x, o.pos.y, o.pos.z, o.prev.x, o.prev.y, o.prev.z] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    let tag = hmac::sign(&key.0, &b);
+    b.extend_from_slice(tag.as_ref());
+    Ok(b)
+}
+
+fn u16_at(b: &[u8], at: usize) -> u16 {
+    u16::from_le_bytes([b[at], b[at + 1]])
+}
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
+}
+fn u64_at(b: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
+}
+fn f32_at(b: &[u8], at: usize) -> f32 {
+    f32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
+}
+
+/// Checks the tag, then decodes a message. Nothing of an unauthenticated message is
+/// parsed beyond the magic and version.
+pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Border, WireError> {
+    if b.len() < HEADER_LEN + TAG_LEN {
+        return Err(WireError::Truncated(b.len()));
+    }
+    if b[..2] != MAGIC {
+        return Err(WireError::Magic);
+    }
+    if b[2] != VERSION {
+        return Err(WireError::Version(b[2]));
+    }
+    let (signed, tag) = b.split_at(b.len() - TAG_LEN);
+    hmac::verify(&key.0, signed, tag).map_err(|_| WireError::Tag)?;
+    if signed[3] != KIND_BORDER {
+        return Err(WireError::Kind(signed[3]));
+    }
+    let (part, parts, count) = (u16_at(signed, 24), u16_at(signed, 26), u32_at(signed, 28));
+    if parts == 0 || part >= parts {
+        return Err(WireError::Part { part, parts });
+    }
+    let body = &signed[HEADER_LEN..];
+    if body.len() as u64 != count as u64 * RECORD_LEN as u64 {
+        return Err(WireError::Length { count, actual: body.len() });
+    }
+    let objects = body
+        .chunks_exact(RECORD_LEN)
+        .enumerate()
+        .map(|(index, r)| {
+            let bad = |reason: String| WireError::Record { index, reason };
+            let kind = match r[4] {
+                0 => ObjectKind::Npc,
+                1 => ObjectKind::User,
+                k => return Err(bad(format!("object kind {k}"))),
+            };
+            let shape = ShapeKind::from_u8(r[5]).ok_or_else(|| bad(format!("shape {}", r[5])))?;
+            let f = |i: usize| f32_at(r, 8 + 4 * i);
+            let o = ObjectState {
+                id: EntityId(u32_at(r, 0)),
+                kind,
+                shape,
+                action: r[6],
+                flags: r[7] & !YOURS,
+                half: Vec3::new(f(0), f(1), f(2)),
+                radius: f(3),
+                pos: Vec3::new(f(4), f(5), f(6)),
+                prev: Vec3::new(f(7), f(8), f(9)),
+            };
+            o.validate().map_err(|e| bad(e.to_string()))?;
+            debug_assert_eq!(o.flags & !(flags::ON_TERRAIN | flags::SUPPORTED), 0);
+            Ok((o, r[7] & YOURS != 0))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Border {
+        run: u64_at(signed, 4),
+        tick: u64_at(signed, 12),
+        from: ZoneId(u16_at(signed, 20)),
+        to: ZoneId(u16_at(signed, 22)),
+        part,
+        parts,
+        objects,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn key() -> ClusterKey {
+        ClusterKey::new(&[7; 32]).unwrap()
+    }
+
+    fn object(id: u32, x: f32) -> ObjectState {
+        ObjectState {
+            id: EntityId(id),
+            kind: ObjectKind::User,
+            shape: ShapeKind::Capsule,
+            half: Vec3::new(0.5, 1.5, 0.5),
+            radius: 0.5,
+            pos: Vec3::new(x, 2.0, -3.0),
+            prev: Vec3::new(x - 0.1, 2.0, -3.0),
+            action: 9,
+            flags: flags::ON_TERRAIN,
+        }
+    }
+
+    fn message() -> Border {
+        Border {
+            run: 0xfeed,
+            tick: 12,
+            from: ZoneId(3),
+            to: ZoneId(4),
+            part: 1,
+            parts: 2,
+            objects: vec![(object(5, 1.0), true), (object(9, -7.5), false)],
+        }
+    }
+
+    #[test]
+    fn round_trips_and_is_the_documented_size() {
+        let b = encode_border(&key(), &message()).unwrap();
+        assert_eq!(b.len(), HEADER_LEN + 2 * RECORD_LEN + TAG_LEN);
+        assert_eq!(decode(&key(), &b).unwrap(), message());
+    }
+
+    #[test]
+    fn refuses_other_keys_alterations_and_bad_records() {
+        let b = encode_border(&key(), &message()).unwrap();
+        assert_eq!(decode(&ClusterKey::new(&[8; 32]).unwrap(), &b), Err(WireError::Tag));
+        for i in 0..b.len() {
+            let mut c = b.clone();
+            c[i] ^= 0x10;
+            assert!(decode(&key(), &c).is_err(), "flipping byte {i}");
+        }
+        assert_eq!(decode(&key(), &b[..40]), Err(WireError::Truncated(40)));
+        let mut bad = message();
+        bad.objects[0].0.pos.x = f32::NAN;
+        let signed = encode_border(&key(), &bad).unwrap();
+        assert!(matches!(decode(&key(), &signed), Err(WireError::Record { index: 0, .. })));
+        assert!(encode_border(&key(), &Border { part: 2, ..message() }).is_err());
+        assert!(ClusterKey::new(b"short").is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..400)) {
+            let _ = decode(&key(), &bytes);
+        }
+    }
+}

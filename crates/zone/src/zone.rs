@@ -1,0 +1,335 @@
+//! One zone: the objects it owns, the ghosts it borrows, and its tick.
+//!
+//! A tick at `t`, for zone `Z` (see `docs/zones.md` for why each step keeps one
+//! process's bits):
+//! 1. *Send.* Every object `Z` stepped last (its *advanced* set) goes to each neighbour
+//!    that sees it ([`ZoneLayout::seers`]), marked *yours* for the neighbour whose region
+//!    now holds its centre: a ghost and a hand-off are one record.
+//! 2. *Gather.* `Z` waits for the border states of tick `t` from each neighbour (not a
+//!    global barrier), authenticating and ordering them in its inbox.
+//! 3. *Step.* `Z` assembles a world of what it owns (advanced objects still in its region,
+//!    plus those handed to it) and its ghosts (every other object it sees), sorted by
+//!    entity id, and steps it with any backend. Because a step sums each object's
+//!    responses in the order of its partners' slots, and slots follow entity ids in both
+//!    the zone's world and a scenario's world, an owned object gets the same bits as in
+//!    one process — provided every partner is there, which `reach` guarantees.
+//! 4. *Keep.* The owned objects' new states become the advanced set; ghosts' results are
+//!    dropped (their owners computed them with all their partners).
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use myriad_core::{EntityId, ObjectState, ScriptedAction, Statics, World};
+use myriad_physics::{Backend, TickConstants};
+
+use crate::error::ZoneError;
+use crate::fabric::Fabric;
+use crate::layout::{ZoneId, ZoneLayout};
+use crate::stats::ZoneStats;
+use crate::wire::{Border, ClusterKey, HEADER_LEN, RECORD_LEN, TAG_LEN, decode, encode_border};
+
+/// What a zone needs besides its world: identity, cluster and patience.
+#[derive(Clone, Debug)]
+pub struct ZoneConfig {
+    /// This zone.
+    pub id: ZoneId,
+    /// The run (epoch) of the cluster: messages of other runs are refused.
+    pub run: u64,
+    /// The key every message is signed with.
+    pub key: ClusterKey,
+    /// How long to wait for a neighbour's border state before declaring it stalled.
+    pub wait: Duration,
+}
+
+/// The parts of one neighbour's border state for one tick.
+#[derive(Default)]
+struct Parts {
+    parts: u16,
+    got: Vec<Option<Vec<(ObjectState, bool)>>>,
+}
+
+impl Parts {
+    fn complete(&self) -> bool {
+        self.parts > 0 && self.got.iter().all(Option::is_some)
+    }
+}
+
+/// One zone of a world split over several (see the module documentation).
+pub struct Zone {
+    cfg: ZoneConfig,
+    layout: Arc<ZoneLayout>,
+    /// Bounds, terrain, the statics within reach, and the objects of the current step.
+    world: World,
+    /// The objects this zone stepped as owner last tick, by id (their states now).
+    advanced: Vec<ObjectState>,
+    inbox: BTreeMap<(u64, ZoneId), Parts>,
+    backend: Box<dyn Backend>,
+    fabric: Box<dyn Fabric>,
+    stats: ZoneStats,
+    /// Whether each slot of the last step was owned (scratch).
+    owned_slots: Vec<bool>,
+}
+
+impl Zone {
+    /// The zone `cfg.id` of `world` (whole, at its current tick): it takes the objects
+    /// whose centres lie in its region and the static objects within reach.
+    pub fn new(
+        cfg: ZoneConfig,
+        layout: Arc<ZoneLayout>,
+        world: &World,
+        backend: Box<dyn Backend>,
+        fabric: Box<dyn Fabric>,
+    ) -> Result<Zone, ZoneError> {
+        let d = &world.dynamics;
+        let mut advanced: Vec<ObjectState> =
+            (0..d.len()).filter(|&s| layout.zone_at(d.positions()[s]) == cfg.id).map(|s| d.state_of(s)).collect();
+        advanced.sort_unstable_by_key(|o| o.id);
+        Zone::resume(cfg, layout, world, advanced, backend, fabric)
+    }
+
+    /// The zone `cfg.id` resuming from its own objects (`owned`, at `world.tick`), as
+    /// after a checkpoint; `world` supplies bounds, terrain, statics, seed and tick (its
+    /// dynamic objects are ignored).
+    pub fn resume(
+        cfg: ZoneConfig,
+        layout: Arc<ZoneLayout>,
+        world: &World,
+        mut owned: Vec<ObjectState>,
+        backend: Box<dyn Backend>,
+        fabric: Box<dyn Fabric>,
+    ) -> Result<Zone, ZoneError> {
+        if cfg.id.0 as usize >= layout.len() {
+            return Err(ZoneError::Layout(format!("zone {} of a layout of {}", cfg.id.0, layout.len())));
+        }
+        owned.sort_unstable_by_key(|o| o.id);
+        let mut own = World::new(world.bounds, world.terrain.clone(), world.seed)?;
+        own.tick = world.tick;
+        own.statics = statics_within(&world.statics, &layout, cfg.id);
+        let stats = ZoneStats { owned: owned.len(), ..ZoneStats::default() };
+        Ok(Zone {
+            cfg,
+            layout,
+            world: own,
+            advanced: owned,
+            inbox: BTreeMap::new(),
+            backend,
+            fabric,
+            stats,
+            owned_slots: Vec::new(),
+        })
+    }
+
+    /// This zone's id.
+    pub fn id(&self) -> ZoneId {
+        self.cfg.id
+    }
+
+    /// The tick the next step starts.
+    pub fn tick(&self) -> u64 {
+        self.world.tick
+    }
+
+    /// The states of the objects this zone stepped last, by id: after the last tick
+    /// the zones' advanced sets partition the world.
+    pub fn advanced(&self) -> &[ObjectState] {
+        &self.advanced
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &ZoneStats {
+        &self.stats
+    }
+
+    /// Static primitives this zone holds.
+    pub fn static_prims(&self) -> usize {
+        self.world.statics.prim_count()
+    }
+
+    /// One tick: exchange border states with the neighbours, then step. `actions` are
+    /// the actions of this tick for the whole world; those of objects this zone owns are
+    /// applied (returns how many).
+    pub fn step(&mut self, actions: &[ScriptedAction], k: &TickConstants) -> Result<usize, ZoneError> {
+        let t = self.world.tick;
+        self.send_borders(t)?;
+        let received = self.gather(t)?;
+        let start = Instant::now();
+        let applied = self.assemble(received, actions)?;
+        self.backend.step(&mut self.world, k)?;
+        let d = &self.world.dynamics;
+        self.advanced.clear();
+        self.advanced.extend((0..d.len()).filter(|&s| self.owned_slots[s]).map(|s| d.state_of(s)));
+        self.stats.ticks += 1;
+        self.stats.owned = self.advanced.len();
+        self.stats.step += start.elapsed();
+        self.stats.bytes = self.fabric.bytes();
+        Ok(applied)
+    }
+
+    /// Step 1: the advanced set to every neighbour that sees it.
+    fn send_borders(&mut self, t: u64) -> Result<(), ZoneError> {
+        let me = self.cfg.id;
+        let neighbours = self.layout.neighbours(me);
+        let mut out: Vec<Vec<(ObjectState, bool)>> = vec![Vec::new(); neighbours.len()];
+        for o in &self.advanced {
+            let owner = self.layout.zone_at(o.pos);
+            for z in self.layout.seers(o.pos).filter(|&z| z != me) {
+                let i =
+                    neighbours.iter().position(|&n| n == z).ok_or(ZoneError::TooFar { id: o.id, from: me, to: z })?;
+                out[i].push((*o, z == owner));
+                self.stats.handoffs_out += (z == owner) as u64;
+            }
+        }
+        let per_part = ((self.fabric.max_message() - HEADER_LEN - TAG_LEN) / RECORD_LEN).max(1);
+        for (&to, objects) in neighbours.iter().zip(out) {
+            self.stats.ghosts_out += objects.len() as u64;
+            let parts = objects.len().div_ceil(per_part).max(1);
+            let parts16 = u16::try_from(parts).map_err(|_| ZoneError::Fabric(format!("{parts} parts")))?;
+            for part in 0..parts {
+                let chunk =
+                    objects[(part * per_part).min(objects.len())..((part + 1) * per_part).min(objects.len())].to_vec();
+                let m = Border {
+                    run: self.cfg.run,
+                    tick: t,
+                    from: me,
+                    to,
+                    part: part as u16,
+                    parts: parts16,
+                    objects: chunk,
+                };
+                self.fabric.send(to, encode_border(&self.cfg.key, &m)?)?;
+                self.stats.messages.0 += 1;
+            }
+        }
+        Ok(())
+    }
+
+    /// Step 2: every neighbour's border state for tick `t`.
+    fn gather(&mut self, t: u64) -> Result<Vec<(ObjectState, bool)>, ZoneError> {
+        let start = Instant::now();
+        let deadline = start + self.cfg.wait;
+        let neighbours = self.layout.neighbours(self.cfg.id).to_vec();
+        let complete = |inbox: &BTreeMap<(u64, ZoneId), Parts>| {
+            neighbours.iter().all(|n| inbox.get(&(t, *n)).is_some_and(Parts::complete))
+        };
+        while !complete(&self.inbox) {
+            match self.fabric.recv(deadline)? {
+                Some(bytes) => self.accept(&bytes, t),
+                None => {
+                    let missing = neighbours
+                        .iter()
+                        .filter(|n| !self.inbox.get(&(t, **n)).is_some_and(Parts::complete))
+                        .copied()
+                        .collect();
+                    return Err(ZoneError::Stalled {
+                        zone: self.cfg.id,
+                        tick: t,
+                        waited_ms: self.cfg.wait.as_millis() as u64,
+                        missing,
+                    });
+                }
+            }
+        }
+        self.stats.wait += start.elapsed();
+        let mut received = Vec::new();
+        for n in &neighbours {
+            let parts = self.inbox.remove(&(t, *n)).expect("complete");
+            received.extend(parts.got.into_iter().flatten().flatten());
+        }
+        Ok(received)
+    }
+
+    /// Files a message in the inbox, or rejects (and counts) it. Only authenticated
+    /// messages of this run, for this zone, from a neighbour, for this tick or the next
+    /// (a neighbour is never further ahead), and not seen before, are kept.
+    fn accept(&mut self, bytes: &[u8], t: u64) {
+        let reason = match decode(&self.cfg.key, bytes) {
+            Err(e) => Some(e.label()),
+            Ok(m) if m.run != self.cfg.run => Some("run"),
+            Ok(m) if m.to != self.cfg.id => Some("misrouted"),
+            Ok(m) if !self.layout.neighbours(self.cfg.id).contains(&m.from) => Some("stranger"),
+            Ok(m) if m.tick < t => Some("stale"),
+            Ok(m) if m.tick > t + 1 => Some("early"),
+            Ok(m) => {
+                let entry = self.inbox.entry((m.tick, m.from)).or_default();
+                if entry.parts == 0 {
+                    entry.parts = m.parts;
+                    entry.got = vec![None; m.parts as usize];
+                }
+                if entry.parts != m.parts {
+                    Some("parts")
+                } else if entry.got[m.part as usize].is_some() {
+                    Some("replayed")
+                } else {
+                    self.stats.messages.1 += 1;
+                    entry.got[m.part as usize] = Some(m.objects);
+                    None
+                }
+            }
+        };
+        if let Some(reason) = reason {
+            *self.stats.rejected.entry(reason).or_default() += 1;
+            tracing::debug!(zone = self.cfg.id.0, tick = t, reason, "fabric message rejected");
+        }
+    }
+
+    /// Step 3: the zone's world for this tick, in entity-id order, with the owned
+    /// objects' actions set.
+    fn assemble(&mut self, received: Vec<(ObjectState, bool)>, actions: &[ScriptedAction]) -> Result<usize, ZoneError> {
+        let me = self.cfg.id;
+        let layout = &self.layout;
+        let mut objects: Vec<(ObjectState, bool)> = Vec::with_capacity(self.advanced.len() + received.len());
+        for o in &self.advanced {
+            if layout.zone_at(o.pos) == me {
+                objects.push((*o, true));
+            } else if layout.sees(me, o.pos) {
+                objects.push((*o, false));
+            }
+        }
+        self.stats.ghosts_in += received.len() as u64;
+        self.stats.handoffs_in += received.iter().filter(|r| r.1).count() as u64;
+        objects.extend(received);
+        objects.sort_unstable_by_key(|(o, _)| o.id);
+        if let Some(w) = objects.windows(2).find(|w| w[0].0.id == w[1].0.id) {
+            return Err(ZoneError::Duplicate(w[0].0.id, self.world.tick));
+        }
+        let d = &mut self.world.dynamics;
+        d.clear();
+        self.owned_slots.clear();
+        for (o, owned) in &objects {
+            d.insert(o)?;
+            self.owned_slots.push(*owned);
+        }
+        self.stats.ghosts = objects.len() - self.owned_slots.iter().filter(|o| **o).count();
+        let mut applied = 0;
+        for a in actions {
+            if d.slot(a.entity).is_some_and(|s| self.owned_slots[s]) {
+                d.set_action(a.entity, a.action);
+                applied += 1;
+            }
+        }
+        Ok(applied)
+    }
+
+    /// The entity ids this zone owns now (advanced objects still in its region), for
+    /// routing players' actions.
+    pub fn owns(&self, id: EntityId) -> bool {
+        self.advanced
+            .binary_search_by_key(&id, |o| o.id)
+            .is_ok_and(|i| self.layout.zone_at(self.advanced[i].pos) == self.cfg.id)
+    }
+}
+
+/// The static objects with a primitive within reach of zone `z`, in their original order
+/// (so that each object's static responses are summed in the same order as in one
+/// process).
+fn statics_within(all: &Statics, layout: &ZoneLayout, z: ZoneId) -> Statics {
+    let region = layout.region(z);
+    all.subset(|_, obj| {
+        (obj.first..obj.first + obj.count).any(|i| {
+            let b = all.aabb(i as usize);
+            let r = crate::layout::Rect { min_x: b.min.x, min_z: b.min.z, max_x: b.max.x, max_z: b.max.z };
+            region.distance_to(&r) <= layout.reach()
+        })
+    })
+}

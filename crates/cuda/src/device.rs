@@ -41,13 +41,18 @@ pub struct DeviceInfo {
 /// Checks for a driver, NVRTC and a device, in that order, without ever panicking: the
 /// error says which is missing.
 pub fn probe() -> Result<(Arc<CudaContext>, DeviceInfo), String> {
+    probe_on(0)
+}
+
+/// [`probe`] for device `ordinal` (a zone per GPU picks its own).
+pub fn probe_on(ordinal: usize) -> Result<(Arc<CudaContext>, DeviceInfo), String> {
     if !driver_present() {
         return Err("no CUDA driver library (libcuda.so) was found".into());
     }
     if !compile::nvrtc_present() {
         return Err("no NVRTC library (libnvrtc.so) was found".into());
     }
-    let ctx = CudaContext::new(0).map_err(|e| format!("no usable CUDA device: {e:?}"))?;
+    let ctx = CudaContext::new(ordinal).map_err(|e| format!("no usable CUDA device {ordinal}: {e:?}"))?;
     let name = ctx.name().map_err(|e| format!("reading the device name: {e:?}"))?;
     let (major, minor) = ctx.compute_capability().map_err(|e| format!("reading the compute capability: {e:?}"))?;
     Ok((ctx, DeviceInfo { name, arch: (major * 10 + minor) as u32 }))
@@ -93,9 +98,9 @@ struct Profile {
 unsafe impl Send for Gpu {}
 
 impl Gpu {
-    /// Probes the device, loads (or compiles) the kernels and creates a stream.
-    pub fn new() -> Result<Gpu, String> {
-        let (ctx, info) = probe()?;
+    /// Probes device `ordinal`, loads (or compiles) the kernels and creates a stream.
+    pub fn new(ordinal: usize) -> Result<Gpu, String> {
+        let (ctx, info) = probe_on(ordinal)?;
         ctx.bind_to_thread().map_err(|e| format!("binding the context: {e:?}"))?;
         let cubin = compile::cached_cubin(info.arch).map_err(|e| format!("compiling the kernels: {e}"))?;
         // SAFETY: the context is current; `cubin` is a complete CUBIN image that stays

@@ -26,9 +26,14 @@ use myriad_physics::{Backend, BackendKind, PhysicsError};
 /// here, and `auto`: `cuda` when a driver, NVRTC and a device are present and the kernels
 /// load, else `cpu`. The choice and its reason are logged.
 pub fn create_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
+    create_backend_on(kind, 0)
+}
+
+/// [`create_backend`] with the CUDA kinds on device `ordinal` (the CPU kinds ignore it).
+pub fn create_backend_on(kind: BackendKind, ordinal: usize) -> Result<Box<dyn Backend>, PhysicsError> {
     match kind {
-        BackendKind::Cuda | BackendKind::CudaNaive => Ok(Box::new(CudaBackend::new(kind)?)),
-        BackendKind::Auto => match CudaBackend::new(BackendKind::Cuda) {
+        BackendKind::Cuda | BackendKind::CudaNaive => Ok(Box::new(CudaBackend::on_device(kind, ordinal)?)),
+        BackendKind::Auto => match CudaBackend::on_device(BackendKind::Cuda, ordinal) {
             Ok(b) => {
                 tracing::info!("backend auto: using {}", b.description());
                 Ok(Box::new(b))

@@ -32,8 +32,43 @@ pub struct SimArgs {
     /// server applies an action received before that tick.
     #[arg(long, value_name = "FILE")]
     pub actions: Option<std::path::PathBuf>,
+    /// Split the world into this many zones (a grid as square as the count allows), each
+    /// stepped by its own thread and backend, exchanging border states; the state hash is
+    /// comparable with a run in one zone (see docs/zones.md).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=1024))]
+    pub zones: u16,
+    /// Carry the zones' messages over this NATS server (e.g. nats://127.0.0.1:4222)
+    /// instead of in-process channels.
+    #[arg(long, value_name = "URL")]
+    pub nats: Option<String>,
+    /// GPUs to spread zones over with the CUDA backends (zone i on device i mod N).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
+    pub gpus: u16,
+    /// How far an object may move in one tick before zones must refuse to go on.
+    #[arg(long, default_value_t = 2.0)]
+    pub zone_max_step: f32,
     #[command(flatten)]
     pub world: WorldArgs,
+}
+
+/// Zone figures of a zoned run, summed over the zones.
+#[derive(Serialize)]
+struct ZoneSummary {
+    zones: usize,
+    grid: (usize, usize),
+    reach: f32,
+    fabric: &'static str,
+    /// Per zone: objects owned at the end.
+    owned: Vec<usize>,
+    /// Per zone: static primitives held.
+    static_prims: Vec<usize>,
+    ghost_records: u64,
+    handoffs: u64,
+    messages: u64,
+    fabric_bytes: u64,
+    /// Per zone: mean wait for neighbours, ms a tick.
+    wait_ms: Vec<f64>,
+    rejected: u64,
 }
 
 #[derive(Serialize)]
@@ -56,6 +91,8 @@ struct Summary {
     /// Scripted actions applied.
     actions: usize,
     state_hash: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    zoned: Option<ZoneSummary>,
 }
 
 /// Runs `myriad sim`.
@@ -68,8 +105,11 @@ pub fn run(args: SimArgs) -> Result<()> {
         }
         None => ActionScript::default(),
     };
-    let mut backend = create_backend(args.backend)?;
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
+    if args.zones > 1 || args.nats.is_some() {
+        return run_zoned(&args, &spec, &world, &script, &k);
+    }
+    let mut backend = create_backend(args.backend)?;
     let mut pairs = [0u64; 4];
     let mut actions = 0;
     let start = Instant::now();
@@ -99,7 +139,12 @@ pub fn run(args: SimArgs) -> Result<()> {
         dynamic_contacts: pairs[3],
         actions,
         state_hash: format!("{:016x}", world.state_hash()),
+        zoned: None,
     };
+    print(&args, &s)
+}
+
+fn print(args: &SimArgs, s: &Summary) -> Result<()> {
     if args.json {
         println!("{}", serde_json::to_string(&s)?);
     } else {
@@ -110,12 +155,105 @@ pub fn run(args: SimArgs) -> Result<()> {
             s.dynamic, s.users, s.static_objects, s.static_prims[0], s.static_prims[1], s.static_prims[2]
         );
         println!("ticks        {} in {:.1} ms ({:.3} ms a tick)", s.ticks, s.total_ms, s.mean_tick_ms);
-        println!("pairs        {} static, {} dynamic (all ticks)", s.static_pairs, s.dynamic_pairs);
-        println!("contacts     {} static, {} dynamic (all ticks)", s.static_contacts, s.dynamic_contacts);
+        if s.zoned.is_none() {
+            println!("pairs        {} static, {} dynamic (all ticks)", s.static_pairs, s.dynamic_pairs);
+            println!("contacts     {} static, {} dynamic (all ticks)", s.static_contacts, s.dynamic_contacts);
+        }
         if args.actions.is_some() {
             println!("actions      {} applied from the script", s.actions);
+        }
+        if let Some(z) = &s.zoned {
+            println!(
+                "zones        {} ({} x {}, reach {:.2}) over {}: {} ghost records, {} hand-offs, {} messages, {:.1} MB",
+                z.zones,
+                z.grid.0,
+                z.grid.1,
+                z.reach,
+                z.fabric,
+                z.ghost_records,
+                z.handoffs,
+                z.messages,
+                z.fabric_bytes as f64 / 1e6
+            );
+            println!("owned        {:?} (static primitives held {:?})", z.owned, z.static_prims);
+            let waits: Vec<String> = z.wait_ms.iter().map(|w| format!("{w:.2}")).collect();
+            println!("wait         [{}] ms a tick for neighbours; {} messages rejected", waits.join(", "), z.rejected);
         }
         println!("state hash   {}", s.state_hash);
     }
     Ok(())
+}
+
+/// `myriad sim --zones K [--nats URL]`: the same world split into zones on threads.
+fn run_zoned(
+    args: &SimArgs,
+    spec: &myriad_core::ScenarioSpec,
+    world: &myriad_core::World,
+    script: &ActionScript,
+    k: &TickConstants,
+) -> Result<()> {
+    use myriad_zone::{Fabric, MemoryFabric, NatsFabric, ZoneError, ZoneId, ZoneLayout};
+    let layout = ZoneLayout::for_count(&world.bounds, args.zones, myriad_zone::pair_reach(world), args.zone_max_step)?;
+    let n = layout.len();
+    let (fabrics, fabric): (Vec<Box<dyn Fabric>>, _) = match &args.nats {
+        None => (MemoryFabric::mesh(n).into_iter().map(|f| Box::new(f) as Box<dyn Fabric>).collect(), "memory"),
+        Some(url) => {
+            // A cluster name of its own per run, so that concurrent runs never mix.
+            let cluster = format!("sim-{}-{}", std::process::id(), world.seed);
+            let f = (0..n)
+                .map(|z| NatsFabric::connect(url, &cluster, ZoneId(z as u16)).map(|f| Box::new(f) as Box<dyn Fabric>))
+                .collect::<Result<Vec<_>, _>>()
+                .context("connecting the zones to NATS")?;
+            (f, "nats")
+        }
+    };
+    let gpus = args.gpus as usize;
+    let kind = args.backend;
+    let backend = move |z: ZoneId| -> Result<Box<dyn myriad_physics::Backend>, ZoneError> {
+        Ok(myriad_cuda::create_backend_on(kind, z.0 as usize % gpus)?)
+    };
+    let description = backend(ZoneId(0))?.description();
+    let grid = layout.shape();
+    let reach = layout.reach();
+    let start = Instant::now();
+    let opts = myriad_zone::RunOptions::new(args.ticks, std::time::Duration::from_secs(300));
+    let run = myriad_zone::run_zoned(world, layout, script, k, &backend, fabrics, &opts)?;
+    let total_ms = start.elapsed().as_secs_f64() * 1e3;
+    let ticks = args.ticks.max(1) as f64;
+    let zoned = ZoneSummary {
+        zones: n,
+        grid,
+        reach,
+        fabric,
+        owned: run.stats.iter().map(|s| s.owned).collect(),
+        static_prims: run.static_prims.clone(),
+        ghost_records: run.stats.iter().map(|s| s.ghosts_in).sum(),
+        handoffs: run.stats.iter().map(|s| s.handoffs_in).sum(),
+        messages: run.stats.iter().map(|s| s.messages.0).sum(),
+        fabric_bytes: run.stats.iter().map(|s| s.bytes.0).sum(),
+        wait_ms: run.stats.iter().map(|s| s.wait.as_secs_f64() * 1e3 / ticks).collect(),
+        rejected: run.stats.iter().map(|s| s.rejected_total()).sum(),
+    };
+    let s = Summary {
+        scenario: spec.name.clone(),
+        backend: kind.to_string(),
+        description: format!("{description}, {n} zones"),
+        seed: spec.seed,
+        ticks: args.ticks,
+        dynamic: run.objects.len(),
+        users: run.objects.iter().filter(|o| o.kind == ObjectKind::User).count(),
+        static_objects: world.statics.objects().len(),
+        static_prims: world.statics.prims_by_shape(),
+        total_ms,
+        mean_tick_ms: total_ms / ticks,
+        // Pair counts are per zone and include ghosts' pairs: not comparable, not shown.
+        static_pairs: 0,
+        dynamic_pairs: 0,
+        static_contacts: 0,
+        dynamic_contacts: 0,
+        actions: run.actions,
+        state_hash: format!("{:016x}", run.state_hash),
+        zoned: Some(zoned),
+    };
+    print(args, &s)
 }

@@ -49,6 +49,40 @@ fn sim_prints_the_same_hash_on_both_backends() {
     assert_eq!(hashes[0].len(), 16);
 }
 
+/// `sim --zones K` (and `--nats URL` when `NATS_URL` is set) prints the hash of the
+/// single-process run.
+#[test]
+fn zoned_sim_prints_the_single_process_hash() {
+    let hash = |extra: &[&str]| {
+        let mut args = vec!["sim", "--json", "--ticks", "60", "--backend", "cpu"];
+        args.extend_from_slice(SMALL);
+        args.extend_from_slice(extra);
+        let out = myriad(&args);
+        assert!(out.status.success(), "{extra:?}: {}", String::from_utf8_lossy(&out.stderr));
+        json_lines(&out.stdout)[0].clone()
+    };
+    let want = hash(&[])["state_hash"].clone();
+    for zones in ["2", "4", "9"] {
+        let v = hash(&["--zones", zones]);
+        assert_eq!(v["state_hash"], want, "{zones} zones");
+        assert_eq!(v["zoned"]["zones"].as_u64().unwrap().to_string(), zones);
+        assert_eq!(v["zoned"]["rejected"], 0);
+    }
+    match std::env::var("NATS_URL") {
+        Ok(url) if !url.is_empty() => {
+            let v = hash(&["--zones", "4", "--nats", &url]);
+            assert_eq!(v["state_hash"], want, "over NATS");
+            assert_eq!(v["zoned"]["fabric"], "nats");
+        }
+        _ => eprintln!("skipping the NATS half: NATS_URL is not set"),
+    }
+    let mut args = vec!["sim", "--zones", "400"];
+    args.extend_from_slice(SMALL);
+    let out = myriad(&args);
+    assert!(!out.status.success(), "zones narrower than their margin are refused");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("use fewer zones"));
+}
+
 #[test]
 fn bench_reports_every_stage_and_the_table_columns() {
     let dir = std::env::temp_dir().join(format!("myriad-bench-{}", std::process::id()));

@@ -25,7 +25,7 @@ pub mod zone;
 pub use error::ZoneError;
 pub use fabric::{Fabric, MemoryFabric};
 pub use layout::{Rect, ZoneId, ZoneLayout};
-pub use local::{ZonedRun, pair_reach, run_zoned};
+pub use local::{RunOptions, ZonedRun, pair_reach, run_zoned};
 pub use nats::NatsFabric;
 pub use stats::ZoneStats;
 pub use wire::{ClusterKey, WireError};

@@ -33,24 +33,46 @@ pub struct ZonedRun {
     pub static_prims: Vec<usize>,
 }
 
-/// Runs `world` split by `layout` for `ticks` ticks, one thread per zone, each with the
-/// backend `backend(zone)` and the fabric `fabrics[zone]`, and reassembles the result.
+/// How a zoned run goes.
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    /// Ticks to run.
+    pub ticks: u64,
+    /// How long a zone waits for a neighbour before declaring it stalled.
+    pub wait: Duration,
+    /// The key the zones sign with.
+    pub key: ClusterKey,
+    /// The run (epoch) written in every message.
+    pub run: u64,
+}
+
+impl RunOptions {
+    /// `ticks` ticks with a fresh random key and run id, and a wait of `wait`.
+    pub fn new(ticks: u64, wait: Duration) -> RunOptions {
+        let mut run = [0u8; 8];
+        ring::rand::SecureRandom::fill(&ring::rand::SystemRandom::new(), &mut run).expect("random run id");
+        RunOptions { ticks, wait, key: ClusterKey::random(), run: u64::from_le_bytes(run) }
+    }
+}
+
+/// Runs `world` split by `layout` for `opts.ticks` ticks, one thread per zone, each with
+/// the backend `backend(zone)` and the fabric `fabrics[zone]`, and reassembles the
+/// result.
 pub fn run_zoned(
     world: &World,
     layout: ZoneLayout,
-    ticks: u64,
     script: &ActionScript,
     k: &TickConstants,
     backend: &(dyn Fn(ZoneId) -> Result<Box<dyn Backend>, ZoneError> + Sync),
     fabrics: Vec<Box<dyn Fabric>>,
-    wait: Duration,
+    opts: &RunOptions,
 ) -> Result<ZonedRun, ZoneError> {
+    let (ticks, wait, run) = (opts.ticks, opts.wait, opts.run);
     if fabrics.len() != layout.len() {
         return Err(ZoneError::Layout(format!("{} fabrics for {} zones", fabrics.len(), layout.len())));
     }
     let layout = Arc::new(layout);
-    let key = ClusterKey::random();
-    let run = world.seed ^ u64::from(std::process::id()) << 32 ^ world.tick;
+    let key = opts.key.clone();
     let results: Vec<Result<(Vec<ObjectState>, usize, ZoneStats, usize), ZoneError>> = std::thread::scope(|s| {
         let handles: Vec<_> = fabrics
             .into_iter()

@@ -84,7 +84,9 @@ impl Fabric for NatsFabric {
 
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         let wait = deadline.saturating_duration_since(Instant::now());
-        match self.rt.block_on(tokio::time::timeout(wait, self.sub.next())) {
+        let sub = &mut self.sub;
+        // The timer must be made inside the runtime.
+        match self.rt.block_on(async { tokio::time::timeout(wait, sub.next()).await }) {
             Err(_) => Ok(None),
             Ok(Some(m)) => {
                 self.received += m.payload.len() as u64;

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use myriad_core::{ActionScript, ObjectKind, ScenarioSpec, Shape, Vec3, World};
 use myriad_physics::{Backend, BackendKind, TickConstants, create_cpu_backend};
-use myriad_zone::{Fabric, MemoryFabric, ZoneError, ZoneId, ZoneLayout, pair_reach, run_zoned};
+use myriad_zone::{Fabric, MemoryFabric, RunOptions, ZoneError, ZoneId, ZoneLayout, pair_reach, run_zoned};
 
 fn cpu(_: ZoneId) -> Result<Box<dyn Backend>, ZoneError> {
     Ok(create_cpu_backend(BackendKind::Cpu)?)
@@ -27,7 +27,8 @@ fn single(world: &World, ticks: u64, script: &ActionScript) -> u64 {
 fn zoned(world: &World, k: u16, ticks: u64, script: &ActionScript) -> myriad_zone::ZonedRun {
     let layout = ZoneLayout::for_count(&world.bounds, k, pair_reach(world), 2.0).unwrap();
     let fabrics = MemoryFabric::mesh(layout.len()).into_iter().map(|f| Box::new(f) as Box<dyn Fabric>).collect();
-    run_zoned(world, layout, ticks, script, &TickConstants::default(), &cpu, fabrics, Duration::from_secs(120)).unwrap()
+    let opts = RunOptions::new(ticks, Duration::from_secs(120));
+    run_zoned(world, layout, script, &TickConstants::default(), &cpu, fabrics, &opts).unwrap()
 }
 
 fn check(name: &str, world: &World, ticks: u64, script: &ActionScript) {
@@ -112,16 +113,8 @@ fn without_reach_the_hash_differs() {
     let want = single(&world, 100, &ActionScript::default());
     let layout = ZoneLayout::for_count(&world.bounds, 4, 0.0, 2.0).unwrap();
     let fabrics = MemoryFabric::mesh(4).into_iter().map(|f| Box::new(f) as Box<dyn Fabric>).collect();
-    let run = run_zoned(
-        &world,
-        layout,
-        100,
-        &ActionScript::default(),
-        &TickConstants::default(),
-        &cpu,
-        fabrics,
-        Duration::from_secs(60),
-    )
-    .unwrap();
+    let opts = RunOptions::new(100, Duration::from_secs(60));
+    let run =
+        run_zoned(&world, layout, &ActionScript::default(), &TickConstants::default(), &cpu, fabrics, &opts).unwrap();
     assert_ne!(run.state_hash, want);
 }

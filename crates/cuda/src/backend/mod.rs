@@ -123,11 +123,16 @@ impl CudaBackend {
     /// with [`PhysicsError::Unavailable`] saying why when there is no driver, NVRTC or
     /// device, or the kernels do not load.
     pub fn new(kind: BackendKind) -> Result<CudaBackend, PhysicsError> {
+        CudaBackend::on_device(kind, 0)
+    }
+
+    /// [`CudaBackend::new`] on device `ordinal` (zones of one process, one per GPU).
+    pub fn on_device(kind: BackendKind, ordinal: usize) -> Result<CudaBackend, PhysicsError> {
         let name = kind.name();
         if !matches!(kind, BackendKind::Cuda | BackendKind::CudaNaive) {
             return Err(PhysicsError::Unavailable { backend: name, reason: "not a CUDA backend kind".into() });
         }
-        let gpu = Gpu::new().map_err(|reason| PhysicsError::Unavailable { backend: name, reason })?;
+        let gpu = Gpu::new(ordinal).map_err(|reason| PhysicsError::Unavailable { backend: name, reason })?;
         let events = (0..EVENTS).map(|_| Event::new(&gpu)).collect::<Result<Vec<_>, _>>()?;
         let p = Pinned::empty;
         Ok(CudaBackend {

@@ -1,0 +1,74 @@
+//! The zones over a real NATS server: equal to one process, and a stalled neighbour is
+//! detected. Needs `NATS_URL` (CI sets it; these machines run NATS at
+//! 127.0.0.1:4222); skips with a message without it.
+
+use std::time::{Duration, Instant};
+
+use myriad_core::{ActionScript, ScenarioSpec};
+use myriad_physics::{Backend, BackendKind, TickConstants, create_cpu_backend};
+use myriad_zone::{
+    Fabric, NatsFabric, RunOptions, Zone, ZoneConfig, ZoneError, ZoneId, ZoneLayout, pair_reach, run_zoned,
+};
+
+fn nats_url() -> Option<String> {
+    let url = std::env::var("NATS_URL").ok().filter(|u| !u.is_empty());
+    if url.is_none() {
+        eprintln!("skipping: NATS_URL is not set (e.g. NATS_URL=nats://127.0.0.1:4222)");
+    }
+    url
+}
+
+fn cpu(_: ZoneId) -> Result<Box<dyn Backend>, ZoneError> {
+    Ok(create_cpu_backend(BackendKind::Cpu)?)
+}
+
+fn cluster(name: &str) -> String {
+    format!("test-{name}-{}-{}", std::process::id(), Instant::now().elapsed().as_nanos())
+}
+
+#[test]
+fn nine_zones_over_nats_equal_one_process() {
+    let Some(url) = nats_url() else { return };
+    let mut spec = ScenarioSpec::clustered(2);
+    spec.dynamic = 8_000;
+    spec.users = 800;
+    spec.static_objects = 3_000;
+    let world = spec.build().unwrap();
+    let script = ActionScript::walkers(&world, 800, 150, 3);
+    let mut single = world.clone();
+    let mut b = create_cpu_backend(BackendKind::Cpu).unwrap();
+    for _ in 0..150 {
+        script.apply(&mut single).unwrap();
+        b.step(&mut single, &TickConstants::default()).unwrap();
+    }
+    let layout = ZoneLayout::for_count(&world.bounds, 9, pair_reach(&world), 2.0).unwrap();
+    let name = cluster("nine");
+    let fabrics = (0..9)
+        .map(|z| NatsFabric::connect(&url, &name, ZoneId(z)).map(|f| Box::new(f) as Box<dyn Fabric>))
+        .collect::<Result<Vec<_>, _>>()
+        .unwrap();
+    let opts = RunOptions::new(150, Duration::from_secs(60));
+    let run = run_zoned(&world, layout, &script, &TickConstants::default(), &cpu, fabrics, &opts).unwrap();
+    assert_eq!(run.state_hash, single.state_hash());
+    assert!(run.stats.iter().all(|s| s.bytes.0 > 0 && s.bytes.1 > 0));
+}
+
+/// A neighbour that never speaks is reported as stalled after the configured wait, with
+/// its id, instead of blocking forever.
+#[test]
+fn a_silent_neighbour_is_a_stall() {
+    let Some(url) = nats_url() else { return };
+    let world = ScenarioSpec::reference(1, 1).unwrap().build().unwrap();
+    let layout = std::sync::Arc::new(ZoneLayout::for_count(&world.bounds, 2, pair_reach(&world), 2.0).unwrap());
+    let name = cluster("stall");
+    let fabric = NatsFabric::connect(&url, &name, ZoneId(0)).unwrap();
+    let cfg =
+        ZoneConfig { id: ZoneId(0), run: 1, key: myriad_zone::ClusterKey::random(), wait: Duration::from_millis(300) };
+    let mut zone = Zone::new(cfg, layout, &world, cpu(ZoneId(0)).unwrap(), Box::new(fabric)).unwrap();
+    let start = Instant::now();
+    match zone.step(&[], &TickConstants::default()) {
+        Err(ZoneError::Stalled { missing, tick: 0, .. }) => assert_eq!(missing, [ZoneId(1)]),
+        other => panic!("expected a stall, got {other:?}"),
+    }
+    assert!(start.elapsed() >= Duration::from_millis(300));
+}

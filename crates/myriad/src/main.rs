@@ -14,6 +14,7 @@ mod reference;
 mod scenario_args;
 mod serve;
 mod sim;
+mod zones;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -43,6 +44,10 @@ enum Command {
     Bots(bots::BotsArgs),
     /// Attack a server on this machine (loopback only, bounded) and measure the cost.
     Flood(flood::FloodArgs),
+    /// Run one zone of a world split over several processes (see `cluster`).
+    Zone(zones::ZoneArgs),
+    /// Run a world split into zones, one process each, over NATS, supervised.
+    Cluster(zones::ClusterArgs),
     /// Manage accounts.
     #[command(subcommand)]
     User(admin::UserCommand),
@@ -97,6 +102,8 @@ fn main() -> Result<()> {
         Command::Demo(a) => demo::run(a),
         Command::Bots(a) => bots::run(a),
         Command::Flood(a) => flood::run(a),
+        Command::Zone(a) => zones::run_zone(a),
+        Command::Cluster(a) => zones::run_cluster(a),
         Command::User(c) => admin::user(c),
         Command::Map(c) => admin::map(c),
     }

@@ -13,12 +13,15 @@
 //!
 //! Design, subjects, message layouts and measurements: `docs/zones.md`.
 
+pub mod checkpoint;
 pub mod error;
 pub mod fabric;
 pub mod layout;
 pub mod local;
 pub mod nats;
+pub mod process;
 pub mod stats;
+pub mod supervisor;
 pub mod wire;
 pub mod zone;
 

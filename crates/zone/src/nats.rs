@@ -1,33 +1,39 @@
-//! The fabric between processes: NATS core subjects, one per zone.
+//! The fabric between processes: NATS core subjects.
 //!
-//! Zone `z` of cluster `c` listens on `myriad.c.zone.z`; a border state for it is
-//! published there. NATS delivers a publisher's messages in order and at most once;
-//! loss (a slow consumer, a restarted server) shows as a stalled neighbour, which the
-//! fault path handles, never as a wrong state. The client runs on its own small tokio
-//! runtime, so a zone's tick stays a plain blocking loop.
+//! Subjects of cluster `c` (all documented in `docs/zones.md`):
+//! - `myriad.c.zone.<z>`: border states for zone `z`;
+//! - `myriad.c.control`: the supervisor's halt and start, to every zone;
+//! - `myriad.c.heartbeat`: every zone's heartbeat, to the supervisor.
+//!
+//! NATS delivers a publisher's messages in order and at most once; a loss (a slow
+//! consumer, a restarted server) shows as a stalled neighbour, which the fault path
+//! handles, never as a wrong state. The client runs on its own small tokio runtime, so a
+//! zone's tick stays a plain blocking loop.
 
-use std::time::Instant;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
+use futures_util::stream::Select;
 
 use crate::error::ZoneError;
 use crate::fabric::Fabric;
 use crate::layout::ZoneId;
-
-/// A zone's endpoint on a NATS server.
-pub struct NatsFabric {
-    rt: tokio::runtime::Runtime,
-    client: async_nats::Client,
-    sub: async_nats::Subscriber,
-    cluster: String,
-    max: usize,
-    sent: u64,
-    received: u64,
-}
+use crate::wire::{ClusterKey, Message, ZoneState, encode_control};
 
 /// The subject zone `z` of `cluster` listens on.
 pub fn zone_subject(cluster: &str, z: ZoneId) -> String {
     format!("myriad.{cluster}.zone.{}", z.0)
+}
+
+/// The subject of the supervisor's orders.
+pub fn control_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.control")
+}
+
+/// The subject of the zones' heartbeats.
+pub fn heartbeat_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.heartbeat")
 }
 
 /// Checks a cluster name: letters, digits, `-` and `_`, so it is one subject token.
@@ -38,55 +44,139 @@ pub fn check_cluster_name(cluster: &str) -> Result<(), ZoneError> {
     if ok { Ok(()) } else { Err(ZoneError::Layout(format!("cluster name {cluster:?}: use 1-64 of [A-Za-z0-9_-]"))) }
 }
 
-fn fabric_err(what: &str, e: impl std::fmt::Display) -> ZoneError {
+pub(crate) fn fabric_err(what: &str, e: impl std::fmt::Display) -> ZoneError {
     ZoneError::Fabric(format!("{what}: {e}"))
 }
 
-impl NatsFabric {
-    /// Connects to `url` as zone `zone` of `cluster` and subscribes to its subject; when
-    /// this returns, messages published to the zone are delivered.
-    pub fn connect(url: &str, cluster: &str, zone: ZoneId) -> Result<NatsFabric, ZoneError> {
-        check_cluster_name(cluster)?;
+/// A NATS connection on its own runtime.
+pub struct NatsLink {
+    /// The runtime the client's tasks run on.
+    pub rt: Arc<tokio::runtime::Runtime>,
+    /// The client.
+    pub client: async_nats::Client,
+}
+
+impl NatsLink {
+    /// Connects to `url` under the connection name `name`. The address is never logged:
+    /// it may carry credentials.
+    pub fn connect(url: &str, name: String) -> Result<NatsLink, ZoneError> {
         let rt = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .enable_all()
             .build()
             .map_err(|e| fabric_err("runtime", e))?;
-        let name = format!("myriad-{cluster}-zone-{}", zone.0);
-        let (client, sub) = rt.block_on(async {
-            // The address is not logged: it may carry credentials.
-            let client = async_nats::ConnectOptions::new()
-                .name(name)
-                .connect(url)
-                .await
-                .map_err(|e| fabric_err("connecting to NATS", e))?;
-            let sub = client.subscribe(zone_subject(cluster, zone)).await.map_err(|e| fabric_err("subscribing", e))?;
-            // The subscription is on the server once a flush returns.
-            client.flush().await.map_err(|e| fabric_err("flushing", e))?;
-            Ok::<_, ZoneError>((client, sub))
-        })?;
-        let max = client.server_info().max_payload;
-        Ok(NatsFabric { rt, client, sub, cluster: cluster.to_string(), max, sent: 0, received: 0 })
+        let client = rt
+            .block_on(async_nats::ConnectOptions::new().name(name).connect(url))
+            .map_err(|e| fabric_err("connecting to NATS", e))?;
+        Ok(NatsLink { rt: Arc::new(rt), client })
     }
 
-    /// The client, for other subjects of the same process (heartbeats, checkpoints).
-    pub fn client(&self) -> &async_nats::Client {
-        &self.client
+    /// Subscribes to `subject`; messages published after this returns are delivered.
+    pub fn subscribe(&self, subject: String) -> Result<async_nats::Subscriber, ZoneError> {
+        self.rt.block_on(async {
+            let sub = self.client.subscribe(subject).await.map_err(|e| fabric_err("subscribing", e))?;
+            // The subscription is on the server once a flush returns.
+            self.client.flush().await.map_err(|e| fabric_err("flushing", e))?;
+            Ok(sub)
+        })
+    }
+
+    /// Publishes `bytes` on `subject`.
+    pub fn publish(&self, subject: String, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.rt.block_on(self.client.publish(subject, bytes.into())).map_err(|e| fabric_err("publishing", e))
+    }
+}
+
+/// What a zone's heartbeat says; the zone updates it, a task publishes it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Beat {
+    /// The epoch.
+    pub run: u64,
+    /// The tick.
+    pub tick: u64,
+    /// The state.
+    pub state: ZoneState,
+}
+
+/// Publishes a zone's heartbeat every period until dropped.
+pub struct Heartbeat {
+    beat: Arc<Mutex<Beat>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Heartbeat {
+    /// Changes what the next heartbeats say.
+    pub fn set(&self, beat: Beat) {
+        *self.beat.lock().expect("not poisoned") = beat;
+    }
+}
+
+impl Drop for Heartbeat {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// A zone's endpoint: its border subject and the control subject, merged.
+pub struct NatsFabric {
+    link: NatsLink,
+    sub: Select<async_nats::Subscriber, async_nats::Subscriber>,
+    cluster: String,
+    zone: ZoneId,
+    max: usize,
+    sent: u64,
+    received: u64,
+}
+
+impl NatsFabric {
+    /// Connects to `url` as zone `zone` of `cluster` and subscribes to its subject and
+    /// the control subject; when this returns, messages published to them are delivered.
+    pub fn connect(url: &str, cluster: &str, zone: ZoneId) -> Result<NatsFabric, ZoneError> {
+        check_cluster_name(cluster)?;
+        let link = NatsLink::connect(url, format!("myriad-{cluster}-zone-{}", zone.0))?;
+        let borders = link.subscribe(zone_subject(cluster, zone))?;
+        let control = link.subscribe(control_subject(cluster))?;
+        let max = link.client.server_info().max_payload;
+        let sub = futures_util::stream::select(borders, control);
+        Ok(NatsFabric { link, sub, cluster: cluster.to_string(), zone, max, sent: 0, received: 0 })
+    }
+
+    /// The connection, for checkpoints.
+    pub fn link(&self) -> &NatsLink {
+        &self.link
+    }
+
+    /// Starts publishing this zone's heartbeat every `period`, signed with `key`.
+    pub fn heartbeat(&self, key: ClusterKey, period: Duration) -> Heartbeat {
+        let beat = Arc::new(Mutex::new(Beat { run: 0, tick: 0, state: ZoneState::Waiting }));
+        let (b, client, zone) = (beat.clone(), self.link.client.clone(), self.zone);
+        let subject = heartbeat_subject(&self.cluster);
+        let task = self.link.rt.spawn(async move {
+            let mut every = tokio::time::interval(period);
+            loop {
+                every.tick().await;
+                let Beat { run, tick, state } = *b.lock().expect("not poisoned");
+                if let Ok(bytes) = encode_control(&key, &Message::Heartbeat { run, tick, zone, state }) {
+                    // A lost heartbeat is what the supervisor's deadline is for.
+                    let _ = client.publish(subject.clone(), bytes.into()).await;
+                }
+            }
+        });
+        Heartbeat { beat, task }
     }
 }
 
 impl Fabric for NatsFabric {
     fn send(&mut self, to: ZoneId, bytes: Vec<u8>) -> Result<(), ZoneError> {
         self.sent += bytes.len() as u64;
-        let subject = zone_subject(&self.cluster, to);
-        self.rt.block_on(self.client.publish(subject, bytes.into())).map_err(|e| fabric_err("publishing", e))
+        self.link.publish(zone_subject(&self.cluster, to), bytes)
     }
 
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         let wait = deadline.saturating_duration_since(Instant::now());
         let sub = &mut self.sub;
         // The timer must be made inside the runtime.
-        match self.rt.block_on(async { tokio::time::timeout(wait, sub.next()).await }) {
+        match self.link.rt.block_on(async { tokio::time::timeout(wait, sub.next()).await }) {
             Err(_) => Ok(None),
             Ok(Some(m)) => {
                 self.received += m.payload.len() as u64;

@@ -1,7 +1,6 @@
 //! What a zone counts, for logs, `myriad sim --zones` and the Prometheus endpoint.
 
 use std::collections::BTreeMap;
-use std::fmt::Write as _;
 use std::time::Duration;
 
 use crate::layout::ZoneId;
@@ -43,41 +42,26 @@ impl ZoneStats {
         self.rejected.values().sum()
     }
 
-    /// The counters in Prometheus' text format, labelled with the zone.
-    pub fn prometheus(&self, zone: ZoneId) -> String {
-        let z = zone.0;
-        let mut s = String::new();
-        let mut metric = |name: &str, kind: &str, help: &str, value: String| {
-            let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} {kind}\n{name}{{zone=\"{z}\"}} {value}");
-        };
-        metric("myriad_zone_ticks_total", "counter", "Ticks stepped.", self.ticks.to_string());
-        metric("myriad_zone_owned_objects", "gauge", "Objects this zone owns.", self.owned.to_string());
-        metric("myriad_zone_ghosts", "gauge", "Ghosts stepped in the last tick.", self.ghosts.to_string());
-        metric("myriad_zone_ghosts_in_total", "counter", "Object records received.", self.ghosts_in.to_string());
-        metric("myriad_zone_ghosts_out_total", "counter", "Object records sent.", self.ghosts_out.to_string());
-        metric("myriad_zone_handoffs_in_total", "counter", "Objects received as owner.", self.handoffs_in.to_string());
-        metric("myriad_zone_handoffs_out_total", "counter", "Objects handed away.", self.handoffs_out.to_string());
-        metric(
-            "myriad_zone_wait_seconds_total",
-            "counter",
-            "Time waiting for neighbours.",
-            self.wait.as_secs_f64().to_string(),
-        );
-        metric("myriad_zone_step_seconds_total", "counter", "Time stepping.", self.step.as_secs_f64().to_string());
-        metric("myriad_zone_fabric_sent_bytes_total", "counter", "Fabric bytes sent.", self.bytes.0.to_string());
-        metric(
-            "myriad_zone_fabric_received_bytes_total",
-            "counter",
-            "Fabric bytes received.",
-            self.bytes.1.to_string(),
-        );
-        let _ = writeln!(
-            s,
-            "# HELP myriad_zone_rejected_total Fabric messages rejected, by reason.\n# TYPE myriad_zone_rejected_total counter"
-        );
+    /// Publishes the counters through the `metrics` facade, labelled with the zone
+    /// (a process that installs a Prometheus exporter serves them on `/metrics`).
+    pub fn export(&self, zone: ZoneId) {
+        let z = zone.0.to_string();
+        let counter = |name: &'static str, v: u64| metrics::counter!(name, "zone" => z.clone()).absolute(v);
+        counter("myriad_zone_ticks_total", self.ticks);
+        counter("myriad_zone_ghosts_in_total", self.ghosts_in);
+        counter("myriad_zone_ghosts_out_total", self.ghosts_out);
+        counter("myriad_zone_handoffs_in_total", self.handoffs_in);
+        counter("myriad_zone_handoffs_out_total", self.handoffs_out);
+        counter("myriad_zone_fabric_sent_bytes_total", self.bytes.0);
+        counter("myriad_zone_fabric_received_bytes_total", self.bytes.1);
+        counter("myriad_zone_messages_sent_total", self.messages.0);
+        counter("myriad_zone_messages_received_total", self.messages.1);
+        metrics::gauge!("myriad_zone_owned_objects", "zone" => z.clone()).set(self.owned as f64);
+        metrics::gauge!("myriad_zone_ghosts", "zone" => z.clone()).set(self.ghosts as f64);
+        metrics::gauge!("myriad_zone_wait_seconds_total", "zone" => z.clone()).set(self.wait.as_secs_f64());
+        metrics::gauge!("myriad_zone_step_seconds_total", "zone" => z.clone()).set(self.step.as_secs_f64());
         for (reason, n) in &self.rejected {
-            let _ = writeln!(s, "myriad_zone_rejected_total{{zone=\"{z}\",reason=\"{reason}\"}} {n}");
+            metrics::counter!("myriad_zone_rejected_total", "zone" => z.clone(), "reason" => *reason).absolute(*n);
         }
-        s
     }
 }

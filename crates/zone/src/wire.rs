@@ -7,12 +7,12 @@
 //! (`crate::zone`), from the header's run id and tick. Byte layout: `docs/zones.md`.
 //!
 //! ```
-//! use myriad_zone::wire::{Border, ClusterKey, decode, encode_border};
+//! use myriad_zone::wire::{Border, ClusterKey, Message, decode, encode_border};
 //! use myriad_zone::ZoneId;
 //! let key = ClusterKey::new(b"a key of at least sixteen bytes!").unwrap();
 //! let m = Border { run: 7, tick: 3, from: ZoneId(0), to: ZoneId(1), part: 0, parts: 1, objects: vec![] };
 //! let bytes = encode_border(&key, &m).unwrap();
-//! assert_eq!(decode(&key, &bytes).unwrap(), m);
+//! assert_eq!(decode(&key, &bytes).unwrap(), Message::Border(m));
 //! assert!(decode(&key, &bytes[..bytes.len() - 1]).is_err());
 //! ```
 
@@ -34,6 +34,14 @@ pub const RECORD_LEN: usize = 48;
 pub const TAG_LEN: usize = 32;
 /// Message kind: a zone's border state for a neighbour.
 pub const KIND_BORDER: u8 = 1;
+/// Message kind: a zone's objects at a tick (a checkpoint, or a run's result).
+pub const KIND_CHECKPOINT: u8 = 2;
+/// Message kind: a zone's heartbeat.
+pub const KIND_HEARTBEAT: u8 = 3;
+/// Message kind: the supervisor's halt (a new epoch follows).
+pub const KIND_HALT: u8 = 4;
+/// Message kind: the supervisor's start of an epoch from a checkpoint.
+pub const KIND_START: u8 = 5;
 /// Bit of a record's flag byte that hands the object to the receiver.
 const YOURS: u8 = 1 << 7;
 
@@ -79,6 +87,10 @@ pub enum WireError {
         /// What is wrong.
         reason: String,
     },
+    /// Header fields that must be zero for this kind are not, or a heartbeat's state is
+    /// unknown.
+    #[error("field {0} out of range for this kind")]
+    Field(&'static str),
     /// A key shorter than 16 bytes.
     #[error("a cluster key needs at least 16 bytes")]
     WeakKey,
@@ -96,6 +108,7 @@ impl WireError {
             WireError::Length { .. } => "length",
             WireError::Part { .. } => "part",
             WireError::Record { .. } => "record",
+            WireError::Field(_) => "field",
             WireError::WeakKey => "key",
         }
     }
@@ -116,11 +129,17 @@ impl ClusterKey {
 
     /// A fresh random key, for a cluster that lives in one process.
     pub fn random() -> ClusterKey {
-        let mut secret = [0u8; 32];
-        ring::rand::SecureRandom::fill(&ring::rand::SystemRandom::new(), &mut secret)
-            .expect("the system's random source works");
-        ClusterKey(hmac::Key::new(hmac::HMAC_SHA256, &secret))
+        ClusterKey::new(random_secret().as_bytes()).expect("48 bytes")
     }
+}
+
+/// A fresh random secret for [`ClusterKey::new`]: 48 hexadecimal characters (192 bits),
+/// printable so that it can travel in an environment variable.
+pub fn random_secret() -> String {
+    let mut secret = [0u8; 24];
+    ring::rand::SecureRandom::fill(&ring::rand::SystemRandom::new(), &mut secret)
+        .expect("the system's random source works");
+    secret.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 impl std::fmt::Debug for ClusterKey {
@@ -149,24 +168,89 @@ pub struct Border {
     pub objects: Vec<(ObjectState, bool)>,
 }
 
-/// Encodes and signs a border message.
-pub fn encode_border(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError> {
-    if m.parts == 0 || m.part >= m.parts {
-        return Err(WireError::Part { part: m.part, parts: m.parts });
-    }
-    let count = u32::try_from(m.objects.len()).map_err(|_| WireError::Length { count: u32::MAX, actual: 0 })?;
-    let mut b = Vec::with_capacity(HEADER_LEN + m.objects.len() * RECORD_LEN + TAG_LEN);
+/// What a zone process is doing, as its heartbeat says.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
+pub enum ZoneState {
+    /// Waiting for the supervisor's start.
+    Waiting = 0,
+    /// Stepping.
+    Running = 1,
+    /// A neighbour did not answer in time; waiting for a rollback.
+    Stalled = 2,
+    /// Reached the last tick of the run; its result is stored.
+    Done = 3,
+}
+
+/// Every message of the fabric.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Message {
+    /// Zone to neighbour, every tick.
+    Border(Border),
+    /// A zone's advanced objects at `tick` (all the world's objects it stepped last), by
+    /// id: checkpoints and results, kept in the checkpoint store.
+    Checkpoint {
+        /// The epoch that wrote it.
+        run: u64,
+        /// The world's tick.
+        tick: u64,
+        /// The zone.
+        zone: ZoneId,
+        /// The objects.
+        objects: Vec<ObjectState>,
+    },
+    /// Zone to supervisor, a few times a second.
+    Heartbeat {
+        /// The epoch the zone is in.
+        run: u64,
+        /// The tick it is at.
+        tick: u64,
+        /// The zone.
+        zone: ZoneId,
+        /// What it is doing.
+        state: ZoneState,
+    },
+    /// Supervisor to zones: stop stepping; epoch `run` will start.
+    Halt {
+        /// The coming epoch.
+        run: u64,
+    },
+    /// Supervisor to zones: start epoch `run` from the checkpoint at `tick` (0 with no
+    /// checkpoint: the generated world).
+    Start {
+        /// The epoch.
+        run: u64,
+        /// The checkpoint's tick.
+        tick: u64,
+    },
+}
+
+/// The `to` field of messages for every zone.
+pub const ALL: ZoneId = ZoneId(u16::MAX);
+
+struct Head {
+    kind: u8,
+    run: u64,
+    tick: u64,
+    from: ZoneId,
+    to: ZoneId,
+    aux: [u16; 2],
+}
+
+fn encode_with(key: &ClusterKey, h: Head, records: &[(ObjectState, bool)]) -> Result<Vec<u8>, WireError> {
+    let count = u32::try_from(records.len()).map_err(|_| WireError::Length { count: u32::MAX, actual: 0 })?;
+    let mut b = Vec::with_capacity(HEADER_LEN + records.len() * RECORD_LEN + TAG_LEN);
     b.extend_from_slice(&MAGIC);
     b.push(VERSION);
-    b.push(KIND_BORDER);
-    b.extend_from_slice(&m.run.to_le_bytes());
-    b.extend_from_slice(&m.tick.to_le_bytes());
-    b.extend_from_slice(&m.from.0.to_le_bytes());
-    b.extend_from_slice(&m.to.0.to_le_bytes());
-    b.extend_from_slice(&m.part.to_le_bytes());
-    b.extend_from_slice(&m.parts.to_le_bytes());
+    b.push(h.kind);
+    b.extend_from_slice(&h.run.to_le_bytes());
+    b.extend_from_slice(&h.tick.to_le_bytes());
+    b.extend_from_slice(&h.from.0.to_le_bytes());
+    b.extend_from_slice(&h.to.0.to_le_bytes());
+    b.extend_from_slice(&h.aux[0].to_le_bytes());
+    b.extend_from_slice(&h.aux[1].to_le_bytes());
     b.extend_from_slice(&count.to_le_bytes());
-    for (o, yours) in &m.objects {
+    for (o, yours) in records {
         b.extend_from_slice(&o.id.0.to_le_bytes());
         b.push(o.kind as u8);
         b.push(o.shape as u8);
@@ -179,6 +263,40 @@ pub fn encode_border(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError>
     let tag = hmac::sign(&key.0, &b);
     b.extend_from_slice(tag.as_ref());
     Ok(b)
+}
+
+/// Encodes and signs a border message.
+pub fn encode_border(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError> {
+    if m.parts == 0 || m.part >= m.parts {
+        return Err(WireError::Part { part: m.part, parts: m.parts });
+    }
+    let h = Head { kind: KIND_BORDER, run: m.run, tick: m.tick, from: m.from, to: m.to, aux: [m.part, m.parts] };
+    encode_with(key, h, &m.objects)
+}
+
+/// Encodes and signs a checkpoint of `objects`.
+pub fn encode_checkpoint(
+    key: &ClusterKey,
+    run: u64,
+    tick: u64,
+    zone: ZoneId,
+    objects: &[ObjectState],
+) -> Result<Vec<u8>, WireError> {
+    let records: Vec<_> = objects.iter().map(|o| (*o, false)).collect();
+    encode_with(key, Head { kind: KIND_CHECKPOINT, run, tick, from: zone, to: zone, aux: [0, 0] }, &records)
+}
+
+/// Encodes and signs a message without objects (heartbeat, halt, start).
+pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
+    let h = match *m {
+        Message::Heartbeat { run, tick, zone, state } => {
+            Head { kind: KIND_HEARTBEAT, run, tick, from: zone, to: ALL, aux: [state as u16, 0] }
+        }
+        Message::Halt { run } => Head { kind: KIND_HALT, run, tick: 0, from: ALL, to: ALL, aux: [0, 0] },
+        Message::Start { run, tick } => Head { kind: KIND_START, run, tick, from: ALL, to: ALL, aux: [0, 0] },
+        Message::Border(_) | Message::Checkpoint { .. } => return Err(WireError::Field("kind")),
+    };
+    encode_with(key, h, &[])
 }
 
 fn u16_at(b: &[u8], at: usize) -> u16 {
@@ -194,9 +312,34 @@ fn f32_at(b: &[u8], at: usize) -> f32 {
     f32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
 }
 
+fn record(index: usize, r: &[u8]) -> Result<(ObjectState, bool), WireError> {
+    let bad = |reason: String| WireError::Record { index, reason };
+    let kind = match r[4] {
+        0 => ObjectKind::Npc,
+        1 => ObjectKind::User,
+        k => return Err(bad(format!("object kind {k}"))),
+    };
+    let shape = ShapeKind::from_u8(r[5]).ok_or_else(|| bad(format!("shape {}", r[5])))?;
+    let f = |i: usize| f32_at(r, 8 + 4 * i);
+    let o = ObjectState {
+        id: EntityId(u32_at(r, 0)),
+        kind,
+        shape,
+        action: r[6],
+        flags: r[7] & !YOURS,
+        half: Vec3::new(f(0), f(1), f(2)),
+        radius: f(3),
+        pos: Vec3::new(f(4), f(5), f(6)),
+        prev: Vec3::new(f(7), f(8), f(9)),
+    };
+    o.validate().map_err(|e| bad(e.to_string()))?;
+    debug_assert_eq!(o.flags & !(flags::ON_TERRAIN | flags::SUPPORTED), 0);
+    Ok((o, r[7] & YOURS != 0))
+}
+
 /// Checks the tag, then decodes a message. Nothing of an unauthenticated message is
 /// parsed beyond the magic and version.
-pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Border, WireError> {
+pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
     if b.len() < HEADER_LEN + TAG_LEN {
         return Err(WireError::Truncated(b.len()));
     }
@@ -208,54 +351,49 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Border, WireError> {
     }
     let (signed, tag) = b.split_at(b.len() - TAG_LEN);
     hmac::verify(&key.0, signed, tag).map_err(|_| WireError::Tag)?;
-    if signed[3] != KIND_BORDER {
-        return Err(WireError::Kind(signed[3]));
-    }
-    let (part, parts, count) = (u16_at(signed, 24), u16_at(signed, 26), u32_at(signed, 28));
-    if parts == 0 || part >= parts {
-        return Err(WireError::Part { part, parts });
-    }
+    let (run, tick) = (u64_at(signed, 4), u64_at(signed, 12));
+    let (from, to) = (ZoneId(u16_at(signed, 20)), ZoneId(u16_at(signed, 22)));
+    let (aux0, aux1, count) = (u16_at(signed, 24), u16_at(signed, 26), u32_at(signed, 28));
     let body = &signed[HEADER_LEN..];
     if body.len() as u64 != count as u64 * RECORD_LEN as u64 {
         return Err(WireError::Length { count, actual: body.len() });
     }
-    let objects = body
-        .chunks_exact(RECORD_LEN)
-        .enumerate()
-        .map(|(index, r)| {
-            let bad = |reason: String| WireError::Record { index, reason };
-            let kind = match r[4] {
-                0 => ObjectKind::Npc,
-                1 => ObjectKind::User,
-                k => return Err(bad(format!("object kind {k}"))),
+    let records = || body.chunks_exact(RECORD_LEN).enumerate().map(|(i, r)| record(i, r));
+    let none = |ok: bool, field| if ok { Ok(()) } else { Err(WireError::Field(field)) };
+    match signed[3] {
+        KIND_BORDER => {
+            if aux1 == 0 || aux0 >= aux1 {
+                return Err(WireError::Part { part: aux0, parts: aux1 });
+            }
+            let objects = records().collect::<Result<Vec<_>, _>>()?;
+            Ok(Message::Border(Border { run, tick, from, to, part: aux0, parts: aux1, objects }))
+        }
+        KIND_CHECKPOINT => {
+            none(aux0 == 0 && aux1 == 0 && from == to, "checkpoint header")?;
+            let objects = records().map(|r| r.map(|(o, _)| o)).collect::<Result<Vec<_>, _>>()?;
+            Ok(Message::Checkpoint { run, tick, zone: from, objects })
+        }
+        KIND_HEARTBEAT => {
+            none(count == 0 && aux1 == 0 && to == ALL, "heartbeat header")?;
+            let state = match aux0 {
+                0 => ZoneState::Waiting,
+                1 => ZoneState::Running,
+                2 => ZoneState::Stalled,
+                3 => ZoneState::Done,
+                _ => return Err(WireError::Field("state")),
             };
-            let shape = ShapeKind::from_u8(r[5]).ok_or_else(|| bad(format!("shape {}", r[5])))?;
-            let f = |i: usize| f32_at(r, 8 + 4 * i);
-            let o = ObjectState {
-                id: EntityId(u32_at(r, 0)),
-                kind,
-                shape,
-                action: r[6],
-                flags: r[7] & !YOURS,
-                half: Vec3::new(f(0), f(1), f(2)),
-                radius: f(3),
-                pos: Vec3::new(f(4), f(5), f(6)),
-                prev: Vec3::new(f(7), f(8), f(9)),
-            };
-            o.validate().map_err(|e| bad(e.to_string()))?;
-            debug_assert_eq!(o.flags & !(flags::ON_TERRAIN | flags::SUPPORTED), 0);
-            Ok((o, r[7] & YOURS != 0))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(Border {
-        run: u64_at(signed, 4),
-        tick: u64_at(signed, 12),
-        from: ZoneId(u16_at(signed, 20)),
-        to: ZoneId(u16_at(signed, 22)),
-        part,
-        parts,
-        objects,
-    })
+            Ok(Message::Heartbeat { run, tick, zone: from, state })
+        }
+        KIND_HALT => {
+            none(count == 0 && aux0 == 0 && aux1 == 0 && tick == 0 && from == ALL && to == ALL, "halt header")?;
+            Ok(Message::Halt { run })
+        }
+        KIND_START => {
+            none(count == 0 && aux0 == 0 && aux1 == 0 && from == ALL && to == ALL, "start header")?;
+            Ok(Message::Start { run, tick })
+        }
+        k => Err(WireError::Kind(k)),
+    }
 }
 
 #[cfg(test)]
@@ -297,7 +435,18 @@ mod tests {
     fn round_trips_and_is_the_documented_size() {
         let b = encode_border(&key(), &message()).unwrap();
         assert_eq!(b.len(), HEADER_LEN + 2 * RECORD_LEN + TAG_LEN);
-        assert_eq!(decode(&key(), &b).unwrap(), message());
+        assert_eq!(decode(&key(), &b).unwrap(), Message::Border(message()));
+        let objects = vec![object(1, 0.5), object(2, 3.0)];
+        let c = encode_checkpoint(&key(), 9, 30, ZoneId(2), &objects).unwrap();
+        assert_eq!(decode(&key(), &c).unwrap(), Message::Checkpoint { run: 9, tick: 30, zone: ZoneId(2), objects });
+        for m in [
+            Message::Heartbeat { run: 3, tick: 77, zone: ZoneId(1), state: ZoneState::Stalled },
+            Message::Halt { run: 4 },
+            Message::Start { run: 4, tick: 60 },
+        ] {
+            assert_eq!(decode(&key(), &encode_control(&key(), &m).unwrap()).unwrap(), m);
+        }
+        assert!(encode_control(&key(), &Message::Border(message())).is_err());
     }
 
     #[test]

@@ -27,7 +27,7 @@ use crate::error::ZoneError;
 use crate::fabric::Fabric;
 use crate::layout::{ZoneId, ZoneLayout};
 use crate::stats::ZoneStats;
-use crate::wire::{Border, ClusterKey, HEADER_LEN, RECORD_LEN, TAG_LEN, decode, encode_border};
+use crate::wire::{Border, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border};
 
 /// What a zone needs besides its world: identity, cluster and patience.
 #[derive(Clone, Debug)]
@@ -214,7 +214,11 @@ impl Zone {
         };
         while !complete(&self.inbox) {
             match self.fabric.recv(deadline)? {
-                Some(bytes) => self.accept(&bytes, t),
+                Some(bytes) => {
+                    if let Some(control) = self.offer(&bytes) {
+                        return Err(ZoneError::Interrupted(control));
+                    }
+                }
                 None => {
                     let missing = neighbours
                         .iter()
@@ -240,37 +244,55 @@ impl Zone {
     }
 
     /// Files a message in the inbox, or rejects (and counts) it. Only authenticated
-    /// messages of this run, for this zone, from a neighbour, for this tick or the next
-    /// (a neighbour is never further ahead), and not seen before, are kept.
-    fn accept(&mut self, bytes: &[u8], t: u64) {
-        let reason = match decode(&self.cfg.key, bytes) {
-            Err(e) => Some(e.label()),
-            Ok(m) if m.run != self.cfg.run => Some("run"),
-            Ok(m) if m.to != self.cfg.id => Some("misrouted"),
-            Ok(m) if !self.layout.neighbours(self.cfg.id).contains(&m.from) => Some("stranger"),
-            Ok(m) if m.tick < t => Some("stale"),
-            Ok(m) if m.tick > t + 1 => Some("early"),
-            Ok(m) => {
-                let entry = self.inbox.entry((m.tick, m.from)).or_default();
-                if entry.parts == 0 {
-                    entry.parts = m.parts;
-                    entry.got = vec![None; m.parts as usize];
-                }
-                if entry.parts != m.parts {
-                    Some("parts")
-                } else if entry.got[m.part as usize].is_some() {
-                    Some("replayed")
-                } else {
-                    self.stats.messages.1 += 1;
-                    entry.got[m.part as usize] = Some(m.objects);
-                    None
-                }
+    /// border messages of this run, for this zone, from a neighbour, for this tick or the
+    /// next (a neighbour is never further ahead), and not seen before, are kept. The
+    /// supervisor's halt and start are handed back: they interrupt the tick.
+    pub fn offer(&mut self, bytes: &[u8]) -> Option<Message> {
+        let t = self.world.tick;
+        let m = match decode(&self.cfg.key, bytes) {
+            Ok(Message::Border(m)) => m,
+            Ok(control @ (Message::Halt { .. } | Message::Start { .. })) => return Some(control),
+            Ok(_) => return self.reject("kind", t),
+            Err(e) => return self.reject(e.label(), t),
+        };
+        let reason = if m.run != self.cfg.run {
+            "run"
+        } else if m.to != self.cfg.id {
+            "misrouted"
+        } else if !self.layout.neighbours(self.cfg.id).contains(&m.from) {
+            "stranger"
+        } else if m.tick < t {
+            "stale"
+        } else if m.tick > t + 1 {
+            "early"
+        } else {
+            let entry = self.inbox.entry((m.tick, m.from)).or_default();
+            if entry.parts == 0 {
+                entry.parts = m.parts;
+                entry.got = vec![None; m.parts as usize];
+            }
+            if entry.parts != m.parts {
+                "parts"
+            } else if entry.got[m.part as usize].is_some() {
+                "replayed"
+            } else {
+                self.stats.messages.1 += 1;
+                entry.got[m.part as usize] = Some(m.objects);
+                return None;
             }
         };
-        if let Some(reason) = reason {
-            *self.stats.rejected.entry(reason).or_default() += 1;
-            tracing::debug!(zone = self.cfg.id.0, tick = t, reason, "fabric message rejected");
-        }
+        self.reject(reason, t)
+    }
+
+    fn reject(&mut self, reason: &'static str, t: u64) -> Option<Message> {
+        *self.stats.rejected.entry(reason).or_default() += 1;
+        tracing::debug!(zone = self.cfg.id.0, tick = t, reason, "fabric message rejected");
+        None
+    }
+
+    /// Gives the fabric back (a zone process keeps its connection across epochs).
+    pub fn into_fabric(self) -> Box<dyn Fabric> {
+        self.fabric
     }
 
     /// Step 3: the zone's world for this tick, in entity-id order, with the owned

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use myriad_core::{ActionScript, ScenarioSpec};
 use myriad_physics::{Backend, BackendKind, TickConstants, create_cpu_backend};
-use myriad_zone::wire::{decode, encode_border};
+use myriad_zone::wire::{Message, decode, encode_border};
 use myriad_zone::{ClusterKey, Fabric, MemoryFabric, RunOptions, ZoneError, ZoneId, ZoneLayout, pair_reach, run_zoned};
 
 /// Forwards every message and adds hostile ones around it.
@@ -24,7 +24,7 @@ impl Fabric for Hostile {
     fn send(&mut self, to: ZoneId, bytes: Vec<u8>) -> Result<(), ZoneError> {
         self.sent += 1;
         let stranger_key = ClusterKey::new(b"not the cluster's key at all!!").unwrap();
-        let m = decode(&self.key, &bytes).expect("a real message");
+        let Ok(Message::Border(m)) = decode(&self.key, &bytes) else { panic!("a real border message") };
         let hostile = [
             bytes[..bytes.len() / 2].to_vec(), // truncated
             bytes.iter().enumerate().map(|(i, b)| if i == 40 { b ^ 1 } else { *b }).collect(), // altered

@@ -1,0 +1,356 @@
+//! `myriad zone` and `myriad cluster`: one world on several processes over NATS.
+//!
+//! `myriad cluster --zones K` is the one-command local cluster: it finds NATS (or starts
+//! a private `nats-server` when none answers and one is installed), starts K `myriad
+//! zone` processes, supervises them (restarting any that exits, rolling the cluster back
+//! to its last consistent checkpoint) and prints the final state hash, comparable with
+//! `myriad sim`. See docs/zones.md.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use myriad_core::{ActionScript, PhysicsConfig, World};
+use myriad_physics::{BackendKind, TickConstants};
+use myriad_zone::checkpoint::JetStreamCheckpoints;
+use myriad_zone::nats::NatsLink;
+use myriad_zone::process::{ProcessConfig, run_zone_process};
+use myriad_zone::supervisor::{Event, SupervisorConfig, supervise};
+use myriad_zone::{ClusterKey, Fabric, NatsFabric, ZoneId, ZoneLayout};
+use serde::Serialize;
+
+use crate::scenario_args::{ScenarioName, WorldArgs};
+
+/// The environment variable that carries the cluster's key (at least 16 bytes) to zone
+/// processes; never a flag, so that it stays out of `ps`.
+pub const KEY_ENV: &str = "MYRIAD_CLUSTER_KEY";
+
+/// What every process of a cluster must agree on.
+#[derive(Args, Debug, Clone)]
+pub struct ClusterCommon {
+    /// The scenario.
+    #[arg(long, value_enum, default_value = "1")]
+    pub scenario: ScenarioName,
+    /// The physics backend of each zone.
+    #[arg(long, default_value = "auto")]
+    pub backend: BackendKind,
+    /// The last tick of the run.
+    #[arg(long, default_value_t = 300)]
+    pub ticks: u64,
+    /// Zones (a grid as square as the count allows).
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..=1024))]
+    pub zones: u16,
+    /// Ticks between checkpoints (30 = one second at 30 Hz).
+    #[arg(long, default_value_t = 30)]
+    pub checkpoint_every: u64,
+    /// How long a zone waits for a neighbour before reporting a stall, in ms.
+    #[arg(long, default_value_t = 3000)]
+    pub stall_ms: u64,
+    /// Ticks a second (0: as fast as the slowest zone).
+    #[arg(long, default_value_t = 0.0)]
+    pub tick_hz: f64,
+    /// How far an object may move in one tick.
+    #[arg(long, default_value_t = 2.0)]
+    pub zone_max_step: f32,
+    /// A script of players' actions (`TICK ENTITY MASK` lines).
+    #[arg(long, value_name = "FILE")]
+    pub actions: Option<PathBuf>,
+    #[command(flatten)]
+    pub world: WorldArgs,
+}
+
+/// Flags of `myriad zone`.
+#[derive(Args, Debug)]
+pub struct ZoneArgs {
+    /// The cluster's name (one token of NATS subjects).
+    #[arg(long)]
+    pub cluster: String,
+    /// This zone's index.
+    #[arg(long)]
+    pub zone: u16,
+    /// The NATS server.
+    #[arg(long, value_name = "URL", default_value = "nats://127.0.0.1:4222")]
+    pub nats: String,
+    /// The GPU (device ordinal) of the CUDA backends.
+    #[arg(long, default_value_t = 0)]
+    pub gpu: usize,
+    /// Serve Prometheus metrics on this address (`/metrics`).
+    #[arg(long)]
+    pub metrics: Option<SocketAddr>,
+    #[command(flatten)]
+    pub common: ClusterCommon,
+}
+
+/// Flags of `myriad cluster`.
+#[derive(Args, Debug)]
+pub struct ClusterArgs {
+    /// The NATS server; by default 127.0.0.1:4222, or a private `nats-server` started for
+    /// the run when none answers there.
+    #[arg(long, value_name = "URL")]
+    pub nats: Option<String>,
+    /// The cluster's name (default: one of its own per run).
+    #[arg(long)]
+    pub cluster: Option<String>,
+    /// GPUs to spread the zones over (zone i on device i mod N).
+    #[arg(long, default_value_t = 1)]
+    pub gpus: usize,
+    /// A zone whose heartbeat is older than this many ms is dead.
+    #[arg(long, default_value_t = 1500)]
+    pub dead_ms: u64,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub common: ClusterCommon,
+}
+
+struct Prepared {
+    world: World,
+    layout: ZoneLayout,
+    script: ActionScript,
+}
+
+fn prepare(c: &ClusterCommon) -> Result<Prepared> {
+    let (_, world) = c.world.build(c.scenario)?;
+    let script = match &c.actions {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            ActionScript::parse(&text).with_context(|| format!("in {}", path.display()))?
+        }
+        None => ActionScript::default(),
+    };
+    let layout = ZoneLayout::for_count(&world.bounds, c.zones, myriad_zone::pair_reach(&world), c.zone_max_step)?;
+    Ok(Prepared { world, layout, script })
+}
+
+fn key_from_env() -> Result<ClusterKey> {
+    let secret = std::env::var(KEY_ENV).with_context(|| format!("{KEY_ENV} must hold the cluster's key"))?;
+    Ok(ClusterKey::new(secret.as_bytes())?)
+}
+
+/// Runs `myriad zone`.
+pub fn run_zone(args: ZoneArgs) -> Result<()> {
+    let key = key_from_env()?;
+    let p = prepare(&args.common)?;
+    if args.zone as usize >= p.layout.len() {
+        bail!("zone {} of {} zones", args.zone, p.layout.len());
+    }
+    if let Some(addr) = args.metrics {
+        metrics_exporter_prometheus::PrometheusBuilder::new()
+            .with_http_listener(addr)
+            .install()
+            .context("starting the metrics endpoint")?;
+    }
+    let zone = ZoneId(args.zone);
+    let fabric = NatsFabric::connect(&args.nats, &args.cluster, zone)?;
+    let heartbeat = fabric.heartbeat(key.clone(), Duration::from_millis(250));
+    let link = fabric.link();
+    let mut store = JetStreamCheckpoints::open(link.rt.clone(), link.client.clone(), &args.cluster, key.clone())?;
+    let c = &args.common;
+    let cfg = ProcessConfig {
+        zone,
+        key,
+        ticks: c.ticks,
+        checkpoint_every: c.checkpoint_every,
+        stall: Duration::from_millis(c.stall_ms),
+        period: if c.tick_hz > 0.0 { Duration::from_secs_f64(1.0 / c.tick_hz) } else { Duration::ZERO },
+    };
+    let (kind, gpu) = (c.backend, args.gpu);
+    let backend = move || Ok(myriad_cuda::create_backend_on(kind, gpu)?);
+    let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
+    run_zone_process(
+        &cfg,
+        Arc::new(p.layout),
+        &p.world,
+        &p.script,
+        &k,
+        &backend,
+        Box::new(fabric) as Box<dyn Fabric>,
+        &mut store,
+        &heartbeat,
+    )?;
+    Ok(())
+}
+
+/// The flags of `myriad cluster` that zones do not take.
+const CLUSTER_ONLY: &[&str] = &["--nats", "--cluster", "--gpus", "--dead-ms"];
+
+/// The command line of the cluster, less its own flags: what every zone gets.
+fn zone_flags() -> Vec<String> {
+    let mut out = Vec::new();
+    let mut args = std::env::args().skip_while(|a| a != "cluster").skip(1).peekable();
+    while let Some(a) = args.next() {
+        let name = a.split('=').next().unwrap_or_default().to_string();
+        if name == "--json" {
+            continue;
+        }
+        if CLUSTER_ONLY.contains(&name.as_str()) {
+            if !a.contains('=') {
+                args.next();
+            }
+            continue;
+        }
+        out.push(a);
+    }
+    out
+}
+
+/// A private NATS server for one run.
+struct LocalNats {
+    child: Child,
+    _dir: tempfile::TempDir,
+}
+
+impl Drop for LocalNats {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn nats_for(args: &ClusterArgs) -> Result<(String, Option<LocalNats>)> {
+    if let Some(url) = &args.nats {
+        return Ok((url.clone(), None));
+    }
+    let default = "nats://127.0.0.1:4222".to_string();
+    if std::net::TcpStream::connect_timeout(&"127.0.0.1:4222".parse()?, Duration::from_millis(300)).is_ok() {
+        return Ok((default, None));
+    }
+    let exe = ["nats-server", "/usr/sbin/nats-server", "/usr/local/bin/nats-server"]
+        .into_iter()
+        .find(|p| Command::new(p).arg("--version").stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok())
+        .context("no NATS server answers at 127.0.0.1:4222 and nats-server is not installed: pass --nats URL")?;
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+    let dir = tempfile::tempdir()?;
+    let child = Command::new(exe)
+        .args(["-a", "127.0.0.1", "-p", &port.to_string(), "-js", "-sd"])
+        .arg(dir.path())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting nats-server")?;
+    let addr: SocketAddr = format!("127.0.0.1:{port}").parse()?;
+    let start = Instant::now();
+    while std::net::TcpStream::connect_timeout(&addr, Duration::from_millis(100)).is_err() {
+        if start.elapsed() > Duration::from_secs(10) {
+            bail!("the nats-server started for this run does not answer");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    eprintln!("started a private nats-server on {addr} for this run");
+    Ok((format!("nats://{addr}"), Some(LocalNats { child, _dir: dir })))
+}
+
+#[derive(Serialize)]
+struct ClusterSummary {
+    zones: usize,
+    ticks: u64,
+    total_ms: f64,
+    /// Every epoch's start: (epoch, checkpoint tick, its state hash).
+    starts: Vec<(u64, u64, Option<String>)>,
+    faults: Vec<String>,
+    state_hash: String,
+}
+
+/// Runs `myriad cluster`.
+pub fn run_cluster(args: ClusterArgs) -> Result<()> {
+    let p = prepare(&args.common)?;
+    let zones = p.layout.len();
+    let (url, _local) = nats_for(&args)?;
+    let cluster = args.cluster.clone().unwrap_or_else(|| format!("c{}", std::process::id()));
+    myriad_zone::nats::check_cluster_name(&cluster)?;
+    let secret = myriad_zone::wire::random_secret();
+    let key = ClusterKey::new(secret.as_bytes())?;
+    let exe = std::env::current_exe()?;
+    let flags = zone_flags();
+    let spawn = |z: usize| -> Result<Child> {
+        let child = Command::new(&exe)
+            .arg("zone")
+            .args(["--cluster", &cluster, "--zone", &z.to_string(), "--nats", &url])
+            .args(["--gpu", &(z % args.gpus.max(1)).to_string()])
+            .args(&flags)
+            .env(KEY_ENV, &secret)
+            .stdin(Stdio::null())
+            .spawn()
+            .with_context(|| format!("starting zone {z}"))?;
+        eprintln!("zone {z} pid {}", child.id());
+        Ok(child)
+    };
+    let mut children = (0..zones).map(spawn).collect::<Result<Vec<_>>>()?;
+    let link = NatsLink::connect(&url, format!("myriad-{cluster}-supervisor"))?;
+    let mut store = JetStreamCheckpoints::open(link.rt.clone(), link.client.clone(), &cluster, key.clone())?;
+    let cfg = SupervisorConfig {
+        cluster: cluster.clone(),
+        key,
+        zones,
+        ticks: args.common.ticks,
+        objects: p.world.dynamics.len(),
+        dead_after: Duration::from_millis(args.dead_ms),
+        checkpoint_every: args.common.checkpoint_every,
+    };
+    let mut summary = ClusterSummary {
+        zones,
+        ticks: cfg.ticks,
+        total_ms: 0.0,
+        starts: Vec::new(),
+        faults: Vec::new(),
+        state_hash: String::new(),
+    };
+    let start = Instant::now();
+    let mut restart_error = None;
+    let mut restarted = || {
+        let mut out = Vec::new();
+        for (z, child) in children.iter_mut().enumerate() {
+            if let Ok(Some(status)) = child.try_wait() {
+                eprintln!("zone {z} exited ({status}); restarting it");
+                match spawn(z) {
+                    Ok(c) => *child = c,
+                    Err(e) => restart_error = Some(e),
+                }
+                out.push(ZoneId(z as u16));
+            }
+        }
+        out
+    };
+    let mut on_event = |e: &Event| {
+        eprintln!("{e:?}");
+        match e {
+            Event::Started { epoch, tick, state_hash } => {
+                summary.starts.push((*epoch, *tick, state_hash.map(|h| format!("{h:016x}"))))
+            }
+            Event::Fault { reason, .. } => summary.faults.push(reason.clone()),
+            Event::Done { .. } => {}
+        }
+    };
+    let result = supervise(&cfg, &link, &mut store, &mut restarted, &mut on_event);
+    for child in &mut children {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+    if let Some(e) = restart_error {
+        return Err(e);
+    }
+    let hash = result?;
+    summary.total_ms = start.elapsed().as_secs_f64() * 1e3;
+    summary.state_hash = format!("{hash:016x}");
+    if args.json {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else {
+        println!("zones        {zones} processes over NATS ({} ticks in {:.0} ms)", summary.ticks, summary.total_ms);
+        for (epoch, tick, h) in &summary.starts {
+            println!(
+                "epoch {epoch}      from tick {tick}{}",
+                h.as_ref().map(|h| format!(" (state hash {h})")).unwrap_or_default()
+            );
+        }
+        for f in &summary.faults {
+            println!("fault        {f}");
+        }
+        println!("state hash   {}", summary.state_hash);
+    }
+    Ok(())
+}

@@ -1,0 +1,76 @@
+//! Kill -9 of a zone process mid-run: `myriad cluster` notices, restarts it, rolls every
+//! zone back to the last checkpoint they all stored, and ends in the state hash of one
+//! process; the checkpoint it resumed from has the hash of one process at that tick.
+//! Needs `NATS_URL` (CI sets it); skips with a message without it.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn sim_hash(ticks: u64) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["sim", "--json", "--backend", "cpu", "--scenario", "1", "--ticks", &ticks.to_string()])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    v["state_hash"].as_str().unwrap().to_string()
+}
+
+#[test]
+fn a_killed_zone_rolls_the_cluster_back_to_a_consistent_checkpoint() {
+    let Some(url) = std::env::var("NATS_URL").ok().filter(|u| !u.is_empty()) else {
+        eprintln!("skipping: NATS_URL is not set (e.g. NATS_URL=nats://127.0.0.1:4222)");
+        return;
+    };
+    let ticks = 240u64;
+    let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["cluster", "--json", "--nats", &url, "--zones", "4", "--scenario", "1", "--backend", "cpu"])
+        .args(["--ticks", &ticks.to_string(), "--tick-hz", "60", "--checkpoint-every", "30", "--dead-ms", "1000"])
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The cluster names its zones' processes on stderr.
+    let stderr = BufReader::new(cluster.stderr.take().unwrap());
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in stderr.lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let start = Instant::now();
+    let mut victim = None;
+    let mut log = Vec::new();
+    while victim.is_none() && start.elapsed() < Duration::from_secs(30) {
+        if let Ok(line) = rx.recv_timeout(Duration::from_millis(200)) {
+            victim = line.strip_prefix("zone 1 pid ").map(|p| p.trim().parse::<i32>().unwrap());
+            log.push(line);
+        }
+    }
+    let victim = victim.unwrap_or_else(|| panic!("no zone 1 pid in {log:?}"));
+    // About 100 ticks in at 60 Hz, after the start.
+    while !log.iter().any(|l| l.starts_with("Started")) && start.elapsed() < Duration::from_secs(30) {
+        if let Ok(line) = rx.recv_timeout(Duration::from_millis(200)) {
+            log.push(line);
+        }
+    }
+    std::thread::sleep(Duration::from_millis(1700));
+    // SAFETY: sending a signal to a process id we started; no memory is involved.
+    assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
+    let out = cluster.wait_with_output().unwrap();
+    log.extend(rx.try_iter());
+    assert!(out.status.success(), "cluster failed: {log:#?}");
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let faults = v["faults"].as_array().unwrap();
+    assert!(!faults.is_empty(), "the kill was noticed: {v}");
+    let starts = v["starts"].as_array().unwrap();
+    assert!(starts.len() >= 2, "a second epoch started: {v}");
+    let resumed = &starts[starts.len() - 1];
+    let tick = resumed[1].as_u64().unwrap();
+    assert!(tick > 0 && tick % 30 == 0, "resumed from a checkpoint: {v}");
+    assert_eq!(resumed[2].as_str().unwrap(), sim_hash(tick), "the checkpoint is one process's state at its tick");
+    assert_eq!(v["state_hash"].as_str().unwrap(), sim_hash(ticks), "the end is one process's state");
+    eprintln!("killed zone 1; {faults:?}; resumed from tick {tick}; hashes equal");
+}

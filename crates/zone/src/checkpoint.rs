@@ -1,0 +1,218 @@
+//! Checkpoints: each zone's objects at a tick, stored durably, so that the cluster can
+//! roll back to the last tick that *every* zone has stored (a consistent cut) when a
+//! zone dies or stalls.
+//!
+//! The store is NATS JetStream's object store: the zones already hold a NATS connection,
+//! objects are chunked (a zone of scenario 3 is several megabytes, over NATS' 1 MiB
+//! message limit), and the data is replicated with the NATS cluster — no SQL server
+//! becomes a dependency of every zone. Each checkpoint is a signed
+//! [`Message::Checkpoint`](crate::wire::Message::Checkpoint), so a forged or corrupted
+//! one is refused, never loaded.
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+use myriad_core::ObjectState;
+use tokio::io::AsyncReadExt;
+
+use crate::error::ZoneError;
+use crate::layout::ZoneId;
+use crate::wire::{ClusterKey, Message, decode, encode_checkpoint};
+
+/// Where checkpoints live. Names are `z<zone>-t<tick>`, so that nobody needs to list a
+/// bucket (listing a bucket that others write to is slow on JetStream).
+pub trait CheckpointStore: Send {
+    /// Stores zone `zone`'s objects at `tick`.
+    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError>;
+    /// Whether zone `zone` has a checkpoint at `tick`.
+    fn has(&mut self, zone: ZoneId, tick: u64) -> Result<bool, ZoneError>;
+    /// Zone `zone`'s objects at `tick`.
+    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError>;
+    /// Drops zone `zone`'s checkpoint at `tick`, if there is one.
+    fn forget(&mut self, zone: ZoneId, tick: u64) -> Result<(), ZoneError>;
+
+    /// The first of `candidates` that all `zones` zones have stored, if any.
+    fn latest_consistent(&mut self, zones: usize, candidates: &[u64]) -> Result<Option<u64>, ZoneError> {
+        for &t in candidates {
+            let mut all = true;
+            for z in 0..zones {
+                if !self.has(ZoneId(z as u16), t)? {
+                    all = false;
+                    break;
+                }
+            }
+            if all {
+                return Ok(Some(t));
+            }
+        }
+        Ok(None)
+    }
+}
+
+fn name(zone: ZoneId, tick: u64) -> String {
+    format!("z{}-t{tick}", zone.0)
+}
+
+fn checked(key: &ClusterKey, bytes: &[u8], zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
+    match decode(key, bytes) {
+        Ok(Message::Checkpoint { tick: t, zone: z, objects, .. }) if t == tick && z == zone => Ok(objects),
+        Ok(_) => Err(ZoneError::Checkpoint(format!("{} holds another zone's or tick's state", name(zone, tick)))),
+        Err(e) => Err(ZoneError::Checkpoint(format!("{} refused: {e}", name(zone, tick)))),
+    }
+}
+
+/// Checkpoints in a JetStream object store bucket `myriad-<cluster>`.
+pub struct JetStreamCheckpoints {
+    rt: Arc<tokio::runtime::Runtime>,
+    store: async_nats::jetstream::object_store::ObjectStore,
+    key: ClusterKey,
+}
+
+impl JetStreamCheckpoints {
+    /// Opens (or creates) the cluster's bucket on `client`'s server.
+    pub fn open(
+        rt: Arc<tokio::runtime::Runtime>,
+        client: async_nats::Client,
+        cluster: &str,
+        key: ClusterKey,
+    ) -> Result<JetStreamCheckpoints, ZoneError> {
+        // The context spawns a task: it must be made inside the runtime.
+        let js = {
+            let _inside = rt.enter();
+            async_nats::jetstream::new(client)
+        };
+        let bucket = format!("myriad-{cluster}");
+        let store = rt.block_on(async {
+            match js.get_object_store(&bucket).await {
+                Ok(s) => Ok(s),
+                Err(_) => js
+                    .create_object_store(async_nats::jetstream::object_store::Config {
+                        bucket: bucket.clone(),
+                        description: Some("Myriad zone checkpoints".into()),
+                        ..Default::default()
+                    })
+                    .await
+                    .map_err(|e| ZoneError::Checkpoint(format!("creating bucket {bucket}: {e}"))),
+            }
+        })?;
+        Ok(JetStreamCheckpoints { rt, store, key })
+    }
+}
+
+impl CheckpointStore for JetStreamCheckpoints {
+    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError> {
+        let bytes = encode_checkpoint(&self.key, run, tick, zone, objects)?;
+        let store = &self.store;
+        self.rt.block_on(async {
+            store
+                .put(name(zone, tick).as_str(), &mut bytes.as_slice())
+                .await
+                .map(|_| ())
+                .map_err(|e| ZoneError::Checkpoint(format!("storing {}: {e}", name(zone, tick))))
+        })
+    }
+
+    fn has(&mut self, zone: ZoneId, tick: u64) -> Result<bool, ZoneError> {
+        let store = &self.store;
+        Ok(self.rt.block_on(async { store.info(name(zone, tick)).await }).is_ok_and(|i| !i.deleted))
+    }
+
+    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
+        let store = &self.store;
+        let bytes = self.rt.block_on(async {
+            let mut o = store
+                .get(name(zone, tick))
+                .await
+                .map_err(|e| ZoneError::Checkpoint(format!("reading {}: {e}", name(zone, tick))))?;
+            let mut b = Vec::new();
+            o.read_to_end(&mut b)
+                .await
+                .map_err(|e| ZoneError::Checkpoint(format!("reading {}: {e}", name(zone, tick))))?;
+            Ok::<_, ZoneError>(b)
+        })?;
+        checked(&self.key, &bytes, zone, tick)
+    }
+
+    fn forget(&mut self, zone: ZoneId, tick: u64) -> Result<(), ZoneError> {
+        let store = &self.store;
+        // Deleting what is not there is not an error: an old checkpoint may be gone.
+        let _ = self.rt.block_on(async { store.delete(name(zone, tick)).await });
+        Ok(())
+    }
+}
+
+/// Checkpoints in memory, shared by clones (tests, and zones of one process).
+#[derive(Clone, Default)]
+pub struct MemoryCheckpoints {
+    blobs: Arc<Mutex<BTreeMap<(ZoneId, u64), Vec<u8>>>>,
+    key: Option<ClusterKey>,
+}
+
+impl MemoryCheckpoints {
+    /// An empty store signing with `key`.
+    pub fn new(key: ClusterKey) -> MemoryCheckpoints {
+        MemoryCheckpoints { blobs: Arc::default(), key: Some(key) }
+    }
+}
+
+impl CheckpointStore for MemoryCheckpoints {
+    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError> {
+        let key = self.key.as_ref().ok_or_else(|| ZoneError::Checkpoint("no key".into()))?;
+        let bytes = encode_checkpoint(key, run, tick, zone, objects)?;
+        self.blobs.lock().expect("not poisoned").insert((zone, tick), bytes);
+        Ok(())
+    }
+
+    fn has(&mut self, zone: ZoneId, tick: u64) -> Result<bool, ZoneError> {
+        Ok(self.blobs.lock().expect("not poisoned").contains_key(&(zone, tick)))
+    }
+
+    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
+        let key = self.key.as_ref().ok_or_else(|| ZoneError::Checkpoint("no key".into()))?;
+        let blobs = self.blobs.lock().expect("not poisoned");
+        let bytes =
+            blobs.get(&(zone, tick)).ok_or_else(|| ZoneError::Checkpoint(format!("no {}", name(zone, tick))))?;
+        checked(key, bytes, zone, tick)
+    }
+
+    fn forget(&mut self, zone: ZoneId, tick: u64) -> Result<(), ZoneError> {
+        self.blobs.lock().expect("not poisoned").remove(&(zone, tick));
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use myriad_core::{EntityId, ObjectKind, ShapeKind, Vec3};
+
+    #[test]
+    fn the_latest_consistent_tick_is_common_to_all_zones() {
+        let mut s = MemoryCheckpoints::new(ClusterKey::random());
+        let o = ObjectState {
+            id: EntityId(1),
+            kind: ObjectKind::Npc,
+            shape: ShapeKind::Sphere,
+            half: Vec3::splat(0.5),
+            radius: 0.5,
+            pos: Vec3::ONE,
+            prev: Vec3::ONE,
+            action: 0,
+            flags: 0,
+        };
+        let candidates = [60, 30, 0];
+        assert_eq!(s.latest_consistent(2, &candidates).unwrap(), None);
+        for (z, t) in [(0, 0), (1, 0), (0, 30), (1, 30), (0, 60)] {
+            s.put(ZoneId(z), t, 1, &[o]).unwrap();
+        }
+        assert_eq!(s.latest_consistent(2, &candidates).unwrap(), Some(30));
+        assert_eq!(s.latest_consistent(3, &candidates).unwrap(), None);
+        s.forget(ZoneId(1), 30).unwrap();
+        assert_eq!(s.latest_consistent(2, &candidates).unwrap(), Some(0));
+        assert_eq!(s.get(ZoneId(0), 60).unwrap(), vec![o]);
+        assert!(s.get(ZoneId(1), 60).is_err());
+        // A blob signed with another key is refused.
+        let mut other = MemoryCheckpoints { blobs: s.blobs.clone(), key: Some(ClusterKey::random()) };
+        assert!(matches!(other.get(ZoneId(0), 60), Err(ZoneError::Checkpoint(_))));
+    }
+}

@@ -1,0 +1,157 @@
+//! A zone as a process of a cluster: it waits for the supervisor's start, resumes from a
+//! checkpoint, steps, stores a checkpoint every `checkpoint_every` ticks, and on a
+//! stall or a halt goes back to waiting — never exits for a neighbour's fault.
+//!
+//! States, as its heartbeat reports them: `Waiting` (for a start), `Running`, `Stalled`
+//! (a neighbour did not answer within `stall`), `Done` (reached the last tick; the
+//! result is stored as the checkpoint of that tick).
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use myriad_core::{ActionScript, World};
+use myriad_physics::{Backend, TickConstants};
+
+use crate::checkpoint::CheckpointStore;
+use crate::error::ZoneError;
+use crate::fabric::Fabric;
+use crate::layout::{ZoneId, ZoneLayout};
+use crate::nats::{Beat, Heartbeat};
+use crate::wire::{ClusterKey, Message, ZoneState, decode};
+use crate::zone::{Zone, ZoneConfig};
+
+/// How a zone process runs.
+#[derive(Clone, Debug)]
+pub struct ProcessConfig {
+    /// This zone.
+    pub zone: ZoneId,
+    /// The cluster's key.
+    pub key: ClusterKey,
+    /// The last tick: at it the zone stores its result and reports `Done`.
+    pub ticks: u64,
+    /// Ticks between checkpoints (30 = one second at 30 Hz).
+    pub checkpoint_every: u64,
+    /// How long to wait for a neighbour before reporting a stall.
+    pub stall: Duration,
+    /// The tick period, or zero to step as fast as the neighbours allow.
+    pub period: Duration,
+}
+
+/// Checkpoints each zone keeps.
+pub const KEEP: u64 = 3;
+
+/// Messages kept while waiting for a start: border states of the coming epoch may
+/// arrive before its start does. Bounded, oldest dropped.
+const PENDING: usize = 4096;
+
+/// Runs zone `cfg.zone` until its process is stopped. `world` is the generated world at
+/// tick 0 (bounds, terrain, statics, and the objects for a start at tick 0).
+#[allow(clippy::too_many_arguments)]
+pub fn run_zone_process(
+    cfg: &ProcessConfig,
+    layout: Arc<ZoneLayout>,
+    world: &World,
+    script: &ActionScript,
+    k: &TickConstants,
+    backend: &dyn Fn() -> Result<Box<dyn Backend>, ZoneError>,
+    mut fabric: Box<dyn Fabric>,
+    store: &mut dyn CheckpointStore,
+    heartbeat: &Heartbeat,
+) -> Result<(), ZoneError> {
+    // The newest epoch announced (by a halt or a start), and the last one started: a
+    // start is taken once, and only if no newer halt was seen.
+    let mut epoch = 0u64;
+    let mut started = 0u64;
+    let mut tick = 0u64;
+    let mut state = ZoneState::Waiting;
+    let mut pending: Vec<Vec<u8>> = Vec::new();
+    let mut next: Option<(u64, u64)> = None;
+    loop {
+        // Wait for a start of a newer epoch.
+        let (run, from) = match next.take() {
+            Some(s) => s,
+            None => loop {
+                heartbeat.set(Beat { run: epoch, tick, state });
+                let Some(bytes) = fabric.recv(Instant::now() + Duration::from_millis(500))? else { continue };
+                match decode(&cfg.key, &bytes) {
+                    Ok(Message::Start { run, tick }) if run >= epoch && run > started => break (run, tick),
+                    Ok(Message::Halt { run }) if run > epoch => {
+                        epoch = run;
+                        state = ZoneState::Waiting;
+                        pending.clear();
+                    }
+                    Ok(Message::Border(_)) => {
+                        if pending.len() == PENDING {
+                            pending.remove(0);
+                        }
+                        pending.push(bytes);
+                    }
+                    _ => {}
+                }
+            },
+        };
+        epoch = run;
+        started = run;
+        tracing::info!(zone = cfg.zone.0, epoch, tick = from, "starting");
+        let zcfg = ZoneConfig { id: cfg.zone, run, key: cfg.key.clone(), wait: cfg.stall };
+        let mut zone = if from == 0 {
+            Zone::new(zcfg, layout.clone(), world, backend()?, fabric)?
+        } else {
+            let mut at = world.clone();
+            at.tick = from;
+            Zone::resume(zcfg, layout.clone(), &at, store.get(cfg.zone, from)?, backend()?, fabric)?
+        };
+        for bytes in pending.drain(..) {
+            // Controls seen here are older than this start: ignored.
+            let _ = zone.offer(&bytes);
+        }
+        tick = zone.tick();
+        state = ZoneState::Running;
+        heartbeat.set(Beat { run: epoch, tick, state });
+        let outcome = loop {
+            let t = zone.tick();
+            let every = cfg.checkpoint_every.max(1);
+            if t % every == 0 || t == cfg.ticks {
+                store.put(cfg.zone, t, epoch, zone.advanced())?;
+                // Keep the last KEEP checkpoints: zones drift apart by a few ticks at most,
+                // so a tick that all of them stored is among them.
+                if let Some(old) = (t / every * every).checked_sub(KEEP * every) {
+                    store.forget(cfg.zone, old)?;
+                }
+            }
+            if t >= cfg.ticks {
+                break Ok(ZoneState::Done);
+            }
+            let stepped = Instant::now();
+            match zone.step(script.at(t), k) {
+                Ok(_) => {}
+                Err(ZoneError::Stalled { missing, .. }) => {
+                    tracing::warn!(zone = cfg.zone.0, tick = t, ?missing, "neighbours silent: stalled");
+                    break Ok(ZoneState::Stalled);
+                }
+                Err(ZoneError::Interrupted(Message::Start { run, tick })) if run > started => {
+                    next = Some((run, tick));
+                    break Ok(ZoneState::Waiting);
+                }
+                Err(ZoneError::Interrupted(Message::Halt { run })) if run > epoch => {
+                    epoch = run;
+                    break Ok(ZoneState::Waiting);
+                }
+                Err(ZoneError::Interrupted(_)) => continue,
+                Err(e) => break Err(e),
+            }
+            tick = zone.tick();
+            heartbeat.set(Beat { run: epoch, tick, state });
+            zone.stats().export(cfg.zone);
+            if let Some(rest) = cfg.period.checked_sub(stepped.elapsed()) {
+                std::thread::sleep(rest);
+            }
+        };
+        tick = zone.tick();
+        fabric = zone.into_fabric();
+        state = outcome?;
+        if state == ZoneState::Done {
+            tracing::info!(zone = cfg.zone.0, epoch, tick, "done");
+        }
+    }
+}

@@ -29,10 +29,14 @@ nice -n 10 cargo build --release -j "$jobs" -p myriad --bin myriad
 target=${CARGO_TARGET_DIR:-target}
 cp "$target/release/myriad" "$carry/myriad"
 strip "$carry/myriad" "$carry"/tests/*
+# The zones' checks need a NATS server; the GPU machine has none installed.
+nats=$(command -v nats-server || echo /usr/sbin/nats-server)
+if [[ -x $nats ]]; then cp "$nats" "$carry/nats-server"; fi
 du -sh "$carry"
 ls -l "$carry" "$carry/tests"
 cat <<'MSG'
 
 Now call the device tool:
   run(command="bash scripts/gpu-run.sh", carry=[".carry"], timeout_s=600)
+  (MODE=zones on kind nvidia-h200-x2 for the zones across two GPUs)
 MSG

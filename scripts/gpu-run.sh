@@ -3,7 +3,9 @@
 # scripts/gpu-build.sh: the GPU test suite (failing, not skipping, without a GPU), the
 # CPU <-> GPU hash comparisons and the benchmarks. Logs go to $OUT (or ./out).
 #
-# MODE=tests or MODE=bench runs one half; default: both.
+# MODE=tests, MODE=bench or MODE=zones runs one part; default: tests and bench. The
+# zones' part (run it on nvidia-h200-x2) checks zoned runs on cuda against one process
+# and times scenario 3 on one GPU against two zones on two GPUs.
 set -uo pipefail
 out=${OUT:-out}
 mkdir -p "$out"
@@ -79,6 +81,47 @@ for l in open(sys.argv[1]):
     print(f"| {r['dynamic']} | {r['static_objects']} | {r['total_ms']:.3f} | {r['build_dynamic_bvh']:.3f} | {r['broad_static']:.3f} | {r['broad_dynamic']:.3f} | {r['narrow_static'] + r['narrow_dynamic']:.3f} | {r['forces']:.3f} | {r['upload']:.3f} | {r['dynamic_pairs']} |")
 PY
 fi
+if [[ $mode == zones ]]; then
+    nats_pid=
+    if [[ -x .carry/nats-server ]]; then
+        .carry/nats-server -a 127.0.0.1 -p 4222 -js -sd /tmp/myriad-nats >/dev/null 2>&1 &
+        nats_pid=$!
+        sleep 1
+    fi
+    gpus=$(nvidia-smi -L | wc -l)
+    {
+        # Zoned runs on cuda equal one process on cpu: scenarios 1 and 2 and the
+        # clustered one, K = 2, 4, 9.
+        for sc in 1 2 clustered; do
+            ticks=200
+            [[ $sc == 1 ]] || ticks=120
+            .carry/myriad sim --scenario $sc --ticks $ticks --backend cpu --json 2>/dev/null
+            for k in 2 4 9; do
+                .carry/myriad sim --scenario $sc --ticks $ticks --backend cuda --zones $k --gpus "$gpus" --json 2>/dev/null
+            done
+        done
+        # Scenario 3: one zone on one GPU, then two zones, one per GPU (threads of one
+        # process), then two zone processes over NATS.
+        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json 2>/dev/null
+        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus "$gpus" --json 2>/dev/null
+        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus "$gpus" --nats nats://127.0.0.1:4222 --json 2>/dev/null
+    } | tee "$out/zones.jsonl" | python3 -c '
+import json, sys
+rows = [json.loads(l) for l in sys.stdin if l.strip()]
+want = None
+for r in rows:
+    z = r.get("zoned")
+    if z is None:
+        want = r["state_hash"]
+    print("sim scenario %s, %d ticks, %s%s: %s, %.3f ms a tick, equal to one process: %s%s" % (
+        r["scenario"], r["ticks"], r["description"], "" if z is None else " over " + z["fabric"],
+        r["state_hash"], r["mean_tick_ms"], r["state_hash"] == want,
+        "" if z is None else ", %d ghost records, %.1f MB, waits %s ms" % (z["ghost_records"], z["fabric_bytes"] / 1e6, z["wait_ms"])))
+'
+    .carry/myriad cluster --zones 2 --gpus "$gpus" --scenario 3 --ticks 100 --backend cuda --json 2>"$out/cluster.log" | tee "$out/cluster.json" || status=1
+    [[ -n $nats_pid ]] && kill "$nats_pid"
+fi
+
 # The device tool brings back a few files only: the bench's tables and plots as one.
 if [[ -d $out/bench ]]; then
     tar -C "$out" -czf "$out/bench.tgz" bench && rm -rf "$out/bench"

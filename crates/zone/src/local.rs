@@ -4,7 +4,7 @@
 //! against one process.
 
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use myriad_core::{ActionScript, ObjectState, World, hash_state};
 use myriad_physics::{Backend, TickConstants};
@@ -31,6 +31,9 @@ pub struct ZonedRun {
     pub stats: Vec<ZoneStats>,
     /// Static primitives each zone held.
     pub static_prims: Vec<usize>,
+    /// Wall time of the ticks, from the first zone's first step to the last zone's last
+    /// (world assembly and backend start-up excluded), in ms.
+    pub ticks_ms: f64,
 }
 
 /// How a zoned run goes.
@@ -73,7 +76,8 @@ pub fn run_zoned(
     }
     let layout = Arc::new(layout);
     let key = opts.key.clone();
-    let results: Vec<Result<(Vec<ObjectState>, usize, ZoneStats, usize), ZoneError>> = std::thread::scope(|s| {
+    type Outcome = (Vec<ObjectState>, usize, ZoneStats, usize, Instant, Instant);
+    let results: Vec<Result<Outcome, ZoneError>> = std::thread::scope(|s| {
         let handles: Vec<_> = fabrics
             .into_iter()
             .enumerate()
@@ -84,12 +88,13 @@ pub fn run_zoned(
                     let cfg = ZoneConfig { id, run, key, wait };
                     let mut zone = Zone::new(cfg, layout, world, backend(id)?, fabric)?;
                     let mut actions = 0;
+                    let first = Instant::now();
                     for _ in 0..ticks {
                         let t = zone.tick();
                         actions += zone.step(script.at(t), k)?;
                     }
                     let prims = zone.static_prims();
-                    Ok((zone.advanced().to_vec(), actions, zone.stats().clone(), prims))
+                    Ok((zone.advanced().to_vec(), actions, zone.stats().clone(), prims, first, Instant::now()))
                 })
             })
             .collect();
@@ -101,8 +106,11 @@ pub fn run_zoned(
     }
     let mut objects = Vec::with_capacity(world.dynamics.len());
     let (mut actions, mut stats, mut static_prims) = (0, Vec::new(), Vec::new());
+    let (mut first, mut last): (Option<Instant>, Option<Instant>) = (None, None);
     for r in results {
-        let (o, a, s, p) = r?;
+        let (o, a, s, p, f, l) = r?;
+        first = Some(first.map_or(f, |x| x.min(f)));
+        last = Some(last.map_or(l, |x| x.max(l)));
         objects.extend(o);
         actions += a;
         stats.push(s);
@@ -117,7 +125,11 @@ pub fn run_zoned(
     }
     let tick = world.tick + ticks;
     let state_hash = hash_state(objects.iter().copied(), tick, objects.len());
-    Ok(ZonedRun { state_hash, tick, objects, actions, stats, static_prims })
+    let ticks_ms = match (first, last) {
+        (Some(f), Some(l)) => (l - f).as_secs_f64() * 1e3,
+        _ => 0.0,
+    };
+    Ok(ZonedRun { state_hash, tick, objects, actions, stats, static_prims, ticks_ms })
 }
 
 /// The reach a world needs for its pairs: twice the largest horizontal half extent of

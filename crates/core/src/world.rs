@@ -13,6 +13,7 @@
 //!   terrain after every step).
 
 use std::collections::HashMap;
+use std::collections::hash_map::Entry;
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -224,10 +225,11 @@ impl Dynamics {
     /// the positions, the action or the flags are not valid.
     pub fn insert(&mut self, s: &ObjectState) -> Result<(), CoreError> {
         s.validate()?;
-        if s.id.0 == u32::MAX || self.slot_of.contains_key(&s.id) {
-            return Err(CoreError::invalid("entity id", format!("{} is taken or reserved", s.id.0)));
-        }
         let slot = self.id.len() as u32;
+        match self.slot_of.entry(s.id) {
+            Entry::Vacant(v) if s.id.0 != u32::MAX => v.insert(slot),
+            _ => return Err(CoreError::invalid("entity id", format!("{} is taken or reserved", s.id.0))),
+        };
         self.id.push(s.id);
         self.pos.push(s.pos);
         self.prev.push(s.prev);
@@ -237,8 +239,49 @@ impl Dynamics {
         self.kind.push(s.kind);
         self.action.push(s.action);
         self.flags.push(s.flags);
-        self.slot_of.insert(s.id, slot);
         self.next_id = self.next_id.max(s.id.0 + 1);
+        self.generation += 1;
+        self.layout_generation += 1;
+        Ok(())
+    }
+
+    /// [`Dynamics::insert`] for many objects at once, all or none: a zone rebuilds its
+    /// world from states every tick, and one pass per field beats one call per object.
+    pub fn insert_all<I>(&mut self, states: I) -> Result<(), CoreError>
+    where
+        I: ExactSizeIterator<Item = ObjectState> + Clone,
+    {
+        let before = self.len();
+        let n = states.len();
+        self.slot_of.reserve(n);
+        for (i, s) in states.clone().enumerate() {
+            let taken = s.validate().err().or_else(|| match self.slot_of.entry(s.id) {
+                Entry::Vacant(v) if s.id.0 != u32::MAX => {
+                    v.insert((before + i) as u32);
+                    None
+                }
+                _ => Some(CoreError::invalid("entity id", format!("{} is taken or reserved", s.id.0))),
+            });
+            if let Some(e) = taken {
+                // Undo the slots already claimed: all or none.
+                for s in states.take(i) {
+                    self.slot_of.remove(&s.id);
+                }
+                return Err(e);
+            }
+        }
+        self.id.extend(states.clone().map(|s| s.id));
+        self.pos.extend(states.clone().map(|s| s.pos));
+        self.prev.extend(states.clone().map(|s| s.prev));
+        self.half.extend(states.clone().map(|s| s.half));
+        self.radius.extend(states.clone().map(|s| s.radius));
+        self.shape.extend(states.clone().map(|s| s.shape));
+        self.kind.extend(states.clone().map(|s| s.kind));
+        self.action.extend(states.clone().map(|s| s.action));
+        self.flags.extend(states.clone().map(|s| s.flags));
+        if let Some(max) = states.map(|s| s.id.0).max() {
+            self.next_id = self.next_id.max(max + 1);
+        }
         self.generation += 1;
         self.layout_generation += 1;
         Ok(())
@@ -619,6 +662,16 @@ mod tests {
             assert!(w.dynamics.insert(&bad).is_err(), "{bad:?}");
         }
         assert_eq!(w.dynamics.len(), 3);
+        // All or none: a bad state in the middle leaves the world as it was.
+        let good = ObjectState { id: EntityId(60), ..s };
+        let dup = ObjectState { id: EntityId(61), ..s };
+        let h = w.state_hash();
+        assert!(w.dynamics.insert_all([good, dup, ObjectState { id: EntityId(61), ..s }].into_iter()).is_err());
+        assert_eq!(w.state_hash(), h);
+        assert!(w.dynamics.slot(EntityId(60)).is_none());
+        w.dynamics.insert_all([good, dup].into_iter()).unwrap();
+        assert_eq!(w.dynamics.state_of(4), dup);
+        assert_eq!(w.dynamics.slot(EntityId(61)), Some(4));
         let h = w.state_hash();
         w.dynamics.clear();
         assert!(w.dynamics.is_empty());

@@ -68,6 +68,11 @@ struct ZoneSummary {
     fabric_bytes: u64,
     /// Per zone: mean wait for neighbours, ms a tick.
     wait_ms: Vec<f64>,
+    /// Per zone: mean physics step, ms a tick.
+    physics_ms: Vec<f64>,
+    /// Per zone: mean time assembling the zone's world and keeping results (the step less
+    /// the physics), plus choosing and sending border states, ms a tick.
+    overhead_ms: Vec<f64>,
     rejected: u64,
 }
 
@@ -176,8 +181,14 @@ fn print(args: &SimArgs, s: &Summary) -> Result<()> {
                 z.fabric_bytes as f64 / 1e6
             );
             println!("owned        {:?} (static primitives held {:?})", z.owned, z.static_prims);
-            let waits: Vec<String> = z.wait_ms.iter().map(|w| format!("{w:.2}")).collect();
-            println!("wait         [{}] ms a tick for neighbours; {} messages rejected", waits.join(", "), z.rejected);
+            let ms = |v: &[f64]| v.iter().map(|w| format!("{w:.2}")).collect::<Vec<_>>().join(", ");
+            println!(
+                "per zone     physics [{}], zone overhead [{}], wait [{}] ms a tick",
+                ms(&z.physics_ms),
+                ms(&z.overhead_ms),
+                ms(&z.wait_ms)
+            );
+            println!("rejected     {} messages", z.rejected);
         }
         println!("state hash   {}", s.state_hash);
     }
@@ -232,6 +243,8 @@ fn run_zoned(
         messages: run.stats.iter().map(|s| s.messages.0).sum(),
         fabric_bytes: run.stats.iter().map(|s| s.bytes.0).sum(),
         wait_ms: run.stats.iter().map(|s| s.wait.as_secs_f64() * 1e3 / ticks).collect(),
+        physics_ms: run.stats.iter().map(|s| s.physics.as_secs_f64() * 1e3 / ticks).collect(),
+        overhead_ms: run.stats.iter().map(|s| (s.step + s.send - s.physics).as_secs_f64() * 1e3 / ticks).collect(),
         rejected: run.stats.iter().map(|s| s.rejected_total()).sum(),
     };
     let s = Summary {

@@ -141,10 +141,13 @@ impl CheckpointStore for JetStreamCheckpoints {
     }
 }
 
+/// Signed checkpoints by (zone, tick).
+type Blobs = BTreeMap<(ZoneId, u64), Vec<u8>>;
+
 /// Checkpoints in memory, shared by clones (tests, and zones of one process).
 #[derive(Clone, Default)]
 pub struct MemoryCheckpoints {
-    blobs: Arc<Mutex<BTreeMap<(ZoneId, u64), Vec<u8>>>>,
+    blobs: Arc<Mutex<Blobs>>,
     key: Option<ClusterKey>,
 }
 

@@ -81,7 +81,7 @@ impl ZoneLayout {
     /// `k` zones in the squarest grid with `k` cells (`2` is 2 × 1, `4` is 2 × 2, `9` is
     /// 3 × 3, a prime is `k × 1`).
     pub fn for_count(bounds: &Aabb, k: u16, reach: f32, max_step: f32) -> Result<ZoneLayout, ZoneError> {
-        let rows = (1..=k).filter(|r| k % r == 0 && r * r <= k).max().unwrap_or(1);
+        let rows = (1..=k).filter(|r| k.is_multiple_of(*r) && r * r <= k).max().unwrap_or(1);
         ZoneLayout::grid(bounds, k / rows.max(1), rows, reach, max_step)
     }
 
@@ -216,7 +216,7 @@ mod tests {
             for z in (-5..95).map(|v| v as f32).chain([30.0, 60.0]) {
                 let p = Vec3::new(x, 7.0, z);
                 let owner = l.zone_at(p);
-                let inside = x >= -30.0 && x <= 60.0 && z >= 0.0 && z <= 90.0;
+                let inside = (-30.0..=60.0).contains(&x) && (0.0..=90.0).contains(&z);
                 if inside {
                     assert_eq!(l.region(owner).distance(x, z), 0.0, "{p}");
                 }

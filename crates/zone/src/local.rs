@@ -102,7 +102,7 @@ pub fn run_zoned(
     });
     // A zone that failed makes its neighbours stall; report the cause, not the stalls.
     if let Some(e) = results.iter().position(|r| matches!(r, Err(e) if !matches!(e, ZoneError::Stalled { .. }))) {
-        return Err(results.into_iter().nth(e).expect("index").err().expect("an error"));
+        return Err(results.into_iter().nth(e).expect("index").expect_err("an error"));
     }
     let mut objects = Vec::with_capacity(world.dynamics.len());
     let (mut actions, mut stats, mut static_prims) = (0, Vec::new(), Vec::new());

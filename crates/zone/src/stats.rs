@@ -25,8 +25,13 @@ pub struct ZoneStats {
     pub handoffs_out: u64,
     /// Time spent waiting for neighbours' border states.
     pub wait: Duration,
-    /// Time spent stepping (assembling the zone's world and the physics).
+    /// Time spent stepping: assembling the zone's world, the physics, keeping the owned
+    /// results.
     pub step: Duration,
+    /// The physics' share of `step` (the backend's step alone).
+    pub physics: Duration,
+    /// Time spent choosing, encoding and sending border states.
+    pub send: Duration,
     /// Messages sent and received.
     pub messages: (u64, u64),
     /// Fabric payload bytes sent and received.
@@ -60,6 +65,8 @@ impl ZoneStats {
         metrics::gauge!("myriad_zone_ghosts", "zone" => z.clone()).set(self.ghosts as f64);
         metrics::gauge!("myriad_zone_wait_seconds_total", "zone" => z.clone()).set(self.wait.as_secs_f64());
         metrics::gauge!("myriad_zone_step_seconds_total", "zone" => z.clone()).set(self.step.as_secs_f64());
+        metrics::gauge!("myriad_zone_physics_seconds_total", "zone" => z.clone()).set(self.physics.as_secs_f64());
+        metrics::gauge!("myriad_zone_send_seconds_total", "zone" => z.clone()).set(self.send.as_secs_f64());
         for (reason, n) in &self.rejected {
             metrics::counter!("myriad_zone_rejected_total", "zone" => z.clone(), "reason" => *reason).absolute(*n);
         }

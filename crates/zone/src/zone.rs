@@ -69,6 +69,8 @@ pub struct Zone {
     stats: ZoneStats,
     /// Whether each slot of the last step was owned (scratch).
     owned_slots: Vec<bool>,
+    /// The objects of the step being assembled, with whether they are owned (scratch).
+    scratch: Vec<(ObjectState, bool)>,
 }
 
 impl Zone {
@@ -117,6 +119,7 @@ impl Zone {
             fabric,
             stats,
             owned_slots: Vec::new(),
+            scratch: Vec::new(),
         })
     }
 
@@ -151,11 +154,15 @@ impl Zone {
     /// applied (returns how many).
     pub fn step(&mut self, actions: &[ScriptedAction], k: &TickConstants) -> Result<usize, ZoneError> {
         let t = self.world.tick;
+        let send = Instant::now();
         self.send_borders(t)?;
+        self.stats.send += send.elapsed();
         let received = self.gather(t)?;
         let start = Instant::now();
         let applied = self.assemble(received, actions)?;
+        let physics = Instant::now();
         self.backend.step(&mut self.world, k)?;
+        self.stats.physics += physics.elapsed();
         let d = &self.world.dynamics;
         self.advanced.clear();
         self.advanced.extend((0..d.len()).filter(|&s| self.owned_slots[s]).map(|s| d.state_of(s)));
@@ -300,7 +307,9 @@ impl Zone {
     fn assemble(&mut self, received: Vec<(ObjectState, bool)>, actions: &[ScriptedAction]) -> Result<usize, ZoneError> {
         let me = self.cfg.id;
         let layout = &self.layout;
-        let mut objects: Vec<(ObjectState, bool)> = Vec::with_capacity(self.advanced.len() + received.len());
+        // Reused from tick to tick: a zone's world is rebuilt every tick.
+        let objects = &mut self.scratch;
+        objects.clear();
         for o in &self.advanced {
             if layout.zone_at(o.pos) == me {
                 objects.push((*o, true));
@@ -311,17 +320,17 @@ impl Zone {
         self.stats.ghosts_in += received.len() as u64;
         self.stats.handoffs_in += received.iter().filter(|r| r.1).count() as u64;
         objects.extend(received);
-        objects.sort_unstable_by_key(|(o, _)| o.id);
+        // Stable sort: the advanced set and each message are runs already sorted by id,
+        // which the stable sort merges instead of sorting from scratch.
+        objects.sort_by_key(|(o, _)| o.id);
         if let Some(w) = objects.windows(2).find(|w| w[0].0.id == w[1].0.id) {
             return Err(ZoneError::Duplicate(w[0].0.id, self.world.tick));
         }
         let d = &mut self.world.dynamics;
         d.clear();
+        d.insert_all(objects.iter().map(|(o, _)| *o))?;
         self.owned_slots.clear();
-        for (o, owned) in &objects {
-            d.insert(o)?;
-            self.owned_slots.push(*owned);
-        }
+        self.owned_slots.extend(objects.iter().map(|(_, owned)| *owned));
         self.stats.ghosts = objects.len() - self.owned_slots.iter().filter(|o| **o).count();
         let mut applied = 0;
         for a in actions {

@@ -103,6 +103,7 @@ if [[ $mode == zones ]]; then
         # Scenario 3: one zone on one GPU, then two zones, one per GPU (threads of one
         # process), then two zone processes over NATS.
         .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json 2>/dev/null
+        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus 1 --json 2>/dev/null
         .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus "$gpus" --json 2>/dev/null
         .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus "$gpus" --nats nats://127.0.0.1:4222 --json 2>/dev/null
     } | tee "$out/zones.jsonl" | python3 -c '
@@ -116,7 +117,9 @@ for r in rows:
     print("sim scenario %s, %d ticks, %s%s: %s, %.3f ms a tick, equal to one process: %s%s" % (
         r["scenario"], r["ticks"], r["description"], "" if z is None else " over " + z["fabric"],
         r["state_hash"], r["mean_tick_ms"], r["state_hash"] == want,
-        "" if z is None else ", %d ghost records, %.1f MB, waits %s ms" % (z["ghost_records"], z["fabric_bytes"] / 1e6, z["wait_ms"])))
+        "" if z is None else "; per zone: physics %s, overhead %s, wait %s ms a tick; %d ghost records, %.1f MB" % (
+            [round(x, 2) for x in z["physics_ms"]], [round(x, 2) for x in z["overhead_ms"]], [round(x, 2) for x in z["wait_ms"]],
+            z["ghost_records"], z["fabric_bytes"] / 1e6)))
 '
     .carry/myriad cluster --zones 2 --gpus "$gpus" --scenario 3 --ticks 100 --backend cuda --json 2>"$out/cluster.log" | tee "$out/cluster.json" || status=1
     [[ -n $nats_pid ]] && kill "$nats_pid"

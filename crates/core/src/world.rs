@@ -14,6 +14,7 @@
 
 use std::collections::HashMap;
 use std::collections::hash_map::Entry;
+use std::sync::OnceLock;
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -59,7 +60,9 @@ pub struct Dynamics {
     kind: Vec<ObjectKind>,
     action: Vec<u8>,
     flags: Vec<u8>,
-    slot_of: HashMap<EntityId, u32>,
+    /// Slot by id, built when first asked for: a zone rebuilds its world every tick
+    /// from states in id order and rarely asks, so it never pays for the map.
+    slot_of: OnceLock<HashMap<EntityId, u32>>,
     next_id: u32,
     /// Bumped by every mutation; backends use it to notice host-side changes.
     generation: u64,
@@ -174,7 +177,9 @@ impl Dynamics {
         self.kind.push(kind);
         self.action.push(0);
         self.flags.push(0);
-        self.slot_of.insert(id, slot);
+        if let Some(map) = self.slot_of.get_mut() {
+            map.insert(id, slot);
+        }
         self.generation += 1;
         self.layout_generation += 1;
         Ok(id)
@@ -183,7 +188,7 @@ impl Dynamics {
     /// Removes an object; the last object moves into its slot. Returns false if the id is
     /// unknown.
     pub fn despawn(&mut self, id: EntityId) -> bool {
-        let Some(slot) = self.slot_of.remove(&id) else {
+        let Some(slot) = self.slots_mut().remove(&id) else {
             return false;
         };
         let s = slot as usize;
@@ -197,7 +202,8 @@ impl Dynamics {
         self.action.swap_remove(s);
         self.flags.swap_remove(s);
         if s < self.id.len() {
-            self.slot_of.insert(self.id[s], slot);
+            let moved = self.id[s];
+            self.slots_mut().insert(moved, slot);
         }
         self.generation += 1;
         self.layout_generation += 1;
@@ -226,7 +232,7 @@ impl Dynamics {
     pub fn insert(&mut self, s: &ObjectState) -> Result<(), CoreError> {
         s.validate()?;
         let slot = self.id.len() as u32;
-        match self.slot_of.entry(s.id) {
+        match self.slots_mut().entry(s.id) {
             Entry::Vacant(v) if s.id.0 != u32::MAX => v.insert(slot),
             _ => return Err(CoreError::invalid("entity id", format!("{} is taken or reserved", s.id.0))),
         };
@@ -246,42 +252,64 @@ impl Dynamics {
     }
 
     /// [`Dynamics::insert`] for many objects at once, all or none: a zone rebuilds its
-    /// world from states every tick, and one pass per field beats one call per object.
+    /// world from states every tick. When the world is empty and the ids ascend (a zone's
+    /// case) no map is needed to prove them unique, and none is built.
     pub fn insert_all<I>(&mut self, states: I) -> Result<(), CoreError>
     where
         I: ExactSizeIterator<Item = ObjectState> + Clone,
     {
         let before = self.len();
         let n = states.len();
-        self.slot_of.reserve(n);
-        for (i, s) in states.clone().enumerate() {
-            let taken = s.validate().err().or_else(|| match self.slot_of.entry(s.id) {
-                Entry::Vacant(v) if s.id.0 != u32::MAX => {
-                    v.insert((before + i) as u32);
-                    None
-                }
-                _ => Some(CoreError::invalid("entity id", format!("{} is taken or reserved", s.id.0))),
-            });
-            if let Some(e) = taken {
-                // Undo the slots already claimed: all or none.
-                for s in states.take(i) {
-                    self.slot_of.remove(&s.id);
-                }
-                return Err(e);
+        let mut last: Option<EntityId> = None;
+        let mut ascending = before == 0;
+        for s in states.clone() {
+            s.validate()?;
+            if s.id.0 == u32::MAX {
+                return Err(CoreError::invalid("entity id", "u32::MAX is reserved"));
             }
+            ascending &= last.is_none_or(|l| l < s.id);
+            last = Some(s.id);
         }
-        self.id.extend(states.clone().map(|s| s.id));
-        self.pos.extend(states.clone().map(|s| s.pos));
-        self.prev.extend(states.clone().map(|s| s.prev));
-        self.half.extend(states.clone().map(|s| s.half));
-        self.radius.extend(states.clone().map(|s| s.radius));
-        self.shape.extend(states.clone().map(|s| s.shape));
-        self.kind.extend(states.clone().map(|s| s.kind));
-        self.action.extend(states.clone().map(|s| s.action));
-        self.flags.extend(states.clone().map(|s| s.flags));
-        if let Some(max) = states.map(|s| s.id.0).max() {
-            self.next_id = self.next_id.max(max + 1);
+        if !ascending {
+            let map = self.slots_mut();
+            for (i, s) in states.clone().enumerate() {
+                if let Entry::Vacant(v) = map.entry(s.id) {
+                    v.insert((before + i) as u32);
+                } else {
+                    // Undo the slots already claimed: all or none.
+                    for s in states.take(i) {
+                        map.remove(&s.id);
+                    }
+                    return Err(CoreError::invalid("entity id", format!("{} is taken", s.id.0)));
+                }
+            }
+        } else {
+            // Slots change meaning: a map built before is stale.
+            self.slot_of.take();
         }
+        self.id.reserve(n);
+        self.pos.reserve(n);
+        self.prev.reserve(n);
+        self.half.reserve(n);
+        self.radius.reserve(n);
+        self.shape.reserve(n);
+        self.kind.reserve(n);
+        self.action.reserve(n);
+        self.flags.reserve(n);
+        let mut max = self.next_id;
+        for s in states {
+            self.id.push(s.id);
+            self.pos.push(s.pos);
+            self.prev.push(s.prev);
+            self.half.push(s.half);
+            self.radius.push(s.radius);
+            self.shape.push(s.shape);
+            self.kind.push(s.kind);
+            self.action.push(s.action);
+            self.flags.push(s.flags);
+            max = max.max(s.id.0 + 1);
+        }
+        self.next_id = max;
         self.generation += 1;
         self.layout_generation += 1;
         Ok(())
@@ -299,20 +327,37 @@ impl Dynamics {
         self.kind.clear();
         self.action.clear();
         self.flags.clear();
-        self.slot_of.clear();
+        self.slot_of.take();
         self.generation += 1;
         self.layout_generation += 1;
     }
 
     /// The slot of an entity, if it exists.
     pub fn slot(&self, id: EntityId) -> Option<usize> {
-        self.slot_of.get(&id).map(|&s| s as usize)
+        self.slots().get(&id).map(|&s| s as usize)
+    }
+
+    /// The slot map, built from the ids if nobody asked since the slots last changed.
+    fn slots(&self) -> &HashMap<EntityId, u32> {
+        self.slot_of.get_or_init(|| self.id.iter().enumerate().map(|(s, id)| (*id, s as u32)).collect())
+    }
+
+    /// The slot map, to change.
+    fn slots_mut(&mut self) -> &mut HashMap<EntityId, u32> {
+        self.slots();
+        self.slot_of.get_mut().expect("built just above")
     }
 
     /// Sets the held action of an entity. Returns false if the id is unknown.
     pub fn set_action(&mut self, id: EntityId, action: Action) -> bool {
         let Some(s) = self.slot(id) else { return false };
-        self.action[s] = action.bits();
+        self.set_action_at(s, action)
+    }
+
+    /// Sets the held action of the object in `slot`. Returns false if there is none.
+    pub fn set_action_at(&mut self, slot: usize, action: Action) -> bool {
+        let Some(a) = self.action.get_mut(slot) else { return false };
+        *a = action.bits();
         self.generation += 1;
         self.action_generation += 1;
         true

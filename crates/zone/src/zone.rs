@@ -334,8 +334,12 @@ impl Zone {
         self.stats.ghosts = objects.len() - self.owned_slots.iter().filter(|o| **o).count();
         let mut applied = 0;
         for a in actions {
-            if d.slot(a.entity).is_some_and(|s| self.owned_slots[s]) {
-                d.set_action(a.entity, a.action);
+            // Slots are in id order: a search, not the id map (which would cost a map of
+            // the whole zone every tick).
+            if let Ok(s) = objects.binary_search_by_key(&a.entity, |(o, _)| o.id)
+                && self.owned_slots[s]
+            {
+                d.set_action_at(s, a.action);
                 applied += 1;
             }
         }

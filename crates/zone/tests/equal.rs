@@ -6,27 +6,15 @@
 use std::time::Duration;
 
 use myriad_core::{ActionScript, ObjectKind, ScenarioSpec, Shape, Vec3, World};
-use myriad_physics::{Backend, BackendKind, TickConstants, create_cpu_backend};
-use myriad_zone::{Fabric, MemoryFabric, RunOptions, ZoneError, ZoneId, ZoneLayout, pair_reach, run_zoned};
+use myriad_physics::TickConstants;
+use myriad_zone::{RunOptions, ZoneLayout, pair_reach, run_zoned};
 
-fn cpu(_: ZoneId) -> Result<Box<dyn Backend>, ZoneError> {
-    Ok(create_cpu_backend(BackendKind::Cpu)?)
-}
-
-fn single(world: &World, ticks: u64, script: &ActionScript) -> u64 {
-    let mut w = world.clone();
-    let mut b = create_cpu_backend(BackendKind::Cpu).unwrap();
-    let k = TickConstants::default();
-    for _ in 0..ticks {
-        script.apply(&mut w).unwrap();
-        b.step(&mut w, &k).unwrap();
-    }
-    w.state_hash()
-}
+mod common;
+use common::{clustered, cpu, memory, single};
 
 fn zoned(world: &World, k: u16, ticks: u64, script: &ActionScript) -> myriad_zone::ZonedRun {
     let layout = ZoneLayout::for_count(&world.bounds, k, pair_reach(world), 2.0).unwrap();
-    let fabrics = MemoryFabric::mesh(layout.len()).into_iter().map(|f| Box::new(f) as Box<dyn Fabric>).collect();
+    let fabrics = memory(layout.len());
     let opts = RunOptions::new(ticks, Duration::from_secs(120));
     run_zoned(world, layout, script, &TickConstants::default(), &cpu, fabrics, &opts).unwrap()
 }
@@ -60,11 +48,8 @@ fn scenario_two() {
 }
 
 #[test]
-fn clustered() {
-    let mut spec = ScenarioSpec::clustered(11);
-    spec.dynamic = 20_000;
-    spec.users = 2_000;
-    let world = spec.build().unwrap();
+fn clustered_scenario() {
+    let world = clustered(11, 20_000, 2_000, 15_000);
     let script = ActionScript::walkers(&world, 2_000, 200, 4);
     check("clustered", &world, 200, &script);
 }
@@ -105,14 +90,10 @@ fn piles_on_the_cuts() {
 /// hash differs, so the equalities above are not vacuous.
 #[test]
 fn without_reach_the_hash_differs() {
-    let mut spec = ScenarioSpec::clustered(11);
-    spec.dynamic = 5_000;
-    spec.users = 0;
-    spec.static_objects = 1_000;
-    let world = spec.build().unwrap();
+    let world = clustered(11, 5_000, 0, 1_000);
     let want = single(&world, 100, &ActionScript::default());
     let layout = ZoneLayout::for_count(&world.bounds, 4, 0.0, 2.0).unwrap();
-    let fabrics = MemoryFabric::mesh(4).into_iter().map(|f| Box::new(f) as Box<dyn Fabric>).collect();
+    let fabrics = memory(4);
     let opts = RunOptions::new(100, Duration::from_secs(60));
     let run =
         run_zoned(&world, layout, &ActionScript::default(), &TickConstants::default(), &cpu, fabrics, &opts).unwrap();

@@ -5,10 +5,13 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use myriad_core::{ActionScript, ScenarioSpec};
-use myriad_physics::{Backend, BackendKind, TickConstants, create_cpu_backend};
+use myriad_core::ActionScript;
+use myriad_physics::TickConstants;
 use myriad_zone::wire::{Message, decode, encode_border};
 use myriad_zone::{ClusterKey, Fabric, MemoryFabric, RunOptions, ZoneError, ZoneId, ZoneLayout, pair_reach, run_zoned};
+
+mod common;
+use common::{clustered, cpu, single};
 
 /// Forwards every message and adds hostile ones around it.
 struct Hostile {
@@ -59,25 +62,11 @@ impl Fabric for Hostile {
     }
 }
 
-fn cpu(_: ZoneId) -> Result<Box<dyn Backend>, ZoneError> {
-    Ok(create_cpu_backend(BackendKind::Cpu)?)
-}
-
 #[test]
 fn hostile_messages_are_rejected_counted_and_never_applied() {
-    let mut spec = ScenarioSpec::clustered(8);
-    spec.dynamic = 4_000;
-    spec.users = 400;
-    spec.static_objects = 1_500;
-    let world = spec.build().unwrap();
+    let world = clustered(8, 4_000, 400, 1_500);
     let script = ActionScript::walkers(&world, 400, 120, 5);
     let k = TickConstants::default();
-    let mut single = world.clone();
-    let mut b = create_cpu_backend(BackendKind::Cpu).unwrap();
-    for _ in 0..120 {
-        script.apply(&mut single).unwrap();
-        b.step(&mut single, &k).unwrap();
-    }
     let layout = ZoneLayout::for_count(&world.bounds, 4, pair_reach(&world), 2.0).unwrap();
     let opts = RunOptions::new(120, Duration::from_secs(60));
     let fabrics = MemoryFabric::mesh(4)
@@ -88,7 +77,7 @@ fn hostile_messages_are_rejected_counted_and_never_applied() {
         })
         .collect();
     let run = run_zoned(&world, layout, &script, &k, &cpu, fabrics, &opts).unwrap();
-    assert_eq!(run.state_hash, single.state_hash(), "nothing hostile was applied");
+    assert_eq!(run.state_hash, single(&world, 120, &script), "nothing hostile was applied");
     let mut rejected = std::collections::BTreeMap::new();
     for s in &run.stats {
         for (r, n) in &s.rejected {

@@ -5,10 +5,13 @@
 use std::time::{Duration, Instant};
 
 use myriad_core::{ActionScript, ScenarioSpec};
-use myriad_physics::{Backend, BackendKind, TickConstants, create_cpu_backend};
+use myriad_physics::TickConstants;
 use myriad_zone::{
     Fabric, NatsFabric, RunOptions, Zone, ZoneConfig, ZoneError, ZoneId, ZoneLayout, pair_reach, run_zoned,
 };
+
+mod common;
+use common::{clustered, cpu, single};
 
 fn nats_url() -> Option<String> {
     let url = std::env::var("NATS_URL").ok().filter(|u| !u.is_empty());
@@ -18,29 +21,16 @@ fn nats_url() -> Option<String> {
     url
 }
 
-fn cpu(_: ZoneId) -> Result<Box<dyn Backend>, ZoneError> {
-    Ok(create_cpu_backend(BackendKind::Cpu)?)
-}
-
 fn cluster(name: &str) -> String {
-    format!("test-{name}-{}-{}", std::process::id(), Instant::now().elapsed().as_nanos())
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos();
+    format!("test-{name}-{}-{nanos}", std::process::id())
 }
 
 #[test]
 fn nine_zones_over_nats_equal_one_process() {
     let Some(url) = nats_url() else { return };
-    let mut spec = ScenarioSpec::clustered(2);
-    spec.dynamic = 8_000;
-    spec.users = 800;
-    spec.static_objects = 3_000;
-    let world = spec.build().unwrap();
+    let world = clustered(2, 8_000, 800, 3_000);
     let script = ActionScript::walkers(&world, 800, 150, 3);
-    let mut single = world.clone();
-    let mut b = create_cpu_backend(BackendKind::Cpu).unwrap();
-    for _ in 0..150 {
-        script.apply(&mut single).unwrap();
-        b.step(&mut single, &TickConstants::default()).unwrap();
-    }
     let layout = ZoneLayout::for_count(&world.bounds, 9, pair_reach(&world), 2.0).unwrap();
     let name = cluster("nine");
     let fabrics = (0..9)
@@ -49,7 +39,7 @@ fn nine_zones_over_nats_equal_one_process() {
         .unwrap();
     let opts = RunOptions::new(150, Duration::from_secs(60));
     let run = run_zoned(&world, layout, &script, &TickConstants::default(), &cpu, fabrics, &opts).unwrap();
-    assert_eq!(run.state_hash, single.state_hash());
+    assert_eq!(run.state_hash, single(&world, 150, &script));
     assert!(run.stats.iter().all(|s| s.bytes.0 > 0 && s.bytes.1 > 0));
 }
 

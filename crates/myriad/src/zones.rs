@@ -323,13 +323,19 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
                 summary.starts.push((*epoch, *tick, state_hash.map(|h| format!("{h:016x}"))))
             }
             Event::Fault { reason, .. } => summary.faults.push(reason.clone()),
-            Event::Done { .. } => {}
+            Event::Progress { .. } | Event::Done { .. } => {}
         }
     };
     let result = supervise(&cfg, &link, &mut store, &mut restarted, &mut on_event);
     for child in &mut children {
         let _ = child.kill();
         let _ = child.wait();
+    }
+    // A cluster named by this run cannot be resumed by another: leave no bucket behind.
+    if args.cluster.is_none()
+        && let Err(e) = store.delete()
+    {
+        eprintln!("warning: {e}");
     }
     if let Some(e) = restart_error {
         return Err(e);

@@ -50,13 +50,19 @@ fn a_killed_zone_rolls_the_cluster_back_to_a_consistent_checkpoint() {
         }
     }
     let victim = victim.unwrap_or_else(|| panic!("no zone 1 pid in {log:?}"));
-    // About 100 ticks in at 60 Hz, after the start.
-    while !log.iter().any(|l| l.starts_with("Started")) && start.elapsed() < Duration::from_secs(30) {
+    // Kill it once every zone is past tick 70, so that a checkpoint after the start (30
+    // or 60) is behind everyone: the cluster prints its progress as events.
+    let past = |l: &str| {
+        l.strip_prefix("Progress { epoch: 1, tick: ")
+            .and_then(|r| r.trim_end_matches(" }").parse::<u64>().ok())
+            .is_some_and(|t| t > 70)
+    };
+    while !log.iter().any(|l| past(l)) && start.elapsed() < Duration::from_secs(120) {
         if let Ok(line) = rx.recv_timeout(Duration::from_millis(200)) {
             log.push(line);
         }
     }
-    std::thread::sleep(Duration::from_millis(1700));
+    assert!(log.iter().any(|l| past(l)), "the cluster never got past tick 70: {log:#?}");
     // SAFETY: sending a signal to a process id we started; no memory is involved.
     assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
     let out = cluster.wait_with_output().unwrap();

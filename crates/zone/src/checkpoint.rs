@@ -64,6 +64,8 @@ fn checked(key: &ClusterKey, bytes: &[u8], zone: ZoneId, tick: u64) -> Result<Ve
 /// Checkpoints in a JetStream object store bucket `myriad-<cluster>`.
 pub struct JetStreamCheckpoints {
     rt: Arc<tokio::runtime::Runtime>,
+    js: async_nats::jetstream::Context,
+    bucket: String,
     store: async_nats::jetstream::object_store::ObjectStore,
     key: ClusterKey,
 }
@@ -95,7 +97,17 @@ impl JetStreamCheckpoints {
                     .map_err(|e| ZoneError::Checkpoint(format!("creating bucket {bucket}: {e}"))),
             }
         })?;
-        Ok(JetStreamCheckpoints { rt, store, key })
+        Ok(JetStreamCheckpoints { rt, js, bucket, store, key })
+    }
+
+    /// Deletes the bucket and every checkpoint in it (a run that cannot be resumed,
+    /// such as `myriad cluster` under a name of its own, leaves nothing behind).
+    pub fn delete(self) -> Result<(), ZoneError> {
+        let (js, bucket) = (self.js, self.bucket);
+        self.rt
+            .block_on(async { js.delete_object_store(&bucket).await })
+            .map(|_| ())
+            .map_err(|e| ZoneError::Checkpoint(format!("deleting bucket {bucket}: {e}")))
     }
 }
 

@@ -55,6 +55,13 @@ pub enum Event {
         /// What happened.
         reason: String,
     },
+    /// The slowest zone's tick, about twice a second while an epoch runs.
+    Progress {
+        /// The epoch.
+        epoch: u64,
+        /// The lowest tick any zone reported.
+        tick: u64,
+    },
     /// Every zone reached the last tick.
     Done {
         /// The reassembled world's state hash.
@@ -99,12 +106,19 @@ pub fn supervise(
     let mut halting = true;
     let mut last_halt = Instant::now() - Duration::from_secs(1);
     let since = Instant::now();
+    let mut last_progress = Instant::now();
     loop {
         let next = link.rt.block_on(async { tokio::time::timeout(Duration::from_millis(100), beats.next()).await });
         if let Ok(Some(m)) = next {
             match decode(&cfg.key, &m.payload) {
                 Ok(Message::Heartbeat { run, tick, zone, state }) if (zone.0 as usize) < cfg.zones => {
-                    last.insert(zone, (Instant::now(), run, tick, state));
+                    // Heartbeats are signed but could be replayed: one that goes back in
+                    // (epoch, tick) is an old one and is ignored. A restarted zone starts
+                    // at epoch 0 and is heard again once it takes the halt.
+                    let fresh = last.get(&zone).is_none_or(|b| (run, tick) >= (b.1, b.2) || run == 0);
+                    if fresh {
+                        last.insert(zone, (Instant::now(), run, tick, state));
+                    }
                 }
                 Ok(_) | Err(_) => tracing::debug!("a message on the heartbeat subject was not a heartbeat"),
             }
@@ -164,6 +178,11 @@ pub fn supervise(
             halting = true;
             last_halt = now - Duration::from_secs(1);
             continue;
+        }
+        if now - last_progress > Duration::from_millis(500) {
+            last_progress = now;
+            let tick = last.values().filter(|b| b.1 == epoch).map(|b| b.2).min().unwrap_or(0);
+            on_event(&Event::Progress { epoch, tick });
         }
         let done = (0..cfg.zones).all(|z| {
             last.get(&ZoneId(z as u16)).is_some_and(|b| b.1 == epoch && b.3 == ZoneState::Done && b.2 == cfg.ticks)

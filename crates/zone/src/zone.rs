@@ -22,7 +22,6 @@ use std::time::{Duration, Instant};
 
 use myriad_core::{EntityId, ObjectState, ScriptedAction, Statics, World};
 use myriad_physics::{Backend, TickConstants};
-use rayon::prelude::*;
 
 use crate::error::ZoneError;
 use crate::fabric::Fabric;
@@ -166,8 +165,7 @@ impl Zone {
         self.stats.physics += physics.elapsed();
         let d = &self.world.dynamics;
         self.advanced.clear();
-        let owned = &self.owned_slots;
-        self.advanced.par_extend((0..d.len()).into_par_iter().filter(|&s| owned[s]).map(|s| d.state_of(s)));
+        self.advanced.extend((0..d.len()).filter(|&s| self.owned_slots[s]).map(|s| d.state_of(s)));
         self.stats.ticks += 1;
         self.stats.owned = self.advanced.len();
         self.stats.step += start.elapsed();
@@ -180,21 +178,14 @@ impl Zone {
         let me = self.cfg.id;
         let neighbours = self.layout.neighbours(me);
         let mut out: Vec<Vec<(ObjectState, bool)>> = vec![Vec::new(); neighbours.len()];
-        // Most objects are seen by this zone alone: finding the others is the part worth
-        // spreading over cores (order is kept, so each message lists objects by id).
-        let layout = &self.layout;
-        let routed: Vec<(ZoneId, ObjectState, bool)> = self
-            .advanced
-            .par_iter()
-            .flat_map_iter(|o| {
-                let owner = layout.zone_at(o.pos);
-                layout.seers(o.pos).filter(move |&z| z != me).map(move |z| (z, *o, z == owner))
-            })
-            .collect();
-        for (z, o, yours) in routed {
-            let i = neighbours.iter().position(|&n| n == z).ok_or(ZoneError::TooFar { id: o.id, from: me, to: z })?;
-            out[i].push((o, yours));
-            self.stats.handoffs_out += yours as u64;
+        for o in &self.advanced {
+            let owner = self.layout.zone_at(o.pos);
+            for z in self.layout.seers(o.pos).filter(|&z| z != me) {
+                let i =
+                    neighbours.iter().position(|&n| n == z).ok_or(ZoneError::TooFar { id: o.id, from: me, to: z })?;
+                out[i].push((*o, z == owner));
+                self.stats.handoffs_out += (z == owner) as u64;
+            }
         }
         let per_part = ((self.fabric.max_message() - HEADER_LEN - TAG_LEN) / RECORD_LEN).max(1);
         for (&to, objects) in neighbours.iter().zip(out) {
@@ -319,16 +310,20 @@ impl Zone {
         // Reused from tick to tick: a zone's world is rebuilt every tick.
         let objects = &mut self.scratch;
         objects.clear();
-        objects.par_extend(self.advanced.par_iter().filter_map(|o| {
-            if layout.zone_at(o.pos) == me { Some((*o, true)) } else { layout.sees(me, o.pos).then_some((*o, false)) }
-        }));
+        for o in &self.advanced {
+            if layout.zone_at(o.pos) == me {
+                objects.push((*o, true));
+            } else if layout.sees(me, o.pos) {
+                objects.push((*o, false));
+            }
+        }
         self.stats.ghosts_in += received.len() as u64;
         self.stats.handoffs_in += received.iter().filter(|r| r.1).count() as u64;
         objects.extend(received);
         // Stable sort: the advanced set and each message are runs already sorted by id,
         // which the stable sort merges instead of sorting from scratch.
-        objects.par_sort_by_key(|(o, _)| o.id);
-        if let Some(w) = objects.par_windows(2).find_any(|w| w[0].0.id == w[1].0.id) {
+        objects.sort_by_key(|(o, _)| o.id);
+        if let Some(w) = objects.windows(2).find(|w| w[0].0.id == w[1].0.id) {
             return Err(ZoneError::Duplicate(w[0].0.id, self.world.tick));
         }
         let d = &mut self.world.dynamics;

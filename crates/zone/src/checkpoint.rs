@@ -6,7 +6,7 @@
 //! objects are chunked (a zone of scenario 3 is several megabytes, over NATS' 1 MiB
 //! message limit), and the data is replicated with the NATS cluster — no SQL server
 //! becomes a dependency of every zone. Each checkpoint is a signed
-//! [`Message::Checkpoint`](crate::wire::Message::Checkpoint), so a forged or corrupted
+//! [`Message::Checkpoint`], so a forged or corrupted
 //! one is refused, never loaded.
 
 use std::collections::BTreeMap;

@@ -20,7 +20,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use myriad_core::{EntityId, ObjectState, ScriptedAction, Statics, World};
+use myriad_core::{ObjectState, ScriptedAction, Statics, World};
 use myriad_physics::{Backend, TickConstants};
 
 use crate::error::ZoneError;
@@ -344,14 +344,6 @@ impl Zone {
             }
         }
         Ok(applied)
-    }
-
-    /// The entity ids this zone owns now (advanced objects still in its region), for
-    /// routing players' actions.
-    pub fn owns(&self, id: EntityId) -> bool {
-        self.advanced
-            .binary_search_by_key(&id, |o| o.id)
-            .is_ok_and(|i| self.layout.zone_at(self.advanced[i].pos) == self.cfg.id)
     }
 }
 

@@ -81,7 +81,9 @@ impl ZoneLayout {
     /// `k` zones in the squarest grid with `k` cells (`2` is 2 × 1, `4` is 2 × 2, `9` is
     /// 3 × 3, a prime is `k × 1`).
     pub fn for_count(bounds: &Aabb, k: u16, reach: f32, max_step: f32) -> Result<ZoneLayout, ZoneError> {
-        let rows = (1..=k).filter(|r| k.is_multiple_of(*r) && r * r <= k).max().unwrap_or(1);
+        // In u32: the square of a u16 overflows.
+        let rows =
+            (1..=k).filter(|&r| k.is_multiple_of(r) && u32::from(r) * u32::from(r) <= u32::from(k)).max().unwrap_or(1);
         ZoneLayout::grid(bounds, k / rows.max(1), rows, reach, max_step)
     }
 
@@ -204,8 +206,10 @@ mod tests {
 
     #[test]
     fn grids_are_square_as_can_be() {
-        for (k, shape) in [(1, (1, 1)), (2, (2, 1)), (4, (2, 2)), (6, (3, 2)), (9, (3, 3)), (7, (7, 1))] {
-            assert_eq!(ZoneLayout::for_count(&bounds(), k, 2.0, 1.0).unwrap().shape(), shape, "{k}");
+        for (k, shape) in
+            [(1, (1, 1)), (2, (2, 1)), (4, (2, 2)), (6, (3, 2)), (9, (3, 3)), (7, (7, 1)), (400, (20, 20))]
+        {
+            assert_eq!(ZoneLayout::for_count(&bounds(), k, 0.5, 0.5).unwrap().shape(), shape, "{k}");
         }
     }
 

@@ -1,6 +1,7 @@
-//! Kill -9 of a zone process mid-run: `myriad cluster` notices, restarts it, rolls every
-//! zone back to the last checkpoint they all stored, and ends in the state hash of one
-//! process; the checkpoint it resumed from has the hash of one process at that tick.
+//! Kill -9 of a zone process mid-run, and a zone that stalls: `myriad cluster` notices
+//! (and restarts a dead one), rolls every zone back to the last checkpoint they all
+//! stored, and ends in the state hash of one process; the checkpoint it resumed from has
+//! the hash of one process at that tick.
 //! Needs `NATS_URL` (CI sets it); skips with a message without it.
 
 use std::io::{BufRead, BufReader};
@@ -17,15 +18,13 @@ fn sim_hash(ticks: u64) -> String {
     v["state_hash"].as_str().unwrap().to_string()
 }
 
-#[test]
-fn a_killed_zone_rolls_the_cluster_back_to_a_consistent_checkpoint() {
-    let Some(url) = std::env::var("NATS_URL").ok().filter(|u| !u.is_empty()) else {
-        eprintln!("skipping: NATS_URL is not set (e.g. NATS_URL=nats://127.0.0.1:4222)");
-        return;
-    };
-    let ticks = 240u64;
+/// Runs a 4-zone cluster on scenario 1 for `ticks` ticks, calls `disrupt` with zone 1's
+/// process id once every zone is past tick 70, and checks that the cluster noticed a
+/// fault, resumed from a checkpoint with one process's hash at its tick, and ended with
+/// one process's hash. Returns the faults it reported.
+fn disrupted_run(url: &str, ticks: u64, disrupt: impl FnOnce(i32)) -> Vec<String> {
     let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
-        .args(["cluster", "--json", "--nats", &url, "--zones", "4", "--scenario", "1", "--backend", "cpu"])
+        .args(["cluster", "--json", "--nats", url, "--zones", "4", "--scenario", "1", "--backend", "cpu"])
         .args(["--ticks", &ticks.to_string(), "--tick-hz", "60", "--checkpoint-every", "30", "--dead-ms", "1000"])
         .env("RUST_LOG", "warn")
         .stdout(Stdio::piped())
@@ -63,8 +62,7 @@ fn a_killed_zone_rolls_the_cluster_back_to_a_consistent_checkpoint() {
         }
     }
     assert!(log.iter().any(|l| past(l)), "the cluster never got past tick 70: {log:#?}");
-    // SAFETY: sending a signal to a process id we started; no memory is involved.
-    assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
+    disrupt(victim);
     let out = cluster.wait_with_output().unwrap();
     log.extend(rx.try_iter());
     assert!(out.status.success(), "cluster failed: {log:#?}");
@@ -78,5 +76,40 @@ fn a_killed_zone_rolls_the_cluster_back_to_a_consistent_checkpoint() {
     assert!(tick > 0 && tick.is_multiple_of(30), "resumed from a checkpoint: {v}");
     assert_eq!(resumed[2].as_str().unwrap(), sim_hash(tick), "the checkpoint is one process's state at its tick");
     assert_eq!(v["state_hash"].as_str().unwrap(), sim_hash(ticks), "the end is one process's state");
-    eprintln!("killed zone 1; {faults:?}; resumed from tick {tick}; hashes equal");
+    eprintln!("{faults:?}; resumed from tick {tick}; hashes equal");
+    faults.iter().map(|f| f.as_str().unwrap().to_string()).collect()
+}
+
+fn nats_url() -> Option<String> {
+    let url = std::env::var("NATS_URL").ok().filter(|u| !u.is_empty());
+    if url.is_none() {
+        eprintln!("skipping: NATS_URL is not set (e.g. NATS_URL=nats://127.0.0.1:4222)");
+    }
+    url
+}
+
+fn signal(pid: i32, sig: i32) {
+    // SAFETY: sending a signal to a process id we started; no memory is involved.
+    assert_eq!(unsafe { libc::kill(pid, sig) }, 0);
+}
+
+#[test]
+fn a_killed_zone_rolls_the_cluster_back_to_a_consistent_checkpoint() {
+    let Some(url) = nats_url() else { return };
+    let faults = disrupted_run(&url, 240, |pid| signal(pid, libc::SIGKILL));
+    assert!(faults.iter().any(|f| f == "zone 1 exited"), "{faults:?}");
+}
+
+/// A zone that stops answering without exiting (SIGSTOP for 2.5 s, then SIGCONT) is
+/// declared silent after `--dead-ms`; the cluster rolls back, and the zone, once it runs
+/// again, takes the halt and the new start like the others.
+#[test]
+fn a_stalled_zone_rolls_the_cluster_back_too() {
+    let Some(url) = nats_url() else { return };
+    let faults = disrupted_run(&url, 240, |pid| {
+        signal(pid, libc::SIGSTOP);
+        std::thread::sleep(Duration::from_millis(2500));
+        signal(pid, libc::SIGCONT);
+    });
+    assert!(faults.iter().any(|f| f.starts_with("zone 1 silent")), "{faults:?}");
 }

@@ -385,7 +385,16 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
         }
         KIND_CHECKPOINT => {
             none(aux0 == 0 && aux1 == 0 && from == to, "checkpoint header")?;
-            let objects = records().map(|r| r.map(|(o, _)| o)).collect::<Result<Vec<_>, _>>()?;
+            // A checkpoint hands nothing to anyone: the hand-off bit must be clear (one
+            // encoding per message; found by fuzzing).
+            let objects = records()
+                .enumerate()
+                .map(|(index, r)| match r {
+                    Ok((_, true)) => Err(WireError::Record { index, reason: "hand-off bit in a checkpoint".into() }),
+                    Ok((o, false)) => Ok(o),
+                    Err(e) => Err(e),
+                })
+                .collect::<Result<Vec<_>, _>>()?;
             Ok(Message::Checkpoint { run, tick, zone: from, objects })
         }
         KIND_HEARTBEAT => {
@@ -462,6 +471,10 @@ mod tests {
             assert_eq!(decode(&key(), &encode_control(&key(), &m).unwrap()).unwrap(), m);
         }
         assert!(encode_control(&key(), &Message::Border(message())).is_err());
+        // A checkpoint record with the hand-off bit is refused, not silently cleared.
+        let mut raw = c[..c.len() - TAG_LEN].to_vec();
+        raw[HEADER_LEN + 7] |= YOURS;
+        assert!(matches!(decode(&key(), &sign(&key(), &raw)), Err(WireError::Record { index: 0, .. })));
     }
 
     #[test]

@@ -165,23 +165,12 @@ impl Dynamics {
             return Err(CoreError::invalid("position", format!("{pos}")));
         }
         let id = EntityId(self.next_id);
-        self.next_id =
-            self.next_id.checked_add(1).ok_or_else(|| CoreError::invalid("entity id", "all 2^32 ids are used"))?;
-        let slot = self.id.len() as u32;
-        self.id.push(id);
-        self.pos.push(pos);
-        self.prev.push(pos);
-        self.half.push(shape.half_extents());
-        self.radius.push(shape.radius());
-        self.shape.push(shape.kind());
-        self.kind.push(kind);
-        self.action.push(0);
-        self.flags.push(0);
-        if let Some(map) = self.slot_of.get_mut() {
-            map.insert(id, slot);
+        if id.0 == u32::MAX {
+            return Err(CoreError::invalid("entity id", "all 2^32 ids are used"));
         }
-        self.generation += 1;
-        self.layout_generation += 1;
+        let (half, radius) = (shape.half_extents(), shape.radius());
+        let state = ObjectState { id, kind, shape: shape.kind(), half, radius, pos, prev: pos, action: 0, flags: 0 };
+        self.insert_all(std::iter::once(state))?;
         Ok(id)
     }
 
@@ -230,25 +219,7 @@ impl Dynamics {
     /// `u32::MAX` (which would leave no id for [`Dynamics::spawn`]), or when the shape,
     /// the positions, the action or the flags are not valid.
     pub fn insert(&mut self, s: &ObjectState) -> Result<(), CoreError> {
-        s.validate()?;
-        let slot = self.id.len() as u32;
-        match self.slots_mut().entry(s.id) {
-            Entry::Vacant(v) if s.id.0 != u32::MAX => v.insert(slot),
-            _ => return Err(CoreError::invalid("entity id", format!("{} is taken or reserved", s.id.0))),
-        };
-        self.id.push(s.id);
-        self.pos.push(s.pos);
-        self.prev.push(s.prev);
-        self.half.push(s.half);
-        self.radius.push(s.radius);
-        self.shape.push(s.shape);
-        self.kind.push(s.kind);
-        self.action.push(s.action);
-        self.flags.push(s.flags);
-        self.next_id = self.next_id.max(s.id.0 + 1);
-        self.generation += 1;
-        self.layout_generation += 1;
-        Ok(())
+        self.insert_all(std::iter::once(*s))
     }
 
     /// [`Dynamics::insert`] for many objects at once, all or none: a zone rebuilds its

@@ -101,6 +101,9 @@ pub struct ClusterArgs {
     /// A zone whose heartbeat is older than this many ms is dead.
     #[arg(long, default_value_t = 1500)]
     pub dead_ms: u64,
+    /// Serve each zone's Prometheus metrics on 127.0.0.1:(this port + zone index).
+    #[arg(long)]
+    pub metrics_base_port: Option<u16>,
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
@@ -177,7 +180,7 @@ pub fn run_zone(args: ZoneArgs) -> Result<()> {
 }
 
 /// The flags of `myriad cluster` that zones do not take.
-const CLUSTER_ONLY: &[&str] = &["--nats", "--cluster", "--gpus", "--dead-ms"];
+const CLUSTER_ONLY: &[&str] = &["--nats", "--cluster", "--gpus", "--dead-ms", "--metrics-base-port"];
 
 /// The command line of the cluster, less its own flags: what every zone gets.
 fn zone_flags() -> Vec<String> {
@@ -268,15 +271,29 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     let flags = zone_flags();
     let spawn = |z: usize| -> Result<Child> {
-        let child = Command::new(&exe)
+        let metrics = args.metrics_base_port.map(|p| format!("127.0.0.1:{}", u32::from(p) + z as u32));
+        let mut command = Command::new(&exe);
+        command
             .arg("zone")
             .args(["--cluster", &cluster, "--zone", &z.to_string(), "--nats", &url])
             .args(["--gpu", &(z % args.gpus.max(1)).to_string()])
+            .args(metrics.iter().flat_map(|m| ["--metrics", m.as_str()]))
             .args(&flags)
             .env(KEY_ENV, &secret)
-            .stdin(Stdio::null())
-            .spawn()
-            .with_context(|| format!("starting zone {z}"))?;
+            .stdin(Stdio::null());
+        #[cfg(target_os = "linux")]
+        {
+            use std::os::unix::process::CommandExt;
+            // SAFETY: prctl is async-signal-safe and touches no memory of the parent; it
+            // makes a zone die with its cluster instead of waiting forever as an orphan.
+            unsafe {
+                command.pre_exec(|| {
+                    libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                    Ok(())
+                });
+            }
+        }
+        let child = command.spawn().with_context(|| format!("starting zone {z}"))?;
         eprintln!("zone {z} pid {}", child.id());
         Ok(child)
     };

@@ -113,3 +113,40 @@ fn a_stalled_zone_rolls_the_cluster_back_too() {
     });
     assert!(faults.iter().any(|f| f.starts_with("zone 1 silent")), "{faults:?}");
 }
+
+/// Each zone serves its counters on its Prometheus endpoint while the cluster runs.
+#[test]
+fn zones_serve_their_metrics() {
+    let Some(url) = nats_url() else { return };
+    let port = {
+        // A free pair of ports: bind two, note them, let them go.
+        let a = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        a.local_addr().unwrap().port()
+    };
+    let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["cluster", "--json", "--nats", url.as_str(), "--zones", "2", "--scenario", "1", "--backend", "cpu"])
+        .args(["--ticks", "240", "--tick-hz", "60", "--metrics-base-port", &port.to_string()])
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    let mut page = String::new();
+    while start.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(500));
+        let Ok(mut s) = std::net::TcpStream::connect(("127.0.0.1", port)) else { continue };
+        use std::io::{Read, Write};
+        s.write_all(b"GET /metrics HTTP/1.0\r\nHost: x\r\n\r\n").unwrap();
+        page.clear();
+        let _ = s.read_to_string(&mut page);
+        if page.contains("myriad_zone_ticks_total{zone=\"0\"}") {
+            break;
+        }
+    }
+    // The run ends by itself (and stops its zones).
+    assert!(cluster.wait().unwrap().success());
+    for name in ["myriad_zone_owned_objects", "myriad_zone_ghosts_in_total", "myriad_zone_wait_seconds_total"] {
+        assert!(page.contains(&format!("{name}{{zone=\"0\"}}")), "{name} missing from {page}");
+    }
+}

@@ -89,10 +89,18 @@ struct Summary {
     static_prims: [usize; 3],
     total_ms: f64,
     mean_tick_ms: f64,
-    static_pairs: u64,
-    dynamic_pairs: u64,
-    static_contacts: u64,
-    dynamic_contacts: u64,
+    /// Absent for a zoned run: zones count their ghosts' pairs too, so sums are not comparable.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    static_pairs: Option<u64>,
+    /// Absent for a zoned run: zones count their ghosts' pairs too, so sums are not comparable.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    dynamic_pairs: Option<u64>,
+    /// Absent for a zoned run: zones count their ghosts' pairs too, so sums are not comparable.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    static_contacts: Option<u64>,
+    /// Absent for a zoned run: zones count their ghosts' pairs too, so sums are not comparable.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    dynamic_contacts: Option<u64>,
     /// Scripted actions applied.
     actions: usize,
     state_hash: String,
@@ -138,10 +146,10 @@ pub fn run(args: SimArgs) -> Result<()> {
         static_prims: world.statics.prims_by_shape(),
         total_ms,
         mean_tick_ms: if args.ticks > 0 { total_ms / args.ticks as f64 } else { 0.0 },
-        static_pairs: pairs[0],
-        dynamic_pairs: pairs[1],
-        static_contacts: pairs[2],
-        dynamic_contacts: pairs[3],
+        static_pairs: Some(pairs[0]),
+        dynamic_pairs: Some(pairs[1]),
+        static_contacts: Some(pairs[2]),
+        dynamic_contacts: Some(pairs[3]),
         actions,
         state_hash: format!("{:016x}", world.state_hash()),
         zoned: None,
@@ -160,9 +168,11 @@ fn print(args: &SimArgs, s: &Summary) -> Result<()> {
             s.dynamic, s.users, s.static_objects, s.static_prims[0], s.static_prims[1], s.static_prims[2]
         );
         println!("ticks        {} in {:.1} ms ({:.3} ms a tick)", s.ticks, s.total_ms, s.mean_tick_ms);
-        if s.zoned.is_none() {
-            println!("pairs        {} static, {} dynamic (all ticks)", s.static_pairs, s.dynamic_pairs);
-            println!("contacts     {} static, {} dynamic (all ticks)", s.static_contacts, s.dynamic_contacts);
+        if let (Some(sp), Some(dp), Some(sc), Some(dc)) =
+            (s.static_pairs, s.dynamic_pairs, s.static_contacts, s.dynamic_contacts)
+        {
+            println!("pairs        {sp} static, {dp} dynamic (all ticks)");
+            println!("contacts     {sc} static, {dc} dynamic (all ticks)");
         }
         if args.actions.is_some() {
             println!("actions      {} applied from the script", s.actions);
@@ -260,10 +270,10 @@ fn run_zoned(
         total_ms,
         mean_tick_ms: total_ms / ticks,
         // Pair counts are per zone and include ghosts' pairs: not comparable, not shown.
-        static_pairs: 0,
-        dynamic_pairs: 0,
-        static_contacts: 0,
-        dynamic_contacts: 0,
+        static_pairs: None,
+        dynamic_pairs: None,
+        static_contacts: None,
+        dynamic_contacts: None,
         actions: run.actions,
         state_hash: format!("{:016x}", run.state_hash),
         zoned: Some(zoned),

@@ -36,6 +36,7 @@
 //! username and address are logged.
 
 use std::collections::HashMap;
+use std::hash::Hash;
 use std::net::{IpAddr, Ipv6Addr, SocketAddr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -316,79 +317,67 @@ impl HashGate {
 /// refused with "busy" before any hashing.
 pub(crate) const ACCOUNT_CHECKS_IN_FLIGHT: u32 = 2;
 
-/// Password checks in flight per (case-folded) account.
-#[derive(Debug, Default)]
-pub(crate) struct AccountsInFlight {
-    counts: Mutex<HashMap<String, u32>>,
+/// Things in flight per key (password checks per account, connections per address),
+/// each counted by a slot that gives its place back on drop.
+#[derive(Debug)]
+pub(crate) struct InFlight<K> {
+    counts: Mutex<HashMap<K, u32>>,
 }
 
-/// One check counted against its account; released on drop.
-pub(crate) struct AccountSlot {
-    owner: Arc<AccountsInFlight>,
-    account: String,
+impl<K> Default for InFlight<K> {
+    fn default() -> Self {
+        InFlight { counts: Mutex::default() }
+    }
 }
 
-impl AccountsInFlight {
-    /// A slot for one more check of `account`, unless `cap` are in flight.
-    pub fn try_take(self: &Arc<Self>, account: &str, cap: u32) -> Option<AccountSlot> {
-        let account = account.to_ascii_lowercase();
+/// One thing counted against its key; released on drop.
+pub(crate) struct InFlightSlot<K: Eq + Hash> {
+    owner: Arc<InFlight<K>>,
+    key: K,
+}
+
+impl<K: Eq + Hash + Clone> InFlight<K> {
+    /// A slot for one more under `key`, unless `cap` are in flight.
+    fn take(self: &Arc<Self>, key: K, cap: u32) -> Option<InFlightSlot<K>> {
         let mut map = self.counts.lock().unwrap_or_else(|p| p.into_inner());
-        let n = map.entry(account.clone()).or_insert(0);
+        let n = map.entry(key.clone()).or_insert(0);
         if *n >= cap {
             return None;
         }
         *n += 1;
-        Some(AccountSlot { owner: self.clone(), account })
+        Some(InFlightSlot { owner: self.clone(), key })
     }
 }
 
-impl Drop for AccountSlot {
+impl<K: Eq + Hash> Drop for InFlightSlot<K> {
     fn drop(&mut self) {
         let mut map = self.owner.counts.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(n) = map.get_mut(&self.account) {
+        if let Some(n) = map.get_mut(&self.key) {
             *n -= 1;
             if *n == 0 {
-                map.remove(&self.account);
+                map.remove(&self.key);
             }
         }
+    }
+}
+
+/// Password checks in flight per (case-folded) account.
+pub(crate) type AccountsInFlight = InFlight<String>;
+
+impl AccountsInFlight {
+    /// A slot for one more check of `account`, unless `cap` are in flight.
+    pub fn try_take(self: &Arc<Self>, account: &str, cap: u32) -> Option<InFlightSlot<String>> {
+        self.take(account.to_ascii_lowercase(), cap)
     }
 }
 
 /// Login connections in flight per client address (see [`limit_key`]).
-#[derive(Debug, Default)]
-pub(crate) struct ConnectionCounts {
-    per_addr: Mutex<HashMap<IpAddr, u32>>,
-}
-
-/// One connection counted against its address; released on drop.
-pub(crate) struct AddrSlot {
-    counts: Arc<ConnectionCounts>,
-    addr: IpAddr,
-}
+pub(crate) type ConnectionCounts = InFlight<IpAddr>;
 
 impl ConnectionCounts {
     /// A slot for one more connection from `ip`, unless it already holds `cap`.
-    pub fn try_take(self: &Arc<Self>, ip: IpAddr, cap: u32) -> Option<AddrSlot> {
-        let addr = limit_key(ip);
-        let mut map = self.per_addr.lock().unwrap_or_else(|p| p.into_inner());
-        let n = map.entry(addr).or_insert(0);
-        if *n >= cap {
-            return None;
-        }
-        *n += 1;
-        Some(AddrSlot { counts: self.clone(), addr })
-    }
-}
-
-impl Drop for AddrSlot {
-    fn drop(&mut self) {
-        let mut map = self.counts.per_addr.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(n) = map.get_mut(&self.addr) {
-            *n -= 1;
-            if *n == 0 {
-                map.remove(&self.addr);
-            }
-        }
+    pub fn try_take(self: &Arc<Self>, ip: IpAddr, cap: u32) -> Option<InFlightSlot<IpAddr>> {
+        self.take(limit_key(ip), cap)
     }
 }
 

@@ -9,7 +9,8 @@
 #   scripts/flood-figures.sh SERVER_BINARY FLOOD_BINARY OUT_DIR [MODE...]
 #
 # SERVER_BINARY serves (for a "before" figure, an older build); FLOOD_BINARY must have
-# `myriad flood`. LOGIN_VERSION=1 for a server that predates login version 2. Everything is bounded: each attack runs --duration seconds.
+# `myriad flood`. SERVE_ARGS adds flags to `myriad serve` (e.g. "--set receive_thread=false").
+# Mode `busy` is a control: a thread spinning on one core, sending nothing. LOGIN_VERSION=1 for a server that predates login version 2. Everything is bounded: each attack runs --duration seconds.
 set -euo pipefail
 server_bin=$1 flood_bin=$2 out=$3
 shift 3
@@ -23,7 +24,7 @@ port_udp=17777 port_login=17778 port_metrics=19100
 
 for mode in $modes; do
   "$server_bin" serve --data-dir "$data" --backend cpu --udp 127.0.0.1:$port_udp \
-    --login 127.0.0.1:$port_login --metrics 127.0.0.1:$port_metrics \
+    --login 127.0.0.1:$port_login --metrics 127.0.0.1:$port_metrics ${SERVE_ARGS:-} \
     >"$out/serve-$mode.log" 2>&1 &
   server=$!
   for _ in $(seq 100); do

@@ -40,6 +40,10 @@ pub enum Mode {
     /// Wrong passwords for --user from --source, --count times (then the probe shows
     /// whether the owner can still log in from elsewhere).
     Lockout,
+    /// Not an attack: a control. One thread spins on a core for --duration and sends
+    /// nothing, so the figures show what a flooder's own CPU use costs a server that
+    /// shares the machine's cores with it, apart from what its datagrams cost.
+    Busy,
 }
 
 /// Arguments of `myriad flood`.
@@ -223,6 +227,20 @@ async fn attack(args: FloodArgs, cc: ClientConfig, udp_addr: SocketAddr) -> Resu
                 "sent": r.sent, "send_errors": r.send_errors, "replies": r.replies,
                 "per_s": r.rate().round(), "seconds": r.seconds,
             })
+        }
+        Mode::Busy => {
+            let spun = tokio::task::spawn_blocking(move || {
+                let start = Instant::now();
+                let mut x = 0u64;
+                while start.elapsed() < duration {
+                    for _ in 0..10_000 {
+                        x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+                    }
+                }
+                start.elapsed().as_secs_f64()
+            })
+            .await?;
+            serde_json::json!({ "spun_s": (spun * 100.0).round() / 100.0 })
         }
         Mode::MaxSeq => {
             let creds = Credentials { username: args.user.clone(), password: args.password.clone() };

@@ -153,6 +153,19 @@ impl Endpoint {
         self.stats
     }
 
+    /// A second handle on the same socket, with its own batch headers and counters, so
+    /// that one thread can receive while another sends (the kernel allows both at
+    /// once on one socket). It shares the socket's non-blocking mode.
+    pub fn try_clone(&self) -> io::Result<Endpoint> {
+        Ok(Endpoint {
+            socket: self.socket.try_clone()?,
+            local: self.local,
+            buffers: self.buffers,
+            batcher: Native::new(self.batcher.batch()),
+            stats: EndpointStats::default(),
+        })
+    }
+
     /// The underlying socket (for polling readiness, for example).
     pub fn socket(&self) -> &UdpSocket {
         &self.socket
@@ -197,6 +210,29 @@ mod tests {
             got.extend(batch.iter().map(|(a, d)| (a, d.to_vec())));
         }
         got
+    }
+
+    #[test]
+    fn a_clone_receives_on_another_thread_while_the_original_sends() {
+        let mut server = Endpoint::bind(local()).unwrap();
+        let mut receiver = server.try_clone().unwrap();
+        assert_eq!(receiver.local_addr(), server.local_addr());
+        let mut client = Endpoint::bind(local()).unwrap();
+        let to_server = server.local_addr();
+        let reader = std::thread::spawn(move || {
+            let mut batch = RecvBatch::new(64);
+            let got = drain(&mut receiver, &mut batch, 20);
+            (got.len(), receiver.stats().received)
+        });
+        let payloads: Vec<Vec<u8>> = (0..20u8).map(|i| vec![i; 8]).collect();
+        let out: Vec<(SocketAddr, &[u8])> = payloads.iter().map(|d| (to_server, &d[..])).collect();
+        assert_eq!(client.send_batch(&out).unwrap(), 20);
+        assert_eq!(reader.join().unwrap(), (20, 20), "the clone took every datagram and counted them itself");
+        // The original still sends from the same address.
+        assert_eq!(server.send_batch(&[(client.local_addr(), b"back")]).unwrap(), 1);
+        let mut batch = RecvBatch::new(4);
+        assert_eq!(drain(&mut client, &mut batch, 1), vec![(to_server, b"back".to_vec())]);
+        assert_eq!(server.stats().received, 0, "counters are per handle");
     }
 
     #[test]

@@ -102,8 +102,13 @@ pub struct ServerConfig {
     /// Datagrams per session per tick from any other address (address migration, the
     /// first Ready) that may reach the tag check.
     pub receive_other_address: u16,
-    /// Share of the nominal tick period the receive stage may take, in percent.
+    /// Share of the nominal tick period the receive stage may take, in percent, when
+    /// the tick receives itself (`receive_thread = false`).
     pub receive_time_percent: u8,
+    /// Receive and gate datagrams on a thread of their own, at the lowest priority, so
+    /// that a flood costs the tick nothing but the tag checks the budget allows
+    /// (`crate::receiver`). Off: the tick receives, within `receive_time_percent`.
+    pub receive_thread: bool,
     /// Password checks that may wait for a hashing thread; beyond that a login is
     /// refused at once with "busy, retry".
     pub login_queue: usize,
@@ -173,6 +178,7 @@ impl Default for ServerConfig {
             receive_per_session: 8,
             receive_other_address: 2,
             receive_time_percent: 25,
+            receive_thread: true,
             login_queue: 32,
             login_queue_deadline_ms: 1500,
             login_connections_per_addr: 16,
@@ -283,6 +289,17 @@ impl ServerConfig {
         self.validate_abuse_limits()?;
         self.validate_limits()?;
         self.physics().validate().map_err(|e| ConfigError::Value { key: "physics".into(), reason: e.to_string() })
+    }
+
+    /// The receive gate's limits (`receive_*` keys). The time share is of the nominal
+    /// period, so a dilated tick does not receive for longer.
+    pub(crate) fn receive_limits(&self) -> crate::gate::ReceiveLimits {
+        let nominal = std::time::Duration::from_secs_f64(1.0 / f64::from(self.tick_rate));
+        crate::gate::ReceiveLimits {
+            per_session: self.receive_per_session,
+            other_address: self.receive_other_address,
+            time: nominal.mul_f64(f64::from(self.receive_time_percent) / 100.0),
+        }
     }
 
     /// UDP sockets to open: `udp_sockets`, or one per core (at most 8) when it is 0.

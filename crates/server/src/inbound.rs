@@ -10,71 +10,29 @@
 //!
 //! # The receive budget
 //!
-//! Every datagram that names a live session costs a Poly1305 check, and the session id
-//! travels in clear, so anyone can make the server pay for one with a single datagram.
-//! The work is therefore bounded **before any cryptography**:
-//!
-//! - per session and per tick, at most [`ReceiveLimits::per_session`] datagrams from the
-//!   session's own address reach the tag check, and at most
-//!   [`ReceiveLimits::other_address`] from any other address (address migration, or the
-//!   first datagram before the address is known). Excess is dropped and counted
-//!   (`myriad_packets_dropped_total{reason="over_budget"|"other_address"}`). The two
-//!   budgets are separate so that a stranger flooding a player's session id from
-//!   elsewhere cannot crowd out the player's own datagrams.
-//! - per tick, receiving stops at a deadline ([`ReceiveLimits::time`]); what is left
-//!   stays in the socket buffer for the next tick (the kernel drops what overflows). A
-//!   flood of garbage, which costs no cryptography, then costs at most that much time.
+//! Every datagram passes the [gate](crate::gate) before its tag check: per session and
+//! per tick at most a few datagrams reach the cryptography. A transport that gates on
+//! its own thread ([`crate::receiver`]) hands over only what passed; otherwise the gate
+//! runs here, and receiving also stops at a deadline ([`ReceiveLimits::time`]); what is
+//! left stays in the socket buffer for the next tick (the kernel drops what
+//! overflows). A flood of garbage, which costs no cryptography, then costs at most that
+//! much of the tick.
 
 use std::net::SocketAddr;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use myriad_core::{Action, World};
-use myriad_protocol::{ClientMessage, Direction, ErrorClass, MAX_DATAGRAM, ServerInfo, ServerMessage, peek_header};
+use myriad_protocol::{ClientMessage, Direction, ErrorClass, ServerInfo, ServerMessage, peek_header};
 
+use crate::gate::Gate;
+#[cfg(doc)]
+use crate::gate::ReceiveLimits;
 use crate::session::{Sessions, missing_entity};
 use crate::transport::Transport;
 
 /// Receive batches per tick at most, so a flood cannot starve the tick; what is left
 /// waits for the next one.
 const MAX_BATCHES: usize = 64;
-
-/// How much receive work one tick may do; see the module docs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct ReceiveLimits {
-    /// Datagrams per session per tick from the session's own address that may reach
-    /// the tag check.
-    pub per_session: u16,
-    /// Datagrams per session per tick from any other address that may reach the tag
-    /// check.
-    pub other_address: u16,
-    /// Longest a tick's receive may run; checked between batches.
-    pub time: Duration,
-}
-
-/// One session's receive budget in the current tick.
-#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct ReceiveBudget {
-    tick: u64,
-    own: u16,
-    other: u16,
-}
-
-impl ReceiveBudget {
-    /// Spends one datagram of tick `tick`'s budget (from the session's own address or
-    /// another); false when that budget is spent.
-    pub fn take(&mut self, tick: u64, own_address: bool, limits: &ReceiveLimits) -> bool {
-        if self.tick != tick {
-            *self = ReceiveBudget { tick, own: 0, other: 0 };
-        }
-        let (used, limit) =
-            if own_address { (&mut self.own, limits.per_session) } else { (&mut self.other, limits.other_address) };
-        if *used >= limit {
-            return false;
-        }
-        *used += 1;
-        true
-    }
-}
 
 /// What one tick's receive did.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
@@ -94,35 +52,52 @@ pub(crate) struct InboundReport {
     pub leaving: Vec<u64>,
 }
 
-/// Receives what is queued and applies it, within `limits`; see the module docs.
+/// Receives what is queued and applies it, gating it here unless the transport did;
+/// see the module docs.
 pub(crate) fn receive(
     transport: &mut dyn Transport,
     sessions: &mut Sessions,
     world: &mut World,
     info: ServerInfo,
-    limits: &ReceiveLimits,
+    gate: &mut Gate,
     now: Instant,
 ) -> InboundReport {
     let mut report = InboundReport::default();
-    let ctx = Ctx { info, limits, tick: world.tick, now };
+    let gated = transport.gates();
+    if gated {
+        transport.publish(world.tick, sessions.view());
+    }
+    let mut ctx = Ctx { info, gate: (!gated).then_some(gate), tick: world.tick, now };
     for _ in 0..MAX_BATCHES {
-        if now.elapsed() >= limits.time {
+        if let Some(gate) = &ctx.gate
+            && now.elapsed() >= gate.limits().time
+        {
             report.out_of_time = true;
             metrics::counter!("myriad_receive_out_of_time_total").increment(1);
             break;
         }
-        let mut each = |from: SocketAddr, bytes: &mut [u8]| handle(sessions, world, &ctx, &mut report, from, bytes);
+        let mut each = |from: SocketAddr, bytes: &mut [u8]| handle(sessions, world, &mut ctx, &mut report, from, bytes);
         match transport.receive(&mut each) {
             Ok(0) => break,
-            Ok(n) => {
+            Ok(n) if !gated => {
                 metrics::counter!("myriad_datagrams_received_total").increment(n as u64);
                 report.received += n as u64;
             }
+            Ok(_) => {}
             Err(e) => {
                 tracing::warn!(error = %e, "receive failed");
                 break;
             }
         }
+        if gated {
+            // A gating transport hands over everything it has in one call.
+            break;
+        }
+    }
+    if gated {
+        let counts = transport.gate_counts();
+        report.received = counts.taken;
+        report.over_budget = counts.over_budget;
     }
     report
 }
@@ -130,7 +105,8 @@ pub(crate) fn receive(
 /// What every datagram of one receive shares.
 struct Ctx<'a> {
     info: ServerInfo,
-    limits: &'a ReceiveLimits,
+    /// The gate, when this receive gates (the transport did not).
+    gate: Option<&'a mut Gate>,
     tick: u64,
     now: Instant,
 }
@@ -138,34 +114,36 @@ struct Ctx<'a> {
 fn handle(
     sessions: &mut Sessions,
     world: &mut World,
-    ctx: &Ctx<'_>,
+    ctx: &mut Ctx<'_>,
     report: &mut InboundReport,
     from: SocketAddr,
     bytes: &mut [u8],
 ) {
-    let header = match peek_header(bytes, Direction::ClientToServer) {
-        Ok(h) => h,
-        Err(_) if bytes.len() > MAX_DATAGRAM => {
-            dropped("oversized");
-            return;
-        }
-        Err(_) => {
-            dropped("malformed");
-            return;
-        }
+    let session_id = match ctx.gate.as_deref_mut() {
+        // The gate is passed before the tag check: past it, a datagram costs a table
+        // lookup, never a Poly1305 computation.
+        Some(gate) => match gate.admit(&*sessions, ctx.tick, from, bytes) {
+            Ok(id) => id,
+            Err(refusal) => {
+                report.over_budget += u64::from(refusal.over_budget());
+                refusal.count();
+                return;
+            }
+        },
+        // Gated on the receiver thread already; the header was checked there.
+        None => match peek_header(bytes, Direction::ClientToServer) {
+            Ok(h) => h.session_id,
+            Err(_) => {
+                dropped("malformed");
+                return;
+            }
+        },
     };
-    let Some(p) = sessions.by_session_mut(header.session_id) else {
+    // With a receiver thread the session may have left since its view was published.
+    let Some(p) = sessions.by_session_mut(session_id) else {
         dropped("unknown_session");
         return;
     };
-    // The budget is spent before the tag check: past it, a datagram costs a table
-    // lookup, never a Poly1305 computation.
-    let own_address = p.addr == Some(from);
-    if !p.budget.take(ctx.tick, own_address, ctx.limits) {
-        report.over_budget += 1;
-        dropped(if own_address { "over_budget" } else { "other_address" });
-        return;
-    }
     report.tag_checks += 1;
     let opened = match p.opener.open_with(bytes, ClientMessage::decode_body) {
         Ok(o) => o,
@@ -178,11 +156,7 @@ fn handle(
             return;
         }
     };
-    // Authenticated: the sender holds the session key, so its address is the player's
-    // (this also follows a client whose NAT mapping changed).
-    p.addr = Some(from);
     p.last_heard = ctx.now;
-    let session_id = header.session_id;
     let reply = match opened.message {
         ClientMessage::Action(a) => {
             if p.accept_frame(a.client_frame) {
@@ -204,6 +178,10 @@ fn handle(
             None
         }
     };
+    // Authenticated: the sender holds the session key, so its address is the player's
+    // (this also follows a client whose NAT mapping changed). Set before the reply is
+    // queued, which goes to the player's address.
+    sessions.set_address(session_id, from);
     if let Some(reply) = reply {
         sessions.queue_message_to(session_id, &reply);
     }

@@ -39,9 +39,11 @@
 pub mod config;
 pub mod dilation;
 pub mod error;
+mod gate;
 mod inbound;
 pub mod login;
 pub mod outbound;
+pub mod receiver;
 pub mod scripted;
 mod session;
 pub mod stages;
@@ -205,6 +207,13 @@ impl ServerHandle {
             shared: shared.clone(),
         });
         runtime.spawn(service.serve(listener));
+        let transport: Box<dyn transport::Transport> = if config.receive_thread {
+            let threaded = receiver::ThreadedUdp::start(endpoints, config.receive_limits())
+                .map_err(|e| ServerError::io("starting the receive thread", e))?;
+            Box::new(threaded)
+        } else {
+            Box::new(transport::UdpTransport::group(endpoints))
+        };
         let (ready, backend_result) = std::sync::mpsc::sync_channel(1);
         let map_id = prepared.map_id;
         let world = prepared.world;
@@ -225,7 +234,6 @@ impl ServerHandle {
                         return;
                     }
                 };
-                let transport = Box::new(transport::UdpTransport::group(endpoints));
                 let tick_loop = tick::TickLoop::builder(tick_config, world, backend, transport)
                     .persister(Box::new(persister_for_tick), map_id)
                     .commands(receiver)
@@ -408,7 +416,7 @@ const BLOCKING_THREAD_NICE: i32 = 19;
 /// Sets the calling thread's nice value (Linux: nice values are per thread; lowering
 /// one's own priority needs no privilege). Failure only costs the tick its head start,
 /// so it is logged, not fatal.
-fn set_thread_nice(nice: i32) {
+pub(crate) fn set_thread_nice(nice: i32) {
     #[cfg(target_os = "linux")]
     {
         // SAFETY: a plain system call on the calling thread (`gettid` names it).

@@ -13,6 +13,7 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use myriad_core::{EntityId, ObjectKind, Shape, Vec3, World};
@@ -22,7 +23,7 @@ use myriad_protocol::{DisconnectReason, Opener, ServerMessage, ServerSession, Se
 use myriad_store::{MapId, PlayerState, UserId};
 use ring::rand::{SecureRandom, SystemRandom};
 
-use crate::inbound::ReceiveBudget;
+use crate::gate::{SessionAddresses, SessionView};
 use crate::world::{clamp_into_world, shape_desc, spawn_point, store_shape};
 
 /// The default player shape (a person-sized capsule).
@@ -53,14 +54,14 @@ pub(crate) struct Player {
     /// Interest state and the sealer of what the server sends.
     pub view: Subscriber,
     /// Where the last authenticated datagram came from; nothing is sent before that.
+    /// Only [`Sessions::set_address`] changes it once the player is in the table (the
+    /// published [`SessionView`] follows it).
     pub addr: Option<SocketAddr>,
     /// The client asked for state updates.
     pub ready: bool,
     pub last_heard: Instant,
     /// Newest client frame applied (actions of older frames are ignored).
     last_frame: Option<u32>,
-    /// What this tick's receive may still spend on this session's datagrams.
-    pub budget: ReceiveBudget,
 }
 
 impl Player {
@@ -101,6 +102,8 @@ pub(crate) struct Sessions {
     rng: SystemRandom,
     max_players: usize,
     map_id: MapId,
+    /// A session joined, left, or changed address since the last [`Sessions::view`].
+    view_stale: bool,
 }
 
 /// Counts and logs a player whose object is not in the world.
@@ -120,6 +123,27 @@ impl Sessions {
             rng: SystemRandom::new(),
             max_players,
             map_id,
+            view_stale: true,
+        }
+    }
+
+    /// A fresh [`SessionView`] for the receiver thread, when a session joined, left or
+    /// changed address since the last call; `None` when the last one still holds.
+    pub fn view(&mut self) -> Option<Arc<SessionView>> {
+        if !std::mem::take(&mut self.view_stale) {
+            return None;
+        }
+        Some(Arc::new(SessionView::new(self.players.iter().map(|p| (p.session_id, p.addr)).collect())))
+    }
+
+    /// Records that the player of `session_id` sent an authenticated datagram from
+    /// `from` (following a client whose NAT mapping changed).
+    pub fn set_address(&mut self, session_id: u64, from: SocketAddr) {
+        let Some(&idx) = self.by_session.get(&session_id) else { return };
+        let p = &mut self.players[idx];
+        if p.addr != Some(from) {
+            p.addr = Some(from);
+            self.view_stale = true;
         }
     }
 
@@ -195,6 +219,7 @@ impl Sessions {
             p.last_frame = None;
             p.last_heard = Instant::now();
             self.by_session.insert(keys.session_id, idx);
+            self.view_stale = true;
             tracing::info!(user = %username, "session replaced by a new login");
             return Ok((self.joined(world, idx, keys, ctx)?, None));
         }
@@ -255,8 +280,8 @@ impl Sessions {
             ready: false,
             last_heard: Instant::now(),
             last_frame: None,
-            budget: ReceiveBudget::default(),
         });
+        self.view_stale = true;
         let idx = self.players.len() - 1;
         self.by_user.insert(user_id.0, idx);
         self.by_session.insert(keys.session_id, idx);
@@ -367,6 +392,7 @@ impl Sessions {
             self.by_user.insert(moved.user_id.0, idx);
         }
         world.dynamics.despawn(p.entity);
+        self.view_stale = true;
         tracing::info!(user = %p.username, "player left");
         state
     }
@@ -384,6 +410,12 @@ impl Sessions {
     /// Every player's current state, for the persister.
     pub fn states(&self, world: &World) -> Vec<PlayerState> {
         (0..self.players.len()).filter_map(|i| self.state_of(world, i)).collect()
+    }
+}
+
+impl SessionAddresses for Sessions {
+    fn address_of(&self, session_id: u64) -> Option<Option<SocketAddr>> {
+        self.by_session.get(&session_id).map(|&i| self.players[i].addr)
     }
 }
 

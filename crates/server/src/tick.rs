@@ -39,7 +39,8 @@ mod tests;
 
 use crate::config::ServerConfig;
 use crate::dilation::DilationController;
-use crate::inbound::{self, ReceiveLimits};
+use crate::gate::Gate;
+use crate::inbound;
 use crate::outbound::{CpuOutbound, Outbound, Recipient};
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
 use crate::stages::{StageTimes, TickStage};
@@ -153,16 +154,9 @@ impl TickLoopBuilder {
         // Without a login service nothing joins: a receiver whose sender is gone reads
         // as empty.
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
-        // The receive budget's time share is of the nominal period, so a dilated tick does
-        // not receive for longer.
-        let limits = ReceiveLimits {
-            per_session: config.receive_per_session,
-            other_address: config.receive_other_address,
-            time: nominal.mul_f64(f64::from(config.receive_time_percent) / 100.0),
-        };
         TickLoop {
             constants: TickConstants::new(&config.physics(), 1.0),
-            limits,
+            gate: Gate::new(config.receive_limits()),
             dilation: DilationController::new(nominal, config.dilation, config.dilation_min_permille),
             sessions: Sessions::new(config.max_players as usize, self.map_id),
             world: self.world,
@@ -193,8 +187,9 @@ pub(crate) struct TickLoop {
     window: StatusWindow,
     /// The physics constants of every step (the configuration does not change).
     constants: TickConstants,
-    /// The receive budget of every tick (`receive_*` keys).
-    limits: ReceiveLimits,
+    /// The receive gate, used when the transport does not gate on a thread of its own
+    /// (`receive_*` keys).
+    gate: Gate,
 }
 
 impl TickLoop {
@@ -308,7 +303,7 @@ impl TickLoop {
         let info = self.server_info();
         let now = Instant::now();
         let inbound =
-            inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, &self.limits, now);
+            inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, &mut self.gate, now);
         let mut left: Vec<PlayerState> = inbound
             .leaving
             .iter()
@@ -356,6 +351,7 @@ impl TickLoop {
     }
 
     fn drain_commands(&mut self) {
+        let mut replies = Vec::new();
         while let Ok(Command::Join { user_id, username, state, reply }) = self.commands.try_recv() {
             let ctx = JoinContext { tick: self.world.tick, dilation_permille: self.dilation.permille() };
             let result = self.sessions.join(&mut self.world, user_id, username, state, ctx).map(|(joined, first)| {
@@ -365,9 +361,26 @@ impl TickLoop {
                 }
                 joined
             });
+            replies.push((reply, result));
+        }
+        if replies.is_empty() {
+            return;
+        }
+        // A receiver thread must know a session before its keys leave the server, or the
+        // client's first datagram could arrive before the session does.
+        self.publish_sessions();
+        for (reply, result) in replies {
             // The login task may have given up (client gone): nothing to undo, the
             // session times out unused.
             let _ = reply.send(result);
+        }
+    }
+
+    /// Hands a gating transport the sessions as they are now (a no-op for others, and
+    /// when nothing changed).
+    fn publish_sessions(&mut self) {
+        if self.transport.gates() {
+            self.transport.publish(self.world.tick, self.sessions.view());
         }
     }
 
@@ -375,7 +388,9 @@ impl TickLoop {
     /// a login would (the tick benchmark's and the scripted harness's join).
     pub fn adopt(&mut self, user_id: UserId, entity: myriad_core::EntityId) -> JoinResult {
         let ctx = JoinContext { tick: self.world.tick, dilation_permille: self.dilation.permille() };
-        self.sessions.adopt(&self.world, user_id, entity, ctx)
+        let joined = self.sessions.adopt(&self.world, user_id, entity, ctx);
+        self.publish_sessions();
+        joined
     }
 
     /// Runs the outbound for every active player; returns the table positions of the

@@ -10,6 +10,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use myriad_net::{Endpoint, RecvBatch};
 use rayon::prelude::*;
 
+use crate::gate::SessionView;
+
 /// Datagrams taken from the socket per `recvmmsg` call.
 pub const RECV_BATCH: usize = 1024;
 
@@ -22,7 +24,21 @@ pub struct Sent {
     pub bytes: u64,
 }
 
+/// What a gating transport's gate did since the tick last asked
+/// ([`Transport::gate_counts`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct GateCounts {
+    /// Datagrams taken from the network (before the gate).
+    pub taken: u64,
+    /// Datagrams the gate refused over a session's budget.
+    pub over_budget: u64,
+}
+
 /// A datagram transport as the tick loop uses it: non-blocking batches in and out.
+///
+/// A transport either hands over everything it receives, for the tick to gate
+/// ([`crate::gate`]) inline, or gates on a thread of its own ([`Transport::gates`]):
+/// then the tick publishes the sessions to gate against and takes only what passed.
 pub trait Transport: Send {
     /// Receives one batch of queued datagrams per socket (at most [`RECV_BATCH`] each),
     /// calling `each` with the sender and the bytes (which it may decrypt in place) for
@@ -37,6 +53,20 @@ pub trait Transport: Send {
 
     /// The address clients send to.
     fn local_addr(&self) -> SocketAddr;
+
+    /// Whether what [`Transport::receive`] hands over has passed the gate already.
+    fn gates(&self) -> bool {
+        false
+    }
+
+    /// For a gating transport: the tick whose budget arriving datagrams spend, and the
+    /// sessions to gate against when they changed (`None`: the last ones hold).
+    fn publish(&mut self, _tick: u64, _view: Option<Arc<SessionView>>) {}
+
+    /// For a gating transport: what its gate did since the last call.
+    fn gate_counts(&mut self) -> GateCounts {
+        GateCounts::default()
+    }
 }
 
 /// Below this many datagrams a tick's send stays on one socket: waking the other

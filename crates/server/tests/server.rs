@@ -333,6 +333,9 @@ fn two_hundred_bots_end_to_end() {
     assert_eq!(report.logins_ok, 200, "{report:?}");
     assert_eq!(report.logins_failed, 0, "{report:?}");
     assert_eq!(report.own_object_seen, 200, "every bot saw its own object: {report:?}");
+    // A bot logs in again after hearing nothing for a while: that would mean its first
+    // Ready was lost (the receiver thread must know a session before its keys leave).
+    assert_eq!(report.totals.reconnects, 0, "no bot had to log in again: {report:?}");
     assert_eq!(report.totals.decode_errors, 0, "{report:?}");
     assert_eq!(report.totals.rejected, 0, "{report:?}");
     assert!(report.moves_ok > report.moves_wrong, "{report:?}");

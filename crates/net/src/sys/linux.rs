@@ -40,6 +40,11 @@ impl Batcher {
         }
     }
 
+    /// Most datagrams per system call.
+    pub(crate) fn batch(&self) -> usize {
+        self.batch
+    }
+
     pub(crate) fn send(
         &mut self,
         socket: &UdpSocket,

@@ -1,0 +1,363 @@
+//! The receiver thread: UDP receive and the [gate](crate::gate) off the tick thread.
+//!
+//! Receiving costs a system call per batch and a header check and two table lookups per
+//! datagram even when every datagram is dropped, so a flood of junk that the server
+//! only drops still takes the tick's time if the tick receives. [`ThreadedUdp`] moves
+//! all of that to a thread of its own, at the lowest normal priority: it drains the
+//! sockets as datagrams arrive, gates each one against the [`SessionView`] the tick
+//! publishes, and queues those that pass (at most [`MAX_QUEUED`] datagrams and
+//! [`MAX_QUEUED_BYTES`] bytes; more is dropped as `queue_full`). The tick takes the
+//! queue in one swap and pays only for what passed: the tag checks, which the gate
+//! bounds per session. Sending stays on the tick thread (or its workers), on other
+//! handles of the same sockets.
+//!
+//! Why the lowest priority (nice 19) and not a core of its own: on a small machine the
+//! tick and its physics workers must win every contest for a core; the receiver takes
+//! what they leave, which is most of every tick period. While it waits, datagrams wait
+//! in the socket buffer (8 MiB), and the kernel drops what overflows, at the sender's
+//! cost. Not `SCHED_IDLE`, for the priority-inversion reason given in `lib.rs`.
+
+use std::io;
+use std::net::SocketAddr;
+use std::ops::Range;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use myriad_net::{Endpoint, RecvBatch};
+
+use crate::gate::{Gate, ReceiveLimits, SessionView};
+use crate::transport::{GateCounts, RECV_BATCH, Sent, Transport, UdpTransport};
+
+/// Most datagrams waiting for the tick; beyond that the receiver drops them.
+pub const MAX_QUEUED: usize = 65_536;
+
+/// Most bytes waiting for the tick.
+pub const MAX_QUEUED_BYTES: usize = 16 << 20;
+
+/// Niceness of the receiver thread: the lowest normal priority.
+const RECEIVER_NICE: i32 = 19;
+
+/// Longest the receiver waits for a datagram before it looks at the stop flag again.
+const POLL_MS: i32 = 50;
+
+/// Pause after the sockets run dry, so that a steady trickle of datagrams wakes the
+/// receiver at most a thousand times a second instead of once per datagram.
+const PAUSE: Duration = Duration::from_millis(1);
+
+/// Datagrams gated and waiting for the tick, in arrival order, in one flat buffer.
+#[derive(Debug, Default)]
+struct Inbox {
+    bytes: Vec<u8>,
+    items: Vec<(SocketAddr, Range<usize>)>,
+}
+
+impl Inbox {
+    /// Appends `datagram` unless the inbox is full.
+    fn push(&mut self, from: SocketAddr, datagram: &[u8]) -> bool {
+        if self.items.len() >= MAX_QUEUED || self.bytes.len() + datagram.len() > MAX_QUEUED_BYTES {
+            return false;
+        }
+        let start = self.bytes.len();
+        self.bytes.extend_from_slice(datagram);
+        self.items.push((from, start..self.bytes.len()));
+        true
+    }
+
+    fn clear(&mut self) {
+        self.bytes.clear();
+        self.items.clear();
+    }
+}
+
+/// What the tick and the receiver share.
+#[derive(Debug, Default)]
+struct Shared {
+    stop: AtomicBool,
+    /// The tick whose budget arriving datagrams spend.
+    tick: AtomicU64,
+    /// The sessions to gate against, and a version that changes with it.
+    view: Mutex<Arc<SessionView>>,
+    view_version: AtomicU64,
+    inbox: Mutex<Inbox>,
+    /// Datagrams taken from the sockets, and those refused over a budget, since the
+    /// tick last asked.
+    taken: AtomicU64,
+    over_budget: AtomicU64,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Plain data: a panic elsewhere while holding the lock leaves nothing half-done.
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A [`Transport`] that receives and gates on its own thread; see the module docs.
+#[derive(Debug)]
+pub struct ThreadedUdp {
+    send: UdpTransport,
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+    /// The tick's side of the inbox, swapped with the receiver's each tick.
+    taken: Inbox,
+}
+
+impl ThreadedUdp {
+    /// Starts the receiver on other handles of `endpoints` (one socket or a
+    /// `SO_REUSEPORT` group), gating with `limits`; the tick sends on `endpoints`.
+    pub(crate) fn start(endpoints: Vec<Endpoint>, limits: ReceiveLimits) -> io::Result<ThreadedUdp> {
+        let receiving = endpoints.iter().map(Endpoint::try_clone).collect::<io::Result<Vec<_>>>()?;
+        let shared = Arc::new(Shared::default());
+        let for_thread = shared.clone();
+        let thread = std::thread::Builder::new()
+            .name("myriad-receive".into())
+            .spawn(move || receive_loop(receiving, &for_thread, Gate::new(limits)))?;
+        Ok(ThreadedUdp { send: UdpTransport::group(endpoints), shared, thread: Some(thread), taken: Inbox::default() })
+    }
+}
+
+impl Drop for ThreadedUdp {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Release);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Transport for ThreadedUdp {
+    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize> {
+        self.taken.clear();
+        std::mem::swap(&mut self.taken, &mut lock(&self.shared.inbox));
+        let Inbox { bytes, items } = &mut self.taken;
+        for (from, range) in items.iter() {
+            each(*from, &mut bytes[range.clone()]);
+        }
+        Ok(items.len())
+    }
+
+    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
+        self.send.send(out)
+    }
+
+    fn local_addr(&self) -> SocketAddr {
+        self.send.local_addr()
+    }
+
+    fn gates(&self) -> bool {
+        true
+    }
+
+    fn publish(&mut self, tick: u64, view: Option<Arc<SessionView>>) {
+        if let Some(view) = view {
+            *lock(&self.shared.view) = view;
+            self.shared.view_version.fetch_add(1, Ordering::Release);
+        }
+        self.shared.tick.store(tick, Ordering::Release);
+    }
+
+    fn gate_counts(&mut self) -> GateCounts {
+        GateCounts {
+            taken: self.shared.taken.swap(0, Ordering::AcqRel),
+            over_budget: self.shared.over_budget.swap(0, Ordering::AcqRel),
+        }
+    }
+}
+
+/// Waits until one of `endpoints` is readable, or [`POLL_MS`] passed.
+fn wait_readable(endpoints: &[Endpoint]) {
+    #[cfg(unix)]
+    {
+        use std::os::fd::AsRawFd;
+        let mut fds: Vec<libc::pollfd> = endpoints
+            .iter()
+            .map(|e| libc::pollfd { fd: e.socket().as_raw_fd(), events: libc::POLLIN, revents: 0 })
+            .collect();
+        // SAFETY: `fds` is a live array of `fds.len()` pollfd structs for the call's
+        // duration; poll only writes their `revents`.
+        unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, POLL_MS) };
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = endpoints;
+        std::thread::sleep(PAUSE);
+    }
+}
+
+fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
+    crate::set_thread_nice(RECEIVER_NICE);
+    let mut batch = RecvBatch::new(RECV_BATCH);
+    let mut staged = Inbox::default();
+    let mut view = lock(&shared.view).clone();
+    let mut version = shared.view_version.load(Ordering::Acquire);
+    let mut truncated_seen = 0;
+    while !shared.stop.load(Ordering::Acquire) {
+        wait_readable(&endpoints);
+        loop {
+            let latest = shared.view_version.load(Ordering::Acquire);
+            if latest != version {
+                view = lock(&shared.view).clone();
+                version = latest;
+            }
+            let tick = shared.tick.load(Ordering::Acquire);
+            let mut took = 0;
+            let mut over_budget = 0;
+            for endpoint in &mut endpoints {
+                let n = match endpoint.recv_batch(&mut batch) {
+                    Ok(n) => n,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "receive failed");
+                        0
+                    }
+                };
+                for (from, bytes) in batch.iter() {
+                    match gate.admit(&*view, tick, from, bytes) {
+                        Ok(_) => {
+                            staged.push(from, bytes);
+                        }
+                        Err(refusal) => {
+                            over_budget += u64::from(refusal.over_budget());
+                            refusal.count();
+                        }
+                    }
+                }
+                took += n;
+            }
+            if took == 0 {
+                break;
+            }
+            metrics::counter!("myriad_datagrams_received_total").increment(took as u64);
+            shared.taken.fetch_add(took as u64, Ordering::AcqRel);
+            shared.over_budget.fetch_add(over_budget, Ordering::AcqRel);
+            hand_over(&mut staged, shared);
+        }
+        // Datagrams too large for a receive slot never reach the gate: the endpoints
+        // drop and count them.
+        let truncated: u64 = endpoints.iter().map(|e| e.stats().truncated).sum();
+        if truncated > truncated_seen {
+            metrics::counter!("myriad_packets_dropped_total", "reason" => "oversized")
+                .increment(truncated - truncated_seen);
+            truncated_seen = truncated;
+        }
+        std::thread::sleep(PAUSE);
+    }
+}
+
+/// Moves what the receiver staged into the shared inbox, dropping (and counting) what
+/// does not fit.
+fn hand_over(staged: &mut Inbox, shared: &Shared) {
+    let mut full = 0u64;
+    {
+        let mut inbox = lock(&shared.inbox);
+        if inbox.items.is_empty() {
+            // The common case: hand the whole staged buffer over in one swap.
+            std::mem::swap(&mut *inbox, staged);
+        } else {
+            for (from, range) in &staged.items {
+                if !inbox.push(*from, &staged.bytes[range.clone()]) {
+                    full += 1;
+                }
+            }
+        }
+    }
+    staged.clear();
+    if full > 0 {
+        metrics::counter!("myriad_packets_dropped_total", "reason" => "queue_full").increment(full);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use myriad_net::EndpointConfig;
+    use std::collections::HashMap;
+    use std::time::Instant;
+
+    fn sealed(session: u64) -> Vec<u8> {
+        let keys =
+            myriad_protocol::SessionKeys { session_id: session, client_to_server: [1; 32], server_to_client: [2; 32] };
+        let mut out = Vec::new();
+        myriad_protocol::ClientSession::new(&keys)
+            .sealer
+            .seal_client_message(&myriad_protocol::ClientMessage::KeepAlive, &mut out)
+            .unwrap();
+        out
+    }
+
+    /// Takes from `t` until `want` datagrams came or two seconds passed.
+    fn take(t: &mut ThreadedUdp, want: usize) -> Vec<(SocketAddr, Vec<u8>)> {
+        let mut got = Vec::new();
+        let deadline = Instant::now() + Duration::from_secs(2);
+        while got.len() < want && Instant::now() < deadline {
+            t.receive(&mut |from, b| got.push((from, b.to_vec()))).unwrap();
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        got
+    }
+
+    #[test]
+    fn the_receiver_gates_on_its_thread_and_the_tick_takes_what_passed() {
+        let group = Endpoint::bind_group(EndpointConfig::new("127.0.0.1:0".parse().unwrap()), 2).unwrap();
+        let limits = ReceiveLimits { per_session: 3, other_address: 1, time: Duration::from_millis(5) };
+        let mut t = ThreadedUdp::start(group, limits).unwrap();
+        assert!(t.gates());
+        let server = t.local_addr();
+        let player = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let stranger = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let view = SessionView::new(HashMap::from([(5, Some(player.local_addr().unwrap()))]));
+        t.publish(1, Some(Arc::new(view)));
+        // Give the receiver a moment to pick the view up before anything arrives.
+        std::thread::sleep(Duration::from_millis(100));
+
+        let d5 = sealed(5);
+        for _ in 0..50 {
+            stranger.send_to(&d5, server).unwrap();
+            stranger.send_to(&sealed(99), server).unwrap();
+            stranger.send_to(b"junk", server).unwrap();
+        }
+        for _ in 0..10 {
+            player.send_to(&d5, server).unwrap();
+        }
+        let got = take(&mut t, 4);
+        std::thread::sleep(Duration::from_millis(100));
+        let more = take(&mut t, 1);
+        assert_eq!(got.len() + more.len(), 4, "3 from the player's address and 1 from the stranger's");
+        assert!(got.iter().all(|(_, b)| *b == d5));
+        let counts = t.gate_counts();
+        assert_eq!(counts.taken, 160, "everything was taken off the sockets");
+        assert_eq!(counts.over_budget, 49 + 7);
+        assert_eq!(t.gate_counts(), GateCounts::default(), "counts are since the last call");
+
+        // The next tick's budget lets the player in again.
+        t.publish(2, None);
+        std::thread::sleep(Duration::from_millis(20));
+        player.send_to(&d5, server).unwrap();
+        assert_eq!(take(&mut t, 1).len(), 1);
+        // Sending still works, from the server's one address.
+        let sent = t.send(&[(player.local_addr().unwrap(), b"hello")]).unwrap();
+        assert_eq!(sent.datagrams, 1);
+        let mut buf = [0u8; 16];
+        player.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+        let (n, from) = player.recv_from(&mut buf).unwrap();
+        assert_eq!((&buf[..n], from), (&b"hello"[..], server));
+        drop(t); // joins the thread
+    }
+
+    #[test]
+    fn the_inbox_is_bounded() {
+        let mut inbox = Inbox::default();
+        let from: SocketAddr = "127.0.0.1:1".parse().unwrap();
+        let big = vec![0u8; 1200];
+        let mut n = 0;
+        while inbox.push(from, &big) {
+            n += 1;
+        }
+        assert_eq!(n, MAX_QUEUED_BYTES / 1200);
+        inbox.clear();
+        let mut n = 0;
+        while inbox.push(from, &[1]) {
+            n += 1;
+        }
+        assert_eq!(n, MAX_QUEUED);
+    }
+}

@@ -105,7 +105,7 @@ pub struct ServerConfig {
     /// Share of the nominal tick period the receive stage may take, in percent, when
     /// the tick receives itself (`receive_thread = false`).
     pub receive_time_percent: u8,
-    /// Receive and gate datagrams on a thread of their own, at the lowest priority, so
+    /// Receive and gate datagrams on a thread of their own, at a lower priority, so
     /// that a flood costs the tick nothing but the tag checks the budget allows
     /// (`crate::receiver`). Off: the tick receives, within `receive_time_percent`.
     pub receive_thread: bool,

@@ -11,11 +11,19 @@
 //! bounds per session. Sending stays on the tick thread (or its workers), on other
 //! handles of the same sockets.
 //!
-//! Why the lowest priority (nice 19) and not a core of its own: on a small machine the
-//! tick and its physics workers must win every contest for a core; the receiver takes
-//! what they leave, which is most of every tick period. While it waits, datagrams wait
-//! in the socket buffer (8 MiB), and the kernel drops what overflows, at the sender's
-//! cost. Not `SCHED_IDLE`, for the priority-inversion reason given in `lib.rs`.
+//! Why a lower priority (nice 10, like the async runtime's workers) and not a core of its
+//! own: on a small machine the tick and its physics workers must win most contests for
+//! a core, so a flood cannot slow them much; the receiver takes what they leave, which
+//! is most of every tick period. Not the lowest (nice 19, a weight of 15 against the
+//! tick's 1024): with every core busy (1,000 bots on the same two cores) such a thread
+//! gets too small a share to keep up with legitimate traffic, where nice 10 still gets
+//! about a tenth. While it waits, datagrams wait in the socket buffer (8 MiB), and the
+//! kernel drops what overflows, at the sender's cost.
+//!
+//! The tick never waits for the receiver: it takes the queue with `try_lock`, and if the
+//! receiver holds the lock (say, preempted inside its short hand-over) the tick takes
+//! nothing this time and everything next tick. Waiting there would let a low-priority
+//! thread stall the tick (priority inversion).
 
 use std::io;
 use std::net::SocketAddr;
@@ -27,7 +35,7 @@ use std::time::Duration;
 
 use myriad_net::{Endpoint, RecvBatch};
 
-use crate::gate::{Gate, ReceiveLimits, SessionView};
+use crate::gate::{Gate, ReceiveLimits, Refusal, SessionView};
 use crate::transport::{GateCounts, RECV_BATCH, Sent, Transport, UdpTransport};
 
 /// Most datagrams waiting for the tick; beyond that the receiver drops them.
@@ -36,8 +44,8 @@ pub const MAX_QUEUED: usize = 65_536;
 /// Most bytes waiting for the tick.
 pub const MAX_QUEUED_BYTES: usize = 16 << 20;
 
-/// Niceness of the receiver thread: the lowest normal priority.
-const RECEIVER_NICE: i32 = 19;
+/// Niceness of the receiver thread; see the module docs.
+const RECEIVER_NICE: i32 = 10;
 
 /// Longest the receiver waits for a datagram before it looks at the stop flag again.
 const POLL_MS: i32 = 50;
@@ -128,7 +136,14 @@ impl Drop for ThreadedUdp {
 impl Transport for ThreadedUdp {
     fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize> {
         self.taken.clear();
-        std::mem::swap(&mut self.taken, &mut lock(&self.shared.inbox));
+        let mut inbox = match self.shared.inbox.try_lock() {
+            Ok(inbox) => inbox,
+            Err(std::sync::TryLockError::Poisoned(p)) => p.into_inner(),
+            // The receiver is handing over: take it all next tick (module docs).
+            Err(std::sync::TryLockError::WouldBlock) => return Ok(0),
+        };
+        std::mem::swap(&mut self.taken, &mut inbox);
+        drop(inbox);
         let Inbox { bytes, items } = &mut self.taken;
         for (from, range) in items.iter() {
             each(*from, &mut bytes[range.clone()]);
@@ -211,7 +226,18 @@ fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
                     }
                 };
                 for (from, bytes) in batch.iter() {
-                    match gate.admit(&*view, tick, from, bytes) {
+                    let mut admitted = gate.admit(&*view, tick, from, bytes);
+                    if admitted == Err(Refusal::UnknownSession) {
+                        // The session may have joined after this batch's view was read
+                        // (its keys leave only after it is published): look again.
+                        let latest = shared.view_version.load(Ordering::Acquire);
+                        if latest != version {
+                            view = lock(&shared.view).clone();
+                            version = latest;
+                            admitted = gate.admit(&*view, tick, from, bytes);
+                        }
+                    }
+                    match admitted {
                         Ok(_) => {
                             staged.push(from, bytes);
                         }

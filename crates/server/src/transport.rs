@@ -84,7 +84,9 @@ const SEND_STALLS: usize = 3;
 #[derive(Debug)]
 pub struct UdpTransport {
     endpoints: Vec<Endpoint>,
-    batch: RecvBatch,
+    /// Receive slots, made at the first receive (1.5 MiB that a transport used only to
+    /// send, as behind the receiver thread, never needs).
+    batch: Option<RecvBatch>,
     /// The endpoints' count of oversized datagrams already reported to the metrics.
     oversized_seen: u64,
 }
@@ -99,7 +101,7 @@ impl UdpTransport {
     /// ([`Endpoint::bind_group`]); at least one.
     pub fn group(endpoints: Vec<Endpoint>) -> Self {
         assert!(!endpoints.is_empty(), "a transport needs a socket");
-        UdpTransport { endpoints, batch: RecvBatch::new(RECV_BATCH), oversized_seen: 0 }
+        UdpTransport { endpoints, batch: None, oversized_seen: 0 }
     }
 
     /// Sockets in the group.
@@ -136,10 +138,11 @@ fn send_all(endpoint: &mut Endpoint, out: &[(SocketAddr, &[u8])]) -> io::Result<
 impl Transport for UdpTransport {
     fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize> {
         let mut total = 0;
+        let batch = self.batch.get_or_insert_with(|| RecvBatch::new(RECV_BATCH));
         for endpoint in &mut self.endpoints {
-            let n = endpoint.recv_batch(&mut self.batch)?;
+            let n = endpoint.recv_batch(batch)?;
             for i in 0..n {
-                if let Some((from, bytes)) = self.batch.get_mut(i) {
+                if let Some((from, bytes)) = batch.get_mut(i) {
                     each(from, bytes);
                 }
             }

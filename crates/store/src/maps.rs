@@ -242,7 +242,7 @@ impl Store {
                     .push_bind(f64::from(o.position[1]))
                     .push_bind(f64::from(o.position[2]));
             });
-            match qb.build().execute(&mut *tx).await {
+            match qb.build().persistent(false).execute(&mut *tx).await {
                 Ok(_) => {}
                 Err(e) if is_unique_violation(&e) => {
                     return Err(StoreError::AlreadyExists(format!(

@@ -18,8 +18,9 @@
 //! hashes (new users, password changes) is rare and stays on the blocking pool.
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::mpsc;
+use std::sync::mpsc::{self, RecvTimeoutError};
 use std::sync::{Arc, Mutex, OnceLock};
+use std::time::Duration;
 
 use argon2::{Algorithm, Argon2, Block, Params, PasswordHash, PasswordHasher, Version};
 
@@ -165,6 +166,31 @@ static POOL_MEMORY: AtomicU64 = AtomicU64::new(0);
 /// Verifications the pool has run.
 static POOL_VERIFIED: AtomicU64 = AtomicU64::new(0);
 
+/// How long a hashing thread keeps its working memory without a job. A burst of logins
+/// reuses it (no allocation per check, which glibc would keep); a server with no logins
+/// gives it back: an Argon2 buffer (19 MiB at the default cost) is one mapping of its
+/// own, so freeing it returns it to the system at once.
+const IDLE_RELEASE: Duration = Duration::from_secs(10);
+
+/// One hashing thread: runs jobs with its working memory, and frees that memory after
+/// `idle` without a job (subtracting it from `held`, where the jobs added it).
+fn hashing_thread(jobs: &Mutex<mpsc::Receiver<Job>>, idle: Duration, held: &AtomicU64) {
+    let mut memory: Vec<Block> = Vec::new();
+    loop {
+        // Hold the lock only to take a job, never while hashing.
+        let job = jobs.lock().unwrap_or_else(|p| p.into_inner()).recv_timeout(idle);
+        match job {
+            Ok(job) => job(&mut memory),
+            Err(RecvTimeoutError::Timeout) if !memory.is_empty() => {
+                held.fetch_sub((memory.len() * Block::SIZE) as u64, Ordering::Relaxed);
+                memory = Vec::new();
+            }
+            Err(RecvTimeoutError::Timeout) => {}
+            Err(RecvTimeoutError::Disconnected) => return,
+        }
+    }
+}
+
 /// Sets the number of threads of the verification pool. Takes effect only before the
 /// pool's first use (it starts on the first verification); returns whether it did.
 pub fn configure_hash_pool(threads: usize) -> bool {
@@ -203,15 +229,9 @@ fn pool() -> &'static HashPool {
         let receiver = Arc::new(Mutex::new(receiver));
         for i in 0..threads {
             let receiver = receiver.clone();
-            let spawned = std::thread::Builder::new().name(format!("myriad-hash-{i}")).spawn(move || {
-                let mut memory: Vec<Block> = Vec::new();
-                loop {
-                    // Hold the lock only to take a job, never while hashing.
-                    let job = receiver.lock().unwrap_or_else(|p| p.into_inner()).recv();
-                    let Ok(job) = job else { return };
-                    job(&mut memory);
-                }
-            });
+            let spawned = std::thread::Builder::new()
+                .name(format!("myriad-hash-{i}"))
+                .spawn(move || hashing_thread(&receiver, IDLE_RELEASE, &POOL_MEMORY));
             if let Err(e) = spawned {
                 tracing::error!(error = %e, "cannot start a password-hashing thread");
             }
@@ -264,6 +284,38 @@ pub(crate) async fn spawn_blocking<T: Send + 'static>(f: impl FnOnce() -> T + Se
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_idle_hashing_thread_gives_its_memory_back() {
+        let (jobs, receiver) = mpsc::channel::<Job>();
+        let held = Arc::new(AtomicU64::new(0));
+        let thread = {
+            let held = held.clone();
+            std::thread::spawn(move || hashing_thread(&Mutex::new(receiver), Duration::from_millis(50), &held))
+        };
+        type Probe = Box<dyn FnOnce(&mut Vec<Block>) -> usize + Send>;
+        let ask = |job: Probe| {
+            let (tx, rx) = mpsc::channel();
+            let held = held.clone();
+            jobs.send(Box::new(move |memory: &mut Vec<Block>| {
+                let before = memory.len();
+                let seen = job(memory);
+                held.fetch_add(((memory.len() - before) * Block::SIZE) as u64, Ordering::Relaxed);
+                tx.send(seen).unwrap();
+            }))
+            .unwrap();
+            rx.recv().unwrap()
+        };
+        // Two jobs in a row: the second finds the first one's memory.
+        assert_eq!(ask(Box::new(|m| std::mem::replace(m, vec![Block::default(); 64]).len())), 0);
+        assert_eq!(ask(Box::new(|m| m.len())), 64, "kept between jobs");
+        assert_eq!(held.load(Ordering::Relaxed), 64 * Block::SIZE as u64);
+        std::thread::sleep(Duration::from_millis(300));
+        assert_eq!(held.load(Ordering::Relaxed), 0, "freed after the idle time");
+        assert_eq!(ask(Box::new(|m| m.len())), 0, "the next job starts with none");
+        drop(jobs);
+        thread.join().unwrap();
+    }
 
     #[test]
     fn usernames_are_checked() {

@@ -165,7 +165,7 @@ impl Store {
                 list.push_bind(format!("user{i}"));
             }
             qb.push(")");
-            let rows = qb.build().fetch_all(&self.pool).await?;
+            let rows = qb.build().persistent(false).fetch_all(&self.pool).await?;
             let existing: std::collections::HashSet<String> = rows
                 .iter()
                 .map(|r| r.try_get::<String, _>(0).map(|s| s.to_ascii_lowercase()))
@@ -192,7 +192,8 @@ impl Store {
                 row.push_bind(name.clone()).push_bind(hash.clone()).push_bind(created_at);
             });
             let mut tx = self.pool.begin().await?;
-            created += qb.build().execute(&mut *tx).await?.rows_affected();
+            // One-off statements: not kept in the statement cache.
+            created += qb.build().persistent(false).execute(&mut *tx).await?.rows_affected();
             tx.commit().await?;
         }
         let created = u32::try_from(created).unwrap_or(u32::MAX);

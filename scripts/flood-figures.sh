@@ -28,7 +28,7 @@ for mode in $modes; do
     >"$out/serve-$mode.log" 2>&1 &
   server=$!
   for _ in $(seq 100); do
-    curl -sf "http://127.0.0.1:$port_metrics/metrics" >/dev/null 2>&1 && break
+    (exec 3<>"/dev/tcp/127.0.0.1/$port_metrics") 2>/dev/null && break
     sleep 0.2
   done
   "$flood_bin" bots --server 127.0.0.1:$port_login --cert "$data/tls-cert.pem" --count 50 \

@@ -5,7 +5,9 @@
 #
 # MODE=tests, MODE=bench or MODE=zones runs one part; default: tests and bench. The
 # zones' part (run it on nvidia-h200-x2) checks zoned runs on cuda against one process
-# and times scenario 3 on one GPU against two zones on two GPUs.
+# and times scenario 3 on one GPU against two zones on two GPUs. MODE=flood runs issue
+# 14's UDP floods (scripts/flood-figures.sh) on the host's 16 cores, where the flooder
+# does not have to share the server's cores.
 set -uo pipefail
 out=${OUT:-out}
 mkdir -p "$out"
@@ -123,6 +125,13 @@ for r in rows:
 '
     .carry/myriad cluster --zones 2 --gpus "$gpus" --scenario 3 --ticks 100 --backend cuda --json 2>"$out/cluster.log" | tee "$out/cluster.json" || status=1
     [[ -n $nats_pid ]] && kill "$nats_pid"
+fi
+
+if [[ $mode == flood ]]; then
+    DURATION=8 bash scripts/flood-figures.sh .carry/myriad .carry/myriad "$out/flood" session garbage oversized busy || status=1
+    SERVE_ARGS="--set receive_thread=false" DURATION=8 bash scripts/flood-figures.sh .carry/myriad .carry/myriad \
+        "$out/flood-inline" session garbage || status=1
+    nproc
 fi
 
 # The device tool brings back a few files only: the bench's tables and plots as one.

@@ -123,7 +123,9 @@ impl ServerHandle {
         // The verification pool takes its size at its first use; a second server in the
         // same process (tests) shares the first one's pool.
         let hashing_threads = config.hashing_threads();
-        if !myriad_store::configure_hash_pool(hashing_threads) {
+        // Password checks run a little below the tick (like the async runtime's workers):
+        // a burst of logins then takes the CPU the tick leaves, not the tick's share.
+        if !myriad_store::configure_hash_pool(hashing_threads, || set_thread_nice(IO_THREAD_NICE)) {
             tracing::debug!("the password-verification pool was already running");
         }
         let started = std::sync::atomic::AtomicUsize::new(0);

@@ -191,10 +191,15 @@ fn hashing_thread(jobs: &Mutex<mpsc::Receiver<Job>>, idle: Duration, held: &Atom
     }
 }
 
-/// Sets the number of threads of the verification pool. Takes effect only before the
+/// Runs first on every thread of the pool (the server lowers their priority there).
+static POOL_THREAD_START: OnceLock<fn()> = OnceLock::new();
+
+/// Sets the number of threads of the verification pool and a function each of them runs
+/// first (say, to lower its priority below the tick's). Takes effect only before the
 /// pool's first use (it starts on the first verification); returns whether it did.
-pub fn configure_hash_pool(threads: usize) -> bool {
+pub fn configure_hash_pool(threads: usize, on_thread_start: fn()) -> bool {
     POOL_THREADS.store(threads.max(1), Ordering::Relaxed);
+    let _ = POOL_THREAD_START.set(on_thread_start);
     POOL.get().is_none()
 }
 
@@ -229,9 +234,12 @@ fn pool() -> &'static HashPool {
         let receiver = Arc::new(Mutex::new(receiver));
         for i in 0..threads {
             let receiver = receiver.clone();
-            let spawned = std::thread::Builder::new()
-                .name(format!("myriad-hash-{i}"))
-                .spawn(move || hashing_thread(&receiver, IDLE_RELEASE, &POOL_MEMORY));
+            let spawned = std::thread::Builder::new().name(format!("myriad-hash-{i}")).spawn(move || {
+                if let Some(start) = POOL_THREAD_START.get() {
+                    start();
+                }
+                hashing_thread(&receiver, IDLE_RELEASE, &POOL_MEMORY)
+            });
             if let Err(e) = spawned {
                 tracing::error!(error = %e, "cannot start a password-hashing thread");
             }

@@ -38,7 +38,9 @@ while kill -0 $BOTSPID 2>/dev/null; do
   R=$(rss); (( R > PEAK )) && PEAK=$R
   if (( R > MAXMIB )); then echo "RSS ${R} MiB over the -m limit ${MAXMIB}: stopping"; kill $BOTSPID; break; fi
   if [[ -z $AFTER_LOGIN ]] && grep -q "^logins: " "$DIR/bots.log" 2>/dev/null; then AFTER_LOGIN=$R; fi
-  echo "t=$(( $(date +%s) - T0 ))s rss=${R}MiB"
+  SLOW=$(metrics | awk '/^myriad_slow_ticks_total/ {print $2}')
+  PLAYERS=$(metrics | awk '/^myriad_players / {print $2}')
+  echo "t=$(( $(date +%s) - T0 ))s rss=${R}MiB players=${PLAYERS:-?} slow_ticks=${SLOW:-0}"
   sleep "$SAMPLE"
 done
 wait $BOTSPID 2>/dev/null || true

@@ -28,7 +28,7 @@ use myriad_protocol::{Direction, MAX_DATAGRAM, peek_header};
 
 /// How much receive work one tick may do; see the module docs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct ReceiveLimits {
+pub struct ReceiveLimits {
     /// Datagrams per session per tick from the session's own address that may reach
     /// the tag check.
     pub per_session: u16,
@@ -66,7 +66,7 @@ impl ReceiveBudget {
 }
 
 /// Where a gate looks a session up.
-pub(crate) trait SessionAddresses {
+pub trait SessionAddresses {
     /// `None` when no live session has this id; else the address its last
     /// authenticated datagram came from (`Some(None)` before the first).
     fn address_of(&self, session_id: u64) -> Option<Option<SocketAddr>>;
@@ -81,7 +81,7 @@ pub struct SessionView {
 
 impl SessionView {
     /// A view of these sessions.
-    pub(crate) fn new(addresses: HashMap<u64, Option<SocketAddr>>) -> Self {
+    pub fn new(addresses: HashMap<u64, Option<SocketAddr>>) -> Self {
         SessionView { addresses }
     }
 }
@@ -95,7 +95,7 @@ impl SessionAddresses for SessionView {
 /// Why the gate dropped a datagram: the `reason` label of
 /// `myriad_packets_dropped_total`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Refusal {
+pub enum Refusal {
     /// Longer than the protocol's datagram limit.
     Oversized,
     /// Not a client-to-server header.
@@ -138,7 +138,7 @@ const SWEEP_EVERY: u64 = 64;
 /// The budgets of every session; see the module docs. One gate per place datagrams
 /// are received (the receiver thread, or the tick inline), never both for one socket.
 #[derive(Debug)]
-pub(crate) struct Gate {
+pub struct Gate {
     limits: ReceiveLimits,
     budgets: HashMap<u64, ReceiveBudget>,
     swept: u64,

@@ -39,7 +39,7 @@
 pub mod config;
 pub mod dilation;
 pub mod error;
-mod gate;
+pub mod gate;
 mod inbound;
 pub mod login;
 pub mod outbound;

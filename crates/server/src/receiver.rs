@@ -113,7 +113,7 @@ pub struct ThreadedUdp {
 impl ThreadedUdp {
     /// Starts the receiver on other handles of `endpoints` (one socket or a
     /// `SO_REUSEPORT` group), gating with `limits`; the tick sends on `endpoints`.
-    pub(crate) fn start(endpoints: Vec<Endpoint>, limits: ReceiveLimits) -> io::Result<ThreadedUdp> {
+    pub fn start(endpoints: Vec<Endpoint>, limits: ReceiveLimits) -> io::Result<ThreadedUdp> {
         let receiving = endpoints.iter().map(Endpoint::try_clone).collect::<io::Result<Vec<_>>>()?;
         let shared = Arc::new(Shared::default());
         let for_thread = shared.clone();

@@ -21,7 +21,7 @@
 use std::net::SocketAddr;
 use std::time::Instant;
 
-use myriad_core::{Action, World};
+use myriad_core::World;
 use myriad_protocol::{ClientMessage, Direction, ErrorClass, ServerInfo, ServerMessage, peek_header};
 
 use crate::gate::Gate;
@@ -160,7 +160,8 @@ fn handle(
     let reply = match opened.message {
         ClientMessage::Action(a) => {
             if p.accept_frame(a.client_frame) {
-                if world.dynamics.set_action(p.entity, Action::from_bits_truncate(a.mask.bits())) {
+                let action = p.action_for(a.mask.bits(), ctx.tick);
+                if world.dynamics.set_action(p.entity, action) {
                     report.actions += 1;
                 } else {
                     missing_entity(p);

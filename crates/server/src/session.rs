@@ -16,7 +16,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use myriad_core::{EntityId, ObjectKind, Shape, Vec3, World};
+use myriad_core::{Action, EntityId, ObjectKind, Shape, Vec3, World};
 use myriad_interest::Subscriber;
 use myriad_protocol::login::RefusalReason;
 use myriad_protocol::{DisconnectReason, Opener, ServerMessage, ServerSession, SessionKeys};
@@ -62,6 +62,8 @@ pub(crate) struct Player {
     pub last_heard: Instant,
     /// Newest client frame applied (actions of older frames are ignored).
     last_frame: Option<u32>,
+    /// The tick of the last action applied with the jump bit set.
+    jump_tick: Option<u64>,
 }
 
 impl Player {
@@ -79,6 +81,21 @@ impl Player {
             self.last_frame = Some(frame);
         }
         newer
+    }
+
+    /// The action to apply for `mask`, taken in tick `tick`: the newest action's bits,
+    /// except that a jump asked for by any action taken in the same tick stays asked
+    /// for. A jump is an event, not a held key: a client that taps jump for less than a
+    /// frame sends it in one action only, and a newer action taken in the same tick
+    /// must not cancel it.
+    pub fn action_for(&mut self, mask: u8, tick: u64) -> Action {
+        let mut bits = mask;
+        if bits & Action::JUMP != 0 {
+            self.jump_tick = Some(tick);
+        } else if self.jump_tick == Some(tick) {
+            bits |= Action::JUMP;
+        }
+        Action::from_bits_truncate(bits)
     }
 }
 
@@ -217,6 +234,7 @@ impl Sessions {
             p.addr = None;
             p.ready = false;
             p.last_frame = None;
+            p.jump_tick = None;
             p.last_heard = Instant::now();
             self.by_session.insert(keys.session_id, idx);
             self.view_stale = true;
@@ -280,6 +298,7 @@ impl Sessions {
             ready: false,
             last_heard: Instant::now(),
             last_frame: None,
+            jump_tick: None,
         });
         self.view_stale = true;
         let idx = self.players.len() - 1;

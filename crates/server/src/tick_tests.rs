@@ -145,6 +145,22 @@ fn an_action_is_applied_on_the_next_tick() {
 }
 
 #[test]
+fn a_jump_in_any_action_of_a_tick_is_not_cancelled_by_a_newer_one() {
+    let mut r = rig(ServerConfig::default());
+    let mut c = r.join(1, 40_001);
+    // A tap of jump shorter than a frame: one action with it, the next without, both
+    // taken in the same tick.
+    r.action(&mut c, ActionMask::FORWARD | ActionMask::JUMP);
+    r.action(&mut c, ActionMask::FORWARD);
+    assert_eq!(r.tick.tick_once().actions, 2);
+    assert_eq!(r.action_of(&c).bits(), Action::FORWARD | Action::JUMP, "the jump stays asked for");
+    // In the next tick the newest action counts as it is.
+    r.action(&mut c, ActionMask::FORWARD);
+    r.tick.tick_once();
+    assert_eq!(r.action_of(&c).bits(), Action::FORWARD);
+}
+
+#[test]
 fn replayed_and_forged_datagrams_change_nothing() {
     let mut r = rig(ServerConfig::default());
     let mut c = r.join(1, 40_001);

@@ -127,7 +127,12 @@ impl Refusal {
 
     /// Counts it in `myriad_packets_dropped_total`.
     pub fn count(self) {
-        metrics::counter!("myriad_packets_dropped_total", "reason" => self.reason()).increment(1);
+        self.count_many(1);
+    }
+
+    /// Counts `n` of them in `myriad_packets_dropped_total`.
+    pub fn count_many(self, n: u64) {
+        metrics::counter!("myriad_packets_dropped_total", "reason" => self.reason()).increment(n);
     }
 }
 

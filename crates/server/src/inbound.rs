@@ -24,9 +24,9 @@ use std::time::Instant;
 use myriad_core::World;
 use myriad_protocol::{ClientMessage, Direction, ErrorClass, ServerInfo, ServerMessage, peek_header};
 
-use crate::gate::Gate;
 #[cfg(doc)]
 use crate::gate::ReceiveLimits;
+use crate::gate::{Gate, Refusal};
 use crate::session::{Sessions, missing_entity};
 use crate::transport::Transport;
 
@@ -134,14 +134,14 @@ fn handle(
         None => match peek_header(bytes, Direction::ClientToServer) {
             Ok(h) => h.session_id,
             Err(_) => {
-                dropped("malformed");
+                Refusal::Malformed.count();
                 return;
             }
         },
     };
     // With a receiver thread the session may have left since its view was published.
     let Some(p) = sessions.by_session_mut(session_id) else {
-        dropped("unknown_session");
+        Refusal::UnknownSession.count();
         return;
     };
     report.tag_checks += 1;

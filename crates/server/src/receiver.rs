@@ -36,7 +36,7 @@ use std::time::Duration;
 use myriad_net::{Endpoint, RecvBatch};
 
 use crate::gate::{Gate, ReceiveLimits, Refusal, SessionView};
-use crate::transport::{GateCounts, RECV_BATCH, Sent, Transport, UdpTransport};
+use crate::transport::{GateCounts, RECV_BATCH, Sent, Transport, UdpTransport, report_oversized};
 
 /// Most datagrams waiting for the tick; beyond that the receiver drops them.
 pub const MAX_QUEUED: usize = 65_536;
@@ -257,14 +257,7 @@ fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
             shared.over_budget.fetch_add(over_budget, Ordering::AcqRel);
             hand_over(&mut staged, shared);
         }
-        // Datagrams too large for a receive slot never reach the gate: the endpoints
-        // drop and count them.
-        let truncated: u64 = endpoints.iter().map(|e| e.stats().truncated).sum();
-        if truncated > truncated_seen {
-            metrics::counter!("myriad_packets_dropped_total", "reason" => "oversized")
-                .increment(truncated - truncated_seen);
-            truncated_seen = truncated;
-        }
+        report_oversized(&endpoints, &mut truncated_seen);
         std::thread::sleep(PAUSE);
     }
 }

@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use myriad_net::{Endpoint, RecvBatch};
 use rayon::prelude::*;
 
-use crate::gate::SessionView;
+use crate::gate::{Refusal, SessionView};
 
 /// Datagrams taken from the socket per `recvmmsg` call.
 pub const RECV_BATCH: usize = 1024;
@@ -110,6 +110,17 @@ impl UdpTransport {
     }
 }
 
+/// Datagrams too large for a receive slot never reach the gate: the endpoints drop and
+/// count them. Reports those counted since `seen` as `oversized`, with the ones the gate
+/// finds over 1200 bytes.
+pub(crate) fn report_oversized(endpoints: &[Endpoint], seen: &mut u64) {
+    let oversized: u64 = endpoints.iter().map(|e| e.stats().truncated).sum();
+    if oversized > *seen {
+        Refusal::Oversized.count_many(oversized - *seen);
+        *seen = oversized;
+    }
+}
+
 /// Sends all of `out` on `endpoint`, retrying while its buffer is full, at most
 /// [`SEND_STALLS`] times in a row.
 fn send_all(endpoint: &mut Endpoint, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
@@ -148,14 +159,7 @@ impl Transport for UdpTransport {
             }
             total += n;
         }
-        // Datagrams too large for a receive slot never reach `each`: the endpoints drop
-        // and count them. Report them with the ones `inbound` finds over 1200 bytes.
-        let oversized: u64 = self.endpoints.iter().map(|e| e.stats().truncated).sum();
-        if oversized > self.oversized_seen {
-            metrics::counter!("myriad_packets_dropped_total", "reason" => "oversized")
-                .increment(oversized - self.oversized_seen);
-            self.oversized_seen = oversized;
-        }
+        report_oversized(&self.endpoints, &mut self.oversized_seen);
         Ok(total)
     }
 

@@ -174,6 +174,19 @@ impl Dynamics {
         Ok(id)
     }
 
+    /// The id the next [`Dynamics::spawn`] gives (ids already used are never reused).
+    pub fn next_id(&self) -> EntityId {
+        EntityId(self.next_id)
+    }
+
+    /// Makes spawns continue from `id`: a process that mirrors a world stepped elsewhere
+    /// (a zones gateway) spawns its players in a range of ids of its own, so that two
+    /// such processes never give out the same id. A spawn onto an id that is taken
+    /// fails; it never replaces an object.
+    pub fn set_next_id(&mut self, id: EntityId) {
+        self.next_id = id.0;
+    }
+
     /// Removes an object; the last object moves into its slot. Returns false if the id is
     /// unknown.
     pub fn despawn(&mut self, id: EntityId) -> bool {

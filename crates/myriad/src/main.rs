@@ -9,6 +9,7 @@ mod bench;
 mod bots;
 mod demo;
 mod flood;
+mod gateway;
 mod plots;
 mod reference;
 mod scenario_args;
@@ -48,6 +49,8 @@ enum Command {
     Zone(zones::ZoneArgs),
     /// Run a world split into zones, one process each, over NATS, supervised.
     Cluster(zones::ClusterArgs),
+    /// Log players in and hold their sessions for a world run by zones (`cluster --live`).
+    Gateway(gateway::GatewayArgs),
     /// Manage accounts.
     #[command(subcommand)]
     User(admin::UserCommand),
@@ -104,6 +107,7 @@ fn main() -> Result<()> {
         Command::Flood(a) => flood::run(a),
         Command::Zone(a) => zones::run_zone(a),
         Command::Cluster(a) => zones::run_cluster(a),
+        Command::Gateway(a) => gateway::run(a),
         Command::User(c) => admin::user(c),
         Command::Map(c) => admin::map(c),
     }

@@ -56,6 +56,11 @@ pub struct ClusterCommon {
     /// How far an object may move in one tick.
     #[arg(long, default_value_t = 2.0)]
     pub zone_max_step: f32,
+    /// Serve gateways: zones publish their objects' states every tick and take players'
+    /// joins, actions and leaves (`myriad gateway`); use with `--tick-hz 30` and a large
+    /// `--ticks`.
+    #[arg(long)]
+    pub live: bool,
     /// A script of players' actions (`TICK ENTITY MASK` lines).
     #[arg(long, value_name = "FILE")]
     pub actions: Option<PathBuf>,
@@ -130,7 +135,8 @@ fn prepare(c: &ClusterCommon) -> Result<Prepared> {
     Ok(Prepared { world, layout, script })
 }
 
-fn key_from_env() -> Result<ClusterKey> {
+/// The cluster's key from [`KEY_ENV`].
+pub fn key_from_env() -> Result<ClusterKey> {
     let secret = std::env::var(KEY_ENV).with_context(|| format!("{KEY_ENV} must hold the cluster's key"))?;
     Ok(ClusterKey::new(secret.as_bytes())?)
 }
@@ -161,6 +167,7 @@ pub fn run_zone(args: ZoneArgs) -> Result<()> {
         checkpoint_every: c.checkpoint_every,
         stall: Duration::from_millis(c.stall_ms),
         period: if c.tick_hz > 0.0 { Duration::from_secs_f64(1.0 / c.tick_hz) } else { Duration::ZERO },
+        live: c.live,
     };
     let (kind, gpu) = (c.backend, args.gpu);
     let backend = move || Ok(myriad_cuda::create_backend_on(kind, gpu)?);
@@ -266,7 +273,8 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     let (url, _local) = nats_for(&args)?;
     let cluster = args.cluster.clone().unwrap_or_else(|| format!("c{}", std::process::id()));
     myriad_zone::nats::check_cluster_name(&cluster)?;
-    let secret = myriad_zone::wire::random_secret();
+    // The key the gateways were given, or one of this run's own.
+    let secret = std::env::var(KEY_ENV).unwrap_or_else(|_| myriad_zone::wire::random_secret());
     let key = ClusterKey::new(secret.as_bytes())?;
     let exe = std::env::current_exe()?;
     let flags = zone_flags();
@@ -305,7 +313,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         key,
         zones,
         ticks: args.common.ticks,
-        objects: p.world.dynamics.len(),
+        objects: (!args.common.live).then_some(p.world.dynamics.len()),
         dead_after: Duration::from_millis(args.dead_ms),
         checkpoint_every: args.common.checkpoint_every,
     };

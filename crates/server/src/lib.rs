@@ -108,6 +108,11 @@ pub fn store_config(config: &ServerConfig) -> StoreConfig {
     store
 }
 
+/// Makes the tick's physics backend on the tick thread, from the world it will step
+/// ([`ServerHandle::start_with`]).
+pub type BackendFactory =
+    Box<dyn FnOnce(&mut myriad_core::World) -> Result<Box<dyn myriad_physics::Backend>, ServerError> + Send>;
+
 impl ServerHandle {
     /// Opens the store, builds the world, binds the UDP and login ports, and starts the
     /// tick loop and the login service. Call it outside any tokio runtime: the server
@@ -117,6 +122,14 @@ impl ServerHandle {
     /// [`myriad_cuda::create_backend`], on the tick thread (GPU contexts belong to the
     /// thread that uses them): `auto` picks the GPU when one is usable, else `cpu`.
     pub fn start(config: ServerConfig) -> Result<ServerHandle, ServerError> {
+        ServerHandle::start_with(config, None)
+    }
+
+    /// [`ServerHandle::start`] with another physics backend: `backend` is called on the
+    /// tick thread with the prepared world (which it may adjust) and returns the
+    /// backend. A zones gateway serves this way, with a backend whose step is done by
+    /// the zones (`myriad_zone::ZonesBackend`).
+    pub fn start_with(config: ServerConfig, backend: Option<BackendFactory>) -> Result<ServerHandle, ServerError> {
         config.validate()?;
         std::fs::create_dir_all(&config.data_dir)
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
@@ -225,7 +238,12 @@ impl ServerHandle {
         let tick_thread = std::thread::Builder::new()
             .name("myriad-tick".into())
             .spawn(move || {
-                let backend = match myriad_cuda::create_backend(tick_config.backend) {
+                let mut world = world;
+                let made = match backend {
+                    Some(make) => make(&mut world),
+                    None => myriad_cuda::create_backend(tick_config.backend).map_err(ServerError::from),
+                };
+                let backend = match made {
                     Ok(b) => {
                         tracing::info!(backend = %b.description(), "physics backend ready");
                         let _ = ready.send(Ok(()));
@@ -249,7 +267,7 @@ impl ServerHandle {
             Ok(Err(e)) => {
                 let _ = tick_thread.join();
                 runtime.shutdown_background();
-                return Err(e.into());
+                return Err(e);
             }
             Err(_) => {
                 runtime.shutdown_background();

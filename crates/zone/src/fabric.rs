@@ -14,6 +14,9 @@ use crate::layout::ZoneId;
 pub trait Fabric: Send {
     /// Sends one message to zone `to`.
     fn send(&mut self, to: ZoneId, bytes: Vec<u8>) -> Result<(), ZoneError>;
+    /// Sends one message of this zone's states to every gateway (a live zone's, after
+    /// each step).
+    fn publish_states(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError>;
     /// The next message addressed to this zone, or `None` once `deadline` has passed.
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError>;
     /// The largest message it carries, in bytes.
@@ -25,6 +28,8 @@ pub trait Fabric: Send {
 /// Channels between threads of one process.
 pub struct MemoryFabric {
     peers: Vec<mpsc::Sender<Vec<u8>>>,
+    /// Where states go: the in-process gateway's inbox, if there is one.
+    gateway: Option<mpsc::Sender<Vec<u8>>>,
     inbox: mpsc::Receiver<Vec<u8>>,
     sent: u64,
     received: u64,
@@ -36,8 +41,54 @@ impl MemoryFabric {
         let (senders, receivers): (Vec<_>, Vec<_>) = (0..n).map(|_| mpsc::channel()).unzip();
         receivers
             .into_iter()
-            .map(|inbox| MemoryFabric { peers: senders.clone(), inbox, sent: 0, received: 0 })
+            .map(|inbox| MemoryFabric { peers: senders.clone(), gateway: None, inbox, sent: 0, received: 0 })
             .collect()
+    }
+
+    /// [`MemoryFabric::mesh`] with one gateway attached: the zones' states reach the
+    /// returned [`MemoryGatewayLink`], whose intents reach every zone.
+    pub fn mesh_with_gateway(n: usize) -> (Vec<MemoryFabric>, MemoryGatewayLink) {
+        let mut zones = MemoryFabric::mesh(n);
+        let (states, inbox) = mpsc::channel();
+        for z in &mut zones {
+            z.gateway = Some(states.clone());
+        }
+        let link = MemoryGatewayLink { zones: zones[0].peers.clone(), inbox };
+        (zones, link)
+    }
+}
+
+/// How a gateway reaches the zones: intents out to every zone, states in from all.
+/// [`crate::nats::NatsGatewayLink`] between processes, [`MemoryGatewayLink`] in one.
+pub trait GatewayLink: Send {
+    /// Sends one message of intents to every zone.
+    fn send_intents(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError>;
+    /// The next message of states, or `None` once `deadline` has passed.
+    fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError>;
+}
+
+/// A gateway's side of [`MemoryFabric::mesh_with_gateway`].
+pub struct MemoryGatewayLink {
+    zones: Vec<mpsc::Sender<Vec<u8>>>,
+    inbox: mpsc::Receiver<Vec<u8>>,
+}
+
+impl GatewayLink for MemoryGatewayLink {
+    fn send_intents(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        for z in &self.zones {
+            // A zone that has finished its run no longer listens.
+            let _ = z.send(bytes.clone());
+        }
+        Ok(())
+    }
+
+    fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
+        let wait = deadline.saturating_duration_since(Instant::now());
+        match self.inbox.recv_timeout(wait) {
+            Ok(b) => Ok(Some(b)),
+            Err(mpsc::RecvTimeoutError::Timeout) => Ok(None),
+            Err(mpsc::RecvTimeoutError::Disconnected) => Err(ZoneError::Fabric("every zone is gone".into())),
+        }
     }
 }
 
@@ -47,6 +98,15 @@ impl Fabric for MemoryFabric {
         self.sent += bytes.len() as u64;
         // A peer that has finished its run no longer listens; that is not this zone's error.
         let _ = peer.send(bytes);
+        Ok(())
+    }
+
+    fn publish_states(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        if let Some(g) = &self.gateway {
+            self.sent += bytes.len() as u64;
+            // A gateway that has stopped no longer listens; that is not this zone's error.
+            let _ = g.send(bytes);
+        }
         Ok(())
     }
 

@@ -8,6 +8,8 @@
 //! - [`wire`]: the fabric's messages: versioned, length-checked, signed (HMAC-SHA256).
 //! - [`fabric`]: the [`Fabric`] trait and the in-process [`MemoryFabric`]; [`nats`]: the
 //!   [`NatsFabric`] between processes.
+//! - [`gateway`]: a gateway's world, mirrored from the zones ([`ZonesBackend`]), and
+//!   [`intents`]: the players' joins, actions and leaves as a zone keeps them.
 //! - [`local`]: K zones on threads, reassembled ([`run_zoned`]).
 //! - [`stats`]: per-zone counters and their Prometheus form.
 //!
@@ -16,6 +18,8 @@
 pub mod checkpoint;
 pub mod error;
 pub mod fabric;
+pub mod gateway;
+pub mod intents;
 pub mod layout;
 pub mod local;
 pub mod nats;
@@ -26,7 +30,8 @@ pub mod wire;
 pub mod zone;
 
 pub use error::ZoneError;
-pub use fabric::{Fabric, MemoryFabric};
+pub use fabric::{Fabric, GatewayLink, MemoryFabric, MemoryGatewayLink};
+pub use gateway::{GatewayConfig, ZonesBackend};
 pub use layout::{Rect, ZoneId, ZoneLayout};
 pub use local::{RunOptions, ZonedRun, pair_reach, run_zoned};
 pub use nats::NatsFabric;

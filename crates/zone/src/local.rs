@@ -85,7 +85,7 @@ pub fn run_zoned(
                 let (layout, key) = (layout.clone(), key.clone());
                 s.spawn(move || {
                     let id = ZoneId(i as u16);
-                    let cfg = ZoneConfig { id, run, key, wait };
+                    let cfg = ZoneConfig { id, run, key, wait, live: false };
                     let mut zone = Zone::new(cfg, layout, world, backend(id)?, fabric)?;
                     let mut actions = 0;
                     let first = Instant::now();

@@ -3,7 +3,9 @@
 //! Subjects of cluster `c` (all documented in `docs/zones.md`):
 //! - `myriad.c.zone.<z>`: border states for zone `z`;
 //! - `myriad.c.control`: the supervisor's halt and start, to every zone;
-//! - `myriad.c.heartbeat`: every zone's heartbeat, to the supervisor.
+//! - `myriad.c.heartbeat`: every zone's heartbeat, to the supervisor;
+//! - `myriad.c.states`: every zone's owned objects after each step, to the gateways;
+//! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone.
 //!
 //! NATS delivers a publisher's messages in order and at most once; a loss (a slow
 //! consumer, a restarted server) shows as a stalled neighbour, which the fault path
@@ -14,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
-use futures_util::stream::Select;
+use futures_util::stream::SelectAll;
 
 use crate::error::ZoneError;
 use crate::fabric::Fabric;
@@ -34,6 +36,16 @@ pub fn control_subject(cluster: &str) -> String {
 /// The subject of the zones' heartbeats.
 pub fn heartbeat_subject(cluster: &str) -> String {
     format!("myriad.{cluster}.heartbeat")
+}
+
+/// The subject of the zones' states for the gateways.
+pub fn states_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.states")
+}
+
+/// The subject of the gateways' intents for the zones.
+pub fn intents_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.intents")
 }
 
 /// Checks a cluster name: letters, digits, `-` and `_`, so it is one subject token.
@@ -117,10 +129,11 @@ impl Drop for Heartbeat {
     }
 }
 
-/// A zone's endpoint: its border subject and the control subject, merged.
+/// A zone's endpoint: its border subject, the control subject and the gateways' intents,
+/// merged.
 pub struct NatsFabric {
     link: NatsLink,
-    sub: Select<async_nats::Subscriber, async_nats::Subscriber>,
+    sub: SelectAll<async_nats::Subscriber>,
     cluster: String,
     zone: ZoneId,
     max: usize,
@@ -129,15 +142,17 @@ pub struct NatsFabric {
 }
 
 impl NatsFabric {
-    /// Connects to `url` as zone `zone` of `cluster` and subscribes to its subject and
-    /// the control subject; when this returns, messages published to them are delivered.
+    /// Connects to `url` as zone `zone` of `cluster` and subscribes to its subject, the
+    /// control subject and the intents subject; when this returns, messages published to
+    /// them are delivered.
     pub fn connect(url: &str, cluster: &str, zone: ZoneId) -> Result<NatsFabric, ZoneError> {
         check_cluster_name(cluster)?;
         let link = NatsLink::connect(url, format!("myriad-{cluster}-zone-{}", zone.0))?;
         let borders = link.subscribe(zone_subject(cluster, zone))?;
         let control = link.subscribe(control_subject(cluster))?;
+        let intents = link.subscribe(intents_subject(cluster))?;
         let max = link.client.server_info().max_payload;
-        let sub = futures_util::stream::select(borders, control);
+        let sub = futures_util::stream::select_all([borders, control, intents]);
         Ok(NatsFabric { link, sub, cluster: cluster.to_string(), zone, max, sent: 0, received: 0 })
     }
 
@@ -172,6 +187,11 @@ impl Fabric for NatsFabric {
         self.link.publish(zone_subject(&self.cluster, to), bytes)
     }
 
+    fn publish_states(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.sent += bytes.len() as u64;
+        self.link.publish(states_subject(&self.cluster), bytes)
+    }
+
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         let wait = deadline.saturating_duration_since(Instant::now());
         let sub = &mut self.sub;
@@ -192,5 +212,39 @@ impl Fabric for NatsFabric {
 
     fn bytes(&self) -> (u64, u64) {
         (self.sent, self.received)
+    }
+}
+
+/// A gateway's endpoint: intents out to every zone, the zones' states in.
+pub struct NatsGatewayLink {
+    link: NatsLink,
+    states: async_nats::Subscriber,
+    cluster: String,
+}
+
+impl NatsGatewayLink {
+    /// Connects to `url` as gateway `gateway` of `cluster` and subscribes to the states
+    /// subject.
+    pub fn connect(url: &str, cluster: &str, gateway: u16) -> Result<NatsGatewayLink, ZoneError> {
+        check_cluster_name(cluster)?;
+        let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}"))?;
+        let states = link.subscribe(states_subject(cluster))?;
+        Ok(NatsGatewayLink { link, states, cluster: cluster.to_string() })
+    }
+}
+
+impl crate::fabric::GatewayLink for NatsGatewayLink {
+    fn send_intents(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.link.publish(intents_subject(&self.cluster), bytes)
+    }
+
+    fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
+        let wait = deadline.saturating_duration_since(Instant::now());
+        let sub = &mut self.states;
+        match self.link.rt.block_on(async { tokio::time::timeout(wait, sub.next()).await }) {
+            Err(_) => Ok(None),
+            Ok(Some(m)) => Ok(Some(m.payload.to_vec())),
+            Ok(None) => Err(ZoneError::Fabric("the NATS subscription ended".into())),
+        }
     }
 }

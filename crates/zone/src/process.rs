@@ -35,6 +35,8 @@ pub struct ProcessConfig {
     pub stall: Duration,
     /// The tick period, or zero to step as fast as the neighbours allow.
     pub period: Duration,
+    /// Whether the zone serves gateways (publishes its states every tick).
+    pub live: bool,
 }
 
 /// Checkpoints each zone keeps.
@@ -93,7 +95,7 @@ pub fn run_zone_process(
         epoch = run;
         started = run;
         tracing::info!(zone = cfg.zone.0, epoch, tick = from, "starting");
-        let zcfg = ZoneConfig { id: cfg.zone, run, key: cfg.key.clone(), wait: cfg.stall };
+        let zcfg = ZoneConfig { id: cfg.zone, run, key: cfg.key.clone(), wait: cfg.stall, live: cfg.live };
         let mut zone = if from == 0 {
             Zone::new(zcfg, layout.clone(), world, backend()?, fabric)?
         } else {

@@ -23,6 +23,10 @@ pub struct ZoneStats {
     pub handoffs_in: u64,
     /// Objects handed to a neighbour, in all.
     pub handoffs_out: u64,
+    /// Players' objects adopted from gateways' joins, in all.
+    pub joins: u64,
+    /// Players' objects removed by gateways' leaves, in all.
+    pub leaves: u64,
     /// Time spent waiting for neighbours' border states.
     pub wait: Duration,
     /// Time spent stepping: assembling the zone's world, the physics, keeping the owned
@@ -57,6 +61,8 @@ impl ZoneStats {
         counter("myriad_zone_ghosts_out_total", self.ghosts_out);
         counter("myriad_zone_handoffs_in_total", self.handoffs_in);
         counter("myriad_zone_handoffs_out_total", self.handoffs_out);
+        counter("myriad_zone_player_joins_total", self.joins);
+        counter("myriad_zone_player_leaves_total", self.leaves);
         counter("myriad_zone_fabric_sent_bytes_total", self.bytes.0);
         counter("myriad_zone_fabric_received_bytes_total", self.bytes.1);
         counter("myriad_zone_messages_sent_total", self.messages.0);

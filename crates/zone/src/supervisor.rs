@@ -27,8 +27,9 @@ pub struct SupervisorConfig {
     pub zones: usize,
     /// The run's last tick.
     pub ticks: u64,
-    /// Objects in the world (a result with another count is an error).
-    pub objects: usize,
+    /// Objects in the world (a result with another count is an error), or `None` when
+    /// gateways' players join and leave (the count is not known in advance).
+    pub objects: Option<usize>,
     /// A zone whose heartbeat is older than this is dead.
     pub dead_after: Duration,
     /// Ticks between the zones' checkpoints.
@@ -74,18 +75,18 @@ pub fn assemble(
     store: &mut dyn CheckpointStore,
     zones: usize,
     tick: u64,
-    objects: usize,
+    objects: Option<usize>,
 ) -> Result<(u64, Vec<ObjectState>), ZoneError> {
-    let mut all = Vec::with_capacity(objects);
+    let mut all = Vec::with_capacity(objects.unwrap_or(0));
     for z in 0..zones {
         all.extend(store.get(ZoneId(z as u16), tick)?);
     }
     all.sort_unstable_by_key(|o| o.id);
-    if all.windows(2).any(|w| w[0].id == w[1].id) || all.len() != objects {
-        return Err(ZoneError::Checkpoint(format!(
-            "tick {tick}: {} objects reassembled, {objects} expected",
-            all.len()
-        )));
+    if let Some(w) = all.windows(2).find(|w| w[0].id == w[1].id) {
+        return Err(ZoneError::Checkpoint(format!("tick {tick}: object {} stored by two zones", w[0].id.0)));
+    }
+    if let Some(n) = objects.filter(|n| *n != all.len()) {
+        return Err(ZoneError::Checkpoint(format!("tick {tick}: {} objects reassembled, {n} expected", all.len())));
     }
     Ok((hash_state(all.iter().copied(), tick, all.len()), all))
 }

@@ -42,6 +42,10 @@ pub const KIND_HEARTBEAT: u8 = 3;
 pub const KIND_HALT: u8 = 4;
 /// Message kind: the supervisor's start of an epoch from a checkpoint.
 pub const KIND_START: u8 = 5;
+/// Message kind: a zone's owned objects after a step, to every gateway.
+pub const KIND_STATES: u8 = 6;
+/// Message kind: a gateway's players' intents (join, action, leave), to every zone.
+pub const KIND_INTENTS: u8 = 7;
 /// Bit of a record's flag byte that hands the object to the receiver.
 const YOURS: u8 = 1 << 7;
 
@@ -168,6 +172,36 @@ pub struct Border {
     pub objects: Vec<(ObjectState, bool)>,
 }
 
+/// What a gateway asks of the zones for its players.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+#[repr(u16)]
+pub enum IntentKind {
+    /// A player's object enters the world: the zone whose region holds it adopts it.
+    Join = 0,
+    /// A player's newest action: whichever zone owns the object applies it.
+    Action = 1,
+    /// A player's object leaves the world: whichever zone owns it removes it.
+    Leave = 2,
+}
+
+/// One message of intents of one kind, from one gateway, at one of its ticks. The
+/// records are whole object states; a zone takes all of a join's, only the id and
+/// action of an action's, only the id of a leave's.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Intents {
+    /// The gateway's incarnation (its start time in ms): a restarted gateway's intents
+    /// supersede its earlier ones.
+    pub incarnation: u64,
+    /// The gateway's tick when it sent them (ordering within an incarnation).
+    pub tick: u64,
+    /// The gateway.
+    pub gateway: u16,
+    /// What they ask.
+    pub kind: IntentKind,
+    /// The players' objects.
+    pub objects: Vec<ObjectState>,
+}
+
 /// What a zone process is doing, as its heartbeat says.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
@@ -223,6 +257,11 @@ pub enum Message {
         /// The checkpoint's tick.
         tick: u64,
     },
+    /// Zone to gateways, every tick: part of the objects the zone owns after the step
+    /// that ended at `tick` (a [`Border`] whose `to` is [`ALL`] and with no hand-off).
+    States(Border),
+    /// Gateway to zones.
+    Intents(Intents),
 }
 
 /// The `to` field of messages for every zone.
@@ -284,6 +323,33 @@ pub fn encode_checkpoint(
     encode_with(key, Head { kind: KIND_CHECKPOINT, run, tick, from: zone, to: zone, aux: [0, 0] }, &records)
 }
 
+/// Encodes and signs a zone's states for the gateways (`m.to` must be [`ALL`], and no
+/// object handed to anyone).
+pub fn encode_states(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError> {
+    if m.parts == 0 || m.part >= m.parts {
+        return Err(WireError::Part { part: m.part, parts: m.parts });
+    }
+    if m.to != ALL || m.objects.iter().any(|(_, yours)| *yours) {
+        return Err(WireError::Field("states header"));
+    }
+    let h = Head { kind: KIND_STATES, run: m.run, tick: m.tick, from: m.from, to: ALL, aux: [m.part, m.parts] };
+    encode_with(key, h, &m.objects)
+}
+
+/// Encodes and signs a gateway's intents.
+pub fn encode_intents(key: &ClusterKey, m: &Intents) -> Result<Vec<u8>, WireError> {
+    let h = Head {
+        kind: KIND_INTENTS,
+        run: m.incarnation,
+        tick: m.tick,
+        from: ZoneId(m.gateway),
+        to: ALL,
+        aux: [m.kind as u16, 0],
+    };
+    let records: Vec<_> = m.objects.iter().map(|o| (*o, false)).collect();
+    encode_with(key, h, &records)
+}
+
 /// Encodes and signs a message without objects (heartbeat, halt, start).
 pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
     let h = match *m {
@@ -292,7 +358,9 @@ pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireErro
         }
         Message::Halt { run } => Head { kind: KIND_HALT, run, tick: 0, from: ALL, to: ALL, aux: [0, 0] },
         Message::Start { run, tick } => Head { kind: KIND_START, run, tick, from: ALL, to: ALL, aux: [0, 0] },
-        Message::Border(_) | Message::Checkpoint { .. } => return Err(WireError::Field("kind")),
+        Message::Border(_) | Message::Checkpoint { .. } | Message::States(_) | Message::Intents(_) => {
+            return Err(WireError::Field("kind"));
+        }
     };
     encode_with(key, h, &[])
 }
@@ -310,6 +378,8 @@ pub fn encode(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
     match m {
         Message::Border(b) => encode_border(key, b),
         Message::Checkpoint { run, tick, zone, objects } => encode_checkpoint(key, *run, *tick, *zone, objects),
+        Message::States(b) => encode_states(key, b),
+        Message::Intents(i) => encode_intents(key, i),
         _ => encode_control(key, m),
     }
 }
@@ -352,6 +422,19 @@ fn record(index: usize, r: &[u8]) -> Result<(ObjectState, bool), WireError> {
     Ok((o, r[7] & YOURS != 0))
 }
 
+/// Records that hand nothing to anyone: the hand-off bit must be clear, so that a
+/// message has one encoding (found by fuzzing, for checkpoints).
+fn plain(records: impl Iterator<Item = Result<(ObjectState, bool), WireError>>) -> Result<Vec<ObjectState>, WireError> {
+    records
+        .enumerate()
+        .map(|(index, r)| match r {
+            Ok((_, true)) => Err(WireError::Record { index, reason: "hand-off bit where nothing is handed".into() }),
+            Ok((o, false)) => Ok(o),
+            Err(e) => Err(e),
+        })
+        .collect()
+}
+
 /// Checks the tag, then decodes a message. Nothing of an unauthenticated message is
 /// parsed beyond the magic and version.
 pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
@@ -385,17 +468,27 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
         }
         KIND_CHECKPOINT => {
             none(aux0 == 0 && aux1 == 0 && from == to, "checkpoint header")?;
-            // A checkpoint hands nothing to anyone: the hand-off bit must be clear (one
-            // encoding per message; found by fuzzing).
-            let objects = records()
-                .enumerate()
-                .map(|(index, r)| match r {
-                    Ok((_, true)) => Err(WireError::Record { index, reason: "hand-off bit in a checkpoint".into() }),
-                    Ok((o, false)) => Ok(o),
-                    Err(e) => Err(e),
-                })
-                .collect::<Result<Vec<_>, _>>()?;
+            let objects = plain(records())?;
             Ok(Message::Checkpoint { run, tick, zone: from, objects })
+        }
+        KIND_STATES => {
+            if aux1 == 0 || aux0 >= aux1 {
+                return Err(WireError::Part { part: aux0, parts: aux1 });
+            }
+            none(to == ALL && from != ALL, "states header")?;
+            let objects = plain(records())?.into_iter().map(|o| (o, false)).collect();
+            Ok(Message::States(Border { run, tick, from, to, part: aux0, parts: aux1, objects }))
+        }
+        KIND_INTENTS => {
+            none(to == ALL && aux1 == 0, "intents header")?;
+            let kind = match aux0 {
+                0 => IntentKind::Join,
+                1 => IntentKind::Action,
+                2 => IntentKind::Leave,
+                _ => return Err(WireError::Field("intent kind")),
+            };
+            let objects = plain(records())?;
+            Ok(Message::Intents(Intents { incarnation: run, tick, gateway: from.0, kind, objects }))
         }
         KIND_HEARTBEAT => {
             none(count == 0 && aux1 == 0 && to == ALL, "heartbeat header")?;
@@ -471,6 +564,16 @@ mod tests {
             assert_eq!(decode(&key(), &encode_control(&key(), &m).unwrap()).unwrap(), m);
         }
         assert!(encode_control(&key(), &Message::Border(message())).is_err());
+        let states = Border { to: ALL, objects: vec![(object(5, 1.0), false)], ..message() };
+        assert_eq!(decode(&key(), &encode_states(&key(), &states).unwrap()).unwrap(), Message::States(states.clone()));
+        assert!(encode_states(&key(), &message()).is_err(), "a state message hands nothing and goes to all");
+        for kind in [IntentKind::Join, IntentKind::Action, IntentKind::Leave] {
+            let i = Intents { incarnation: 1_700_000, tick: 44, gateway: 2, kind, objects: vec![object(1 << 30, 2.0)] };
+            assert_eq!(
+                decode(&key(), &encode(&key(), &Message::Intents(i.clone())).unwrap()).unwrap(),
+                Message::Intents(i)
+            );
+        }
         // A checkpoint record with the hand-off bit is refused, not silently cleared.
         let mut raw = c[..c.len() - TAG_LEN].to_vec();
         raw[HEADER_LEN + 7] |= YOURS;

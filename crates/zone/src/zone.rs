@@ -25,9 +25,12 @@ use myriad_physics::{Backend, TickConstants};
 
 use crate::error::ZoneError;
 use crate::fabric::Fabric;
+use crate::intents::IntentBook;
 use crate::layout::{ZoneId, ZoneLayout};
 use crate::stats::ZoneStats;
-use crate::wire::{Border, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border};
+use crate::wire::{
+    ALL, Border, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border, encode_states,
+};
 
 /// What a zone needs besides its world: identity, cluster and patience.
 #[derive(Clone, Debug)]
@@ -40,6 +43,9 @@ pub struct ZoneConfig {
     pub key: ClusterKey,
     /// How long to wait for a neighbour's border state before declaring it stalled.
     pub wait: Duration,
+    /// Whether the zone serves gateways: it publishes its owned objects' states after
+    /// every step ([`Fabric::publish_states`]). Players' intents are taken either way.
+    pub live: bool,
 }
 
 /// The parts of one neighbour's border state for one tick.
@@ -71,6 +77,8 @@ pub struct Zone {
     owned_slots: Vec<bool>,
     /// The objects of the step being assembled, with whether they are owned (scratch).
     scratch: Vec<(ObjectState, bool)>,
+    /// Gateways' joins, actions and leaves for players' objects.
+    intents: IntentBook,
 }
 
 impl Zone {
@@ -120,6 +128,7 @@ impl Zone {
             stats,
             owned_slots: Vec::new(),
             scratch: Vec::new(),
+            intents: IntentBook::default(),
         })
     }
 
@@ -158,6 +167,7 @@ impl Zone {
         self.send_borders(t)?;
         self.stats.send += send.elapsed();
         let received = self.gather(t)?;
+        self.drain_ready()?;
         let start = Instant::now();
         let applied = self.assemble(received, actions)?;
         let physics = Instant::now();
@@ -169,8 +179,39 @@ impl Zone {
         self.stats.ticks += 1;
         self.stats.owned = self.advanced.len();
         self.stats.step += start.elapsed();
+        if self.cfg.live {
+            self.publish_states()?;
+        }
+        self.intents.expire(self.world.tick);
         self.stats.bytes = self.fabric.bytes();
         Ok(applied)
+    }
+
+    /// The advanced set, at the tick just reached, to every gateway.
+    fn publish_states(&mut self) -> Result<(), ZoneError> {
+        let per_part = self.records_per_part();
+        let objects = &self.advanced;
+        let parts = objects.len().div_ceil(per_part).max(1);
+        let parts16 = u16::try_from(parts).map_err(|_| ZoneError::Fabric(format!("{parts} parts")))?;
+        for part in 0..parts {
+            let chunk = &objects[(part * per_part).min(objects.len())..((part + 1) * per_part).min(objects.len())];
+            let m = Border {
+                run: self.cfg.run,
+                tick: self.world.tick,
+                from: self.cfg.id,
+                to: ALL,
+                part: part as u16,
+                parts: parts16,
+                objects: chunk.iter().map(|o| (*o, false)).collect(),
+            };
+            self.fabric.publish_states(encode_states(&self.cfg.key, &m)?)?;
+            self.stats.messages.0 += 1;
+        }
+        Ok(())
+    }
+
+    fn records_per_part(&self) -> usize {
+        ((self.fabric.max_message() - HEADER_LEN - TAG_LEN) / RECORD_LEN).max(1)
     }
 
     /// Step 1: the advanced set to every neighbour that sees it.
@@ -187,7 +228,7 @@ impl Zone {
                 self.stats.handoffs_out += (z == owner) as u64;
             }
         }
-        let per_part = ((self.fabric.max_message() - HEADER_LEN - TAG_LEN) / RECORD_LEN).max(1);
+        let per_part = self.records_per_part();
         for (&to, objects) in neighbours.iter().zip(out) {
             self.stats.ghosts_out += objects.len() as u64;
             let parts = objects.len().div_ceil(per_part).max(1);
@@ -250,6 +291,17 @@ impl Zone {
         Ok(received)
     }
 
+    /// Takes every message already waiting (gateways' intents arrive whether or not this
+    /// zone waits on neighbours; a zone without any would otherwise never read them).
+    fn drain_ready(&mut self) -> Result<(), ZoneError> {
+        while let Some(bytes) = self.fabric.recv(Instant::now())? {
+            if let Some(control) = self.offer(&bytes) {
+                return Err(ZoneError::Interrupted(control));
+            }
+        }
+        Ok(())
+    }
+
     /// Files a message in the inbox, or rejects (and counts) it. Only authenticated
     /// border messages of this run, for this zone, from a neighbour, for this tick or the
     /// next (a neighbour is never further ahead), and not seen before, are kept. The
@@ -259,6 +311,15 @@ impl Zone {
         let m = match decode(&self.cfg.key, bytes) {
             Ok(Message::Border(m)) => m,
             Ok(control @ (Message::Halt { .. } | Message::Start { .. })) => return Some(control),
+            Ok(Message::Intents(i)) => {
+                return match self.intents.offer(i, t) {
+                    Ok(()) => {
+                        self.stats.messages.1 += 1;
+                        None
+                    }
+                    Err(refused) => self.reject(refused.label(), t),
+                };
+            }
             Ok(_) => return self.reject("kind", t),
             Err(e) => return self.reject(e.label(), t),
         };
@@ -326,6 +387,23 @@ impl Zone {
         if let Some(w) = objects.windows(2).find(|w| w[0].0.id == w[1].0.id) {
             return Err(ZoneError::Duplicate(w[0].0.id, self.world.tick));
         }
+        // Players: leaves remove what this zone owns, joins are adopted by the zone whose
+        // region holds them (once: not if the object is here already, or left).
+        if !self.intents.is_empty() {
+            let book = &self.intents;
+            let before = objects.len();
+            objects.retain(|(o, owned)| !(*owned && book.left(o.id)));
+            self.stats.leaves += (before - objects.len()) as u64;
+            for j in self.intents.take_joins() {
+                if layout.zone_at(j.pos) != me || self.intents.left(j.id) {
+                    continue;
+                }
+                if let Err(at) = objects.binary_search_by_key(&j.id, |(o, _)| o.id) {
+                    objects.insert(at, (j, true));
+                    self.stats.joins += 1;
+                }
+            }
+        }
         let d = &mut self.world.dynamics;
         d.clear();
         d.insert_all(objects.iter().map(|(o, _)| *o))?;
@@ -341,6 +419,14 @@ impl Zone {
             {
                 d.set_action_at(s, a.action);
                 applied += 1;
+            }
+        }
+        for (id, action) in self.intents.actions() {
+            if let Ok(s) = objects.binary_search_by_key(&id, |(o, _)| o.id)
+                && self.owned_slots[s]
+                && d.actions()[s] != action
+            {
+                d.set_action_at(s, myriad_core::Action::from_bits_truncate(action));
             }
         }
         Ok(applied)

@@ -51,6 +51,9 @@ impl Fabric for Hostile {
         }
         Ok(())
     }
+    fn publish_states(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.inner.publish_states(bytes)
+    }
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         self.inner.recv(deadline)
     }

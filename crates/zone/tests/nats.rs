@@ -52,8 +52,13 @@ fn a_silent_neighbour_is_a_stall() {
     let layout = std::sync::Arc::new(ZoneLayout::for_count(&world.bounds, 2, pair_reach(&world), 2.0).unwrap());
     let name = cluster("stall");
     let fabric = NatsFabric::connect(&url, &name, ZoneId(0)).unwrap();
-    let cfg =
-        ZoneConfig { id: ZoneId(0), run: 1, key: myriad_zone::ClusterKey::random(), wait: Duration::from_millis(300) };
+    let cfg = ZoneConfig {
+        id: ZoneId(0),
+        run: 1,
+        key: myriad_zone::ClusterKey::random(),
+        wait: Duration::from_millis(300),
+        live: false,
+    };
     let mut zone = Zone::new(cfg, layout, &world, cpu(ZoneId(0)).unwrap(), Box::new(fabric)).unwrap();
     let start = Instant::now();
     match zone.step(&[], &TickConstants::default()) {

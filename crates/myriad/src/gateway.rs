@@ -1,0 +1,86 @@
+//! `myriad gateway`: the server players log in to when the world runs as zones.
+//!
+//! It is `myriad serve` (TLS login, UDP sessions, interest management, persistence)
+//! whose physics backend is the zones themselves ([`myriad_zone::ZonesBackend`]): each
+//! tick it sends the zones its players' joins, actions and leaves and takes the newest
+//! world they finished. Start the zones with `myriad cluster --live` (same scenario,
+//! seed, cluster name and `MYRIAD_CLUSTER_KEY`). See docs/zones.md, gateways.
+
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use myriad_server::{ServerError, ServerHandle};
+use myriad_zone::gateway::MAX_GATEWAYS;
+use myriad_zone::nats::NatsGatewayLink;
+use myriad_zone::{GatewayConfig, ZonesBackend};
+
+use crate::serve::{ConfigArgs, wait_for_shutdown};
+use crate::zones::key_from_env;
+
+/// Flags of `myriad gateway`.
+#[derive(clap::Args, Debug)]
+pub struct GatewayArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
+    /// The cluster's name (as given to `myriad cluster --cluster`).
+    #[arg(long)]
+    cluster: String,
+    /// Zones in the cluster.
+    #[arg(long)]
+    zones: u16,
+    /// This gateway's index (each gateway gives its players ids of its own).
+    #[arg(long, default_value_t = 0)]
+    gateway: u16,
+    /// The NATS server.
+    #[arg(long, value_name = "URL", default_value = "nats://127.0.0.1:4222")]
+    nats: String,
+    /// Longest wait of a tick for the zones' next world, in ms (then the tick keeps the
+    /// last one).
+    #[arg(long, default_value_t = 15)]
+    wait_ms: u64,
+    /// Ticks between re-sending every player's action to the zones.
+    #[arg(long, default_value_t = 30)]
+    refresh_ticks: u64,
+    /// Stop after this many seconds (default: at SIGINT/SIGTERM).
+    #[arg(long)]
+    duration: Option<f64>,
+}
+
+/// Runs `myriad gateway`.
+pub fn run(args: GatewayArgs) -> Result<()> {
+    if args.gateway >= MAX_GATEWAYS {
+        bail!("--gateway {}: at most {MAX_GATEWAYS} gateways (0..{})", args.gateway, MAX_GATEWAYS - 1);
+    }
+    if args.zones == 0 {
+        bail!("--zones must be at least 1");
+    }
+    let key = key_from_env()?;
+    let config = args.config.effective()?;
+    let link = NatsGatewayLink::connect(&args.nats, &args.cluster, args.gateway)
+        .with_context(|| format!("joining cluster {}", args.cluster))?;
+    let cfg = GatewayConfig {
+        gateway: args.gateway,
+        key,
+        zones: args.zones as usize,
+        wait: Duration::from_millis(args.wait_ms),
+        refresh: args.refresh_ticks,
+    };
+    let factory: myriad_server::BackendFactory = Box::new(move |world| {
+        let backend = ZonesBackend::new(cfg, Box::new(link)).map_err(|e| ServerError::Internal(e.to_string()))?;
+        backend.prepare(world);
+        Ok(Box::new(backend))
+    });
+    let server = ServerHandle::start_with(config, Some(factory)).context("starting the gateway")?;
+    eprintln!(
+        "myriad: gateway {} of cluster {}; login (TLS) on {}, game (UDP) on {}, certificate {}",
+        args.gateway,
+        args.cluster,
+        server.login_addr(),
+        server.udp_addr(),
+        server.certificate_path().display()
+    );
+    wait_for_shutdown(args.duration.map(Duration::from_secs_f64))?;
+    let report = server.shutdown()?;
+    eprintln!("myriad: gateway stopped; every position saved ({} written in the last flush)", report.rows_written);
+    Ok(())
+}

@@ -1,0 +1,430 @@
+//! A gateway's world: the zones step it, the gateway mirrors it.
+//!
+//! A gateway is the ordinary server (TLS login, UDP sessions, interest management,
+//! sealing, persistence) whose physics backend is [`ZonesBackend`]: its "step" sends the
+//! zones what the gateway's players asked since the last tick and takes the newest world
+//! the zones finished. So every player's session stays at its gateway while its object
+//! moves from zone to zone; a player near a boundary sees the objects of both sides
+//! because the mirror holds them all; and a rollback of the zones changes the mirror,
+//! not the sessions.
+//!
+//! Each step:
+//! 1. **Intents.** The gateway's own players are the objects in its id range
+//!    ([`player_ids`]). A new one is a *join* (its whole state), a changed action an
+//!    *action*, a missing one a *leave*; each kind goes to every zone in one signed
+//!    message ([`crate::intents`] says how zones keep them). Every `refresh` ticks, and at
+//!    once after a rollback, the gateway sends every player's action again, and the join
+//!    of every player the zones have not shown for a while: intents are lost when a zone
+//!    restarts.
+//! 2. **Mirror.** The zones publish their owned objects after every step
+//!    ([`crate::wire::Message::States`]). The backend takes the newest tick for which
+//!    every zone's states are complete (waiting up to `wait` when none is newer than the
+//!    last), and replaces the world's objects with them. The gateway's players that the
+//!    zones have not adopted yet stay as they are; players that left are left out; the
+//!    newest action a player asked for is kept on its object.
+//!
+//! The world's tick is the gateway's own: it advances by one per step (the backend
+//! contract), whatever tick the zones are at, and never goes back when they roll back.
+
+use std::collections::{BTreeMap, HashMap};
+use std::time::{Duration, Instant};
+
+use myriad_core::{Aabb, EntityId, ObjectState, World};
+use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport, TickConstants};
+
+use crate::error::ZoneError;
+use crate::fabric::GatewayLink;
+use crate::wire::{ClusterKey, IntentKind, Intents, Message, decode, encode_intents};
+
+/// Gateways a cluster can have (each owns a range of player ids).
+pub const MAX_GATEWAYS: u16 = 64;
+
+/// Records in one intents message (well under NATS's default 1 MiB).
+const INTENTS_PER_MESSAGE: usize = 16_384;
+
+/// Ticks of zones' states kept while incomplete.
+const PENDING_TICKS: usize = 16;
+
+/// The entity ids gateway `g` gives its players: its own range, so two gateways never
+/// spawn the same id, and far above any generated world's objects.
+pub fn player_ids(gateway: u16) -> std::ops::Range<u32> {
+    let start = (1u32 << 30) + u32::from(gateway) * (1 << 24);
+    start..start + (1 << 24)
+}
+
+/// How a gateway follows its cluster.
+#[derive(Clone, Debug)]
+pub struct GatewayConfig {
+    /// This gateway (below [`MAX_GATEWAYS`]).
+    pub gateway: u16,
+    /// The cluster's key.
+    pub key: ClusterKey,
+    /// Zones in the cluster.
+    pub zones: usize,
+    /// Longest wait in a step for a newer world (then the step keeps the last one).
+    pub wait: Duration,
+    /// Ticks between re-sending every player's action (and missing joins).
+    pub refresh: u64,
+}
+
+/// What a gateway's backend counts.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GatewayStats {
+    /// Worlds taken from the zones.
+    pub mirrors: u64,
+    /// Steps that found no newer world in time (the world stood still for a tick).
+    pub stale_steps: u64,
+    /// Zone ticks skipped because a newer one was complete.
+    pub skipped: u64,
+    /// Objects two zones both claimed in one tick (kept once).
+    pub duplicates: u64,
+    /// Rollbacks seen (a newer run of the zones).
+    pub rollbacks: u64,
+    /// Intent records sent, by kind (join, action, leave).
+    pub intents: [u64; 3],
+    /// States messages refused, by reason.
+    pub rejected: BTreeMap<&'static str, u64>,
+    /// The zones' tick of the mirror.
+    pub zone_tick: u64,
+}
+
+impl GatewayStats {
+    /// Publishes the counters through the `metrics` facade.
+    pub fn export(&self) {
+        metrics::counter!("myriad_gateway_mirrors_total").absolute(self.mirrors);
+        metrics::counter!("myriad_gateway_stale_steps_total").absolute(self.stale_steps);
+        metrics::counter!("myriad_gateway_skipped_ticks_total").absolute(self.skipped);
+        metrics::counter!("myriad_gateway_duplicates_total").absolute(self.duplicates);
+        metrics::counter!("myriad_gateway_rollbacks_total").absolute(self.rollbacks);
+        for (kind, n) in ["join", "action", "leave"].into_iter().zip(self.intents) {
+            metrics::counter!("myriad_gateway_intents_total", "kind" => kind).absolute(n);
+        }
+        for (reason, n) in &self.rejected {
+            metrics::counter!("myriad_gateway_rejected_total", "reason" => *reason).absolute(*n);
+        }
+        metrics::gauge!("myriad_gateway_zone_tick").set(self.zone_tick as f64);
+    }
+}
+
+/// One of the gateway's players, as the backend tracks it.
+#[derive(Clone, Copy, Debug)]
+struct Mine {
+    /// Its newest state in the world.
+    state: ObjectState,
+    /// The gateway tick its join was last sent.
+    joined_at: u64,
+    /// Whether the zones' world has shown it since then.
+    seen: bool,
+}
+
+/// The zones' states of one tick, as they arrive.
+#[derive(Default)]
+struct TickParts {
+    /// Per zone: (parts announced, parts received).
+    zones: HashMap<u16, (u16, BTreeMap<u16, Vec<ObjectState>>)>,
+}
+
+impl TickParts {
+    fn complete(&self, zones: usize) -> bool {
+        self.zones.len() == zones && self.zones.values().all(|(n, got)| got.len() == *n as usize)
+    }
+}
+
+/// The physics backend of a gateway (see the module docs).
+pub struct ZonesBackend {
+    cfg: GatewayConfig,
+    link: Box<dyn GatewayLink>,
+    incarnation: u64,
+    aoi: Box<dyn Backend>,
+    ids: std::ops::Range<u32>,
+    /// The zones' run being followed, and the last tick taken from it.
+    run: u64,
+    taken: Option<u64>,
+    pending: BTreeMap<u64, TickParts>,
+    mine: BTreeMap<EntityId, Mine>,
+    /// Players that left, by the gateway tick of their leave, until the zones drop them.
+    gone: BTreeMap<EntityId, (ObjectState, u64)>,
+    /// The action each player's object held after the last step (what the zones were
+    /// last asked for).
+    written: HashMap<EntityId, u8>,
+    refresh_now: bool,
+    stats: GatewayStats,
+}
+
+impl ZonesBackend {
+    /// A gateway following the zones through `link`.
+    pub fn new(cfg: GatewayConfig, link: Box<dyn GatewayLink>) -> Result<ZonesBackend, ZoneError> {
+        if cfg.gateway >= MAX_GATEWAYS {
+            return Err(ZoneError::Layout(format!("gateway {} of at most {MAX_GATEWAYS}", cfg.gateway)));
+        }
+        if cfg.zones == 0 {
+            return Err(ZoneError::Layout("a gateway needs at least one zone".into()));
+        }
+        let aoi = myriad_physics::create_cpu_backend(BackendKind::Cpu)?;
+        // Milliseconds since the epoch: a restarted gateway's intents are newer.
+        let incarnation = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_millis() as u64)
+            .unwrap_or(1);
+        Ok(ZonesBackend {
+            ids: player_ids(cfg.gateway),
+            cfg,
+            link,
+            incarnation,
+            aoi,
+            run: 0,
+            taken: None,
+            pending: BTreeMap::new(),
+            mine: BTreeMap::new(),
+            gone: BTreeMap::new(),
+            written: HashMap::new(),
+            refresh_now: false,
+            stats: GatewayStats::default(),
+        })
+    }
+
+    /// Makes `world` ready to mirror the zones: its own objects are dropped (the zones'
+    /// replace them at the first step) and spawns continue in this gateway's id range.
+    pub fn prepare(&self, world: &mut World) {
+        world.dynamics.clear();
+        world.dynamics.set_next_id(EntityId(self.ids.start));
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &GatewayStats {
+        &self.stats
+    }
+
+    fn is_mine(&self, id: EntityId) -> bool {
+        self.ids.contains(&id.0)
+    }
+
+    /// Step 1: what the gateway's players asked since the last step.
+    fn send_intents(&mut self, world: &World) -> Result<(), ZoneError> {
+        let t = world.tick;
+        let d = &world.dynamics;
+        let mut joins = Vec::new();
+        let mut actions = Vec::new();
+        let mut present = Vec::new();
+        for s in 0..d.len() {
+            let id = d.ids()[s];
+            if !self.is_mine(id) {
+                continue;
+            }
+            let state = d.state_of(s);
+            present.push(id);
+            match self.mine.get_mut(&id) {
+                None => {
+                    self.mine.insert(id, Mine { state, joined_at: t, seen: false });
+                    joins.push(state);
+                }
+                Some(m) => {
+                    m.state = state;
+                    if self.written.get(&id) != Some(&state.action) {
+                        actions.push(state);
+                    }
+                }
+            }
+        }
+        present.sort_unstable();
+        let left: Vec<EntityId> = self.mine.keys().filter(|id| present.binary_search(id).is_err()).copied().collect();
+        let mut leaves = Vec::new();
+        for id in left {
+            let m = self.mine.remove(&id).expect("listed");
+            self.written.remove(&id);
+            self.gone.insert(id, (m.state, t));
+            leaves.push(m.state);
+        }
+        if self.refresh_now || (self.cfg.refresh > 0 && t.is_multiple_of(self.cfg.refresh)) {
+            self.refresh_now = false;
+            actions = self.mine.values().map(|m| m.state).collect();
+            for m in self.mine.values_mut() {
+                if !m.seen
+                    && t.saturating_sub(m.joined_at) >= self.cfg.refresh
+                    && !joins.iter().any(|j| j.id == m.state.id)
+                {
+                    m.joined_at = t;
+                    joins.push(m.state);
+                }
+            }
+            leaves.extend(self.gone.values().map(|(s, _)| *s));
+        }
+        for (kind, objects) in [(IntentKind::Join, joins), (IntentKind::Action, actions), (IntentKind::Leave, leaves)] {
+            self.stats.intents[kind as usize] += objects.len() as u64;
+            for chunk in objects.chunks(INTENTS_PER_MESSAGE) {
+                let m = Intents {
+                    incarnation: self.incarnation,
+                    tick: t,
+                    gateway: self.cfg.gateway,
+                    kind,
+                    objects: chunk.to_vec(),
+                };
+                self.link.send_intents(encode_intents(&self.cfg.key, &m)?)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn reject(&mut self, reason: &'static str) {
+        *self.stats.rejected.entry(reason).or_default() += 1;
+    }
+
+    /// Files one message of states; returns nothing, counts what it refuses.
+    fn offer(&mut self, bytes: &[u8]) {
+        let m = match decode(&self.cfg.key, bytes) {
+            Ok(Message::States(m)) => m,
+            Ok(_) => return self.reject("kind"),
+            Err(e) => return self.reject(e.label()),
+        };
+        if m.from.0 as usize >= self.cfg.zones || m.from == crate::wire::ALL {
+            return self.reject("stranger");
+        }
+        if m.run < self.run {
+            return self.reject("run");
+        }
+        if m.run > self.run {
+            // The zones rolled back (or this gateway joined a running cluster): follow
+            // the new run from whatever tick it starts at.
+            if self.taken.is_some() {
+                self.stats.rollbacks += 1;
+                self.refresh_now = true;
+                for m in self.mine.values_mut() {
+                    m.seen = false;
+                    m.joined_at = 0;
+                }
+            }
+            self.run = m.run;
+            self.taken = None;
+            self.pending.clear();
+        }
+        if self.taken.is_some_and(|t| m.tick <= t) {
+            return self.reject("stale");
+        }
+        let entry = self.pending.entry(m.tick).or_default();
+        let (parts, got) = entry.zones.entry(m.from.0).or_insert((m.parts, BTreeMap::new()));
+        if *parts != m.parts {
+            return self.reject("parts");
+        }
+        if got.contains_key(&m.part) {
+            return self.reject("replayed");
+        }
+        got.insert(m.part, m.objects.into_iter().map(|(o, _)| o).collect());
+        while self.pending.len() > PENDING_TICKS {
+            self.pending.pop_first();
+            self.stats.skipped += 1;
+        }
+    }
+
+    /// The newest complete tick's objects, sorted by id; older ticks are dropped.
+    fn take_complete(&mut self) -> Option<(u64, Vec<ObjectState>)> {
+        let tick = *self.pending.iter().rev().find(|(_, p)| p.complete(self.cfg.zones))?.0;
+        let mut older = self.pending.split_off(&tick);
+        std::mem::swap(&mut older, &mut self.pending);
+        self.stats.skipped += older.len() as u64;
+        let parts = self.pending.pop_first().expect("the complete tick").1;
+        let mut all: Vec<ObjectState> =
+            parts.zones.into_values().flat_map(|(_, got)| got.into_values()).flatten().collect();
+        all.sort_unstable_by_key(|o| o.id);
+        let before = all.len();
+        all.dedup_by_key(|o| o.id);
+        self.stats.duplicates += (before - all.len()) as u64;
+        self.taken = Some(tick);
+        Some((tick, all))
+    }
+
+    /// Step 2: the newest world of the zones, waiting up to `wait` for one newer than
+    /// the last.
+    fn next_world(&mut self) -> Result<Option<(u64, Vec<ObjectState>)>, ZoneError> {
+        let deadline = Instant::now() + self.cfg.wait;
+        let mut now = Instant::now();
+        loop {
+            // Everything that has arrived, then the newest complete tick.
+            while let Some(bytes) = self.link.recv_states(now)? {
+                self.offer(&bytes);
+            }
+            if let Some(found) = self.take_complete() {
+                return Ok(Some(found));
+            }
+            match self.link.recv_states(deadline)? {
+                Some(bytes) => self.offer(&bytes),
+                None => return Ok(None),
+            }
+            now = Instant::now();
+        }
+    }
+
+    /// Replaces the world's objects with the zones' `objects`, keeping this gateway's
+    /// players' own view (see the module docs).
+    fn mirror(&mut self, world: &mut World, objects: Vec<ObjectState>) -> Result<(), ZoneError> {
+        let d = &world.dynamics;
+        // The action each player asked for last: the world's, which the tick set.
+        let asked: HashMap<EntityId, u8> =
+            (0..d.len()).filter(|&s| self.is_mine(d.ids()[s])).map(|s| (d.ids()[s], d.actions()[s])).collect();
+        let next = d.next_id();
+        let mut all: Vec<ObjectState> = objects.into_iter().filter(|o| !self.gone.contains_key(&o.id)).collect();
+        // The zones no longer show these: forget them.
+        let shown: std::collections::HashSet<EntityId> = all.iter().map(|o| o.id).collect();
+        self.gone.retain(|id, _| shown.contains(id));
+        for (id, m) in self.mine.iter_mut() {
+            if shown.contains(id) {
+                m.seen = true;
+            } else {
+                // Not adopted yet (or lost in a rollback): the player keeps its own state.
+                all.push(m.state);
+            }
+        }
+        all.sort_unstable_by_key(|o| o.id);
+        for o in &mut all {
+            if let Some(a) = asked.get(&o.id) {
+                o.action = *a;
+            }
+        }
+        let d = &mut world.dynamics;
+        d.clear();
+        d.insert_all(all.iter().copied())?;
+        d.set_next_id(next);
+        self.written = asked;
+        Ok(())
+    }
+}
+
+impl Backend for ZonesBackend {
+    fn kind(&self) -> BackendKind {
+        // The gateway's own computing is the CPU's (AOI queries); the zones' backends are
+        // theirs to report.
+        BackendKind::Cpu
+    }
+
+    fn description(&self) -> String {
+        format!("gateway {} of a cluster of {} zones (the zones step the world)", self.cfg.gateway, self.cfg.zones)
+    }
+
+    /// Sends the players' intents and takes the zones' newest world. The time goes in
+    /// the `upload` stage (the other stages are the zones').
+    fn step(&mut self, world: &mut World, _k: &TickConstants) -> Result<StepReport, PhysicsError> {
+        let start = Instant::now();
+        let fabric = |e: ZoneError| PhysicsError::Unavailable { backend: "zones", reason: e.to_string() };
+        self.send_intents(world).map_err(fabric)?;
+        match self.next_world().map_err(fabric)? {
+            Some((tick, objects)) => {
+                self.mirror(world, objects).map_err(fabric)?;
+                self.stats.mirrors += 1;
+                self.stats.zone_tick = tick;
+            }
+            None => self.stats.stale_steps += 1,
+        }
+        world.tick += 1;
+        self.stats.export();
+        let mut report = StepReport::default();
+        report.stage_ms[myriad_physics::Stage::Upload as usize] = start.elapsed().as_secs_f64() * 1e3;
+        Ok(report)
+    }
+
+    fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
+        self.aoi.query_aoi(world, boxes, out)
+    }
+
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+}

@@ -1,0 +1,179 @@
+//! What gateways asked for their players, as one zone keeps it between ticks.
+//!
+//! Gateways send every intent to every zone (`docs/zones.md`, gateways): a zone cannot
+//! know which object it will own when an intent arrives, because a hand-off may be on
+//! its way. So each zone keeps, for every player's object:
+//! - the newest **action** (applied to the object every tick the zone owns it: an action
+//!   is a state, so applying it again changes nothing, and a zone that gains the object
+//!   by a hand-off applies the same newest action);
+//! - a **leave**, remembered for [`LEAVE_MEMORY`] ticks, so that an object handed to this
+//!   zone after its leave arrived is still removed;
+//! - **joins** until the next step, when the zone whose region holds a joining object
+//!   adopts it (unless it is already in the world or has left).
+//!
+//! Intents are signed by the cluster key like every fabric message; within one gateway
+//! they must come in order (incarnation, tick, kind), so a replayed message is refused.
+
+use std::collections::{BTreeMap, HashMap};
+
+use myriad_core::{EntityId, ObjectState};
+
+use crate::wire::{IntentKind, Intents};
+
+/// Ticks a leave is remembered (10 s at 30 Hz): longer than any hand-off takes.
+pub const LEAVE_MEMORY: u64 = 300;
+
+/// Most players' objects a zone keeps intents for; beyond it new ones are refused.
+pub const MAX_TRACKED: usize = 1 << 20;
+
+/// A zone's book of its gateways' intents (see the module docs).
+#[derive(Debug, Default)]
+pub struct IntentBook {
+    /// Newest (incarnation, tick, kind) taken from each gateway.
+    last: HashMap<u16, (u64, u64, IntentKind)>,
+    /// Objects waiting to be adopted by the zone whose region holds them.
+    joins: Vec<ObjectState>,
+    /// Newest action per object.
+    actions: BTreeMap<EntityId, u8>,
+    /// Objects that left, with the tick the zone learnt it.
+    leaves: BTreeMap<EntityId, u64>,
+}
+
+/// Why an intents message was not taken.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Refused {
+    /// Not newer than what the same gateway sent before (a replay, or reordered).
+    Stale,
+    /// More objects than [`MAX_TRACKED`].
+    Full,
+}
+
+impl Refused {
+    /// A short name for metrics labels.
+    pub fn label(self) -> &'static str {
+        match self {
+            Refused::Stale => "intent_stale",
+            Refused::Full => "intent_full",
+        }
+    }
+}
+
+impl IntentBook {
+    /// Takes one message of intents, seen while the zone is at tick `now`.
+    pub fn offer(&mut self, m: Intents, now: u64) -> Result<(), Refused> {
+        let order = (m.incarnation, m.tick, m.kind);
+        if self.last.get(&m.gateway).is_some_and(|last| order <= *last) {
+            return Err(Refused::Stale);
+        }
+        if self.actions.len() + self.leaves.len() + self.joins.len() + m.objects.len() > MAX_TRACKED {
+            return Err(Refused::Full);
+        }
+        self.last.insert(m.gateway, order);
+        for o in m.objects {
+            match m.kind {
+                IntentKind::Join => {
+                    self.leaves.remove(&o.id);
+                    self.actions.insert(o.id, o.action);
+                    self.joins.push(o);
+                }
+                IntentKind::Action => {
+                    if !self.leaves.contains_key(&o.id) {
+                        self.actions.insert(o.id, o.action);
+                    }
+                }
+                IntentKind::Leave => {
+                    self.actions.remove(&o.id);
+                    self.joins.retain(|j| j.id != o.id);
+                    self.leaves.insert(o.id, now);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The joins since the last step (emptied).
+    pub fn take_joins(&mut self) -> Vec<ObjectState> {
+        std::mem::take(&mut self.joins)
+    }
+
+    /// Whether `id` has left.
+    pub fn left(&self, id: EntityId) -> bool {
+        self.leaves.contains_key(&id)
+    }
+
+    /// Every object's newest action, by id.
+    pub fn actions(&self) -> impl Iterator<Item = (EntityId, u8)> + '_ {
+        self.actions.iter().map(|(id, a)| (*id, *a))
+    }
+
+    /// The newest action asked for `id`, if any.
+    pub fn action(&self, id: EntityId) -> Option<u8> {
+        self.actions.get(&id).copied()
+    }
+
+    /// Forgets leaves older than [`LEAVE_MEMORY`] ticks.
+    pub fn expire(&mut self, now: u64) {
+        self.leaves.retain(|_, at| now.saturating_sub(*at) <= LEAVE_MEMORY);
+    }
+
+    /// Whether the book holds nothing to apply.
+    pub fn is_empty(&self) -> bool {
+        self.joins.is_empty() && self.actions.is_empty() && self.leaves.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use myriad_core::{ObjectKind, ShapeKind, Vec3};
+
+    fn player(id: u32, action: u8) -> ObjectState {
+        ObjectState {
+            id: EntityId(id),
+            kind: ObjectKind::User,
+            shape: ShapeKind::Capsule,
+            half: Vec3::new(0.5, 1.0, 0.5),
+            radius: 0.5,
+            pos: Vec3::new(1.0, 1.0, 1.0),
+            prev: Vec3::new(1.0, 1.0, 1.0),
+            action,
+            flags: 0,
+        }
+    }
+
+    fn msg(tick: u64, kind: IntentKind, objects: Vec<ObjectState>) -> Intents {
+        Intents { incarnation: 5, tick, gateway: 1, kind, objects }
+    }
+
+    #[test]
+    fn keeps_the_newest_action_and_refuses_replays() {
+        let mut b = IntentBook::default();
+        b.offer(msg(1, IntentKind::Join, vec![player(7, 0)]), 0).unwrap();
+        assert_eq!(b.take_joins().len(), 1);
+        assert!(b.take_joins().is_empty(), "a join is taken once");
+        b.offer(msg(2, IntentKind::Action, vec![player(7, 3)]), 0).unwrap();
+        assert_eq!(b.action(EntityId(7)), Some(3));
+        assert_eq!(b.offer(msg(2, IntentKind::Action, vec![player(7, 9)]), 0), Err(Refused::Stale));
+        assert_eq!(b.offer(msg(1, IntentKind::Leave, vec![player(7, 0)]), 0), Err(Refused::Stale));
+        assert_eq!(b.action(EntityId(7)), Some(3), "a refused message changes nothing");
+        // A restarted gateway (a newer incarnation) starts its ticks again.
+        b.offer(Intents { incarnation: 6, ..msg(0, IntentKind::Action, vec![player(7, 4)]) }, 0).unwrap();
+        assert_eq!(b.action(EntityId(7)), Some(4));
+    }
+
+    #[test]
+    fn a_leave_outlives_a_hand_off_then_expires() {
+        let mut b = IntentBook::default();
+        b.offer(msg(1, IntentKind::Action, vec![player(7, 3)]), 10).unwrap();
+        b.offer(msg(2, IntentKind::Leave, vec![player(7, 0)]), 10).unwrap();
+        assert!(b.left(EntityId(7)));
+        assert_eq!(b.action(EntityId(7)), None);
+        b.offer(msg(3, IntentKind::Action, vec![player(7, 5)]), 11).unwrap();
+        assert_eq!(b.action(EntityId(7)), None, "no action for an object that left");
+        b.expire(10 + LEAVE_MEMORY);
+        assert!(b.left(EntityId(7)));
+        b.expire(11 + LEAVE_MEMORY);
+        assert!(!b.left(EntityId(7)));
+        assert!(b.is_empty());
+    }
+}

@@ -1,0 +1,121 @@
+//! A gateway following zones on threads (in memory): a player's object joins through the
+//! gateway, walks across the cut between two zones and changes owner, appears in every
+//! world the gateway takes exactly once and without a gap, and leaves.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use myriad_core::{Action, ObjectKind, ScenarioSpec, Shape, Vec3, World};
+use myriad_physics::{Backend, TickConstants};
+use myriad_zone::gateway::player_ids;
+use myriad_zone::{ClusterKey, GatewayConfig, MemoryFabric, Zone, ZoneConfig, ZoneId, ZoneLayout, ZonesBackend};
+
+mod common;
+
+fn small_world() -> World {
+    let mut spec = ScenarioSpec::custom(11);
+    spec.world_size = 64.0;
+    spec.terrain_samples = 65;
+    spec.max_height = 2.0;
+    spec.dynamic = 60;
+    spec.users = 0;
+    spec.static_objects = 0;
+    spec.build().unwrap()
+}
+
+#[test]
+fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
+    let world = small_world();
+    let layout = Arc::new(ZoneLayout::for_count(&world.bounds, 2, myriad_zone::pair_reach(&world), 2.0).unwrap());
+    let key = ClusterKey::random();
+    let (fabrics, link) = MemoryFabric::mesh_with_gateway(2);
+    let k = TickConstants::default();
+    const ZONE_TICKS: u64 = 500;
+
+    let cut = layout.region(ZoneId(0)).max_x;
+    let (zones_out, gateway_out) = std::thread::scope(|s| {
+        let zones: Vec<_> = fabrics
+            .into_iter()
+            .enumerate()
+            .map(|(i, fabric)| {
+                let (layout, key, world, k) = (layout.clone(), key.clone(), &world, &k);
+                s.spawn(move || {
+                    let id = ZoneId(i as u16);
+                    let cfg = ZoneConfig { id, run: 1, key, wait: Duration::from_secs(5), live: true };
+                    let mut zone = Zone::new(cfg, layout, world, common::cpu(id).unwrap(), Box::new(fabric)).unwrap();
+                    for _ in 0..ZONE_TICKS {
+                        zone.step(&[], k).unwrap();
+                        // Paced, so the gateway follows tick by tick.
+                        std::thread::sleep(Duration::from_millis(2));
+                    }
+                    (zone.advanced().to_vec(), zone.stats().clone())
+                })
+            })
+            .collect();
+
+        let gateway = s.spawn(|| {
+            let cfg =
+                GatewayConfig { gateway: 3, key: key.clone(), zones: 2, wait: Duration::from_secs(2), refresh: 30 };
+            let mut backend = ZonesBackend::new(cfg, Box::new(link)).unwrap();
+            let mut gw = world.clone();
+            backend.prepare(&mut gw);
+            backend.step(&mut gw, &k).unwrap();
+            assert_eq!(
+                gw.dynamics.len(),
+                world.dynamics.len(),
+                "the first world the gateway takes is the zones' whole world"
+            );
+            // A player logs in: the gateway's session code spawns its object, in the
+            // gateway's id range, a few units before the cut, walking towards it.
+            let at = Vec3::new(cut - 4.0, 0.0, 0.0);
+            let at = Vec3::new(at.x, gw.terrain.height_at(at.x, at.z) + 1.2, at.z);
+            let shape = Shape::Capsule { radius: 0.4, half_height: 0.5 };
+            let player = gw.dynamics.spawn(shape, at, ObjectKind::User).unwrap();
+            assert!(player_ids(3).contains(&player.0));
+            gw.dynamics.set_action(player, Action::from_bits(Action::RIGHT).unwrap());
+            let mut xs = Vec::new();
+            let mut crossed_at = None;
+            for step in 0..400 {
+                backend.step(&mut gw, &k).unwrap();
+                let slot = gw.dynamics.slot(player).expect("the player's object is in every world the gateway shows");
+                let x = gw.dynamics.positions()[slot].x;
+                xs.push(x);
+                if crossed_at.is_none() && x > cut + 2.0 {
+                    crossed_at = Some(step);
+                }
+                if crossed_at.is_some_and(|c| step > c + 10) {
+                    break;
+                }
+            }
+            assert!(crossed_at.is_some(), "the player walked across the cut: {xs:?}");
+            // Once adopted (a join takes a few of the zones' ticks, while the player stands
+            // at its spawn point), every world moved it on: none without it, none that sent
+            // it back, across the cut too.
+            let moving = xs.iter().position(|x| *x > xs[0]).expect("it moved");
+            assert!(moving < 30, "adopted after {moving} worlds");
+            let stood = xs[moving..].windows(2).filter(|w| w[1] <= w[0]).count();
+            assert!(stood <= 2, "the player stood still or went back in {stood} worlds: {xs:?}");
+            // The player logs out.
+            assert!(gw.dynamics.despawn(player));
+            for _ in 0..20 {
+                backend.step(&mut gw, &k).unwrap();
+                assert!(gw.dynamics.slot(player).is_none(), "a player that left is not shown");
+            }
+            (player, backend.stats().clone(), gw.dynamics.len())
+        });
+        let zones: Vec<_> = zones.into_iter().map(|h| h.join().unwrap()).collect();
+        (zones, gateway.join().unwrap())
+    });
+    let (player, stats, shown) = gateway_out;
+    assert_eq!(stats.duplicates, 0, "no object was claimed by two zones");
+    assert!(stats.mirrors > 30, "{stats:?}");
+    assert_eq!(stats.rejected.values().sum::<u64>(), 0, "{stats:?}");
+    assert_eq!(shown, world.dynamics.len());
+    let (a, b) = (&zones_out[0], &zones_out[1]);
+    assert_eq!(a.1.joins + b.1.joins, 1, "one zone adopted the player, once");
+    assert_eq!(a.1.joins, 1, "zone 0 holds the spawn point");
+    assert!(a.1.handoffs_out >= 1 && b.1.handoffs_in >= 1, "the player was handed from zone 0 to zone 1");
+    assert_eq!(a.1.leaves + b.1.leaves, 1, "the owner removed it");
+    assert!(!a.0.iter().chain(&b.0).any(|o| o.id == player), "gone from every zone");
+    assert_eq!(a.0.len() + b.0.len(), world.dynamics.len(), "the zones hold the world's objects once each");
+}

@@ -36,7 +36,13 @@ pub enum Behaviour {
     Circle,
     /// Stand still (still sending empty actions, which keep the session alive).
     Idle,
+    /// Back and forth along x: right for [`SHUTTLE_HOLDS`] holds, then left as long
+    /// (30 s each way, 150 units at the default speed): walks across zone boundaries.
+    Shuttle,
 }
+
+/// Holds a shuttling bot walks one way before turning.
+pub const SHUTTLE_HOLDS: u64 = 20;
 
 impl std::str::FromStr for Behaviour {
     type Err = String;
@@ -45,7 +51,8 @@ impl std::str::FromStr for Behaviour {
             "random" => Ok(Self::Random),
             "circle" => Ok(Self::Circle),
             "idle" => Ok(Self::Idle),
-            other => Err(format!("unknown behaviour {other:?} (random, circle, idle)")),
+            "shuttle" => Ok(Self::Shuttle),
+            other => Err(format!("unknown behaviour {other:?} (random, circle, idle, shuttle)")),
         }
     }
 }
@@ -99,6 +106,8 @@ struct BotState {
     intervals: Histogram<u64>,
     moves_ok: u64,
     moves_wrong: u64,
+    /// Server ticks whose update never came (a newer tick's came first).
+    ticks_missed: u64,
     own_seen: bool,
     error: Option<String>,
 }
@@ -113,6 +122,7 @@ impl Default for BotState {
             intervals: Histogram::new_with_bounds(1, 60_000_000, 2).expect("valid histogram bounds"),
             moves_ok: 0,
             moves_wrong: 0,
+            ticks_missed: 0,
             own_seen: false,
             error: None,
         }
@@ -154,6 +164,11 @@ pub struct SwarmSnapshot {
     pub interval_p50_ms: f64,
     /// 99th percentile of that interval, ms.
     pub interval_p99_ms: f64,
+    /// The longest such interval, ms.
+    pub interval_max_ms: f64,
+    /// Server ticks whose update a bot never got (a newer tick's came first), over all
+    /// bots: a gap in the updates longer than one tick.
+    pub ticks_missed: u64,
     /// Share of server datagrams lost.
     pub loss: f64,
     /// One failure message, if any bot failed.
@@ -229,6 +244,7 @@ impl Swarm {
             s.own_object_seen += usize::from(b.own_seen);
             s.moves_ok += b.moves_ok;
             s.moves_wrong += b.moves_wrong;
+            s.ticks_missed += b.ticks_missed;
             let _ = hist.add(&b.intervals);
             if s.first_error.is_none() {
                 s.first_error.clone_from(&b.error);
@@ -238,6 +254,7 @@ impl Swarm {
         if !hist.is_empty() {
             s.interval_p50_ms = hist.value_at_quantile(0.5) as f64 / 1000.0;
             s.interval_p99_ms = hist.value_at_quantile(0.99) as f64 / 1000.0;
+            s.interval_max_ms = hist.max() as f64 / 1000.0;
         }
         s.loss = s.totals.loss();
         s
@@ -344,6 +361,7 @@ impl Bot {
                         mask = match self.config.behaviour {
                             Behaviour::Idle => 0,
                             Behaviour::Circle => [ActionMask::FORWARD, ActionMask::RIGHT, ActionMask::BACK, ActionMask::LEFT][(hold_index % 4) as usize],
+                            Behaviour::Shuttle => [ActionMask::RIGHT, ActionMask::LEFT][(hold_index / SHUTTLE_HOLDS % 2) as usize],
                             Behaviour::Random => [0, ActionMask::FORWARD, ActionMask::BACK, ActionMask::RIGHT, ActionMask::LEFT][((seed >> 33) % 5) as usize],
                         };
                         hold_start = now;
@@ -387,7 +405,9 @@ impl Bot {
                             if tick > last_tick {
                                 if let Some(prev) = last_update {
                                     let us = now.duration_since(prev).as_micros().clamp(1, 60_000_000) as u64;
-                                    let _ = self.state().intervals.record(us);
+                                    let mut s = self.state();
+                                    let _ = s.intervals.record(us);
+                                    s.ticks_missed += tick - last_tick - 1;
                                 }
                                 last_tick = tick;
                                 last_update = Some(now);

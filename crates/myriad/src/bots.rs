@@ -25,7 +25,7 @@ pub struct BotsArgs {
     /// Stop after this many seconds (default: at Ctrl-C).
     #[arg(long)]
     duration: Option<f64>,
-    /// random, circle or idle.
+    /// random, circle, idle or shuttle (back and forth along x, across zone boundaries).
     #[arg(long, default_value = "random")]
     behaviour: Behaviour,
     /// Print JSON lines instead of text.
@@ -105,6 +105,8 @@ pub fn stats_json(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> serde_json::Valu
         "objects_in_view": now.mean_in_view,
         "interval_p50_ms": now.interval_p50_ms,
         "interval_p99_ms": now.interval_p99_ms,
+        "interval_max_ms": now.interval_max_ms,
+        "ticks_missed": now.ticks_missed,
         "loss": now.loss,
         "own_object_seen": now.own_object_seen,
         "moves_ok": now.moves_ok,

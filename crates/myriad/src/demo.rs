@@ -21,7 +21,7 @@ pub struct DemoArgs {
     /// Number of built-in bots.
     #[arg(long, default_value_t = 100)]
     bots: usize,
-    /// What the bots do: random, circle, idle.
+    /// What the bots do: random, circle, idle, shuttle.
     #[arg(long, default_value = "random")]
     behaviour: Behaviour,
     /// Stop after this many seconds (default: at Ctrl-C).

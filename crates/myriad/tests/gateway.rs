@@ -1,9 +1,13 @@
-//! Players through a gateway on a world run by zone processes: `myriad cluster --live`
-//! (two zones), `myriad gateway`, and `myriad bots` walking for 25 s, with zone 1 killed
-//! (`kill -9`) in the middle. Every bot logs in at the gateway once, never reconnects
-//! (the cluster rolls back, the sessions stay), sees its own object in its updates, and
-//! no object is ever claimed by two zones; the zones adopt the players' objects and take
-//! them out when the bots leave.
+//! Players through gateways on a world run by zone processes: `myriad cluster --live`
+//! (two zones) and two `myriad gateway`s, each with 12 bots walking back and forth across
+//! the zones' boundary (`--behaviour shuttle`) for a minute. Zone 1 is killed (`kill -9`)
+//! after 15 s and gateway 1 after 30 s.
+//! - Gateway 0's bots log in once and never reconnect (the cluster rolls back, their
+//!   sessions stay), see their own objects, miss no tick's update, and their objects
+//!   change zone without their sessions noticing.
+//! - No object is ever claimed by two zones; the zones adopt every player's object, and
+//!   remove gateway 1's players' objects once it is dead, and gateway 0's when its bots
+//!   leave.
 //! Needs `NATS_URL` (CI sets it); skips with a message without it.
 
 use std::io::{BufRead, BufReader};
@@ -14,6 +18,7 @@ fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
+/// The sum of a metric's samples (all label sets) on a Prometheus endpoint.
 fn metric(port: u16, name: &str) -> f64 {
     let body = (|| -> std::io::Result<String> {
         use std::io::{Read, Write};
@@ -38,24 +43,61 @@ impl Drop for Killed {
     }
 }
 
+const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
+
+struct Gateway {
+    process: Killed,
+    data: tempfile::TempDir,
+    login: u16,
+    metrics: u16,
+}
+
+fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
+    let bin = env!("CARGO_BIN_EXE_myriad");
+    let data = tempfile::tempdir().unwrap();
+    let d = data.path().to_str().unwrap();
+    let seeded = Command::new(bin).args(["user", "seed", "--count", "12", "--data-dir", d]).output().unwrap();
+    assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
+    let (udp, login, metrics) = (free_port(), free_port(), free_port());
+    let process = Command::new(bin)
+        .args(["gateway", "--nats", url, "--cluster", cluster, "--zones", "2", "--gateway", &index.to_string()])
+        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--data-dir", d])
+        .args(["--udp", &format!("127.0.0.1:{udp}"), "--login", &format!("127.0.0.1:{login}")])
+        .args(["--metrics", &format!("127.0.0.1:{metrics}")])
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    Gateway { process: Killed(process), data, login, metrics }
+}
+
+fn bots(g: &Gateway, seconds: u32) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["bots", "--server", &format!("127.0.0.1:{}", g.login), "--count", "12", "--json"])
+        .args(["--duration", &seconds.to_string(), "--behaviour", "shuttle"])
+        .args(["--cert", &format!("{}/tls-cert.pem", g.data.path().display())])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
 #[test]
-fn bots_play_through_a_gateway_across_zones_and_a_rollback() {
+fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     let Ok(url) = std::env::var("NATS_URL") else {
         eprintln!("skipped: NATS_URL is not set (CI sets it; e.g. NATS_URL=nats://127.0.0.1:4222)");
         return;
     };
-    let bin = env!("CARGO_BIN_EXE_myriad");
-    let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().to_str().unwrap();
     let cluster_name = format!("gw{}", std::process::id());
-    let key = "a-test-key-of-more-than-sixteen-bytes";
-    let (zone_metrics, gw_metrics, udp, login) = (free_port(), free_port(), free_port(), free_port());
+    let zone_metrics = free_port();
     // The zone metrics are on zone_metrics + zone index.
-    let mut cluster = Command::new(bin)
+    let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
         .args(["cluster", "--nats", &url, "--cluster", &cluster_name, "--zones", "2", "--live"])
-        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--tick-hz", "30", "--ticks", "3000"])
+        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--tick-hz", "30", "--ticks", "6000"])
         .args(["--checkpoint-every", "30", "--dead-ms", "1000", "--metrics-base-port", &zone_metrics.to_string()])
-        .env("MYRIAD_CLUSTER_KEY", key)
+        .env("MYRIAD_CLUSTER_KEY", KEY)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -69,71 +111,66 @@ fn bots_play_through_a_gateway_across_zones_and_a_rollback() {
             let _ = tx.send(line);
         }
     });
-    let seeded = Command::new(bin).args(["user", "seed", "--count", "20", "--data-dir", data]).output().unwrap();
-    assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
-    let gateway = Command::new(bin)
-        .args(["gateway", "--nats", &url, "--cluster", &cluster_name, "--zones", "2"])
-        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--data-dir", data])
-        .args(["--udp", &format!("127.0.0.1:{udp}"), "--login", &format!("127.0.0.1:{login}")])
-        .args(["--metrics", &format!("127.0.0.1:{gw_metrics}")])
-        .env("MYRIAD_CLUSTER_KEY", key)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let _gateway = Killed(gateway);
-    // The gateway is up once it has taken worlds from the zones.
+    let gateways = [gateway(&url, &cluster_name, 0), gateway(&url, &cluster_name, 1)];
+    // The gateways are up once they have taken worlds from the zones.
     let start = Instant::now();
-    while metric(gw_metrics, "myriad_gateway_mirrors_total") < 30.0 {
-        assert!(start.elapsed() < Duration::from_secs(60), "the gateway never followed the zones");
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    let bots = Command::new(bin)
-        .args(["bots", "--server", &format!("127.0.0.1:{login}"), "--count", "20", "--duration", "25", "--json"])
-        .args(["--cert", &format!("{data}/tls-cert.pem")])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    // Kill zone 1 ten seconds into the bots' run.
-    let mut victim = None;
-    let mut log = Vec::new();
-    while victim.is_none() && start.elapsed() < Duration::from_secs(90) {
-        if let Ok(line) = rx.recv_timeout(Duration::from_millis(200)) {
-            victim = line.strip_prefix("zone 1 pid ").and_then(|p| p.trim().parse::<i32>().ok());
-            log.push(line);
+    for g in &gateways {
+        while metric(g.metrics, "myriad_gateway_mirrors_total") < 30.0 {
+            assert!(start.elapsed() < Duration::from_secs(90), "a gateway never followed the zones");
+            std::thread::sleep(Duration::from_millis(200));
         }
     }
-    let victim = victim.unwrap_or_else(|| panic!("no zone 1 pid in {log:?}"));
-    std::thread::sleep(Duration::from_secs(10));
-    let joined = metric(zone_metrics, "myriad_zone_player_joins_total")
-        + metric(zone_metrics + 1, "myriad_zone_player_joins_total");
+    let mut log: Vec<String> = rx.try_iter().collect();
+    let victim = log
+        .iter()
+        .find_map(|l| l.strip_prefix("zone 1 pid ").and_then(|p| p.trim().parse::<i32>().ok()))
+        .unwrap_or_else(|| panic!("no zone 1 pid in {log:?}"));
+    let zones = |name: &str| metric(zone_metrics, name) + metric(zone_metrics + 1, name);
+    let staying = bots(&gateways[0], 60);
+    let mut leaving = bots(&gateways[1], 40);
+    std::thread::sleep(Duration::from_secs(15));
+    assert_eq!(zones("myriad_zone_player_joins_total"), 24.0, "the zones adopted every player's object once");
     assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
-    let out = bots.wait_with_output().unwrap();
+    std::thread::sleep(Duration::from_secs(15));
+    let [g0, mut g1] = gateways;
+    // Gateway 1 dies with its 12 players connected: the zones remove their objects.
+    g1.process.0.kill().unwrap();
+    let _ = g1.process.0.wait();
+    let deadline = Instant::now() + Duration::from_secs(12);
+    while zones("myriad_zone_player_orphans_total") < 12.0 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    let orphans = zones("myriad_zone_player_orphans_total");
+    let _ = leaving.kill();
+    let _ = leaving.wait();
+    let out = staying.wait_with_output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
     let last: serde_json::Value =
         serde_json::from_str(text.lines().rev().find(|l| l.contains("\"final\"")).expect("a final line")).unwrap();
     log.extend(rx.try_iter());
-    eprintln!("bots: {last}\ncluster: {log:?}");
-    assert_eq!(last["logins_ok"], 20, "{last}");
+    let handoffs = metric(g0.metrics, "myriad_gateway_player_handoffs_total");
+    eprintln!("bots of gateway 0: {last}\nplayer hand-offs {handoffs}, orphans {orphans}\ncluster: {log:?}");
+    assert_eq!(last["logins_ok"], 12, "{last}");
     assert_eq!(last["logins_failed"], 0, "{last}");
     assert_eq!(last["reconnects"], 0, "players stay connected through the rollback: {last}");
-    assert_eq!(last["own_object_seen"], 20, "{last}");
+    assert_eq!(last["own_object_seen"], 12, "{last}");
+    assert_eq!(last["ticks_missed"], 0, "no gap in the updates longer than one tick: {last}");
+    // Walking still works after the rollback (a zone that lost the players' intents in it
+    // made most moves fail once).
+    let (ok, wrong) = (last["moves_ok"].as_u64().unwrap(), last["moves_wrong"].as_u64().unwrap());
+    assert!(ok >= 2 * wrong, "moves ok {ok}, wrong {wrong}: {last}");
     assert_eq!(last["rejected"], 0, "{last}");
     assert_eq!(last["decode_errors"], 0, "{last}");
     assert!(log.iter().any(|l| l.contains("Fault")), "the cluster saw the kill: {log:?}");
-    assert_eq!(joined, 20.0, "the zones adopted every player's object once before the kill");
-    assert!(metric(gw_metrics, "myriad_gateway_rollbacks_total") >= 1.0, "the gateway followed the rollback");
-    assert_eq!(metric(gw_metrics, "myriad_gateway_duplicates_total"), 0.0, "no object in two zones");
-    // After the bots left, the zones take their objects out (within a refresh or two).
-    let owned = || {
-        metric(zone_metrics, "myriad_zone_owned_objects") + metric(zone_metrics + 1, "myriad_zone_owned_objects")
-    };
+    assert!(orphans >= 12.0, "the dead gateway's players were removed ({orphans})");
+    assert!(handoffs >= 1.0, "a player's object changed zone under its session");
+    assert!(metric(g0.metrics, "myriad_gateway_rollbacks_total") >= 1.0, "the gateway followed the rollback");
+    assert_eq!(metric(g0.metrics, "myriad_gateway_duplicates_total"), 0.0, "no object in two zones");
+    // After the bots left, the zones take their objects out.
     let deadline = Instant::now() + Duration::from_secs(15);
-    while owned() != 6000.0 && Instant::now() < deadline {
+    while zones("myriad_zone_owned_objects") != 6000.0 && Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(300));
     }
-    assert_eq!(owned(), 6000.0, "the world is back to its 6,000 objects once every player left");
+    assert_eq!(zones("myriad_zone_owned_objects"), 6000.0, "back to the world's 6,000 objects once every player left");
     drop(cluster);
 }

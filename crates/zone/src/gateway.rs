@@ -10,7 +10,7 @@
 //!
 //! Each step:
 //! 1. **Intents.** The gateway's own players are the objects in its id range
-//!    ([`player_ids`]). A new one is a *join* (its whole state), a changed action an
+//!    ([`player_ids`]; a restarted gateway starts at another place in it). A new one is a *join* (its whole state), a changed action an
 //!    *action*, a missing one a *leave*; each kind goes to every zone in one signed
 //!    message ([`crate::intents`] says how zones keep them). Every `refresh` ticks, and at
 //!    once after a rollback, the gateway sends every player's action again, and the join
@@ -52,6 +52,25 @@ pub fn player_ids(gateway: u16) -> std::ops::Range<u32> {
     start..start + (1 << 24)
 }
 
+/// The gateway whose id range holds `id`, if any.
+pub fn gateway_of(id: EntityId) -> Option<u16> {
+    let first = player_ids(0).start;
+    let g = id.0.checked_sub(first)? >> 24;
+    u16::try_from(g).ok().filter(|g| *g < MAX_GATEWAYS)
+}
+
+/// Ids per slot of a gateway's range.
+const SLOT: u32 = 1 << 16;
+
+/// The ids gateway `gateway` gives its players in its incarnation `incarnation`: one of
+/// the 256 slots of its range, chosen by the incarnation, so that a restarted gateway's
+/// players never take the ids of its earlier players, and a zone can tell the two apart
+/// (it removes the earlier ones; [`crate::intents`]). Within a slot ids wrap around.
+pub fn incarnation_ids(gateway: u16, incarnation: u64) -> std::ops::Range<u32> {
+    let start = player_ids(gateway).start + ((incarnation / 1000 % 256) as u32) * SLOT;
+    start..start + SLOT
+}
+
 /// How a gateway follows its cluster.
 #[derive(Clone, Debug)]
 pub struct GatewayConfig {
@@ -80,6 +99,8 @@ pub struct GatewayStats {
     pub duplicates: u64,
     /// Rollbacks seen (a newer run of the zones).
     pub rollbacks: u64,
+    /// Times one of this gateway's players' objects changed zone (its session stayed).
+    pub player_handoffs: u64,
     /// Intent records sent, by kind (join, action, leave).
     pub intents: [u64; 3],
     /// States messages refused, by reason.
@@ -96,6 +117,7 @@ impl GatewayStats {
         metrics::counter!("myriad_gateway_skipped_ticks_total").absolute(self.skipped);
         metrics::counter!("myriad_gateway_duplicates_total").absolute(self.duplicates);
         metrics::counter!("myriad_gateway_rollbacks_total").absolute(self.rollbacks);
+        metrics::counter!("myriad_gateway_player_handoffs_total").absolute(self.player_handoffs);
         for (kind, n) in ["join", "action", "leave"].into_iter().zip(self.intents) {
             metrics::counter!("myriad_gateway_intents_total", "kind" => kind).absolute(n);
         }
@@ -115,6 +137,8 @@ struct Mine {
     joined_at: u64,
     /// Whether the zones' world has shown it since then.
     seen: bool,
+    /// The zone that owned it in the last world shown.
+    zone: Option<u16>,
 }
 
 /// The zones' states of one tick, as they arrive.
@@ -136,6 +160,7 @@ pub struct ZonesBackend {
     link: Box<dyn GatewayLink>,
     incarnation: u64,
     aoi: Box<dyn Backend>,
+    /// The ids this incarnation gives its players.
     ids: std::ops::Range<u32>,
     /// The zones' run being followed, and the last tick taken from it.
     run: u64,
@@ -167,7 +192,7 @@ impl ZonesBackend {
             .map(|d| d.as_millis() as u64)
             .unwrap_or(1);
         Ok(ZonesBackend {
-            ids: player_ids(cfg.gateway),
+            ids: incarnation_ids(cfg.gateway, incarnation),
             cfg,
             link,
             incarnation,
@@ -215,7 +240,7 @@ impl ZonesBackend {
             present.push(id);
             match self.mine.get_mut(&id) {
                 None => {
-                    self.mine.insert(id, Mine { state, joined_at: t, seen: false });
+                    self.mine.insert(id, Mine { state, joined_at: t, seen: false, zone: None });
                     joins.push(state);
                 }
                 Some(m) => {
@@ -249,9 +274,16 @@ impl ZonesBackend {
             }
             leaves.extend(self.gone.values().map(|(s, _)| *s));
         }
+        let heartbeat = self.cfg.refresh > 0 && t.is_multiple_of(self.cfg.refresh);
         for (kind, objects) in [(IntentKind::Join, joins), (IntentKind::Action, actions), (IntentKind::Leave, leaves)] {
             self.stats.intents[kind as usize] += objects.len() as u64;
-            for chunk in objects.chunks(INTENTS_PER_MESSAGE) {
+            // Zones take a gateway that has not been heard of for a while for dead (and
+            // remove its players' objects): with no action to send, an empty message
+            // says it is alive.
+            let empty = heartbeat && kind == IntentKind::Action && objects.is_empty();
+            let chunks: Vec<&[ObjectState]> =
+                if empty { vec![&[]] } else { objects.chunks(INTENTS_PER_MESSAGE).collect() };
+            for chunk in chunks {
                 let m = Intents {
                     incarnation: self.incarnation,
                     tick: t,
@@ -315,18 +347,22 @@ impl ZonesBackend {
         }
     }
 
-    /// The newest complete tick's objects, sorted by id; older ticks are dropped.
-    fn take_complete(&mut self) -> Option<(u64, Vec<ObjectState>)> {
+    /// The newest complete tick's objects with the zone that sent each, sorted by id;
+    /// older ticks are dropped.
+    fn take_complete(&mut self) -> Option<(u64, Vec<(ObjectState, u16)>)> {
         let tick = *self.pending.iter().rev().find(|(_, p)| p.complete(self.cfg.zones))?.0;
         let mut older = self.pending.split_off(&tick);
         std::mem::swap(&mut older, &mut self.pending);
         self.stats.skipped += older.len() as u64;
         let parts = self.pending.pop_first().expect("the complete tick").1;
-        let mut all: Vec<ObjectState> =
-            parts.zones.into_values().flat_map(|(_, got)| got.into_values()).flatten().collect();
-        all.sort_unstable_by_key(|o| o.id);
+        let mut all: Vec<(ObjectState, u16)> = parts
+            .zones
+            .into_iter()
+            .flat_map(|(z, (_, got))| got.into_values().flatten().map(move |o| (o, z)))
+            .collect();
+        all.sort_unstable_by_key(|(o, _)| o.id);
         let before = all.len();
-        all.dedup_by_key(|o| o.id);
+        all.dedup_by_key(|(o, _)| o.id);
         self.stats.duplicates += (before - all.len()) as u64;
         self.taken = Some(tick);
         Some((tick, all))
@@ -334,7 +370,7 @@ impl ZonesBackend {
 
     /// Step 2: the newest world of the zones, waiting up to `wait` for one newer than
     /// the last.
-    fn next_world(&mut self) -> Result<Option<(u64, Vec<ObjectState>)>, ZoneError> {
+    fn next_world(&mut self) -> Result<Option<(u64, Vec<(ObjectState, u16)>)>, ZoneError> {
         let deadline = Instant::now() + self.cfg.wait;
         let mut now = Instant::now();
         loop {
@@ -355,21 +391,37 @@ impl ZonesBackend {
 
     /// Replaces the world's objects with the zones' `objects`, keeping this gateway's
     /// players' own view (see the module docs).
-    fn mirror(&mut self, world: &mut World, objects: Vec<ObjectState>) -> Result<(), ZoneError> {
+    fn mirror(&mut self, world: &mut World, objects: Vec<(ObjectState, u16)>) -> Result<(), ZoneError> {
         let d = &world.dynamics;
         // The action each player asked for last: the world's, which the tick set.
         let asked: HashMap<EntityId, u8> =
             (0..d.len()).filter(|&s| self.is_mine(d.ids()[s])).map(|s| (d.ids()[s], d.actions()[s])).collect();
         let next = d.next_id();
-        let mut all: Vec<ObjectState> = objects.into_iter().filter(|o| !self.gone.contains_key(&o.id)).collect();
+        let mut owners = HashMap::new();
+        let mut all: Vec<ObjectState> = Vec::with_capacity(objects.len() + self.mine.len());
+        for (o, z) in objects {
+            if self.gone.contains_key(&o.id) {
+                continue;
+            }
+            if self.is_mine(o.id) {
+                owners.insert(o.id, z);
+            }
+            all.push(o);
+        }
         // The zones no longer show these: forget them.
         let shown: std::collections::HashSet<EntityId> = all.iter().map(|o| o.id).collect();
         self.gone.retain(|id, _| shown.contains(id));
         for (id, m) in self.mine.iter_mut() {
-            if shown.contains(id) {
+            if let Some(&z) = owners.get(id) {
                 m.seen = true;
+                if m.zone.is_some_and(|was| was != z) {
+                    self.stats.player_handoffs += 1;
+                }
+                m.zone = Some(z);
             } else {
-                // Not adopted yet (or lost in a rollback): the player keeps its own state.
+                // Not adopted yet (or lost in a rollback): the player keeps its own state,
+                // and its join goes again at the next refresh.
+                m.seen = false;
                 all.push(m.state);
             }
         }
@@ -382,7 +434,8 @@ impl ZonesBackend {
         let d = &mut world.dynamics;
         d.clear();
         d.insert_all(all.iter().copied())?;
-        d.set_next_id(next);
+        // Ids wrap within this incarnation's slot (a spawn onto an id still taken fails).
+        d.set_next_id(if self.ids.contains(&next.0) { next } else { EntityId(self.ids.start) });
         self.written = asked;
         Ok(())
     }

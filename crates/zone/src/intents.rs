@@ -13,12 +13,23 @@
 //!
 //! Intents are signed by the cluster key like every fabric message; within one gateway
 //! they must come in order (incarnation, tick, kind), so a replayed message is refused.
+//!
+//! A player's object lives only as long as its gateway does: [`IntentBook::keeps`] says
+//! no to an object of a gateway whose id is outside the ids of the gateway's current
+//! incarnation ([`crate::gateway::incarnation_ids`]: a restarted gateway's earlier
+//! players), or whose gateway has not been heard from for [`GATEWAY_TIMEOUT`] ticks (a
+//! dead gateway's players; a live gateway speaks at least every second).
 
 use std::collections::{BTreeMap, HashMap};
 
 use myriad_core::{EntityId, ObjectState};
 
+use crate::gateway::{gateway_of, incarnation_ids};
 use crate::wire::{IntentKind, Intents};
+
+/// Ticks without a message from a gateway after which its players' objects are removed
+/// (5 s at 30 Hz; a gateway sends at least one message a second).
+pub const GATEWAY_TIMEOUT: u64 = 150;
 
 /// Ticks a leave is remembered (10 s at 30 Hz): longer than any hand-off takes.
 pub const LEAVE_MEMORY: u64 = 300;
@@ -37,6 +48,17 @@ pub struct IntentBook {
     actions: BTreeMap<EntityId, u8>,
     /// Objects that left, with the tick the zone learnt it.
     leaves: BTreeMap<EntityId, u64>,
+    /// Per gateway: its current incarnation and the tick it was last heard from.
+    gateways: HashMap<u16, Heard>,
+    /// The tick the book started (a gateway not heard from since is given until
+    /// [`GATEWAY_TIMEOUT`] after it).
+    since: u64,
+}
+
+#[derive(Debug, Default)]
+struct Heard {
+    incarnation: u64,
+    at: u64,
 }
 
 /// Why an intents message was not taken.
@@ -59,6 +81,21 @@ impl Refused {
 }
 
 impl IntentBook {
+    /// An empty book for a zone starting at tick `since`.
+    pub fn new(since: u64) -> IntentBook {
+        IntentBook { since, ..IntentBook::default() }
+    }
+
+    /// Whether an object the zone owns stays at tick `now` (see the module docs).
+    /// Objects outside every gateway's id range always stay.
+    pub fn keeps(&self, id: EntityId, now: u64) -> bool {
+        let Some(g) = gateway_of(id) else { return true };
+        match self.gateways.get(&g) {
+            Some(h) => now.saturating_sub(h.at) <= GATEWAY_TIMEOUT && incarnation_ids(g, h.incarnation).contains(&id.0),
+            None => now.saturating_sub(self.since) <= GATEWAY_TIMEOUT,
+        }
+    }
+
     /// Takes one message of intents, seen while the zone is at tick `now`.
     pub fn offer(&mut self, m: Intents, now: u64) -> Result<(), Refused> {
         let order = (m.incarnation, m.tick, m.kind);
@@ -69,6 +106,7 @@ impl IntentBook {
             return Err(Refused::Full);
         }
         self.last.insert(m.gateway, order);
+        self.gateways.insert(m.gateway, Heard { incarnation: m.incarnation, at: now });
         for o in m.objects {
             match m.kind {
                 IntentKind::Join => {
@@ -115,11 +153,6 @@ impl IntentBook {
     pub fn expire(&mut self, now: u64) {
         self.leaves.retain(|_, at| now.saturating_sub(*at) <= LEAVE_MEMORY);
     }
-
-    /// Whether the book holds nothing to apply.
-    pub fn is_empty(&self) -> bool {
-        self.joins.is_empty() && self.actions.is_empty() && self.leaves.is_empty()
-    }
 }
 
 #[cfg(test)]
@@ -162,6 +195,23 @@ mod tests {
     }
 
     #[test]
+    fn a_dead_or_restarted_gateways_players_are_not_kept() {
+        let ids = incarnation_ids(1, 5);
+        let (a, b) = (EntityId(ids.start), EntityId(ids.start + 1));
+        let mut book = IntentBook::new(100);
+        assert!(book.keeps(EntityId(5), 10_000), "not a player of any gateway");
+        assert!(book.keeps(a, 100 + GATEWAY_TIMEOUT), "a gateway not heard yet has its timeout");
+        assert!(!book.keeps(a, 101 + GATEWAY_TIMEOUT));
+        book.offer(msg(1, IntentKind::Join, vec![player(a.0, 0), player(b.0, 0)]), 200).unwrap();
+        assert!(book.keeps(a, 200 + GATEWAY_TIMEOUT) && book.keeps(b, 200));
+        assert!(!book.keeps(a, 201 + GATEWAY_TIMEOUT), "silent for longer than the timeout: dead");
+        // The gateway restarts (incarnation 6000 ms: another slot): its earlier players go.
+        book.offer(Intents { incarnation: 6_000, ..msg(0, IntentKind::Action, vec![]) }, 220).unwrap();
+        assert!(!book.keeps(a, 220) && !book.keeps(b, 220));
+        assert!(book.keeps(EntityId(incarnation_ids(1, 6_000).start), 220));
+    }
+
+    #[test]
     fn a_leave_outlives_a_hand_off_then_expires() {
         let mut b = IntentBook::default();
         b.offer(msg(1, IntentKind::Action, vec![player(7, 3)]), 10).unwrap();
@@ -174,6 +224,5 @@ mod tests {
         assert!(b.left(EntityId(7)));
         b.expire(11 + LEAVE_MEMORY);
         assert!(!b.left(EntityId(7)));
-        assert!(b.is_empty());
     }
 }

@@ -27,6 +27,8 @@ pub struct ZoneStats {
     pub joins: u64,
     /// Players' objects removed by gateways' leaves, in all.
     pub leaves: u64,
+    /// Players' objects removed because their gateway died or restarted, in all.
+    pub orphans: u64,
     /// Time spent waiting for neighbours' border states.
     pub wait: Duration,
     /// Time spent stepping: assembling the zone's world, the physics, keeping the owned
@@ -63,6 +65,7 @@ impl ZoneStats {
         counter("myriad_zone_handoffs_out_total", self.handoffs_out);
         counter("myriad_zone_player_joins_total", self.joins);
         counter("myriad_zone_player_leaves_total", self.leaves);
+        counter("myriad_zone_player_orphans_total", self.orphans);
         counter("myriad_zone_fabric_sent_bytes_total", self.bytes.0);
         counter("myriad_zone_fabric_received_bytes_total", self.bytes.1);
         counter("myriad_zone_messages_sent_total", self.messages.0);

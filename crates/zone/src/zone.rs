@@ -128,7 +128,7 @@ impl Zone {
             stats,
             owned_slots: Vec::new(),
             scratch: Vec::new(),
-            intents: IntentBook::default(),
+            intents: IntentBook::new(world.tick),
         })
     }
 
@@ -387,21 +387,23 @@ impl Zone {
         if let Some(w) = objects.windows(2).find(|w| w[0].0.id == w[1].0.id) {
             return Err(ZoneError::Duplicate(w[0].0.id, self.world.tick));
         }
-        // Players: leaves remove what this zone owns, joins are adopted by the zone whose
-        // region holds them (once: not if the object is here already, or left).
-        if !self.intents.is_empty() {
-            let book = &self.intents;
-            let before = objects.len();
-            objects.retain(|(o, owned)| !(*owned && book.left(o.id)));
-            self.stats.leaves += (before - objects.len()) as u64;
-            for j in self.intents.take_joins() {
-                if layout.zone_at(j.pos) != me || self.intents.left(j.id) {
-                    continue;
-                }
-                if let Err(at) = objects.binary_search_by_key(&j.id, |(o, _)| o.id) {
-                    objects.insert(at, (j, true));
-                    self.stats.joins += 1;
-                }
+        // Players: leaves remove what this zone owns, and so does the death or restart of
+        // the object's gateway; joins are adopted by the zone whose region holds them
+        // (once: not if the object is here already, or left).
+        let (book, now) = (&self.intents, self.world.tick);
+        let before = objects.len();
+        objects.retain(|(o, owned)| !(*owned && book.left(o.id)));
+        self.stats.leaves += (before - objects.len()) as u64;
+        let before = objects.len();
+        objects.retain(|(o, owned)| !*owned || book.keeps(o.id, now));
+        self.stats.orphans += (before - objects.len()) as u64;
+        for j in self.intents.take_joins() {
+            if layout.zone_at(j.pos) != me || self.intents.left(j.id) {
+                continue;
+            }
+            if let Err(at) = objects.binary_search_by_key(&j.id, |(o, _)| o.id) {
+                objects.insert(at, (j, true));
+                self.stats.joins += 1;
             }
         }
         let d = &mut self.world.dynamics;

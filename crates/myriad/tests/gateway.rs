@@ -8,6 +8,7 @@
 //! - No object is ever claimed by two zones; the zones adopt every player's object, and
 //!   remove gateway 1's players' objects once it is dead, and gateway 0's when its bots
 //!   leave.
+//!
 //! Needs `NATS_URL` (CI sets it); skips with a message without it.
 
 use std::io::{BufRead, BufReader};

@@ -128,6 +128,10 @@ impl GatewayStats {
     }
 }
 
+/// The zones' world at one of their ticks: every object with the zone that owns it,
+/// sorted by id.
+type ZonesWorld = (u64, Vec<(ObjectState, u16)>);
+
 /// One of the gateway's players, as the backend tracks it.
 #[derive(Clone, Copy, Debug)]
 struct Mine {
@@ -349,7 +353,7 @@ impl ZonesBackend {
 
     /// The newest complete tick's objects with the zone that sent each, sorted by id;
     /// older ticks are dropped.
-    fn take_complete(&mut self) -> Option<(u64, Vec<(ObjectState, u16)>)> {
+    fn take_complete(&mut self) -> Option<ZonesWorld> {
         let tick = *self.pending.iter().rev().find(|(_, p)| p.complete(self.cfg.zones))?.0;
         let mut older = self.pending.split_off(&tick);
         std::mem::swap(&mut older, &mut self.pending);
@@ -370,7 +374,7 @@ impl ZonesBackend {
 
     /// Step 2: the newest world of the zones, waiting up to `wait` for one newer than
     /// the last.
-    fn next_world(&mut self) -> Result<Option<(u64, Vec<(ObjectState, u16)>)>, ZoneError> {
+    fn next_world(&mut self) -> Result<Option<ZonesWorld>, ZoneError> {
         let deadline = Instant::now() + self.cfg.wait;
         let mut now = Instant::now();
         loop {

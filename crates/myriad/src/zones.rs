@@ -112,6 +112,17 @@ pub struct ClusterArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
+    /// Gateways to start for players (with `--live`, on scenarios 1-3): gateway i serves
+    /// UDP on 127.0.0.1:(gateway-port + 2i) and its TLS login on the next port, keeps its
+    /// data (SQLite, certificate) in GATEWAY_DATA/gateway-i, and is restarted if it exits.
+    #[arg(long, default_value_t = 0, requires = "live")]
+    pub gateways: u16,
+    /// The first gateway's UDP port.
+    #[arg(long, default_value_t = 7700)]
+    pub gateway_port: u16,
+    /// Where the gateways keep their data.
+    #[arg(long, default_value = "myriad-cluster")]
+    pub gateway_data: PathBuf,
     #[command(flatten)]
     pub common: ClusterCommon,
 }
@@ -187,7 +198,16 @@ pub fn run_zone(args: ZoneArgs) -> Result<()> {
 }
 
 /// The flags of `myriad cluster` that zones do not take.
-const CLUSTER_ONLY: &[&str] = &["--nats", "--cluster", "--gpus", "--dead-ms", "--metrics-base-port"];
+const CLUSTER_ONLY: &[&str] = &[
+    "--nats",
+    "--cluster",
+    "--gpus",
+    "--dead-ms",
+    "--metrics-base-port",
+    "--gateways",
+    "--gateway-port",
+    "--gateway-data",
+];
 
 /// The command line of the cluster, less its own flags: what every zone gets.
 fn zone_flags() -> Vec<String> {
@@ -207,6 +227,60 @@ fn zone_flags() -> Vec<String> {
         out.push(a);
     }
     out
+}
+
+/// Makes a child die with the cluster instead of waiting forever as an orphan.
+fn die_with_parent(command: &mut Command) {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::unix::process::CommandExt;
+        // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+        unsafe {
+            command.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                Ok(())
+            });
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = command;
+}
+
+/// The flags every gateway of the cluster gets: its cluster, and the world's map (a
+/// gateway builds the same map from the scenario and seed).
+fn gateway_args(args: &ClusterArgs, zones: usize, url: &str, cluster: &str) -> Result<Vec<String>> {
+    if args.gateways == 0 {
+        return Ok(Vec::new());
+    }
+    let c = &args.common;
+    let scenario = match c.scenario {
+        ScenarioName::One => "1",
+        ScenarioName::Two => "2",
+        ScenarioName::Three => "3",
+        ScenarioName::Custom | ScenarioName::Clustered => {
+            bail!("--gateways serves the reference scenarios 1, 2 and 3 (a gateway builds its map from them)")
+        }
+    };
+    let w = &c.world;
+    let changed = w.dynamic.is_some()
+        || w.static_objects.is_some()
+        || w.users.is_some()
+        || w.world_size.is_some()
+        || w.origin.is_some()
+        || w.terrain_samples.is_some()
+        || w.max_height.is_some()
+        || w.heightmap.is_some();
+    if changed {
+        bail!("--gateways needs the scenario's own map: only --seed may change the world");
+    }
+    if args.gateways > myriad_zone::gateway::MAX_GATEWAYS {
+        bail!("--gateways {}: at most {}", args.gateways, myriad_zone::gateway::MAX_GATEWAYS);
+    }
+    Ok(["--cluster", cluster, "--zones", &zones.to_string(), "--nats", url, "--scenario", scenario]
+        .into_iter()
+        .map(String::from)
+        .chain(["--seed".to_string(), w.seed.to_string()])
+        .collect())
 }
 
 /// A private NATS server for one run.
@@ -289,23 +363,41 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
             .args(&flags)
             .env(KEY_ENV, &secret)
             .stdin(Stdio::null());
-        #[cfg(target_os = "linux")]
-        {
-            use std::os::unix::process::CommandExt;
-            // SAFETY: prctl is async-signal-safe and touches no memory of the parent; it
-            // makes a zone die with its cluster instead of waiting forever as an orphan.
-            unsafe {
-                command.pre_exec(|| {
-                    libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
-                    Ok(())
-                });
-            }
-        }
+        die_with_parent(&mut command);
         let child = command.spawn().with_context(|| format!("starting zone {z}"))?;
         eprintln!("zone {z} pid {}", child.id());
         Ok(child)
     };
     let mut children = (0..zones).map(spawn).collect::<Result<Vec<_>>>()?;
+    let gateway_args = gateway_args(&args, zones, &url, &cluster)?;
+    let spawn_gateway = |g: u16| -> Result<Child> {
+        let (udp, login) =
+            (u32::from(args.gateway_port) + 2 * u32::from(g), u32::from(args.gateway_port) + 2 * u32::from(g) + 1);
+        let data = args.gateway_data.join(format!("gateway-{g}"));
+        let mut command = Command::new(&exe);
+        command
+            .arg("gateway")
+            .args(&gateway_args)
+            .args(["--gateway", &g.to_string(), "--data-dir", &data.display().to_string()])
+            .args(["--udp", &format!("127.0.0.1:{udp}"), "--login", &format!("127.0.0.1:{login}")])
+            .args(
+                args.metrics_base_port
+                    .map(|p| format!("127.0.0.1:{}", u32::from(p) + 100 + u32::from(g)))
+                    .iter()
+                    .flat_map(|m| ["--metrics", m.as_str()]),
+            )
+            .env(KEY_ENV, &secret)
+            .stdin(Stdio::null());
+        die_with_parent(&mut command);
+        let child = command.spawn().with_context(|| format!("starting gateway {g}"))?;
+        eprintln!(
+            "gateway {g} pid {}: login (TLS) 127.0.0.1:{login}, game (UDP) 127.0.0.1:{udp}, certificate {}",
+            child.id(),
+            data.join("tls-cert.pem").display()
+        );
+        Ok(child)
+    };
+    let mut gateways = (0..args.gateways).map(spawn_gateway).collect::<Result<Vec<_>>>()?;
     let link = NatsLink::connect(&url, format!("myriad-{cluster}-supervisor"))?;
     let mut store = JetStreamCheckpoints::open(link.rt.clone(), link.client.clone(), &cluster, key.clone())?;
     let cfg = SupervisorConfig {
@@ -328,6 +420,17 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     let start = Instant::now();
     let mut restart_error = None;
     let mut restarted = || {
+        // A gateway that exits loses its players' sessions (the zones drop their
+        // objects); it comes back for new logins.
+        for (g, child) in gateways.iter_mut().enumerate() {
+            if let Ok(Some(status)) = child.try_wait() {
+                eprintln!("gateway {g} exited ({status}); restarting it");
+                match spawn_gateway(g as u16) {
+                    Ok(c) => *child = c,
+                    Err(e) => restart_error = Some(e),
+                }
+            }
+        }
         let mut out = Vec::new();
         for (z, child) in children.iter_mut().enumerate() {
             if let Ok(Some(status)) = child.try_wait() {
@@ -352,7 +455,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         }
     };
     let result = supervise(&cfg, &link, &mut store, &mut restarted, &mut on_event);
-    for child in &mut children {
+    for child in children.iter_mut().chain(gateways.iter_mut()) {
         let _ = child.kill();
         let _ = child.wait();
     }

@@ -175,3 +175,59 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     assert_eq!(zones("myriad_zone_owned_objects"), 6000.0, "back to the world's 6,000 objects once every player left");
     drop(cluster);
 }
+
+/// `myriad cluster --gateways 1` starts the gateway with the zones: bots log in to it and
+/// see their own objects, and the cluster ends at its last tick as usual.
+#[test]
+fn a_cluster_starts_its_gateways() {
+    let Ok(url) = std::env::var("NATS_URL") else {
+        eprintln!("skipped: NATS_URL is not set (CI sets it; e.g. NATS_URL=nats://127.0.0.1:4222)");
+        return;
+    };
+    let bin = env!("CARGO_BIN_EXE_myriad");
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("gateway-0");
+    let seeded = Command::new(bin)
+        .args(["user", "seed", "--count", "5", "--data-dir", data.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
+    // Two free ports in a row for the gateway's UDP and login.
+    let port = loop {
+        let p = free_port();
+        if p < u16::MAX && std::net::TcpListener::bind(("127.0.0.1", p + 1)).is_ok() {
+            break p;
+        }
+    };
+    let cluster = Command::new(bin)
+        .args(["cluster", "--json", "--nats", &url, "--cluster", &format!("gc{}", std::process::id())])
+        .args(["--zones", "2", "--live", "--gateways", "1", "--gateway-port", &port.to_string()])
+        .args(["--gateway-data", dir.path().to_str().unwrap(), "--scenario", "1", "--backend", "cpu"])
+        .args(["--tick-hz", "30", "--ticks", "600"])
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let cluster = Killed(cluster);
+    let login = format!("127.0.0.1:{}", port + 1);
+    let start = Instant::now();
+    while std::net::TcpStream::connect(&login).is_err() {
+        assert!(start.elapsed() < Duration::from_secs(60), "the cluster's gateway never listened");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let out = Command::new(bin)
+        .args(["bots", "--server", &login, "--count", "5", "--duration", "4", "--json"])
+        .args(["--cert", data.join("tls-cert.pem").to_str().unwrap()])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    let last: serde_json::Value =
+        serde_json::from_str(text.lines().rev().find(|l| l.contains("\"final\"")).expect("a final line")).unwrap();
+    assert_eq!(last["logins_ok"], 5, "{last}");
+    assert_eq!(last["own_object_seen"], 5, "{last}");
+    assert_eq!(last["reconnects"], 0, "{last}");
+    let mut cluster = cluster;
+    let status = cluster.0.wait().unwrap();
+    assert!(status.success(), "the cluster ends at its last tick");
+}

@@ -93,6 +93,20 @@ impl NatsLink {
         })
     }
 
+    /// The next message of `sub`'s stream, or `None` once `deadline` has passed.
+    pub fn next_before<S>(&self, sub: &mut S, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError>
+    where
+        S: futures_util::Stream<Item = async_nats::Message> + Unpin,
+    {
+        let wait = deadline.saturating_duration_since(Instant::now());
+        // The timer must be made inside the runtime.
+        match self.rt.block_on(async { tokio::time::timeout(wait, sub.next()).await }) {
+            Err(_) => Ok(None),
+            Ok(Some(m)) => Ok(Some(m.payload.to_vec())),
+            Ok(None) => Err(ZoneError::Fabric("the NATS subscription ended".into())),
+        }
+    }
+
     /// Publishes `bytes` on `subject`.
     pub fn publish(&self, subject: String, bytes: Vec<u8>) -> Result<(), ZoneError> {
         self.rt.block_on(self.client.publish(subject, bytes.into())).map_err(|e| fabric_err("publishing", e))
@@ -193,17 +207,9 @@ impl Fabric for NatsFabric {
     }
 
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
-        let wait = deadline.saturating_duration_since(Instant::now());
-        let sub = &mut self.sub;
-        // The timer must be made inside the runtime.
-        match self.link.rt.block_on(async { tokio::time::timeout(wait, sub.next()).await }) {
-            Err(_) => Ok(None),
-            Ok(Some(m)) => {
-                self.received += m.payload.len() as u64;
-                Ok(Some(m.payload.to_vec()))
-            }
-            Ok(None) => Err(ZoneError::Fabric("the NATS subscription ended".into())),
-        }
+        let got = self.link.next_before(&mut self.sub, deadline)?;
+        self.received += got.as_ref().map_or(0, |b| b.len() as u64);
+        Ok(got)
     }
 
     fn max_message(&self) -> usize {
@@ -239,12 +245,6 @@ impl crate::fabric::GatewayLink for NatsGatewayLink {
     }
 
     fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
-        let wait = deadline.saturating_duration_since(Instant::now());
-        let sub = &mut self.states;
-        match self.link.rt.block_on(async { tokio::time::timeout(wait, sub.next()).await }) {
-            Err(_) => Ok(None),
-            Ok(Some(m)) => Ok(Some(m.payload.to_vec())),
-            Ok(None) => Err(ZoneError::Fabric("the NATS subscription ended".into())),
-        }
+        self.link.next_before(&mut self.states, deadline)
     }
 }

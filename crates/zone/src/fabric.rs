@@ -65,6 +65,8 @@ pub trait GatewayLink: Send {
     fn send_intents(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError>;
     /// The next message of states, or `None` once `deadline` has passed.
     fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError>;
+    /// Waits (briefly) until what was sent has left this process: before it exits.
+    fn flush(&mut self) {}
 }
 
 /// A gateway's side of [`MemoryFabric::mesh_with_gateway`].

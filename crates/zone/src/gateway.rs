@@ -177,6 +177,8 @@ pub struct ZonesBackend {
     /// last asked for).
     written: HashMap<EntityId, u8>,
     refresh_now: bool,
+    /// The gateway tick of the last intents sent.
+    last_tick: u64,
     stats: GatewayStats,
 }
 
@@ -208,6 +210,7 @@ impl ZonesBackend {
             gone: BTreeMap::new(),
             written: HashMap::new(),
             refresh_now: false,
+            last_tick: 0,
             stats: GatewayStats::default(),
         })
     }
@@ -231,6 +234,7 @@ impl ZonesBackend {
     /// Step 1: what the gateway's players asked since the last step.
     fn send_intents(&mut self, world: &World) -> Result<(), ZoneError> {
         let t = world.tick;
+        self.last_tick = t;
         let d = &world.dynamics;
         let mut joins = Vec::new();
         let mut actions = Vec::new();
@@ -442,6 +446,33 @@ impl ZonesBackend {
         d.set_next_id(if self.ids.contains(&next.0) { next } else { EntityId(self.ids.start) });
         self.written = asked;
         Ok(())
+    }
+}
+
+impl Drop for ZonesBackend {
+    /// A gateway that stops (its server shut down, its sessions closed) tells the zones
+    /// its players left, so their objects go at once rather than when the zones time the
+    /// gateway out. Best effort: a gateway that dies sends nothing, and the timeout
+    /// covers it.
+    fn drop(&mut self) {
+        let leaves: Vec<ObjectState> = self.mine.values().map(|m| m.state).collect();
+        if leaves.is_empty() {
+            return;
+        }
+        let tick = self.last_tick.saturating_add(1);
+        for chunk in leaves.chunks(INTENTS_PER_MESSAGE) {
+            let m = Intents {
+                incarnation: self.incarnation,
+                tick,
+                gateway: self.cfg.gateway,
+                kind: IntentKind::Leave,
+                objects: chunk.to_vec(),
+            };
+            if let Ok(bytes) = encode_intents(&self.cfg.key, &m) {
+                let _ = self.link.send_intents(bytes);
+            }
+        }
+        self.link.flush();
     }
 }
 

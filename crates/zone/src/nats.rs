@@ -247,4 +247,10 @@ impl crate::fabric::GatewayLink for NatsGatewayLink {
     fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         self.link.next_before(&mut self.states, deadline)
     }
+
+    fn flush(&mut self) {
+        let client = &self.link.client;
+        // Bounded: a NATS server that does not answer must not hold a shutdown.
+        let _ = self.link.rt.block_on(async { tokio::time::timeout(Duration::from_secs(1), client.flush()).await });
+    }
 }

@@ -1,6 +1,7 @@
 //! A gateway following zones on threads (in memory): a player's object joins through the
 //! gateway, walks across the cut between two zones and changes owner, appears in every
-//! world the gateway takes exactly once and without a gap, and leaves.
+//! world the gateway takes exactly once and without a gap, and leaves; a player still
+//! connected when the gateway stops leaves with it.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -73,6 +74,10 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
             let player = gw.dynamics.spawn(shape, at, ObjectKind::User).unwrap();
             assert!(player_ids(3).contains(&player.0));
             gw.dynamics.set_action(player, Action::from_bits(Action::RIGHT).unwrap());
+            // A second player stands still; it is still connected when the gateway stops.
+            let at2 = Vec3::new(cut - 10.0, 0.0, 5.0);
+            let at2 = Vec3::new(at2.x, gw.terrain.height_at(at2.x, at2.z) + 1.2, at2.z);
+            let second = gw.dynamics.spawn(shape, at2, ObjectKind::User).unwrap();
             let mut xs = Vec::new();
             let mut crossed_at = None;
             for step in 0..400 {
@@ -101,7 +106,12 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
                 backend.step(&mut gw, &k).unwrap();
                 assert!(gw.dynamics.slot(player).is_none(), "a player that left is not shown");
             }
-            (player, backend.stats().clone(), gw.dynamics.len())
+            let shown = gw.dynamics.len();
+            assert!(gw.dynamics.slot(second).is_some());
+            let stats = backend.stats().clone();
+            // The gateway stops: its remaining player leaves with it.
+            drop(backend);
+            (player, stats, shown)
         });
         let zones: Vec<_> = zones.into_iter().map(|h| h.join().unwrap()).collect();
         (zones, gateway.join().unwrap())
@@ -110,12 +120,12 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
     assert_eq!(stats.duplicates, 0, "no object was claimed by two zones");
     assert!(stats.mirrors > 30, "{stats:?}");
     assert_eq!(stats.rejected.values().sum::<u64>(), 0, "{stats:?}");
-    assert_eq!(shown, world.dynamics.len());
+    assert_eq!(shown, world.dynamics.len() + 1, "the world and the second player");
     let (a, b) = (&zones_out[0], &zones_out[1]);
-    assert_eq!(a.1.joins + b.1.joins, 1, "one zone adopted the player, once");
-    assert_eq!(a.1.joins, 1, "zone 0 holds the spawn point");
+    assert_eq!(a.1.joins + b.1.joins, 2, "one zone adopted each player, once");
+    assert_eq!(a.1.joins, 2, "zone 0 holds the spawn points");
     assert!(a.1.handoffs_out >= 1 && b.1.handoffs_in >= 1, "the player was handed from zone 0 to zone 1");
-    assert_eq!(a.1.leaves + b.1.leaves, 1, "the owner removed it");
+    assert_eq!(a.1.leaves + b.1.leaves, 2, "the owners removed both: one logged out, one left with its gateway");
     assert!(!a.0.iter().chain(&b.0).any(|o| o.id == player), "gone from every zone");
     assert_eq!(a.0.len() + b.0.len(), world.dynamics.len(), "the zones hold the world's objects once each");
 }

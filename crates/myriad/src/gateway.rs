@@ -9,7 +9,9 @@
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
+use myriad_server::registry::SessionRegistry;
 use myriad_server::{ServerError, ServerHandle};
+use myriad_zone::claims::NatsSessions;
 use myriad_zone::gateway::MAX_GATEWAYS;
 use myriad_zone::nats::NatsGatewayLink;
 use myriad_zone::{GatewayConfig, ZonesBackend};
@@ -58,6 +60,7 @@ pub fn run(args: GatewayArgs) -> Result<()> {
     let config = args.config.effective()?;
     let link = NatsGatewayLink::connect(&args.nats, &args.cluster, args.gateway)
         .with_context(|| format!("joining cluster {}", args.cluster))?;
+    let cfg_key = key.clone();
     let cfg = GatewayConfig {
         gateway: args.gateway,
         key,
@@ -70,7 +73,10 @@ pub fn run(args: GatewayArgs) -> Result<()> {
         backend.prepare(world);
         Ok(Box::new(backend))
     });
-    let server = ServerHandle::start_with(config, Some(factory)).context("starting the gateway")?;
+    let sessions = NatsSessions::connect(&args.nats, &args.cluster, args.gateway, cfg_key)
+        .with_context(|| format!("joining cluster {}'s sessions", args.cluster))?;
+    let server = ServerHandle::start_with(config, Some(factory), Some(Box::new(Registry(sessions))))
+        .context("starting the gateway")?;
     eprintln!(
         "myriad: gateway {} of cluster {}; login (TLS) on {}, game (UDP) on {}, certificate {}",
         args.gateway,
@@ -83,4 +89,18 @@ pub fn run(args: GatewayArgs) -> Result<()> {
     let report = server.shutdown()?;
     eprintln!("myriad: gateway stopped; every position saved ({} written in the last flush)", report.rows_written);
     Ok(())
+}
+
+/// The cluster's session claims as the server's registry: a login at another gateway
+/// replaces the session here.
+struct Registry(NatsSessions);
+
+impl SessionRegistry for Registry {
+    fn claim(&mut self, username: &str) {
+        self.0.claim(username);
+    }
+
+    fn taken(&mut self) -> Vec<String> {
+        self.0.taken()
+    }
 }

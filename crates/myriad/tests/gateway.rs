@@ -57,7 +57,9 @@ fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
     let bin = env!("CARGO_BIN_EXE_myriad");
     let data = tempfile::tempdir().unwrap();
     let d = data.path().to_str().unwrap();
-    let seeded = Command::new(bin).args(["user", "seed", "--count", "12", "--data-dir", d]).output().unwrap();
+    // Gateway g's bots are user(12g) .. user(12g + 11): one account, one session in the
+    // cluster (a login at another gateway would replace it).
+    let seeded = Command::new(bin).args(["user", "seed", "--count", "24", "--data-dir", d]).output().unwrap();
     assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
     let (udp, login, metrics) = (free_port(), free_port(), free_port());
     let process = Command::new(bin)
@@ -74,9 +76,10 @@ fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
     Gateway { process: Killed(process), data, login, metrics }
 }
 
-fn bots(g: &Gateway, seconds: u32) -> Child {
+fn bots(g: &Gateway, first: u32, seconds: u32) -> Child {
     Command::new(env!("CARGO_BIN_EXE_myriad"))
         .args(["bots", "--server", &format!("127.0.0.1:{}", g.login), "--count", "12", "--json"])
+        .args(["--first", &first.to_string()])
         .args(["--duration", &seconds.to_string(), "--behaviour", "shuttle"])
         .args(["--cert", &format!("{}/tls-cert.pem", g.data.path().display())])
         .stdout(Stdio::piped())
@@ -127,8 +130,8 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
         .find_map(|l| l.strip_prefix("zone 1 pid ").and_then(|p| p.trim().parse::<i32>().ok()))
         .unwrap_or_else(|| panic!("no zone 1 pid in {log:?}"));
     let zones = |name: &str| metric(zone_metrics, name) + metric(zone_metrics + 1, name);
-    let staying = bots(&gateways[0], 60);
-    let mut leaving = bots(&gateways[1], 40);
+    let staying = bots(&gateways[0], 0, 60);
+    let mut leaving = bots(&gateways[1], 12, 40);
     std::thread::sleep(Duration::from_secs(15));
     assert_eq!(zones("myriad_zone_player_joins_total"), 24.0, "the zones adopted every player's object once");
     assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
@@ -176,58 +179,73 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     drop(cluster);
 }
 
-/// `myriad cluster --gateways 1` starts the gateway with the zones: bots log in to it and
-/// see their own objects, and the cluster ends at its last tick as usual.
+/// `myriad cluster --gateways 2` starts the gateways with the zones: bots log in to
+/// gateway 0 and see their own objects; a login of one of their accounts at gateway 1
+/// replaces that bot's session at gateway 0 (one session per account in the cluster);
+/// the cluster ends at its last tick as usual.
 #[test]
-fn a_cluster_starts_its_gateways() {
+fn a_cluster_starts_its_gateways_and_one_account_has_one_session() {
     let Ok(url) = std::env::var("NATS_URL") else {
         eprintln!("skipped: NATS_URL is not set (CI sets it; e.g. NATS_URL=nats://127.0.0.1:4222)");
         return;
     };
     let bin = env!("CARGO_BIN_EXE_myriad");
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("gateway-0");
-    let seeded = Command::new(bin)
-        .args(["user", "seed", "--count", "5", "--data-dir", data.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
-    // Two free ports in a row for the gateway's UDP and login.
+    for g in 0..2 {
+        let data = dir.path().join(format!("gateway-{g}"));
+        let seeded = Command::new(bin)
+            .args(["user", "seed", "--count", "5", "--data-dir", data.to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
+    }
+    // Four free ports in a row for the gateways' UDP and login.
     let port = loop {
         let p = free_port();
-        if p < u16::MAX && std::net::TcpListener::bind(("127.0.0.1", p + 1)).is_ok() {
+        if p < u16::MAX - 4 && (1..4).all(|i| std::net::TcpListener::bind(("127.0.0.1", p + i)).is_ok()) {
             break p;
         }
     };
+    let metrics = free_port();
     let cluster = Command::new(bin)
         .args(["cluster", "--json", "--nats", &url, "--cluster", &format!("gc{}", std::process::id())])
-        .args(["--zones", "2", "--live", "--gateways", "1", "--gateway-port", &port.to_string()])
+        .args(["--zones", "2", "--live", "--gateways", "2", "--gateway-port", &port.to_string()])
         .args(["--gateway-data", dir.path().to_str().unwrap(), "--scenario", "1", "--backend", "cpu"])
-        .args(["--tick-hz", "30", "--ticks", "600"])
+        .args(["--tick-hz", "30", "--ticks", "900", "--metrics-base-port", &metrics.to_string()])
         .env("RUST_LOG", "warn")
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let cluster = Killed(cluster);
-    let login = format!("127.0.0.1:{}", port + 1);
+    let mut cluster = Killed(cluster);
+    let login = |g: u16| format!("127.0.0.1:{}", port + 2 * g + 1);
     let start = Instant::now();
-    while std::net::TcpStream::connect(&login).is_err() {
-        assert!(start.elapsed() < Duration::from_secs(60), "the cluster's gateway never listened");
+    while std::net::TcpStream::connect(login(0)).is_err() || std::net::TcpStream::connect(login(1)).is_err() {
+        assert!(start.elapsed() < Duration::from_secs(60), "the cluster's gateways never listened");
         std::thread::sleep(Duration::from_millis(200));
     }
-    let out = Command::new(bin)
-        .args(["bots", "--server", &login, "--count", "5", "--duration", "4", "--json"])
-        .args(["--cert", data.join("tls-cert.pem").to_str().unwrap()])
+    let cert = |g: u16| dir.path().join(format!("gateway-{g}/tls-cert.pem")).display().to_string();
+    let five = Command::new(bin)
+        .args(["bots", "--server", &login(0), "--count", "5", "--duration", "8", "--json", "--cert", &cert(0)])
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(3));
+    // user0 logs in at gateway 1 as well.
+    let one = Command::new(bin)
+        .args(["bots", "--server", &login(1), "--count", "1", "--duration", "2", "--json", "--cert", &cert(1)])
         .output()
         .unwrap();
+    assert!(one.status.success());
+    let out = five.wait_with_output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
     let last: serde_json::Value =
         serde_json::from_str(text.lines().rev().find(|l| l.contains("\"final\"")).expect("a final line")).unwrap();
-    assert_eq!(last["logins_ok"], 5, "{last}");
+    assert_eq!(last["logins_ok"].as_u64().unwrap() - last["reconnects"].as_u64().unwrap(), 5, "{last}");
     assert_eq!(last["own_object_seen"], 5, "{last}");
-    assert_eq!(last["reconnects"], 0, "{last}");
-    let mut cluster = cluster;
+    let taken = metric(metrics + 100, "myriad_sessions_taken_total");
+    assert!(taken >= 1.0, "user0's session at gateway 0 was replaced by its login at gateway 1");
+    assert!(last["reconnects"].as_u64().unwrap() >= 1, "user0's bot logged in again: {last}");
     let status = cluster.0.wait().unwrap();
     assert!(status.success(), "the cluster ends at its last tick");
 }

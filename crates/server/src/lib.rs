@@ -44,6 +44,7 @@ mod inbound;
 pub mod login;
 pub mod outbound;
 pub mod receiver;
+pub mod registry;
 pub mod scripted;
 mod session;
 pub mod stages;
@@ -122,14 +123,19 @@ impl ServerHandle {
     /// [`myriad_cuda::create_backend`], on the tick thread (GPU contexts belong to the
     /// thread that uses them): `auto` picks the GPU when one is usable, else `cpu`.
     pub fn start(config: ServerConfig) -> Result<ServerHandle, ServerError> {
-        ServerHandle::start_with(config, None)
+        ServerHandle::start_with(config, None, None)
     }
 
-    /// [`ServerHandle::start`] with another physics backend: `backend` is called on the
-    /// tick thread with the prepared world (which it may adjust) and returns the
-    /// backend. A zones gateway serves this way, with a backend whose step is done by
-    /// the zones (`myriad_zone::ZonesBackend`).
-    pub fn start_with(config: ServerConfig, backend: Option<BackendFactory>) -> Result<ServerHandle, ServerError> {
+    /// [`ServerHandle::start`] with another physics backend and a session registry:
+    /// `backend` is called on the tick thread with the prepared world (which it may
+    /// adjust) and returns the backend; `registry` shares sessions with other servers. A
+    /// zones gateway serves this way, with a backend whose step is done by the zones
+    /// (`myriad_zone::ZonesBackend`) and the cluster's registry.
+    pub fn start_with(
+        config: ServerConfig,
+        backend: Option<BackendFactory>,
+        registry: Option<Box<dyn registry::SessionRegistry>>,
+    ) -> Result<ServerHandle, ServerError> {
         config.validate()?;
         std::fs::create_dir_all(&config.data_dir)
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
@@ -254,11 +260,14 @@ impl ServerHandle {
                         return;
                     }
                 };
-                let tick_loop = tick::TickLoop::builder(tick_config, world, backend, transport)
+                let mut builder = tick::TickLoop::builder(tick_config, world, backend, transport)
                     .persister(Box::new(persister_for_tick), map_id)
                     .commands(receiver)
-                    .shared(tick_shared)
-                    .build();
+                    .shared(tick_shared);
+                if let Some(registry) = registry {
+                    builder = builder.registry(registry);
+                }
+                let tick_loop = builder.build();
                 tick_loop.run();
             })
             .map_err(|e| ServerError::io("starting the tick thread", e))?;

@@ -390,6 +390,12 @@ impl Sessions {
         states
     }
 
+    /// The session of the account `username` (compared without case, as logins
+    /// compare it), if it is here.
+    pub fn session_of(&self, username: &str) -> Option<u64> {
+        self.players.iter().find(|p| p.username.eq_ignore_ascii_case(username)).map(|p| p.session_id)
+    }
+
     /// Removes the player of `session_id` (queuing `reason`, if any, first): its object
     /// leaves the world; returns its final state for the persister.
     pub fn remove(

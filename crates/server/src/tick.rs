@@ -42,6 +42,7 @@ use crate::dilation::DilationController;
 use crate::gate::Gate;
 use crate::inbound;
 use crate::outbound::{CpuOutbound, Outbound, Recipient};
+use crate::registry::SessionRegistry;
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
 use crate::stages::{StageTimes, TickStage};
 use crate::status::{Shared, StatusWindow};
@@ -124,9 +125,16 @@ pub(crate) struct TickLoopBuilder {
     map_id: MapId,
     commands: Option<Receiver<Command>>,
     shared: Option<Arc<Shared>>,
+    registry: Option<Box<dyn SessionRegistry>>,
 }
 
 impl TickLoopBuilder {
+    /// Sessions shared with other servers (a zones gateway's cluster).
+    pub fn registry(mut self, registry: Box<dyn SessionRegistry>) -> Self {
+        self.registry = Some(registry);
+        self
+    }
+
     /// Where player positions go (the database writer), and the map they are on.
     pub fn persister(mut self, persister: Box<dyn StateSink>, map_id: MapId) -> Self {
         self.persister = Some(persister);
@@ -166,6 +174,7 @@ impl TickLoopBuilder {
             persister: self.persister,
             commands,
             shared: self.shared.unwrap_or_default(),
+            registry: self.registry,
             window: StatusWindow::default(),
             config,
         }
@@ -190,6 +199,8 @@ pub(crate) struct TickLoop {
     /// The receive gate, used when the transport does not gate on a thread of its own
     /// (`receive_*` keys).
     gate: Gate,
+    /// Sessions shared with other servers, if any.
+    registry: Option<Box<dyn SessionRegistry>>,
 }
 
 impl TickLoop {
@@ -209,6 +220,7 @@ impl TickLoop {
             map_id: MapId(0),
             commands: None,
             shared: None,
+            registry: None,
         }
     }
 
@@ -311,6 +323,17 @@ impl TickLoop {
             .collect();
         let timeout = Duration::from_secs_f32(self.config.session_timeout_s);
         left.extend(self.sessions.expire(&mut self.world, now, timeout));
+        // Accounts that logged in at another server of the cluster since: their sessions
+        // here are replaced, as a second login here would replace them.
+        if let Some(registry) = &mut self.registry {
+            for name in registry.taken() {
+                if let Some(session) = self.sessions.session_of(&name) {
+                    tracing::info!(user = %name, "session replaced by a login at another server");
+                    metrics::counter!("myriad_sessions_taken_total").increment(1);
+                    left.extend(self.sessions.remove(&mut self.world, session, Some(DisconnectReason::Replaced)));
+                }
+            }
+        }
         work.received = inbound.received;
         work.actions = inbound.actions;
         work.tag_checks = inbound.tag_checks;
@@ -354,6 +377,7 @@ impl TickLoop {
         let mut replies = Vec::new();
         while let Ok(Command::Join { user_id, username, state, reply }) = self.commands.try_recv() {
             let ctx = JoinContext { tick: self.world.tick, dilation_permille: self.dilation.permille() };
+            let claimed = self.registry.is_some().then(|| username.clone());
             let result = self.sessions.join(&mut self.world, user_id, username, state, ctx).map(|(joined, first)| {
                 // First visit: record the spawn point now so the next login finds it.
                 if let Some(first) = first {
@@ -361,6 +385,9 @@ impl TickLoop {
                 }
                 joined
             });
+            if let (Ok(_), Some(name), Some(registry)) = (&result, claimed, &mut self.registry) {
+                registry.claim(&name);
+            }
             replies.push((reply, result));
         }
         if replies.is_empty() {

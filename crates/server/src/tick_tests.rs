@@ -351,3 +351,38 @@ fn a_changed_dilation_is_announced_to_ready_players() {
         r.received(&sent, &mut c).into_iter().filter(|o| matches!(o.message, ServerMessage::ServerInfo(_))).collect();
     assert_eq!(infos.len(), 1, "one ServerInfo with the tick's updates");
 }
+
+/// A cluster's session registry, by hand: what was claimed, and names to hand back as
+/// taken by another server.
+#[derive(Clone, Default)]
+struct Cluster(Arc<Mutex<(Vec<String>, Vec<String>)>>);
+
+impl crate::registry::SessionRegistry for Cluster {
+    fn claim(&mut self, username: &str) {
+        self.0.lock().unwrap().0.push(username.to_string());
+    }
+    fn taken(&mut self) -> Vec<String> {
+        std::mem::take(&mut self.0.lock().unwrap().1)
+    }
+}
+
+#[test]
+fn a_login_at_another_server_of_the_cluster_replaces_the_session() {
+    let mut r = rig(ServerConfig::default());
+    let cluster = Cluster::default();
+    r.tick.registry = Some(Box::new(cluster.clone()));
+    let mut c = r.join(5, 40_001);
+    let _other = r.join(6, 40_002);
+    assert_eq!(cluster.0.lock().unwrap().0, ["user5", "user6"], "every admitted session is claimed");
+    r.net.take_sent();
+    // Names compare without case; a name held by no session here changes nothing.
+    cluster.0.lock().unwrap().1.extend(["USER5".to_string(), "nobody".to_string()]);
+    r.tick.tick_once();
+    assert_eq!(r.tick.sessions().len(), 1, "user5's session ended, user6's stays");
+    let sent = r.net.take_sent();
+    assert!(
+        r.received(&sent, &mut c).iter().any(|o| o.message == ServerMessage::Disconnect(DisconnectReason::Replaced)),
+        "the session is told it was replaced"
+    );
+    assert!(r.saved.0.lock().unwrap().iter().any(|s| s.user_id == UserId(5)), "its position is saved");
+}

@@ -16,6 +16,7 @@
 //! Design, subjects, message layouts and measurements: `docs/zones.md`.
 
 pub mod checkpoint;
+pub mod claims;
 pub mod error;
 pub mod fabric;
 pub mod gateway;

@@ -46,6 +46,8 @@ pub const KIND_START: u8 = 5;
 pub const KIND_STATES: u8 = 6;
 /// Message kind: a gateway's players' intents (join, action, leave), to every zone.
 pub const KIND_INTENTS: u8 = 7;
+/// Message kind: a gateway's claim of an account's session, to every gateway.
+pub const KIND_CLAIM: u8 = 8;
 /// Bit of a record's flag byte that hands the object to the receiver.
 const YOURS: u8 = 1 << 7;
 
@@ -262,6 +264,16 @@ pub enum Message {
     States(Border),
     /// Gateway to zones.
     Intents(Intents),
+    /// Gateway to gateways: a session of the account whose name hashes to `account`
+    /// was admitted at `gateway` at `time_ms` (wall clock, ms since the Unix epoch).
+    Claim {
+        /// When.
+        time_ms: u64,
+        /// The account: [`crate::claims::account_hash`] of its name.
+        account: u64,
+        /// The gateway.
+        gateway: u16,
+    },
 }
 
 /// The `to` field of messages for every zone.
@@ -350,7 +362,7 @@ pub fn encode_intents(key: &ClusterKey, m: &Intents) -> Result<Vec<u8>, WireErro
     encode_with(key, h, &records)
 }
 
-/// Encodes and signs a message without objects (heartbeat, halt, start).
+/// Encodes and signs a message without objects (heartbeat, halt, start, claim).
 pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
     let h = match *m {
         Message::Heartbeat { run, tick, zone, state } => {
@@ -358,6 +370,9 @@ pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireErro
         }
         Message::Halt { run } => Head { kind: KIND_HALT, run, tick: 0, from: ALL, to: ALL, aux: [0, 0] },
         Message::Start { run, tick } => Head { kind: KIND_START, run, tick, from: ALL, to: ALL, aux: [0, 0] },
+        Message::Claim { time_ms, account, gateway } => {
+            Head { kind: KIND_CLAIM, run: time_ms, tick: account, from: ZoneId(gateway), to: ALL, aux: [0, 0] }
+        }
         Message::Border(_) | Message::Checkpoint { .. } | Message::States(_) | Message::Intents(_) => {
             return Err(WireError::Field("kind"));
         }
@@ -505,6 +520,10 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
             none(count == 0 && aux0 == 0 && aux1 == 0 && tick == 0 && from == ALL && to == ALL, "halt header")?;
             Ok(Message::Halt { run })
         }
+        KIND_CLAIM => {
+            none(count == 0 && aux0 == 0 && aux1 == 0 && to == ALL, "claim header")?;
+            Ok(Message::Claim { time_ms: run, account: tick, gateway: from.0 })
+        }
         KIND_START => {
             none(count == 0 && aux0 == 0 && aux1 == 0 && from == ALL && to == ALL, "start header")?;
             Ok(Message::Start { run, tick })
@@ -560,6 +579,7 @@ mod tests {
             Message::Heartbeat { run: 3, tick: 77, zone: ZoneId(1), state: ZoneState::Stalled },
             Message::Halt { run: 4 },
             Message::Start { run: 4, tick: 60 },
+            Message::Claim { time_ms: 1_764_000_000_000, account: 0xdead_beef, gateway: 3 },
         ] {
             assert_eq!(decode(&key(), &encode_control(&key(), &m).unwrap()).unwrap(), m);
         }

@@ -89,11 +89,7 @@ impl IntentBook {
     /// Whether an object the zone owns stays at tick `now` (see the module docs).
     /// Objects outside every gateway's id range always stay.
     pub fn keeps(&self, id: EntityId, now: u64) -> bool {
-        let Some(g) = gateway_of(id) else { return true };
-        match self.gateways.get(&g) {
-            Some(h) => now.saturating_sub(h.at) <= GATEWAY_TIMEOUT && incarnation_ids(g, h.incarnation).contains(&id.0),
-            None => now.saturating_sub(self.since) <= GATEWAY_TIMEOUT,
-        }
+        keeps(&self.gateways, self.since, id, now)
     }
 
     /// Takes one message of intents, seen while the zone is at tick `now`.
@@ -149,9 +145,27 @@ impl IntentBook {
         self.actions.get(&id).copied()
     }
 
-    /// Forgets leaves older than [`LEAVE_MEMORY`] ticks.
+    /// Forgets leaves older than [`LEAVE_MEMORY`] ticks, and the actions of objects no
+    /// longer kept (a dead or restarted gateway's players, who send no leave): the book
+    /// holds only what live gateways' players need.
     pub fn expire(&mut self, now: u64) {
         self.leaves.retain(|_, at| now.saturating_sub(*at) <= LEAVE_MEMORY);
+        let (gateways, since) = (&self.gateways, self.since);
+        self.actions.retain(|id, _| keeps(gateways, since, *id, now));
+    }
+
+    /// Objects the book holds an action for.
+    pub fn tracked(&self) -> usize {
+        self.actions.len()
+    }
+}
+
+/// [`IntentBook::keeps`], on the book's parts.
+fn keeps(gateways: &HashMap<u16, Heard>, since: u64, id: EntityId, now: u64) -> bool {
+    let Some(g) = gateway_of(id) else { return true };
+    match gateways.get(&g) {
+        Some(h) => now.saturating_sub(h.at) <= GATEWAY_TIMEOUT && incarnation_ids(g, h.incarnation).contains(&id.0),
+        None => now.saturating_sub(since) <= GATEWAY_TIMEOUT,
     }
 }
 
@@ -209,6 +223,21 @@ mod tests {
         book.offer(Intents { incarnation: 6_000, ..msg(0, IntentKind::Action, vec![]) }, 220).unwrap();
         assert!(!book.keeps(a, 220) && !book.keeps(b, 220));
         assert!(book.keeps(EntityId(incarnation_ids(1, 6_000).start), 220));
+    }
+
+    #[test]
+    fn a_dead_gateways_players_leave_no_actions_behind() {
+        let ids = incarnation_ids(2, 5);
+        let mut book = IntentBook::new(0);
+        let players: Vec<_> = (0..100).map(|i| player(ids.start + i, 4)).collect();
+        book.offer(Intents { gateway: 2, ..msg(1, IntentKind::Join, players) }, 10).unwrap();
+        book.offer(msg(1, IntentKind::Action, vec![player(7, 1)]), 10).unwrap();
+        book.expire(10 + GATEWAY_TIMEOUT);
+        assert_eq!(book.tracked(), 101);
+        // Gateway 2 dies (no leave, no message): its players' actions go, the others stay.
+        book.expire(11 + GATEWAY_TIMEOUT);
+        assert_eq!(book.tracked(), 1);
+        assert_eq!(book.action(EntityId(7)), Some(1));
     }
 
     #[test]

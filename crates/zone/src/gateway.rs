@@ -99,6 +99,8 @@ pub struct GatewayStats {
     pub duplicates: u64,
     /// Rollbacks seen (a newer run of the zones).
     pub rollbacks: u64,
+    /// Steps whose fabric work failed (sending intents or taking the zones' world).
+    pub errors: u64,
     /// Times one of this gateway's players' objects changed zone (its session stayed).
     pub player_handoffs: u64,
     /// Intent records sent, by kind (join, action, leave).
@@ -117,6 +119,7 @@ impl GatewayStats {
         metrics::counter!("myriad_gateway_skipped_ticks_total").absolute(self.skipped);
         metrics::counter!("myriad_gateway_duplicates_total").absolute(self.duplicates);
         metrics::counter!("myriad_gateway_rollbacks_total").absolute(self.rollbacks);
+        metrics::counter!("myriad_gateway_errors_total").absolute(self.errors);
         metrics::counter!("myriad_gateway_player_handoffs_total").absolute(self.player_handoffs);
         for (kind, n) in ["join", "action", "leave"].into_iter().zip(self.intents) {
             metrics::counter!("myriad_gateway_intents_total", "kind" => kind).absolute(n);
@@ -179,6 +182,8 @@ pub struct ZonesBackend {
     refresh_now: bool,
     /// The gateway tick of the last intents sent.
     last_tick: u64,
+    /// Whether the last step's fabric work failed (for logging changes only).
+    failing: bool,
     stats: GatewayStats,
 }
 
@@ -211,6 +216,7 @@ impl ZonesBackend {
             written: HashMap::new(),
             refresh_now: false,
             last_tick: 0,
+            failing: false,
             stats: GatewayStats::default(),
         })
     }
@@ -488,18 +494,38 @@ impl Backend for ZonesBackend {
     }
 
     /// Sends the players' intents and takes the zones' newest world. The time goes in
-    /// the `upload` stage (the other stages are the zones').
+    /// the `upload` stage (the other stages are the zones'). A fabric error is counted
+    /// and logged when it starts and when it ends, and the step goes on (the world
+    /// stands still for the tick): the sessions never see it, and the tick still
+    /// advances by one.
     fn step(&mut self, world: &mut World, _k: &TickConstants) -> Result<StepReport, PhysicsError> {
         let start = Instant::now();
-        let fabric = |e: ZoneError| PhysicsError::Unavailable { backend: "zones", reason: e.to_string() };
-        self.send_intents(world).map_err(fabric)?;
-        match self.next_world().map_err(fabric)? {
+        let sent = self.send_intents(world);
+        let taken = self.next_world().and_then(|next| match next {
             Some((tick, objects)) => {
-                self.mirror(world, objects).map_err(fabric)?;
+                self.mirror(world, objects)?;
                 self.stats.mirrors += 1;
                 self.stats.zone_tick = tick;
+                Ok(())
             }
-            None => self.stats.stale_steps += 1,
+            None => {
+                self.stats.stale_steps += 1;
+                Ok(())
+            }
+        });
+        match sent.and(taken) {
+            Ok(()) if self.failing => {
+                self.failing = false;
+                tracing::info!("the zones' fabric works again");
+            }
+            Ok(()) => {}
+            Err(e) => {
+                self.stats.errors += 1;
+                if !self.failing {
+                    self.failing = true;
+                    tracing::warn!(error = %e, "the zones' fabric failed; the world stands still until it works");
+                }
+            }
         }
         world.tick += 1;
         self.stats.export();
@@ -514,5 +540,49 @@ impl Backend for ZonesBackend {
 
     fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
         self
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use myriad_core::{ObjectKind, ScenarioSpec, Shape, Vec3};
+
+    /// A fabric that is down.
+    struct Down;
+
+    impl GatewayLink for Down {
+        fn send_intents(&mut self, _: Vec<u8>) -> Result<(), ZoneError> {
+            Err(ZoneError::Fabric("down".into()))
+        }
+        fn recv_states(&mut self, _: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
+            Err(ZoneError::Fabric("down".into()))
+        }
+    }
+
+    #[test]
+    fn a_fabric_that_is_down_stands_the_world_still_and_the_tick_goes_on() {
+        let mut spec = ScenarioSpec::custom(3);
+        (spec.dynamic, spec.users, spec.static_objects, spec.world_size, spec.terrain_samples) = (0, 0, 0, 32.0, 9);
+        let mut world = spec.build().unwrap();
+        let cfg = GatewayConfig {
+            gateway: 1,
+            key: ClusterKey::random(),
+            zones: 2,
+            wait: Duration::from_millis(1),
+            refresh: 30,
+        };
+        let mut b = ZonesBackend::new(cfg, Box::new(Down)).unwrap();
+        b.prepare(&mut world);
+        let id =
+            world.dynamics.spawn(Shape::Sphere { radius: 0.5 }, Vec3::new(1.0, 5.0, 1.0), ObjectKind::User).unwrap();
+        assert!(player_ids(1).contains(&id.0) && incarnation_ids(1, b.incarnation).contains(&id.0));
+        assert_eq!(gateway_of(id), Some(1));
+        for t in 1..=3 {
+            b.step(&mut world, &TickConstants::default()).unwrap();
+            assert_eq!(world.tick, t, "one tick per step, fabric or not");
+        }
+        assert_eq!(b.stats().errors, 3);
+        assert!(world.dynamics.slot(id).is_some(), "the player's object stays while the zones are out of reach");
     }
 }

@@ -68,6 +68,9 @@ pub enum Refused {
     Stale,
     /// More objects than [`MAX_TRACKED`].
     Full,
+    /// An object outside the sending gateway's id range: a gateway speaks only for its
+    /// own players.
+    Foreign,
 }
 
 impl Refused {
@@ -76,6 +79,7 @@ impl Refused {
         match self {
             Refused::Stale => "intent_stale",
             Refused::Full => "intent_full",
+            Refused::Foreign => "intent_foreign",
         }
     }
 }
@@ -97,6 +101,9 @@ impl IntentBook {
         let order = (m.incarnation, m.tick, m.kind);
         if self.last.get(&m.gateway).is_some_and(|last| order <= *last) {
             return Err(Refused::Stale);
+        }
+        if m.objects.iter().any(|o| gateway_of(o.id) != Some(m.gateway)) {
+            return Err(Refused::Foreign);
         }
         if self.actions.len() + self.leaves.len() + self.joins.len() + m.objects.len() > MAX_TRACKED {
             return Err(Refused::Full);
@@ -192,20 +199,25 @@ mod tests {
         Intents { incarnation: 5, tick, gateway: 1, kind, objects }
     }
 
+    /// The id of gateway 1's player `n` (incarnation 5).
+    fn p(n: u32) -> u32 {
+        incarnation_ids(1, 5).start + n
+    }
+
     #[test]
     fn keeps_the_newest_action_and_refuses_replays() {
         let mut b = IntentBook::default();
-        b.offer(msg(1, IntentKind::Join, vec![player(7, 0)]), 0).unwrap();
+        b.offer(msg(1, IntentKind::Join, vec![player(p(7), 0)]), 0).unwrap();
         assert_eq!(b.take_joins().len(), 1);
         assert!(b.take_joins().is_empty(), "a join is taken once");
-        b.offer(msg(2, IntentKind::Action, vec![player(7, 3)]), 0).unwrap();
-        assert_eq!(b.action(EntityId(7)), Some(3));
-        assert_eq!(b.offer(msg(2, IntentKind::Action, vec![player(7, 9)]), 0), Err(Refused::Stale));
-        assert_eq!(b.offer(msg(1, IntentKind::Leave, vec![player(7, 0)]), 0), Err(Refused::Stale));
-        assert_eq!(b.action(EntityId(7)), Some(3), "a refused message changes nothing");
+        b.offer(msg(2, IntentKind::Action, vec![player(p(7), 3)]), 0).unwrap();
+        assert_eq!(b.action(EntityId(p(7))), Some(3));
+        assert_eq!(b.offer(msg(2, IntentKind::Action, vec![player(p(7), 9)]), 0), Err(Refused::Stale));
+        assert_eq!(b.offer(msg(1, IntentKind::Leave, vec![player(p(7), 0)]), 0), Err(Refused::Stale));
+        assert_eq!(b.action(EntityId(p(7))), Some(3), "a refused message changes nothing");
         // A restarted gateway (a newer incarnation) starts its ticks again.
-        b.offer(Intents { incarnation: 6, ..msg(0, IntentKind::Action, vec![player(7, 4)]) }, 0).unwrap();
-        assert_eq!(b.action(EntityId(7)), Some(4));
+        b.offer(Intents { incarnation: 6, ..msg(0, IntentKind::Action, vec![player(p(7), 4)]) }, 0).unwrap();
+        assert_eq!(b.action(EntityId(p(7))), Some(4));
     }
 
     #[test]
@@ -231,27 +243,39 @@ mod tests {
         let mut book = IntentBook::new(0);
         let players: Vec<_> = (0..100).map(|i| player(ids.start + i, 4)).collect();
         book.offer(Intents { gateway: 2, ..msg(1, IntentKind::Join, players) }, 10).unwrap();
-        book.offer(msg(1, IntentKind::Action, vec![player(7, 1)]), 10).unwrap();
+        book.offer(msg(1, IntentKind::Action, vec![player(p(7), 1)]), 100).unwrap();
         book.expire(10 + GATEWAY_TIMEOUT);
         assert_eq!(book.tracked(), 101);
-        // Gateway 2 dies (no leave, no message): its players' actions go, the others stay.
+        // Gateway 2 dies (no leave, no message): its players' actions go, gateway 1's stay.
         book.expire(11 + GATEWAY_TIMEOUT);
         assert_eq!(book.tracked(), 1);
-        assert_eq!(book.action(EntityId(7)), Some(1));
+        assert_eq!(book.action(EntityId(p(7))), Some(1));
+    }
+
+    #[test]
+    fn a_gateway_speaks_only_for_its_own_players() {
+        let mut b = IntentBook::default();
+        let npc = player(12, 3);
+        let other = player(incarnation_ids(2, 5).start, 3);
+        for objects in [vec![npc], vec![player(p(1), 0), other]] {
+            assert_eq!(b.offer(msg(1, IntentKind::Action, objects), 0), Err(Refused::Foreign));
+        }
+        assert_eq!(b.tracked(), 0, "nothing of a refused message is taken");
+        b.offer(msg(1, IntentKind::Action, vec![player(p(1), 3)]), 0).unwrap();
     }
 
     #[test]
     fn a_leave_outlives_a_hand_off_then_expires() {
         let mut b = IntentBook::default();
-        b.offer(msg(1, IntentKind::Action, vec![player(7, 3)]), 10).unwrap();
-        b.offer(msg(2, IntentKind::Leave, vec![player(7, 0)]), 10).unwrap();
-        assert!(b.left(EntityId(7)));
-        assert_eq!(b.action(EntityId(7)), None);
-        b.offer(msg(3, IntentKind::Action, vec![player(7, 5)]), 11).unwrap();
-        assert_eq!(b.action(EntityId(7)), None, "no action for an object that left");
+        b.offer(msg(1, IntentKind::Action, vec![player(p(7), 3)]), 10).unwrap();
+        b.offer(msg(2, IntentKind::Leave, vec![player(p(7), 0)]), 10).unwrap();
+        assert!(b.left(EntityId(p(7))));
+        assert_eq!(b.action(EntityId(p(7))), None);
+        b.offer(msg(3, IntentKind::Action, vec![player(p(7), 5)]), 11).unwrap();
+        assert_eq!(b.action(EntityId(p(7))), None, "no action for an object that left");
         b.expire(10 + LEAVE_MEMORY);
-        assert!(b.left(EntityId(7)));
+        assert!(b.left(EntityId(p(7))));
         b.expire(11 + LEAVE_MEMORY);
-        assert!(!b.left(EntityId(7)));
+        assert!(!b.left(EntityId(p(7))));
     }
 }

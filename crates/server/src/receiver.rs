@@ -93,6 +93,9 @@ struct Shared {
     /// tick last asked.
     taken: AtomicU64,
     over_budget: AtomicU64,
+    /// Datagrams read from the sockets and dealt with (queued for the tick or refused),
+    /// since the start; never reset.
+    dealt_with: Arc<AtomicU64>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -121,6 +124,16 @@ impl ThreadedUdp {
             .name("myriad-receive".into())
             .spawn(move || receive_loop(receiving, &for_thread, Gate::new(limits)))?;
         Ok(ThreadedUdp { send: UdpTransport::group(endpoints), shared, thread: Some(thread), taken: Inbox::default() })
+    }
+}
+
+impl ThreadedUdp {
+    /// How many datagrams the receiver has read from the sockets and dealt with (queued
+    /// for the tick, or refused) since it started. The tick benchmark waits on it so
+    /// that a tick takes everything its bots sent before it, as a tick of `serve` takes
+    /// what arrived during the previous period.
+    pub fn dealt_with(&self) -> Arc<AtomicU64> {
+        self.shared.dealt_with.clone()
     }
 }
 
@@ -256,6 +269,7 @@ fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
             shared.taken.fetch_add(took as u64, Ordering::AcqRel);
             shared.over_budget.fetch_add(over_budget, Ordering::AcqRel);
             hand_over(&mut staged, shared);
+            shared.dealt_with.fetch_add(took as u64, Ordering::AcqRel);
         }
         report_oversized(&endpoints, &mut truncated_seen);
         std::thread::sleep(PAUSE);

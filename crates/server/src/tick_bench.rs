@@ -4,7 +4,11 @@
 //!
 //! It runs the same code as `myriad serve`, minus the TLS login (players are admitted
 //! directly with fresh session keys, as a login would) and minus pacing, persistence
-//! and metrics, which are not stages. Between two timed ticks, untimed, the bots send
+//! and metrics, which are not stages. It receives as `serve` does: by default on the
+//! receiver thread (`receive_thread`), and before each timed tick it waits, untimed,
+//! until that thread has dealt with every datagram the bots sent, so the tick takes all
+//! of them; the `receive` stage is then the tick's own share (the tag checks and
+//! applying), and the receiver's work shows in the process's CPU time. Between two timed ticks, untimed, the bots send
 //! their sealed actions and then drain their sockets, opening every datagram with their
 //! session key, so each sample also proves what was sent arrived and decoded.
 //!
@@ -23,7 +27,9 @@
 
 use std::io::ErrorKind;
 use std::net::{SocketAddr, UdpSocket};
-use std::time::Instant;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
 
 use myriad_core::{ObjectKind, World};
 use myriad_net::{Endpoint, EndpointConfig};
@@ -33,8 +39,13 @@ use myriad_store::UserId;
 
 use crate::config::ServerConfig;
 use crate::error::ServerError;
+use crate::receiver::ThreadedUdp;
 use crate::tick::{TickLoop, TickWork};
-use crate::transport::UdpTransport;
+use crate::transport::{Transport, UdpTransport};
+
+/// Longest a tick of the benchmark waits for the receiver thread to deal with what the
+/// bots sent (datagrams the kernel dropped never come).
+const RECEIVER_PATIENCE: Duration = Duration::from_millis(500);
 
 /// Ticks between two actions of one bot. Bots take turns (bot `i` sends on the ticks
 /// where `(tick + i) % ACTION_EVERY == 0`), so the server receives a steady third of
@@ -87,6 +98,10 @@ pub struct TickBench {
     server_addr: SocketAddr,
     buf: Vec<u8>,
     datagram: Vec<u8>,
+    /// The receiver thread's count of datagrams dealt with (with `receive_thread`).
+    dealt_with: Option<Arc<AtomicU64>>,
+    /// Datagrams the bots sent.
+    sent: u64,
 }
 
 impl std::fmt::Debug for TickBench {
@@ -114,7 +129,17 @@ impl TickBench {
             .filter(|(_, k)| **k == ObjectKind::User)
             .map(|(id, _)| *id)
             .collect();
-        let mut tick = TickLoop::builder(config, world, backend, Box::new(UdpTransport::group(endpoints))).build();
+        // The transport `serve` uses: receiving on a thread of its own by default (the
+        // tick's receive stage then times only what the tick itself does).
+        let (transport, dealt_with): (Box<dyn Transport>, _) = if config.receive_thread {
+            let threaded = ThreadedUdp::start(endpoints, config.receive_limits())
+                .map_err(|e| ServerError::io("starting the receive thread", e))?;
+            let dealt_with = threaded.dealt_with();
+            (Box::new(threaded), Some(dealt_with))
+        } else {
+            (Box::new(UdpTransport::group(endpoints)), None)
+        };
+        let mut tick = TickLoop::builder(config, world, backend, transport).build();
         let mut bots = Vec::with_capacity(users.len());
         for (i, entity) in users.into_iter().enumerate() {
             let joined = tick
@@ -127,7 +152,15 @@ impl TickBench {
                 })?;
             bots.push(Bot { socket, session: ClientSession::new(&joined.keys), entity: joined.entity, frame: 0 });
         }
-        let mut bench = TickBench { tick, bots, server_addr, buf: vec![0; 65_536], datagram: Vec::with_capacity(128) };
+        let mut bench = TickBench {
+            tick,
+            bots,
+            server_addr,
+            buf: vec![0; 65_536],
+            datagram: Vec::with_capacity(128),
+            dealt_with,
+            sent: 0,
+        };
         // Ready in waves small enough for the server's receive buffer, each received by a
         // tick: every player is active (address known, ready) before measuring starts.
         for wave in (0..bench.bots.len()).collect::<Vec<_>>().chunks(2_000) {
@@ -178,6 +211,15 @@ impl TickBench {
     }
 
     fn run_tick(&mut self) -> TickWork {
+        // With the receiver thread, wait (untimed) until it has dealt with every datagram
+        // the bots sent: the tick then takes all of them, as with inline receiving. A
+        // datagram the kernel dropped never comes: give up after a while.
+        if let Some(dealt_with) = &self.dealt_with {
+            let deadline = Instant::now() + RECEIVER_PATIENCE;
+            while dealt_with.load(Ordering::Acquire) < self.sent && Instant::now() < deadline {
+                std::thread::yield_now();
+            }
+        }
         self.tick.tick_once()
     }
 
@@ -188,7 +230,10 @@ impl TickBench {
         match bot.socket.send_to(&self.datagram, self.server_addr) {
             // A full loopback queue loses the datagram, as a network would: the server's
             // `received` count shows it.
-            Ok(_) => Ok(()),
+            Ok(_) => {
+                self.sent += 1;
+                Ok(())
+            }
             Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(()),
             Err(e) => Err(ServerError::io(format!("bot {} sending", i + 1), e)),
         }

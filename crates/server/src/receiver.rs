@@ -125,9 +125,7 @@ impl ThreadedUdp {
             .spawn(move || receive_loop(receiving, &for_thread, Gate::new(limits)))?;
         Ok(ThreadedUdp { send: UdpTransport::group(endpoints), shared, thread: Some(thread), taken: Inbox::default() })
     }
-}
 
-impl ThreadedUdp {
     /// How many datagrams the receiver has read from the sockets and dealt with (queued
     /// for the tick, or refused) since it started. The tick benchmark waits on it so
     /// that a tick takes everything its bots sent before it, as a tick of `serve` takes

@@ -8,9 +8,10 @@
 //! receiver thread (`receive_thread`), and before each timed tick it waits, untimed,
 //! until that thread has dealt with every datagram the bots sent, so the tick takes all
 //! of them; the `receive` stage is then the tick's own share (the tag checks and
-//! applying), and the receiver's work shows in the process's CPU time. Between two timed ticks, untimed, the bots send
-//! their sealed actions and then drain their sockets, opening every datagram with their
-//! session key, so each sample also proves what was sent arrived and decoded.
+//! applying), and the receiver's work shows in the process's CPU time. Between two
+//! timed ticks, untimed, the bots send their sealed actions and then drain their
+//! sockets, opening every datagram with their session key, so each sample also proves
+//! what was sent arrived and decoded.
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {

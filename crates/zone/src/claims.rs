@@ -19,31 +19,31 @@ pub fn sessions_subject(cluster: &str) -> String {
     format!("myriad.{cluster}.sessions")
 }
 
-/// An account's name as claims carry it: 64-bit FNV-1a of the name in ASCII lower case
-/// (names compare without case). Claims are signed, so a collision can only come from
-/// two real names, and would end one session too many, never let one through.
-pub fn account_hash(name: &str) -> u64 {
-    name.bytes()
-        .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b.to_ascii_lowercase())).wrapping_mul(0x100_0000_01b3))
+/// An account's name as claims carry it: [`ClusterKey::digest64`] of the name in ASCII
+/// lower case (names compare without case). Keyed, so that nobody outside the cluster
+/// can pick an account name whose claim would end another account's session.
+pub fn account_hash(key: &ClusterKey, name: &str) -> u64 {
+    key.digest64(name.to_ascii_lowercase().as_bytes())
 }
 
 /// The claims of one gateway: its own, and what others' claims take from it.
 #[derive(Debug)]
 pub struct Claims {
     gateway: u16,
+    key: ClusterKey,
     /// Our claims: account hash → (time, name).
     ours: HashMap<u64, (u64, String)>,
 }
 
 impl Claims {
-    /// The claims of gateway `gateway`.
-    pub fn new(gateway: u16) -> Claims {
-        Claims { gateway, ours: HashMap::new() }
+    /// The claims of gateway `gateway` of the cluster whose key is `key`.
+    pub fn new(gateway: u16, key: ClusterKey) -> Claims {
+        Claims { gateway, key, ours: HashMap::new() }
     }
 
     /// Records a session of `name` admitted here at `time_ms`; returns the claim to send.
     pub fn claim(&mut self, name: &str, time_ms: u64) -> Message {
-        let account = account_hash(name);
+        let account = account_hash(&self.key, name);
         self.ours.insert(account, (time_ms, name.to_string()));
         Message::Claim { time_ms, account, gateway: self.gateway }
     }
@@ -77,7 +77,7 @@ impl NatsSessions {
         let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}-sessions"))?;
         let subject = sessions_subject(cluster);
         let sub = link.subscribe(subject.clone())?;
-        Ok(NatsSessions { link, sub, subject, key, claims: Claims::new(gateway) })
+        Ok(NatsSessions { link, sub, subject, claims: Claims::new(gateway, key.clone()), key })
     }
 }
 
@@ -126,8 +126,9 @@ mod tests {
 
     #[test]
     fn a_newer_claim_elsewhere_takes_the_session_an_older_one_does_not() {
-        let mut a = Claims::new(0);
-        let mut b = Claims::new(1);
+        let key = ClusterKey::new(&[5; 32]).unwrap();
+        let mut a = Claims::new(0, key.clone());
+        let mut b = Claims::new(1, key);
         let mine = a.claim("Alice", 1_000);
         assert_eq!(b.heard(&mine), None, "b holds no session of alice");
         let theirs = b.claim("alice", 2_000);
@@ -144,7 +145,8 @@ mod tests {
 
     #[test]
     fn account_hashes_fold_case_only() {
-        assert_eq!(account_hash("User1"), account_hash("user1"));
-        assert_ne!(account_hash("user1"), account_hash("user2"));
+        let key = ClusterKey::new(&[5; 32]).unwrap();
+        assert_eq!(account_hash(&key, "User1"), account_hash(&key, "user1"));
+        assert_ne!(account_hash(&key, "user1"), account_hash(&key, "user2"));
     }
 }

@@ -174,8 +174,8 @@ pub struct ZonesBackend {
     taken: Option<u64>,
     pending: BTreeMap<u64, TickParts>,
     mine: BTreeMap<EntityId, Mine>,
-    /// Players that left, by the gateway tick of their leave, until the zones drop them.
-    gone: BTreeMap<EntityId, (ObjectState, u64)>,
+    /// Players that left (their last state), until the zones drop them.
+    gone: BTreeMap<EntityId, ObjectState>,
     /// The action each player's object held after the last step (what the zones were
     /// last asked for).
     written: HashMap<EntityId, u8>,
@@ -271,10 +271,11 @@ impl ZonesBackend {
         for id in left {
             let m = self.mine.remove(&id).expect("listed");
             self.written.remove(&id);
-            self.gone.insert(id, (m.state, t));
+            self.gone.insert(id, m.state);
             leaves.push(m.state);
         }
-        if self.refresh_now || (self.cfg.refresh > 0 && t.is_multiple_of(self.cfg.refresh)) {
+        let due = self.cfg.refresh > 0 && t.is_multiple_of(self.cfg.refresh);
+        if self.refresh_now || due {
             self.refresh_now = false;
             actions = self.mine.values().map(|m| m.state).collect();
             for m in self.mine.values_mut() {
@@ -286,15 +287,14 @@ impl ZonesBackend {
                     joins.push(m.state);
                 }
             }
-            leaves.extend(self.gone.values().map(|(s, _)| *s));
+            leaves.extend(self.gone.values().copied());
         }
-        let heartbeat = self.cfg.refresh > 0 && t.is_multiple_of(self.cfg.refresh);
         for (kind, objects) in [(IntentKind::Join, joins), (IntentKind::Action, actions), (IntentKind::Leave, leaves)] {
             self.stats.intents[kind as usize] += objects.len() as u64;
             // Zones take a gateway that has not been heard of for a while for dead (and
             // remove its players' objects): with no action to send, an empty message
             // says it is alive.
-            let empty = heartbeat && kind == IntentKind::Action && objects.is_empty();
+            let empty = due && kind == IntentKind::Action && objects.is_empty();
             let chunks: Vec<&[ObjectState]> =
                 if empty { vec![&[]] } else { objects.chunks(INTENTS_PER_MESSAGE).collect() };
             for chunk in chunks {
@@ -413,8 +413,12 @@ impl ZonesBackend {
         let next = d.next_id();
         let mut owners = HashMap::new();
         let mut all: Vec<ObjectState> = Vec::with_capacity(objects.len() + self.mine.len());
+        // Players that left and the zones still show: left out, and their leaves go
+        // again at the next refresh; the others are forgotten.
+        let mut still_shown = Vec::new();
         for (o, z) in objects {
             if self.gone.contains_key(&o.id) {
+                still_shown.push(o.id);
                 continue;
             }
             if self.is_mine(o.id) {
@@ -422,9 +426,7 @@ impl ZonesBackend {
             }
             all.push(o);
         }
-        // The zones no longer show these: forget them.
-        let shown: std::collections::HashSet<EntityId> = all.iter().map(|o| o.id).collect();
-        self.gone.retain(|id, _| shown.contains(id));
+        self.gone.retain(|id, _| still_shown.contains(id));
         for (id, m) in self.mine.iter_mut() {
             if let Some(&z) = owners.get(id) {
                 m.seen = true;

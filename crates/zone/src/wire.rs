@@ -133,6 +133,13 @@ impl ClusterKey {
         Ok(ClusterKey(hmac::Key::new(hmac::HMAC_SHA256, secret)))
     }
 
+    /// The first 8 bytes of HMAC-SHA256(`bytes`) under this key, as a number: a digest
+    /// nobody outside the cluster can compute or aim at.
+    pub fn digest64(&self, bytes: &[u8]) -> u64 {
+        let tag = hmac::sign(&self.0, bytes);
+        u64::from_le_bytes(tag.as_ref()[..8].try_into().expect("32 bytes"))
+    }
+
     /// A fresh random key, for a cluster that lives in one process.
     pub fn random() -> ClusterKey {
         ClusterKey::new(random_secret().as_bytes()).expect("48 bytes")

@@ -189,19 +189,14 @@ impl Zone {
 
     /// The advanced set, at the tick just reached, to every gateway.
     fn publish_states(&mut self) -> Result<(), ZoneError> {
-        let per_part = self.records_per_part();
-        let objects = &self.advanced;
-        let parts = objects.len().div_ceil(per_part).max(1);
-        let parts16 = u16::try_from(parts).map_err(|_| ZoneError::Fabric(format!("{parts} parts")))?;
-        for part in 0..parts {
-            let chunk = &objects[(part * per_part).min(objects.len())..((part + 1) * per_part).min(objects.len())];
+        for (part, parts, chunk) in split(&self.advanced, self.records_per_part())? {
             let m = Border {
                 run: self.cfg.run,
                 tick: self.world.tick,
                 from: self.cfg.id,
                 to: ALL,
-                part: part as u16,
-                parts: parts16,
+                part,
+                parts,
                 objects: chunk.iter().map(|o| (*o, false)).collect(),
             };
             self.fabric.publish_states(encode_states(&self.cfg.key, &m)?)?;
@@ -231,20 +226,8 @@ impl Zone {
         let per_part = self.records_per_part();
         for (&to, objects) in neighbours.iter().zip(out) {
             self.stats.ghosts_out += objects.len() as u64;
-            let parts = objects.len().div_ceil(per_part).max(1);
-            let parts16 = u16::try_from(parts).map_err(|_| ZoneError::Fabric(format!("{parts} parts")))?;
-            for part in 0..parts {
-                let chunk =
-                    objects[(part * per_part).min(objects.len())..((part + 1) * per_part).min(objects.len())].to_vec();
-                let m = Border {
-                    run: self.cfg.run,
-                    tick: t,
-                    from: me,
-                    to,
-                    part: part as u16,
-                    parts: parts16,
-                    objects: chunk,
-                };
+            for (part, parts, chunk) in split(&objects, per_part)? {
+                let m = Border { run: self.cfg.run, tick: t, from: me, to, part, parts, objects: chunk.to_vec() };
                 self.fabric.send(to, encode_border(&self.cfg.key, &m)?)?;
                 self.stats.messages.0 += 1;
             }
@@ -433,6 +416,17 @@ impl Zone {
         }
         Ok(applied)
     }
+}
+
+/// `items` in parts of at most `per_part` (at least one part, even when empty), each
+/// with its index and the count, as a message in parts carries them.
+fn split<T>(items: &[T], per_part: usize) -> Result<impl Iterator<Item = (u16, u16, &[T])>, ZoneError> {
+    let parts = items.len().div_ceil(per_part).max(1);
+    let count = u16::try_from(parts).map_err(|_| ZoneError::Fabric(format!("{parts} parts")))?;
+    Ok((0..parts).map(move |i| {
+        let chunk = &items[(i * per_part).min(items.len())..((i + 1) * per_part).min(items.len())];
+        (i as u16, count, chunk)
+    }))
 }
 
 /// The static objects with a primitive within reach of zone `z`, in their original order

@@ -11,8 +11,12 @@ rm -rf "$carry"
 mkdir -p "$carry/tests"
 jobs=${JOBS:-1}
 
-# Test binaries of myriad-cuda; cargo's JSON messages name each executable.
-nice -n 10 cargo test --release -j "$jobs" -p myriad-cuda --no-run --message-format=json 2>"$carry/build.log" |
+# Test binaries of myriad-cuda, and the server's device outbound test; cargo's JSON
+# messages name each executable.
+{
+    nice -n 10 cargo test --release -j "$jobs" -p myriad-cuda --no-run --message-format=json
+    nice -n 10 cargo test --release -j "$jobs" -p myriad-server --test device_outbound --no-run --message-format=json
+} 2>"$carry/build.log" |
     python3 -c '
 import json, sys
 for line in sys.stdin:

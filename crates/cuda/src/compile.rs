@@ -17,11 +17,12 @@ use std::path::PathBuf;
 use cudarc::nvrtc::sys as nvrtc;
 
 /// The kernel sources, in the order they are concatenated into one program.
-pub const SOURCES: [(&str, &str); 4] = [
+pub const SOURCES: [(&str, &str); 5] = [
     ("scan.cu", include_str!("../kernels/scan.cu")),
     ("lbvh.cu", include_str!("../kernels/lbvh.cu")),
     ("broad.cu", include_str!("../kernels/broad.cu")),
     ("physics.cu", include_str!("../kernels/physics.cu")),
+    ("interest.cu", include_str!("../kernels/interest.cu")),
 ];
 
 /// Headers the sources include, handed to NVRTC by name.
@@ -31,7 +32,7 @@ pub const HEADERS: [(&str, &str); 2] =
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 16] = [
+pub const KERNELS: [(&str, usize); 18] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -48,6 +49,8 @@ pub const KERNELS: [(&str, usize); 16] = [
     ("k_narrow_static", 17),
     ("k_narrow_dynamic", 13),
     ("k_forces", 16),
+    ("k_interest_select", 28),
+    ("k_interest_stamp", 10),
 ];
 
 /// The parameter count of each `extern "C" __global__` function in the sources, read

@@ -368,6 +368,52 @@ kernels! {
         sup: DevPtr<u8>,
         samples: DevPtr<u16>,
     }
+
+    /// `k_interest_select` (`kernels/interest.cu`): one block per player picks its
+    /// records from its AOI list and writes its new staleness table.
+    KInterestSelect = "k_interest_select" {
+        nq: u32,
+        offsets: DevPtr<u32>,
+        objects: DevPtr<u32>,
+        n: u32,
+        pos: DevPtr<f32>,
+        ids: DevPtr<u32>,
+        own: DevPtr<u32>,
+        centres: DevPtr<f32>,
+        prev_index: DevPtr<u32>,
+        prev_toff: DevPtr<u32>,
+        prev_tid: DevPtr<u64>,
+        prev_tkey: DevPtr<u64>,
+        prev_rot: DevPtr<u8>,
+        next_toff: DevPtr<u32>,
+        next_tid: DevPtr<u64>,
+        next_tkey: DevPtr<u64>,
+        next_rot: DevPtr<u8>,
+        cdist: DevPtr<u32>,
+        cid: DevPtr<u32>,
+        cflag: DevPtr<u8>,
+        ckey: DevPtr<u64>,
+        tick: u64,
+        max_datagrams: u32,
+        near_slots: u32,
+        rotation_slots: u32,
+        cap: u32,
+        meta: DevPtr<u32>,
+        sel: DevPtr<u32>,
+    }
+    /// `k_interest_stamp`: marks the records the host packed as sent this tick.
+    KInterestStamp = "k_interest_stamp" {
+        nq: u32,
+        meta: DevPtr<u32>,
+        sel: DevPtr<u32>,
+        cap: u32,
+        packed: DevPtr<u32>,
+        ids: DevPtr<u32>,
+        toff: DevPtr<u32>,
+        tid: DevPtr<u64>,
+        tkey: DevPtr<u64>,
+        tick: u64,
+    }
 }
 
 #[cfg(test)]

@@ -21,10 +21,13 @@
 //! 3. Otherwise the update is *over budget*: send the own object, then the `K` nearest
 //!    objects (`K` = `near_share` of the budget), then the `R` stalest of the rest
 //!    (*staleness*: the tick an object was last sent, or entered the view). The
-//!    staleness keys persist in the subscriber between ticks. When every selected
-//!    record is compact they fill the budget exactly and their order does not matter;
-//!    otherwise (extended records take more room) the groups are sorted, nearest and
-//!    stalest first, so what is cut is the least urgent.
+//!    staleness keys persist in the subscriber from one tick to the next (a player who
+//!    missed a tick starts afresh). Both orders are total: nearest by (distance², id),
+//!    stalest by (key, id); the nearest group is packed first, then the stalest, each
+//!    sorted, so when extended records take more room what is cut is the least urgent,
+//!    and the payload is a function of the world, the tick and the history alone.
+//!    `myriad-cuda`'s device selection applies the same rule and
+//!    [`InterestManager::pack_selected`] packs its choice: the bytes are the same.
 //! 4. Seal every datagram with the subscriber's [`Sealer`](myriad_protocol::Sealer).
 //!
 //! # Refresh bound
@@ -52,5 +55,5 @@ mod source;
 mod stale;
 
 pub use config::{InterestConfig, TickInfo};
-pub use manager::{InterestError, InterestManager, Subscriber, SubscriberReport, TickReport};
+pub use manager::{InterestError, InterestManager, Selection, Subscriber, SubscriberReport, TickReport};
 pub use source::{AoiLists, ObjectSource, SoaObjects};

@@ -5,8 +5,7 @@ use std::cell::RefCell;
 
 use myriad_protocol::update::record_len;
 use myriad_protocol::{
-    COMPACT_RECORD_LEN, DatagramBatch, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader,
-    pack_updates_pinned,
+    DatagramBatch, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader, pack_updates_pinned,
 };
 use rayon::prelude::*;
 use thiserror::Error;
@@ -43,6 +42,10 @@ pub struct Subscriber {
     /// `(object id, staleness key)` of the objects in view, in no order, kept while the
     /// player is over budget.
     rotation: Vec<(u64, u64)>,
+    /// The tick `rotation` was written at: it is read only by the next tick's build, so a
+    /// player who missed a tick (or was served by a device selection) starts afresh, as
+    /// the device selection does.
+    rotation_tick: Option<u64>,
     /// This tick's sealed datagrams.
     datagrams: DatagramBatch,
     /// What the last build did for this player.
@@ -57,6 +60,7 @@ impl Subscriber {
             centre,
             sealer,
             rotation: Vec::new(),
+            rotation_tick: None,
             datagrams: DatagramBatch::new(),
             report: SubscriberReport::default(),
         }
@@ -80,6 +84,8 @@ pub struct SubscriberReport {
     pub in_view: usize,
     /// Records sent (own included).
     pub records: usize,
+    /// Records of other objects packed (own excluded), counted before sealing.
+    pub packed: usize,
     /// Datagrams produced.
     pub datagrams: usize,
     /// Bytes produced, sealed.
@@ -210,6 +216,69 @@ impl InterestManager {
     }
 }
 
+impl InterestManager {
+    /// Packs and seals each subscriber's records as chosen elsewhere (the device
+    /// selection of `myriad-cuda`, which applies [`build`](Self::build)'s rule):
+    /// `selection(i)` gives subscriber `i`'s slots in packing order, `None` when there is
+    /// none (the subscriber then gets its own object only). Staleness is kept by whoever
+    /// selected, so the subscribers' own rotation state is dropped.
+    pub fn pack_selected<'s, O, S, F>(
+        &self,
+        tick: TickInfo,
+        objects: &O,
+        selection: F,
+        subscribers: &mut [S],
+    ) -> TickReport
+    where
+        O: ObjectSource,
+        S: BorrowMut<Subscriber> + Send,
+        F: Fn(usize) -> Option<Selection<'s>> + Sync,
+    {
+        let config = self.config;
+        subscribers
+            .par_iter_mut()
+            .enumerate()
+            .fold(TickReport::default, |acc, (i, s)| {
+                let sub = s.borrow_mut();
+                let chosen = selection(i);
+                let mut report = SubscriberReport {
+                    skipped: usize::from(chosen.is_none()),
+                    in_view: chosen.map_or(0, |c| c.in_view),
+                    over_budget: chosen.is_some_and(|c| c.over_budget),
+                    ..SubscriberReport::default()
+                };
+                SCRATCH.with_borrow_mut(|scratch| {
+                    let records = &mut scratch.records;
+                    records.clear();
+                    for &slot in chosen.map_or(&[][..], |c| c.slots) {
+                        match objects.get(slot) {
+                            Some((id, kind, p)) => records.push(StateRecord { id, kind, pos: QuantPos::from_f32(p) }),
+                            None => report.skipped += 1,
+                        }
+                    }
+                    let own = own_record(objects, sub);
+                    pack_and_seal(&config, tick, own, records, sub, &mut report);
+                });
+                sub.rotation.clear();
+                sub.rotation_tick = None;
+                sub.report = report;
+                acc.add(&sub.report)
+            })
+            .reduce(TickReport::default, TickReport::merge)
+    }
+}
+
+/// One subscriber's records as chosen outside [`InterestManager::build`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Selection<'a> {
+    /// Slots of the objects to pack, in order.
+    pub slots: &'a [u32],
+    /// Objects in view, own excluded.
+    pub in_view: usize,
+    /// Whether the view was over budget.
+    pub over_budget: bool,
+}
+
 /// Datagrams greedy packing needs for `sizes` (each at most the record area) when
 /// every datagram also carries a pinned record of `pinned` bytes.
 fn datagrams_needed(pinned: usize, sizes: impl Iterator<Item = usize>) -> usize {
@@ -240,13 +309,14 @@ fn build_one<O: ObjectSource>(
     let Scratch { cands, stored, seen, order, records } = scratch;
     cands.clear();
     records.clear();
-    sub.datagrams.clear();
     let mut report = SubscriberReport { skipped: usize::from(list.is_none()), ..SubscriberReport::default() };
     let origin = QuantPos::from_f32(sub.centre);
-    let header = UpdateHeader { tick: tick.tick, dilation_permille: tick.dilation_permille, origin };
+    if sub.rotation_tick.is_none_or(|t| t.checked_add(1) != Some(tick.tick)) {
+        sub.rotation.clear();
+    }
 
     // 1. Gather.
-    let own = objects.get(sub.object).map(|(id, kind, p)| StateRecord { id, kind, pos: QuantPos::from_f32(p) });
+    let own = own_record(objects, sub);
     let c = sub.centre;
     let list = list.unwrap_or(&[]);
     for &slot in list.iter().take(AHEAD) {
@@ -298,13 +368,19 @@ fn build_one<O: ObjectSource>(
             }
         }
         report.in_view = order.len();
-        // 3b. The K nearest.
+        // 3b. The K nearest, by (distance, id): a total order, so the choice and the
+        // order of the records are unique (the device selection makes the same ones).
+        let nearer = |a: &u32, b: &u32| {
+            let (a, b) = (&cands[*a as usize], &cands[*b as usize]);
+            a.dist2.total_cmp(&b.dist2).then(a.rec.id.cmp(&b.rec.id))
+        };
         let k = config.near_slots().min(order.len());
         if k < order.len() {
-            order.select_nth_unstable_by(k, |&a, &b| cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2));
+            order.select_nth_unstable_by(k, nearer);
         }
         let (near, rest) = order.split_at_mut(k);
-        // 3c. The stalest of the rest (ties by id, which is stable).
+        near.sort_unstable_by(nearer);
+        // 3c. The stalest of the rest, by (key, id).
         let r = config.rotation_slots().min(rest.len());
         let stalest = |a: &u32, b: &u32| {
             let (a, b) = (&cands[*a as usize], &cands[*b as usize]);
@@ -313,21 +389,14 @@ fn build_one<O: ObjectSource>(
         if r < rest.len() {
             rest.select_nth_unstable_by(r, stalest);
         }
-        // Order inside the two groups only matters if not all of them fit, which
-        // takes an extended record: with compact ones, K + R is the capacity beside the
-        // own object.
-        let all_compact = own.iter().all(|o| size(o) == COMPACT_RECORD_LEN)
-            && near.iter().chain(rest[..r].iter()).all(|&i| size(&cands[i as usize].rec) == COMPACT_RECORD_LEN);
-        if !all_compact {
-            near.sort_unstable_by(|&a, &b| cands[a as usize].dist2.total_cmp(&cands[b as usize].dist2));
-            rest[..r].sort_unstable_by(stalest);
-        }
+        // Sorted, so that what an extended record pushes out is the least urgent.
+        rest[..r].sort_unstable_by(stalest);
         records.extend(order[..k + r].iter().map(|&i| cands[i as usize].rec));
     }
 
-    // Pack (the own object first in every datagram) and stamp what was sent.
-    let packed = pack_updates_pinned(&header, own.as_ref(), records, config.max_datagrams.max(1), &mut sub.datagrams);
+    let packed = pack_and_seal(config, tick, own, records, sub, &mut report);
     if report.over_budget {
+        // Stamp what was sent.
         for &i in order.iter().take(packed) {
             cands[i as usize].key = tick.tick;
         }
@@ -337,9 +406,32 @@ fn build_one<O: ObjectSource>(
             (c.rec.id, c.key)
         }));
     }
-    report.records = packed + usize::from(own.is_some()) * sub.datagrams.len();
+    sub.rotation_tick = Some(tick.tick);
+    sub.report = report;
+}
 
-    // 4. Seal.
+/// The subscriber's own object as a record, if its slot is valid.
+fn own_record<O: ObjectSource>(objects: &O, sub: &Subscriber) -> Option<StateRecord> {
+    objects.get(sub.object).map(|(id, kind, p)| StateRecord { id, kind, pos: QuantPos::from_f32(p) })
+}
+
+/// Packs `records` after `own` into the subscriber's datagrams and seals them; fills the
+/// report's counts and returns how many of `records` (a prefix) were packed.
+fn pack_and_seal(
+    config: &InterestConfig,
+    tick: TickInfo,
+    own: Option<StateRecord>,
+    records: &[StateRecord],
+    sub: &mut Subscriber,
+    report: &mut SubscriberReport,
+) -> usize {
+    let origin = QuantPos::from_f32(sub.centre);
+    let header = UpdateHeader { tick: tick.tick, dilation_permille: tick.dilation_permille, origin };
+    sub.datagrams.clear();
+    // The own object first in every datagram.
+    let packed = pack_updates_pinned(&header, own.as_ref(), records, config.max_datagrams.max(1), &mut sub.datagrams);
+    report.packed = packed;
+    report.records = packed + usize::from(own.is_some()) * sub.datagrams.len();
     if sub.sealer.seal_batch(&mut sub.datagrams).is_err() {
         sub.datagrams.clear();
         report.seal_failed = true;
@@ -347,5 +439,5 @@ fn build_one<O: ObjectSource>(
     }
     report.datagrams = sub.datagrams.len();
     report.bytes = sub.datagrams.total_bytes();
-    sub.report = report;
+    packed
 }

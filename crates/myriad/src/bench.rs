@@ -13,6 +13,7 @@ use myriad_cuda::create_backend;
 use myriad_physics::{BackendKind, Stage, StepReport, TickConstants};
 use myriad_server::ServerConfig;
 use myriad_server::TickStage;
+use myriad_server::outbound::OutboundKind;
 use myriad_server::tick_bench::{TickBench, TickSample};
 use serde::Serialize;
 
@@ -72,8 +73,20 @@ pub struct BenchArgs {
     /// one server-tick row per size, e.g. `14,100`).
     #[arg(long, value_delimiter = ',', default_values_t = [ServerConfig::default().aoi_size])]
     pub aoi_size: Vec<f32>,
+    /// Where the server tick selects each player's records: `auto` (on the device with a
+    /// CUDA backend) or `host` (the host interest manager, for comparison).
+    #[arg(long, default_value = "auto", value_parser = parse_outbound)]
+    pub outbound: OutboundKind,
     #[command(flatten)]
     pub world: WorldArgs,
+}
+
+fn parse_outbound(s: &str) -> Result<OutboundKind, String> {
+    match s {
+        "auto" => Ok(OutboundKind::Auto),
+        "host" => Ok(OutboundKind::Host),
+        other => Err(format!("unknown outbound `{other}` (auto or host)")),
+    }
 }
 
 /// One line of results: a scenario on a backend.
@@ -325,7 +338,7 @@ fn server_one(
     let mut row = empty_row(label, world, kind, backend.description(), SERVER);
     row.ticks = args.ticks;
     row.warmup = args.warmup;
-    let config = ServerConfig { aoi_size: aoi, ..ServerConfig::default() };
+    let config = ServerConfig { aoi_size: aoi, outbound: args.outbound, ..ServerConfig::default() };
     let mut bench = TickBench::new(config, world.clone(), backend).context("starting the server tick")?;
     for _ in 0..args.warmup {
         bench.tick()?;

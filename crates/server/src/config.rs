@@ -52,6 +52,9 @@ pub struct ServerConfig {
     pub aoi_size: f32,
     /// Most update datagrams a player receives per tick (113 objects each).
     pub max_datagrams_per_player: usize,
+    /// Where each player's records are selected: `auto` (on the device with a CUDA
+    /// backend, else on the host) or `host`.
+    pub outbound: crate::outbound::OutboundKind,
     /// Data directory: the SQLite database and the development TLS certificate.
     pub data_dir: PathBuf,
     /// Database URL (`mysql://user:pass@host/db`); empty uses SQLite in `data_dir`.
@@ -157,6 +160,7 @@ impl Default for ServerConfig {
             seed: 1,
             aoi_size: 100.0,
             max_datagrams_per_player: 2,
+            outbound: crate::outbound::OutboundKind::Auto,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),
             backend: BackendKind::Auto,

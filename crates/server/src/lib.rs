@@ -37,6 +37,7 @@
 //! ```
 
 pub mod config;
+pub mod device_outbound;
 pub mod dilation;
 pub mod error;
 pub mod gate;

@@ -7,10 +7,14 @@
 //! answers the AOI boxes, [`InterestManager`] selects, packs and seals in parallel over
 //! players.
 //!
-//! The seam is made for an implementation on the device: it receives the backend as
-//! `&mut dyn Backend` (so it can reach the CUDA backend's device buffers through
-//! [`Backend::as_any_mut`]) and each recipient's sealer, from which it can lease a key and
-//! a range of sequence numbers to seal elsewhere without ever reusing a nonce.
+//! [`DeviceOutbound`](crate::device_outbound::DeviceOutbound) is the implementation on
+//! the device: it receives the backend as `&mut dyn Backend` and reaches the CUDA
+//! backend's device buffers through [`Backend::as_any_mut`]. Each recipient also brings
+//! its sealer, from which an implementation could lease a key and a range of sequence
+//! numbers to seal elsewhere without ever reusing a nonce.
+//!
+//! [`OutboundKind`] picks one: `auto` (the default) is the device outbound on a CUDA
+//! backend and the host one otherwise.
 
 use std::borrow::{Borrow, BorrowMut};
 use std::time::Instant;
@@ -21,6 +25,31 @@ use myriad_physics::{AoiResults, Backend};
 use myriad_protocol::ShapeKind as WireKind;
 
 use crate::world::wire_kind;
+
+/// Which [`Outbound`] the tick uses (config key `outbound`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OutboundKind {
+    /// The device outbound on a CUDA backend, the host one otherwise.
+    #[default]
+    Auto,
+    /// [`CpuOutbound`] whatever the backend.
+    Host,
+}
+
+impl OutboundKind {
+    /// The outbound for `backend` with AOI boxes of edge `aoi_size` and at most
+    /// `max_datagrams` update datagrams a player and tick.
+    pub fn create(self, backend: &mut dyn Backend, aoi_size: f32, max_datagrams: usize) -> Box<dyn Outbound> {
+        let on_device = backend.as_any_mut().is::<myriad_cuda::CudaBackend>();
+        match self {
+            OutboundKind::Auto if on_device => {
+                Box::new(crate::device_outbound::DeviceOutbound::new(aoi_size, max_datagrams))
+            }
+            _ => Box::new(CpuOutbound::new(aoi_size, max_datagrams)),
+        }
+    }
+}
 
 /// One active player as the outbound sees it.
 #[derive(Debug)]
@@ -52,7 +81,8 @@ impl BorrowMut<Subscriber> for Recipient<'_> {
 pub struct OutboundReport {
     /// State records packed, over all recipients.
     pub records: usize,
-    /// Time of the AOI query in ms (part of the `packets` stage).
+    /// Time of the AOI query in ms (part of the `packets` stage); for the device
+    /// outbound, the query and the selection, with the download of what was selected.
     pub aoi_ms: f64,
     /// Recipients whose sealing failed (nothing is sent to them this tick).
     pub seal_failures: usize,
@@ -97,7 +127,7 @@ impl CpuOutbound {
 }
 
 /// Reads the world's dynamics for interest management.
-struct WorldObjects<'a>(&'a World);
+pub(crate) struct WorldObjects<'a>(pub(crate) &'a World);
 
 impl ObjectSource for WorldObjects<'_> {
     fn get(&self, slot: u32) -> Option<(u64, WireKind, [f32; 3])> {

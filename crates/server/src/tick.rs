@@ -41,7 +41,7 @@ use crate::config::ServerConfig;
 use crate::dilation::DilationController;
 use crate::gate::Gate;
 use crate::inbound;
-use crate::outbound::{CpuOutbound, Outbound, Recipient};
+use crate::outbound::{Outbound, Recipient};
 use crate::registry::SessionRegistry;
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
 use crate::stages::{StageTimes, TickStage};
@@ -115,7 +115,8 @@ pub struct TickWork {
 
 /// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
 /// rest has defaults (no persister, map 0, no login service, fresh shared state). The
-/// outbound is the host one ([`CpuOutbound`]) from the config's AOI size and budget.
+/// outbound is the config's `outbound` kind for the backend, with the config's AOI size
+/// and budget.
 pub(crate) struct TickLoopBuilder {
     config: ServerConfig,
     world: World,
@@ -155,10 +156,10 @@ impl TickLoopBuilder {
     }
 
     /// The tick loop.
-    pub fn build(self) -> TickLoop {
+    pub fn build(mut self) -> TickLoop {
         let config = self.config;
         let nominal = Duration::from_secs_f64(1.0 / f64::from(config.tick_rate));
-        let outbound = Box::new(CpuOutbound::new(config.aoi_size, config.max_datagrams_per_player));
+        let outbound = config.outbound.create(self.backend.as_mut(), config.aoi_size, config.max_datagrams_per_player);
         // Without a login service nothing joins: a receiver whose sender is gone reads
         // as empty.
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);

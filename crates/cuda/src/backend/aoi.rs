@@ -15,17 +15,36 @@ impl CudaBackend {
         boxes: &[Aabb],
         out: &mut AoiResults,
     ) -> Result<(), PhysicsError> {
-        self.gpu.bind()?;
-        self.sync_world(world, None)?;
         out.clear();
         let nq = boxes.len();
-        if nq == 0 {
-            out.offsets.push(0);
-            return Ok(());
-        }
-        if self.n == 0 {
+        let total = self.aoi_on_device(world, boxes)?;
+        if nq == 0 || self.n == 0 {
             out.offsets.resize(nq + 1, 0);
             return Ok(());
+        }
+        let gpu = &self.gpu;
+        let h = &mut self.host;
+        h.aoi_offsets.ensure(gpu, (nq + 1) * 4)?;
+        h.aoi_objects.ensure(gpu, total * 4)?;
+        gpu.download_async(&mut h.aoi_offsets, 0, self.aoi_counts.ptr(), nq + 1)?;
+        gpu.download_async(&mut h.aoi_objects, 0, self.aoi_out.ptr(), total)?;
+        gpu.sync()?;
+        gpu.collect_profile()?;
+        out.offsets.extend_from_slice(h.aoi_offsets.slice::<u32>(nq + 1));
+        out.objects.extend_from_slice(h.aoi_objects.slice::<u32>(total));
+        Ok(())
+    }
+
+    /// Answers the queries into device memory and returns the number of slots in all
+    /// lists: the lists' offsets (`nq + 1`) are in `aoi_counts`, their slots in `aoi_out`,
+    /// and only the total comes back to the host. With no box or no object nothing is
+    /// launched and the device buffers are not written.
+    pub(super) fn aoi_on_device(&mut self, world: &World, boxes: &[Aabb]) -> Result<usize, PhysicsError> {
+        self.gpu.bind()?;
+        self.sync_world(world, None)?;
+        let nq = boxes.len();
+        if nq == 0 || self.n == 0 {
+            return Ok(0);
         }
         // The boxes of the last step (or query) serve as long as no one moved an object.
         let generation = world.dynamics.generation();
@@ -41,19 +60,12 @@ impl CudaBackend {
         let qs = Queries::plain(nq, self.aoi_boxes.ptr());
         count_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr())?;
         self.scan.exclusive(gpu, self.aoi_counts.ptr(), nq + 1)?;
-        self.host.aoi_offsets.ensure(gpu, (nq + 1) * 4)?;
-        gpu.download_async(&mut self.host.aoi_offsets, 0, self.aoi_counts.ptr(), nq + 1)?;
+        self.host.small.ensure(gpu, 4)?;
+        gpu.download_async(&mut self.host.small, 0, self.aoi_counts.ptr().add(nq), 1)?;
         gpu.sync()?;
-        let total = self.host.aoi_offsets.slice::<u32>(nq + 1)[nq] as usize;
+        let total = self.host.small.slice::<u32>(1)[0] as usize;
         self.aoi_out.ensure(gpu, total * 4, 1.25)?;
         write_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr(), &self.aoi_out)?;
-        let h = &mut self.host;
-        h.aoi_objects.ensure(gpu, total * 4)?;
-        gpu.download_async(&mut h.aoi_objects, 0, self.aoi_out.ptr(), total)?;
-        gpu.sync()?;
-        gpu.collect_profile()?;
-        out.offsets.extend_from_slice(h.aoi_offsets.slice::<u32>(nq + 1));
-        out.objects.extend_from_slice(h.aoi_objects.slice::<u32>(total));
-        Ok(())
+        Ok(total)
     }
 }

@@ -28,7 +28,8 @@
 //! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];
 //! - `narrow`, `forces`: the narrow-phase launches, the force and integration launch;
 //! - `step`: one tick in order, the download of the new state and the stage times;
-//! - `aoi`: area-of-interest queries.
+//! - `aoi`: area-of-interest queries;
+//! - `interest`: interest selection on the device over the AOI lists it leaves there.
 //!
 //! Every launch goes through the typed argument structs of the crate's `launch` module.
 //!
@@ -40,6 +41,7 @@
 mod aoi;
 mod broad;
 mod forces;
+mod interest;
 mod narrow;
 mod scan;
 mod step;
@@ -54,6 +56,8 @@ use crate::params::DeviceParams;
 use scan::Scan;
 use sync::{Host, Objects, Prims};
 use tree::Tree;
+
+pub use interest::{InterestQuery, MAX_SELECTED, NO_PREVIOUS, Selected, Selections};
 
 /// Events recorded per step (stage boundaries and the download's checkpoints).
 const EVENTS: usize = 15;
@@ -112,6 +116,7 @@ pub struct CudaBackend {
     params: DevBuf<DeviceParams>,
     counters: DevBuf<u32>,
     samples: DevBuf<u16>,
+    interest: interest::InterestState,
     host: Host,
     events: Vec<Event>,
     // Last: the context must outlive every buffer above (fields drop in order).
@@ -156,6 +161,7 @@ impl CudaBackend {
             params: DevBuf::empty(),
             counters: DevBuf::empty(),
             samples: DevBuf::empty(),
+            interest: interest::InterestState::new(),
             host: Host { pos: p(), prev: p(), action: p(), flags: p(), small: p(), aoi_offsets: p(), aoi_objects: p() },
             events,
             gpu,

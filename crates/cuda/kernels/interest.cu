@@ -1,0 +1,363 @@
+// Interest selection on the device: which objects of each player's AOI list go into its
+// updates this tick, by the rule of the host's interest manager (crates/interest), so
+// that the host packs exactly the records it would have chosen itself.
+//
+// One block per player. Its AOI list (slot indices, ascending, from k_tree_write or
+// k_naive_write) is read a few times from global memory; the per-candidate values that
+// are reused are kept in scratch arrays at the list's own positions:
+//
+// 1. Candidates: every slot but the player's own object; the id base is the smallest id
+//    among them and the own object. A record is compact when its id is within 2^30 of
+//    the base and its quantized offset from the player's quantized centre fits an i16.
+// 2. If greedy packing of every candidate, in list order, needs at most `max_datagrams`
+//    datagrams, they are all selected in list order and the player keeps no staleness.
+// 3. Otherwise: staleness keys (the tick each candidate was last sent, from the player's
+//    table of the previous tick; absent = entered the view now, or `tick - 1` for all
+//    when the player kept no table), then the K nearest by (distance², id) and the R
+//    stalest of the rest by (key, id), each group sorted by its order, nearest group
+//    first. Both orders are total (ids are distinct), so the choice is unique; the host
+//    uses the same orders (crates/interest/src/manager.rs).
+// 4. The new table holds every candidate's key; k_interest_stamp later sets the key of
+//    the records the host actually packed to `tick`.
+//
+// Determinism: distances are computed as in Rust (no FMA: --fmad=false) and ordered like
+// f32::total_cmp; quantization is Rust's `QuantPos::from_f32` (f64, half away from zero,
+// saturating conversion, NaN to 0).
+#include "common.cuh"
+
+#define SEL_THREADS 256
+// The most records one selected group may hold (the sort runs in shared memory).
+#define SEL_SORT 1024
+// Protocol sizes (crates/protocol/src/header.rs and update.rs).
+#define MAX_BODY 1166u
+#define UPDATE_HEADER_LEN 32u
+#define COMPACT_LEN 10u
+#define EXTENDED_LEN 24u
+#define ID_WINDOW (1u << 30)
+#define NONE 0xffffffffu
+// Candidate flags in `cflag`.
+#define C_VALID 1u
+#define C_EXTENDED 2u
+
+// f32::total_cmp as an unsigned order.
+__device__ __forceinline__ u32 total_key(float f) {
+    u32 b = __float_as_uint(f);
+    return (b & 0x80000000u) ? ~b : (b | 0x80000000u);
+}
+
+// QuantPos::from_f32 for one component.
+__device__ __forceinline__ int quant(float v) {
+    double s = (double)v * 64.0;
+    return __double2int_rz(__dadd_rn(s, copysign(0.5, s)));
+}
+
+__device__ __forceinline__ bool fits_i16(int a, int b) {
+    long long d = (long long)a - (long long)b;
+    return d >= -32768 && d <= 32767;
+}
+
+// Slot of `id` in an open-addressing table of `m` entries (ids stored plus one; 0 is
+// empty), or the empty slot where it would go; NONE if the table is empty.
+__device__ __forceinline__ u32 table_find(const u64* tid, u32 m, u32 id) {
+    if (m == 0) return NONE;
+    u64 want = (u64)id + 1;
+    u32 h = (u32)((((u64)id * 0x9e3779b97f4a7c15ull) >> 32) % m);
+    for (u32 probe = 0; probe < m; probe++) {
+        u64 v = tid[h];
+        if (v == want || v == 0) return h;
+        h = h + 1 == m ? 0 : h + 1;
+    }
+    return NONE;
+}
+
+// The `want`-th smallest (1-based) of `comp` over the eligible candidates, by 8-bit radix
+// passes from the top; `want` must be at most their number.
+template <typename Comp, typename Elig>
+__device__ u64 radix_select(u32 len, u32 want, Comp comp, Elig elig, u32* hist, u64* s_prefix, u32* s_want) {
+    u64 prefix = 0, mask = 0;
+    for (int shift = 56; shift >= 0; shift -= 8) {
+        for (u32 d = threadIdx.x; d < 256; d += blockDim.x) hist[d] = 0;
+        __syncthreads();
+        for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+            if (!elig(j)) continue;
+            u64 c = comp(j);
+            if ((c & mask) == prefix) atomicAdd(&hist[(c >> shift) & 255], 1u);
+        }
+        __syncthreads();
+        if (threadIdx.x == 0) {
+            u32 below = 0, d = 0;
+            for (; d < 255; d++) {
+                if (below + hist[d] >= want) break;
+                below += hist[d];
+            }
+            *s_want = want - below;
+            *s_prefix = prefix | ((u64)d << shift);
+        }
+        __syncthreads();
+        want = *s_want;
+        prefix = *s_prefix;
+        mask |= (u64)255 << shift;
+        __syncthreads();
+    }
+    return prefix;
+}
+
+// Sorts `count` (key, slot) pairs ascending by key in shared memory (bitonic; padded to a
+// power of two with the largest key).
+__device__ void block_sort(u64* key, u32* slot, u32 count) {
+    u32 size = 1;
+    while (size < count) size <<= 1;
+    for (u32 j = count + threadIdx.x; j < size; j += blockDim.x) {
+        key[j] = ~0ull;
+        slot[j] = NONE;
+    }
+    __syncthreads();
+    for (u32 k = 2; k <= size; k <<= 1) {
+        for (u32 s = k >> 1; s > 0; s >>= 1) {
+            for (u32 i = threadIdx.x; i < size; i += blockDim.x) {
+                u32 p = i ^ s;
+                if (p > i) {
+                    bool up = (i & k) == 0;
+                    if ((key[i] > key[p]) == up) {
+                        u64 tk = key[i];
+                        key[i] = key[p];
+                        key[p] = tk;
+                        u32 ts = slot[i];
+                        slot[i] = slot[p];
+                        slot[p] = ts;
+                    }
+                }
+            }
+            __syncthreads();
+        }
+    }
+}
+
+extern "C" __global__ void k_interest_select(
+    u32 nq, const u32* offsets, const u32* objects, u32 n, const float* pos, const u32* ids,
+    const u32* own, const float* centres, const u32* prev_index, const u32* prev_toff,
+    const u64* prev_tid, const u64* prev_tkey, const u8* prev_rot, u32* next_toff, u64* next_tid,
+    u64* next_tkey, u8* next_rot, u32* cdist, u32* cid, u8* cflag, u64* ckey, u64 tick,
+    u32 max_datagrams, u32 near_slots, u32 rotation_slots, u32 cap, u32* meta, u32* sel) {
+    __shared__ u32 hist[256];
+    __shared__ u64 s_prefix;
+    __shared__ u32 s_want, s_min_id, s_valid, s_ext, s_count, s_warp[SEL_THREADS / 32];
+    __shared__ u64 sort_key[SEL_SORT];
+    __shared__ u32 sort_slot[SEL_SORT];
+
+    u32 i = blockIdx.x;
+    if (i >= nq) return;
+    u32 start = offsets[i], len = offsets[i + 1] - start;
+    const u32* list = objects + start;
+    u32* dist = cdist + start;
+    u32* cand_id = cid + start;
+    u8* flag = cflag + start;
+    u64* key = ckey + start;
+    if (threadIdx.x == 0) {
+        next_toff[i] = start;
+        if (i == nq - 1) next_toff[nq] = start + len;
+        s_min_id = NONE;
+        s_valid = 0;
+        s_ext = 0;
+        s_count = 0;
+    }
+    u32 o = own[i];
+    bool own_ok = o < n;
+    u32 own_id = own_ok ? ids[o] : 0;
+    float cx = centres[3 * i], cy = centres[3 * i + 1], cz = centres[3 * i + 2];
+    int qx = quant(cx), qy = quant(cy), qz = quant(cz);
+    __syncthreads();
+
+    // 1. Candidates and the id base.
+    for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+        u32 s = list[j];
+        u32 f = 0, id = 0;
+        if (s < n) {
+            id = ids[s];
+            if (!(own_ok && id == own_id)) {
+                f = C_VALID;
+                float dx = pos[3 * s] - cx, dy = pos[3 * s + 1] - cy, dz = pos[3 * s + 2] - cz;
+                dist[j] = total_key(dx * dx + dy * dy + dz * dz);
+                atomicMin(&s_min_id, id);
+            }
+        }
+        cand_id[j] = id;
+        flag[j] = (u8)f;
+    }
+    __syncthreads();
+    u32 base = own_ok ? min(own_id, s_min_id) : s_min_id;
+    for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+        if (!(flag[j] & C_VALID)) continue;
+        u32 s = list[j];
+        bool compact = cand_id[j] - base < ID_WINDOW && fits_i16(quant(pos[3 * s]), qx) &&
+                       fits_i16(quant(pos[3 * s + 1]), qy) && fits_i16(quant(pos[3 * s + 2]), qz);
+        if (!compact) {
+            flag[j] = (u8)(C_VALID | C_EXTENDED);
+            atomicAdd(&s_ext, 1u);
+        }
+        atomicAdd(&s_valid, 1u);
+    }
+    __syncthreads();
+    u32 valid = s_valid;
+    u32 own_size = 0;
+    if (own_ok) {
+        bool compact = own_id - base < ID_WINDOW && fits_i16(quant(pos[3 * o]), qx) &&
+                       fits_i16(quant(pos[3 * o + 1]), qy) && fits_i16(quant(pos[3 * o + 2]), qz);
+        own_size = compact ? COMPACT_LEN : EXTENDED_LEN;
+    }
+
+    // 2. Does everything fit? Greedy packing in list order (`datagrams_needed`).
+    u32 area = MAX_BODY - UPDATE_HEADER_LEN - own_size;
+    if (threadIdx.x == 0) {
+        u32 needed = 0;
+        if (s_ext == 0) {
+            u32 per = area / COMPACT_LEN;
+            needed = (valid + per - 1) / per;
+        } else {
+            u32 used = area;
+            for (u32 j = 0; j < len; j++) {
+                if (!(flag[j] & C_VALID)) continue;
+                u32 size = (flag[j] & C_EXTENDED) ? EXTENDED_LEN : COMPACT_LEN;
+                if (used + size > area) {
+                    needed++;
+                    used = 0;
+                }
+                used += size;
+            }
+        }
+        s_want = needed;
+    }
+    __syncthreads();
+    u32 mdg = max_datagrams < 1 ? 1 : max_datagrams;
+    if (s_want <= mdg) {
+        // Everything, in list order: a block-wide compaction of the valid candidates.
+        u32 out = 0;
+        for (u32 chunk = 0; chunk < len; chunk += blockDim.x) {
+            u32 j = chunk + threadIdx.x;
+            bool keep = j < len && (flag[j] & C_VALID);
+            u32 ballot = __ballot_sync(0xffffffffu, keep);
+            u32 lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+            if (lane == 0) s_warp[warp] = __popc(ballot);
+            __syncthreads();
+            u32 before = out;
+            for (u32 w = 0; w < warp; w++) before += s_warp[w];
+            before += __popc(ballot & ((1u << lane) - 1));
+            if (keep && before < cap) sel[(u64)i * cap + before] = list[j];
+            for (u32 w = 0; w < blockDim.x / 32; w++) out += s_warp[w];
+            __syncthreads();
+        }
+        if (threadIdx.x == 0) {
+            meta[4 * i] = min(valid, cap);
+            meta[4 * i + 1] = valid;
+            meta[4 * i + 2] = 0;
+            meta[4 * i + 3] = 0;
+            next_rot[i] = 0;
+        }
+        return;
+    }
+
+    // 3. Over budget: staleness keys.
+    u32 p = prev_index[i];
+    bool had = p != NONE && prev_rot[p];
+    u64 fresh = had ? tick : (tick > 0 ? tick - 1 : 0);
+    u32 pstart = had ? 2 * prev_toff[p] : 0;
+    u32 pm = had ? 2 * prev_toff[p + 1] - pstart : 0;
+    for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+        if (!(flag[j] & C_VALID)) continue;
+        u64 k = fresh;
+        u32 at = table_find(prev_tid + pstart, pm, cand_id[j]);
+        if (at != NONE && prev_tid[pstart + at] != 0) k = prev_tkey[pstart + at];
+        key[j] = k;
+    }
+    __syncthreads();
+
+    // The K nearest by (distance², id), then the R stalest of the rest by (key, id). A key
+    // is at most `tick`; ages beyond 2^32 - 1 ticks would compare as equal (never reached:
+    // the refresh bound is a few ticks).
+    auto near_comp = [&](u32 j) { return ((u64)dist[j] << 32) | cand_id[j]; };
+    auto valid_j = [&](u32 j) { return (flag[j] & C_VALID) != 0; };
+    u32 k = min(near_slots, valid);
+    u64 near_max = 0;
+    bool near_any = k > 0;
+    if (k >= valid) {
+        near_max = ~0ull;
+    } else if (near_any) {
+        near_max = radix_select(len, k, near_comp, valid_j, hist, &s_prefix, &s_want);
+    }
+    auto in_near = [&](u32 j) { return near_any && near_comp(j) <= near_max; };
+    auto stale_comp = [&](u32 j) {
+        u64 age = tick >= key[j] ? tick - key[j] : 0;
+        u32 a = age > 0xffffffffull ? 0xffffffffu : (u32)age;
+        return ((u64)(0xffffffffu - a) << 32) | cand_id[j];
+    };
+    auto stale_elig = [&](u32 j) { return valid_j(j) && !in_near(j); };
+    u32 r = min(rotation_slots, valid - k);
+    u64 stale_max = 0;
+    bool stale_any = r > 0;
+    if (r >= valid - k) {
+        stale_max = ~0ull;
+    } else if (stale_any) {
+        stale_max = radix_select(len, r, stale_comp, stale_elig, hist, &s_prefix, &s_want);
+    }
+
+    // Each group sorted into the selection: nearest first, then stalest.
+    for (int group = 0; group < 2; group++) {
+        u32 count = group == 0 ? k : r;
+        if (count == 0) continue;
+        if (threadIdx.x == 0) s_count = 0;
+        __syncthreads();
+        for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+            bool take = group == 0 ? (valid_j(j) && in_near(j))
+                                   : (stale_any && stale_elig(j) && stale_comp(j) <= stale_max);
+            if (!take) continue;
+            u32 at = atomicAdd(&s_count, 1u);
+            if (at < SEL_SORT) {
+                sort_key[at] = group == 0 ? near_comp(j) : stale_comp(j);
+                sort_slot[at] = list[j];
+            }
+        }
+        __syncthreads();
+        block_sort(sort_key, sort_slot, count);
+        u32 first = group == 0 ? 0 : k;
+        for (u32 j = threadIdx.x; j < count; j += blockDim.x) sel[(u64)i * cap + first + j] = sort_slot[j];
+        __syncthreads();
+    }
+
+    // 4. The new table: every candidate with its key (k_interest_stamp marks what was sent).
+    u32 tstart = 2 * start, m = 2 * len;
+    for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+        if (!(flag[j] & C_VALID)) continue;
+        u64 want = (u64)cand_id[j] + 1;
+        u32 h = (u32)((((u64)cand_id[j] * 0x9e3779b97f4a7c15ull) >> 32) % m);
+        for (u32 probe = 0; probe < m; probe++) {
+            u64 prev = atomicCAS(&next_tid[tstart + h], 0ull, want);
+            if (prev == 0 || prev == want) {
+                next_tkey[tstart + h] = key[j];
+                break;
+            }
+            h = h + 1 == m ? 0 : h + 1;
+        }
+    }
+    if (threadIdx.x == 0) {
+        meta[4 * i] = k + r;
+        meta[4 * i + 1] = valid;
+        meta[4 * i + 2] = 1;
+        meta[4 * i + 3] = k;
+        next_rot[i] = 1;
+    }
+}
+
+// After the host packed the selection: the key of each of the first `packed[i]` selected
+// records becomes `tick` in player i's new table (players over budget only).
+extern "C" __global__ void k_interest_stamp(u32 nq, const u32* meta, const u32* sel, u32 cap,
+                                            const u32* packed, const u32* ids, const u32* toff,
+                                            const u64* tid, u64* tkey, u64 tick) {
+    u32 i = blockIdx.x;
+    if (i >= nq || meta[4 * i + 2] == 0) return;
+    u32 count = min(packed[i], meta[4 * i]);
+    u32 tstart = 2 * toff[i], m = 2 * toff[i + 1] - tstart;
+    for (u32 j = threadIdx.x; j < count; j += blockDim.x) {
+        u32 at = table_find(tid + tstart, m, ids[sel[(u64)i * cap + j]]);
+        if (at != NONE && tid[tstart + at] != 0) tkey[tstart + at] = tick;
+    }
+}

@@ -84,10 +84,14 @@ extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, const u32* 
     counts[q] = c;
 }
 
+// `sort` = 0 leaves each range in the walk's order: for the device interest selection,
+// whose result does not depend on the order of a list (kernels/interest.cu), and for which
+// sorting thousands of slots a query on one thread was most of an AOI query.
 extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* qorder,
                                         u32 exclude_self, const Node* nodes, const u32* order,
                                         u32 nleaves, const float* tboxes, const u32* offsets,
-                                        u32* out, u32 cap, const u32* scratch, u32 slots) {
+                                        u32* out, u32 cap, const u32* scratch, u32 slots,
+                                        u32 sort) {
     u32 t = blockIdx.x * blockDim.x + threadIdx.x;
     if (t >= nq) return;
     u32 q = query_index(qorder, t);
@@ -98,7 +102,7 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
     if (len <= slots) {
         const u32* keep = scratch + (u64)q * slots;
         for (u32 k = 0; k < len; k++) dst[k] = keep[k];
-        sort_range(dst, len);
+        if (sort) sort_range(dst, len);
         return;
     }
     const float* qb = qboxes + 6 * (u64)q;
@@ -109,7 +113,7 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
         if (c < len) dst[c] = target;
         c++;
     });
-    sort_range(dst, min(c, len));
+    if (sort) sort_range(dst, min(c, len));
 }
 
 // All pairs (cuda-naive): query q tests every target in index order, so its list comes

@@ -2,15 +2,15 @@
 // updates this tick, by the rule of the host's interest manager (crates/interest), so
 // that the host packs exactly the records it would have chosen itself.
 //
-// One block per player. Its AOI list (slot indices, ascending, from k_tree_write or
-// k_naive_write) is read a few times from global memory; the per-candidate values that
+// One block per player. Its AOI list (slot indices in any order, from k_tree_write or
+// k_naive_write; the result does not depend on the order) is read a few times from global memory; the per-candidate values that
 // are reused are kept in scratch arrays at the list's own positions:
 //
 // 1. Candidates: every slot but the player's own object; the id base is the smallest id
 //    among them and the own object. A record is compact when its id is within 2^30 of
 //    the base and its quantized offset from the player's quantized centre fits an i16.
-// 2. If greedy packing of every candidate, in list order, needs at most `max_datagrams`
-//    datagrams, they are all selected in list order and the player keeps no staleness.
+// 2. If every candidate fits `max_datagrams` datagrams whatever the packing order, they
+//    are all selected, by slot, and the player keeps no staleness.
 // 3. Otherwise: staleness keys (the tick each candidate was last sent, from the player's
 //    table of the previous tick; absent = entered the view now, or `tick - 1` for all
 //    when the player kept no table), then the K nearest by (distance², id) and the R
@@ -141,7 +141,7 @@ extern "C" __global__ void k_interest_select(
     u32 max_datagrams, u32 near_slots, u32 rotation_slots, u32 cap, u32* meta, u32* sel) {
     __shared__ u32 hist[256];
     __shared__ u64 s_prefix;
-    __shared__ u32 s_want, s_min_id, s_valid, s_ext, s_count, s_warp[SEL_THREADS / 32];
+    __shared__ u32 s_want, s_min_id, s_valid, s_ext, s_count;
     __shared__ u64 sort_key[SEL_SORT];
     __shared__ u32 sort_slot[SEL_SORT];
 
@@ -206,48 +206,33 @@ extern "C" __global__ void k_interest_select(
         own_size = compact ? COMPACT_LEN : EXTENDED_LEN;
     }
 
-    // 2. Does everything fit? Greedy packing in list order (`datagrams_needed`).
+    // 2. Does everything fit? (`fits_whatever_order` in crates/interest: exact for compact
+    // records, and with extended ones a bound that holds for any packing order.)
+    u32 mdg = max_datagrams < 1 ? 1 : max_datagrams;
     u32 area = MAX_BODY - UPDATE_HEADER_LEN - own_size;
-    if (threadIdx.x == 0) {
-        u32 needed = 0;
-        if (s_ext == 0) {
-            u32 per = area / COMPACT_LEN;
-            needed = (valid + per - 1) / per;
-        } else {
-            u32 used = area;
-            for (u32 j = 0; j < len; j++) {
-                if (!(flag[j] & C_VALID)) continue;
-                u32 size = (flag[j] & C_EXTENDED) ? EXTENDED_LEN : COMPACT_LEN;
-                if (used + size > area) {
-                    needed++;
-                    used = 0;
-                }
-                used += size;
+    u32 ext = s_ext;
+    bool fits = ext == 0 ? (valid + area / COMPACT_LEN - 1) / (area / COMPACT_LEN) <= mdg
+                         : (u64)(valid - ext) * COMPACT_LEN + (u64)ext * EXTENDED_LEN <=
+                               (u64)mdg * (area - (EXTENDED_LEN - 1));
+    if (fits) {
+        // Everything, by slot: the host packs a fitting view in its list's order, and the
+        // host's lists are sorted by slot (this one, unsorted, is in the walk's order).
+        if (threadIdx.x == 0) s_count = 0;
+        __syncthreads();
+        for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+            if (!(flag[j] & C_VALID)) continue;
+            u32 at = atomicAdd(&s_count, 1u);
+            if (at < SEL_SORT) {
+                sort_key[at] = list[j];
+                sort_slot[at] = list[j];
             }
         }
-        s_want = needed;
-    }
-    __syncthreads();
-    u32 mdg = max_datagrams < 1 ? 1 : max_datagrams;
-    if (s_want <= mdg) {
-        // Everything, in list order: a block-wide compaction of the valid candidates.
-        u32 out = 0;
-        for (u32 chunk = 0; chunk < len; chunk += blockDim.x) {
-            u32 j = chunk + threadIdx.x;
-            bool keep = j < len && (flag[j] & C_VALID);
-            u32 ballot = __ballot_sync(0xffffffffu, keep);
-            u32 lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-            if (lane == 0) s_warp[warp] = __popc(ballot);
-            __syncthreads();
-            u32 before = out;
-            for (u32 w = 0; w < warp; w++) before += s_warp[w];
-            before += __popc(ballot & ((1u << lane) - 1));
-            if (keep && before < cap) sel[(u64)i * cap + before] = list[j];
-            for (u32 w = 0; w < blockDim.x / 32; w++) out += s_warp[w];
-            __syncthreads();
-        }
+        __syncthreads();
+        u32 count = min(min(valid, cap), (u32)SEL_SORT);
+        block_sort(sort_key, sort_slot, count);
+        for (u32 j = threadIdx.x; j < count; j += blockDim.x) sel[(u64)i * cap + j] = sort_slot[j];
         if (threadIdx.x == 0) {
-            meta[4 * i] = min(valid, cap);
+            meta[4 * i] = count;
             meta[4 * i + 1] = valid;
             meta[4 * i + 2] = 0;
             meta[4 * i + 3] = 0;

@@ -42,7 +42,7 @@ pub const KERNELS: [(&str, usize); 18] = [
     ("k_emit", 5),
     ("k_refit", 7),
     ("k_tree_count", 11),
-    ("k_tree_write", 13),
+    ("k_tree_write", 14),
     ("k_naive_count", 6),
     ("k_naive_write", 8),
     ("k_boxes", 4),

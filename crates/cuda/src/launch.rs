@@ -288,6 +288,7 @@ kernels! {
         cap: u32,
         scratch: DevPtr<u32>,
         slots: u32,
+        sort: u32,
     }
     /// `k_naive_count`: per query, the targets its box overlaps, testing all `nt`.
     KNaiveCount = "k_naive_count" {

@@ -14,7 +14,8 @@
 //! 1. Gather the player's own object and every valid object of its AOI list (duplicate
 //!    and out-of-range slots are skipped), quantize positions relative to the AOI
 //!    centre.
-//! 2. If everything fits `max_datagrams`, pack it all. The own object leads **every**
+//! 2. If everything fits `max_datagrams` whatever order it is packed in, pack it all
+//!    (in the list's order). The own object leads **every**
 //!    datagram, so each one alone tells the player where it is (a lost datagram never
 //!    leaves it without its own position); the budget for other objects is
 //!    `max_datagrams × 112` compact records.

@@ -5,7 +5,8 @@ use std::cell::RefCell;
 
 use myriad_protocol::update::record_len;
 use myriad_protocol::{
-    DatagramBatch, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader, pack_updates_pinned,
+    COMPACT_RECORD_LEN, DatagramBatch, EXTENDED_RECORD_LEN, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN,
+    UpdateHeader, pack_updates_pinned,
 };
 use rayon::prelude::*;
 use thiserror::Error;
@@ -279,19 +280,19 @@ pub struct Selection<'a> {
     pub over_budget: bool,
 }
 
-/// Datagrams greedy packing needs for `sizes` (each at most the record area) when
-/// every datagram also carries a pinned record of `pinned` bytes.
-fn datagrams_needed(pinned: usize, sizes: impl Iterator<Item = usize>) -> usize {
+/// Whether `compact` compact and `extended` extended records fit `max_datagrams`
+/// datagrams beside a pinned record of `pinned` bytes, whatever order they are packed in:
+/// with compact records only, exactly; with extended ones, by a bound (a datagram that
+/// closes wastes less than one extended record), so that the answer never depends on the
+/// order of an AOI list (the device selection sees its lists unsorted).
+fn fits_whatever_order(pinned: usize, compact: usize, extended: usize, max_datagrams: usize) -> bool {
     let area = MAX_BODY - UPDATE_HEADER_LEN - pinned;
-    let (mut datagrams, mut used) = (0usize, area);
-    for size in sizes {
-        if used + size > area {
-            datagrams += 1;
-            used = 0;
-        }
-        used += size;
+    if extended == 0 {
+        compact.div_ceil(area / COMPACT_RECORD_LEN) <= max_datagrams
+    } else {
+        compact * COMPACT_RECORD_LEN + extended * EXTENDED_RECORD_LEN
+            <= max_datagrams * (area - (EXTENDED_RECORD_LEN - 1))
     }
-    datagrams
 }
 
 /// How many items ahead the loops prefetch: enough to cover a memory latency with the
@@ -344,8 +345,8 @@ fn build_one<O: ObjectSource>(
     let own_size = own.as_ref().map_or(0, size);
 
     // 2. Everything fits? (Duplicates, if any, only make this estimate conservative.)
-    let needed = datagrams_needed(own_size, cands.iter().map(|c| &c.rec).map(size));
-    if needed <= config.max_datagrams.max(1) {
+    let extended = cands.iter().filter(|c| size(&c.rec) != COMPACT_RECORD_LEN).count();
+    if fits_whatever_order(own_size, cands.len() - extended, extended, config.max_datagrams.max(1)) {
         report.in_view = cands.len();
         records.extend(cands.iter().map(|c| c.rec));
         sub.rotation.clear();
@@ -440,4 +441,55 @@ fn pack_and_seal(
     report.datagrams = sub.datagrams.len();
     report.bytes = sub.datagrams.total_bytes();
     packed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Datagrams first-fit packing in the given order needs (each datagram holding up to
+    /// `area` bytes of records).
+    fn greedy(area: usize, sizes: &[usize]) -> usize {
+        let (mut datagrams, mut used) = (0, area);
+        for &size in sizes {
+            if used + size > area {
+                datagrams += 1;
+                used = 0;
+            }
+            used += size;
+        }
+        datagrams
+    }
+
+    #[test]
+    fn what_fits_whatever_order_fits_in_every_order() {
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        for pinned in [0, COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN] {
+            let area = MAX_BODY - UPDATE_HEADER_LEN - pinned;
+            for max in 1..4 {
+                for extended in 0..60 {
+                    for compact in (0..400).step_by(7) {
+                        if !fits_whatever_order(pinned, compact, extended, max) {
+                            continue;
+                        }
+                        let mut sizes = vec![COMPACT_RECORD_LEN; compact];
+                        sizes.extend(std::iter::repeat_n(EXTENDED_RECORD_LEN, extended));
+                        for _ in 0..4 {
+                            // A random order (Fisher–Yates with xorshift).
+                            for i in (1..sizes.len()).rev() {
+                                x ^= x << 13;
+                                x ^= x >> 7;
+                                x ^= x << 17;
+                                sizes.swap(i, (x % (i as u64 + 1)) as usize);
+                            }
+                            assert!(greedy(area, &sizes) <= max, "{compact} + {extended} in {max}");
+                        }
+                    }
+                }
+            }
+        }
+        // Exact with compact records: 112 beside a compact own object, not 113.
+        assert!(fits_whatever_order(COMPACT_RECORD_LEN, 224, 0, 2));
+        assert!(!fits_whatever_order(COMPACT_RECORD_LEN, 225, 0, 2));
+    }
 }

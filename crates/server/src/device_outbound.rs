@@ -20,6 +20,7 @@ use myriad_cuda::CudaBackend;
 use myriad_cuda::backend::{InterestQuery, MAX_SELECTED, NO_PREVIOUS};
 use myriad_interest::{InterestConfig, InterestManager, Selection, TickInfo};
 use myriad_physics::Backend;
+use myriad_protocol::MAX_COMPACT_RECORDS;
 
 use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient, WorldObjects};
 
@@ -55,9 +56,15 @@ impl DeviceOutbound {
         }
     }
 
+    /// Slots the device may choose for one player: a view that fits can hold
+    /// `MAX_COMPACT_RECORDS` a datagram when the player has no own object.
+    fn selection_room(&self) -> usize {
+        self.interest.config().max_datagrams.max(1) * MAX_COMPACT_RECORDS
+    }
+
     /// Whether the device selection can hold this budget.
     fn budget_fits(&self) -> bool {
-        self.interest.config().capacity() <= MAX_SELECTED
+        self.selection_room() <= MAX_SELECTED
     }
 
     /// Serves the tick on the host; the device's staleness is then out of date.
@@ -122,7 +129,7 @@ impl Outbound for DeviceOutbound {
             max_datagrams: config.max_datagrams.max(1) as u32,
             near_slots: config.near_slots() as u32,
             rotation_slots: config.rotation_slots() as u32,
-            capacity: config.capacity() as u32,
+            capacity: self.selection_room() as u32,
         };
         let Some(cuda) = backend.as_any_mut().downcast_mut::<CudaBackend>() else {
             return self.on_host(backend, world, tick, recipients);

@@ -17,7 +17,7 @@ impl CudaBackend {
     ) -> Result<(), PhysicsError> {
         out.clear();
         let nq = boxes.len();
-        let total = self.aoi_on_device(world, boxes)?;
+        let total = self.aoi_on_device(world, boxes, true)?;
         if nq == 0 || self.n == 0 {
             out.offsets.resize(nq + 1, 0);
             return Ok(());
@@ -37,9 +37,10 @@ impl CudaBackend {
 
     /// Answers the queries into device memory and returns the number of slots in all
     /// lists: the lists' offsets (`nq + 1`) are in `aoi_counts`, their slots in `aoi_out`,
-    /// and only the total comes back to the host. With no box or no object nothing is
+    /// and only the total comes back to the host. Each list is sorted by slot if `sorted`,
+    /// else in the order the tree walk found them. With no box or no object nothing is
     /// launched and the device buffers are not written.
-    pub(super) fn aoi_on_device(&mut self, world: &World, boxes: &[Aabb]) -> Result<usize, PhysicsError> {
+    pub(super) fn aoi_on_device(&mut self, world: &World, boxes: &[Aabb], sorted: bool) -> Result<usize, PhysicsError> {
         self.gpu.bind()?;
         self.sync_world(world, None)?;
         let nq = boxes.len();
@@ -57,7 +58,7 @@ impl CudaBackend {
         self.aoi_counts.ensure(gpu, (nq + 1) * 4, 1.25)?;
         let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
         gpu.upload(&self.aoi_boxes, &flat)?;
-        let qs = Queries::plain(nq, self.aoi_boxes.ptr());
+        let qs = Queries { sorted, ..Queries::plain(nq, self.aoi_boxes.ptr()) };
         count_pass(gpu, qs, false, self.dynamic_targets(), self.aoi_counts.ptr())?;
         self.scan.exclusive(gpu, self.aoi_counts.ptr(), nq + 1)?;
         self.host.small.ensure(gpu, 4)?;

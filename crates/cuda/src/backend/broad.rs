@@ -27,6 +27,8 @@ pub(super) enum Targets<'a> {
 /// Query boxes: `n` boxes at `boxes`, visited in the order `order` (null: in index
 /// order). A tree count pass keeps each query's first `slots` targets at `scratch`
 /// (`slots` a query), so the write pass walks the tree again only for queries with more.
+/// `sorted`: the write pass sorts each range (the canonical order); a tree walk's order
+/// is enough for the device interest selection, which does not depend on it.
 #[derive(Clone, Copy)]
 pub(super) struct Queries {
     pub n: usize,
@@ -34,12 +36,13 @@ pub(super) struct Queries {
     pub order: DevPtr<u32>,
     pub scratch: DevPtr<u32>,
     pub slots: u32,
+    pub sorted: bool,
 }
 
 impl Queries {
     /// `n` boxes at `boxes`, in index order, with no kept targets.
     pub fn plain(n: usize, boxes: DevPtr<f32>) -> Queries {
-        Queries { n, boxes, order: DevPtr::NULL, scratch: DevPtr::NULL, slots: 0 }
+        Queries { n, boxes, order: DevPtr::NULL, scratch: DevPtr::NULL, slots: 0, sorted: true }
     }
 }
 
@@ -108,6 +111,7 @@ pub(super) fn write_pass(
                 cap,
                 scratch: qs.scratch,
                 slots: qs.slots,
+                sort: u32::from(qs.sorted),
             },
         ),
         Targets::All(nt, tboxes) => gpu.launch(
@@ -148,6 +152,7 @@ impl CudaBackend {
             order: self.dyn_tree.order.ptr(),
             scratch: scratch.ptr(),
             slots: SLOTS,
+            sorted: true,
         }
     }
 

@@ -42,7 +42,8 @@ pub struct InterestQuery<'a> {
     pub near_slots: u32,
     /// `R`: records for the stalest objects when over budget.
     pub rotation_slots: u32,
-    /// Records of others a player can receive (`K + R`, at most [`MAX_SELECTED`]).
+    /// Most slots chosen for one player (at least `K + R`, and at least what fits its
+    /// datagrams without an own object; at most [`MAX_SELECTED`]).
     pub capacity: u32,
 }
 
@@ -189,7 +190,8 @@ impl CudaBackend {
             });
         }
         self.interest.last = None;
-        let total = self.aoi_on_device(world, q.boxes)?;
+        // Unsorted lists: the selection does not depend on their order.
+        let total = self.aoi_on_device(world, q.boxes, false)?;
         let gpu = &self.gpu;
         let s = &mut self.interest;
         s.host_meta.ensure(gpu, nq * 16)?;

@@ -47,7 +47,7 @@ fn verify_all(servers: &[ServerSession], sealed: &[Vec<u8>], scratch: &mut [Vec<
 fn bench(c: &mut Criterion) {
     eprintln!("rayon pool: {} threads", rayon::current_num_threads());
     let mut g = c.benchmark_group("verify_actions");
-    for n in [16, 32, 64, 128, 256, 3333] {
+    for n in [16, 64, 128, 256, 512, 1024, 3333] {
         let (servers, sealed) = sessions(n);
         let mut scratch = sealed.clone();
         g.throughput(Throughput::Elements(n as u64));

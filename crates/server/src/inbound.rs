@@ -70,9 +70,13 @@ use crate::transport::Transport;
 const MAX_BATCHES: usize = 64;
 
 /// Fewest datagrams whose tag checks go to the rayon pool; fewer are checked on the
-/// tick thread. Waking the pool's workers and waiting for them costs tens of
-/// microseconds, which a few dozen tag checks (about a microsecond each) do not repay.
-pub(crate) const PARALLEL_OPEN_MIN: usize = 64;
+/// tick thread. Handing work to the pool and waiting for it costs about 10 to 15 µs
+/// (`benches/open.rs` of `myriad-protocol` on a 2-core VM, where a tag check of an
+/// action costs about 0.22 µs): there the pool ties at 128 datagrams and wins from 256
+/// (58 -> 42 µs; 3,333: 764 -> 441 µs), while at 64 it loses (14 -> 22 µs). With 16
+/// cores the tie comes earlier (about 70 by the same costs), so 128 keeps on the tick
+/// thread only what the pool could barely speed up on any machine.
+pub(crate) const PARALLEL_OPEN_MIN: usize = 128;
 
 /// Datagrams per rayon task: enough to amortise a task's cost over its tag checks.
 const OPEN_CHUNK: usize = 16;
@@ -353,3 +357,7 @@ fn apply(
 fn dropped(reason: &'static str) {
     metrics::counter!("myriad_packets_dropped_total", "reason" => reason).increment(1);
 }
+
+#[cfg(test)]
+#[path = "inbound_bench.rs"]
+mod bench;

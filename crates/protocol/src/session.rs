@@ -12,7 +12,10 @@
 //!
 //! A [`Sealer`] numbers its packets 0, 1, 2, … so a (key, nonce) pair is never reused.
 //! An [`Opener`] runs the checks in cost order and commits the sequence number to its
-//! [`ReplayWindow`] only after the tag verified and the body decoded.
+//! [`ReplayWindow`] only after the tag verified and the body decoded. The checks
+//! ([`Opener::verify`], `&self`) and the commit ([`Opener::commit`], `&mut self`) are
+//! separate steps, so a receiver can verify many datagrams on several threads and
+//! commit them in order on one.
 //!
 //! # Nonce ownership
 //!
@@ -356,7 +359,38 @@ pub struct Opened<T> {
     pub message: T,
 }
 
+/// A datagram that passed every check of [`Opener::verify`] (header, session, replay
+/// window as it was then, tag, body) but is not yet recorded in the replay window.
+///
+/// Only [`Opener::commit`] turns it into an [`Opened`]: until then its sequence number
+/// is still free, so another copy of the same datagram may verify too, and the commit
+/// accepts only the first. Not `Clone`, and it can only be made by `verify`.
+#[derive(Debug, PartialEq, Eq)]
+#[must_use = "a verified datagram counts only once committed"]
+pub struct Verified<T> {
+    header: Header,
+    message: T,
+}
+
+impl<T> Verified<T> {
+    /// Its header.
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+
+    /// Its sequence number, which [`Opener::commit`] records.
+    pub fn sequence(&self) -> u64 {
+        self.header.sequence
+    }
+}
+
 /// Opens incoming datagrams of one session and direction, rejecting replays.
+///
+/// Opening is two steps, so that the cryptography of many datagrams can run on several
+/// threads while the replay window stays in one place: [`verify`](Self::verify) takes
+/// `&self` (an `Opener` is `Sync`) and checks everything without changing anything,
+/// and [`commit`](Self::commit) takes `&mut self`, re-checks the window and records the
+/// sequence number. [`open_with`](Self::open_with) is the two in a row.
 ///
 /// Not `Clone`: two copies would each accept the same packet once.
 pub struct Opener {
@@ -387,19 +421,41 @@ impl Opener {
         &self.window
     }
 
-    /// Checks, decrypts in place and decodes `datagram` with `decode(kind, body)`.
+    /// Checks, decrypts in place and decodes `datagram` with `decode(kind, body)`, and
+    /// records its sequence number: [`verify`](Self::verify) then
+    /// [`commit`](Self::commit).
     ///
-    /// Order: length, version, kind and direction, sequence not `u64::MAX`, session id,
-    /// replay window (all without cryptography), then the tag, then `decode`; the
-    /// sequence number is recorded only when all passed. On any error the opener is
-    /// unchanged. If the tag verified, `datagram`'s body now holds plaintext; a datagram
-    /// rejected before the tag check is untouched, and one whose tag failed has an
-    /// unspecified body (it is garbage either way).
+    /// On any error the opener is unchanged. If the tag verified, `datagram`'s body now
+    /// holds plaintext; a datagram rejected before the tag check is untouched, and one
+    /// whose tag failed has an unspecified body (it is garbage either way).
     pub fn open_with<T>(
         &mut self,
         datagram: &mut [u8],
         decode: impl FnOnce(PacketKind, &[u8]) -> Result<T, DecodeError>,
     ) -> Result<Opened<T>, OpenError> {
+        let verified = self.verify(datagram, decode)?;
+        self.commit(verified)
+    }
+
+    /// Checks, decrypts in place and decodes `datagram` with `decode(kind, body)`,
+    /// without recording anything: the replay window does not move, so this takes
+    /// `&self` and may run for many datagrams at once on several threads.
+    ///
+    /// Order: length, version, kind and direction, sequence not `u64::MAX`, session id,
+    /// replay window as it is now (all without cryptography), then the tag, then
+    /// `decode`. Bytes are as for [`open_with`](Self::open_with).
+    ///
+    /// The window may move between `verify` and [`commit`](Self::commit). A caller
+    /// that verifies several datagrams before committing them, and needs the error
+    /// `open_with` would have given in their order, re-checks
+    /// [`window`](Self::window) with the header's sequence number before reporting a
+    /// tag or body error: sequentially, a datagram an earlier one made a replay fails
+    /// at the window, before its tag is looked at.
+    pub fn verify<T>(
+        &self,
+        datagram: &mut [u8],
+        decode: impl FnOnce(PacketKind, &[u8]) -> Result<T, DecodeError>,
+    ) -> Result<Verified<T>, OpenError> {
         let header = peek_header(datagram, self.direction)?;
         if header.session_id != self.session_id {
             return Err(OpenError::WrongSession { expected: self.session_id, got: header.session_id });
@@ -411,6 +467,25 @@ impl Opener {
         // On failure the body may be partly decrypted: the caller drops the datagram.
         self.cipher.open(self.direction, header.sequence, head, body, tag).map_err(|_| OpenError::Authentication)?;
         let message = decode(header.kind, body)?;
+        Ok(Verified { header, message })
+    }
+
+    /// Records the sequence number of `verified`, which this opener verified, and hands
+    /// back the opened datagram.
+    ///
+    /// The window is checked again, as it is now: of two copies of one datagram
+    /// verified before either was committed, the second to commit is refused as
+    /// [`OpenError::Replayed`]. A datagram verified by an opener of another session or
+    /// direction is refused as [`OpenError::WrongSession`] or malformed: its tag was
+    /// never checked under this opener's key. On error the opener is unchanged.
+    pub fn commit<T>(&mut self, verified: Verified<T>) -> Result<Opened<T>, OpenError> {
+        let Verified { header, message } = verified;
+        if header.session_id != self.session_id {
+            return Err(OpenError::WrongSession { expected: self.session_id, got: header.session_id });
+        }
+        if header.kind.direction() != self.direction {
+            return Err(OpenError::Malformed(DecodeError::WrongDirection(header.kind)));
+        }
         self.window.commit(header.sequence)?;
         Ok(Opened { header, message })
     }
@@ -529,6 +604,82 @@ mod tests {
         // The hand sealing is right: one short of the top opens.
         let mut below = forge_sealed(&keys, PacketKind::Ready, u64::MAX - 1);
         assert_eq!(server.open(&mut below).unwrap().header.sequence, u64::MAX - 1);
+    }
+
+    fn sealed(client: &mut ClientSession, msg: &ClientMessage) -> Vec<u8> {
+        let mut d = Vec::new();
+        client.seal(msg, &mut d).unwrap();
+        d
+    }
+
+    #[test]
+    fn an_opener_can_verify_on_several_threads() {
+        fn shared_across_threads<T: Send + Sync>() {}
+        shared_across_threads::<Opener>();
+    }
+
+    #[test]
+    fn verify_does_not_move_the_window() {
+        let keys = keys();
+        let mut server = ServerSession::new(&keys);
+        let mut client = ClientSession::new(&keys);
+        let mut d = sealed(&mut client, &ClientMessage::KeepAlive);
+        let verified = server.opener.verify(&mut d, ClientMessage::decode_body).unwrap();
+        assert_eq!(verified.sequence(), 0);
+        assert_eq!(server.opener.window().newest(), None, "verifying records nothing");
+        let opened = server.opener.commit(verified).unwrap();
+        assert_eq!((opened.header.sequence, opened.message), (0, ClientMessage::KeepAlive));
+        assert_eq!(server.opener.window().newest(), Some(0));
+    }
+
+    // Two copies of one datagram verified before either commits (on two threads, say)
+    // must not both be accepted.
+    #[test]
+    fn commit_of_a_duplicate_verified_sequence_is_refused() {
+        let keys = keys();
+        let mut server = ServerSession::new(&keys);
+        let mut client = ClientSession::new(&keys);
+        let d = sealed(&mut client, &ClientMessage::Ready);
+        let (mut a, mut b) = (d.clone(), d);
+        let first = server.opener.verify(&mut a, ClientMessage::decode_body).unwrap();
+        let second = server.opener.verify(&mut b, ClientMessage::decode_body).unwrap();
+        assert_eq!(server.opener.commit(first).unwrap().message, ClientMessage::Ready);
+        let window = server.opener.window().clone();
+        let err = server.opener.commit(second).unwrap_err();
+        assert_eq!(err, OpenError::Replayed(crate::ReplayError::Duplicate(0)));
+        assert_eq!(server.opener.window(), &window, "a refused commit changes nothing");
+        // Once committed, the window refuses the copy before its tag is looked at.
+        let mut c = a.clone();
+        c[HEADER_LEN..].fill(0);
+        assert_eq!(server.opener.verify(&mut c, ClientMessage::decode_body).unwrap_err().class(), ErrorClass::Replayed);
+    }
+
+    #[test]
+    fn a_forged_tag_never_commits() {
+        let keys = keys();
+        let mut server = ServerSession::new(&keys);
+        let mut client = ClientSession::new(&keys);
+        let mut forged = sealed(&mut client, &ClientMessage::KeepAlive);
+        let n = forged.len();
+        forged[n - 1] ^= 1;
+        let err = server.opener.verify(&mut forged, ClientMessage::decode_body).unwrap_err();
+        assert_eq!(err, OpenError::Authentication);
+        assert_eq!(server.opener.window().newest(), None);
+        // Nor can what another opener verified: its tag was checked under another key.
+        let other = SessionKeys { session_id: keys.session_id + 1, ..keys.clone() };
+        let mut other_client = ClientSession::new(&other);
+        let mut d = sealed(&mut other_client, &ClientMessage::KeepAlive);
+        let verified = ServerSession::new(&other).opener.verify(&mut d, ClientMessage::decode_body).unwrap();
+        assert!(matches!(server.opener.commit(verified), Err(OpenError::WrongSession { .. })));
+        // A server datagram verified by the client's opener of the same session.
+        let mut reply = Vec::new();
+        server.seal(&ServerMessage::KeepAlive, &mut reply).unwrap();
+        let verified = client.opener.verify(&mut reply, ServerMessage::decode_body).unwrap();
+        assert!(matches!(server.opener.commit(verified), Err(OpenError::Malformed(DecodeError::WrongDirection(_)))));
+        assert_eq!(server.opener.window().newest(), None);
+        // The genuine datagram still opens.
+        let mut genuine = sealed(&mut client, &ClientMessage::KeepAlive);
+        assert_eq!(server.open(&mut genuine).unwrap().header.sequence, 1);
     }
 
     #[test]

@@ -181,6 +181,7 @@ impl Sessions {
     }
 
     /// The player of `session_id`.
+    #[cfg(test)]
     pub fn by_session_mut(&mut self, session_id: u64) -> Option<&mut Player> {
         let idx = *self.by_session.get(&session_id)?;
         self.players.get_mut(idx)
@@ -189,6 +190,16 @@ impl Sessions {
     /// The player at table position `idx` (stable until the next join or removal).
     pub fn get(&self, idx: usize) -> Option<&Player> {
         self.players.get(idx)
+    }
+
+    /// The player at table position `idx`, mutably.
+    pub fn get_mut(&mut self, idx: usize) -> Option<&mut Player> {
+        self.players.get_mut(idx)
+    }
+
+    /// The table position of the player of `session_id`.
+    pub fn index_of(&self, session_id: u64) -> Option<usize> {
+        self.by_session.get(&session_id).copied()
     }
 
     fn fresh_keys(&self) -> Result<SessionKeys, RefusalReason> {

@@ -40,7 +40,7 @@ mod tests;
 use crate::config::ServerConfig;
 use crate::dilation::DilationController;
 use crate::gate::Gate;
-use crate::inbound;
+use crate::inbound::{self, Inbox};
 use crate::outbound::{Outbound, Recipient};
 use crate::registry::SessionRegistry;
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
@@ -166,6 +166,7 @@ impl TickLoopBuilder {
         TickLoop {
             constants: TickConstants::new(&config.physics(), 1.0),
             gate: Gate::new(config.receive_limits()),
+            inbox: Inbox::default(),
             dilation: DilationController::new(nominal, config.dilation, config.dilation_min_permille),
             sessions: Sessions::new(config.max_players as usize, self.map_id),
             world: self.world,
@@ -200,6 +201,8 @@ pub(crate) struct TickLoop {
     /// The receive gate, used when the transport does not gate on a thread of its own
     /// (`receive_*` keys).
     gate: Gate,
+    /// The received datagrams being opened (kept for its memory).
+    inbox: Inbox,
     /// Sessions shared with other servers, if any.
     registry: Option<Box<dyn SessionRegistry>>,
 }
@@ -315,8 +318,15 @@ impl TickLoop {
         let t = Instant::now();
         let info = self.server_info();
         let now = Instant::now();
-        let inbound =
-            inbound::receive(self.transport.as_mut(), &mut self.sessions, &mut self.world, info, &mut self.gate, now);
+        let inbound = inbound::receive(
+            self.transport.as_mut(),
+            &mut self.sessions,
+            &mut self.world,
+            info,
+            &mut self.gate,
+            &mut self.inbox,
+            now,
+        );
         let mut left: Vec<PlayerState> = inbound
             .leaving
             .iter()

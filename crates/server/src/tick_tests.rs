@@ -386,3 +386,63 @@ fn a_login_at_another_server_of_the_cluster_replaces_the_session() {
     );
     assert!(r.saved.0.lock().unwrap().iter().any(|s| s.user_id == UserId(5)), "its position is saved");
 }
+
+/// Enough datagrams for a batch's tag checks to run on the rayon pool.
+const PARALLEL: usize = crate::inbound::PARALLEL_OPEN_MIN;
+
+#[test]
+fn a_parallel_batch_accepts_a_datagram_twice_in_it_once_and_a_forged_one_never() {
+    let config = ServerConfig { receive_per_session: 1024, ..ServerConfig::default() };
+    let mut r = rig(config);
+    let mut c = r.join(1, 40_001);
+    r.net.take_sent();
+    for _ in 0..PARALLEL {
+        r.send(&mut c, &ClientMessage::KeepAlive);
+    }
+    // Both copies verify before either is committed: the commit must refuse the second.
+    // (The action's copy would be ignored as an old frame anyway; a keep-alive's would
+    // be answered twice.)
+    let action = r.action(&mut c, ActionMask::LEFT);
+    r.net.push(c.addr, action);
+    let keep_alive = r.send(&mut c, &ClientMessage::KeepAlive);
+    r.net.push(c.addr, keep_alive);
+    let mut forged = Rig::seal(
+        &mut c,
+        &ClientMessage::Action(PlayerInput { mask: ActionMask::new(ActionMask::BACK).unwrap(), client_frame: 99 }),
+    );
+    let n = forged.len();
+    forged[n - 1] ^= 1;
+    r.net.push(c.addr, forged);
+
+    let work = r.tick.tick_once();
+    assert_eq!(work.received, PARALLEL as u64 + 5);
+    assert_eq!(work.tag_checks, PARALLEL as u64 + 5, "all of them reached the tag check, in one parallel batch");
+    assert_eq!(work.actions, 1, "the action once, the copy and the forgery never");
+    assert_eq!(r.action_of(&c).bits(), Action::LEFT);
+    let sent = r.net.take_sent();
+    let keep_alives = r.received(&sent, &mut c).iter().filter(|o| o.message == ServerMessage::KeepAlive).count();
+    assert_eq!(keep_alives, PARALLEL + 1, "one reply per keep-alive, none for the copy");
+}
+
+// The gate's budgets depend on the player's address, which an accepted datagram from a
+// new address moves: what comes after it must be gated as if one at a time.
+#[test]
+fn a_parallel_batch_follows_an_address_that_moves_in_it() {
+    let config = ServerConfig { receive_per_session: 1024, receive_other_address: 1, ..ServerConfig::default() };
+    let mut r = rig(config);
+    let mut c = r.join(1, 40_001);
+    r.net.take_sent();
+    for _ in 0..PARALLEL {
+        r.send(&mut c, &ClientMessage::KeepAlive);
+    }
+    // The player's NAT mapping changes: the rest comes from a new port.
+    c.addr = SocketAddr::from(([127, 0, 0, 1], 40_101));
+    for _ in 0..5 {
+        r.send(&mut c, &ClientMessage::KeepAlive);
+    }
+    let work = r.tick.tick_once();
+    assert_eq!(work.over_budget, 0, "once the first from the new address is in, it is the player's own");
+    assert_eq!(work.tag_checks, PARALLEL as u64 + 5);
+    let p = r.tick.sessions().iter().next().unwrap();
+    assert_eq!(p.addr, Some(c.addr));
+}

@@ -1,0 +1,67 @@
+//! A timing of the receive stage alone, for picking `PARALLEL_OPEN_MIN` on a given
+//! machine: `N` players (default 3,333, scenario 3's actions a tick) each send one action
+//! a tick through the in-memory transport, gated inline, and the median receive is
+//! printed. Ignored by default; it asserts nothing about time. Run:
+//!
+//! `N=3333 RAYON_NUM_THREADS=16 cargo test --release -p myriad-server --lib -- --ignored receive_timing --nocapture`
+//!
+//! (`RAYON_NUM_THREADS=1` runs the parallel path on one worker: the cost of going
+//! through the pool.)
+
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerInfo};
+use myriad_store::{MapId, UserId};
+
+use super::{Inbox, PARALLEL_OPEN_MIN, receive};
+use crate::gate::{Gate, ReceiveLimits};
+use crate::session::{JoinContext, Sessions};
+use crate::transport::MemoryTransport;
+
+#[test]
+#[ignore = "a timing, run by hand (module docs)"]
+fn receive_timing() {
+    let n: usize = std::env::var("N").ok().and_then(|v| v.parse().ok()).unwrap_or(3333);
+    let mut spec = myriad_core::ScenarioSpec::custom(11);
+    spec.dynamic = 10;
+    spec.users = 0;
+    spec.static_objects = 0;
+    spec.world_size = 1024.0;
+    spec.terrain_samples = 33;
+    let mut world = spec.build().unwrap();
+    let mut sessions = Sessions::new(n, MapId(1));
+    let ctx = JoinContext { tick: 0, dilation_permille: 1000 };
+    let mut clients: Vec<ClientSession> = (0..n)
+        .map(|u| {
+            let (joined, _) = sessions.join(&mut world, UserId(u as i64 + 1), format!("u{u}"), None, ctx).unwrap();
+            ClientSession::new(&joined.keys)
+        })
+        .collect();
+    let net = MemoryTransport::new("127.0.0.1:7777".parse().unwrap());
+    let mut transport = net.clone();
+    let mut gate = Gate::new(ReceiveLimits { per_session: 8, other_address: 2, time: Duration::from_secs(10) });
+    let mut inbox = Inbox::default();
+    let info = ServerInfo { tick_rate_hz: 30, dilation_permille: 1000 };
+    let mut times = Vec::new();
+    for frame in 1..=60u32 {
+        for (i, c) in clients.iter_mut().enumerate() {
+            let input = PlayerInput { mask: ActionMask::new(ActionMask::FORWARD).unwrap(), client_frame: frame };
+            let mut d = Vec::new();
+            c.seal(&ClientMessage::Action(input), &mut d).unwrap();
+            net.push(SocketAddr::from(([10, 0, (i >> 8) as u8, i as u8], 5000)), d);
+        }
+        world.tick += 1;
+        let t = Instant::now();
+        let report = receive(&mut transport, &mut sessions, &mut world, info, &mut gate, &mut inbox, Instant::now());
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        assert_eq!(report.actions, n as u64);
+    }
+    times.sort_by(f64::total_cmp);
+    eprintln!(
+        "receive of {n} actions (parallel from {PARALLEL_OPEN_MIN}, {} threads): median {:.3} ms, fastest {:.3} ms",
+        rayon::current_num_threads(),
+        times[times.len() / 2],
+        times[0]
+    );
+}

@@ -22,7 +22,7 @@ use myriad_interest::{InterestConfig, InterestManager, Selection, TickInfo};
 use myriad_physics::Backend;
 use myriad_protocol::MAX_COMPACT_RECORDS;
 
-use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient, WorldObjects};
+use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient, WorldObjects, aim};
 
 /// Interest selection on the device, packing and sealing on the host.
 #[derive(Debug)]
@@ -107,14 +107,11 @@ impl Outbound for DeviceOutbound {
             self.last.clear();
             return report;
         }
-        self.boxes.clear();
+        aim(recipients, self.half, &mut self.boxes);
         self.own.clear();
         self.centres.clear();
         self.prev.clear();
-        for r in recipients.iter_mut() {
-            r.view.object = r.object;
-            r.view.centre = r.centre.to_array();
-            self.boxes.push(Aabb::from_center_half(r.centre, self.half));
+        for r in recipients.iter() {
             self.own.push(r.object);
             self.centres.push(r.centre.to_array());
             self.prev.push(self.last.get(&r.session_id).copied().unwrap_or(NO_PREVIOUS));
@@ -151,12 +148,7 @@ impl Outbound for DeviceOutbound {
                 over_budget: s.over_budget,
             })
         };
-        let r = self.interest.pack_selected(tick, &WorldObjects(world), chosen, recipients);
-        if r.seal_failures > 0 {
-            metrics::counter!("myriad_seal_failures_total").increment(r.seal_failures as u64);
-        }
-        report.records = r.records;
-        report.seal_failures = r.seal_failures;
+        report.add_interest(&self.interest.pack_selected(tick, &WorldObjects(world), chosen, recipients));
         self.packed.clear();
         self.packed.extend(recipients.iter().map(|r| r.view.report().packed as u32));
         self.last.clear();

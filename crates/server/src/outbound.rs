@@ -20,7 +20,7 @@ use std::borrow::{Borrow, BorrowMut};
 use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3, World};
-use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource, Subscriber, TickInfo};
+use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource, Subscriber, TickInfo, TickReport};
 use myriad_physics::{AoiResults, Backend};
 use myriad_protocol::ShapeKind as WireKind;
 
@@ -88,6 +88,28 @@ pub struct OutboundReport {
     pub seal_failures: usize,
 }
 
+/// Points each recipient's view at its object and centre, and collects their AOI boxes
+/// (half extents `half`) into `boxes`.
+pub(crate) fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
+    boxes.clear();
+    for r in recipients.iter_mut() {
+        r.view.object = r.object;
+        r.view.centre = r.centre.to_array();
+        boxes.push(Aabb::from_center_half(r.centre, half));
+    }
+}
+
+impl OutboundReport {
+    /// Takes the interest manager's counts of a build (and counts its seal failures).
+    pub(crate) fn add_interest(&mut self, r: &TickReport) {
+        if r.seal_failures > 0 {
+            metrics::counter!("myriad_seal_failures_total").increment(r.seal_failures as u64);
+        }
+        self.records = r.records;
+        self.seal_failures = r.seal_failures;
+    }
+}
+
 /// Builds every active player's sealed updates for a tick; see the module docs.
 pub trait Outbound: Send {
     /// A human-readable description (for the start-up log).
@@ -153,12 +175,7 @@ impl Outbound for CpuOutbound {
         if recipients.is_empty() {
             return report;
         }
-        self.boxes.clear();
-        for r in recipients.iter_mut() {
-            r.view.object = r.object;
-            r.view.centre = r.centre.to_array();
-            self.boxes.push(Aabb::from_center_half(r.centre, self.half));
-        }
+        aim(recipients, self.half, &mut self.boxes);
         let t = Instant::now();
         let queried = backend.query_aoi(world, &self.boxes, &mut self.aoi);
         report.aoi_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -169,13 +186,7 @@ impl Outbound for CpuOutbound {
         }
         let lists = AoiLists { offsets: &self.aoi.offsets, objects: &self.aoi.objects };
         match self.interest.build(tick, &WorldObjects(world), lists, recipients) {
-            Ok(r) => {
-                if r.seal_failures > 0 {
-                    metrics::counter!("myriad_seal_failures_total").increment(r.seal_failures as u64);
-                }
-                report.records = r.records;
-                report.seal_failures = r.seal_failures;
-            }
+            Ok(r) => report.add_interest(&r),
             Err(e) => {
                 tracing::error!(error = %e, "interest management failed");
                 metrics::counter!("myriad_outbound_errors_total", "reason" => "interest").increment(1);

@@ -116,33 +116,6 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
     if (sort) sort_range(dst, min(c, len));
 }
 
-// One walk instead of count and write, for AOI queries whose lists need no order (the
-// device interest selection): query q writes its first `stride` targets, in the walk's
-// order, at `out + q * stride`, its number of targets in `lens[q]` (all of them, even
-// past `stride`), its range start in `offsets[q]` (and the end in `offsets[nq]`), and the
-// largest count into `most`. The host sizes `stride` from the previous tick and redoes the
-// query with the count and write passes when `most` exceeds it.
-extern "C" __global__ void k_tree_gather(u32 nq, const float* qboxes, const Node* nodes,
-                                         const u32* order, u32 nleaves, const float* tboxes,
-                                         u32 stride, u32* offsets, u32* lens, u32* out,
-                                         u32* most) {
-    u32 q = blockIdx.x * blockDim.x + threadIdx.x;
-    if (q >= nq) return;
-    const float* qb = qboxes + 6 * (u64)q;
-    float b[6];
-    for (int k = 0; k < 6; k++) b[k] = qb[k];
-    u32* dst = out + (u64)q * stride;
-    u32 c = 0;
-    tree_visit(nodes, order, nleaves, tboxes, b, NO_SELF, [&](u32 target) {
-        if (c < stride) dst[c] = target;
-        c++;
-    });
-    lens[q] = c;
-    offsets[q] = q * stride;
-    if (q == nq - 1) offsets[nq] = nq * stride;
-    atomicMax(most, c);
-}
-
 // All pairs (cuda-naive): query q tests every target in index order, so its list comes
 // out sorted.
 extern "C" __global__ void k_naive_count(u32 nq, const float* qboxes, u32 exclude_self, u32 nt,

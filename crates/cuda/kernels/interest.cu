@@ -134,7 +134,7 @@ __device__ void block_sort(u64* key, u32* slot, u32 count) {
 }
 
 extern "C" __global__ void k_interest_select(
-    u32 nq, const u32* offsets, const u32* lens, const u32* objects, u32 n, const float* pos, const u32* ids,
+    u32 nq, const u32* offsets, const u32* objects, u32 n, const float* pos, const u32* ids,
     const u32* own, const float* centres, const u32* prev_index, const u32* prev_toff,
     const u64* prev_tid, const u64* prev_tkey, const u8* prev_rot, u32* next_toff, u64* next_tid,
     u64* next_tkey, u8* next_rot, u32* cdist, u32* cid, u8* cflag, u64* ckey, u64 tick,
@@ -147,11 +147,7 @@ extern "C" __global__ void k_interest_select(
 
     u32 i = blockIdx.x;
     if (i >= nq) return;
-    // Player i's range of the lists; its list fills all of it, or with `lens` (one walk
-    // into fixed strides, kernels/broad.cu's k_tree_gather) its first lens[i] slots. The
-    // staleness table takes twice the range.
-    u32 start = offsets[i], region = offsets[i + 1] - start;
-    u32 len = lens ? min(lens[i], region) : region;
+    u32 start = offsets[i], len = offsets[i + 1] - start;
     const u32* list = objects + start;
     u32* dist = cdist + start;
     u32* cand_id = cid + start;
@@ -159,7 +155,7 @@ extern "C" __global__ void k_interest_select(
     u64* key = ckey + start;
     if (threadIdx.x == 0) {
         next_toff[i] = start;
-        if (i == nq - 1) next_toff[nq] = start + region;
+        if (i == nq - 1) next_toff[nq] = start + len;
         s_min_id = NONE;
         s_valid = 0;
         s_ext = 0;
@@ -313,7 +309,7 @@ extern "C" __global__ void k_interest_select(
     }
 
     // 4. The new table: every candidate with its key (k_interest_stamp marks what was sent).
-    u32 tstart = 2 * start, m = 2 * region;
+    u32 tstart = 2 * start, m = 2 * len;
     for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
         if (!(flag[j] & C_VALID)) continue;
         u64 want = (u64)cand_id[j] + 1;

@@ -290,20 +290,6 @@ kernels! {
         slots: u32,
         sort: u32,
     }
-    /// `k_tree_gather`: per query, its first `stride` tree targets in one walk, unsorted.
-    KTreeGather = "k_tree_gather" {
-        nq: u32,
-        qboxes: DevPtr<f32>,
-        nodes: DevPtr<Node>,
-        order: DevPtr<u32>,
-        nleaves: u32,
-        tboxes: DevPtr<f32>,
-        stride: u32,
-        offsets: DevPtr<u32>,
-        lens: DevPtr<u32>,
-        out: DevPtr<u32>,
-        most: DevPtr<u32>,
-    }
     /// `k_naive_count`: per query, the targets its box overlaps, testing all `nt`.
     KNaiveCount = "k_naive_count" {
         nq: u32,
@@ -389,7 +375,6 @@ kernels! {
     KInterestSelect = "k_interest_select" {
         nq: u32,
         offsets: DevPtr<u32>,
-        lens: DevPtr<u32>,
         objects: DevPtr<u32>,
         n: u32,
         pos: DevPtr<f32>,

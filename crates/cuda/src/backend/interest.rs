@@ -13,7 +13,7 @@ use myriad_physics::PhysicsError;
 
 use super::CudaBackend;
 use crate::device::{DevBuf, Pinned};
-use crate::launch::{DevPtr, KInterestSelect, KInterestStamp};
+use crate::launch::{KInterestSelect, KInterestStamp};
 
 /// The most records one selected group can hold (`SEL_SORT` in the kernel): the
 /// kernel sorts each group in shared memory.
@@ -191,8 +191,7 @@ impl CudaBackend {
         }
         self.interest.last = None;
         // Unsorted lists: the selection does not depend on their order.
-        let lists = self.aoi_on_device(world, q.boxes, false)?;
-        let (total, lens) = (lists.total, if lists.lens { self.aoi_lens.ptr() } else { DevPtr::NULL });
+        let total = self.aoi_on_device(world, q.boxes, false)?;
         let gpu = &self.gpu;
         let s = &mut self.interest;
         s.host_meta.ensure(gpu, nq * 16)?;
@@ -243,7 +242,6 @@ impl CudaBackend {
             KInterestSelect {
                 nq: nq as u32,
                 offsets: self.aoi_counts.ptr(),
-                lens,
                 objects: self.aoi_out.ptr(),
                 n: self.n as u32,
                 pos: self.obj.pos.ptr(),

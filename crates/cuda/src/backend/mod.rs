@@ -113,11 +113,6 @@ pub struct CudaBackend {
     aoi_boxes: DevBuf<f32>,
     aoi_counts: DevBuf<u32>,
     aoi_out: DevBuf<u32>,
-    /// List lengths of the one-walk AOI query.
-    aoi_lens: DevBuf<u32>,
-    /// The largest list of the one-walk AOI query.
-    aoi_most: DevBuf<u32>,
-    aoi_walk: aoi::AoiWalk,
     params: DevBuf<DeviceParams>,
     counters: DevBuf<u32>,
     samples: DevBuf<u16>,
@@ -163,9 +158,6 @@ impl CudaBackend {
             aoi_boxes: DevBuf::empty(),
             aoi_counts: DevBuf::empty(),
             aoi_out: DevBuf::empty(),
-            aoi_lens: DevBuf::empty(),
-            aoi_most: DevBuf::empty(),
-            aoi_walk: aoi::AoiWalk::default(),
             params: DevBuf::empty(),
             counters: DevBuf::empty(),
             samples: DevBuf::empty(),

@@ -116,6 +116,63 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
     if (sort) sort_range(dst, min(c, len));
 }
 
+// AOI queries for the device interest selection (their lists need no order), each split
+// into four: sub-query t is quadrant t % 4 (split at the box's centre in x and z) of
+// player t / 4's box, and keeps the targets whose box's minimum corner lies in it, so
+// every target of the whole box is in exactly one quadrant and the four lists, laid out
+// one after the other, are the player's list. Four threads share a long list's walk (a
+// thread each pruning the subtrees outside its quadrant): one thread per player left the
+// GPU mostly idle, waiting on memory.
+__device__ __forceinline__ bool in_quadrant(const float* bx, bool leaf, u32 quad, float cx, float cz) {
+    bool right = quad & 1, far = quad & 2;
+    if (leaf) return (right ? bx[0] >= cx : bx[0] < cx) && (far ? bx[2] >= cz : bx[2] < cz);
+    // A subtree can hold a target of the quadrant only if its box reaches the quadrant.
+    return (right ? bx[3] >= cx : bx[0] < cx) && (far ? bx[5] >= cz : bx[2] < cz);
+}
+
+// Quadrant sub-query t's box and the split point.
+__device__ __forceinline__ void quadrant_query(const float* qboxes, u32 t, float* b, float* cx, float* cz) {
+    const float* qb = qboxes + 6 * (u64)(t >> 2);
+    for (int k = 0; k < 6; k++) b[k] = qb[k];
+    *cx = (b[0] + b[3]) * 0.5f;
+    *cz = (b[2] + b[5]) * 0.5f;
+}
+
+extern "C" __global__ void k_aoi_count(u32 nq, const float* qboxes, const Node* nodes,
+                                       const u32* order, u32 nleaves, const float* tboxes,
+                                       u32* counts) {
+    u32 t = blockIdx.x * blockDim.x + threadIdx.x;
+    if (t >= 4 * nq) return;
+    float b[6], cx, cz;
+    quadrant_query(qboxes, t, b, &cx, &cz);
+    u32 quad = t & 3, c = 0;
+    tree_visit_if(
+        nodes, order, nleaves, tboxes, b, NO_SELF,
+        [&](const float* bx, bool leaf) { return in_quadrant(bx, leaf, quad, cx, cz); },
+        [&](u32) { c++; });
+    counts[t] = c;
+}
+
+extern "C" __global__ void k_aoi_write(u32 nq, const float* qboxes, const Node* nodes,
+                                       const u32* order, u32 nleaves, const float* tboxes,
+                                       const u32* offsets, u32* out, u32 cap) {
+    u32 t = blockIdx.x * blockDim.x + threadIdx.x;
+    if (t >= 4 * nq) return;
+    u32 begin = offsets[t], end = offsets[t + 1];
+    if (end > cap) return;
+    float b[6], cx, cz;
+    quadrant_query(qboxes, t, b, &cx, &cz);
+    u32 quad = t & 3, c = 0, len = end - begin;
+    u32* dst = out + begin;
+    tree_visit_if(
+        nodes, order, nleaves, tboxes, b, NO_SELF,
+        [&](const float* bx, bool leaf) { return in_quadrant(bx, leaf, quad, cx, cz); },
+        [&](u32 target) {
+            if (c < len) dst[c] = target;
+            c++;
+        });
+}
+
 // All pairs (cuda-naive): query q tests every target in index order, so its list comes
 // out sorted.
 extern "C" __global__ void k_naive_count(u32 nq, const float* qboxes, u32 exclude_self, u32 nt,

@@ -134,7 +134,7 @@ __device__ void block_sort(u64* key, u32* slot, u32 count) {
 }
 
 extern "C" __global__ void k_interest_select(
-    u32 nq, const u32* offsets, const u32* objects, u32 n, const float* pos, const u32* ids,
+    u32 nq, const u32* offsets, u32 parts, const u32* objects, u32 n, const float* pos, const u32* ids,
     const u32* own, const float* centres, const u32* prev_index, const u32* prev_toff,
     const u64* prev_tid, const u64* prev_tkey, const u8* prev_rot, u32* next_toff, u64* next_tid,
     u64* next_tkey, u8* next_rot, u32* cdist, u32* cid, u8* cflag, u64* ckey, u64 tick,
@@ -147,7 +147,8 @@ extern "C" __global__ void k_interest_select(
 
     u32 i = blockIdx.x;
     if (i >= nq) return;
-    u32 start = offsets[i], len = offsets[i + 1] - start;
+    // Player i's list is `parts` consecutive lists (k_aoi_write's quadrants, or one).
+    u32 start = offsets[parts * i], len = offsets[parts * (i + 1)] - start;
     const u32* list = objects + start;
     u32* dist = cdist + start;
     u32* cand_id = cid + start;

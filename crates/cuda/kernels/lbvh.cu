@@ -240,14 +240,18 @@ extern "C" __global__ void k_refit(u32 n, const u32* order, const float* boxes, 
     }
 }
 
-// Calls emit(target) for every target whose box overlaps `q`, except `self`.
-template <typename F>
-__device__ __forceinline__ void tree_visit(const Node* nodes, const u32* order, u32 nleaves,
-                                           const float* tboxes, const float* q, u32 self, F emit) {
+// Calls emit(target) for every target whose box overlaps `q`, except `self`, and whose
+// box `keep` accepts; `keep` must accept a node's box whenever it accepts a box inside it
+// (it prunes whole subtrees).
+template <typename K, typename F>
+__device__ __forceinline__ void tree_visit_if(const Node* nodes, const u32* order, u32 nleaves,
+                                              const float* tboxes, const float* q, u32 self,
+                                              K keep, F emit) {
     if (nleaves == 0) return;
     if (nleaves == 1) {
         u32 t = order[0];
-        if (t != self && box_overlaps(tboxes + 6 * (u64)t, q)) emit(t);
+        const float* tb = tboxes + 6 * (u64)t;
+        if (t != self && box_overlaps(tb, q) && keep(tb, true)) emit(t);
         return;
     }
     u32 stack[STACK_SIZE];
@@ -256,9 +260,12 @@ __device__ __forceinline__ void tree_visit(const Node* nodes, const u32* order, 
     while (top > 0) {
         const Node& nd = nodes[stack[--top]];
         for (int side = 0; side < 2; side++) {
-            if (box_overlaps(nd.b + 6 * side, q)) {
+            const float* cb = nd.b + 6 * side;
+            if (box_overlaps(cb, q)) {
                 u32 c = nd.child[side];
-                if (c & LEAF_BIT) {
+                bool leaf = (c & LEAF_BIT) != 0;
+                if (!keep(cb, leaf)) continue;
+                if (leaf) {
                     u32 t = order[c & ~LEAF_BIT];
                     if (t != self) emit(t);
                 } else if (top < STACK_SIZE) {
@@ -267,4 +274,11 @@ __device__ __forceinline__ void tree_visit(const Node* nodes, const u32* order, 
             }
         }
     }
+}
+
+// Calls emit(target) for every target whose box overlaps `q`, except `self`.
+template <typename F>
+__device__ __forceinline__ void tree_visit(const Node* nodes, const u32* order, u32 nleaves,
+                                           const float* tboxes, const float* q, u32 self, F emit) {
+    tree_visit_if(nodes, order, nleaves, tboxes, q, self, [](const float*, bool) { return true; }, emit);
 }

@@ -32,7 +32,7 @@ pub const HEADERS: [(&str, &str); 2] =
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 18] = [
+pub const KERNELS: [(&str, usize); 20] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -43,13 +43,15 @@ pub const KERNELS: [(&str, usize); 18] = [
     ("k_refit", 7),
     ("k_tree_count", 11),
     ("k_tree_write", 14),
+    ("k_aoi_count", 7),
+    ("k_aoi_write", 9),
     ("k_naive_count", 6),
     ("k_naive_write", 8),
     ("k_boxes", 4),
     ("k_narrow_static", 17),
     ("k_narrow_dynamic", 13),
     ("k_forces", 16),
-    ("k_interest_select", 28),
+    ("k_interest_select", 29),
     ("k_interest_stamp", 10),
 ];
 

@@ -290,6 +290,28 @@ kernels! {
         slots: u32,
         sort: u32,
     }
+    /// `k_aoi_count`: per quadrant of each AOI box, the tree targets it keeps.
+    KAoiCount = "k_aoi_count" {
+        nq: u32,
+        qboxes: DevPtr<f32>,
+        nodes: DevPtr<Node>,
+        order: DevPtr<u32>,
+        nleaves: u32,
+        tboxes: DevPtr<f32>,
+        counts: DevPtr<u32>,
+    }
+    /// `k_aoi_write`: per quadrant of each AOI box, its targets at its scanned offset.
+    KAoiWrite = "k_aoi_write" {
+        nq: u32,
+        qboxes: DevPtr<f32>,
+        nodes: DevPtr<Node>,
+        order: DevPtr<u32>,
+        nleaves: u32,
+        tboxes: DevPtr<f32>,
+        offsets: DevPtr<u32>,
+        out: DevPtr<u32>,
+        cap: u32,
+    }
     /// `k_naive_count`: per query, the targets its box overlaps, testing all `nt`.
     KNaiveCount = "k_naive_count" {
         nq: u32,
@@ -375,6 +397,7 @@ kernels! {
     KInterestSelect = "k_interest_select" {
         nq: u32,
         offsets: DevPtr<u32>,
+        parts: u32,
         objects: DevPtr<u32>,
         n: u32,
         pos: DevPtr<f32>,

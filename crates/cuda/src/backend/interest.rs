@@ -191,7 +191,7 @@ impl CudaBackend {
         }
         self.interest.last = None;
         // Unsorted lists: the selection does not depend on their order.
-        let total = self.aoi_on_device(world, q.boxes, false)?;
+        let (total, parts) = self.aoi_on_device(world, q.boxes, false)?;
         let gpu = &self.gpu;
         let s = &mut self.interest;
         s.host_meta.ensure(gpu, nq * 16)?;
@@ -242,6 +242,7 @@ impl CudaBackend {
             KInterestSelect {
                 nq: nq as u32,
                 offsets: self.aoi_counts.ptr(),
+                parts: parts as u32,
                 objects: self.aoi_out.ptr(),
                 n: self.n as u32,
                 pos: self.obj.pos.ptr(),

@@ -117,56 +117,67 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
 }
 
 // AOI queries for the device interest selection (their lists need no order), each split
-// into four: sub-query t is quadrant t % 4 (split at the box's centre in x and z) of
-// player t / 4's box, and keeps the targets whose box's minimum corner lies in it, so
-// every target of the whole box is in exactly one quadrant and the four lists, laid out
-// one after the other, are the player's list. Four threads share a long list's walk (a
-// thread each pruning the subtrees outside its quadrant): one thread per player left the
-// GPU mostly idle, waiting on memory.
-__device__ __forceinline__ bool in_quadrant(const float* bx, bool leaf, u32 quad, float cx, float cz) {
-    bool right = quad & 1, far = quad & 2;
-    if (leaf) return (right ? bx[0] >= cx : bx[0] < cx) && (far ? bx[2] >= cz : bx[2] < cz);
-    // A subtree can hold a target of the quadrant only if its box reaches the quadrant.
-    return (right ? bx[3] >= cx : bx[0] < cx) && (far ? bx[5] >= cz : bx[2] < cz);
+// into `split` x `split` cells of its box in x and z: sub-query t is cell t % split² of
+// player t / split²'s box, and keeps the targets whose box's minimum corner lies in the
+// cell (the outer cells reach to infinity), so every target of the whole box is in
+// exactly one cell and the cells' lists, laid out one after the other, are the player's
+// list. Several threads share a long list's walk, each pruning the subtrees outside its
+// cell: one thread per player left the GPU mostly idle, waiting on memory.
+// +infinity (NVRTC has no <math.h> constants).
+#define INF __int_as_float(0x7f800000)
+
+struct Cell {
+    float lo_x, hi_x, lo_z, hi_z;
+};
+
+__device__ __forceinline__ bool in_cell(const float* bx, bool leaf, const Cell& c) {
+    // A leaf by its minimum corner; a subtree if its box reaches the cell.
+    if (leaf) return bx[0] >= c.lo_x && bx[0] < c.hi_x && bx[2] >= c.lo_z && bx[2] < c.hi_z;
+    return bx[0] < c.hi_x && bx[3] >= c.lo_x && bx[2] < c.hi_z && bx[5] >= c.lo_z;
 }
 
-// Quadrant sub-query t's box and the split point.
-__device__ __forceinline__ void quadrant_query(const float* qboxes, u32 t, float* b, float* cx, float* cz) {
-    const float* qb = qboxes + 6 * (u64)(t >> 2);
+// Sub-query t's box and cell.
+__device__ __forceinline__ Cell cell_query(const float* qboxes, u32 split, u32 t, float* b) {
+    u32 cells = split * split, ix = (t % cells) % split, iz = (t % cells) / split;
+    const float* qb = qboxes + 6 * (u64)(t / cells);
     for (int k = 0; k < 6; k++) b[k] = qb[k];
-    *cx = (b[0] + b[3]) * 0.5f;
-    *cz = (b[2] + b[5]) * 0.5f;
+    float wx = b[3] - b[0], wz = b[5] - b[2], n = (float)split;
+    Cell c;
+    c.lo_x = ix == 0 ? -INF : b[0] + wx * ((float)ix / n);
+    c.hi_x = ix == split - 1 ? INF : b[0] + wx * ((float)(ix + 1) / n);
+    c.lo_z = iz == 0 ? -INF : b[2] + wz * ((float)iz / n);
+    c.hi_z = iz == split - 1 ? INF : b[2] + wz * ((float)(iz + 1) / n);
+    return c;
 }
 
-extern "C" __global__ void k_aoi_count(u32 nq, const float* qboxes, const Node* nodes,
+extern "C" __global__ void k_aoi_count(u32 nq, u32 split, const float* qboxes, const Node* nodes,
                                        const u32* order, u32 nleaves, const float* tboxes,
                                        u32* counts) {
     u32 t = blockIdx.x * blockDim.x + threadIdx.x;
-    if (t >= 4 * nq) return;
-    float b[6], cx, cz;
-    quadrant_query(qboxes, t, b, &cx, &cz);
-    u32 quad = t & 3, c = 0;
+    if (t >= nq * split * split) return;
+    float b[6];
+    Cell cell = cell_query(qboxes, split, t, b);
+    u32 c = 0;
     tree_visit_if(
         nodes, order, nleaves, tboxes, b, NO_SELF,
-        [&](const float* bx, bool leaf) { return in_quadrant(bx, leaf, quad, cx, cz); },
-        [&](u32) { c++; });
+        [&](const float* bx, bool leaf) { return in_cell(bx, leaf, cell); }, [&](u32) { c++; });
     counts[t] = c;
 }
 
-extern "C" __global__ void k_aoi_write(u32 nq, const float* qboxes, const Node* nodes,
+extern "C" __global__ void k_aoi_write(u32 nq, u32 split, const float* qboxes, const Node* nodes,
                                        const u32* order, u32 nleaves, const float* tboxes,
                                        const u32* offsets, u32* out, u32 cap) {
     u32 t = blockIdx.x * blockDim.x + threadIdx.x;
-    if (t >= 4 * nq) return;
+    if (t >= nq * split * split) return;
     u32 begin = offsets[t], end = offsets[t + 1];
     if (end > cap) return;
-    float b[6], cx, cz;
-    quadrant_query(qboxes, t, b, &cx, &cz);
-    u32 quad = t & 3, c = 0, len = end - begin;
+    float b[6];
+    Cell cell = cell_query(qboxes, split, t, b);
+    u32 c = 0, len = end - begin;
     u32* dst = out + begin;
     tree_visit_if(
         nodes, order, nleaves, tboxes, b, NO_SELF,
-        [&](const float* bx, bool leaf) { return in_quadrant(bx, leaf, quad, cx, cz); },
+        [&](const float* bx, bool leaf) { return in_cell(bx, leaf, cell); },
         [&](u32 target) {
             if (c < len) dst[c] = target;
             c++;

@@ -290,9 +290,10 @@ kernels! {
         slots: u32,
         sort: u32,
     }
-    /// `k_aoi_count`: per quadrant of each AOI box, the tree targets it keeps.
+    /// `k_aoi_count`: per cell of each AOI box, the tree targets it keeps.
     KAoiCount = "k_aoi_count" {
         nq: u32,
+        split: u32,
         qboxes: DevPtr<f32>,
         nodes: DevPtr<Node>,
         order: DevPtr<u32>,
@@ -300,9 +301,10 @@ kernels! {
         tboxes: DevPtr<f32>,
         counts: DevPtr<u32>,
     }
-    /// `k_aoi_write`: per quadrant of each AOI box, its targets at its scanned offset.
+    /// `k_aoi_write`: per cell of each AOI box, its targets at its scanned offset.
     KAoiWrite = "k_aoi_write" {
         nq: u32,
+        split: u32,
         qboxes: DevPtr<f32>,
         nodes: DevPtr<Node>,
         order: DevPtr<u32>,

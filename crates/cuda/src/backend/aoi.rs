@@ -40,7 +40,7 @@ impl CudaBackend {
     /// lists and how many consecutive lists make one query's (`parts`): the lists'
     /// offsets (`nq * parts + 1`) are in `aoi_counts`, their slots in `aoi_out`, and only
     /// the total comes back to the host. With `sorted`, each query has one list, sorted by
-    /// slot. Without, on a tree, each query is walked as four quadrants (`k_aoi_count`,
+    /// slot. Without, on a tree, each query is walked as `SPLIT`² cells (`k_aoi_count`,
     /// `k_aoi_write`), each list in the walk's order. With no box or no object nothing is
     /// launched and the device buffers are not written.
     pub(super) fn aoi_on_device(
@@ -61,7 +61,7 @@ impl CudaBackend {
             self.build_dynamic(world)?;
             self.boxes_fresh = Some(generation);
         }
-        let parts = if sorted || self.naive() { 1 } else { QUADRANTS };
+        let parts = if sorted || self.naive() { 1 } else { SPLIT * SPLIT };
         let lists = nq * parts;
         let gpu = &self.gpu;
         self.aoi_boxes.ensure(gpu, nq * 24, 1.25)?;
@@ -79,6 +79,7 @@ impl CudaBackend {
                 lists,
                 KAoiCount {
                     nq: nq as u32,
+                    split: SPLIT as u32,
                     qboxes: qs.boxes,
                     nodes: tree.nodes.ptr(),
                     order: tree.order.ptr(),
@@ -102,6 +103,7 @@ impl CudaBackend {
                 lists,
                 KAoiWrite {
                     nq: nq as u32,
+                    split: SPLIT as u32,
                     qboxes: qs.boxes,
                     nodes: tree.nodes.ptr(),
                     order: tree.order.ptr(),
@@ -117,5 +119,5 @@ impl CudaBackend {
     }
 }
 
-/// Sub-queries of one AOI box on the unsorted path (its quadrants in x and z).
-const QUADRANTS: usize = 4;
+/// Cells per axis (x and z) an AOI box is split into on the unsorted path.
+const SPLIT: usize = 4;

@@ -70,12 +70,33 @@ __device__ __forceinline__ u32 table_find(const u64* tid, u32 m, u32 id) {
     return NONE;
 }
 
-// The `want`-th smallest (1-based) of `comp` over the eligible candidates, by 8-bit radix
-// passes from the top; `want` must be at most their number.
+// The `want`-th smallest (1-based) of `comp` over the eligible candidates, or a value
+// that the same candidates, and no others, are at or below; `want` must be at most their
+// number. 8-bit radix passes from the highest bit where the eligible values differ, until
+// the wanted value's bin holds exactly the values still wanted.
 template <typename Comp, typename Elig>
-__device__ u64 radix_select(u32 len, u32 want, Comp comp, Elig elig, u32* hist, u64* s_prefix, u32* s_want) {
-    u64 prefix = 0, mask = 0;
-    for (int shift = 56; shift >= 0; shift -= 8) {
+__device__ u64 radix_select(u32 len, u32 want, Comp comp, Elig elig, u32* hist, u64* s_lo, u64* s_hi,
+                            u32* s_want) {
+    if (threadIdx.x == 0) {
+        *s_lo = ~0ull;
+        *s_hi = 0;
+    }
+    __syncthreads();
+    for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
+        if (!elig(j)) continue;
+        u64 c = comp(j);
+        atomicMin((unsigned long long*)s_lo, (unsigned long long)c);
+        atomicMax((unsigned long long*)s_hi, (unsigned long long)c);
+    }
+    __syncthreads();
+    u64 lo = *s_lo, diff = lo ^ *s_hi;
+    __syncthreads();
+    if (diff == 0) return lo;
+    int top = (63 - __clzll((long long)diff)) / 8 * 8;
+    // The bits above `top + 8` are the same in every eligible value.
+    u64 mask = top + 8 >= 64 ? 0 : ~((1ull << (top + 8)) - 1);
+    u64 prefix = lo & mask;
+    for (int shift = top; shift >= 0; shift -= 8) {
         for (u32 d = threadIdx.x; d < 256; d += blockDim.x) hist[d] = 0;
         __syncthreads();
         for (u32 j = threadIdx.x; j < len; j += blockDim.x) {
@@ -90,14 +111,20 @@ __device__ u64 radix_select(u32 len, u32 want, Comp comp, Elig elig, u32* hist, 
                 if (below + hist[d] >= want) break;
                 below += hist[d];
             }
-            *s_want = want - below;
-            *s_prefix = prefix | ((u64)d << shift);
+            u32 rest = want - below;
+            u64 p = prefix | ((u64)d << shift);
+            // Every value of the bin is wanted: the bin's top ends the search.
+            *s_want = rest == hist[d] ? 0 : rest;
+            *s_lo = rest == hist[d] ? p | ((1ull << shift) - 1) : p;
         }
         __syncthreads();
-        want = *s_want;
-        prefix = *s_prefix;
-        mask |= (u64)255 << shift;
+        u32 w = *s_want;
+        u64 p = *s_lo;
         __syncthreads();
+        if (w == 0) return p;
+        want = w;
+        prefix = p;
+        mask |= (u64)255 << shift;
     }
     return prefix;
 }
@@ -140,7 +167,7 @@ extern "C" __global__ void k_interest_select(
     u64* next_tkey, u8* next_rot, u32* cdist, u32* cid, u8* cflag, u64* ckey, u64 tick,
     u32 max_datagrams, u32 near_slots, u32 rotation_slots, u32 cap, u32* meta, u32* sel) {
     __shared__ u32 hist[256];
-    __shared__ u64 s_prefix;
+    __shared__ u64 s_lo, s_hi;
     __shared__ u32 s_want, s_min_id, s_valid, s_ext, s_count;
     __shared__ u64 sort_key[SEL_SORT];
     __shared__ u32 sort_slot[SEL_SORT];
@@ -268,7 +295,7 @@ extern "C" __global__ void k_interest_select(
     if (k >= valid) {
         near_max = ~0ull;
     } else if (near_any) {
-        near_max = radix_select(len, k, near_comp, valid_j, hist, &s_prefix, &s_want);
+        near_max = radix_select(len, k, near_comp, valid_j, hist, &s_lo, &s_hi, &s_want);
     }
     auto in_near = [&](u32 j) { return near_any && near_comp(j) <= near_max; };
     auto stale_comp = [&](u32 j) {
@@ -283,7 +310,7 @@ extern "C" __global__ void k_interest_select(
     if (r >= valid - k) {
         stale_max = ~0ull;
     } else if (stale_any) {
-        stale_max = radix_select(len, r, stale_comp, stale_elig, hist, &s_prefix, &s_want);
+        stale_max = radix_select(len, r, stale_comp, stale_elig, hist, &s_lo, &s_hi, &s_want);
     }
 
     // Each group sorted into the selection: nearest first, then stalest.

@@ -374,3 +374,21 @@ extern "C" __global__ void k_interest_stamp(u32 nq, const u32* meta, const u32* 
         if (at != NONE && tid[tstart + at] != 0) tkey[tstart + at] = tick;
     }
 }
+
+// The selections packed for the download: player i's `meta[4 i]` slots, from its stride
+// of `sel`, to `out + offsets[i]` (the exclusive scan of the counts), so the host
+// downloads what was chosen and not every player's whole stride.
+extern "C" __global__ void k_interest_compact(u32 nq, const u32* meta, const u32* sel, u32 cap,
+                                              const u32* offsets, u32* out) {
+    u32 i = blockIdx.x;
+    if (i >= nq) return;
+    u32 count = min(meta[4 * i], cap), at = offsets[i];
+    for (u32 j = threadIdx.x; j < count; j += blockDim.x) out[at + j] = sel[(u64)i * cap + j];
+}
+
+// The counts of the selections, for their scan (`counts[nq]` = 0).
+extern "C" __global__ void k_interest_counts(u32 nq, const u32* meta, u32 cap, u32* counts) {
+    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i > nq) return;
+    counts[i] = i < nq ? min(meta[4 * i], cap) : 0;
+}

@@ -32,7 +32,7 @@ pub const HEADERS: [(&str, &str); 2] =
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 20] = [
+pub const KERNELS: [(&str, usize); 22] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -53,6 +53,8 @@ pub const KERNELS: [(&str, usize); 20] = [
     ("k_forces", 16),
     ("k_interest_select", 29),
     ("k_interest_stamp", 10),
+    ("k_interest_compact", 6),
+    ("k_interest_counts", 4),
 ];
 
 /// The parameter count of each `extern "C" __global__` function in the sources, read

@@ -427,6 +427,17 @@ kernels! {
         meta: DevPtr<u32>,
         sel: DevPtr<u32>,
     }
+    /// `k_interest_counts`: the selections' counts, for their scan.
+    KInterestCounts = "k_interest_counts" { nq: u32, meta: DevPtr<u32>, cap: u32, counts: DevPtr<u32> }
+    /// `k_interest_compact`: the selections packed one after the other for the download.
+    KInterestCompact = "k_interest_compact" {
+        nq: u32,
+        meta: DevPtr<u32>,
+        sel: DevPtr<u32>,
+        cap: u32,
+        offsets: DevPtr<u32>,
+        out: DevPtr<u32>,
+    }
     /// `k_interest_stamp`: marks the records the host packed as sent this tick.
     KInterestStamp = "k_interest_stamp" {
         nq: u32,

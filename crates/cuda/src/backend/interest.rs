@@ -13,7 +13,7 @@ use myriad_physics::PhysicsError;
 
 use super::CudaBackend;
 use crate::device::{DevBuf, Pinned};
-use crate::launch::{KInterestSelect, KInterestStamp};
+use crate::launch::{KInterestCompact, KInterestCounts, KInterestSelect, KInterestStamp};
 
 /// The most records one selected group can hold (`SEL_SORT` in the kernel): the
 /// kernel sorts each group in shared memory.
@@ -59,12 +59,13 @@ pub struct Selected<'a> {
     pub over_budget: bool,
 }
 
-/// The selections of one [`CudaBackend::select_interest`], in pinned host memory.
+/// The selections of one [`CudaBackend::select_interest`], in pinned host memory: player
+/// `i`'s slots are `slots[offsets[i]..offsets[i + 1]]`.
 #[derive(Debug, Clone, Copy)]
 pub struct Selections<'a> {
     meta: &'a [u32],
+    offsets: &'a [u32],
     slots: &'a [u32],
-    capacity: usize,
 }
 
 impl<'a> Selections<'a> {
@@ -81,8 +82,8 @@ impl<'a> Selections<'a> {
     /// Player `i`'s selection.
     pub fn get(&self, i: usize) -> Option<Selected<'a>> {
         let m = self.meta.get(4 * i..4 * i + 4)?;
-        let count = (m[0] as usize).min(self.capacity);
-        let slots = self.slots.get(i * self.capacity..i * self.capacity + count)?;
+        let (start, end) = (*self.offsets.get(i)? as usize, *self.offsets.get(i + 1)? as usize);
+        let slots = self.slots.get(start..end)?;
         Some(Selected { slots, in_view: m[1], over_budget: m[2] != 0 })
     }
 }
@@ -119,8 +120,13 @@ pub(super) struct InterestState {
     keys: DevBuf<u64>,
     meta: DevBuf<u32>,
     sel: DevBuf<u32>,
+    /// Each player's start in `compact` (`nq + 1`).
+    offsets: DevBuf<u32>,
+    /// The selections one after the other, for the download.
+    compact: DevBuf<u32>,
     packed: DevBuf<u32>,
     host_meta: Pinned,
+    host_offsets: Pinned,
     host_sel: Pinned,
     /// (players, capacity, tick) of the last successful selection, for the stamp.
     last: Option<(usize, usize, u64)>,
@@ -143,8 +149,11 @@ impl InterestState {
             keys: DevBuf::empty(),
             meta: DevBuf::empty(),
             sel: DevBuf::empty(),
+            offsets: DevBuf::empty(),
+            compact: DevBuf::empty(),
             packed: DevBuf::empty(),
             host_meta: Pinned::empty(),
+            host_offsets: Pinned::empty(),
             host_sel: Pinned::empty(),
             last: None,
             tables_tick: None,
@@ -169,12 +178,10 @@ impl CudaBackend {
         }
         r?;
         let s = &self.interest;
-        let (nq, capacity, _) = s.last.unwrap_or((0, 0, 0));
-        Ok(Selections {
-            meta: s.host_meta.slice::<u32>(nq * 4),
-            slots: s.host_sel.slice::<u32>(nq * capacity),
-            capacity,
-        })
+        let (nq, _, _) = s.last.unwrap_or((0, 0, 0));
+        let offsets = if nq == 0 { &[][..] } else { s.host_offsets.slice::<u32>(nq + 1) };
+        let total = offsets.last().map_or(0, |&t| t as usize);
+        Ok(Selections { meta: s.host_meta.slice::<u32>(nq * 4), offsets, slots: s.host_sel.slice::<u32>(total) })
     }
 
     fn select_impl(&mut self, world: &World, q: &InterestQuery<'_>) -> Result<(), PhysicsError> {
@@ -195,7 +202,7 @@ impl CudaBackend {
         let gpu = &self.gpu;
         let s = &mut self.interest;
         s.host_meta.ensure(gpu, nq * 16)?;
-        s.host_sel.ensure(gpu, nq * cap * 4)?;
+        s.host_offsets.ensure(gpu, (nq + 1) * 4)?;
         if nq == 0 {
             s.last = Some((0, cap, q.tick));
             return Ok(());
@@ -203,8 +210,11 @@ impl CudaBackend {
         s.meta.ensure(gpu, nq * 16, 1.25)?;
         if self.n == 0 {
             // No object at all: nothing to select and no staleness to keep.
+            s.offsets.ensure(gpu, (nq + 1) * 4, 1.25)?;
             gpu.zero(s.meta.ptr(), nq * 4)?;
+            gpu.zero(s.offsets.ptr(), nq + 1)?;
             gpu.download_async(&mut s.host_meta, 0, s.meta.ptr(), nq * 4)?;
+            gpu.download_async(&mut s.host_offsets, 0, s.offsets.ptr(), nq + 1)?;
             gpu.sync()?;
             s.last = Some((nq, cap, q.tick));
             s.tables_tick = None;
@@ -220,6 +230,7 @@ impl CudaBackend {
         s.flags.ensure(gpu, total, 1.25)?;
         s.keys.ensure(gpu, total * 8, 1.25)?;
         s.sel.ensure(gpu, nq * cap * 4, 1.25)?;
+        s.offsets.ensure(gpu, (nq + 1) * 4, 1.25)?;
         let t = &mut s.tables[next];
         t.offsets.ensure(gpu, (nq + 1) * 4, 1.25)?;
         t.ids.ensure(gpu, 2 * total * 8, 1.25)?;
@@ -271,8 +282,31 @@ impl CudaBackend {
                 sel: s.sel.ptr(),
             },
         )?;
+        // What was chosen, packed: the counts' scan gives each player its start.
+        gpu.launch(
+            nq + 1,
+            KInterestCounts { nq: nq as u32, meta: s.meta.ptr(), cap: q.capacity, counts: s.offsets.ptr() },
+        )?;
+        self.scan.exclusive(gpu, s.offsets.ptr(), nq + 1)?;
         gpu.download_async(&mut s.host_meta, 0, s.meta.ptr(), nq * 4)?;
-        gpu.download_async(&mut s.host_sel, 0, s.sel.ptr(), nq * cap)?;
+        gpu.download_async(&mut s.host_offsets, 0, s.offsets.ptr(), nq + 1)?;
+        gpu.sync()?;
+        let total = s.host_offsets.slice::<u32>(nq + 1)[nq] as usize;
+        s.compact.ensure(gpu, total.max(1) * 4, 1.25)?;
+        s.host_sel.ensure(gpu, total.max(1) * 4)?;
+        gpu.launch_grid(
+            nq as u32,
+            256,
+            KInterestCompact {
+                nq: nq as u32,
+                meta: s.meta.ptr(),
+                sel: s.sel.ptr(),
+                cap: q.capacity,
+                offsets: s.offsets.ptr(),
+                out: s.compact.ptr(),
+            },
+        )?;
+        gpu.download_async(&mut s.host_sel, 0, s.compact.ptr(), total)?;
         gpu.sync()?;
         gpu.collect_profile()?;
         s.current = next;

@@ -7,6 +7,8 @@
 // Canonical order: each query's range is sorted ascending, so static pairs come out by
 // (object, primitive) and each object's dynamic neighbours by slot, whatever order the
 // tree walk found them in.
+// The exception is the device interest selection's AOI queries (k_aoi_cells,
+// and k_tree_write with sort = 0), whose result does not depend on the order.
 #include "common.cuh"
 
 // Moves a[root] down the max-heap a[0..end).
@@ -150,31 +152,24 @@ __device__ __forceinline__ Cell cell_query(const float* qboxes, u32 split, u32 t
     return c;
 }
 
-extern "C" __global__ void k_aoi_count(u32 nq, u32 split, const float* qboxes, const Node* nodes,
+// Count pass (`out` null: `ranges[t]` = the cell's targets) or write pass (`ranges` the
+// scanned offsets: the cell's targets at `out + ranges[t]`, writes past `cap` dropped and
+// redone by the host, as in k_tree_write).
+extern "C" __global__ void k_aoi_cells(u32 nq, u32 split, const float* qboxes, const Node* nodes,
                                        const u32* order, u32 nleaves, const float* tboxes,
-                                       u32* counts) {
+                                       u32* ranges, u32* out, u32 cap) {
     u32 t = blockIdx.x * blockDim.x + threadIdx.x;
     if (t >= nq * split * split) return;
+    u32 begin = 0, len = 0;
+    if (out) {
+        begin = ranges[t];
+        if (ranges[t + 1] > cap) return;
+        len = ranges[t + 1] - begin;
+    }
     float b[6];
     Cell cell = cell_query(qboxes, split, t, b);
     u32 c = 0;
-    tree_visit_if(
-        nodes, order, nleaves, tboxes, b, NO_SELF,
-        [&](const float* bx, bool leaf) { return in_cell(bx, leaf, cell); }, [&](u32) { c++; });
-    counts[t] = c;
-}
-
-extern "C" __global__ void k_aoi_write(u32 nq, u32 split, const float* qboxes, const Node* nodes,
-                                       const u32* order, u32 nleaves, const float* tboxes,
-                                       const u32* offsets, u32* out, u32 cap) {
-    u32 t = blockIdx.x * blockDim.x + threadIdx.x;
-    if (t >= nq * split * split) return;
-    u32 begin = offsets[t], end = offsets[t + 1];
-    if (end > cap) return;
-    float b[6];
-    Cell cell = cell_query(qboxes, split, t, b);
-    u32 c = 0, len = end - begin;
-    u32* dst = out + begin;
+    u32* dst = out ? out + begin : out;
     tree_visit_if(
         nodes, order, nleaves, tboxes, b, NO_SELF,
         [&](const float* bx, bool leaf) { return in_cell(bx, leaf, cell); },
@@ -182,6 +177,7 @@ extern "C" __global__ void k_aoi_write(u32 nq, u32 split, const float* qboxes, c
             if (c < len) dst[c] = target;
             c++;
         });
+    if (!out) ranges[t] = c;
 }
 
 // All pairs (cuda-naive): query q tests every target in index order, so its list comes

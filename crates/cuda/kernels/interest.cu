@@ -174,7 +174,7 @@ extern "C" __global__ void k_interest_select(
 
     u32 i = blockIdx.x;
     if (i >= nq) return;
-    // Player i's list is `parts` consecutive lists (k_aoi_write's cells, or one).
+    // Player i's list is `parts` consecutive lists (k_aoi_cells' cells, or one).
     u32 start = offsets[parts * i], len = offsets[parts * (i + 1)] - start;
     const u32* list = objects + start;
     u32* dist = cdist + start;

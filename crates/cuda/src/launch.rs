@@ -290,8 +290,9 @@ kernels! {
         slots: u32,
         sort: u32,
     }
-    /// `k_aoi_count`: per cell of each AOI box, the tree targets it keeps.
-    KAoiCount = "k_aoi_count" {
+    /// `k_aoi_cells`: per cell of each AOI box, its tree targets counted (`out` null) or
+    /// written at its scanned offset.
+    KAoiCells = "k_aoi_cells" {
         nq: u32,
         split: u32,
         qboxes: DevPtr<f32>,
@@ -299,18 +300,7 @@ kernels! {
         order: DevPtr<u32>,
         nleaves: u32,
         tboxes: DevPtr<f32>,
-        counts: DevPtr<u32>,
-    }
-    /// `k_aoi_write`: per cell of each AOI box, its targets at its scanned offset.
-    KAoiWrite = "k_aoi_write" {
-        nq: u32,
-        split: u32,
-        qboxes: DevPtr<f32>,
-        nodes: DevPtr<Node>,
-        order: DevPtr<u32>,
-        nleaves: u32,
-        tboxes: DevPtr<f32>,
-        offsets: DevPtr<u32>,
+        ranges: DevPtr<u32>,
         out: DevPtr<u32>,
         cap: u32,
     }

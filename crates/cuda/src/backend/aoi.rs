@@ -6,7 +6,7 @@ use myriad_physics::{AoiResults, PhysicsError};
 
 use super::CudaBackend;
 use super::broad::{Queries, count_pass, write_pass};
-use crate::launch::{KAoiCount, KAoiWrite};
+use crate::launch::{DevPtr, KAoiCells};
 
 impl CudaBackend {
     /// The objects overlapping each box of `boxes`, as CSR lists in `out`.
@@ -40,8 +40,7 @@ impl CudaBackend {
     /// lists and how many consecutive lists make one query's (`parts`): the lists'
     /// offsets (`nq * parts + 1`) are in `aoi_counts`, their slots in `aoi_out`, and only
     /// the total comes back to the host. With `sorted`, each query has one list, sorted by
-    /// slot. Without, on a tree, each query is walked as `SPLIT`² cells (`k_aoi_count`,
-    /// `k_aoi_write`), each list in the walk's order. With no box or no object nothing is
+    /// slot. Without, on a tree, each query is walked as `SPLIT`² cells (`k_aoi_cells`), each list in the walk's order. With no box or no object nothing is
     /// launched and the device buffers are not written.
     pub(super) fn aoi_on_device(
         &mut self,
@@ -71,23 +70,23 @@ impl CudaBackend {
         let qs = Queries::plain(nq, self.aoi_boxes.ptr());
         let tree = &self.dyn_tree;
         let counts = self.aoi_counts.ptr();
+        let cells = KAoiCells {
+            nq: nq as u32,
+            split: SPLIT as u32,
+            qboxes: qs.boxes,
+            nodes: tree.nodes.ptr(),
+            order: tree.order.ptr(),
+            nleaves: tree.leaves as u32,
+            tboxes: self.obj.boxes.ptr(),
+            ranges: counts,
+            out: DevPtr::NULL,
+            cap: 0,
+        };
         if parts == 1 {
             count_pass(gpu, qs, false, self.dynamic_targets(), counts)?;
         } else {
             gpu.zero(counts.add(lists), 1)?;
-            gpu.launch(
-                lists,
-                KAoiCount {
-                    nq: nq as u32,
-                    split: SPLIT as u32,
-                    qboxes: qs.boxes,
-                    nodes: tree.nodes.ptr(),
-                    order: tree.order.ptr(),
-                    nleaves: tree.leaves as u32,
-                    tboxes: self.obj.boxes.ptr(),
-                    counts,
-                },
-            )?;
+            gpu.launch(lists, cells)?;
         }
         self.scan.exclusive(gpu, counts, lists + 1)?;
         self.host.small.ensure(gpu, 4)?;
@@ -99,21 +98,7 @@ impl CudaBackend {
             let qs = Queries { sorted, ..qs };
             write_pass(gpu, qs, false, self.dynamic_targets(), counts, &self.aoi_out)?;
         } else {
-            gpu.launch(
-                lists,
-                KAoiWrite {
-                    nq: nq as u32,
-                    split: SPLIT as u32,
-                    qboxes: qs.boxes,
-                    nodes: tree.nodes.ptr(),
-                    order: tree.order.ptr(),
-                    nleaves: tree.leaves as u32,
-                    tboxes: self.obj.boxes.ptr(),
-                    offsets: counts,
-                    out: self.aoi_out.ptr(),
-                    cap: self.aoi_out.capacity(),
-                },
-            )?;
+            gpu.launch(lists, KAoiCells { out: self.aoi_out.ptr(), cap: self.aoi_out.capacity(), ..cells })?;
         }
         Ok((total, parts))
     }

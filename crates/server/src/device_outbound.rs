@@ -12,7 +12,6 @@
 //! `myriad_outbound_errors_total{reason="device_select"}`); players then start their
 //! rotation afresh.
 
-use std::collections::HashMap;
 use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3, World};
@@ -31,7 +30,7 @@ pub struct DeviceOutbound {
     half: Vec3,
     fallback: CpuOutbound,
     /// Each session's index in the last device selection (empty after a host tick).
-    last: HashMap<u64, u32>,
+    last: foldhash::HashMap<u64, u32>,
     boxes: Vec<Aabb>,
     own: Vec<u32>,
     centres: Vec<[f32; 3]>,
@@ -47,7 +46,7 @@ impl DeviceOutbound {
             interest: InterestManager::new(InterestConfig { max_datagrams, ..Default::default() }),
             half: Vec3::splat(aoi_size / 2.0),
             fallback: CpuOutbound::new(aoi_size, max_datagrams),
-            last: HashMap::new(),
+            last: foldhash::HashMap::default(),
             boxes: Vec::new(),
             own: Vec::new(),
             centres: Vec::new(),

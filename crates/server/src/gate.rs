@@ -20,7 +20,6 @@
 //! [`SessionView`] the tick publishes, or inline in the tick against the session table
 //! itself (the in-memory transport of the tests).
 
-use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::time::Duration;
 
@@ -76,13 +75,13 @@ pub trait SessionAddresses {
 /// publishes a new one whenever a session joins, leaves or moves.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
 pub struct SessionView {
-    addresses: HashMap<u64, Option<SocketAddr>>,
+    addresses: foldhash::HashMap<u64, Option<SocketAddr>>,
 }
 
 impl SessionView {
-    /// A view of these sessions.
-    pub fn new(addresses: HashMap<u64, Option<SocketAddr>>) -> Self {
-        SessionView { addresses }
+    /// A view of these sessions (session id, address).
+    pub fn new(addresses: impl IntoIterator<Item = (u64, Option<SocketAddr>)>) -> Self {
+        SessionView { addresses: addresses.into_iter().collect() }
     }
 }
 
@@ -145,14 +144,14 @@ const SWEEP_EVERY: u64 = 64;
 #[derive(Debug)]
 pub struct Gate {
     limits: ReceiveLimits,
-    budgets: HashMap<u64, ReceiveBudget>,
+    budgets: foldhash::HashMap<u64, ReceiveBudget>,
     swept: u64,
 }
 
 impl Gate {
     /// A gate with these limits and no budget spent.
     pub fn new(limits: ReceiveLimits) -> Self {
-        Gate { limits, budgets: HashMap::new(), swept: 0 }
+        Gate { limits, budgets: foldhash::HashMap::default(), swept: 0 }
     }
 
     /// The limits.
@@ -195,6 +194,7 @@ impl Gate {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::HashMap;
 
     fn limits() -> ReceiveLimits {
         ReceiveLimits { per_session: 3, other_address: 1, time: Duration::from_millis(5) }

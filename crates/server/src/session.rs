@@ -112,7 +112,7 @@ pub(crate) type FirstVisit = Option<PlayerState>;
 /// Every player's session; see the module docs.
 pub(crate) struct Sessions {
     players: Vec<Player>,
-    by_session: HashMap<u64, usize>,
+    by_session: foldhash::HashMap<u64, usize>,
     by_user: HashMap<i64, usize>,
     /// Sealed control replies (keep-alives, server info, disconnects) for this tick.
     control: Vec<(SocketAddr, Vec<u8>)>,
@@ -134,7 +134,7 @@ impl Sessions {
     pub fn new(max_players: usize, map_id: MapId) -> Self {
         Sessions {
             players: Vec::new(),
-            by_session: HashMap::new(),
+            by_session: foldhash::HashMap::default(),
             by_user: HashMap::new(),
             control: Vec::new(),
             rng: SystemRandom::new(),
@@ -150,7 +150,7 @@ impl Sessions {
         if !std::mem::take(&mut self.view_stale) {
             return None;
         }
-        Some(Arc::new(SessionView::new(self.players.iter().map(|p| (p.session_id, p.addr)).collect())))
+        Some(Arc::new(SessionView::new(self.players.iter().map(|p| (p.session_id, p.addr)))))
     }
 
     /// Records that the player of `session_id` sent an authenticated datagram from

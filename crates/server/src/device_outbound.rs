@@ -98,9 +98,12 @@ impl Outbound for DeviceOutbound {
         tick: TickInfo,
         recipients: &mut [Recipient<'_>],
     ) -> OutboundReport {
-        if !self.budget_fits() || !backend.as_any_mut().is::<CudaBackend>() {
+        if !self.budget_fits() {
             return self.on_host(backend, world, tick, recipients);
         }
+        let Some(cuda) = backend.as_any_mut().downcast_mut::<CudaBackend>() else {
+            return self.on_host(backend, world, tick, recipients);
+        };
         let mut report = OutboundReport::default();
         if recipients.is_empty() {
             self.last.clear();
@@ -126,9 +129,6 @@ impl Outbound for DeviceOutbound {
             near_slots: config.near_slots() as u32,
             rotation_slots: config.rotation_slots() as u32,
             capacity: self.selection_room() as u32,
-        };
-        let Some(cuda) = backend.as_any_mut().downcast_mut::<CudaBackend>() else {
-            return self.on_host(backend, world, tick, recipients);
         };
         let t = Instant::now();
         let selections = match cuda.select_interest(world, &query) {

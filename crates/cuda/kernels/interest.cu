@@ -360,8 +360,8 @@ extern "C" __global__ void k_interest_select(
     }
 }
 
-// After the host packed the selection: the key of each of the first `packed[i]` selected
-// records becomes `tick` in player i's new table (players over budget only).
+// After the packing: the key of each of the first `packed[i]` selected records becomes
+// `tick` in player i's new table (players over budget only).
 extern "C" __global__ void k_interest_stamp(u32 nq, const u32* meta, const u32* sel, u32 cap,
                                             const u32* packed, const u32* ids, const u32* toff,
                                             const u64* tid, u64* tkey, u64 tick) {
@@ -375,20 +375,194 @@ extern "C" __global__ void k_interest_stamp(u32 nq, const u32* meta, const u32* 
     }
 }
 
-// The selections packed for the download: player i's `meta[4 i]` slots, from its stride
-// of `sel`, to `out + offsets[i]` (the exclusive scan of the counts), so the host
-// downloads what was chosen and not every player's whole stride.
-extern "C" __global__ void k_interest_compact(u32 nq, const u32* meta, const u32* sel, u32 cap,
-                                              const u32* offsets, u32* out) {
-    u32 i = blockIdx.x;
-    if (i >= nq) return;
-    u32 count = min(meta[4 * i], cap), at = offsets[i];
-    for (u32 j = threadIdx.x; j < count; j += blockDim.x) out[at + j] = sel[(u64)i * cap + j];
+// ---------------------------------------------------------------------------------------
+// Packing: the selected records into state update bodies, byte for byte what
+// `pack_updates_pinned` (crates/protocol/src/update.rs) makes of them on the host: the
+// player's own object first in every datagram, then the selection in order, each
+// datagram filled greedily and written against its id base (the smallest id it carries,
+// which can turn records extended; `fit` there). The host only frames and seals them.
+
+// Warps (players) per block of k_interest_pack.
+#define PACK_WARPS 4
+// Most datagrams a player (`MAX_PACK_DATAGRAMS` in backend/interest.rs): the selection
+// holds at most SEL_SORT records, 113 a datagram.
+#define MAX_PACK_DATAGRAMS 9
+
+// A record's length against `base`: compact when its id is within 2^30 above the base
+// and its offset from the origin fits an i16 in each axis (`near`).
+__device__ __forceinline__ u32 rec_len(u32 id, bool near, u32 base) {
+    return near && id >= base && id - base < ID_WINDOW ? COMPACT_LEN : EXTENDED_LEN;
 }
 
-// The counts of the selections, for their scan (`counts[nq]` = 0).
-extern "C" __global__ void k_interest_counts(u32 nq, const u32* meta, u32 cap, u32* counts) {
-    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
-    if (i > nq) return;
-    counts[i] = i < nq ? min(meta[4 * i], cap) : 0;
+__device__ __forceinline__ void put16(u8* p, u32 v) {
+    p[0] = (u8)v;
+    p[1] = (u8)(v >> 8);
+}
+
+__device__ __forceinline__ void put32(u8* p, u32 v) {
+    put16(p, v);
+    put16(p + 2, v >> 16);
+}
+
+__device__ __forceinline__ void put64(u8* p, u64 v) {
+    put32(p, (u32)v);
+    put32(p + 4, (u32)(v >> 32));
+}
+
+// Writes object `s` as a record against `base` and origin `q`; returns its length. The
+// shape code is the `ShapeKind` discriminant, which is also the wire's code.
+__device__ u32 write_rec(u8* out, u32 s, const float* pos, const u32* ids, const u8* shapes, u32 base,
+                         int qx, int qy, int qz) {
+    int px = quant(pos[3 * s]), py = quant(pos[3 * s + 1]), pz = quant(pos[3 * s + 2]);
+    u32 id = ids[s], kind = shapes[s];
+    bool near = fits_i16(px, qx) && fits_i16(py, qy) && fits_i16(pz, qz);
+    if (rec_len(id, near, base) == COMPACT_LEN) {
+        put32(out, ((id - base) << 2) | kind);
+        put16(out + 4, (u32)(px - qx));
+        put16(out + 6, (u32)(py - qy));
+        put16(out + 8, (u32)(pz - qz));
+        return COMPACT_LEN;
+    }
+    put32(out, 3u | (kind << 2));
+    put64(out + 4, (u64)id);
+    put32(out + 12, (u32)px);
+    put32(out + 16, (u32)py);
+    put32(out + 20, (u32)pz);
+    return EXTENDED_LEN;
+}
+
+// One warp per player: packs `min(meta[4 i], cap)` selected slots into at most
+// `max_datagrams` bodies at `bodies + (i * max_datagrams + d) * MAX_BODY`, with their
+// lengths in `lens` (0 past the last); `info[4 i..]` = (objects in view, over budget |
+// own object pinned << 1, records packed, datagrams), `totals[i]` the player's bytes
+// (`totals[nq]` = 0, for the scan), `packed[i]` the records packed (for the stamp).
+extern "C" __global__ void k_interest_pack(
+    u32 nq, const u32* meta, const u32* sel, u32 cap, u32 n, const float* pos, const u32* ids,
+    const u8* shapes, const u32* own, const float* centres, u64 tick, u32 dilation,
+    u32 max_datagrams, u8* bodies, u32* lens, u32* info, u32* totals, u32* packed) {
+    // Record r of a player: its own object first when pinned, then the selection.
+    __shared__ u32 s_id[PACK_WARPS][SEL_SORT + 1];
+    __shared__ u8 s_near[PACK_WARPS][SEL_SORT + 1];
+    __shared__ u32 s_first[PACK_WARPS][MAX_PACK_DATAGRAMS], s_take[PACK_WARPS][MAX_PACK_DATAGRAMS],
+        s_base[PACK_WARPS][MAX_PACK_DATAGRAMS];
+    __shared__ u32 s_done[PACK_WARPS], s_dgrams[PACK_WARPS];
+    u32 w = threadIdx.x / 32, lane = threadIdx.x % 32;
+    u32 i = blockIdx.x * PACK_WARPS + w;
+    if (i == 0 && lane == 0) totals[nq] = 0;
+    if (i >= nq) return;
+    u32 mdg = min(max(max_datagrams, 1u), (u32)MAX_PACK_DATAGRAMS);
+    u32 count = min(min(meta[4 * i], cap), (u32)SEL_SORT);
+    u32 o = own[i];
+    u32 pin = o < n ? 1 : 0;
+    float cx = centres[3 * i], cy = centres[3 * i + 1], cz = centres[3 * i + 2];
+    int qx = quant(cx), qy = quant(cy), qz = quant(cz);
+    const u32* chosen = sel + (u64)i * cap;
+    u32* id = s_id[w];
+    u8* near = s_near[w];
+    for (u32 r = lane; r < pin + count; r += 32) {
+        u32 s = r < pin ? o : chosen[r - pin];
+        id[r] = ids[s];
+        near[r] = fits_i16(quant(pos[3 * s]), qx) && fits_i16(quant(pos[3 * s + 1]), qy) &&
+                  fits_i16(quant(pos[3 * s + 2]), qz);
+    }
+    __syncwarp();
+
+    // Where each datagram starts, what it takes and its base: `pack_updates_pinned` and
+    // `fit`, serially (cheap: shared memory, a few hundred records).
+    if (lane == 0) {
+        const u32 room = MAX_BODY - UPDATE_HEADER_LEN;
+        u32 done = 0, d = 0;
+        while ((done < count || (pin && d == 0)) && d < mdg) {
+            u32 base = id[pin ? 0 : done];
+            u32 used = pin ? rec_len(id[0], near[0], base) : 0;
+            u32 take = 0;
+            for (u32 k = 0; done + k < count; k++) {
+                u32 r = pin + done + k;
+                if (id[r] < base) {
+                    // A smaller id lowers the base: measure again against it.
+                    u32 lower = pin ? rec_len(id[0], near[0], id[r]) : 0;
+                    for (u32 m = pin + done; m <= r; m++) lower += rec_len(id[m], near[m], id[r]);
+                    if (lower > room) break;
+                    base = id[r];
+                    used = lower;
+                } else {
+                    u32 len = rec_len(id[r], near[r], base);
+                    if (used + len > room) break;
+                    used += len;
+                }
+                take = k + 1;
+            }
+            s_first[w][d] = done;
+            s_take[w][d] = take;
+            s_base[w][d] = base;
+            done += take;
+            d++;
+            // Only the own object went in: nothing left (any record fits beside it).
+            if (take == 0) break;
+        }
+        s_done[w] = done;
+        s_dgrams[w] = d;
+    }
+    __syncwarp();
+
+    // The bytes, a warp at a time: each lane one record, offsets by a warp scan.
+    u32 dgrams = s_dgrams[w], total = 0;
+    for (u32 d = 0; d < mdg; d++) {
+        u32 len = 0;
+        if (d < dgrams) {
+            u8* body = bodies + ((u64)i * mdg + d) * MAX_BODY;
+            u32 base = s_base[w][d], first = pin + s_first[w][d], take = s_take[w][d];
+            u32 at = UPDATE_HEADER_LEN;
+            if (pin) {
+                if (lane == 0) write_rec(body + at, o, pos, ids, shapes, base, qx, qy, qz);
+                at += rec_len(id[0], near[0], base);
+            }
+            for (u32 c = 0; c < take; c += 32) {
+                u32 k = c + lane;
+                u32 l = k < take ? rec_len(id[first + k], near[first + k], base) : 0;
+                u32 incl = l;
+                for (u32 off = 1; off < 32; off <<= 1) {
+                    u32 v = __shfl_up_sync(0xffffffffu, incl, off);
+                    if (lane >= off) incl += v;
+                }
+                if (k < take) write_rec(body + at + incl - l, chosen[first + k - pin], pos, ids, shapes, base, qx, qy, qz);
+                at += __shfl_sync(0xffffffffu, incl, 31);
+            }
+            if (lane == 0) {
+                put64(body, tick);
+                put16(body + 8, dilation);
+                put32(body + 10, (u32)qx);
+                put32(body + 14, (u32)qy);
+                put32(body + 18, (u32)qz);
+                put64(body + 22, (u64)base);
+                put16(body + 30, pin + take);
+            }
+            len = at;
+        }
+        if (lane == 0) lens[(u64)i * mdg + d] = len;
+        total += len;
+    }
+    if (lane == 0) {
+        info[4 * i] = meta[4 * i + 1];
+        info[4 * i + 1] = (meta[4 * i + 2] != 0 ? 1u : 0u) | (pin << 1);
+        info[4 * i + 2] = s_done[w];
+        info[4 * i + 3] = dgrams;
+        totals[i] = total;
+        packed[i] = s_done[w];
+    }
+}
+
+// The bodies one after another for the download: player i's, from its stride of
+// `bodies`, to `out + offsets[i]` (the exclusive scan of `totals`).
+extern "C" __global__ void k_interest_bodies(u32 nq, u32 max_datagrams, const u8* bodies, const u32* lens,
+                                             const u32* offsets, u8* out) {
+    u32 i = blockIdx.x;
+    if (i >= nq) return;
+    u32 at = offsets[i];
+    for (u32 d = 0; d < max_datagrams; d++) {
+        u32 len = lens[(u64)i * max_datagrams + d];
+        const u8* src = bodies + ((u64)i * max_datagrams + d) * MAX_BODY;
+        for (u32 j = threadIdx.x; j < len; j += blockDim.x) out[at + j] = src[j];
+        at += len;
+    }
 }

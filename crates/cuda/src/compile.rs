@@ -52,8 +52,8 @@ pub const KERNELS: [(&str, usize); 21] = [
     ("k_forces", 16),
     ("k_interest_select", 29),
     ("k_interest_stamp", 10),
-    ("k_interest_compact", 6),
-    ("k_interest_counts", 4),
+    ("k_interest_pack", 18),
+    ("k_interest_bodies", 6),
 ];
 
 /// The parameter count of each `extern "C" __global__` function in the sources, read

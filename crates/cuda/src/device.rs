@@ -426,6 +426,18 @@ impl Pinned {
         bytemuck::cast_slice(raw)
     }
 
+    /// The first `count` items as `T`, to write. Panics like [`slice`](Self::slice).
+    pub fn slice_mut<T: Pod>(&mut self, count: usize) -> &mut [T] {
+        let bytes = count * std::mem::size_of::<T>();
+        assert!(bytes <= self.bytes, "pinned buffer too small");
+        if bytes == 0 {
+            return &mut [];
+        }
+        // SAFETY: as in `slice`; `&mut self` makes this the only view of the bytes.
+        let raw = unsafe { std::slice::from_raw_parts_mut(self.ptr as *mut u8, bytes) };
+        bytemuck::cast_slice_mut(raw)
+    }
+
     fn free(&mut self) {
         if !self.ptr.is_null()
             && let Some(ctx) = &self.ctx

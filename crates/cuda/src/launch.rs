@@ -417,18 +417,37 @@ kernels! {
         meta: DevPtr<u32>,
         sel: DevPtr<u32>,
     }
-    /// `k_interest_counts`: the selections' counts, for their scan.
-    KInterestCounts = "k_interest_counts" { nq: u32, meta: DevPtr<u32>, cap: u32, counts: DevPtr<u32> }
-    /// `k_interest_compact`: the selections packed one after the other for the download.
-    KInterestCompact = "k_interest_compact" {
+    /// `k_interest_pack`: one warp per player packs its selection into update bodies.
+    KInterestPack = "k_interest_pack" {
         nq: u32,
         meta: DevPtr<u32>,
         sel: DevPtr<u32>,
         cap: u32,
-        offsets: DevPtr<u32>,
-        out: DevPtr<u32>,
+        n: u32,
+        pos: DevPtr<f32>,
+        ids: DevPtr<u32>,
+        shapes: DevPtr<u8>,
+        own: DevPtr<u32>,
+        centres: DevPtr<f32>,
+        tick: u64,
+        dilation: u32,
+        max_datagrams: u32,
+        bodies: DevPtr<u8>,
+        lens: DevPtr<u32>,
+        info: DevPtr<u32>,
+        totals: DevPtr<u32>,
+        packed: DevPtr<u32>,
     }
-    /// `k_interest_stamp`: marks the records the host packed as sent this tick.
+    /// `k_interest_bodies`: the bodies one after another for the download.
+    KInterestBodies = "k_interest_bodies" {
+        nq: u32,
+        max_datagrams: u32,
+        bodies: DevPtr<u8>,
+        lens: DevPtr<u32>,
+        offsets: DevPtr<u32>,
+        out: DevPtr<u8>,
+    }
+    /// `k_interest_stamp`: marks the records packed as sent this tick.
     KInterestStamp = "k_interest_stamp" {
         nq: u32,
         meta: DevPtr<u32>,

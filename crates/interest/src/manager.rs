@@ -6,7 +6,7 @@ use std::cell::RefCell;
 use myriad_protocol::update::record_len;
 use myriad_protocol::{
     COMPACT_RECORD_LEN, DatagramBatch, EXTENDED_RECORD_LEN, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN,
-    UpdateHeader, pack_updates_pinned,
+    UpdateHeader, pack_updates_pinned, push_update_body,
 };
 use rayon::prelude::*;
 use thiserror::Error;
@@ -218,50 +218,44 @@ impl InterestManager {
 }
 
 impl InterestManager {
-    /// Packs and seals each subscriber's records as chosen elsewhere (the device
-    /// selection of `myriad-cuda`, which applies [`build`](Self::build)'s rule):
-    /// `selection(i)` gives subscriber `i`'s slots in packing order, `None` when there is
-    /// none (the subscriber then gets its own object only). Staleness is kept by whoever
+    /// Frames and seals each subscriber's update bodies as selected and packed elsewhere
+    /// (the device outbound of `myriad-server`, on `myriad-cuda`'s kernels, which apply
+    /// [`build`](Self::build)'s rule and `pack_updates_pinned`'s packing): `packed(i)`
+    /// gives subscriber `i`'s bodies, `None` when there are none to trust (the
+    /// subscriber then gets nothing this tick and counts one skipped). A body of a
+    /// length no update can have is refused the same way. Staleness is kept by whoever
     /// selected, so the subscribers' own rotation state is dropped.
-    pub fn pack_selected<'s, O, S, F>(
-        &self,
-        tick: TickInfo,
-        objects: &O,
-        selection: F,
-        subscribers: &mut [S],
-    ) -> TickReport
+    pub fn seal_packed<'b, S, F, B>(&self, packed: F, subscribers: &mut [S]) -> TickReport
     where
-        O: ObjectSource,
         S: BorrowMut<Subscriber> + Send,
-        F: Fn(usize) -> Option<Selection<'s>> + Sync,
+        F: Fn(usize) -> Option<Packed<B>> + Sync,
+        B: IntoIterator<Item = &'b [u8]>,
     {
-        let config = self.config;
         subscribers
             .par_iter_mut()
             .enumerate()
             .fold(TickReport::default, |acc, (i, s)| {
                 let sub = s.borrow_mut();
-                let chosen = selection(i);
-                let mut report = SubscriberReport {
-                    skipped: usize::from(chosen.is_none()),
-                    in_view: chosen.map_or(0, |c| c.in_view),
-                    over_budget: chosen.is_some_and(|c| c.over_budget),
-                    ..SubscriberReport::default()
-                };
-                SCRATCH.with_borrow_mut(|scratch| {
-                    let records = &mut scratch.records;
-                    records.clear();
-                    for &slot in chosen.map_or(&[][..], |c| c.slots) {
-                        match objects.get(slot) {
-                            Some((id, kind, p)) => records.push(StateRecord { id, kind, pos: QuantPos::from_f32(p) }),
-                            None => report.skipped += 1,
-                        }
-                    }
-                    let own = own_record(objects, sub);
-                    pack_and_seal(&config, tick, own, records, sub, &mut report);
-                });
+                sub.datagrams.clear();
                 sub.rotation.clear();
                 sub.rotation_tick = None;
+                let mut report = SubscriberReport::default();
+                match packed(i) {
+                    Some(p) => {
+                        report.in_view = p.in_view;
+                        report.over_budget = p.over_budget;
+                        let framed = p.bodies.into_iter().try_for_each(|b| push_update_body(b, &mut sub.datagrams));
+                        if framed.is_ok() {
+                            report.packed = p.packed;
+                            report.records = p.packed + usize::from(p.pinned) * sub.datagrams.len();
+                            seal(sub, &mut report);
+                        } else {
+                            sub.datagrams.clear();
+                            report.skipped = 1;
+                        }
+                    }
+                    None => report.skipped = 1,
+                }
                 sub.report = report;
                 acc.add(&sub.report)
             })
@@ -269,15 +263,19 @@ impl InterestManager {
     }
 }
 
-/// One subscriber's records as chosen outside [`InterestManager::build`].
+/// One subscriber's update bodies, packed outside [`InterestManager::build`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Selection<'a> {
-    /// Slots of the objects to pack, in order.
-    pub slots: &'a [u32],
+pub struct Packed<B> {
+    /// The state update bodies, one a datagram, in order.
+    pub bodies: B,
     /// Objects in view, own excluded.
     pub in_view: usize,
     /// Whether the view was over budget.
     pub over_budget: bool,
+    /// Whether the subscriber's own object leads every datagram.
+    pub pinned: bool,
+    /// Records of other objects packed.
+    pub packed: usize,
 }
 
 /// Whether `compact` compact and `extended` extended records fit `max_datagrams`
@@ -433,6 +431,13 @@ fn pack_and_seal(
     let packed = pack_updates_pinned(&header, own.as_ref(), records, config.max_datagrams.max(1), &mut sub.datagrams);
     report.packed = packed;
     report.records = packed + usize::from(own.is_some()) * sub.datagrams.len();
+    seal(sub, report);
+    packed
+}
+
+/// Seals the subscriber's datagrams and counts them in the report (nothing is sent if
+/// sealing fails).
+fn seal(sub: &mut Subscriber, report: &mut SubscriberReport) {
     if sub.sealer.seal_batch(&mut sub.datagrams).is_err() {
         sub.datagrams.clear();
         report.seal_failed = true;
@@ -440,7 +445,6 @@ fn pack_and_seal(
     }
     report.datagrams = sub.datagrams.len();
     report.bytes = sub.datagrams.total_bytes();
-    packed
 }
 
 #[cfg(test)]

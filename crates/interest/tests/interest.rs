@@ -273,3 +273,61 @@ fn far_objects_and_huge_ids_use_extended_records_within_budget() {
         vec![(1, [0.0; 3]), (u64::MAX, [5000.0, 0.0, 0.0]), (1 << 50, [-1e6, 3.0, 2.0]), (77, [1.0, 1.0, 1.0])]
     );
 }
+
+#[test]
+fn bodies_packed_elsewhere_are_sealed_as_the_manager_would() {
+    let mut rng = Rng(9);
+    let world = World::new(600, &mut rng, 1 << 33);
+    let list: Vec<u32> = (0..600).collect();
+    let offsets = [0, 600, 600, 600];
+    let manager = InterestManager::new(InterestConfig { max_datagrams: 2, ..Default::default() });
+    let tick = TickInfo { tick: 8, dilation_permille: 900 };
+    let mut built = vec![subscriber(3, 7, world.positions[7]).0];
+    manager.build(tick, &world.soa(), AoiLists { offsets: &offsets[..2], objects: &list }, &mut built).unwrap();
+    assert!(built[0].report().over_budget && built[0].datagrams().len() == 2);
+
+    // The same bodies, as another packer would hand them over, through a twin session.
+    let (mut twin, mut client) = subscriber(3, 7, world.positions[7]);
+    let mut keep = ClientSession::new(&keys(3));
+    let bodies: Vec<Vec<u8>> = built[0]
+        .datagrams()
+        .iter()
+        .map(|d| {
+            let mut d = d.to_vec();
+            let header = myriad_protocol::HEADER_LEN;
+            keep.open(&mut d).unwrap();
+            d[header..d.len() - myriad_protocol::TAG_LEN].to_vec()
+        })
+        .collect();
+    let first = built[0].report();
+    let report = manager.seal_packed(
+        |_| {
+            Some(Packed {
+                bodies: bodies.iter().map(Vec::as_slice),
+                in_view: first.in_view,
+                over_budget: true,
+                pinned: true,
+                packed: first.packed,
+            })
+        },
+        std::slice::from_mut(&mut twin),
+    );
+    assert_eq!(twin.datagrams().iter().collect::<Vec<_>>(), built[0].datagrams().iter().collect::<Vec<_>>());
+    assert_eq!(twin.report(), first);
+    assert_eq!(report.records, first.records);
+    let (records, ticks) = receive(&twin, &mut client);
+    assert_eq!(records.len(), first.records);
+    assert_eq!(ticks, [8, 8]);
+
+    // Nothing to trust, or a body no update can have: nothing is sent, one skip each.
+    let mut subs = vec![subscriber(4, 0, [0.0; 3]).0, subscriber(5, 0, [0.0; 3]).0];
+    let short = [0u8; 3];
+    let report = manager.seal_packed(
+        |i| {
+            (i == 1).then_some(Packed { bodies: [&short[..]], in_view: 0, over_budget: false, pinned: true, packed: 0 })
+        },
+        &mut subs,
+    );
+    assert_eq!((report.skipped, report.datagrams, report.subscribers), (2, 0, 2));
+    assert!(subs.iter().all(|s| s.datagrams().is_empty()));
+}

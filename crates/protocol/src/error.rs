@@ -163,4 +163,12 @@ pub enum EncodeError {
         /// Largest body length.
         max: usize,
     },
+    /// The body is shorter than its message's fixed header.
+    #[error("body of {len} bytes is shorter than the {min}-byte header")]
+    TooShort {
+        /// Body length given.
+        len: usize,
+        /// Shortest body length.
+        min: usize,
+    },
 }

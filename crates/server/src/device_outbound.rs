@@ -1,11 +1,11 @@
-//! The device implementation of [`Outbound`]: the CUDA backend answers the AOI boxes and
-//! selects each player's records on the device (`myriad_cuda`'s interest selection, the
-//! host interest manager's rule), so only the chosen slots come back, never the AOI
-//! lists; the host packs and seals them in parallel over players
-//! ([`InterestManager::pack_selected`]) and tells the device what it packed, which
-//! becomes the staleness of the next tick.
+//! The device implementation of [`Outbound`]: the CUDA backend answers the AOI boxes,
+//! selects each player's records by the host interest manager's rule and packs them into
+//! state update bodies, all on the device (`myriad_cuda`'s interest updates), so only the
+//! finished bodies come back, never the AOI lists; the host frames and seals them in
+//! parallel over players ([`InterestManager::seal_packed`]). What was packed becomes the
+//! staleness of the next tick on the device.
 //!
-//! The payloads are byte for byte those of [`CpuOutbound`] for the same world, tick and
+//! The datagrams are byte for byte those of [`CpuOutbound`] for the same world, tick and
 //! history (the GPU suite's `device_outbound` test). With another backend, a budget
 //! larger than the device selection holds, or after a device error, it serves the tick
 //! through a [`CpuOutbound`] (a device error is logged and counted as
@@ -16,14 +16,14 @@ use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3, World};
 use myriad_cuda::CudaBackend;
-use myriad_cuda::backend::{InterestQuery, MAX_SELECTED, NO_PREVIOUS};
-use myriad_interest::{InterestConfig, InterestManager, Selection, TickInfo};
+use myriad_cuda::backend::{InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS};
+use myriad_interest::{InterestConfig, InterestManager, Packed, TickInfo};
 use myriad_physics::Backend;
 use myriad_protocol::MAX_COMPACT_RECORDS;
 
-use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient, WorldObjects, aim};
+use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient, aim};
 
-/// Interest selection on the device, packing and sealing on the host.
+/// Interest selection and packing on the device, sealing on the host.
 #[derive(Debug)]
 pub struct DeviceOutbound {
     interest: InterestManager,
@@ -35,7 +35,6 @@ pub struct DeviceOutbound {
     own: Vec<u32>,
     centres: Vec<[f32; 3]>,
     prev: Vec<u32>,
-    packed: Vec<u32>,
 }
 
 impl DeviceOutbound {
@@ -51,7 +50,6 @@ impl DeviceOutbound {
             own: Vec::new(),
             centres: Vec::new(),
             prev: Vec::new(),
-            packed: Vec::new(),
         }
     }
 
@@ -61,9 +59,9 @@ impl DeviceOutbound {
         self.interest.config().max_datagrams.max(1) * MAX_COMPACT_RECORDS
     }
 
-    /// Whether the device selection can hold this budget.
+    /// Whether the device selection and packing can hold this budget.
     fn budget_fits(&self) -> bool {
-        self.selection_room() <= MAX_SELECTED
+        self.selection_room() <= MAX_SELECTED && self.interest.config().max_datagrams <= MAX_PACK_DATAGRAMS
     }
 
     /// Serves the tick on the host; the device's staleness is then out of date.
@@ -83,7 +81,7 @@ impl Outbound for DeviceOutbound {
     fn description(&self) -> String {
         let max = self.interest.config().max_datagrams;
         if self.budget_fits() {
-            format!("device interest selection, host packing and sealing ({max} datagrams a player at most)")
+            format!("device interest selection and packing, host sealing ({max} datagrams a player at most)")
         } else {
             format!(
                 "host interest management: {max} datagrams a player is over the device selection's {MAX_SELECTED} records"
@@ -121,6 +119,7 @@ impl Outbound for DeviceOutbound {
         let config = *self.interest.config();
         let query = InterestQuery {
             tick: tick.tick,
+            dilation_permille: tick.dilation_permille,
             boxes: &self.boxes,
             own: &self.own,
             centres: &self.centres,
@@ -131,34 +130,35 @@ impl Outbound for DeviceOutbound {
             capacity: self.selection_room() as u32,
         };
         let t = Instant::now();
-        let selections = match cuda.select_interest(world, &query) {
-            Ok(s) => s,
+        let payloads = match cuda.interest_updates(world, &query) {
+            Ok(p) => p,
             Err(e) => {
-                tracing::error!(error = %e, "device interest selection failed; this tick is built on the host");
+                tracing::error!(error = %e, "device interest updates failed; this tick is built on the host");
                 metrics::counter!("myriad_outbound_errors_total", "reason" => "device_select").increment(1);
                 return self.on_host(backend, world, tick, recipients);
             }
         };
         report.aoi_ms = t.elapsed().as_secs_f64() * 1e3;
-        let chosen = |i: usize| {
-            selections.get(i).map(|s| Selection {
-                slots: s.slots,
-                in_view: s.in_view as usize,
-                over_budget: s.over_budget,
+        let packed = |i: usize| {
+            payloads.get(i).map(|p| Packed {
+                bodies: p.bodies(),
+                in_view: p.in_view as usize,
+                over_budget: p.over_budget,
+                pinned: p.pinned,
+                packed: p.packed as usize,
             })
         };
-        report.add_interest(&self.interest.pack_selected(tick, &WorldObjects(world), chosen, recipients));
-        self.packed.clear();
-        self.packed.extend(recipients.iter().map(|r| r.view.report().packed as u32));
-        self.last.clear();
-        match cuda.stamp_interest(&self.packed) {
-            Ok(()) => self.last.extend(recipients.iter().enumerate().map(|(i, r)| (r.session_id, i as u32))),
-            Err(e) => {
-                // The next tick then starts every player afresh.
-                tracing::error!(error = %e, "marking the sent records on the device failed");
-                metrics::counter!("myriad_outbound_errors_total", "reason" => "device_stamp").increment(1);
-            }
+        let sealed = self.interest.seal_packed(packed, recipients);
+        if sealed.skipped > 0 {
+            // The device's counts disagreed with its bytes: those players get nothing
+            // this tick (their staleness says they were sent; they are again soon).
+            tracing::error!(players = sealed.skipped, "device update bodies refused");
+            metrics::counter!("myriad_outbound_errors_total", "reason" => "device_bodies")
+                .increment(sealed.skipped as u64);
         }
+        report.add_interest(&sealed);
+        self.last.clear();
+        self.last.extend(recipients.iter().enumerate().map(|(i, r)| (r.session_id, i as u32)));
         report
     }
 }

@@ -77,6 +77,10 @@ pub struct BenchArgs {
     /// CUDA backend) or `host` (the host interest manager, for comparison).
     #[arg(long, default_value = "auto", value_parser = parse_outbound)]
     pub outbound: OutboundKind,
+    /// UDP sockets the server tick sends on (config `udp_sockets`: 0 is one per core, at
+    /// most 8).
+    #[arg(long, default_value_t = ServerConfig::default().udp_sockets)]
+    pub udp_sockets: usize,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -338,7 +342,12 @@ fn server_one(
     let mut row = empty_row(label, world, kind, backend.description(), SERVER);
     row.ticks = args.ticks;
     row.warmup = args.warmup;
-    let config = ServerConfig { aoi_size: aoi, outbound: args.outbound, ..ServerConfig::default() };
+    let config = ServerConfig {
+        aoi_size: aoi,
+        outbound: args.outbound,
+        udp_sockets: args.udp_sockets,
+        ..ServerConfig::default()
+    };
     let mut bench = TickBench::new(config, world.clone(), backend).context("starting the server tick")?;
     for _ in 0..args.warmup {
         bench.tick()?;

@@ -10,6 +10,12 @@
 //! Destinations: 64 sockets on 127.0.0.1 that never read (the kernel drops what does
 //! not fit their buffers, as it would for slow clients); datagrams of 1200 bytes sent
 //! round-robin to them, 4096 per round.
+//!
+//! Then the same on several threads at once, as the server sends a tick: `T` threads,
+//! each with its own socket (ours: an `Endpoint::bind_group` of `T` on one port; bare: `T`
+//! plain sockets) and its own 64 destinations, every thread sending the full rounds.
+//! `T` runs over the powers of two up to the core count, or the list in
+//! `MYRIAD_UDP_THREADS` (e.g. `1,8,16`).
 
 #[cfg(target_os = "linux")]
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -91,6 +97,96 @@ mod bench {
             }
             done
         }
+    }
+
+    // SAFETY: the raw pointers point into `_addrs`, `_iovs` (owned) and datagrams that
+    // the caller keeps alive while any thread uses the value; only one thread uses it.
+    unsafe impl Send for Bare {}
+
+    /// Aggregate send rate of `T` threads at once, ours against the bare loop.
+    fn parallel_table() -> Result<String, Box<dyn std::error::Error>> {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let counts: Vec<usize> = match std::env::var("MYRIAD_UDP_THREADS") {
+            Ok(v) => v.split(',').map(|t| t.trim().parse()).collect::<Result<_, _>>()?,
+            Err(_) => std::iter::successors(Some(1usize), |t| Some(t * 2)).take_while(|&t| t <= cores).collect(),
+        };
+        let payloads: Vec<Vec<u8>> = (0..DATAGRAMS).map(|i| vec![i as u8; SIZE]).collect();
+        let mut rows = String::new();
+        for &threads in counts.iter().filter(|&&t| t > 0) {
+            let sinks: Vec<UdpSocket> = (0..DESTINATIONS * threads)
+                .map(|_| UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)))
+                .collect::<Result<_, _>>()?;
+            let dests: Vec<SocketAddr> = sinks.iter().map(|s| s.local_addr()).collect::<Result<_, _>>()?;
+            let lists: Vec<Vec<(SocketAddr, &[u8])>> = (0..threads)
+                .map(|k| {
+                    payloads
+                        .iter()
+                        .enumerate()
+                        .map(|(i, p)| (dests[k * DESTINATIONS + i % DESTINATIONS], &p[..]))
+                        .collect()
+                })
+                .collect();
+            let mut ours =
+                Endpoint::bind_group(EndpointConfig::new(SocketAddr::from((Ipv4Addr::LOCALHOST, 0))), threads)?;
+            let bare_sockets: Vec<UdpSocket> = (0..threads)
+                .map(|_| {
+                    let s = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))?;
+                    s.set_nonblocking(true)?;
+                    Ok(s)
+                })
+                .collect::<std::io::Result<_>>()?;
+            let mut bares: Vec<Bare> = lists.iter().map(|l| Bare::new(l)).collect();
+            let total = (threads * DATAGRAMS * ROUNDS_PER_TRIAL) as f64;
+            let (mut r_ours, mut r_bare) = (Vec::new(), Vec::new());
+            for _ in 0..TRIALS {
+                let t = Instant::now();
+                std::thread::scope(|s| -> std::io::Result<()> {
+                    let running: Vec<_> = ours
+                        .iter_mut()
+                        .zip(&lists)
+                        .map(|(endpoint, list)| {
+                            s.spawn(move || -> std::io::Result<()> {
+                                for _ in 0..ROUNDS_PER_TRIAL {
+                                    let mut done = 0;
+                                    while done < list.len() {
+                                        done += endpoint.send_batch(&list[done..])?;
+                                    }
+                                }
+                                Ok(())
+                            })
+                        })
+                        .collect();
+                    running.into_iter().try_for_each(|h| h.join().expect("sender thread"))
+                })?;
+                r_ours.push(total / t.elapsed().as_secs_f64());
+
+                let t = Instant::now();
+                std::thread::scope(|s| {
+                    for (bare, socket) in bares.iter_mut().zip(&bare_sockets) {
+                        let fd = socket.as_raw_fd();
+                        s.spawn(move || {
+                            for _ in 0..ROUNDS_PER_TRIAL {
+                                bare.send_all(fd);
+                            }
+                        });
+                    }
+                });
+                r_bare.push(total / t.elapsed().as_secs_f64());
+            }
+            let (ours_m, bare_m) = (median(r_ours), median(r_bare));
+            rows += &format!(
+                "| {threads} | {bare_m:.0} | {ours_m:.0} | {:.2} | {:.2} µs |\n",
+                bare_m / ours_m,
+                1e6 * threads as f64 / ours_m
+            );
+        }
+        Ok(format!(
+            "| threads (sockets) | bare `sendmmsg`, datagrams/s (median of {TRIALS}) | ours (`bind_group` + `send_batch`) | time per datagram, ours ÷ bare | ours, time per datagram and thread |\n\
+             | ---: | ---: | ---: | ---: | ---: |\n\
+             {rows}\n\
+             Each thread: its own socket and {DESTINATIONS} loopback destinations, {ROUNDS_PER_TRIAL} rounds of {DATAGRAMS} \
+             datagrams of {SIZE} bytes; all threads start together and the clock stops when the last ends. {cores} cores.\n"
+        ))
     }
 
     /// Receive path: 39-byte datagrams (the size of a sealed Action) are queued in the
@@ -239,7 +335,7 @@ mod bench {
             stats.sent,
             stats.send_would_block,
         );
-        let table = format!("{table}\n{}", receive_table()?);
+        let table = format!("{table}\n{}\n{}", parallel_table()?, receive_table()?);
         print!("{table}");
         if let Ok(path) = std::env::var("MYRIAD_BENCH_DOC") {
             let doc = std::fs::read_to_string(&path)?;

@@ -92,10 +92,11 @@ pub fn run(
     let mut tick = TickLoop::builder(config, world, backend, Box::new(transport.clone())).build();
     let mut clients: HashMap<SocketAddr, Client> = HashMap::new();
     let mut by_entity: HashMap<u32, SocketAddr> = HashMap::new();
-    for (i, entity) in script.entities().into_iter().enumerate() {
-        let joined = tick
-            .adopt(UserId(i as i64 + 1), entity)
-            .map_err(|r| ServerError::Internal(format!("admitting the player of entity {}: {r:?}", entity.0)))?;
+    let entities = script.entities();
+    let adopted = tick.adopt_all(entities.iter().enumerate().map(|(i, &entity)| (UserId(i as i64 + 1), entity)));
+    for (i, (entity, joined)) in entities.into_iter().zip(adopted).enumerate() {
+        let joined =
+            joined.map_err(|r| ServerError::Internal(format!("admitting the player of entity {}: {r:?}", entity.0)))?;
         let addr = SocketAddr::from(([127, 0, 0, 1], 20_000 + i as u16));
         let mut client = Client { session: ClientSession::new(&joined.keys), entity: joined.entity, frame: 0 };
         push(&transport, addr, &mut client, &ClientMessage::Ready)?;

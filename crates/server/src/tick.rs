@@ -422,11 +422,16 @@ impl TickLoop {
         }
     }
 
-    /// Makes `entity`, an object already in the world, a player with a fresh session, as
-    /// a login would (the tick benchmark's and the scripted harness's join).
-    pub fn adopt(&mut self, user_id: UserId, entity: myriad_core::EntityId) -> JoinResult {
+    /// Makes each entity, an object already in the world, a player with a fresh session
+    /// of its user, as a login would (the tick benchmark's and the scripted harness's
+    /// join). The sessions are published once, after all of them (once per player made
+    /// a set-up of `n` players cost `n²`).
+    pub fn adopt_all(&mut self, players: impl IntoIterator<Item = (UserId, myriad_core::EntityId)>) -> Vec<JoinResult> {
         let ctx = JoinContext { tick: self.world.tick, dilation_permille: self.dilation.permille() };
-        let joined = self.sessions.adopt(&self.world, user_id, entity, ctx);
+        let joined = players
+            .into_iter()
+            .map(|(user_id, entity)| self.sessions.adopt(&self.world, user_id, entity, ctx))
+            .collect();
         self.publish_sessions();
         joined
     }

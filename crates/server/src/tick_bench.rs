@@ -142,10 +142,9 @@ impl TickBench {
         };
         let mut tick = TickLoop::builder(config, world, backend, transport).build();
         let mut bots = Vec::with_capacity(users.len());
-        for (i, entity) in users.into_iter().enumerate() {
-            let joined = tick
-                .adopt(UserId(i as i64 + 1), entity)
-                .map_err(|r| ServerError::Internal(format!("admitting bench player {i}: {r:?}")))?;
+        let adopted = tick.adopt_all(users.into_iter().enumerate().map(|(i, entity)| (UserId(i as i64 + 1), entity)));
+        for (i, joined) in adopted.into_iter().enumerate() {
+            let joined = joined.map_err(|r| ServerError::Internal(format!("admitting bench player {i}: {r:?}")))?;
             let socket = UdpSocket::bind(SocketAddr::from(([127, 0, 0, 1], 0)))
                 .and_then(|s| s.set_nonblocking(true).map(|()| s))
                 .map_err(|e| {

@@ -20,8 +20,9 @@ use myriad_cuda::backend::{InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_P
 use myriad_interest::{InterestConfig, InterestManager, Packed, TickInfo};
 use myriad_physics::Backend;
 use myriad_protocol::MAX_COMPACT_RECORDS;
+use rayon::prelude::*;
 
-use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient, aim};
+use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient};
 
 /// Interest selection and packing on the device, sealing on the host.
 #[derive(Debug)]
@@ -107,15 +108,16 @@ impl Outbound for DeviceOutbound {
             self.last.clear();
             return report;
         }
-        aim(recipients, self.half, &mut self.boxes);
-        self.own.clear();
-        self.centres.clear();
-        self.prev.clear();
-        for r in recipients.iter() {
-            self.own.push(r.object);
-            self.centres.push(r.centre.to_array());
-            self.prev.push(self.last.get(&r.session_id).copied().unwrap_or(NO_PREVIOUS));
-        }
+        // In parallel: each recipient and its previous index are cache misses. The views'
+        // object and centre are the host interest manager's; the device takes them here.
+        let (half, last) = (self.half, &self.last);
+        ((self.boxes, self.own), (self.centres, self.prev)) = recipients
+            .par_iter()
+            .map(|r| {
+                let prev = last.get(&r.session_id).copied().unwrap_or(NO_PREVIOUS);
+                ((Aabb::from_center_half(r.centre, half), r.object), (r.centre.to_array(), prev))
+            })
+            .unzip();
         let config = *self.interest.config();
         let query = InterestQuery {
             tick: tick.tick,

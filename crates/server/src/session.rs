@@ -175,9 +175,10 @@ impl Sessions {
         self.players.iter()
     }
 
-    /// Every player, mutably, in table order.
-    pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut Player> {
-        self.players.iter_mut()
+    /// Every player, mutably, in table order, for rayon.
+    pub fn par_iter_mut(&mut self) -> rayon::slice::IterMut<'_, Player> {
+        use rayon::prelude::*;
+        self.players.par_iter_mut()
     }
 
     /// The player of `session_id`.

@@ -132,10 +132,22 @@ impl Backend for CpuLbvh {
         out.clear();
         out.offsets.reserve(boxes.len() + 1);
         out.offsets.push(0);
-        for v in per_query {
-            out.objects.extend_from_slice(&v);
-            out.offsets.push(out.objects.len() as u32);
+        let mut total = 0usize;
+        for v in &per_query {
+            total += v.len();
+            out.offsets.push(total as u32);
         }
+        // Laid out in parallel: at AOI 100 the lists are tens of megabytes, whose serial
+        // copy was about 5 ms of the tick on the 16-core GPU host.
+        out.objects.par_extend(rayon::iter::repeat_n(0, total));
+        let mut rest = out.objects.as_mut_slice();
+        let mut dests = Vec::with_capacity(per_query.len());
+        for v in &per_query {
+            let (dest, tail) = std::mem::take(&mut rest).split_at_mut(v.len());
+            dests.push(dest);
+            rest = tail;
+        }
+        dests.into_par_iter().zip(&per_query).for_each(|(dest, v)| dest.copy_from_slice(v));
         Ok(())
     }
 }

@@ -24,6 +24,7 @@ pub mod rng;
 pub mod scenario;
 pub mod script;
 pub mod shape;
+pub mod stamp;
 pub mod terrain;
 pub mod world;
 
@@ -35,5 +36,6 @@ pub use glam::Vec3;
 pub use scenario::{Placement, ScenarioSpec};
 pub use script::{ActionScript, ScriptError, ScriptedAction};
 pub use shape::{Shape, ShapeKind};
+pub use stamp::Stamp;
 pub use terrain::Terrain;
 pub use world::{Dynamics, EntityId, ObjectKind, ObjectState, StaticKind, Statics, World, hash_state};

@@ -13,9 +13,10 @@ use std::path::Path;
 
 use crate::error::CoreError;
 use crate::rng::{hash3, unit_f32};
+use crate::stamp::Stamp;
 
 /// A heightmap over the world's x–z extent.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct Terrain {
     width: u32,
     depth: u32,
@@ -32,6 +33,33 @@ pub struct Terrain {
     inv_cell_z: f32,
     /// `max_height / 65535`.
     height_scale: f32,
+    /// Which terrain this is, for device copies (a terrain never changes once made).
+    stamp: Stamp,
+}
+
+impl PartialEq for Terrain {
+    /// Equal samples and placement (the stamp says which value, not what it holds).
+    fn eq(&self, o: &Terrain) -> bool {
+        self.width == o.width
+            && self.depth == o.depth
+            && self.samples == o.samples
+            && self.max_height == o.max_height
+            && self.origin_x == o.origin_x
+            && self.origin_z == o.origin_z
+            && self.extent_x == o.extent_x
+            && self.extent_z == o.extent_z
+            && self.base_y == o.base_y
+            && self.inv_cell_x == o.inv_cell_x
+            && self.inv_cell_z == o.inv_cell_z
+            && self.height_scale == o.height_scale
+    }
+}
+
+impl Terrain {
+    /// This terrain's process-unique stamp (a clone has its own).
+    pub fn stamp(&self) -> u64 {
+        self.stamp.get()
+    }
 }
 
 /// Where a terrain lies in the world: its x–z rectangle and its floor.
@@ -141,6 +169,7 @@ impl Terrain {
             inv_cell_x: (width - 1) as f32 / at.extent_x,
             inv_cell_z: (depth - 1) as f32 / at.extent_z,
             height_scale: max_height / 65535.0,
+            stamp: Stamp::new(),
         })
     }
 

@@ -15,6 +15,8 @@
 use std::collections::hash_map::Entry;
 use std::sync::OnceLock;
 
+use crate::stamp::Stamp;
+
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
@@ -69,6 +71,8 @@ pub struct Dynamics {
     generation: u64,
     /// Bumped when objects are added or removed (slots change meaning).
     layout_generation: u64,
+    /// Which dynamics these are, for device copies (a clone has its own).
+    stamp: Stamp,
     /// Bumped (with `generation`) by [`Dynamics::set_action`] alone.
     action_generation: u64,
 }
@@ -425,6 +429,11 @@ impl Dynamics {
     pub fn generation(&self) -> u64 {
         self.generation
     }
+    /// This value's process-unique stamp (a clone has its own): with the generations,
+    /// what a device copy is keyed on.
+    pub fn stamp(&self) -> u64 {
+        self.stamp.get()
+    }
     /// A counter bumped whenever objects are added or removed.
     pub fn layout_generation(&self) -> u64 {
         self.layout_generation
@@ -476,6 +485,8 @@ pub struct Statics {
     owner: Vec<u32>,
     /// Bumped by every change, so backends know when to rebuild their static tree.
     generation: u64,
+    /// Which statics these are, for device copies (a clone has its own).
+    stamp: Stamp,
 }
 
 impl Statics {
@@ -561,6 +572,11 @@ impl Statics {
     /// A counter bumped by every change.
     pub fn generation(&self) -> u64 {
         self.generation
+    }
+    /// This value's process-unique stamp (a clone has its own): with the generation,
+    /// what a device copy is keyed on.
+    pub fn stamp(&self) -> u64 {
+        self.stamp.get()
     }
     /// Number of primitives of each kind, in [`ShapeKind`] order.
     pub fn prims_by_shape(&self) -> [usize; 3] {

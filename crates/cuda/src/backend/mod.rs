@@ -71,9 +71,9 @@ pub(super) struct Synced {
     pub action_generation: u64,
     /// `Dynamics::layout_generation` (objects added or removed).
     pub layout: u64,
-    /// The address of the id vector, the tick and the seed: they tell two worlds with
-    /// equal generation counters apart (a backend moved from one world to another).
-    pub identity: (usize, u64, u64),
+    /// `Dynamics::stamp`: tells two worlds with equal generation counters apart (a
+    /// backend moved from one world to another, or to a clone).
+    pub identity: u64,
 }
 
 impl Synced {
@@ -84,7 +84,7 @@ impl Synced {
             generation: d.generation(),
             action_generation: d.action_generation(),
             layout: d.layout_generation(),
-            identity: (d.ids().as_ptr() as usize, world.tick, world.seed),
+            identity: d.stamp(),
         }
     }
 }
@@ -95,11 +95,10 @@ pub struct CudaBackend {
     n: usize,
     /// Which dynamics the device holds; `None`: upload everything.
     synced: Option<Synced>,
-    /// (generation, primitive count, address of the positions) of the statics on the
-    /// device.
-    statics_key: Option<(u64, usize, usize)>,
-    /// (address, length) of the terrain samples uploaded.
-    terrain_key: Option<(usize, usize)>,
+    /// (stamp, generation) of the statics on the device.
+    statics_key: Option<(u64, u64)>,
+    /// The stamp of the terrain on the device.
+    terrain_key: Option<u64>,
     params_key: Option<DeviceParams>,
     /// The dynamics generation the dynamic boxes (and tree) were built at.
     boxes_fresh: Option<u64>,

@@ -204,7 +204,7 @@ impl CudaBackend {
         self.synced = Some(now);
 
         let st = &world.statics;
-        let key = (st.generation(), st.prim_count(), st.positions().as_ptr() as usize);
+        let key = (st.stamp(), st.generation());
         if self.statics_key != Some(key) {
             let m = st.prim_count();
             let p = &mut self.prims;
@@ -229,7 +229,7 @@ impl CudaBackend {
         }
 
         let samples = world.terrain.samples();
-        let tkey = (samples.as_ptr() as usize, samples.len());
+        let tkey = world.terrain.stamp();
         if self.terrain_key != Some(tkey) {
             self.samples.ensure(gpu, samples.len() * 2, 1.0)?;
             gpu.upload(&self.samples, samples)?;

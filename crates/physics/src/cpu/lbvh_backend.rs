@@ -23,22 +23,24 @@ pub struct CpuLbvh {
 #[derive(Default)]
 struct Trees {
     statics: Lbvh,
-    /// `Statics::generation` the static tree was built for.
-    statics_generation: Option<u64>,
+    /// (`Statics::stamp`, `Statics::generation`) the static tree was built for.
+    statics_generation: Option<(u64, u64)>,
     dynamics: Lbvh,
-    /// `Dynamics::layout_generation` the dynamic tree's leaves belong to.
-    dynamic_layout: Option<u64>,
-    /// `Dynamics::generation` the dynamic tree's boxes are exact for.
-    dynamic_fresh: Option<u64>,
+    /// (`Dynamics::stamp`, `Dynamics::layout_generation`) the dynamic tree's leaves
+    /// belong to.
+    dynamic_layout: Option<(u64, u64)>,
+    /// (`Dynamics::stamp`, `Dynamics::generation`) the dynamic tree's boxes are exact for.
+    dynamic_fresh: Option<(u64, u64)>,
 }
 
 impl Trees {
     fn ensure_statics(&mut self, world: &World) {
         let st = &world.statics;
-        if self.statics_generation != Some(st.generation()) {
+        let key = (st.stamp(), st.generation());
+        if self.statics_generation != Some(key) {
             let boxes: Vec<Aabb> = (0..st.prim_count()).into_par_iter().map(|i| st.aabb(i)).collect();
             self.statics.build(&boxes, &world.bounds);
-            self.statics_generation = Some(st.generation());
+            self.statics_generation = Some(key);
         }
     }
 }
@@ -46,7 +48,7 @@ impl Trees {
 impl BroadPhase for Trees {
     fn build_dynamic(&mut self, world: &World, aabbs: &[Aabb]) {
         self.dynamics.build(aabbs, &world.bounds);
-        self.dynamic_layout = Some(world.dynamics.layout_generation());
+        self.dynamic_layout = Some((world.dynamics.stamp(), world.dynamics.layout_generation()));
         // The step moves everything after this: the boxes go stale.
         self.dynamic_fresh = None;
     }
@@ -108,16 +110,16 @@ impl Backend for CpuLbvh {
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
         let d = &world.dynamics;
         let trees = &mut self.broad;
-        if trees.dynamic_fresh != Some(d.generation()) {
+        if trees.dynamic_fresh != Some((d.stamp(), d.generation())) {
             dynamic_aabbs(Exec::Parallel, d, &mut self.scratch.aabbs);
-            if trees.dynamic_layout == Some(d.layout_generation()) {
+            if trees.dynamic_layout == Some((d.stamp(), d.layout_generation())) {
                 // Same objects, new positions: refitting keeps the answers exact.
                 trees.dynamics.refit(&self.scratch.aabbs);
             } else {
                 trees.dynamics.build(&self.scratch.aabbs, &world.bounds);
-                trees.dynamic_layout = Some(d.layout_generation());
+                trees.dynamic_layout = Some((d.stamp(), d.layout_generation()));
             }
-            trees.dynamic_fresh = Some(d.generation());
+            trees.dynamic_fresh = Some((d.stamp(), d.generation()));
         }
         let tree = &trees.dynamics;
         let per_query: Vec<Vec<u32>> = boxes

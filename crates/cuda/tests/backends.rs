@@ -68,3 +68,13 @@ fn golden_scenario_matches_the_cpu() {
         println!("golden scenario, 120 ticks: {} {got:#018x} = cpu", b.kind());
     }
 }
+
+/// Moved from one world to the next, the CUDA backends keep no device copy of the first
+/// (their copies are keyed on the worlds' stamps, not on addresses a dropped world hands
+/// on).
+#[test]
+fn a_moved_backend_answers_for_its_new_world() {
+    let Some(mut gpus) = cuda_backends("a_moved_backend_answers_for_its_new_world") else { return };
+    let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
+    conformance::a_moved_backend_answers_for_its_new_world(cpu.as_mut(), &mut gpus);
+}

@@ -258,6 +258,57 @@ pub fn area_of_interest_matches_brute_force(backends: &mut [Box<dyn Backend>]) {
     }
 }
 
+/// A backend moved from one world to the next answers for the new one: the first world
+/// is used, then dropped, and the second, built the same way from another seed, has the
+/// same generation counters and often the addresses the first one had. Caches keyed on
+/// either would answer from the first world; the worlds' stamps tell them apart. The AOI
+/// answer and one step are compared with `reference`'s, which sees only the second.
+pub fn a_moved_backend_answers_for_its_new_world(reference: &mut dyn Backend, others: &mut [Box<dyn Backend>]) {
+    let build = |seed| {
+        let mut spec = ScenarioSpec::custom(seed);
+        spec.dynamic = 800;
+        spec.users = 20;
+        spec.static_objects = 200;
+        spec.world_size = 128.0;
+        spec.terrain_samples = 65;
+        spec.build().expect("the moved-backend world")
+    };
+    let k = TickConstants::default();
+    let mut want_world = build(2);
+    let first = build(1);
+    assert_eq!(first.dynamics.generation(), want_world.dynamics.generation());
+    assert_eq!(first.statics.generation(), want_world.statics.generation());
+    assert_ne!(first.state_hash(), want_world.state_hash());
+    drop(first);
+    // Boxes across the map, from the ground up.
+    let (lo, hi) = (want_world.bounds.min, want_world.bounds.max);
+    let boxes: Vec<Aabb> = (0..16)
+        .map(|i| {
+            let t = (i as f32 + 0.5) / 16.0;
+            Aabb::from_center_half(lo + (hi - lo) * Vec3::new(t, 0.5, 1.0 - t), (hi - lo) * 0.2)
+        })
+        .collect();
+    let mut want = AoiResults::default();
+    reference.query_aoi(&want_world, &boxes, &mut want).expect("AOI query");
+    assert!(want.objects.len() > 100, "the boxes must see objects");
+    reference.step(&mut want_world, &k).expect("step");
+    for b in others {
+        {
+            let mut first = build(1);
+            let mut on_first = AoiResults::default();
+            b.query_aoi(&first, &boxes, &mut on_first).expect("AOI query");
+            assert_ne!(on_first, want, "{}: the worlds must differ where the boxes look", b.kind());
+            b.step(&mut first, &k).expect("step");
+        }
+        let mut world = build(2);
+        let mut got = AoiResults::default();
+        b.query_aoi(&world, &boxes, &mut got).expect("AOI query");
+        assert_eq!(got, want, "{}: AOI answered from the first world", b.kind());
+        b.step(&mut world, &k).expect("step");
+        assert_eq!(world.state_hash(), want_world.state_hash(), "{}: stepped on the first world's state", b.kind());
+    }
+}
+
 /// The golden world stepped 120 times: its state hash (which `tests/golden.rs` pins).
 pub fn golden_hash(backend: &mut dyn Backend) -> u64 {
     let mut w = golden_world();

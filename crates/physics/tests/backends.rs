@@ -74,3 +74,9 @@ fn overlapping_objects_are_pushed_apart() {
 fn area_of_interest_matches_brute_force() {
     conformance::area_of_interest_matches_brute_force(&mut backends());
 }
+
+#[test]
+fn a_moved_backend_answers_for_its_new_world() {
+    let mut reference = create_cpu_backend(BackendKind::Cpu).unwrap();
+    conformance::a_moved_backend_answers_for_its_new_world(reference.as_mut(), &mut backends());
+}

@@ -17,8 +17,8 @@
 //    stalest of the rest by (key, id), each group sorted by its order, nearest group
 //    first. Both orders are total (ids are distinct), so the choice is unique; the host
 //    uses the same orders (crates/interest/src/manager.rs).
-// 4. The new table holds every candidate's key; k_interest_stamp later sets the key of
-//    the records the host actually packed to `tick`.
+// 4. The new table holds every candidate's key; k_interest_stamp then sets the key of
+//    the records k_interest_pack packed to `tick`.
 //
 // Determinism: distances are computed as in Rust (no FMA: --fmad=false) and ordered like
 // f32::total_cmp; quantization is Rust's `QuantPos::from_f32` (f64, half away from zero,

@@ -78,7 +78,7 @@ pub struct BenchArgs {
     #[arg(long, default_value = "auto", value_parser = parse_outbound)]
     pub outbound: OutboundKind,
     /// UDP sockets the server tick sends on (config `udp_sockets`: 0 is one per core, at
-    /// most 8).
+    /// most 64).
     #[arg(long, default_value_t = ServerConfig::default().udp_sockets)]
     pub udp_sockets: usize,
     #[command(flatten)]

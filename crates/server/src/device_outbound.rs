@@ -32,10 +32,6 @@ pub struct DeviceOutbound {
     fallback: CpuOutbound,
     /// Each session's index in the last device selection (empty after a host tick).
     last: foldhash::HashMap<u64, u32>,
-    boxes: Vec<Aabb>,
-    own: Vec<u32>,
-    centres: Vec<[f32; 3]>,
-    prev: Vec<u32>,
 }
 
 impl DeviceOutbound {
@@ -47,10 +43,6 @@ impl DeviceOutbound {
             half: Vec3::splat(aoi_size / 2.0),
             fallback: CpuOutbound::new(aoi_size, max_datagrams),
             last: foldhash::HashMap::default(),
-            boxes: Vec::new(),
-            own: Vec::new(),
-            centres: Vec::new(),
-            prev: Vec::new(),
         }
     }
 
@@ -111,7 +103,7 @@ impl Outbound for DeviceOutbound {
         // In parallel: each recipient and its previous index are cache misses. The views'
         // object and centre are the host interest manager's; the device takes them here.
         let (half, last) = (self.half, &self.last);
-        ((self.boxes, self.own), (self.centres, self.prev)) = recipients
+        let ((boxes, own), (centres, prev)): ((Vec<_>, Vec<_>), (Vec<_>, Vec<_>)) = recipients
             .par_iter()
             .map(|r| {
                 let prev = last.get(&r.session_id).copied().unwrap_or(NO_PREVIOUS);
@@ -122,10 +114,10 @@ impl Outbound for DeviceOutbound {
         let query = InterestQuery {
             tick: tick.tick,
             dilation_permille: tick.dilation_permille,
-            boxes: &self.boxes,
-            own: &self.own,
-            centres: &self.centres,
-            prev: &self.prev,
+            boxes: &boxes,
+            own: &own,
+            centres: &centres,
+            prev: &prev,
             max_datagrams: config.max_datagrams.max(1) as u32,
             near_slots: config.near_slots() as u32,
             rotation_slots: config.rotation_slots() as u32,

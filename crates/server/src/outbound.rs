@@ -90,7 +90,7 @@ pub struct OutboundReport {
 
 /// Points each recipient's view at its object and centre, and collects their AOI boxes
 /// (half extents `half`) into `boxes`.
-pub(crate) fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
+fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
     boxes.clear();
     for r in recipients.iter_mut() {
         r.view.object = r.object;

@@ -24,12 +24,25 @@
 // f32::total_cmp; quantization is Rust's `QuantPos::from_f32` (f64, half away from zero,
 // saturating conversion, NaN to 0).
 #include "common.cuh"
+#include "aead.cuh"
 
 #define SEL_THREADS 256
 // The most records one selected group may hold (the sort runs in shared memory).
 #define SEL_SORT 1024
 // Protocol sizes (crates/protocol/src/header.rs and update.rs).
 #define MAX_BODY 1166u
+// Bytes between two bodies of `bodies` and of the host's copy (`BODY_STRIDE` in
+// backend/interest.rs): MAX_BODY rounded up to 16, so bodies copy as 16-byte words.
+#define BODY_STRIDE 1168u
+// A sealed datagram: the clear header, the body, the tag (crates/protocol/src/header.rs);
+// the host's copy holds one every DATAGRAM_STRIDE bytes (`MAX_DATAGRAM`, a multiple of 16).
+#define HEADER_LEN 18u
+#define TAG_LEN 16u
+#define DATAGRAM_STRIDE 1200u
+#define PROTOCOL_VERSION 1u
+#define STATE_UPDATE_KIND 0x81u
+// Datagrams (warps) per block of k_interest_seal.
+#define SEAL_WARPS 4
 #define UPDATE_HEADER_LEN 32u
 #define COMPACT_LEN 10u
 #define EXTENDED_LEN 24u
@@ -161,7 +174,7 @@ __device__ void block_sort(u64* key, u32* slot, u32 count) {
 }
 
 extern "C" __global__ void k_interest_select(
-    u32 nq, const u32* offsets, u32 parts, const u32* objects, u32 n, const float* pos, const u32* ids,
+    u32 first, u32 nq, const u32* offsets, u32 parts, const u32* objects, u32 n, const float* pos, const u32* ids,
     const u32* own, const float* centres, const u32* prev_index, const u32* prev_toff,
     const u64* prev_tid, const u64* prev_tkey, const u8* prev_rot, u32* next_toff, u64* next_tid,
     u64* next_tkey, u8* next_rot, u32* cdist, u32* cid, u8* cflag, u64* ckey, u64 tick,
@@ -172,7 +185,8 @@ extern "C" __global__ void k_interest_select(
     __shared__ u64 sort_key[SEL_SORT];
     __shared__ u32 sort_slot[SEL_SORT];
 
-    u32 i = blockIdx.x;
+    // Players first..nq (one chunk of the tick's players), one block each.
+    u32 i = first + blockIdx.x;
     if (i >= nq) return;
     // Player i's list is `parts` consecutive lists (k_aoi_cells' cells, or one).
     u32 start = offsets[parts * i], len = offsets[parts * (i + 1)] - start;
@@ -362,10 +376,10 @@ extern "C" __global__ void k_interest_select(
 
 // After the packing: the key of each of the first `packed[i]` selected records becomes
 // `tick` in player i's new table (players over budget only).
-extern "C" __global__ void k_interest_stamp(u32 nq, const u32* meta, const u32* sel, u32 cap,
+extern "C" __global__ void k_interest_stamp(u32 first, u32 nq, const u32* meta, const u32* sel, u32 cap,
                                             const u32* packed, const u32* ids, const u32* toff,
                                             const u64* tid, u64* tkey, u64 tick) {
-    u32 i = blockIdx.x;
+    u32 i = first + blockIdx.x;
     if (i >= nq || meta[4 * i + 2] == 0) return;
     u32 count = min(packed[i], meta[4 * i]);
     u32 tstart = 2 * toff[i], m = 2 * toff[i + 1] - tstart;
@@ -431,15 +445,15 @@ __device__ u32 write_rec(u8* out, u32 s, const float* pos, const u32* ids, const
     return EXTENDED_LEN;
 }
 
-// One warp per player: packs `min(meta[4 i], cap)` selected slots into at most
-// `max_datagrams` bodies at `bodies + (i * max_datagrams + d) * MAX_BODY`, with their
-// lengths in `lens` (0 past the last); `info[4 i..]` = (objects in view, over budget |
-// own object pinned << 1, records packed, datagrams), `totals[i]` the player's bytes
-// (`totals[nq]` = 0, for the scan), `packed[i]` the records packed (for the stamp).
+// One warp per player of first..nq: packs `min(meta[4 i], cap)` selected slots into at
+// most `max_datagrams` bodies at `bodies + (i * max_datagrams + d) * BODY_STRIDE`, with
+// their lengths in `lens` (0 past the last); `info[4 i..]` = (objects in view, over
+// budget | own object pinned << 1, records packed, datagrams), `packed[i]` the records
+// packed (for the stamp).
 extern "C" __global__ void k_interest_pack(
-    u32 nq, const u32* meta, const u32* sel, u32 cap, u32 n, const float* pos, const u32* ids,
+    u32 first, u32 nq, const u32* meta, const u32* sel, u32 cap, u32 n, const float* pos, const u32* ids,
     const u8* shapes, const u32* own, const float* centres, u64 tick, u32 dilation,
-    u32 max_datagrams, u8* bodies, u32* lens, u32* info, u32* totals, u32* packed) {
+    u32 max_datagrams, u8* bodies, u32* lens, u32* info, u32* packed) {
     // Record r of a player: its own object first when pinned, then the selection.
     __shared__ u32 s_id[PACK_WARPS][SEL_SORT + 1];
     __shared__ u8 s_near[PACK_WARPS][SEL_SORT + 1];
@@ -447,8 +461,7 @@ extern "C" __global__ void k_interest_pack(
         s_base[PACK_WARPS][MAX_PACK_DATAGRAMS];
     __shared__ u32 s_done[PACK_WARPS], s_dgrams[PACK_WARPS];
     u32 w = threadIdx.x / 32, lane = threadIdx.x % 32;
-    u32 i = blockIdx.x * PACK_WARPS + w;
-    if (i == 0 && lane == 0) totals[nq] = 0;
+    u32 i = first + blockIdx.x * PACK_WARPS + w;
     if (i >= nq) return;
     u32 mdg = min(max(max_datagrams, 1u), (u32)MAX_PACK_DATAGRAMS);
     u32 count = min(min(meta[4 * i], cap), (u32)SEL_SORT);
@@ -506,11 +519,11 @@ extern "C" __global__ void k_interest_pack(
     __syncwarp();
 
     // The bytes, a warp at a time: each lane one record, offsets by a warp scan.
-    u32 dgrams = s_dgrams[w], total = 0;
+    u32 dgrams = s_dgrams[w];
     for (u32 d = 0; d < mdg; d++) {
         u32 len = 0;
         if (d < dgrams) {
-            u8* body = bodies + ((u64)i * mdg + d) * MAX_BODY;
+            u8* body = bodies + ((u64)i * mdg + d) * BODY_STRIDE;
             u32 base = s_base[w][d], first = pin + s_first[w][d], take = s_take[w][d];
             u32 at = UPDATE_HEADER_LEN;
             if (pin) {
@@ -540,29 +553,57 @@ extern "C" __global__ void k_interest_pack(
             len = at;
         }
         if (lane == 0) lens[(u64)i * mdg + d] = len;
-        total += len;
     }
     if (lane == 0) {
         info[4 * i] = meta[4 * i + 1];
         info[4 * i + 1] = (meta[4 * i + 2] != 0 ? 1u : 0u) | (pin << 1);
         info[4 * i + 2] = s_done[w];
         info[4 * i + 3] = dgrams;
-        totals[i] = total;
         packed[i] = s_done[w];
     }
 }
 
-// The bodies one after another for the download: player i's, from its stride of
-// `bodies`, to `out + offsets[i]` (the exclusive scan of `totals`).
-extern "C" __global__ void k_interest_bodies(u32 nq, u32 max_datagrams, const u8* bodies, const u32* lens,
-                                             const u32* offsets, u8* out) {
-    u32 i = blockIdx.x;
-    if (i >= nq) return;
-    u32 at = offsets[i];
-    for (u32 d = 0; d < max_datagrams; d++) {
-        u32 len = lens[(u64)i * max_datagrams + d];
-        const u8* src = bodies + ((u64)i * max_datagrams + d) * MAX_BODY;
-        for (u32 j = threadIdx.x; j < len; j += blockDim.x) out[at + j] = src[j];
-        at += len;
+// Sealing and the download: datagram `d` of player i (first..nq), for `d` below its
+// datagram count, is framed (the clear header: version, StateUpdate, session id, sequence
+// number `first sequence + d`), sealed with the player's session key by ChaCha20-Poly1305
+// (aead.cuh) and stored at `out + (i * max_datagrams + d) * DATAGRAM_STRIDE`. `out` is
+// page-locked host memory mapped into the device's address space, so these stores are
+// the transfer, and only the bytes in use cross the bus. `leases[12 i..]`: the session
+// key (8 words), the session id and the first sequence number (2 words each, low first);
+// a first number of u64 max: no lease, nothing is sealed. A warp a datagram.
+extern "C" __global__ void k_interest_seal(u32 first, u32 nq, u32 max_datagrams, const u8* bodies,
+                                           const u32* lens, const u32* info, const u32* leases,
+                                           u8* out) {
+    __shared__ uint4 s_buf[SEAL_WARPS][DATAGRAM_STRIDE / 16];
+    u32 w = threadIdx.x / 32, lane = threadIdx.x % 32;
+    u64 g = (u64)blockIdx.x * SEAL_WARPS + w;
+    u32 i = first + (u32)(g / max_datagrams), d = (u32)(g % max_datagrams);
+    // Uniform over the warp: whole warps leave.
+    if (i >= nq || d >= min(info[4 * i + 3], max_datagrams)) return;
+    const u32* lease = leases + 12ull * i;
+    u64 sequence = (u64)lease[10] | ((u64)lease[11] << 32);
+    if (sequence == ~0ull) return;
+    sequence += d;
+    u32 len = min(lens[(u64)i * max_datagrams + d], MAX_BODY);
+    u8* buf = (u8*)s_buf[w];
+    const u8* body = bodies + ((u64)i * max_datagrams + d) * BODY_STRIDE;
+    for (u32 k = lane; k < len; k += 32) buf[HEADER_LEN + k] = body[k];
+    if (lane == 0) {
+        buf[0] = PROTOCOL_VERSION;
+        buf[1] = STATE_UPDATE_KIND;
+        for (u32 k = 0; k < 8; k++) {
+            buf[2 + k] = (u8)(lease[8 + k / 4] >> (8 * (k % 4)));
+            buf[10 + k] = (u8)(sequence >> (8 * k));
+        }
     }
+    __syncwarp();
+    u32 key[8];
+    for (u32 k = 0; k < 8; k++) key[k] = lease[k];
+    // The nonce: the direction byte (1, server to client), three zero bytes, the sequence
+    // number (crates/protocol/src/aead.rs).
+    u32 nonce[3] = {1u, (u32)sequence, (u32)(sequence >> 32)};
+    seal_warp(buf, HEADER_LEN, len, key, nonce);
+    u32 words = (HEADER_LEN + len + TAG_LEN + 15) / 16;
+    uint4* dst = (uint4*)(out + ((u64)i * max_datagrams + d) * DATAGRAM_STRIDE);
+    for (u32 k = lane; k < words; k += 32) dst[k] = s_buf[w][k];
 }

@@ -26,8 +26,11 @@ pub const SOURCES: [(&str, &str); 5] = [
 ];
 
 /// Headers the sources include, handed to NVRTC by name.
-pub const HEADERS: [(&str, &str); 2] =
-    [("common.cuh", include_str!("../kernels/common.cuh")), ("narrow.cuh", include_str!("../kernels/narrow.cuh"))];
+pub const HEADERS: [(&str, &str); 3] = [
+    ("common.cuh", include_str!("../kernels/common.cuh")),
+    ("narrow.cuh", include_str!("../kernels/narrow.cuh")),
+    ("aead.cuh", include_str!("../kernels/aead.cuh")),
+];
 
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
@@ -50,10 +53,10 @@ pub const KERNELS: [(&str, usize); 21] = [
     ("k_narrow_static", 17),
     ("k_narrow_dynamic", 13),
     ("k_forces", 16),
-    ("k_interest_select", 29),
-    ("k_interest_stamp", 10),
+    ("k_interest_select", 30),
+    ("k_interest_stamp", 11),
     ("k_interest_pack", 18),
-    ("k_interest_bodies", 6),
+    ("k_interest_seal", 8),
 ];
 
 /// The parameter count of each `extern "C" __global__` function in the sources, read

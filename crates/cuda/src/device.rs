@@ -217,6 +217,23 @@ impl Gpu {
         Some(s)
     }
 
+    /// How many blocks of `block` threads of kernel `name` the whole device runs at
+    /// once (its multiprocessors times the blocks each holds): a grid of a multiple of
+    /// this leaves no multiprocessor idle in its last wave.
+    pub fn wave(&self, name: &'static str, block: u32) -> Result<usize, PhysicsError> {
+        let (f, _) =
+            *self.kernels.get(name).ok_or(PhysicsError::Device { stage: name, message: "unknown kernel".into() })?;
+        let sms = self
+            .ctx
+            .attribute(sys::CUdevice_attribute::CU_DEVICE_ATTRIBUTE_MULTIPROCESSOR_COUNT)
+            .map_err(dev_err(name))?;
+        let mut per_sm = 0;
+        // SAFETY: `f` comes from the loaded module; `per_sm` is a valid place to write.
+        unsafe { sys::cuOccupancyMaxActiveBlocksPerMultiprocessor(&mut per_sm, f, block as i32, 0).result() }
+            .map_err(dev_err(name))?;
+        Ok((sms.max(1) as usize) * (per_sm.max(1) as usize))
+    }
+
     /// Waits for everything queued on the stream.
     pub fn sync(&self) -> Result<(), PhysicsError> {
         // SAFETY: the stream is live.
@@ -254,6 +271,26 @@ impl Gpu {
             result::memcpy_htod_async(dst.ptr().raw(), src, self.stream).map_err(dev_err("upload"))?;
             result::stream::synchronize(self.stream).map_err(dev_err("upload"))
         }
+    }
+
+    /// Queues a copy of the first `count` items of pinned host memory `src` to device
+    /// memory, ordered on the stream: `src` must not change until the stream has passed
+    /// the copy (an event or a synchronize).
+    pub fn upload_async<T: Pod>(&self, dst: &DevBuf<T>, src: &Pinned, count: usize) -> Result<(), PhysicsError> {
+        let bytes = count * std::mem::size_of::<T>();
+        if bytes == 0 {
+            return Ok(());
+        }
+        if bytes > dst.bytes || bytes > src.bytes {
+            return Err(PhysicsError::Device {
+                stage: "upload",
+                message: format!("{bytes} bytes from {} into {}", src.bytes, dst.bytes),
+            });
+        }
+        // SAFETY: both buffers hold at least `bytes` bytes (checked); `src` is pinned
+        // memory owned by the caller, which keeps it unchanged until the copy is done.
+        unsafe { sys::cuMemcpyHtoDAsync_v2(dst.ptr().raw(), src.ptr, bytes, self.stream).result() }
+            .map_err(dev_err("upload"))
     }
 
     /// Queues a copy of `count` items of type `T` from device memory into pinned host
@@ -384,6 +421,10 @@ pub(crate) struct Pinned {
 // SAFETY: the buffer is plain memory owned by this value; it is only accessed through
 // `&self`/`&mut self`.
 unsafe impl Send for Pinned {}
+// SAFETY: through `&self` the host only reads (`slice`, `range`, `device_ptr`); writes
+// need `&mut self`. The device's writes are ordered by the caller, which reads a range
+// only after waiting for the work that writes it.
+unsafe impl Sync for Pinned {}
 
 impl Pinned {
     /// An empty buffer.
@@ -398,8 +439,10 @@ impl Pinned {
         }
         self.free();
         let want = bytes.max(64) * 5 / 4;
-        // SAFETY: the context is current; flags 0 = plain page-locked memory.
-        let ptr = unsafe { result::malloc_host(want, 0) }.map_err(dev_err("pinned allocate"))?;
+        // SAFETY: the context is current. Mapped into the device's address space, so that
+        // kernels may store into it ([`Pinned::device_ptr`]).
+        let ptr =
+            unsafe { result::malloc_host(want, sys::CU_MEMHOSTALLOC_DEVICEMAP) }.map_err(dev_err("pinned allocate"))?;
         // Zero it so that reading any part of it is defined.
         // SAFETY: `ptr` points to `want` writable bytes.
         unsafe { std::ptr::write_bytes(ptr as *mut u8, 0, want) };
@@ -407,6 +450,41 @@ impl Pinned {
         self.bytes = want;
         self.ctx = Some(gpu.ctx.clone());
         Ok(())
+    }
+
+    /// Bytes the buffer holds.
+    pub fn capacity_bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// The buffer's address for kernels (null while empty): a kernel's stores to it land
+    /// in this host memory, visible to the host once the stream has passed the kernel
+    /// (an event or a synchronize).
+    pub fn device_ptr<T>(&self) -> Result<DevPtr<T>, PhysicsError> {
+        if self.ptr.is_null() {
+            return Ok(DevPtr::NULL);
+        }
+        let mut dptr: CUdeviceptr = 0;
+        // SAFETY: `ptr` was allocated by `malloc_host` with `CU_MEMHOSTALLOC_DEVICEMAP`
+        // in the current context and is live; `dptr` is a valid place to write.
+        unsafe { sys::cuMemHostGetDevicePointer_v2(&mut dptr, self.ptr, 0).result() }.map_err(dev_err("pinned map"))?;
+        Ok(DevPtr::from_raw(dptr))
+    }
+
+    /// Items `at..at + count` as `T`, and no byte outside them: the device may still be
+    /// writing other parts of the buffer. Panics when the buffer holds fewer.
+    pub fn range<T: Pod>(&self, at: usize, count: usize) -> &[T] {
+        let size = std::mem::size_of::<T>();
+        assert!((at + count) * size <= self.bytes, "pinned buffer too small");
+        if count == 0 {
+            return &[];
+        }
+        // SAFETY: the bytes are within the allocation (asserted) and initialised (zeroed
+        // at allocation); the caller has waited for the device's writes to this range.
+        // The offset keeps `T`'s alignment: the allocation is page aligned and `at` counts
+        // whole items.
+        let raw = unsafe { std::slice::from_raw_parts((self.ptr as *const u8).add(at * size), count * size) };
+        bytemuck::cast_slice(raw)
     }
 
     /// The first `count` items as `T`. `T: Pod` (plain data: any bit pattern is a valid
@@ -467,6 +545,9 @@ pub(crate) struct Event {
 
 // SAFETY: as for `Gpu`: the handle belongs to the held context.
 unsafe impl Send for Event {}
+// SAFETY: the driver's event calls are thread-safe; several threads may wait for one
+// event at once.
+unsafe impl Sync for Event {}
 
 impl Event {
     /// A new event in `gpu`'s context.

@@ -385,8 +385,10 @@ kernels! {
     }
 
     /// `k_interest_select` (`kernels/interest.cu`): one block per player picks its
-    /// records from its AOI list and writes its new staleness table.
+    /// records from its AOI list and writes its new staleness table (players
+    /// `first..nq`).
     KInterestSelect = "k_interest_select" {
+        first: u32,
         nq: u32,
         offsets: DevPtr<u32>,
         parts: u32,
@@ -417,8 +419,10 @@ kernels! {
         meta: DevPtr<u32>,
         sel: DevPtr<u32>,
     }
-    /// `k_interest_pack`: one warp per player packs its selection into update bodies.
+    /// `k_interest_pack`: one warp per player packs its selection into update bodies
+    /// (players `first..nq`).
     KInterestPack = "k_interest_pack" {
+        first: u32,
         nq: u32,
         meta: DevPtr<u32>,
         sel: DevPtr<u32>,
@@ -435,20 +439,24 @@ kernels! {
         bodies: DevPtr<u8>,
         lens: DevPtr<u32>,
         info: DevPtr<u32>,
-        totals: DevPtr<u32>,
         packed: DevPtr<u32>,
     }
-    /// `k_interest_bodies`: the bodies one after another for the download.
-    KInterestBodies = "k_interest_bodies" {
+    /// `k_interest_seal`: players `first..nq`'s datagrams framed, sealed and stored into
+    /// mapped host memory (the download).
+    KInterestSeal = "k_interest_seal" {
+        first: u32,
         nq: u32,
         max_datagrams: u32,
         bodies: DevPtr<u8>,
         lens: DevPtr<u32>,
-        offsets: DevPtr<u32>,
+        info: DevPtr<u32>,
+        leases: DevPtr<u32>,
         out: DevPtr<u8>,
     }
-    /// `k_interest_stamp`: marks the records packed as sent this tick.
+    /// `k_interest_stamp`: marks the records packed as sent this tick (players
+    /// `first..nq`).
     KInterestStamp = "k_interest_stamp" {
+        first: u32,
         nq: u32,
         meta: DevPtr<u32>,
         sel: DevPtr<u32>,

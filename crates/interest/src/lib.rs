@@ -27,9 +27,9 @@
 //!    stalest by (key, id); the nearest group is packed first, then the stalest, each
 //!    sorted, so when extended records take more room what is cut is the least urgent,
 //!    and the payload is a function of the world, the tick and the history alone.
-//!    `myriad-cuda`'s device selection applies the same rule and packs on the device;
-//!    [`InterestManager::seal_packed`] frames and seals its bodies: the bytes are the
-//!    same.
+//!    `myriad-cuda`'s device selection applies the same rule, packs and seals on the
+//!    device under sequence numbers leased from each subscriber's sealer;
+//!    [`InterestManager::adopt_sealed`] takes its datagrams: the bytes are the same.
 //! 4. Seal every datagram with the subscriber's [`Sealer`](myriad_protocol::Sealer).
 //!
 //! # Refresh bound

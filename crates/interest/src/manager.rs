@@ -5,8 +5,9 @@ use std::cell::RefCell;
 
 use myriad_protocol::update::record_len;
 use myriad_protocol::{
-    COMPACT_RECORD_LEN, DatagramBatch, EXTENDED_RECORD_LEN, MAX_BODY, QuantPos, Sealer, StateRecord, UPDATE_HEADER_LEN,
-    UpdateHeader, pack_updates_pinned, push_update_body,
+    COMPACT_RECORD_LEN, DatagramBatch, Direction, EXTENDED_RECORD_LEN, MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM,
+    PacketKind, QuantPos, SealLease, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader, pack_updates_pinned,
+    peek_header,
 };
 use rayon::prelude::*;
 use thiserror::Error;
@@ -40,6 +41,10 @@ pub struct Subscriber {
     pub centre: [f32; 3],
     /// Seals this player's datagrams (the server half of its session).
     pub sealer: Sealer,
+    /// Where a selection made outside [`InterestManager::build`] (a device's) keeps this
+    /// player's staleness: the tick of that selection and the player's index in it, which
+    /// the next tick's selection reads it through. [`InterestManager::build`] clears it.
+    pub selected: Option<(u64, u32)>,
     /// `(object id, staleness key)` of the objects in view, in no order, kept while the
     /// player is over budget.
     rotation: Vec<(u64, u64)>,
@@ -60,6 +65,7 @@ impl Subscriber {
             object,
             centre,
             sealer,
+            selected: None,
             rotation: Vec::new(),
             rotation_tick: None,
             datagrams: DatagramBatch::new(),
@@ -75,6 +81,13 @@ impl Subscriber {
     /// What the last build did for this player.
     pub fn report(&self) -> SubscriberReport {
         self.report
+    }
+
+    /// Drops the datagrams of the last build: a tick that could not serve this player
+    /// sends it nothing rather than the last tick's datagrams again.
+    pub fn clear_datagrams(&mut self) {
+        self.datagrams.clear();
+        self.report = SubscriberReport::default();
     }
 }
 
@@ -130,7 +143,8 @@ impl TickReport {
         self
     }
 
-    fn merge(mut self, o: Self) -> Self {
+    /// The sums of two reports (of two parts of the subscribers, built apart).
+    pub fn merge(mut self, o: Self) -> Self {
         self.subscribers += o.subscribers;
         self.records += o.records;
         self.datagrams += o.datagrams;
@@ -218,56 +232,92 @@ impl InterestManager {
 }
 
 impl InterestManager {
-    /// Frames and seals each subscriber's update bodies as selected and packed elsewhere
-    /// (the device outbound of `myriad-server`, on `myriad-cuda`'s kernels, which apply
-    /// [`build`](Self::build)'s rule and `pack_updates_pinned`'s packing): `packed(i)`
-    /// gives subscriber `i`'s bodies, `None` when there are none to trust (the
-    /// subscriber then gets nothing this tick and counts one skipped). A body of a
-    /// length no update can have is refused the same way. Staleness is kept by whoever
+    /// Takes each subscriber's datagrams as selected, packed and sealed elsewhere (the
+    /// device outbound of `myriad-server`, on `myriad-cuda`'s kernels, which apply
+    /// [`build`](Self::build)'s rule and `pack_updates_pinned`'s packing, and seal under
+    /// sequence numbers leased from the subscriber's sealer): `sealed(i)` gives subscriber
+    /// `i`'s datagrams, `None` when there are none to trust, and `leases[i]` the lease
+    /// they were sealed under (`None`: none could be taken, so the subscriber gets
+    /// nothing and counts a seal failure, as when its own sealer runs out).
+    ///
+    /// Each datagram must be a state update of this subscriber's session with the
+    /// lease's next number, of a length an update can have; then the lease's unused
+    /// numbers go back to the sealer ([`Sealer::return_unused`]). A subscriber whose
+    /// datagrams fail that check gets nothing this tick and counts one skipped, and its
+    /// lease is dropped (its numbers may have been used). Staleness is kept by whoever
     /// selected, so the subscribers' own rotation state is dropped.
-    pub fn seal_packed<'b, S, F, B>(&self, packed: F, subscribers: &mut [S]) -> TickReport
+    ///
+    /// On the calling thread: callers take shares of the subscribers on threads of their
+    /// own.
+    pub fn adopt_sealed<'b, S, F, B>(
+        &self,
+        sealed: F,
+        subscribers: &mut [S],
+        leases: &mut [Option<SealLease>],
+    ) -> TickReport
     where
-        S: BorrowMut<Subscriber> + Send,
-        F: Fn(usize) -> Option<Packed<B>> + Sync,
+        S: BorrowMut<Subscriber>,
+        F: Fn(usize) -> Option<Packed<B>>,
         B: IntoIterator<Item = &'b [u8]>,
     {
-        subscribers
-            .par_iter_mut()
-            .enumerate()
-            .fold(TickReport::default, |acc, (i, s)| {
-                let sub = s.borrow_mut();
-                sub.datagrams.clear();
-                sub.rotation.clear();
-                sub.rotation_tick = None;
-                let mut report = SubscriberReport::default();
-                match packed(i) {
-                    Some(p) => {
-                        report.in_view = p.in_view;
-                        report.over_budget = p.over_budget;
-                        let framed = p.bodies.into_iter().try_for_each(|b| push_update_body(b, &mut sub.datagrams));
-                        if framed.is_ok() {
-                            report.packed = p.packed;
-                            report.records = p.packed + usize::from(p.pinned) * sub.datagrams.len();
-                            seal(sub, &mut report);
-                        } else {
-                            sub.datagrams.clear();
-                            report.skipped = 1;
-                        }
+        subscribers.iter_mut().zip(leases.iter_mut()).enumerate().fold(TickReport::default(), |acc, (i, (s, lease))| {
+            let sub = s.borrow_mut();
+            sub.datagrams.clear();
+            sub.rotation.clear();
+            sub.rotation_tick = None;
+            let mut report = SubscriberReport::default();
+            match (lease.take(), sealed(i)) {
+                (None, _) => report.seal_failed = true,
+                (Some(_), None) => report.skipped = 1,
+                (Some(lease), Some(p)) => {
+                    report.in_view = p.in_view;
+                    report.over_budget = p.over_budget;
+                    if adopt(p.datagrams, &lease, &mut sub.datagrams) {
+                        let used = sub.datagrams.len() as u64;
+                        report.packed = p.packed;
+                        report.records = p.packed + usize::from(p.pinned) * sub.datagrams.len();
+                        report.datagrams = sub.datagrams.len();
+                        report.bytes = sub.datagrams.total_bytes();
+                        // The sealer has not moved since the lease (the outbound leased
+                        // last); if it had, the numbers simply stay unused.
+                        let _ = sub.sealer.return_unused(lease, used);
+                    } else {
+                        sub.datagrams.clear();
+                        report.skipped = 1;
                     }
-                    None => report.skipped = 1,
                 }
-                sub.report = report;
-                acc.add(&sub.report)
-            })
-            .reduce(TickReport::default, TickReport::merge)
+            }
+            sub.report = report;
+            acc.add(&sub.report)
+        })
     }
 }
 
-/// One subscriber's update bodies, packed outside [`InterestManager::build`].
+/// Copies `datagrams` into `out` if each is a state update sealed under `lease`'s next
+/// number (at most its numbers) with a length an update can have; returns whether it
+/// did.
+fn adopt<'b>(datagrams: impl IntoIterator<Item = &'b [u8]>, lease: &SealLease, out: &mut DatagramBatch) -> bool {
+    let mut numbers = lease.first_sequence()..lease.end_sequence();
+    for d in datagrams {
+        let ok = numbers.next().is_some_and(|number| {
+            (MIN_DATAGRAM + UPDATE_HEADER_LEN..=MAX_DATAGRAM).contains(&d.len())
+                && peek_header(d, Direction::ServerToClient).is_ok_and(|h| {
+                    h.kind == PacketKind::StateUpdate && h.session_id == lease.session_id() && h.sequence == number
+                })
+        });
+        if !ok {
+            return false;
+        }
+        out.push(d);
+    }
+    true
+}
+
+/// One subscriber's sealed datagrams, made outside [`InterestManager::build`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Packed<B> {
-    /// The state update bodies, one a datagram, in order.
-    pub bodies: B,
+    /// The sealed state update datagrams, in order.
+    pub datagrams: B,
     /// Objects in view, own excluded.
     pub in_view: usize,
     /// Whether the view was over budget.
@@ -306,6 +356,7 @@ fn build_one<O: ObjectSource>(
     scratch: &mut Scratch,
 ) {
     let Scratch { cands, stored, seen, order, records } = scratch;
+    sub.selected = None;
     cands.clear();
     records.clear();
     let mut report = SubscriberReport { skipped: usize::from(list.is_none()), ..SubscriberReport::default() };

@@ -4,7 +4,7 @@
 use std::collections::{HashMap, HashSet};
 
 use myriad_interest::*;
-use myriad_protocol::{ClientSession, ServerMessage, ServerSession, SessionKeys, ShapeKind, StateRecord};
+use myriad_protocol::{ClientSession, SealLease, ServerMessage, ServerSession, SessionKeys, ShapeKind, StateRecord};
 
 /// A tiny deterministic generator (xorshift64*), so failures reproduce.
 struct Rng(u64);
@@ -275,7 +275,7 @@ fn far_objects_and_huge_ids_use_extended_records_within_budget() {
 }
 
 #[test]
-fn bodies_packed_elsewhere_are_sealed_as_the_manager_would() {
+fn datagrams_sealed_elsewhere_are_adopted_as_the_manager_would_send_them() {
     let mut rng = Rng(9);
     let world = World::new(600, &mut rng, 1 << 33);
     let list: Vec<u32> = (0..600).collect();
@@ -286,48 +286,64 @@ fn bodies_packed_elsewhere_are_sealed_as_the_manager_would() {
     manager.build(tick, &world.soa(), AoiLists { offsets: &offsets[..2], objects: &list }, &mut built).unwrap();
     assert!(built[0].report().over_budget && built[0].datagrams().len() == 2);
 
-    // The same bodies, as another packer would hand them over, through a twin session.
+    // The same bodies, sealed elsewhere (as a device would) under a lease of a twin
+    // session's sealer: three numbers leased, two used.
     let (mut twin, mut client) = subscriber(3, 7, world.positions[7]);
     let mut keep = ClientSession::new(&keys(3));
-    let bodies: Vec<Vec<u8>> = built[0]
+    let mut device = ServerSession::new(&keys(3)).sealer;
+    let sealed: Vec<Vec<u8>> = built[0]
         .datagrams()
         .iter()
         .map(|d| {
             let mut d = d.to_vec();
-            let header = myriad_protocol::HEADER_LEN;
             keep.open(&mut d).unwrap();
-            d[header..d.len() - myriad_protocol::TAG_LEN].to_vec()
+            // The clear frame again: version and kind, the body, room for the tag.
+            d[2..myriad_protocol::HEADER_LEN].fill(0);
+            device.seal_in_place(&mut d).unwrap();
+            d
         })
         .collect();
     let first = built[0].report();
-    let report = manager.seal_packed(
-        |_| {
-            Some(Packed {
-                bodies: bodies.iter().map(Vec::as_slice),
-                in_view: first.in_view,
-                over_budget: true,
-                pinned: true,
-                packed: first.packed,
-            })
-        },
+    fn with(datagrams: Vec<&[u8]>, in_view: usize) -> Packed<Vec<&[u8]>> {
+        Packed { datagrams, in_view, over_budget: true, pinned: true, packed: 0 }
+    }
+    let packed = |datagrams| with(datagrams, first.in_view);
+    let mut leases = [Some(twin.sealer.lease(3).unwrap())];
+    let report = manager.adopt_sealed(
+        |_| Some(Packed { packed: first.packed, ..packed(sealed.iter().map(Vec::as_slice).collect()) }),
         std::slice::from_mut(&mut twin),
+        &mut leases,
     );
     assert_eq!(twin.datagrams().iter().collect::<Vec<_>>(), built[0].datagrams().iter().collect::<Vec<_>>());
     assert_eq!(twin.report(), first);
     assert_eq!(report.records, first.records);
+    assert_eq!(twin.sealer.next_sequence(), 2, "the unused number goes back");
+    assert!(leases[0].is_none());
     let (records, ticks) = receive(&twin, &mut client);
     assert_eq!(records.len(), first.records);
     assert_eq!(ticks, [8, 8]);
 
-    // Nothing to trust, or a body no update can have: nothing is sent, one skip each.
-    let mut subs = vec![subscriber(4, 0, [0.0; 3]).0, subscriber(5, 0, [0.0; 3]).0];
-    let short = [0u8; 3];
-    let report = manager.seal_packed(
-        |i| {
-            (i == 1).then_some(Packed { bodies: [&short[..]], in_view: 0, over_budget: false, pinned: true, packed: 0 })
+    // Refused: a datagram under another number than the lease's next, one too short to
+    // be an update, another session's, nothing to trust. Nothing is sent, one skip each,
+    // and the leases' numbers stay used. Without a lease: a seal failure.
+    let mut subs: Vec<Subscriber> = (0..5).map(|_| subscriber(3, 7, world.positions[7]).0).collect();
+    let mut leases: Vec<Option<SealLease>> = subs.iter_mut().map(|s| Some(s.sealer.lease(2).unwrap())).collect();
+    leases[4] = None;
+    let short = sealed[0][..myriad_protocol::MIN_DATAGRAM + 4].to_vec();
+    let mut other = sealed[0].clone();
+    other[2] ^= 1;
+    let report = manager.adopt_sealed(
+        |i| match i {
+            0 => Some(packed(vec![&sealed[1][..]])),
+            1 => Some(packed(vec![&short[..]])),
+            2 => Some(packed(vec![&other[..]])),
+            3 => None,
+            _ => Some(packed(vec![&sealed[0][..]])),
         },
         &mut subs,
+        &mut leases,
     );
-    assert_eq!((report.skipped, report.datagrams, report.subscribers), (2, 0, 2));
+    assert_eq!((report.skipped, report.seal_failures, report.datagrams, report.subscribers), (4, 1, 0, 5));
     assert!(subs.iter().all(|s| s.datagrams().is_empty()));
+    assert!(subs[..4].iter().all(|s| s.sealer.next_sequence() == 2));
 }

@@ -81,6 +81,10 @@ pub struct BenchArgs {
     /// most 64).
     #[arg(long, default_value_t = ServerConfig::default().udp_sockets)]
     pub udp_sockets: usize,
+    /// Players in each run the device outbound hands over while the device builds the
+    /// next (config `outbound_chunk_players`: 0 by size; at least the players: one run).
+    #[arg(long, default_value_t = ServerConfig::default().outbound_chunk_players)]
+    pub outbound_chunk_players: usize,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -346,6 +350,7 @@ fn server_one(
         aoi_size: aoi,
         outbound: args.outbound,
         udp_sockets: args.udp_sockets,
+        outbound_chunk_players: args.outbound_chunk_players,
         ..ServerConfig::default()
     };
     let mut bench = TickBench::new(config, world.clone(), backend).context("starting the server tick")?;

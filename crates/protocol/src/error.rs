@@ -149,6 +149,11 @@ pub enum SealError {
         /// Numbers the sealer still owns.
         available: u64,
     },
+    /// [`Sealer::return_unused`](crate::Sealer::return_unused) was given a lease that is
+    /// not this sealer's latest (another session's, or one the sealer has moved past
+    /// since), or more numbers used than the lease holds: nothing is returned.
+    #[error("the lease cannot be returned to this sealer")]
+    LeaseNotReturnable,
 }
 
 /// A message that cannot be encoded into one datagram.
@@ -162,13 +167,5 @@ pub enum EncodeError {
         len: usize,
         /// Largest body length.
         max: usize,
-    },
-    /// The body is shorter than its message's fixed header.
-    #[error("body of {len} bytes is shorter than the {min}-byte header")]
-    TooShort {
-        /// Body length given.
-        len: usize,
-        /// Shortest body length.
-        min: usize,
     },
 }

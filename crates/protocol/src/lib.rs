@@ -53,5 +53,5 @@ pub use replay::{REPLAY_WINDOW, ReplayWindow};
 pub use session::{ClientSession, Opened, Opener, SealLease, Sealer, ServerSession, SessionKeys, Verified};
 pub use update::{
     COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN, ID_WINDOW, MAX_COMPACT_RECORDS, ShapeKind, StateRecord, StateUpdate,
-    StateUpdateView, UPDATE_HEADER_LEN, UpdateHeader, pack_updates, pack_updates_pinned, push_update_body,
+    StateUpdateView, UPDATE_HEADER_LEN, UpdateHeader, pack_updates, pack_updates_pinned,
 };

@@ -186,6 +186,33 @@ impl Sealer {
         })
     }
 
+    /// Takes back the unused tail of `lease`, the sealer's latest: its first `used`
+    /// numbers were used (or may have been), the rest never were, so this sealer may use
+    /// them. Keeps a session's numbers dense when a device seals fewer datagrams than it
+    /// was leased numbers for. Fails with [`SealError::LeaseNotReturnable`], changing
+    /// nothing, when the lease is another session's or direction's, when this sealer has
+    /// sealed or leased since, or when `used` exceeds the lease.
+    ///
+    /// ```
+    /// use myriad_protocol::{Direction, Sealer};
+    ///
+    /// let mut sealer = Sealer::new(7, Direction::ServerToClient, &[9; 32]);
+    /// let lease = sealer.lease(4).unwrap(); // numbers 0..4
+    /// sealer.return_unused(lease, 1).unwrap(); // only 0 was used
+    /// assert_eq!(sealer.next_sequence(), 1);
+    /// ```
+    pub fn return_unused(&mut self, lease: SealLease, used: u64) -> Result<(), SealError> {
+        let ours = lease.session_id == self.session_id
+            && lease.direction == self.direction
+            && lease.end_sequence == self.next_sequence
+            && used <= lease.len();
+        if !ours {
+            return Err(SealError::LeaseNotReturnable);
+        }
+        self.next_sequence = lease.first_sequence + used;
+        Ok(())
+    }
+
     /// Seals an unsealed frame in place: `datagram` is [`HEADER_LEN`] bytes whose
     /// second byte is the packet kind (as written by [`encode_client`],
     /// [`encode_server`] or [`crate::pack_updates`]), the plaintext body, and

@@ -341,25 +341,6 @@ pub fn pack_updates_pinned(
     packed
 }
 
-/// Appends an unsealed `StateUpdate` frame holding `body`, a state update body packed
-/// elsewhere (the GPU outbound packs them on the device), to `out`, ready for
-/// [`Sealer::seal_batch`](crate::Sealer::seal_batch): the same frame
-/// [`pack_updates_pinned`] makes around the body it packs. Only the length is checked
-/// here (a body is at least its update header and at most [`MAX_BODY`]); what packed it
-/// answers for the records.
-pub fn push_update_body(body: &[u8], out: &mut DatagramBatch) -> Result<(), EncodeError> {
-    if body.len() > MAX_BODY {
-        return Err(EncodeError::TooLarge { len: body.len(), max: MAX_BODY });
-    }
-    if body.len() < UPDATE_HEADER_LEN {
-        return Err(EncodeError::TooShort { len: body.len(), min: UPDATE_HEADER_LEN });
-    }
-    let buf = begin_update_frame(out);
-    buf[HEADER_LEN..HEADER_LEN + body.len()].copy_from_slice(body);
-    out.finish(HEADER_LEN + body.len() + TAG_LEN);
-    Ok(())
-}
-
 /// Starts a zeroed `StateUpdate` frame in `out` with its version and kind set.
 fn begin_update_frame(out: &mut DatagramBatch) -> &mut [u8] {
     let buf = out.begin(MAX_DATAGRAM);
@@ -491,31 +472,6 @@ mod tests {
         let mut b = DatagramBatch::new();
         assert_eq!(pack_updates_pinned(&h, None, &[], 2, &mut b), 0);
         assert!(b.is_empty());
-    }
-
-    #[test]
-    fn a_body_packed_elsewhere_gets_the_same_frame() {
-        let h = UpdateHeader { tick: 77, dilation_permille: 950, origin: QuantPos::new(-5, 6, 7) };
-        let own = rec(1 << 33, ShapeKind::Capsule, (0, 0, 0));
-        let recs: Vec<_> = (0..250).map(|i| rec(3 * i, ShapeKind::Box, (i as i32, -(i as i32), 40_000))).collect();
-        let mut packed = DatagramBatch::new();
-        assert!(pack_updates_pinned(&h, Some(&own), &recs, 3, &mut packed) > 0);
-        let mut framed = DatagramBatch::new();
-        for d in packed.iter() {
-            push_update_body(&d[HEADER_LEN..d.len() - TAG_LEN], &mut framed).unwrap();
-        }
-        assert_eq!(framed.iter().collect::<Vec<_>>(), packed.iter().collect::<Vec<_>>());
-        // Bodies outside [UPDATE_HEADER_LEN, MAX_BODY] are refused and add nothing.
-        let mut out = DatagramBatch::new();
-        assert_eq!(
-            push_update_body(&[0; MAX_BODY + 1], &mut out),
-            Err(EncodeError::TooLarge { len: MAX_BODY + 1, max: MAX_BODY })
-        );
-        assert_eq!(
-            push_update_body(&[0; UPDATE_HEADER_LEN - 1], &mut out),
-            Err(EncodeError::TooShort { len: UPDATE_HEADER_LEN - 1, min: UPDATE_HEADER_LEN })
-        );
-        assert!(out.is_empty());
     }
 
     // Issue 14: the id base was the smallest id of every record offered, computed before

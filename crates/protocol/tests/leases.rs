@@ -206,3 +206,47 @@ fn exhaustion_near_u64_max() {
     assert_eq!(top.seal_server_message(&ServerMessage::KeepAlive, &mut out), Err(SealError::LeaseExhausted));
     assert_eq!(top.next_sequence(), u64::MAX, "u64::MAX itself was never sealed");
 }
+
+/// The unused tail of the latest lease comes back; any other lease, or more numbers used
+/// than leased, is refused and changes nothing.
+#[test]
+fn only_the_latest_lease_returns_its_unused_tail() {
+    let mut sealer = Sealer::new(5, Direction::ServerToClient, &[3; 32]);
+    let lease = sealer.lease(3).unwrap();
+    assert_eq!((lease.first_sequence(), sealer.next_sequence()), (0, 3));
+    sealer.return_unused(lease, 1).unwrap();
+    assert_eq!(sealer.next_sequence(), 1);
+
+    // More used than leased.
+    let lease = sealer.lease(2).unwrap();
+    let again = Sealer::new(5, Direction::ServerToClient, &[3; 32]).lease(0).unwrap();
+    assert_eq!(sealer.return_unused(again, 0), Err(SealError::LeaseNotReturnable));
+    let first = lease.first_sequence();
+    let mut copy = Sealer::new(5, Direction::ServerToClient, &[3; 32]);
+    copy.lease(first).unwrap();
+    let twin = copy.lease(2).unwrap();
+    assert_eq!(sealer.return_unused(twin, 3), Err(SealError::LeaseNotReturnable));
+    assert_eq!(sealer.next_sequence(), 3);
+    sealer.return_unused(lease, 2).unwrap();
+    assert_eq!(sealer.next_sequence(), 3);
+
+    // Not the latest: the sealer sealed since.
+    let lease = sealer.lease(2).unwrap();
+    let mut out = Vec::new();
+    sealer.seal_server_message(&ServerMessage::KeepAlive, &mut out).unwrap();
+    assert_eq!(sealer.return_unused(lease, 0), Err(SealError::LeaseNotReturnable));
+    assert_eq!(sealer.next_sequence(), 6);
+
+    // Another session's, and the other direction's.
+    let mut other = Sealer::new(6, Direction::ServerToClient, &[3; 32]);
+    let lease = other.lease(2).unwrap();
+    let mut mine = Sealer::new(5, Direction::ServerToClient, &[3; 32]);
+    mine.lease(0).unwrap();
+    let mut mine_at_2 = Sealer::new(5, Direction::ServerToClient, &[3; 32]);
+    mine_at_2.lease(2).unwrap();
+    assert_eq!(mine_at_2.return_unused(lease, 0), Err(SealError::LeaseNotReturnable));
+    let mut client = Sealer::new(5, Direction::ClientToServer, &[3; 32]);
+    let lease = client.lease(2).unwrap();
+    assert_eq!(mine_at_2.return_unused(lease, 0), Err(SealError::LeaseNotReturnable));
+    assert_eq!(mine_at_2.next_sequence(), 2);
+}

@@ -58,6 +58,10 @@ pub struct ServerConfig {
     /// Where each player's records are selected: `auto` (on the device with a CUDA
     /// backend, else on the host) or `host`.
     pub outbound: crate::outbound::OutboundKind,
+    /// Players in each run the device outbound seals and sends while the device builds
+    /// the next (0: a tick's players in up to 8 runs of at least 1,024; a value at least
+    /// the number of players: one run, no overlap).
+    pub outbound_chunk_players: usize,
     /// Data directory: the SQLite database and the development TLS certificate.
     pub data_dir: PathBuf,
     /// Database URL (`mysql://user:pass@host/db`); empty uses SQLite in `data_dir`.
@@ -164,6 +168,7 @@ impl Default for ServerConfig {
             aoi_size: 100.0,
             max_datagrams_per_player: 2,
             outbound: crate::outbound::OutboundKind::Auto,
+            outbound_chunk_players: 0,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),
             backend: BackendKind::Auto,

@@ -1,28 +1,44 @@
 //! The device implementation of [`Outbound`]: the CUDA backend answers the AOI boxes,
-//! selects each player's records by the host interest manager's rule and packs them into
-//! state update bodies, all on the device (`myriad_cuda`'s interest updates), so only the
-//! finished bodies come back, never the AOI lists; the host frames and seals them in
-//! parallel over players ([`InterestManager::seal_packed`]). What was packed becomes the
-//! staleness of the next tick on the device.
+//! selects each player's records by the host interest manager's rule, packs them into
+//! state update bodies and seals them, all on the device (`myriad_cuda`'s interest
+//! updates), so only finished datagrams come back, never the AOI lists. Each player's
+//! datagrams are sealed under sequence numbers leased from its sealer
+//! ([`myriad_protocol::Sealer::lease`], as many as its budget of datagrams); the host
+//! checks them, takes them and returns the unused numbers
+//! ([`InterestManager::adopt_sealed`]). What was packed becomes the staleness of the next
+//! tick on the device.
+//!
+//! The players go in chunks (at most [`MAX_CHUNKS`], each a whole number of the
+//! device's waves of selection): the device queues every chunk at once, and each chunk is handed to the
+//! tick's `ready` (which sends it) as soon as the device has finished it, while the
+//! device builds the next. A tick's time is then about the device's part plus the
+//! sending of one chunk, instead of the sum of both.
 //!
 //! The datagrams are byte for byte those of [`CpuOutbound`] for the same world, tick and
 //! history (the GPU suite's `device_outbound` test). With another backend, a budget
 //! larger than the device selection holds, or after a device error, it serves the tick
 //! through a [`CpuOutbound`] (a device error is logged and counted as
-//! `myriad_outbound_errors_total{reason="device_select"}`); players then start their
-//! rotation afresh.
+//! `myriad_outbound_errors_total{reason="device_select"}`; the players of the chunks the
+//! device had finished keep what it built); players then start their rotation afresh.
 
+use std::sync::Mutex;
 use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3, World};
 use myriad_cuda::CudaBackend;
-use myriad_cuda::backend::{InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS};
-use myriad_interest::{InterestConfig, InterestManager, Packed, TickInfo};
+use myriad_cuda::backend::{InterestChunks, InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS};
+use myriad_interest::{InterestConfig, InterestManager, Packed, TickInfo, TickReport};
 use myriad_physics::Backend;
-use myriad_protocol::MAX_COMPACT_RECORDS;
+use myriad_protocol::{MAX_COMPACT_RECORDS, SealLease};
 use rayon::prelude::*;
 
-use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Recipient};
+use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Ready, Recipient};
+
+/// The most chunks a tick's players are split into. Each chunk costs the host a few
+/// hand-overs between threads and the device a partly idle last wave of its selection,
+/// so a chunk holds a whole number of the device's waves
+/// ([`CudaBackend::interest_wave`]), as few as keep the chunks at most this many.
+pub const MAX_CHUNKS: usize = 8;
 
 /// Interest selection and packing on the device, sealing on the host.
 #[derive(Debug)]
@@ -30,8 +46,10 @@ pub struct DeviceOutbound {
     interest: InterestManager,
     half: Vec3,
     fallback: CpuOutbound,
-    /// Each session's index in the last device selection (empty after a host tick).
-    last: foldhash::HashMap<u64, u32>,
+    /// Players per chunk (`None`: by the device's wave and [`MAX_CHUNKS`]).
+    chunk: Option<usize>,
+    /// The device's wave of selection, once asked.
+    wave: Option<usize>,
 }
 
 impl DeviceOutbound {
@@ -42,8 +60,22 @@ impl DeviceOutbound {
             interest: InterestManager::new(InterestConfig { max_datagrams, ..Default::default() }),
             half: Vec3::splat(aoi_size / 2.0),
             fallback: CpuOutbound::new(aoi_size, max_datagrams),
-            last: foldhash::HashMap::default(),
+            chunk: None,
+            wave: None,
         }
+    }
+
+    /// The same with `players` (at least one) in every chunk but the last, whatever the
+    /// number of players (the tests' way to cut a few hundred players into chunks).
+    pub fn with_chunk(mut self, players: usize) -> Self {
+        self.chunk = Some(players.max(1));
+        self
+    }
+
+    /// Players per chunk for `n` players, on a device that selects `wave` at once.
+    fn chunk_players(&self, n: usize, wave: usize) -> usize {
+        let wave = wave.max(1);
+        self.chunk.unwrap_or_else(|| wave * n.div_ceil(wave * MAX_CHUNKS).max(1))
     }
 
     /// Slots the device may choose for one player: a view that fits can hold
@@ -64,9 +96,34 @@ impl DeviceOutbound {
         world: &World,
         tick: TickInfo,
         recipients: &mut [Recipient<'_>],
+        ready: &dyn Ready,
     ) -> OutboundReport {
-        self.last.clear();
-        self.fallback.build(backend, world, tick, recipients)
+        self.fallback.build(backend, world, tick, recipients, ready)
+    }
+}
+
+impl DeviceOutbound {
+    /// After a device error: logs and counts it, and serves the players the device did
+    /// not (`parts`) on the host.
+    fn device_failed(
+        &mut self,
+        error: &str,
+        backend: &mut dyn Backend,
+        world: &World,
+        tick: TickInfo,
+        parts: Vec<&mut [Recipient<'_>]>,
+        ready: &dyn Ready,
+    ) -> OutboundReport {
+        let players: usize = parts.iter().map(|p| p.len()).sum();
+        tracing::error!(error, players, "device interest updates failed; these players are served on the host");
+        metrics::counter!("myriad_outbound_errors_total", "reason" => "device_select").increment(1);
+        let mut report = OutboundReport::default();
+        for part in parts {
+            let rest = self.on_host(backend, world, tick, part, ready);
+            report.records += rest.records;
+            report.seal_failures += rest.seal_failures;
+        }
+        report
     }
 }
 
@@ -88,29 +145,36 @@ impl Outbound for DeviceOutbound {
         world: &World,
         tick: TickInfo,
         recipients: &mut [Recipient<'_>],
+        ready: &dyn Ready,
     ) -> OutboundReport {
         if !self.budget_fits() {
-            return self.on_host(backend, world, tick, recipients);
+            return self.on_host(backend, world, tick, recipients, ready);
         }
         let Some(cuda) = backend.as_any_mut().downcast_mut::<CudaBackend>() else {
-            return self.on_host(backend, world, tick, recipients);
+            return self.on_host(backend, world, tick, recipients, ready);
         };
         let mut report = OutboundReport::default();
         if recipients.is_empty() {
-            self.last.clear();
             return report;
         }
         // In parallel: each recipient and its previous index are cache misses. The views'
-        // object and centre are the host interest manager's; the device takes them here.
-        let (half, last) = (self.half, &self.last);
-        let ((boxes, own), (centres, prev)): ((Vec<_>, Vec<_>), (Vec<_>, Vec<_>)) = recipients
-            .par_iter()
+        // object and centre are the host interest manager's; the device takes them here,
+        // with a lease of each player's sequence numbers (none: its sealer ran out, and
+        // the player gets nothing, as with the host's sealing).
+        let half = self.half;
+        let config = *self.interest.config();
+        let max_datagrams = config.max_datagrams.max(1);
+        let ((boxes, own), (centres, (prev, mut leases))): Inputs = recipients
+            .par_iter_mut()
             .map(|r| {
-                let prev = last.get(&r.session_id).copied().unwrap_or(NO_PREVIOUS);
-                ((Aabb::from_center_half(r.centre, half), r.object), (r.centre.to_array(), prev))
+                let prev = match r.view.selected {
+                    Some((t, i)) if t + 1 == tick.tick => i,
+                    _ => NO_PREVIOUS,
+                };
+                let lease = r.view.sealer.lease(max_datagrams as u64).ok();
+                ((Aabb::from_center_half(r.centre, half), r.object), (r.centre.to_array(), (prev, lease)))
             })
             .unzip();
-        let config = *self.interest.config();
         let query = InterestQuery {
             tick: tick.tick,
             dilation_permille: tick.dilation_permille,
@@ -118,41 +182,141 @@ impl Outbound for DeviceOutbound {
             own: &own,
             centres: &centres,
             prev: &prev,
-            max_datagrams: config.max_datagrams.max(1) as u32,
+            leases: &leases,
+            max_datagrams: max_datagrams as u32,
             near_slots: config.near_slots() as u32,
             rotation_slots: config.rotation_slots() as u32,
             capacity: self.selection_room() as u32,
         };
-        let t = Instant::now();
-        let payloads = match cuda.interest_updates(world, &query) {
-            Ok(p) => p,
-            Err(e) => {
-                tracing::error!(error = %e, "device interest updates failed; this tick is built on the host");
-                metrics::counter!("myriad_outbound_errors_total", "reason" => "device_select").increment(1);
-                return self.on_host(backend, world, tick, recipients);
+        let wave = *self.wave.get_or_insert_with(|| {
+            let wave = cuda.interest_wave().unwrap_or(1);
+            tracing::info!(players = wave, "the device selects a wave of players at once; chunks hold whole waves");
+            wave
+        });
+        let chunk = self.chunk_players(recipients.len(), wave);
+        if let Err(e) = cuda.queue_interest_updates(world, &query, chunk) {
+            // Nothing is left queued, but the keys are wiped and the tables start afresh.
+            let _ = cuda.finish_interest_updates(tick.tick, false);
+            return self.device_failed(&e.to_string(), backend, world, tick, vec![recipients], ready);
+        }
+        let mut failed = None;
+        // Every thread of the pool takes its share of each chunk as soon as the device has
+        // finished it: checks and takes its datagrams and hands them to its lane. The
+        // threads never wait for each other, so no thread sleeps and wakes between chunks.
+        let threads = rayon::current_num_threads().max(1);
+        let chunks = cuda.interest_chunks();
+        let shares = Shares::new(recipients, &mut leases, &chunks, threads);
+        let interest = &self.interest;
+        let waited: Vec<(TickReport, std::time::Duration, Option<String>)> = rayon::broadcast(|ctx| {
+            let mut report = TickReport::default();
+            let mut waited = std::time::Duration::ZERO;
+            for k in 0..chunks.len() {
+                let t = Instant::now();
+                let (players, payloads) = match chunks.wait(k) {
+                    Ok(chunk) => chunk,
+                    Err(e) => return (report, waited, Some(e.to_string())),
+                };
+                waited += t.elapsed();
+                let Some((start, part, leases)) = shares.take(k, ctx.index()) else { continue };
+                let at = start - players.start;
+                let datagrams = |i: usize| {
+                    payloads.get(at + i).map(|p| Packed {
+                        datagrams: p.datagrams(),
+                        in_view: p.in_view as usize,
+                        over_budget: p.over_budget,
+                        pinned: p.pinned,
+                        packed: p.packed as usize,
+                    })
+                };
+                report = report.merge(interest.adopt_sealed(datagrams, part, leases));
+                for (i, r) in part.iter_mut().enumerate() {
+                    r.view.selected = Some((tick.tick, (start + i) as u32));
+                }
+                ready.ready(ctx.index(), part);
             }
-        };
-        report.aoi_ms = t.elapsed().as_secs_f64() * 1e3;
-        let packed = |i: usize| {
-            payloads.get(i).map(|p| Packed {
-                bodies: p.bodies(),
-                in_view: p.in_view as usize,
-                over_budget: p.over_budget,
-                pinned: p.pinned,
-                packed: p.packed as usize,
-            })
-        };
-        let sealed = self.interest.seal_packed(packed, recipients);
+            (report, waited, None)
+        });
+        let mut sealed = TickReport::default();
+        for (report, _, error) in &waited {
+            sealed = sealed.merge(*report);
+            failed = failed.or_else(|| error.clone());
+        }
+        // The device's share: the time the first thread waited for it.
+        report.aoi_ms = waited.first().map_or(0.0, |w| w.1.as_secs_f64() * 1e3);
+        let unserved = shares.into_rest();
+        if let Err(e) = cuda.finish_interest_updates(tick.tick, unserved.is_empty() && failed.is_none()) {
+            failed = failed.or(Some(e.to_string()));
+        }
         if sealed.skipped > 0 {
             // The device's counts disagreed with its bytes: those players get nothing
             // this tick (their staleness says they were sent; they are again soon).
-            tracing::error!(players = sealed.skipped, "device update bodies refused");
-            metrics::counter!("myriad_outbound_errors_total", "reason" => "device_bodies")
+            tracing::error!(players = sealed.skipped, "device datagrams refused");
+            metrics::counter!("myriad_outbound_errors_total", "reason" => "device_datagrams")
                 .increment(sealed.skipped as u64);
         }
         report.add_interest(&sealed);
-        self.last.clear();
-        self.last.extend(recipients.iter().enumerate().map(|(i, r)| (r.session_id, i as u32)));
+        if failed.is_some() || !unserved.is_empty() {
+            let error = failed.unwrap_or_else(|| "chunks left unserved".into());
+            let rest = self.device_failed(&error, backend, world, tick, unserved, ready);
+            report.records += rest.records;
+            report.seal_failures += rest.seal_failures;
+            return report;
+        }
         report
+    }
+}
+
+/// The device's inputs, one entry a player: AOI boxes, own objects, centres, indices in the
+/// last selection, leases (as `unzip` makes them).
+type Inputs = ((Vec<Aabb>, Vec<u32>), (Vec<[f32; 3]>, (Vec<u32>, Vec<Option<SealLease>>)));
+
+/// The tick's recipients (and their leases) cut into one share per chunk and thread,
+/// for the threads to take without sharing anything.
+struct Shares<'r, 'a> {
+    threads: usize,
+    /// Share `k * threads + j`: its first recipient's index, the recipients, the leases.
+    slots: Vec<Mutex<Option<Share<'r, 'a>>>>,
+}
+
+type Share<'r, 'a> = (usize, &'r mut [Recipient<'a>], &'r mut [Option<SealLease>]);
+
+impl<'r, 'a> Shares<'r, 'a> {
+    fn new(
+        mut recipients: &'r mut [Recipient<'a>],
+        mut leases: &'r mut [Option<SealLease>],
+        chunks: &InterestChunks<'_>,
+        threads: usize,
+    ) -> Self {
+        let mut slots = Vec::with_capacity(chunks.len() * threads);
+        let mut at = 0;
+        for k in 0..chunks.len() {
+            let players = chunks.players(k).unwrap_or(at..at);
+            let len = players.len();
+            for j in 0..threads {
+                let n = ((j + 1) * len / threads - j * len / threads).min(recipients.len()).min(leases.len());
+                let (part, rest) = std::mem::take(&mut recipients).split_at_mut(n);
+                let (lease, more) = std::mem::take(&mut leases).split_at_mut(n);
+                (recipients, leases) = (rest, more);
+                slots.push(Mutex::new(Some((at, part, lease))));
+                at += n;
+            }
+        }
+        Shares { threads, slots }
+    }
+
+    /// Thread `j`'s share of chunk `k`, once.
+    fn take(&self, k: usize, j: usize) -> Option<Share<'r, 'a>> {
+        let slot = self.slots.get(k * self.threads + j % self.threads)?;
+        slot.lock().unwrap_or_else(|p| p.into_inner()).take()
+    }
+
+    /// The recipients of the shares no thread took, in order.
+    fn into_rest(self) -> Vec<&'r mut [Recipient<'a>]> {
+        self.slots
+            .into_iter()
+            .filter_map(|s| s.into_inner().unwrap_or_else(|p| p.into_inner()))
+            .map(|(_, part, _)| part)
+            .filter(|p| !p.is_empty())
+            .collect()
     }
 }

@@ -3,9 +3,12 @@
 //!
 //! [`Outbound::build`] gets the physics backend, the world after the step and one
 //! [`Recipient`] per active player, and leaves each recipient's sealed datagrams in its
-//! [`Subscriber`]. [`CpuOutbound`] is the implementation on the host: the backend
-//! answers the AOI boxes, [`InterestManager`] selects, packs and seals in parallel over
-//! players.
+//! [`Subscriber`]. It hands every recipient to a [`Ready`] once, as soon as the
+//! recipient's datagrams are final: the tick sends them from there, on several lanes
+//! (sockets) at once, so an implementation that builds in chunks overlaps the sending of
+//! one chunk with the building of the next. [`CpuOutbound`] is the implementation on the
+//! host: the backend answers the AOI boxes, [`InterestManager`] selects, packs and seals
+//! in parallel over players, and every recipient is ready at the end.
 //!
 //! [`DeviceOutbound`](crate::device_outbound::DeviceOutbound) is the implementation on
 //! the device: it receives the backend as `&mut dyn Backend` and reaches the CUDA
@@ -17,12 +20,14 @@
 //! backend and the host one otherwise.
 
 use std::borrow::{Borrow, BorrowMut};
+use std::net::SocketAddr;
 use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3, World};
 use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource, Subscriber, TickInfo, TickReport};
 use myriad_physics::{AoiResults, Backend};
 use myriad_protocol::ShapeKind as WireKind;
+use rayon::prelude::*;
 
 use crate::world::wire_kind;
 
@@ -38,15 +43,20 @@ pub enum OutboundKind {
 }
 
 impl OutboundKind {
-    /// The outbound for `backend` with AOI boxes of edge `aoi_size` and at most
-    /// `max_datagrams` update datagrams a player and tick.
-    pub fn create(self, backend: &mut dyn Backend, aoi_size: f32, max_datagrams: usize) -> Box<dyn Outbound> {
+    /// The outbound for `backend` with the configuration's AOI size, datagram budget and
+    /// (on the device) run length.
+    pub fn create(self, backend: &mut dyn Backend, config: &crate::ServerConfig) -> Box<dyn Outbound> {
         let on_device = backend.as_any_mut().is::<myriad_cuda::CudaBackend>();
+        let (aoi, max_datagrams) = (config.aoi_size, config.max_datagrams_per_player);
         match self {
             OutboundKind::Auto if on_device => {
-                Box::new(crate::device_outbound::DeviceOutbound::new(aoi_size, max_datagrams))
+                let device = crate::device_outbound::DeviceOutbound::new(aoi, max_datagrams);
+                Box::new(match config.outbound_chunk_players {
+                    0 => device,
+                    players => device.with_chunk(players),
+                })
             }
-            _ => Box::new(CpuOutbound::new(aoi_size, max_datagrams)),
+            _ => Box::new(CpuOutbound::new(aoi, max_datagrams)),
         }
     }
 }
@@ -60,6 +70,8 @@ pub struct Recipient<'a> {
     pub object: u32,
     /// Centre of the player's area of interest (its object's position).
     pub centre: Vec3,
+    /// Where the player's datagrams go (`None`: nowhere yet; nothing is sent).
+    pub addr: Option<SocketAddr>,
     /// The player's interest state, sealer and this tick's datagrams.
     pub view: &'a mut Subscriber,
 }
@@ -99,6 +111,13 @@ fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
     }
 }
 
+/// Leaves every recipient without datagrams this tick (a build that failed).
+pub(crate) fn clear_all(recipients: &mut [Recipient<'_>]) {
+    for r in recipients {
+        r.view.clear_datagrams();
+    }
+}
+
 impl OutboundReport {
     /// Takes the interest manager's counts of a build (and counts its seal failures).
     pub(crate) fn add_interest(&mut self, r: &TickReport) {
@@ -115,15 +134,35 @@ pub trait Outbound: Send {
     /// A human-readable description (for the start-up log).
     fn description(&self) -> String;
 
-    /// Fills each recipient's datagrams for this tick. Errors are logged and counted
-    /// by the implementation; recipients it could not serve get no datagrams.
+    /// Fills each recipient's datagrams for this tick and hands every recipient to
+    /// `ready` exactly once, as soon as its datagrams are final. Errors are logged and
+    /// counted by the implementation; recipients it could not serve get no datagrams (and
+    /// are still handed over).
     fn build(
         &mut self,
         backend: &mut dyn Backend,
         world: &World,
         tick: TickInfo,
         recipients: &mut [Recipient<'_>],
+        ready: &dyn Ready,
     ) -> OutboundReport;
+}
+
+/// Where an [`Outbound`] hands recipients whose datagrams are final: on
+/// [`lanes`](Ready::lanes) lanes, which threads use at once, each lane by one thread at a
+/// time at best (the tick sends each lane's players on a socket of its own).
+pub trait Ready: Sync {
+    /// How many lanes there are (at least one).
+    fn lanes(&self) -> usize;
+
+    /// Hands over `players` on `lane` (any value: it is taken modulo the lanes).
+    fn ready(&self, lane: usize, players: &[Recipient<'_>]);
+}
+
+/// Hands `recipients` to `ready` in parallel, a contiguous share per lane.
+pub(crate) fn hand_over(recipients: &[Recipient<'_>], ready: &dyn Ready) {
+    let share = recipients.len().div_ceil(ready.lanes().max(1)).max(1);
+    recipients.par_chunks(share).enumerate().for_each(|(lane, players)| ready.ready(lane, players));
 }
 
 /// The host implementation: backend AOI query, then [`InterestManager`].
@@ -170,6 +209,22 @@ impl Outbound for CpuOutbound {
         world: &World,
         tick: TickInfo,
         recipients: &mut [Recipient<'_>],
+        ready: &dyn Ready,
+    ) -> OutboundReport {
+        let report = self.build_all(backend, world, tick, recipients);
+        hand_over(recipients, ready);
+        report
+    }
+}
+
+impl CpuOutbound {
+    /// [`Outbound::build`] without the hand-over: every recipient is ready at the end.
+    fn build_all(
+        &mut self,
+        backend: &mut dyn Backend,
+        world: &World,
+        tick: TickInfo,
+        recipients: &mut [Recipient<'_>],
     ) -> OutboundReport {
         let mut report = OutboundReport::default();
         if recipients.is_empty() {
@@ -182,6 +237,7 @@ impl Outbound for CpuOutbound {
         if let Err(e) = queried {
             tracing::error!(error = %e, "AOI query failed");
             metrics::counter!("myriad_outbound_errors_total", "reason" => "aoi_query").increment(1);
+            clear_all(recipients);
             return report;
         }
         let lists = AoiLists { offsets: &self.aoi.offsets, objects: &self.aoi.objects };
@@ -190,6 +246,7 @@ impl Outbound for CpuOutbound {
             Err(e) => {
                 tracing::error!(error = %e, "interest management failed");
                 metrics::counter!("myriad_outbound_errors_total", "reason" => "interest").increment(1);
+                clear_all(recipients);
             }
         }
         report

@@ -36,7 +36,7 @@ use std::time::Duration;
 use myriad_net::{Endpoint, RecvBatch};
 
 use crate::gate::{Gate, ReceiveLimits, Refusal, SessionView};
-use crate::transport::{GateCounts, RECV_BATCH, Sent, Transport, UdpTransport, report_oversized};
+use crate::transport::{GateCounts, Lane, RECV_BATCH, Sent, Transport, UdpTransport, report_oversized};
 
 /// Most datagrams waiting for the tick; beyond that the receiver drops them.
 pub const MAX_QUEUED: usize = 65_536;
@@ -164,6 +164,10 @@ impl Transport for ThreadedUdp {
 
     fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
         self.send.send(out)
+    }
+
+    fn lanes(&mut self) -> Vec<&mut dyn Lane> {
+        self.send.lanes()
     }
 
     fn local_addr(&self) -> SocketAddr {

@@ -51,6 +51,10 @@ pub trait Transport: Send {
     /// in parallel.
     fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent>;
 
+    /// The sending side as lanes, one per socket: several threads send at once, each on
+    /// a lane of its own ([`Transport::send`] spreads one list over them).
+    fn lanes(&mut self) -> Vec<&mut dyn Lane>;
+
     /// The address clients send to.
     fn local_addr(&self) -> SocketAddr;
 
@@ -66,6 +70,18 @@ pub trait Transport: Send {
     /// For a gating transport: what its gate did since the last call.
     fn gate_counts(&mut self) -> GateCounts {
         GateCounts::default()
+    }
+}
+
+/// One socket's sending side ([`Transport::lanes`]).
+pub trait Lane: Send {
+    /// Sends as much of `out` as the socket takes now, as [`Transport::send`] does.
+    fn transmit(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent>;
+}
+
+impl Lane for Endpoint {
+    fn transmit(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
+        send_all(self, out)
     }
 }
 
@@ -183,6 +199,10 @@ impl Transport for UdpTransport {
         Ok(sent)
     }
 
+    fn lanes(&mut self) -> Vec<&mut dyn Lane> {
+        self.endpoints.iter_mut().map(|e| e as &mut dyn Lane).collect()
+    }
+
     fn local_addr(&self) -> SocketAddr {
         self.endpoints[0].local_addr()
     }
@@ -249,15 +269,25 @@ impl Transport for MemoryTransport {
     }
 
     fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
+        self.transmit(out)
+    }
+
+    fn lanes(&mut self) -> Vec<&mut dyn Lane> {
+        vec![self]
+    }
+
+    fn local_addr(&self) -> SocketAddr {
+        self.addr
+    }
+}
+
+impl Lane for MemoryTransport {
+    fn transmit(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
         let mut q = self.queues();
         let room = q.send_capacity.map_or(out.len(), |c| c.saturating_sub(q.outbox.len()));
         let n = room.min(out.len());
         q.outbox.extend(out[..n].iter().map(|(to, d)| (*to, d.to_vec())));
         Ok(Sent { datagrams: n, bytes: out[..n].iter().map(|(_, d)| d.len() as u64).sum() })
-    }
-
-    fn local_addr(&self) -> SocketAddr {
-        self.addr
     }
 }
 

@@ -6,13 +6,15 @@
 //! Needs a CUDA device: without one it skips, unless `MYRIAD_REQUIRE_CUDA=1` (the GPU
 //! suite, `scripts/gpu-run.sh`), which makes a missing device a failure.
 
+use std::sync::Mutex;
+
 use myriad_core::{PhysicsConfig, ScenarioSpec, World};
 use myriad_cuda::CudaBackend;
 use myriad_interest::{Subscriber, TickInfo};
 use myriad_physics::{Backend, BackendKind, TickConstants};
 use myriad_protocol::{Direction, Sealer};
 use myriad_server::device_outbound::DeviceOutbound;
-use myriad_server::outbound::{CpuOutbound, Outbound, Recipient};
+use myriad_server::outbound::{CpuOutbound, Outbound, Ready, Recipient};
 
 /// Whether the run must fail instead of skipping when no GPU is usable.
 fn cuda_required() -> bool {
@@ -44,6 +46,22 @@ impl Player {
     }
 }
 
+/// A [`Ready`] that keeps what it was handed: each session and its datagrams then.
+#[derive(Default)]
+struct Handed(Mutex<Vec<(u64, Vec<Vec<u8>>)>>);
+
+impl Ready for Handed {
+    fn lanes(&self) -> usize {
+        3
+    }
+
+    fn ready(&self, lane: usize, players: &[Recipient<'_>]) {
+        assert!(lane < 64, "a lane for each thread at most");
+        let mut handed = self.0.lock().unwrap();
+        handed.extend(players.iter().map(|r| (r.session_id, r.view.datagrams().iter().map(<[u8]>::to_vec).collect())));
+    }
+}
+
 /// Builds one tick with both outbounds for `players` (in this order) and checks that
 /// every player got the same datagrams and report from both; returns (players over
 /// budget, records sent).
@@ -60,11 +78,24 @@ fn compare(
     let mut device_side: Vec<Recipient<'_>> = Vec::new();
     for p in players.iter_mut() {
         let centre = positions[p.slot as usize];
-        host_side.push(Recipient { session_id: p.session_id, object: p.slot, centre, view: &mut p.host });
-        device_side.push(Recipient { session_id: p.session_id, object: p.slot, centre, view: &mut p.device });
+        let (session_id, object, addr) = (p.session_id, p.slot, None);
+        host_side.push(Recipient { session_id, object, centre, addr, view: &mut p.host });
+        device_side.push(Recipient { session_id, object, centre, addr, view: &mut p.device });
     }
-    let h = host.build(backend, world, tick, &mut host_side);
-    let d = device.build(backend, world, tick, &mut device_side);
+    // Every recipient is handed over once, with its datagrams final by then.
+    let (host_ready, device_ready) = (Handed::default(), Handed::default());
+    let h = host.build(backend, world, tick, &mut host_side, &host_ready);
+    let d = device.build(backend, world, tick, &mut device_side, &device_ready);
+    for (side, ready, recipients) in [("host", host_ready, &host_side), ("device", device_ready, &device_side)] {
+        let mut handed = ready.0.into_inner().unwrap();
+        handed.sort_unstable();
+        let mut now: Vec<(u64, Vec<Vec<u8>>)> = recipients
+            .iter()
+            .map(|r| (r.session_id, r.view.datagrams().iter().map(<[u8]>::to_vec).collect()))
+            .collect();
+        now.sort_unstable();
+        assert_eq!(handed, now, "tick {}: {side} outbound's hand-over", tick.tick);
+    }
     assert_eq!(h.records, d.records, "tick {}: records", tick.tick);
     let mut over = 0;
     for (a, b) in host_side.iter().zip(&device_side) {
@@ -80,11 +111,22 @@ fn compare(
 }
 
 /// Runs `ticks` ticks of `world` with players at `slots`, building both outbounds with
-/// AOI edge `aoi`; on some ticks players leave, come back, join or change order.
-fn run(world: &mut World, backend: &mut CudaBackend, aoi: f32, slots: &[u32], ticks: u64) -> (usize, usize) {
+/// AOI edge `aoi` (the device's in chunks of `chunk` players, `None`: its default); on
+/// some ticks players leave, come back, join or change order.
+fn run(
+    world: &mut World,
+    backend: &mut CudaBackend,
+    aoi: f32,
+    slots: &[u32],
+    ticks: u64,
+    chunk: Option<usize>,
+) -> (usize, usize) {
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     let mut host = CpuOutbound::new(aoi, 2);
     let mut device = DeviceOutbound::new(aoi, 2);
+    if let Some(chunk) = chunk {
+        device = device.with_chunk(chunk);
+    }
     let mut players: Vec<Player> = slots.iter().enumerate().map(|(i, &s)| Player::new(1000 + i as u64, s)).collect();
     let (mut over, mut records) = (0, 0);
     for t in 0..ticks {
@@ -126,16 +168,18 @@ fn device_outbound_payloads_equal_the_host_outbound() {
     let n = world.dynamics.len() as u32;
     // Players spread over the world's slots.
     let many: Vec<u32> = (0..400).map(|i| i * (n / 400)).collect();
-    // AOI 100: most views over budget, so staleness decides half of every update.
-    let (over, records) = run(&mut world, &mut backend, 100.0, &many, 12);
+    // AOI 100: most views over budget, so staleness decides half of every update; in
+    // chunks of 64 players (the last one shorter), as a tick of thousands is cut.
+    let (over, records) = run(&mut world, &mut backend, 100.0, &many, 12, Some(64));
     eprintln!("AOI 100: {over} player-ticks over budget, {records} records");
     assert!(over > 1000, "too few views over budget to test the rotation: {over}");
-    // AOI 14: views that fit.
-    let (over, records) = run(&mut world, &mut backend, 14.0, &many, 6);
+    // AOI 14: views that fit; one chunk.
+    let (over, records) = run(&mut world, &mut backend, 14.0, &many, 6, None);
     eprintln!("AOI 14: {over} player-ticks over budget, {records} records");
-    // AOI 1,100 on a few players: objects beyond 512 units take extended records.
+    // AOI 1,100 on a few players: objects beyond 512 units take extended records; chunks
+    // of three.
     let few: Vec<u32> = many.iter().step_by(40).copied().collect();
-    let (over, records) = run(&mut world, &mut backend, 1100.0, &few, 6);
+    let (over, records) = run(&mut world, &mut backend, 1100.0, &few, 6, Some(3));
     eprintln!("AOI 1100: {over} player-ticks over budget, {records} records");
     assert!(over > 0);
 }

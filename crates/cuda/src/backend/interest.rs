@@ -1,21 +1,38 @@
-//! Interest selection and packing on the device (`kernels/interest.cu`): the AOI lists
-//! stay on the device, a kernel picks each player's records by the host interest
-//! manager's rule, another packs them into state update bodies byte for byte as the
-//! host's `pack_updates_pinned` would, and the host downloads only the finished bodies,
-//! to frame and seal them.
+//! Interest selection, packing and sealing on the device (`kernels/interest.cu`): the
+//! AOI lists stay on the device, a kernel picks each player's records by the host
+//! interest manager's rule, another packs them into state update bodies byte for byte as
+//! the host's `pack_updates_pinned` would, and a third frames and seals each datagram with
+//! ChaCha20-Poly1305 (`kernels/aead.cuh`) under sequence numbers leased from the player's
+//! sealer, as the host's `Sealer` would. The host receives only finished datagrams.
 //!
 //! Each player's staleness (the tick each object in view was last sent) lives on the
 //! device too, in one open-addressing table per player, double-buffered: a selection
 //! reads the tables of the previous selection (found through each player's index in it)
 //! and writes new ones, and marks what was packed as sent this tick.
+//!
+//! The players are served in chunks, so that the host sends one chunk while the device
+//! builds the next: [`CudaBackend::queue_interest_updates`] queues every chunk's kernels
+//! at once, each chunk ending with an event, and its datagrams reach the host through
+//! stores into mapped host memory (no copy whose size the host would first have to read
+//! back); [`CudaBackend::interest_chunks`] waits for chunks and
+//! [`CudaBackend::finish_interest_updates`] ends the tick.
+//!
+//! The session keys travel to the device in page-locked memory for the tick and are
+//! wiped there and on the device when it ends.
+
+use std::ops::Range;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU8, Ordering};
+
+use cudarc::driver::safe::CudaContext;
 
 use myriad_core::{Aabb, World};
 use myriad_physics::PhysicsError;
-use myriad_protocol::MAX_BODY;
+use myriad_protocol::{MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM, SealLease};
 
 use super::CudaBackend;
-use crate::device::{DevBuf, Pinned};
-use crate::launch::{KInterestBodies, KInterestPack, KInterestSelect, KInterestStamp};
+use crate::device::{DevBuf, Event, Pinned};
+use crate::launch::{KInterestPack, KInterestSeal, KInterestSelect, KInterestStamp, Kernel};
 
 /// The most records one selected group can hold (`SEL_SORT` in the kernel): the
 /// kernel sorts each group in shared memory.
@@ -28,10 +45,30 @@ pub const MAX_PACK_DATAGRAMS: usize = 9;
 /// Players (one warp each) per block of `k_interest_pack`.
 const PACK_WARPS: usize = 4;
 
+/// Threads per block (one player) of `k_interest_select` (`SEL_THREADS` in the kernel).
+const SELECT_THREADS: u32 = 256;
+
+/// Datagrams (one warp each) per block of `k_interest_seal`.
+const SEAL_WARPS: usize = 4;
+
+/// Bytes from one body to the next in the device's bodies (`BODY_STRIDE` in the
+/// kernel).
+const BODY_STRIDE: usize = MAX_BODY.next_multiple_of(16);
+
+/// Bytes from one datagram to the next in the host's copy (`DATAGRAM_STRIDE` in the
+/// kernel), a multiple of 16: the datagrams travel as 16-byte words.
+pub const DATAGRAM_STRIDE: usize = MAX_DATAGRAM;
+const _: () = assert!(DATAGRAM_STRIDE.is_multiple_of(16));
+
+/// Words of one player's entry in the lease table: key (8), session id (2), first
+/// sequence number (2).
+const LEASE_WORDS: usize = 12;
+
 /// `prev` entry of a player absent from the previous selection.
 pub const NO_PREVIOUS: u32 = u32::MAX;
 
-/// What [`CudaBackend::interest_updates`] needs, one entry per player in each slice.
+/// What [`CudaBackend::queue_interest_updates`] needs, one entry per player in each
+/// slice.
 #[derive(Debug, Clone, Copy)]
 pub struct InterestQuery<'a> {
     /// The tick being built (staleness keys are ticks; the updates carry it).
@@ -47,6 +84,9 @@ pub struct InterestQuery<'a> {
     /// Each player's index in the previous selection, or [`NO_PREVIOUS`]: its staleness
     /// is read from there.
     pub prev: &'a [u32],
+    /// The sequence numbers (at least `max_datagrams`) and key each player's datagrams
+    /// are sealed with (`None`: the player gets no datagram).
+    pub leases: &'a [Option<SealLease>],
     /// Most update datagrams a player (1 to [`MAX_PACK_DATAGRAMS`]).
     pub max_datagrams: u32,
     /// `K`: records for the nearest objects when over budget.
@@ -58,7 +98,7 @@ pub struct InterestQuery<'a> {
     pub capacity: u32,
 }
 
-/// One player's updates, as packed on the device.
+/// One player's updates, as packed and sealed on the device.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Payload<'a> {
     /// Objects in view, own excluded.
@@ -70,32 +110,32 @@ pub struct Payload<'a> {
     pub pinned: bool,
     /// Records of other objects packed.
     pub packed: u32,
+    /// Each datagram's body length (each at most `MAX_BODY`).
     lens: &'a [u32],
+    /// The player's datagrams, one every [`DATAGRAM_STRIDE`] bytes.
     bytes: &'a [u8],
 }
 
 impl<'a> Payload<'a> {
-    /// The state update bodies, one a datagram, in order (frame and seal each with
-    /// `myriad_protocol::push_update_body` and a sealer).
-    pub fn bodies(&self) -> impl Iterator<Item = &'a [u8]> + use<'a> {
+    /// The sealed datagrams, in order, ready to send.
+    pub fn datagrams(&self) -> impl Iterator<Item = &'a [u8]> + use<'a> {
         let bytes = self.bytes;
-        self.lens.iter().scan(0usize, move |at, &len| {
-            let body = bytes.get(*at..*at + len as usize)?;
-            *at += len as usize;
-            Some(body)
+        self.lens.iter().enumerate().map(move |(d, &len)| {
+            let at = d * DATAGRAM_STRIDE;
+            &bytes[at..at + MIN_DATAGRAM + len as usize]
         })
     }
 }
 
-/// The updates of one [`CudaBackend::interest_updates`], in pinned host memory.
+/// The updates of one chunk of players ([`CudaBackend::interest_chunk`]), in pinned host
+/// memory; player `i` is the chunk's `i`-th.
 #[derive(Debug, Clone, Copy)]
 pub struct Payloads<'a> {
     /// Per player: in view, flags (over budget, pinned << 1), packed, datagrams.
     info: &'a [u32],
     /// Per player, `max_datagrams` body lengths.
     lens: &'a [u32],
-    /// Each player's start in `bytes` (`players + 1`).
-    offsets: &'a [u32],
+    /// Per player, `max_datagrams` datagrams of [`DATAGRAM_STRIDE`] bytes.
     bytes: &'a [u8],
     max_datagrams: usize,
 }
@@ -111,18 +151,97 @@ impl<'a> Payloads<'a> {
         self.info.is_empty()
     }
 
-    /// Player `i`'s updates; `None` past the end or if the device's counts disagree
-    /// (its lengths do not add up to its share of the bytes).
+    /// Player `i`'s updates; `None` past the end or if the device's counts cannot be
+    /// right (a body longer than `MAX_BODY`).
     pub fn get(&self, i: usize) -> Option<Payload<'a>> {
         let m = self.info.get(4 * i..4 * i + 4)?;
-        let datagrams = (m[3] as usize).min(self.max_datagrams);
-        let lens = self.lens.get(i * self.max_datagrams..i * self.max_datagrams + datagrams)?;
-        let (start, end) = (*self.offsets.get(i)? as usize, *self.offsets.get(i + 1)? as usize);
-        let bytes = self.bytes.get(start..end)?;
-        if lens.iter().map(|&l| l as usize).sum::<usize>() != bytes.len() {
+        let mdg = self.max_datagrams;
+        let datagrams = (m[3] as usize).min(mdg);
+        let lens = self.lens.get(i * mdg..i * mdg + datagrams)?;
+        let bytes = self.bytes.get(i * mdg * DATAGRAM_STRIDE..(i + 1) * mdg * DATAGRAM_STRIDE)?;
+        if lens.iter().any(|&l| l as usize > MAX_BODY) {
             return None;
         }
         Some(Payload { in_view: m[0], over_budget: m[1] & 1 != 0, pinned: m[1] & 2 != 0, packed: m[2], lens, bytes })
+    }
+}
+
+const CHUNK_QUEUED: u8 = 0;
+const CHUNK_WAITED: u8 = 1;
+const CHUNK_DONE: u8 = 2;
+const CHUNK_FAILED: u8 = 3;
+
+/// The chunks of a queued tick ([`CudaBackend::interest_chunks`]): any thread may wait
+/// for any chunk and read its payloads.
+#[derive(Clone, Copy)]
+pub struct InterestChunks<'a> {
+    chunks: &'a [Range<usize>],
+    done: &'a [Event],
+    /// Per chunk: queued, being waited for, done or failed (`CHUNK_*`).
+    state: &'a [AtomicU8],
+    info: &'a Pinned,
+    lens: &'a Pinned,
+    out: &'a Pinned,
+    max_datagrams: usize,
+    ctx: &'a Arc<CudaContext>,
+}
+
+impl std::fmt::Debug for InterestChunks<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("InterestChunks").field("chunks", &self.chunks).finish_non_exhaustive()
+    }
+}
+
+impl<'a> InterestChunks<'a> {
+    /// Number of chunks.
+    pub fn len(&self) -> usize {
+        self.chunks.len()
+    }
+
+    /// Whether there is no chunk (no player).
+    pub fn is_empty(&self) -> bool {
+        self.chunks.is_empty()
+    }
+
+    /// Chunk `k`'s players (a range of the query's), known before it is done.
+    pub fn players(&self, k: usize) -> Option<Range<usize>> {
+        self.chunks.get(k).cloned()
+    }
+
+    /// Waits for chunk `k`; returns its players and their payloads. Of several threads
+    /// waiting for one chunk, one waits in the driver and the others for it.
+    pub fn wait(&self, k: usize) -> Result<(Range<usize>, Payloads<'a>), PhysicsError> {
+        let (Some(players), Some(done), Some(state)) = (self.chunks.get(k), self.done.get(k), self.state.get(k)) else {
+            return Err(PhysicsError::Device { stage: "interest", message: format!("no chunk {k} queued") });
+        };
+        loop {
+            match state.compare_exchange(CHUNK_QUEUED, CHUNK_WAITED, Ordering::Acquire, Ordering::Acquire) {
+                Ok(_) => {
+                    let waited = self
+                        .ctx
+                        .bind_to_thread()
+                        .map_err(|e| PhysicsError::Device { stage: "bind", message: format!("{e:?}") })
+                        .and_then(|()| done.wait());
+                    state.store(if waited.is_ok() { CHUNK_DONE } else { CHUNK_FAILED }, Ordering::Release);
+                    waited?;
+                    break;
+                }
+                Err(CHUNK_DONE) => break,
+                Err(CHUNK_FAILED) => {
+                    return Err(PhysicsError::Device { stage: "interest", message: format!("chunk {k} failed") });
+                }
+                Err(_) => std::hint::spin_loop(),
+            }
+        }
+        let (a, m) = (players.start, players.len());
+        let mdg = self.max_datagrams;
+        let payloads = Payloads {
+            info: self.info.range::<u32>(4 * a, 4 * m),
+            lens: self.lens.range::<u32>(a * mdg, m * mdg),
+            bytes: self.out.range::<u8>(a * mdg * DATAGRAM_STRIDE, m * mdg * DATAGRAM_STRIDE),
+            max_datagrams: mdg,
+        };
+        Ok((players.clone(), payloads))
     }
 }
 
@@ -158,23 +277,31 @@ pub(super) struct InterestState {
     keys: DevBuf<u64>,
     meta: DevBuf<u32>,
     sel: DevBuf<u32>,
-    /// Each player's `max_datagrams` bodies of `MAX_BODY` bytes, and their lengths.
+    /// Each player's `max_datagrams` bodies of [`BODY_STRIDE`] bytes, and their lengths.
     bodies: DevBuf<u8>,
     lens: DevBuf<u32>,
     /// What the host needs of each player besides the bytes (see [`Payloads`]).
     info: DevBuf<u32>,
-    /// Each player's bytes, then by the scan its start in `out` (`nq + 1`).
-    offsets: DevBuf<u32>,
-    /// The bodies one after the other, for the download.
-    out: DevBuf<u8>,
     /// Records packed per player, for the stamp.
     packed: DevBuf<u32>,
     host_info: Pinned,
     host_lens: Pinned,
-    host_offsets: Pinned,
+    /// The sealed datagrams, written by `k_interest_seal`.
     host_out: Pinned,
-    /// (players, max datagrams) of the last successful build.
-    last: Option<(usize, usize)>,
+    /// The lease table (keys, session ids, first numbers), for the tick only.
+    host_leases: Pinned,
+    /// The query's own objects, centres and previous indices, on their way to the device.
+    host_own: Pinned,
+    host_centres: Pinned,
+    host_prev: Pinned,
+    leases: DevBuf<u32>,
+    /// This tick's chunks of players, and one event each: recorded after the chunk's
+    /// downloads.
+    chunks: Vec<Range<usize>>,
+    chunk_done: Vec<Event>,
+    chunk_state: Vec<AtomicU8>,
+    /// (players, max datagrams) of the queued tick.
+    queued: (usize, usize),
     /// The tick whose selection wrote `tables[current]`, if one did and nothing failed
     /// since: only then may a selection read them.
     tables_tick: Option<u64>,
@@ -197,54 +324,116 @@ impl InterestState {
             bodies: DevBuf::empty(),
             lens: DevBuf::empty(),
             info: DevBuf::empty(),
-            offsets: DevBuf::empty(),
-            out: DevBuf::empty(),
             packed: DevBuf::empty(),
             host_info: Pinned::empty(),
             host_lens: Pinned::empty(),
-            host_offsets: Pinned::empty(),
             host_out: Pinned::empty(),
-            last: None,
+            host_leases: Pinned::empty(),
+            host_own: Pinned::empty(),
+            host_centres: Pinned::empty(),
+            host_prev: Pinned::empty(),
+            leases: DevBuf::empty(),
+            chunks: Vec::new(),
+            chunk_done: Vec::new(),
+            chunk_state: Vec::new(),
+            queued: (0, 1),
             tables_tick: None,
         }
     }
 }
 
 impl CudaBackend {
-    /// Selects and packs each player's state updates for this tick on the device (see
-    /// the module docs and `kernels/interest.cu`). The AOI lists and the selections never
-    /// leave the device; what comes back is the finished bodies.
+    /// Queues the selection, packing and sealing of each player's state updates for this
+    /// tick on the device (see the module docs and `kernels/interest.cu`), in chunks of
+    /// `chunk` players (at least one); returns the number of chunks. Wait for them through
+    /// [`interest_chunks`](Self::interest_chunks), in any order, then call
+    /// [`finish_interest_updates`](Self::finish_interest_updates) (also after an error).
+    /// The AOI lists and the selections never leave the device.
     ///
-    /// Every `prev` index must refer to the previous successful build; after an error,
+    /// Every `prev` index must refer to the previous complete build; after an error,
     /// pass [`NO_PREVIOUS`] for everyone.
-    pub fn interest_updates(&mut self, world: &World, q: &InterestQuery<'_>) -> Result<Payloads<'_>, PhysicsError> {
-        let r = self.updates_impl(world, q);
+    pub fn queue_interest_updates(
+        &mut self,
+        world: &World,
+        q: &InterestQuery<'_>,
+        chunk: usize,
+    ) -> Result<usize, PhysicsError> {
+        self.interest.chunks.clear();
+        let r = self.queue_impl(world, q, chunk.max(1));
         if r.is_err() {
-            self.synced = None;
-            self.n = usize::MAX;
-            self.interest.last = None;
-            self.interest.tables_tick = None;
+            self.interest.chunks.clear();
+            self.interest_failed();
         }
-        r?;
-        let s = &self.interest;
-        let (nq, mdg) = s.last.unwrap_or((0, 1));
-        let offsets = if nq == 0 { &[][..] } else { s.host_offsets.slice::<u32>(nq + 1) };
-        let total = offsets.last().map_or(0, |&t| t as usize);
-        Ok(Payloads {
-            info: s.host_info.slice::<u32>(nq * 4),
-            lens: s.host_lens.slice::<u32>(nq * mdg),
-            offsets,
-            bytes: s.host_out.slice::<u8>(total),
-            max_datagrams: mdg,
-        })
+        r.map(|()| self.interest.chunks.len())
     }
 
-    fn updates_impl(&mut self, world: &World, q: &InterestQuery<'_>) -> Result<(), PhysicsError> {
+    /// The players the device selects at once (one block each, on every multiprocessor):
+    /// chunks of a multiple of this keep the device busy to the end of each chunk.
+    pub fn interest_wave(&self) -> Result<usize, PhysicsError> {
+        self.gpu.bind()?;
+        self.gpu.wave(KInterestSelect::NAME, SELECT_THREADS)
+    }
+
+    /// The queued tick's chunks, to wait for and read, from any number of threads.
+    pub fn interest_chunks(&self) -> InterestChunks<'_> {
+        let s = &self.interest;
+        InterestChunks {
+            chunks: &s.chunks,
+            done: &s.chunk_done,
+            state: &s.chunk_state,
+            info: &s.host_info,
+            lens: &s.host_lens,
+            out: &s.host_out,
+            max_datagrams: s.queued.1,
+            ctx: &self.gpu.ctx,
+        }
+    }
+
+    /// Ends the queued tick: waits for the device, wipes the keys, and, when every
+    /// chunk was taken (`complete`), makes the staleness tables it wrote the next tick's;
+    /// otherwise the next tick starts afresh.
+    pub fn finish_interest_updates(&mut self, tick: u64, complete: bool) -> Result<(), PhysicsError> {
+        let done = self.gpu.bind().and_then(|()| self.wipe_keys());
+        let s = &mut self.interest;
+        if complete && done.is_ok() && !s.chunks.is_empty() && self.n > 0 {
+            s.current = 1 - s.current;
+            s.tables_tick = Some(tick);
+        } else if !complete || done.is_err() {
+            self.interest_failed();
+        }
+        self.interest.chunks.clear();
+        done.and_then(|()| self.gpu.collect_profile())
+    }
+
+    /// After a failure: the device copy and the staleness tables start afresh.
+    fn interest_failed(&mut self) {
+        self.synced = None;
+        self.n = usize::MAX;
+        self.interest.tables_tick = None;
+    }
+
+    /// Waits for the stream, then zeroes the lease table on the host and on the device.
+    fn wipe_keys(&mut self) -> Result<(), PhysicsError> {
+        let s = &mut self.interest;
+        let words = s.queued.0 * LEASE_WORDS;
+        // The stream may still read the host table (an error left work queued).
+        let synced = self.gpu.sync();
+        if s.host_leases.capacity_bytes() >= words * 4 {
+            s.host_leases.slice_mut::<u32>(words).fill(0);
+        }
+        synced?;
+        if s.leases.capacity() as usize >= words {
+            self.gpu.zero(s.leases.ptr(), words)?;
+        }
+        Ok(())
+    }
+
+    fn queue_impl(&mut self, world: &World, q: &InterestQuery<'_>, chunk: usize) -> Result<(), PhysicsError> {
         let nq = q.boxes.len();
         let cap = q.capacity as usize;
         let mdg = q.max_datagrams as usize;
         let fail = |message: String| Err(PhysicsError::Device { stage: "interest", message });
-        if q.own.len() != nq || q.centres.len() != nq || q.prev.len() != nq {
+        if q.own.len() != nq || q.centres.len() != nq || q.prev.len() != nq || q.leases.len() != nq {
             return fail("query slices differ in length".into());
         }
         if cap == 0 || cap > MAX_SELECTED || q.near_slots as usize > cap || q.rotation_slots as usize > cap {
@@ -253,25 +442,34 @@ impl CudaBackend {
         if !(1..=MAX_PACK_DATAGRAMS).contains(&mdg) {
             return fail(format!("{mdg} datagrams a player is outside 1..={MAX_PACK_DATAGRAMS}"));
         }
-        self.interest.last = None;
+        if q.leases.iter().flatten().any(|l| l.len() < mdg as u64) {
+            return fail(format!("a lease of fewer than {mdg} sequence numbers"));
+        }
         // Unsorted lists: the selection does not depend on their order.
         let (total, parts) = self.aoi_on_device(world, q.boxes, false)?;
         let gpu = &self.gpu;
         let s = &mut self.interest;
-        s.host_info.ensure(gpu, nq * 16)?;
-        s.host_lens.ensure(gpu, nq * mdg * 4)?;
-        s.host_offsets.ensure(gpu, (nq + 1) * 4)?;
+        s.queued = (nq, mdg);
         if nq == 0 {
-            s.last = Some((0, mdg));
             return Ok(());
         }
+        s.chunks.extend((0..nq).step_by(chunk).map(|a| a..(a + chunk).min(nq)));
+        while s.chunk_done.len() < s.chunks.len() {
+            s.chunk_done.push(Event::new(gpu)?);
+        }
+        s.chunk_state.clear();
+        s.chunk_state.resize_with(s.chunks.len(), || AtomicU8::new(CHUNK_QUEUED));
+        s.host_info.ensure(gpu, nq * 16)?;
+        s.host_lens.ensure(gpu, nq * mdg * 4)?;
+        s.host_out.ensure(gpu, nq * mdg * DATAGRAM_STRIDE)?;
         if self.n == 0 {
             // No object at all: no update and no staleness to keep.
             s.host_info.slice_mut::<u32>(nq * 4).fill(0);
             s.host_lens.slice_mut::<u32>(nq * mdg).fill(0);
-            s.host_offsets.slice_mut::<u32>(nq + 1).fill(0);
-            s.last = Some((nq, mdg));
             s.tables_tick = None;
+            for done in &s.chunk_done[..s.chunks.len()] {
+                gpu.record(done.raw)?;
+            }
             return Ok(());
         }
         let next = 1 - s.current;
@@ -285,130 +483,163 @@ impl CudaBackend {
         s.keys.ensure(gpu, total * 8, 1.25)?;
         s.meta.ensure(gpu, nq * 16, 1.25)?;
         s.sel.ensure(gpu, nq * cap * 4, 1.25)?;
-        s.bodies.ensure(gpu, nq * mdg * MAX_BODY, 1.25)?;
+        s.bodies.ensure(gpu, nq * mdg * BODY_STRIDE, 1.25)?;
         s.lens.ensure(gpu, nq * mdg * 4, 1.25)?;
         s.info.ensure(gpu, nq * 16, 1.25)?;
-        s.offsets.ensure(gpu, (nq + 1) * 4, 1.25)?;
         s.packed.ensure(gpu, nq * 4, 1.25)?;
+        s.leases.ensure(gpu, nq * LEASE_WORDS * 4, 1.25)?;
+        s.host_leases.ensure(gpu, nq * LEASE_WORDS * 4)?;
         let t = &mut s.tables[next];
         t.offsets.ensure(gpu, (nq + 1) * 4, 1.25)?;
         t.ids.ensure(gpu, 2 * total * 8, 1.25)?;
         t.keys.ensure(gpu, 2 * total * 8, 1.25)?;
         t.kept.ensure(gpu, nq, 1.25)?;
         gpu.zero(t.ids.ptr(), 2 * total)?;
-        gpu.upload(&s.own, q.own)?;
-        gpu.upload(&s.centres, q.centres.as_flattened())?;
+        // The per-player inputs go through page-locked memory, copied in stream order with
+        // no wait (the host rewrites them only after the tick's end has waited for the
+        // stream).
+        s.host_own.ensure(gpu, nq * 4)?;
+        s.host_centres.ensure(gpu, nq * 12)?;
+        s.host_prev.ensure(gpu, nq * 4)?;
+        s.host_own.slice_mut::<u32>(nq).copy_from_slice(q.own);
+        s.host_centres.slice_mut::<f32>(nq * 3).copy_from_slice(q.centres.as_flattened());
         // Staleness is read only from the tables of the previous tick's selection (a
         // player missing a tick starts afresh, as on the host).
         if q.tick.checked_sub(1).is_some_and(|t| s.tables_tick == Some(t)) {
-            gpu.upload(&s.prev, q.prev)?;
+            s.host_prev.slice_mut::<u32>(nq).copy_from_slice(q.prev);
         } else {
-            gpu.upload(&s.prev, &vec![NO_PREVIOUS; nq])?;
+            s.host_prev.slice_mut::<u32>(nq).fill(NO_PREVIOUS);
         }
+        gpu.upload_async(&s.own, &s.host_own, nq)?;
+        gpu.upload_async(&s.centres, &s.host_centres, nq * 3)?;
+        gpu.upload_async(&s.prev, &s.host_prev, nq)?;
+        // The lease table, copied from page-locked memory in stream order (the host
+        // table is wiped once the tick is done).
+        for (entry, lease) in
+            s.host_leases.slice_mut::<u32>(nq * LEASE_WORDS).chunks_exact_mut(LEASE_WORDS).zip(q.leases)
+        {
+            lease_entry(lease.as_ref(), entry);
+        }
+        gpu.upload_async(&s.leases, &s.host_leases, nq * LEASE_WORDS)?;
+        let out = s.host_out.device_ptr::<u8>()?;
         let (p, t) = (&s.tables[s.current], &s.tables[next]);
-        gpu.launch_grid(
-            nq as u32,
-            256,
-            KInterestSelect {
-                nq: nq as u32,
-                offsets: self.aoi_counts.ptr(),
-                parts: parts as u32,
-                objects: self.aoi_out.ptr(),
-                n: self.n as u32,
-                pos: self.obj.pos.ptr(),
-                ids: self.obj.id.ptr(),
-                own: s.own.ptr(),
-                centres: s.centres.ptr(),
-                prev_index: s.prev.ptr(),
-                prev_toff: p.offsets.ptr(),
-                prev_tid: p.ids.ptr(),
-                prev_tkey: p.keys.ptr(),
-                prev_rot: p.kept.ptr(),
-                next_toff: t.offsets.ptr(),
-                next_tid: t.ids.ptr(),
-                next_tkey: t.keys.ptr(),
-                next_rot: t.kept.ptr(),
-                cdist: s.dist.ptr(),
-                cid: s.ids.ptr(),
-                cflag: s.flags.ptr(),
-                ckey: s.keys.ptr(),
-                tick: q.tick,
-                max_datagrams: q.max_datagrams,
-                near_slots: q.near_slots,
-                rotation_slots: q.rotation_slots,
-                cap: q.capacity,
-                meta: s.meta.ptr(),
-                sel: s.sel.ptr(),
-            },
-        )?;
-        gpu.launch_grid(
-            nq.div_ceil(PACK_WARPS) as u32,
-            32 * PACK_WARPS as u32,
-            KInterestPack {
-                nq: nq as u32,
-                meta: s.meta.ptr(),
-                sel: s.sel.ptr(),
-                cap: q.capacity,
-                n: self.n as u32,
-                pos: self.obj.pos.ptr(),
-                ids: self.obj.id.ptr(),
-                shapes: self.obj.shape.ptr(),
-                own: s.own.ptr(),
-                centres: s.centres.ptr(),
-                tick: q.tick,
-                dilation: u32::from(q.dilation_permille),
-                max_datagrams: q.max_datagrams,
-                bodies: s.bodies.ptr(),
-                lens: s.lens.ptr(),
-                info: s.info.ptr(),
-                totals: s.offsets.ptr(),
-                packed: s.packed.ptr(),
-            },
-        )?;
-        // What was packed is what was sent: the new tables' keys of those become `tick`.
-        gpu.launch_grid(
-            nq as u32,
-            256,
-            KInterestStamp {
-                nq: nq as u32,
-                meta: s.meta.ptr(),
-                sel: s.sel.ptr(),
-                cap: q.capacity,
-                packed: s.packed.ptr(),
-                ids: self.obj.id.ptr(),
-                toff: t.offsets.ptr(),
-                tid: t.ids.ptr(),
-                tkey: t.keys.ptr(),
-                tick: q.tick,
-            },
-        )?;
-        // The players' byte counts' scan gives each its start in the download.
-        self.scan.exclusive(gpu, s.offsets.ptr(), nq + 1)?;
-        gpu.download_async(&mut s.host_info, 0, s.info.ptr(), nq * 4)?;
-        gpu.download_async(&mut s.host_lens, 0, s.lens.ptr(), nq * mdg)?;
-        gpu.download_async(&mut s.host_offsets, 0, s.offsets.ptr(), nq + 1)?;
-        gpu.sync()?;
-        let bytes = s.host_offsets.slice::<u32>(nq + 1)[nq] as usize;
-        s.out.ensure(gpu, bytes.max(1), 1.25)?;
-        s.host_out.ensure(gpu, bytes.max(1))?;
-        gpu.launch_grid(
-            nq as u32,
-            256,
-            KInterestBodies {
-                nq: nq as u32,
-                max_datagrams: q.max_datagrams,
-                bodies: s.bodies.ptr(),
-                lens: s.lens.ptr(),
-                offsets: s.offsets.ptr(),
-                out: s.out.ptr(),
-            },
-        )?;
-        gpu.download_async(&mut s.host_out, 0, s.out.ptr(), bytes)?;
-        gpu.sync()?;
-        gpu.collect_profile()?;
-        s.current = next;
-        s.last = Some((nq, mdg));
-        s.tables_tick = Some(q.tick);
+        for (players, done) in s.chunks.iter().zip(&s.chunk_done) {
+            let (first, end, m) = (players.start as u32, players.end as u32, players.len());
+            gpu.launch_grid(
+                m as u32,
+                SELECT_THREADS,
+                KInterestSelect {
+                    first,
+                    nq: end,
+                    offsets: self.aoi_counts.ptr(),
+                    parts: parts as u32,
+                    objects: self.aoi_out.ptr(),
+                    n: self.n as u32,
+                    pos: self.obj.pos.ptr(),
+                    ids: self.obj.id.ptr(),
+                    own: s.own.ptr(),
+                    centres: s.centres.ptr(),
+                    prev_index: s.prev.ptr(),
+                    prev_toff: p.offsets.ptr(),
+                    prev_tid: p.ids.ptr(),
+                    prev_tkey: p.keys.ptr(),
+                    prev_rot: p.kept.ptr(),
+                    next_toff: t.offsets.ptr(),
+                    next_tid: t.ids.ptr(),
+                    next_tkey: t.keys.ptr(),
+                    next_rot: t.kept.ptr(),
+                    cdist: s.dist.ptr(),
+                    cid: s.ids.ptr(),
+                    cflag: s.flags.ptr(),
+                    ckey: s.keys.ptr(),
+                    tick: q.tick,
+                    max_datagrams: q.max_datagrams,
+                    near_slots: q.near_slots,
+                    rotation_slots: q.rotation_slots,
+                    cap: q.capacity,
+                    meta: s.meta.ptr(),
+                    sel: s.sel.ptr(),
+                },
+            )?;
+            gpu.launch_grid(
+                m.div_ceil(PACK_WARPS) as u32,
+                32 * PACK_WARPS as u32,
+                KInterestPack {
+                    first,
+                    nq: end,
+                    meta: s.meta.ptr(),
+                    sel: s.sel.ptr(),
+                    cap: q.capacity,
+                    n: self.n as u32,
+                    pos: self.obj.pos.ptr(),
+                    ids: self.obj.id.ptr(),
+                    shapes: self.obj.shape.ptr(),
+                    own: s.own.ptr(),
+                    centres: s.centres.ptr(),
+                    tick: q.tick,
+                    dilation: u32::from(q.dilation_permille),
+                    max_datagrams: q.max_datagrams,
+                    bodies: s.bodies.ptr(),
+                    lens: s.lens.ptr(),
+                    info: s.info.ptr(),
+                    packed: s.packed.ptr(),
+                },
+            )?;
+            // What was packed is what was sent: the new tables' keys of those become `tick`.
+            gpu.launch_grid(
+                m as u32,
+                256,
+                KInterestStamp {
+                    first,
+                    nq: end,
+                    meta: s.meta.ptr(),
+                    sel: s.sel.ptr(),
+                    cap: q.capacity,
+                    packed: s.packed.ptr(),
+                    ids: self.obj.id.ptr(),
+                    toff: t.offsets.ptr(),
+                    tid: t.ids.ptr(),
+                    tkey: t.keys.ptr(),
+                    tick: q.tick,
+                },
+            )?;
+            gpu.launch_grid(
+                (m * mdg).div_ceil(SEAL_WARPS) as u32,
+                32 * SEAL_WARPS as u32,
+                KInterestSeal {
+                    first,
+                    nq: end,
+                    max_datagrams: q.max_datagrams,
+                    bodies: s.bodies.ptr(),
+                    lens: s.lens.ptr(),
+                    info: s.info.ptr(),
+                    leases: s.leases.ptr(),
+                    out,
+                },
+            )?;
+            let a = players.start;
+            gpu.download_async(&mut s.host_info, 4 * a, s.info.ptr().add(4 * a), 4 * m)?;
+            gpu.download_async(&mut s.host_lens, a * mdg, s.lens.ptr().add(a * mdg), m * mdg)?;
+            gpu.record(done.raw)?;
+        }
         Ok(())
     }
+}
+
+/// One player's entry of the lease table: the key, the session id and the first
+/// sequence number as little-endian words; without a lease, a first number of
+/// `u64::MAX` (the kernel seals nothing for it).
+fn lease_entry(lease: Option<&SealLease>, entry: &mut [u32]) {
+    let Some(lease) = lease else {
+        entry.fill(0);
+        entry[10] = u32::MAX;
+        entry[11] = u32::MAX;
+        return;
+    };
+    for (w, b) in entry[..8].iter_mut().zip(lease.key_bytes().chunks_exact(4)) {
+        *w = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    }
+    let id = lease.session_id();
+    let first = lease.first_sequence();
+    entry[8..].copy_from_slice(&[id as u32, (id >> 32) as u32, first as u32, (first >> 32) as u32]);
 }

@@ -57,7 +57,9 @@ use scan::Scan;
 use sync::{Host, Objects, Prims};
 use tree::Tree;
 
-pub use interest::{InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS, Payload, Payloads};
+pub use interest::{
+    DATAGRAM_STRIDE, InterestChunks, InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS, Payload, Payloads,
+};
 
 /// Events recorded per step (stage boundaries and the download's checkpoints).
 const EVENTS: usize = 15;

@@ -21,12 +21,13 @@
 //! `myriad_outbound_errors_total{reason="device_select"}`; the players of the chunks the
 //! device had finished keep what it built); players then start their rotation afresh.
 
+use std::ops::Range;
 use std::sync::Mutex;
 use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3, World};
 use myriad_cuda::CudaBackend;
-use myriad_cuda::backend::{InterestChunks, InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS};
+use myriad_cuda::backend::{InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS};
 use myriad_interest::{InterestConfig, InterestManager, Packed, TickInfo, TickReport};
 use myriad_physics::Backend;
 use myriad_protocol::{MAX_COMPACT_RECORDS, SealLease};
@@ -205,7 +206,8 @@ impl Outbound for DeviceOutbound {
         // threads never wait for each other, so no thread sleeps and wakes between chunks.
         let threads = rayon::current_num_threads().max(1);
         let chunks = cuda.interest_chunks();
-        let shares = Shares::new(recipients, &mut leases, &chunks, threads);
+        let ranges = (0..chunks.len()).map(|k| chunks.players(k).unwrap_or_default());
+        let shares = Shares::new(recipients, &mut leases, ranges, threads);
         let interest = &self.interest;
         let waited: Vec<(TickReport, std::time::Duration, Option<String>)> = rayon::broadcast(|ctx| {
             let mut report = TickReport::default();
@@ -281,16 +283,17 @@ struct Shares<'r, 'a> {
 type Share<'r, 'a> = (usize, &'r mut [Recipient<'a>], &'r mut [Option<SealLease>]);
 
 impl<'r, 'a> Shares<'r, 'a> {
+    /// Cuts `recipients` and `leases` (one a recipient) by `chunks`, consecutive ranges
+    /// from 0, each into `threads` shares.
     fn new(
         mut recipients: &'r mut [Recipient<'a>],
         mut leases: &'r mut [Option<SealLease>],
-        chunks: &InterestChunks<'_>,
+        chunks: impl ExactSizeIterator<Item = Range<usize>>,
         threads: usize,
     ) -> Self {
         let mut slots = Vec::with_capacity(chunks.len() * threads);
         let mut at = 0;
-        for k in 0..chunks.len() {
-            let players = chunks.players(k).unwrap_or(at..at);
+        for players in chunks {
             let len = players.len();
             for j in 0..threads {
                 let n = ((j + 1) * len / threads - j * len / threads).min(recipients.len()).min(leases.len());
@@ -318,5 +321,69 @@ impl<'r, 'a> Shares<'r, 'a> {
             .map(|(_, part, _)| part)
             .filter(|p| !p.is_empty())
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use myriad_interest::Subscriber;
+    use myriad_protocol::{Direction, Sealer};
+
+    /// Every recipient lands in exactly one share, in order, each share with its own
+    /// leases, and the shares of a chunk cover the chunk (a short last chunk, more threads
+    /// than players in a chunk).
+    #[test]
+    fn shares_cover_every_recipient_once_in_order() {
+        let mut views: Vec<Subscriber> = (0..23)
+            .map(|i| Subscriber::new(i, [0.0; 3], Sealer::new(u64::from(i), Direction::ServerToClient, &[1; 32])))
+            .collect();
+        let mut recipients: Vec<Recipient<'_>> = views
+            .iter_mut()
+            .enumerate()
+            .map(|(i, view)| Recipient { session_id: i as u64, object: i as u32, centre: Vec3::ZERO, addr: None, view })
+            .collect();
+        let mut leases: Vec<Option<SealLease>> =
+            (0..23).map(|i| Some(Sealer::new(i, Direction::ServerToClient, &[1; 32]).lease(2).unwrap())).collect();
+        let chunks = [0..10, 10..20, 20..23];
+        let threads = 4;
+        let shares = Shares::new(&mut recipients, &mut leases, chunks.iter().cloned(), threads);
+        let mut seen = Vec::new();
+        for (k, chunk) in chunks.iter().enumerate() {
+            let mut covered = Vec::new();
+            for j in 0..threads {
+                let (start, part, leases) = shares.take(k, j).expect("a share per chunk and thread");
+                assert_eq!(part.len(), leases.len());
+                for (i, (r, l)) in part.iter().zip(leases.iter()).enumerate() {
+                    assert_eq!(r.session_id as usize, start + i);
+                    assert_eq!(l.as_ref().map(SealLease::session_id), Some(r.session_id));
+                    covered.push(start + i);
+                }
+                assert!(shares.take(k, j).is_none(), "each share is taken once");
+            }
+            assert_eq!(covered, chunk.clone().collect::<Vec<_>>());
+            seen.extend(covered);
+        }
+        assert_eq!(seen, (0..23).collect::<Vec<_>>());
+        assert!(shares.into_rest().is_empty());
+    }
+
+    /// What no thread took comes back for the host, in order.
+    #[test]
+    fn untaken_shares_are_the_rest() {
+        let mut views: Vec<Subscriber> = (0..8)
+            .map(|i| Subscriber::new(i, [0.0; 3], Sealer::new(u64::from(i), Direction::ServerToClient, &[1; 32])))
+            .collect();
+        let mut recipients: Vec<Recipient<'_>> = views
+            .iter_mut()
+            .enumerate()
+            .map(|(i, view)| Recipient { session_id: i as u64, object: i as u32, centre: Vec3::ZERO, addr: None, view })
+            .collect();
+        let mut leases: Vec<Option<SealLease>> = (0..8).map(|_| None).collect();
+        let shares = Shares::new(&mut recipients, &mut leases, [0..4, 4..8].into_iter(), 2);
+        shares.take(0, 0).unwrap();
+        shares.take(1, 1).unwrap();
+        let rest: Vec<Vec<u64>> = shares.into_rest().iter().map(|p| p.iter().map(|r| r.session_id).collect()).collect();
+        assert_eq!(rest, vec![vec![2, 3], vec![4, 5]]);
     }
 }

@@ -331,18 +331,34 @@ mod tests {
             payloads.iter().enumerate().map(|(i, p)| (clients[i % 4].local_addr().unwrap(), p.as_slice())).collect();
         let sent = transport.send(&out).unwrap();
         assert_eq!(sent, Sent { datagrams: 1000, bytes: 4000 });
-        let mut got = Vec::new();
-        let mut buf = [0u8; 16];
-        for c in &clients {
-            c.set_read_timeout(Some(std::time::Duration::from_secs(2))).unwrap();
-            for _ in 0..250 {
-                let (n, from) = c.recv_from(&mut buf).unwrap();
-                assert_eq!(from, server, "every socket of the group sends from the one address");
-                got.push(u32::from_le_bytes(buf[..n].try_into().unwrap()));
+        let receive_all = || {
+            let mut got = Vec::new();
+            let mut buf = [0u8; 16];
+            for c in &clients {
+                c.set_read_timeout(Some(std::time::Duration::from_secs(2))).unwrap();
+                for _ in 0..250 {
+                    let (n, from) = c.recv_from(&mut buf).unwrap();
+                    assert_eq!(from, server, "every socket of the group sends from the one address");
+                    got.push(u32::from_le_bytes(buf[..n].try_into().unwrap()));
+                }
             }
-        }
-        got.sort_unstable();
-        assert_eq!(got, (0..1000).collect::<Vec<_>>());
+            got.sort_unstable();
+            got
+        };
+        assert_eq!(receive_all(), (0..1000).collect::<Vec<_>>());
+        // A lane a socket, each sending on its own thread: the same datagrams, a share each.
+        let lanes = transport.lanes();
+        assert_eq!(lanes.len(), 3);
+        let per_lane: Vec<Sent> = std::thread::scope(|s| {
+            let sending: Vec<_> = lanes
+                .into_iter()
+                .zip(out.chunks(334))
+                .map(|(lane, share)| s.spawn(move || lane.transmit(share).unwrap()))
+                .collect();
+            sending.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        assert_eq!(per_lane.iter().map(|s| s.datagrams).collect::<Vec<_>>(), [334, 334, 332]);
+        assert_eq!(receive_all(), (0..1000).collect::<Vec<_>>());
         // And a client's datagrams reach the group, whichever socket the kernel picks.
         for c in &clients {
             c.send_to(b"hi", server).unwrap();

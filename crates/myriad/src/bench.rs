@@ -590,7 +590,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         );
         let _ = writeln!(
             s,
-            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which AOI query | send | datagrams | KiB sent | kB/s per player | records | actions in | opened by bots | min. players seeing themselves |"
+            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which AOI query or device | send | datagrams | KiB sent | kB/s per player | records | actions in | opened by bots | min. players seeing themselves |"
         );
         let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(15));
         for r in &server_rows {
@@ -620,6 +620,9 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         let _ = writeln!(
             s,
             "\n`tick` is the sum of the stages (receive included); `server CPU` is the process's CPU time less the bots'. \
+             `send` is the mean socket's time sending (the sockets send at once, and with the device outbound \
+             beside the device's work), `packets` the rest of building and sending; `of which AOI query or device`: \
+             the host AOI query, or the time the tick waited for the device. \
              `kB/s per player`: bytes sent per tick and player at the nominal tick rate ({} Hz). \
              Each bot sends an action every {} ticks. cpu threads: {threads}.",
             ServerConfig::default().tick_rate,

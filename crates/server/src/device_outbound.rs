@@ -195,11 +195,13 @@ impl Outbound for DeviceOutbound {
             wave
         });
         let chunk = self.chunk_players(recipients.len(), wave);
+        let queueing = Instant::now();
         if let Err(e) = cuda.queue_interest_updates(world, &query, chunk) {
             // Nothing is left queued, but the keys are wiped and the tables start afresh.
             let _ = cuda.finish_interest_updates(tick.tick, false);
             return self.device_failed(&e.to_string(), backend, world, tick, vec![recipients], ready);
         }
+        let queued = queueing.elapsed();
         let mut failed = None;
         // Every thread of the pool takes its share of each chunk as soon as the device has
         // finished it: checks and takes its datagrams and hands them to its lane. The
@@ -243,8 +245,9 @@ impl Outbound for DeviceOutbound {
             sealed = sealed.merge(*report);
             failed = failed.or_else(|| error.clone());
         }
-        // The device's share: the time the first thread waited for it.
-        report.aoi_ms = waited.first().map_or(0.0, |w| w.1.as_secs_f64() * 1e3);
+        // The device's share: queueing (which waits for the AOI query's count), then the
+        // first thread's waits for chunks.
+        report.aoi_ms = (queued + waited.first().map_or(std::time::Duration::ZERO, |w| w.1)).as_secs_f64() * 1e3;
         let unserved = shares.into_rest();
         if let Err(e) = cuda.finish_interest_updates(tick.tick, unserved.is_empty() && failed.is_none()) {
             failed = failed.or(Some(e.to_string()));

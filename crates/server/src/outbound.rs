@@ -94,7 +94,8 @@ pub struct OutboundReport {
     /// State records packed, over all recipients.
     pub records: usize,
     /// Time of the AOI query in ms (part of the `packets` stage); for the device
-    /// outbound, the query and the selection, with the download of what was selected.
+    /// outbound, the time the tick waited for the device (queueing the work, with the
+    /// AOI query's count, then the first pool thread's waits for chunks).
     pub aoi_ms: f64,
     /// Recipients whose sealing failed (nothing is sent to them this tick).
     pub seal_failures: usize,

@@ -16,9 +16,11 @@ use serde::{Deserialize, Serialize};
 pub enum TickStage {
     /// A stage of the physics step.
     Physics(Stage),
-    /// AOI query, interest management, packing and sealing.
+    /// AOI query, interest management, packing and sealing (and, where these overlap
+    /// the sending, everything of the two but [`TickStage::Send`]).
     Packets,
-    /// Sending the sealed datagrams.
+    /// Sending the sealed datagrams: the control replies, plus the mean over the
+    /// transport's lanes of each lane's time in the transport (the lanes send at once).
     Send,
     /// Receiving and opening client datagrams, session expiry.
     Receive,

@@ -10,9 +10,13 @@
 //! 3. the backend steps the world (stages `upload` … `forces`); the step alone
 //!    advances `world.tick`;
 //! 4. `packets`: the outbound builds and seals every active player's updates
-//!    ([`crate::outbound`]);
-//! 5. `send`: control replies and updates go out through the transport
-//!    ([`crate::transport`]);
+//!    ([`crate::outbound`]) and hands each player over as soon as its datagrams are
+//!    final;
+//! 5. `send`: control replies go out through the transport, and each player handed over
+//!    on one of its lanes (sockets), from several threads at once
+//!    ([`crate::transport`]); this overlaps step 4 where the outbound hands players over
+//!    in chunks, so `send` is the mean lane's time in the transport and `packets` the
+//!    rest of the two;
 //! 6. final states of players who left go to the persister.
 //!
 //! [`TickLoop::run`] adds pacing, the periodic persistence hand-off, time dilation and
@@ -96,7 +100,8 @@ impl StateSink for Persister {
 pub struct TickWork {
     /// Milliseconds per stage.
     pub stages: StageTimes,
-    /// The part of `packets` spent in the backend's AOI query, in ms.
+    /// The part of `packets` spent in the backend's AOI query, in ms (with the device
+    /// outbound: waiting for the device, see [`crate::outbound::OutboundReport::aoi_ms`]).
     pub aoi_ms: f64,
     /// Bytes sent (control replies and updates).
     pub bytes: u64,

@@ -29,6 +29,7 @@ use cudarc::driver::safe::CudaContext;
 use myriad_core::{Aabb, World};
 use myriad_physics::PhysicsError;
 use myriad_protocol::{MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM, SealLease};
+use rayon::prelude::*;
 
 use super::CudaBackend;
 use crate::device::{DevBuf, Event, Pinned};
@@ -515,11 +516,12 @@ impl CudaBackend {
         gpu.upload_async(&s.prev, &s.host_prev, nq)?;
         // The lease table, copied from page-locked memory in stream order (the host
         // table is wiped once the tick is done).
-        for (entry, lease) in
-            s.host_leases.slice_mut::<u32>(nq * LEASE_WORDS).chunks_exact_mut(LEASE_WORDS).zip(q.leases)
-        {
-            lease_entry(lease.as_ref(), entry);
-        }
+        // In parallel: an entry a player, thousands of them, each a key's worth of copying.
+        s.host_leases
+            .slice_mut::<u32>(nq * LEASE_WORDS)
+            .par_chunks_exact_mut(LEASE_WORDS)
+            .zip(q.leases)
+            .for_each(|(entry, lease)| lease_entry(lease.as_ref(), entry));
         gpu.upload_async(&s.leases, &s.host_leases, nq * LEASE_WORDS)?;
         let out = s.host_out.device_ptr::<u8>()?;
         let (p, t) = (&s.tables[s.current], &s.tables[next]);

@@ -333,19 +333,28 @@ mod tests {
     use myriad_interest::Subscriber;
     use myriad_protocol::{Direction, Sealer};
 
+    /// `n` players' views, player `i` of session `i`.
+    fn views(n: u32) -> Vec<Subscriber> {
+        (0..n)
+            .map(|i| Subscriber::new(i, [0.0; 3], Sealer::new(u64::from(i), Direction::ServerToClient, &[1; 32])))
+            .collect()
+    }
+
+    fn recipients(views: &mut [Subscriber]) -> Vec<Recipient<'_>> {
+        views
+            .iter_mut()
+            .enumerate()
+            .map(|(i, view)| Recipient { session_id: i as u64, object: i as u32, centre: Vec3::ZERO, addr: None, view })
+            .collect()
+    }
+
     /// Every recipient lands in exactly one share, in order, each share with its own
     /// leases, and the shares of a chunk cover the chunk (a short last chunk, more threads
     /// than players in a chunk).
     #[test]
     fn shares_cover_every_recipient_once_in_order() {
-        let mut views: Vec<Subscriber> = (0..23)
-            .map(|i| Subscriber::new(i, [0.0; 3], Sealer::new(u64::from(i), Direction::ServerToClient, &[1; 32])))
-            .collect();
-        let mut recipients: Vec<Recipient<'_>> = views
-            .iter_mut()
-            .enumerate()
-            .map(|(i, view)| Recipient { session_id: i as u64, object: i as u32, centre: Vec3::ZERO, addr: None, view })
-            .collect();
+        let mut views = views(23);
+        let mut recipients = recipients(&mut views);
         let mut leases: Vec<Option<SealLease>> =
             (0..23).map(|i| Some(Sealer::new(i, Direction::ServerToClient, &[1; 32]).lease(2).unwrap())).collect();
         let chunks = [0..10, 10..20, 20..23];
@@ -374,14 +383,8 @@ mod tests {
     /// What no thread took comes back for the host, in order.
     #[test]
     fn untaken_shares_are_the_rest() {
-        let mut views: Vec<Subscriber> = (0..8)
-            .map(|i| Subscriber::new(i, [0.0; 3], Sealer::new(u64::from(i), Direction::ServerToClient, &[1; 32])))
-            .collect();
-        let mut recipients: Vec<Recipient<'_>> = views
-            .iter_mut()
-            .enumerate()
-            .map(|(i, view)| Recipient { session_id: i as u64, object: i as u32, centre: Vec3::ZERO, addr: None, view })
-            .collect();
+        let mut views = views(8);
+        let mut recipients = recipients(&mut views);
         let mut leases: Vec<Option<SealLease>> = (0..8).map(|_| None).collect();
         let shares = Shares::new(&mut recipients, &mut leases, [0..4, 4..8].into_iter(), 2);
         shares.take(0, 0).unwrap();

@@ -492,17 +492,8 @@ impl TickLoop {
     fn send_control(&mut self) -> Sent {
         let out: Vec<(std::net::SocketAddr, &[u8])> =
             self.sessions.control().iter().map(|(addr, d)| (*addr, d.as_slice())).collect();
-        let sent = match self.transport.send(&out) {
-            Ok(sent) => sent,
-            Err(e) => {
-                tracing::warn!(error = %e, "send failed");
-                Sent::default()
-            }
-        };
-        if sent.datagrams < out.len() {
-            metrics::counter!("myriad_packets_dropped_total", "reason" => "send_buffer_full")
-                .increment((out.len() - sent.datagrams) as u64);
-        }
+        let transport = &mut self.transport;
+        let sent = counted(&out, |out| transport.send(out));
         self.sessions.clear_control();
         sent
     }
@@ -621,7 +612,7 @@ impl Ready for Sender<'_> {
             .collect();
         let t = Instant::now();
         let mut lane = self.lanes[lane % self.lanes.len()].lock().unwrap_or_else(|p| p.into_inner());
-        let sent = send_on(&mut **lane, &out);
+        let sent = counted(&out, |out| lane.transmit(out));
         drop(lane);
         self.nanos.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
         self.bytes.fetch_add(sent.bytes, Ordering::Relaxed);
@@ -629,12 +620,16 @@ impl Ready for Sender<'_> {
     }
 }
 
-/// Hands `out` to a lane; counts what it dropped.
-fn send_on(lane: &mut dyn Lane, out: &[(std::net::SocketAddr, &[u8])]) -> Sent {
+/// Sends `out` with `send` (a transport or one of its lanes); logs a failure and counts
+/// what was dropped.
+fn counted(
+    out: &[(std::net::SocketAddr, &[u8])],
+    send: impl FnOnce(&[(std::net::SocketAddr, &[u8])]) -> std::io::Result<Sent>,
+) -> Sent {
     if out.is_empty() {
         return Sent::default();
     }
-    let sent = match lane.transmit(out) {
+    let sent = match send(out) {
         Ok(sent) => sent,
         Err(e) => {
             tracing::warn!(error = %e, "send failed");

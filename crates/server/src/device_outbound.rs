@@ -8,11 +8,13 @@
 //! ([`InterestManager::adopt_sealed`]). What was packed becomes the staleness of the next
 //! tick on the device.
 //!
-//! The players go in chunks (at most [`MAX_CHUNKS`], each a whole number of the
-//! device's waves of selection): the device queues every chunk at once, and each chunk is handed to the
-//! tick's `ready` (which sends it) as soon as the device has finished it, while the
-//! device builds the next. A tick's time is then about the device's part plus the
-//! sending of one chunk, instead of the sum of both.
+//! The players go in chunks (at most [`MAX_CHUNKS`], each a whole number of the device's
+//! waves of selection): the device queues every chunk at once, and every thread of the
+//! pool takes its share of each chunk as soon as the device has finished it, checks and
+//! takes its datagrams and hands them to its lane of the tick's [`Ready`] (which sends
+//! them), while the device builds the next chunks. A tick's time is then about the
+//! device's part plus the sending of one chunk, instead of the sum of both; the threads
+//! never wait for each other, so none sleeps and wakes between chunks.
 //!
 //! The datagrams are byte for byte those of [`CpuOutbound`] for the same world, tick and
 //! history (the GPU suite's `device_outbound` test). With another backend, a budget
@@ -41,7 +43,7 @@ use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Ready, Recipient};
 /// ([`CudaBackend::interest_wave`]), as few as keep the chunks at most this many.
 pub const MAX_CHUNKS: usize = 8;
 
-/// Interest selection and packing on the device, sealing on the host.
+/// Interest selection, packing and sealing on the device.
 #[derive(Debug)]
 pub struct DeviceOutbound {
     interest: InterestManager,
@@ -132,7 +134,7 @@ impl Outbound for DeviceOutbound {
     fn description(&self) -> String {
         let max = self.interest.config().max_datagrams;
         if self.budget_fits() {
-            format!("device interest selection and packing, host sealing ({max} datagrams a player at most)")
+            format!("device interest selection, packing and sealing ({max} datagrams a player at most)")
         } else {
             format!(
                 "host interest management: {max} datagrams a player is over the device selection's {MAX_SELECTED} records"
@@ -203,9 +205,7 @@ impl Outbound for DeviceOutbound {
         }
         let queued = queueing.elapsed();
         let mut failed = None;
-        // Every thread of the pool takes its share of each chunk as soon as the device has
-        // finished it: checks and takes its datagrams and hands them to its lane. The
-        // threads never wait for each other, so no thread sleeps and wakes between chunks.
+        // Every thread of the pool takes its share of each chunk (module docs).
         let threads = rayon::current_num_threads().max(1);
         let chunks = cuda.interest_chunks();
         let ranges = (0..chunks.len()).map(|k| chunks.players(k).unwrap_or_default());

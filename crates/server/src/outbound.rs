@@ -13,8 +13,8 @@
 //! [`DeviceOutbound`](crate::device_outbound::DeviceOutbound) is the implementation on
 //! the device: it receives the backend as `&mut dyn Backend` and reaches the CUDA
 //! backend's device buffers through [`Backend::as_any_mut`]. Each recipient also brings
-//! its sealer, from which an implementation could lease a key and a range of sequence
-//! numbers to seal elsewhere without ever reusing a nonce.
+//! its sealer, from which it leases a key and a range of sequence numbers to seal on the
+//! device without ever reusing a nonce.
 //!
 //! [`OutboundKind`] picks one: `auto` (the default) is the device outbound on a CUDA
 //! backend and the host one otherwise.

@@ -128,7 +128,7 @@ impl<'a> Payload<'a> {
     }
 }
 
-/// The updates of one chunk of players ([`CudaBackend::interest_chunk`]), in pinned host
+/// The updates of one chunk of players ([`InterestChunks::wait`]), in pinned host
 /// memory; player `i` is the chunk's `i`-th.
 #[derive(Debug, Clone, Copy)]
 pub struct Payloads<'a> {

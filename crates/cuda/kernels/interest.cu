@@ -31,9 +31,6 @@
 #define SEL_SORT 1024
 // Protocol sizes (crates/protocol/src/header.rs and update.rs).
 #define MAX_BODY 1166u
-// Bytes between two bodies of `bodies` and of the host's copy (`BODY_STRIDE` in
-// backend/interest.rs): MAX_BODY rounded up to 16, so bodies copy as 16-byte words.
-#define BODY_STRIDE 1168u
 // A sealed datagram: the clear header, the body, the tag (crates/protocol/src/header.rs);
 // the host's copy holds one every DATAGRAM_STRIDE bytes (`MAX_DATAGRAM`, a multiple of 16).
 #define HEADER_LEN 18u
@@ -394,7 +391,7 @@ extern "C" __global__ void k_interest_stamp(u32 first, u32 nq, const u32* meta, 
 // `pack_updates_pinned` (crates/protocol/src/update.rs) makes of them on the host: the
 // player's own object first in every datagram, then the selection in order, each
 // datagram filled greedily and written against its id base (the smallest id it carries,
-// which can turn records extended; `fit` there). The host only frames and seals them.
+// which can turn records extended; `fit` there). k_interest_seal then frames and seals them.
 
 // Warps (players) per block of k_interest_pack.
 #define PACK_WARPS 4
@@ -446,7 +443,7 @@ __device__ u32 write_rec(u8* out, u32 s, const float* pos, const u32* ids, const
 }
 
 // One warp per player of first..nq: packs `min(meta[4 i], cap)` selected slots into at
-// most `max_datagrams` bodies at `bodies + (i * max_datagrams + d) * BODY_STRIDE`, with
+// most `max_datagrams` bodies at `bodies + (i * max_datagrams + d) * MAX_BODY`, with
 // their lengths in `lens` (0 past the last); `info[4 i..]` = (objects in view, over
 // budget | own object pinned << 1, records packed, datagrams), `packed[i]` the records
 // packed (for the stamp).
@@ -523,7 +520,7 @@ extern "C" __global__ void k_interest_pack(
     for (u32 d = 0; d < mdg; d++) {
         u32 len = 0;
         if (d < dgrams) {
-            u8* body = bodies + ((u64)i * mdg + d) * BODY_STRIDE;
+            u8* body = bodies + ((u64)i * mdg + d) * MAX_BODY;
             u32 base = s_base[w][d], first = pin + s_first[w][d], take = s_take[w][d];
             u32 at = UPDATE_HEADER_LEN;
             if (pin) {
@@ -586,7 +583,7 @@ extern "C" __global__ void k_interest_seal(u32 first, u32 nq, u32 max_datagrams,
     sequence += d;
     u32 len = min(lens[(u64)i * max_datagrams + d], MAX_BODY);
     u8* buf = (u8*)s_buf[w];
-    const u8* body = bodies + ((u64)i * max_datagrams + d) * BODY_STRIDE;
+    const u8* body = bodies + ((u64)i * max_datagrams + d) * MAX_BODY;
     for (u32 k = lane; k < len; k += 32) buf[HEADER_LEN + k] = body[k];
     if (lane == 0) {
         buf[0] = PROTOCOL_VERSION;

@@ -81,8 +81,9 @@ pub struct BenchArgs {
     /// most 64).
     #[arg(long, default_value_t = ServerConfig::default().udp_sockets)]
     pub udp_sockets: usize,
-    /// Players in each run the device outbound hands over while the device builds the
-    /// next (config `outbound_chunk_players`: 0 by size; at least the players: one run).
+    /// Players in each chunk the device outbound sends while the device builds the next
+    /// (config `outbound_chunk_players`: 0 by the device's waves; at least the players:
+    /// one chunk).
     #[arg(long, default_value_t = ServerConfig::default().outbound_chunk_players)]
     pub outbound_chunk_players: usize,
     #[command(flatten)]

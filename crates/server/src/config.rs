@@ -58,9 +58,10 @@ pub struct ServerConfig {
     /// Where each player's records are selected: `auto` (on the device with a CUDA
     /// backend, else on the host) or `host`.
     pub outbound: crate::outbound::OutboundKind,
-    /// Players in each run the device outbound seals and sends while the device builds
-    /// the next (0: a tick's players in up to 8 runs of at least 1,024; a value at least
-    /// the number of players: one run, no overlap).
+    /// Players in each chunk the device outbound sends while the device builds the next
+    /// (0: up to 8 chunks, each a whole number of the device's waves of selection, 1,056
+    /// players on an H200; a value at least the number of players: one chunk, no
+    /// overlap).
     pub outbound_chunk_players: usize,
     /// Data directory: the SQLite database and the development TLS certificate.
     pub data_dir: PathBuf,

@@ -103,9 +103,7 @@ impl DeviceOutbound {
     ) -> OutboundReport {
         self.fallback.build(backend, world, tick, recipients, ready)
     }
-}
 
-impl DeviceOutbound {
     /// After a device error: logs and counts it, and serves the players the device did
     /// not (`parts`) on the host.
     fn device_failed(

@@ -160,8 +160,13 @@ pub trait Ready: Sync {
     fn ready(&self, lane: usize, players: &[Recipient<'_>]);
 }
 
-/// Hands `recipients` to `ready` in parallel, a contiguous share per lane.
+/// Hands `recipients` to `ready` in parallel, a contiguous share per lane (on one lane
+/// when they are too few to pay for waking the others: a player has a datagram or two).
 pub(crate) fn hand_over(recipients: &[Recipient<'_>], ready: &dyn Ready) {
+    if recipients.len() < crate::transport::PARALLEL_SEND_MIN {
+        ready.ready(0, recipients);
+        return;
+    }
     let share = recipients.len().div_ceil(ready.lanes().max(1)).max(1);
     recipients.par_chunks(share).enumerate().for_each(|(lane, players)| ready.ready(lane, players));
 }

@@ -87,7 +87,7 @@ impl Lane for Endpoint {
 
 /// Below this many datagrams a tick's send stays on one socket: waking the other
 /// senders costs more than it saves.
-const PARALLEL_SEND_MIN: usize = 256;
+pub(crate) const PARALLEL_SEND_MIN: usize = 256;
 
 /// Times a socket may report itself full in a row before the rest of its share is
 /// dropped.

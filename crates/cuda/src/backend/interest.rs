@@ -52,10 +52,6 @@ const SELECT_THREADS: u32 = 256;
 /// Datagrams (one warp each) per block of `k_interest_seal`.
 const SEAL_WARPS: usize = 4;
 
-/// Bytes from one body to the next in the device's bodies (`BODY_STRIDE` in the
-/// kernel).
-const BODY_STRIDE: usize = MAX_BODY.next_multiple_of(16);
-
 /// Bytes from one datagram to the next in the host's copy (`DATAGRAM_STRIDE` in the
 /// kernel), a multiple of 16: the datagrams travel as 16-byte words.
 pub const DATAGRAM_STRIDE: usize = MAX_DATAGRAM;
@@ -278,7 +274,7 @@ pub(super) struct InterestState {
     keys: DevBuf<u64>,
     meta: DevBuf<u32>,
     sel: DevBuf<u32>,
-    /// Each player's `max_datagrams` bodies of [`BODY_STRIDE`] bytes, and their lengths.
+    /// Each player's `max_datagrams` bodies of `MAX_BODY` bytes, and their lengths.
     bodies: DevBuf<u8>,
     lens: DevBuf<u32>,
     /// What the host needs of each player besides the bytes (see [`Payloads`]).
@@ -484,7 +480,7 @@ impl CudaBackend {
         s.keys.ensure(gpu, total * 8, 1.25)?;
         s.meta.ensure(gpu, nq * 16, 1.25)?;
         s.sel.ensure(gpu, nq * cap * 4, 1.25)?;
-        s.bodies.ensure(gpu, nq * mdg * BODY_STRIDE, 1.25)?;
+        s.bodies.ensure(gpu, nq * mdg * MAX_BODY, 1.25)?;
         s.lens.ensure(gpu, nq * mdg * 4, 1.25)?;
         s.info.ensure(gpu, nq * 16, 1.25)?;
         s.packed.ensure(gpu, nq * 4, 1.25)?;

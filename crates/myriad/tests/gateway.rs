@@ -15,8 +15,42 @@ use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+/// The first of `n` consecutive ports that are free on loopback for TCP and UDP alike.
+///
+/// They are taken below the kernel's ephemeral range (32768 and up on Linux): a port the
+/// kernel hands out for `127.0.0.1:0` can be handed to another socket (a bot's, in the
+/// test running beside this one) before the server binds it, and a gateway that cannot
+/// bind its UDP port never listens (the cluster restarts it in a loop).
+fn free_ports(n: u16) -> u16 {
+    use std::sync::atomic::{AtomicU16, Ordering};
+    static NEXT: AtomicU16 = AtomicU16::new(0);
+    let spread = (std::process::id() % 400) as u16 * 30;
+    loop {
+        let base = 20_000 + (spread + NEXT.fetch_add(n, Ordering::Relaxed)) % 12_000;
+        if free_ports_at(base, n) {
+            return base;
+        }
+    }
+}
+
+/// Whether ports `base .. base + n` are free on loopback for TCP and UDP.
+fn free_ports_at(base: u16, n: u16) -> bool {
+    (base..base + n).all(|p| {
+        std::net::TcpListener::bind(("127.0.0.1", p)).is_ok() && std::net::UdpSocket::bind(("127.0.0.1", p)).is_ok()
+    })
+}
+
+/// Collects a child's standard error on a thread (a pipe nobody reads stops the child
+/// once it is full); the lines arrive on the receiver.
+fn collect_stderr(child: &mut Child) -> std::sync::mpsc::Receiver<String> {
+    let stderr = BufReader::new(child.stderr.take().expect("stderr piped"));
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in stderr.lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    rx
 }
 
 /// The sum of a metric's samples (all label sets) on a Prometheus endpoint.
@@ -61,7 +95,7 @@ fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
     // cluster (a login at another gateway would replace it).
     let seeded = Command::new(bin).args(["user", "seed", "--count", "24", "--data-dir", d]).output().unwrap();
     assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
-    let (udp, login, metrics) = (free_port(), free_port(), free_port());
+    let (udp, login, metrics) = (free_ports(1), free_ports(1), free_ports(1));
     let process = Command::new(bin)
         .args(["gateway", "--nats", url, "--cluster", cluster, "--zones", "2", "--gateway", &index.to_string()])
         .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--data-dir", d])
@@ -95,7 +129,7 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
         return;
     };
     let cluster_name = format!("gw{}", std::process::id());
-    let zone_metrics = free_port();
+    let zone_metrics = free_ports(2);
     // The zone metrics are on zone_metrics + zone index.
     let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
         .args(["cluster", "--nats", &url, "--cluster", &cluster_name, "--zones", "2", "--live"])
@@ -107,14 +141,8 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let stderr = BufReader::new(cluster.stderr.take().unwrap());
+    let rx = collect_stderr(&mut cluster);
     let cluster = Killed(cluster);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in stderr.lines().map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
     let gateways = [gateway(&url, &cluster_name, 0), gateway(&url, &cluster_name, 1)];
     // The gateways are up once they have taken worlds from the zones.
     let start = Instant::now();
@@ -199,14 +227,15 @@ fn a_cluster_starts_its_gateways_and_one_account_has_one_session() {
             .unwrap();
         assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
     }
-    // Four free ports in a row for the gateways' UDP and login.
-    let port = loop {
-        let p = free_port();
-        if p < u16::MAX - 4 && (1..4).all(|i| std::net::TcpListener::bind(("127.0.0.1", p + i)).is_ok()) {
-            break p;
+    // Four ports in a row for the gateways' UDP and login; the zones' metrics on
+    // `metrics` and the next, the gateways' 100 above.
+    let port = free_ports(4);
+    let metrics = loop {
+        let m = free_ports(2);
+        if free_ports_at(m + 100, 2) {
+            break m;
         }
     };
-    let metrics = free_port();
     let cluster = Command::new(bin)
         .args(["cluster", "--json", "--nats", &url, "--cluster", &format!("gc{}", std::process::id())])
         .args(["--zones", "2", "--live", "--gateways", "2", "--gateway-port", &port.to_string()])
@@ -218,10 +247,18 @@ fn a_cluster_starts_its_gateways_and_one_account_has_one_session() {
         .spawn()
         .unwrap();
     let mut cluster = Killed(cluster);
+    let log = collect_stderr(&mut cluster.0);
     let login = |g: u16| format!("127.0.0.1:{}", port + 2 * g + 1);
     let start = Instant::now();
     while std::net::TcpStream::connect(login(0)).is_err() || std::net::TcpStream::connect(login(1)).is_err() {
-        assert!(start.elapsed() < Duration::from_secs(60), "the cluster's gateways never listened");
+        // Debug builds of two zones, two gateways and the cluster each build the map,
+        // on a CI machine's two cores beside the other test of this file.
+        let exited = cluster.0.try_wait().unwrap();
+        if exited.is_some() || start.elapsed() > Duration::from_secs(150) {
+            std::thread::sleep(Duration::from_millis(300));
+            let log: Vec<String> = log.try_iter().collect();
+            panic!("the cluster's gateways never listened (cluster {exited:?}); its log: {log:#?}");
+        }
         std::thread::sleep(Duration::from_millis(200));
     }
     let cert = |g: u16| dir.path().join(format!("gateway-{g}/tls-cert.pem")).display().to_string();

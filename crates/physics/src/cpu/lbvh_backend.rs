@@ -4,6 +4,7 @@
 use myriad_core::{Aabb, World};
 use rayon::prelude::*;
 
+use super::aoi_grid::AoiGrid;
 use super::pipeline::{BroadPhase, Exec, Scratch, dynamic_aabbs, run_step};
 use crate::backend::{AoiResults, Backend, BackendKind, StepReport};
 use crate::consts::TickConstants;
@@ -18,6 +19,8 @@ const CHUNK: usize = 512;
 pub struct CpuLbvh {
     broad: Trees,
     scratch: Scratch,
+    /// The AOI query's grid (the dynamic tree serves the step only).
+    aoi: AoiGrid,
 }
 
 #[derive(Default)]
@@ -26,11 +29,6 @@ struct Trees {
     /// (`Statics::stamp`, `Statics::generation`) the static tree was built for.
     statics_generation: Option<(u64, u64)>,
     dynamics: Lbvh,
-    /// (`Dynamics::stamp`, `Dynamics::layout_generation`) the dynamic tree's leaves
-    /// belong to.
-    dynamic_layout: Option<(u64, u64)>,
-    /// (`Dynamics::stamp`, `Dynamics::generation`) the dynamic tree's boxes are exact for.
-    dynamic_fresh: Option<(u64, u64)>,
 }
 
 impl Trees {
@@ -48,9 +46,6 @@ impl Trees {
 impl BroadPhase for Trees {
     fn build_dynamic(&mut self, world: &World, aabbs: &[Aabb]) {
         self.dynamics.build(aabbs, &world.bounds);
-        self.dynamic_layout = Some((world.dynamics.stamp(), world.dynamics.layout_generation()));
-        // The step moves everything after this: the boxes go stale.
-        self.dynamic_fresh = None;
     }
 
     fn static_pairs(&mut self, world: &World, aabbs: &[Aabb], out: &mut Vec<u64>) {
@@ -109,47 +104,8 @@ impl Backend for CpuLbvh {
 
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
         let d = &world.dynamics;
-        let trees = &mut self.broad;
-        if trees.dynamic_fresh != Some((d.stamp(), d.generation())) {
-            dynamic_aabbs(Exec::Parallel, d, &mut self.scratch.aabbs);
-            if trees.dynamic_layout == Some((d.stamp(), d.layout_generation())) {
-                // Same objects, new positions: refitting keeps the answers exact.
-                trees.dynamics.refit(&self.scratch.aabbs);
-            } else {
-                trees.dynamics.build(&self.scratch.aabbs, &world.bounds);
-                trees.dynamic_layout = Some((d.stamp(), d.layout_generation()));
-            }
-            trees.dynamic_fresh = Some((d.stamp(), d.generation()));
-        }
-        let tree = &trees.dynamics;
-        let per_query: Vec<Vec<u32>> = boxes
-            .par_iter()
-            .map_init(Stack::default, |stack, q| {
-                let mut v = Vec::new();
-                tree.query_with(q, stack, |i| v.push(i));
-                v.sort_unstable();
-                v
-            })
-            .collect();
-        out.clear();
-        out.offsets.reserve(boxes.len() + 1);
-        out.offsets.push(0);
-        let mut total = 0usize;
-        for v in &per_query {
-            total += v.len();
-            out.offsets.push(total as u32);
-        }
-        // Laid out in parallel: at AOI 100 the lists are tens of megabytes, whose serial
-        // copy was about 5 ms of the tick on the 16-core GPU host.
-        out.objects.par_extend(rayon::iter::repeat_n(0, total));
-        let mut rest = out.objects.as_mut_slice();
-        let mut dests = Vec::with_capacity(per_query.len());
-        for v in &per_query {
-            let (dest, tail) = std::mem::take(&mut rest).split_at_mut(v.len());
-            dests.push(dest);
-            rest = tail;
-        }
-        dests.into_par_iter().zip(&per_query).for_each(|(dest, v)| dest.copy_from_slice(v));
+        self.aoi.prepare((d.stamp(), d.generation()), |aabbs| dynamic_aabbs(Exec::Parallel, d, aabbs), boxes);
+        self.aoi.query_all(boxes, &mut out.offsets, &mut out.objects);
         Ok(())
     }
 }

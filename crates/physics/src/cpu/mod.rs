@@ -5,6 +5,7 @@
 //! Everything after the broad phase is shared code, and the broad phases produce the same
 //! canonically sorted pair lists, which is why the two agree bit for bit.
 
+mod aoi_grid;
 mod lbvh_backend;
 mod naive;
 pub(crate) mod pipeline;

@@ -1,6 +1,5 @@
 //! The client's copy of the part of the world it hears about.
 
-use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use myriad_protocol::{ShapeKind, StateRecord};
@@ -24,14 +23,16 @@ pub struct MirrorObject {
 /// replaces the kept state only if its tick is newer, so late datagrams never win).
 #[derive(Debug, Clone)]
 pub struct WorldMirror {
-    objects: HashMap<u64, MirrorObject>,
+    /// Seeded foldhash, not SipHash: every record of every datagram is looked up here,
+    /// and a swarm of 2,500 bots spent a third of its time hashing with SipHash.
+    objects: foldhash::HashMap<u64, MirrorObject>,
     stale_after: Duration,
 }
 
 impl WorldMirror {
     /// An empty mirror marking objects stale after `stale_after` without news.
     pub fn new(stale_after: Duration) -> Self {
-        Self { objects: HashMap::new(), stale_after }
+        Self { objects: foldhash::HashMap::default(), stale_after }
     }
 
     /// Applies one update's records; returns how many changed the mirror.

@@ -27,6 +27,9 @@ use crate::stats::ClientStats;
 /// How long a bot holds one direction before checking its movement.
 pub const HOLD: Duration = Duration::from_millis(1500);
 
+/// A bot's mirror forgets objects it has not heard of for this long.
+pub const FORGET_AFTER: Duration = Duration::from_secs(10);
+
 /// What bots do.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Behaviour {
@@ -324,7 +327,7 @@ impl Bot {
         }
     }
 
-    async fn run(self, mut stop: watch::Receiver<bool>) {
+    async fn run(self, stop: watch::Receiver<bool>) {
         let mut conn = match self.login(&stop).await {
             Ok(c) => c,
             Err(e) => {
@@ -349,9 +352,14 @@ impl Bot {
         let mut last_publish = Instant::now();
         let mut buf = vec![0u8; myriad_protocol::MAX_DATAGRAM + 64];
         let mut socket = conn.socket();
+        // One wait for the stop, kept across the loop: made afresh in every `select!`, it
+        // registered and dropped a waiter per datagram (a few % of a large swarm's time).
+        let mut stop_signal = stop.clone();
+        let stopped = stop_signal.changed();
+        tokio::pin!(stopped);
         loop {
             tokio::select! {
-                _ = stop.changed() => break,
+                _ = &mut stopped => break,
                 _ = ticker.tick() => {
                     let now = Instant::now();
                     if now.duration_since(hold_start) >= HOLD {
@@ -389,7 +397,13 @@ impl Bot {
                     }
                     if now.duration_since(last_publish) >= Duration::from_millis(250) {
                         last_publish = now;
-                        let in_view = { conn.mirror_mut().mark_stale(now); conn.mirror().fresh() };
+                        let in_view = {
+                            let mirror = conn.mirror_mut();
+                            mirror.mark_stale(now);
+                            // A walking bot meets thousands of objects: keep only recent ones.
+                            mirror.forget_older_than(FORGET_AFTER, now);
+                            mirror.fresh()
+                        };
                         let mut s = self.state();
                         s.stats = conn.stats();
                         s.in_view = in_view;

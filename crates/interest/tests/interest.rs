@@ -347,3 +347,87 @@ fn datagrams_sealed_elsewhere_are_adopted_as_the_manager_would_send_them() {
     assert!(subs.iter().all(|s| s.datagrams().is_empty()));
     assert!(subs[..4].iter().all(|s| s.sealer.next_sequence() == 2));
 }
+
+/// FNV-1a over bytes: a pinned hash needs a function that never changes.
+fn fnv(hash: &mut u64, bytes: &[u8]) {
+    for &b in bytes {
+        *hash = (*hash ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+    }
+}
+
+/// Every byte every player is sent over 60 ticks of a moving, churning world is pinned:
+/// small views sent whole, views over a two-datagram budget (nearest, then the stalest),
+/// far objects and huge ids in extended records, a list with duplicates and invalid
+/// slots, a player whose own object is invalid. The device outbound repeats these bytes
+/// (the GPU suite's `device_outbound`), so a change here is a change of the wire's
+/// contents, never an optimisation; update the hash only for a deliberate change of the
+/// rule.
+#[test]
+fn the_datagrams_of_a_churning_world_are_pinned() {
+    let mut rng = Rng(0x5eed);
+    let mut world = World::new(3000, &mut rng, 1 << 20);
+    for i in (0..3000).step_by(97) {
+        world.ids[i] = u64::MAX - i as u64;
+        world.positions[i][0] += 900.0;
+    }
+    let manager = InterestManager::new(InterestConfig { max_datagrams: 2, near_share: 0.5 });
+    let sizes = [20usize, 60, 110, 200, 260, 400, 650, 900, 1500, 30, 700, 250];
+    let mut subs = Vec::new();
+    for (p, _) in sizes.iter().enumerate() {
+        let object = if p == 11 { 99_999 } else { 2900 + p as u32 };
+        subs.push(subscriber(p as u64 + 1, object, [0.0; 3]).0);
+    }
+    let mut views: Vec<Vec<u32>> = sizes.iter().map(|&n| (0..n).map(|_| rng.below(2900) as u32).collect()).collect();
+    let mut hash = 0xcbf2_9ce4_8422_2325u64;
+    let (mut over, mut under, mut skipped, mut extended) = (0, 0, 0, 0);
+    for tick in 1..=60u64 {
+        for p in &mut world.positions {
+            p[0] += rng.f(-0.5, 0.5);
+            p[2] += rng.f(-0.5, 0.5);
+        }
+        for (p, v) in views.iter_mut().enumerate() {
+            for _ in 0..rng.below(v.len() as u64 / 8 + 2) {
+                let i = rng.below(v.len() as u64) as usize;
+                v[i] = rng.below(2900) as u32;
+            }
+            // Lists as an AOI query gives them (ascending, distinct), but for player 10's.
+            if p != 10 {
+                v.sort_unstable();
+                v.dedup();
+            } else {
+                v.extend([v[0], v[1], 50_000, u32::MAX]);
+            }
+        }
+        for (p, s) in subs.iter_mut().enumerate() {
+            s.centre = world.positions[2900 + p];
+        }
+        let mut offsets = vec![0u32];
+        let mut objects = Vec::new();
+        for v in &views {
+            objects.extend_from_slice(v);
+            offsets.push(objects.len() as u32);
+        }
+        let report = manager
+            .build(
+                TickInfo { tick, dilation_permille: 1000 - tick as u16 },
+                &world.soa(),
+                AoiLists { offsets: &offsets, objects: &objects },
+                &mut subs,
+            )
+            .unwrap();
+        fnv(&mut hash, &(report.records as u64).to_le_bytes());
+        fnv(&mut hash, &(report.over_budget as u64).to_le_bytes());
+        over += report.over_budget;
+        under += report.subscribers - report.over_budget;
+        skipped += report.skipped;
+        for s in &subs {
+            for d in s.datagrams().iter() {
+                fnv(&mut hash, d);
+            }
+            // Fewer records than a datagram of compact ones would hold: extended ones.
+            extended += usize::from(s.report().over_budget && s.report().records < s.report().datagrams * 100);
+        }
+    }
+    assert!(over >= 5 * 60 && under >= 2 * 60 && skipped >= 60 && extended > 0, "{over} {under} {skipped} {extended}");
+    assert_eq!(hash, 0xba78_d559_7c51_75de, "datagrams hash {hash:#018x}");
+}

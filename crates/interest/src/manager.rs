@@ -6,8 +6,8 @@ use std::cell::RefCell;
 use myriad_protocol::update::record_len;
 use myriad_protocol::{
     COMPACT_RECORD_LEN, DatagramBatch, Direction, EXTENDED_RECORD_LEN, MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM,
-    PacketKind, QuantPos, SealLease, Sealer, StateRecord, UPDATE_HEADER_LEN, UpdateHeader, pack_updates_pinned,
-    peek_header,
+    PacketKind, QuantPos, SealLease, Sealer, ShapeKind, StateRecord, UPDATE_HEADER_LEN, UpdateHeader,
+    pack_updates_pinned, peek_header,
 };
 use rayon::prelude::*;
 use thiserror::Error;
@@ -167,21 +167,31 @@ pub struct InterestManager {
 struct Scratch {
     /// Candidates (own excluded), sorted by id when over budget.
     cands: Vec<Candidate>,
-    /// The subscriber's stored keys, loaded for lookups.
+    /// The subscriber's stored keys, loaded for lookups; taking a key marks its id
+    /// seen, which drops duplicate slots.
     stored: StaleTable,
-    /// Ids already taken this tick, to drop duplicate slots.
-    seen: StaleTable,
     /// Indices into `cands`, for the partial selections.
     order: Vec<u32>,
     /// The records to pack, in priority order.
     records: Vec<StateRecord>,
 }
 
+/// An object in view. Its position is quantized only when it is sent (or when the
+/// whole view might fit): an over-budget view sends a fraction of its candidates.
 #[derive(Clone, Copy)]
 struct Candidate {
-    rec: StateRecord,
+    id: u64,
+    kind: ShapeKind,
+    pos: [f32; 3],
     dist2: f32,
     key: u64,
+}
+
+impl Candidate {
+    #[inline]
+    fn record(&self) -> StateRecord {
+        StateRecord { id: self.id, kind: self.kind, pos: QuantPos::from_f32(self.pos) }
+    }
 }
 
 thread_local! {
@@ -355,7 +365,7 @@ fn build_one<O: ObjectSource>(
     sub: &mut Subscriber,
     scratch: &mut Scratch,
 ) {
-    let Scratch { cands, stored, seen, order, records } = scratch;
+    let Scratch { cands, stored, order, records } = scratch;
     sub.selected = None;
     cands.clear();
     records.clear();
@@ -379,41 +389,44 @@ fn build_one<O: ObjectSource>(
         match objects.get(slot) {
             Some((id, kind, p)) if own.is_none_or(|o| o.id != id) => {
                 let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
-                cands.push(Candidate {
-                    rec: StateRecord { id, kind, pos: QuantPos::from_f32(p) },
-                    dist2: d[0] * d[0] + d[1] * d[1] + d[2] * d[2],
-                    key: 0,
-                });
+                cands.push(Candidate { id, kind, pos: p, dist2: d[0] * d[0] + d[1] * d[1] + d[2] * d[2], key: 0 });
             }
             Some(_) => {}
             None => report.skipped += 1,
         }
     }
-    let id_base = own.iter().map(|o| o.id).chain(cands.iter().map(|c| c.rec.id)).min().unwrap_or(0);
+    let id_base = own.iter().map(|o| o.id).chain(cands.iter().map(|c| c.id)).min().unwrap_or(0);
     let size = |r: &StateRecord| record_len(r, id_base, origin);
     let own_size = own.as_ref().map_or(0, size);
 
     // 2. Everything fits? (Duplicates, if any, only make this estimate conservative.)
-    let extended = cands.iter().filter(|c| size(&c.rec) != COMPACT_RECORD_LEN).count();
-    if fits_whatever_order(own_size, cands.len() - extended, extended, config.max_datagrams.max(1)) {
+    // More candidates than compact records fit cannot fit with extended ones either
+    // (`fits_whatever_order` says no to both), so such a view is not quantized here.
+    let max_datagrams = config.max_datagrams.max(1);
+    let compact_room = max_datagrams * ((MAX_BODY - UPDATE_HEADER_LEN - own_size) / COMPACT_RECORD_LEN);
+    let fits = cands.len() <= compact_room && {
+        records.extend(cands.iter().map(Candidate::record));
+        let extended = records.iter().filter(|r| size(r) != COMPACT_RECORD_LEN).count();
+        fits_whatever_order(own_size, records.len() - extended, extended, max_datagrams)
+    };
+    if fits {
         report.in_view = cands.len();
-        records.extend(cands.iter().map(|c| c.rec));
         sub.rotation.clear();
     } else {
+        records.clear();
         report.over_budget = true;
         // 3a. Staleness keys. Objects absent from the stored list entered the view
         // this tick (key = now), unless there is no stored list: then everything was
         // sent last tick, or nothing ever was, and all share the key `now - 1`.
         let fresh_key = if sub.rotation.is_empty() { tick.tick.saturating_sub(1) } else { tick.tick };
-        stored.reset(sub.rotation.len());
+        stored.reset(sub.rotation.len() + cands.len());
         for &(id, key) in &sub.rotation {
             stored.insert(id, key);
         }
-        seen.reset(cands.len());
         order.clear();
         for (i, c) in cands.iter_mut().enumerate() {
-            if seen.insert(c.rec.id, 0) {
-                c.key = stored.get(c.rec.id).unwrap_or(fresh_key);
+            if let Some(key) = stored.take(c.id, fresh_key) {
+                c.key = key;
                 order.push(i as u32);
             }
         }
@@ -422,7 +435,7 @@ fn build_one<O: ObjectSource>(
         // order of the records are unique (the device selection makes the same ones).
         let nearer = |a: &u32, b: &u32| {
             let (a, b) = (&cands[*a as usize], &cands[*b as usize]);
-            a.dist2.total_cmp(&b.dist2).then(a.rec.id.cmp(&b.rec.id))
+            a.dist2.total_cmp(&b.dist2).then(a.id.cmp(&b.id))
         };
         let k = config.near_slots().min(order.len());
         if k < order.len() {
@@ -434,14 +447,14 @@ fn build_one<O: ObjectSource>(
         let r = config.rotation_slots().min(rest.len());
         let stalest = |a: &u32, b: &u32| {
             let (a, b) = (&cands[*a as usize], &cands[*b as usize]);
-            (a.key, a.rec.id).cmp(&(b.key, b.rec.id))
+            (a.key, a.id).cmp(&(b.key, b.id))
         };
         if r < rest.len() {
             rest.select_nth_unstable_by(r, stalest);
         }
         // Sorted, so that what an extended record pushes out is the least urgent.
         rest[..r].sort_unstable_by(stalest);
-        records.extend(order[..k + r].iter().map(|&i| cands[i as usize].rec));
+        records.extend(order[..k + r].iter().map(|&i| cands[i as usize].record()));
     }
 
     let packed = pack_and_seal(config, tick, own, records, sub, &mut report);
@@ -453,7 +466,7 @@ fn build_one<O: ObjectSource>(
         sub.rotation.clear();
         sub.rotation.extend(order.iter().map(|&i| {
             let c = &cands[i as usize];
-            (c.rec.id, c.key)
+            (c.id, c.key)
         }));
     }
     sub.rotation_tick = Some(tick.tick);

@@ -13,6 +13,8 @@ struct Slot {
     key: u64,
     /// Occupied when equal to the table's current stamp.
     stamp: u32,
+    /// Whether [`StaleTable::take`] has given this id out since it was inserted.
+    taken: bool,
 }
 
 /// Map from object id to staleness key.
@@ -101,9 +103,33 @@ impl StaleTable {
         if s.stamp == stamp {
             return false;
         }
-        *s = Slot { id, key, stamp };
+        *s = Slot { id, key, stamp, taken: false };
         self.len += 1;
         true
+    }
+
+    /// The key of `id` the first time it is taken since it was inserted, or `fresh` for
+    /// an id not in the table (which is inserted, taken); `None` when `id` was taken
+    /// already (a duplicate). One probe where a lookup and a second table to drop
+    /// duplicates took two. The caller sized the table for every id it takes.
+    #[inline]
+    pub(crate) fn take(&mut self, id: u64, fresh: u64) -> Option<u64> {
+        if self.len * 2 >= self.slots.len() {
+            self.grow();
+        }
+        let i = self.find(id);
+        let stamp = self.stamp;
+        let s = &mut self.slots[i];
+        if s.stamp != stamp {
+            *s = Slot { id, key: fresh, stamp, taken: true };
+            self.len += 1;
+            return Some(fresh);
+        }
+        if s.taken {
+            return None;
+        }
+        s.taken = true;
+        Some(s.key)
     }
 
     /// Doubles the table (only if a caller under-sized it: keeps inserts total).
@@ -115,6 +141,8 @@ impl StaleTable {
         self.len = 0;
         for s in old.into_iter().filter(|s| s.stamp == stamp) {
             self.insert(s.id, s.key);
+            let i = self.find(s.id);
+            self.slots[i].taken = s.taken;
         }
     }
 }
@@ -148,5 +176,35 @@ mod tests {
         }
         t.clear();
         assert!(t.is_empty() && t.get(3).is_none());
+    }
+
+    #[test]
+    fn take_gives_each_id_once_with_its_stored_or_fresh_key() {
+        let mut t = StaleTable::default();
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        for round in 0..40u64 {
+            // Under-sized on purpose in odd rounds: growing keeps what was taken.
+            t.reset(if round % 2 == 0 { 400 } else { 4 });
+            let mut stored = HashMap::new();
+            for _ in 0..100 {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                let id = x % 300;
+                if t.insert(id, round * 1000 + id) {
+                    stored.insert(id, round * 1000 + id);
+                }
+            }
+            let mut taken = HashMap::new();
+            for _ in 0..300 {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                let id = x % 300;
+                let want = if taken.contains_key(&id) { None } else { Some(*stored.get(&id).unwrap_or(&7)) };
+                assert_eq!(t.take(id, 7), want, "round {round}, id {id}");
+                taken.insert(id, ());
+            }
+        }
     }
 }

@@ -81,7 +81,7 @@ impl StaleTable {
     }
 
     /// The key of `id`.
-    #[inline]
+    #[cfg(test)]
     pub(crate) fn get(&self, id: u64) -> Option<u64> {
         if self.len == 0 {
             return None;

@@ -4,16 +4,20 @@
 # prints the `run` call that executes scripts/gpu-run.sh there.
 #
 # Usage: scripts/gpu-build.sh        (CARGO_TARGET_DIR is honoured)
+#        PARTS=host BEFORE=path/to/an/older/myriad scripts/gpu-build.sh
+#        (only `myriad`, the AOI query example and the older build in .carry/before/,
+#        for MODE=host of scripts/gpu-run.sh)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 carry=.carry
 rm -rf "$carry"
 mkdir -p "$carry/tests"
 jobs=${JOBS:-1}
+parts=${PARTS:-all}
 
 # Test binaries of myriad-cuda, and the server's device outbound test; cargo's JSON
 # messages name each executable.
-{
+[[ $parts == host ]] || {
     nice -n 10 cargo test --release -j "$jobs" -p myriad-cuda --no-run --message-format=json
     nice -n 10 cargo test --release -j "$jobs" -p myriad-server --test device_outbound --no-run --message-format=json
 } 2>"$carry/build.log" |
@@ -32,7 +36,18 @@ done
 nice -n 10 cargo build --release -j "$jobs" -p myriad --bin myriad
 target=${CARGO_TARGET_DIR:-target}
 cp "$target/release/myriad" "$carry/myriad"
-strip "$carry/myriad" "$carry"/tests/*
+if [[ $parts == host ]]; then
+    nice -n 10 cargo build --release -j "$jobs" -p myriad-physics --example aoi_query
+    cp "$target/release/examples/aoi_query" "$carry/aoi_query"
+    strip "$carry/aoi_query"
+    if [[ -n ${BEFORE:-} ]]; then
+        mkdir -p "$carry/before"
+        cp "$BEFORE" "$carry/before/myriad"
+        strip "$carry/before/myriad"
+    fi
+fi
+strip "$carry/myriad"
+if compgen -G "$carry/tests/*" >/dev/null; then strip "$carry"/tests/*; fi
 # The zones' checks need a NATS server; the GPU machine has none installed.
 nats=$(command -v nats-server || echo /usr/sbin/nats-server)
 if [[ -x $nats ]]; then cp "$nats" "$carry/nats-server"; fi

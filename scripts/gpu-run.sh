@@ -7,7 +7,9 @@
 # zones' part (run it on nvidia-h200-x2) checks zoned runs on cuda against one process
 # and times scenario 3 on one GPU against two zones on two GPUs. MODE=flood runs issue
 # 14's UDP floods (scripts/flood-figures.sh) on the host's 16 cores, where the flooder
-# does not have to share the server's cores.
+# does not have to share the server's cores. MODE=host times the CPU backend's server
+# tick (scenario 2, AOI 14 and 100) and AOI query on the host's cores, with the build in
+# .carry/before/ first when there is one (scripts/gpu-build.sh with PARTS=host).
 set -uo pipefail
 out=${OUT:-out}
 mkdir -p "$out"
@@ -132,6 +134,21 @@ if [[ $mode == flood ]]; then
     SERVE_ARGS="--set receive_thread=false" DURATION=8 bash scripts/flood-figures.sh .carry/myriad .carry/myriad \
         "$out/flood-inline" session garbage || status=1
     nproc
+fi
+
+if [[ $mode == host ]]; then
+    nproc
+    for bin in .carry/before/myriad .carry/myriad; do
+        [[ -x $bin ]] || continue
+        echo "=== $bin"
+        for run in 1 2; do
+            $bin bench --scenario 2 --backend cpu --ticks 30 --warmup 3 --aoi-size 14,100 \
+                2>>"$out/host.log" | grep -E '^\| 2 \| cpu \| (14|100) ' || status=1
+        done
+    done
+    if [[ -x .carry/aoi_query ]]; then
+        for a in "2 14" "2 100" "3 14" "3 100"; do .carry/aoi_query $a || status=1; done
+    fi
 fi
 
 # The device tool brings back a few files only: the bench's tables and plots as one.

@@ -182,25 +182,25 @@ mod tests {
     fn take_gives_each_id_once_with_its_stored_or_fresh_key() {
         let mut t = StaleTable::default();
         let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next_id = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x % 300
+        };
         for round in 0..40u64 {
             // Under-sized on purpose in odd rounds: growing keeps what was taken.
             t.reset(if round % 2 == 0 { 400 } else { 4 });
             let mut stored = HashMap::new();
             for _ in 0..100 {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
-                let id = x % 300;
+                let id = next_id();
                 if t.insert(id, round * 1000 + id) {
                     stored.insert(id, round * 1000 + id);
                 }
             }
             let mut taken = HashMap::new();
             for _ in 0..300 {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
-                let id = x % 300;
+                let id = next_id();
                 let want = if taken.contains_key(&id) { None } else { Some(*stored.get(&id).unwrap_or(&7)) };
                 assert_eq!(t.take(id, 7), want, "round {round}, id {id}");
                 taken.insert(id, ());

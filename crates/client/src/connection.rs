@@ -183,6 +183,8 @@ pub struct Connection {
     config: ClientConfig,
     credentials: Credentials,
     socket: Arc<UdpSocket>,
+    /// Whether the socket is this connection's alone (a reconnect then opens a new one).
+    owns_socket: bool,
     session: ClientSession,
     accepted: LoginAccepted,
     map: Option<MapData>,
@@ -206,10 +208,38 @@ impl std::fmt::Debug for Connection {
 }
 
 impl Connection {
-    /// Logs in, opens the UDP session and sends Ready.
+    /// Logs in, opens the UDP session on a socket of its own and sends Ready.
     pub async fn connect(config: ClientConfig, credentials: Credentials) -> Result<Self, ClientError> {
         let (accepted, map) = login(&config, &credentials).await?;
-        let socket = Arc::new(open_socket(&config, &accepted).await?);
+        let socket = Arc::new(open_socket(&config, accepted.udp_port).await?);
+        Self::on_socket(config, credentials, accepted, map, socket, true).await
+    }
+
+    /// The session of a login already made (`accepted`, `map`) on `socket`, which
+    /// [`server_socket`] connected to the server's UDP port and which other connections
+    /// may share: the server tells sessions apart by id, so many players can sit behind
+    /// one address, and whoever reads the socket hands each datagram to the connection
+    /// whose [`session_id`](Self::session_id) its header names
+    /// ([`Connection::handle_datagram`]). Sends Ready.
+    pub async fn from_login(
+        config: ClientConfig,
+        credentials: Credentials,
+        accepted: LoginAccepted,
+        map: Option<MapData>,
+        socket: Arc<UdpSocket>,
+    ) -> Result<Self, ClientError> {
+        Self::on_socket(config, credentials, accepted, map, socket, false).await
+    }
+
+    async fn on_socket(
+        config: ClientConfig,
+        credentials: Credentials,
+        accepted: LoginAccepted,
+        map: Option<MapData>,
+        socket: Arc<UdpSocket>,
+        owns_socket: bool,
+    ) -> Result<Self, ClientError> {
+        check_peer(&socket, &config, accepted.udp_port)?;
         let session = ClientSession::new(&accepted.keys);
         let mut c = Connection {
             mirror: WorldMirror::new(config.stale_after),
@@ -217,6 +247,7 @@ impl Connection {
             config,
             credentials,
             socket,
+            owns_socket,
             session,
             accepted,
             map,
@@ -232,10 +263,29 @@ impl Connection {
     }
 
     /// Logs in again with the same credentials (after a drop or a server restart): new
-    /// keys, new socket, empty mirror; statistics carry on.
+    /// keys, a new socket (the same one when the socket is shared), empty mirror;
+    /// statistics carry on.
     pub async fn reconnect(&mut self) -> Result<(), ClientError> {
         let (accepted, map) = login(&self.config, &self.credentials).await?;
-        self.socket = Arc::new(open_socket(&self.config, &accepted).await?);
+        let socket = if self.owns_socket {
+            Arc::new(open_socket(&self.config, accepted.udp_port).await?)
+        } else {
+            self.socket.clone()
+        };
+        self.resume(accepted, map, socket).await
+    }
+
+    /// Takes a new login of the same credentials (made by the caller, for a socket it
+    /// shares) on `socket` (the shared one, or a new one if the server's UDP port moved):
+    /// new keys, empty mirror; statistics carry on. Sends Ready.
+    pub async fn resume(
+        &mut self,
+        accepted: LoginAccepted,
+        map: Option<MapData>,
+        socket: Arc<UdpSocket>,
+    ) -> Result<(), ClientError> {
+        check_peer(&socket, &self.config, accepted.udp_port)?;
+        self.socket = socket;
         self.session = ClientSession::new(&accepted.keys);
         self.dilation_permille = accepted.dilation_permille;
         self.accepted = accepted;
@@ -247,6 +297,11 @@ impl Connection {
         self.disconnected = None;
         self.stats.reconnects += 1;
         self.send(ClientMessage::Ready).await
+    }
+
+    /// The session id, which the header of every datagram of this session carries.
+    pub fn session_id(&self) -> u64 {
+        self.accepted.keys.session_id
     }
 
     /// The login's answer: entity id, spawn position, shape, map description.
@@ -395,10 +450,30 @@ impl Connection {
     }
 }
 
-async fn open_socket(config: &ClientConfig, accepted: &LoginAccepted) -> Result<UdpSocket, ClientError> {
-    let server = SocketAddr::new(config.login_addr.ip(), accepted.udp_port);
+async fn open_socket(config: &ClientConfig, udp_port: u16) -> Result<UdpSocket, ClientError> {
+    let server = SocketAddr::new(config.login_addr.ip(), udp_port);
     let bind: SocketAddr = if server.is_ipv4() { "0.0.0.0:0" } else { "[::]:0" }.parse().expect("literal");
     let socket = UdpSocket::bind(bind).await.map_err(ClientError::io("binding a UDP socket"))?;
     socket.connect(server).await.map_err(ClientError::io("connecting the UDP socket"))?;
     Ok(socket)
+}
+
+/// A UDP socket connected to the server's game port (`udp_port`, from a login's answer),
+/// for [`Connection::from_login`]: one socket that many connections share. Its receive
+/// buffer is asked for `recv_buffer` bytes (the kernel may grant less), room for every
+/// sharer's datagrams of a tick or two.
+pub async fn server_socket(config: &ClientConfig, udp_port: u16, recv_buffer: usize) -> Result<UdpSocket, ClientError> {
+    let socket = open_socket(config, udp_port).await?;
+    let _ = socket2::SockRef::from(&socket).set_recv_buffer_size(recv_buffer);
+    Ok(socket)
+}
+
+/// Refuses a socket that is not connected to the server's UDP port of this login.
+fn check_peer(socket: &UdpSocket, config: &ClientConfig, udp_port: u16) -> Result<(), ClientError> {
+    let want = SocketAddr::new(config.login_addr.ip(), udp_port);
+    match socket.peer_addr() {
+        Ok(peer) if peer == want => Ok(()),
+        Ok(peer) => Err(ClientError::Invalid(format!("the socket is connected to {peer}, the login named {want}"))),
+        Err(e) => Err(ClientError::Io { what: "reading the socket's peer", source: e }),
+    }
 }

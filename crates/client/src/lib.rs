@@ -32,7 +32,7 @@ pub mod stats;
 pub mod swarm;
 pub mod tls;
 
-pub use connection::{ClientConfig, Connection, Credentials, Event, login};
+pub use connection::{ClientConfig, Connection, Credentials, Event, login, server_socket};
 pub use error::ClientError;
 pub use mirror::{MirrorObject, WorldMirror};
 pub use stats::{ClientStats, Rates};

@@ -43,6 +43,12 @@ pub struct BotsArgs {
     /// Seconds between statistics lines.
     #[arg(long, default_value_t = 2.0)]
     every: f64,
+    /// Bots that share one UDP socket and one task (the server tells their sessions
+    /// apart by id). 1, the default, gives every bot a socket of its own, as real players
+    /// have; larger groups let one machine run many more bots, or leave more of it to a
+    /// server beside them.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=1024))]
+    bots_per_socket: u16,
 }
 
 fn resolve(server: &str) -> Result<(SocketAddr, String)> {
@@ -148,6 +154,7 @@ pub fn run(args: BotsArgs) -> Result<()> {
             rate_hz: args.rate,
             behaviour: args.behaviour,
             login_concurrency: args.login_concurrency,
+            bots_per_socket: usize::from(args.bots_per_socket),
             ..SwarmConfig::new(client, args.count)
         });
         let started = Instant::now();

@@ -317,11 +317,22 @@ fn server_info_is_sent_again_when_the_dilation_changes() {
 
 #[test]
 fn two_hundred_bots_end_to_end() {
+    bots_end_to_end(1);
+}
+
+/// The same with 25 bots a socket: the server tells the sessions behind one address
+/// apart by id, and each group's task hands every datagram to its bot.
+#[test]
+fn two_hundred_bots_sharing_sockets_end_to_end() {
+    bots_end_to_end(25);
+}
+
+fn bots_end_to_end(bots_per_socket: usize) {
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(dir.path());
     let (rt, server, cc) = start(cfg, 200);
     let report = rt.block_on(async {
-        let swarm = Swarm::start(SwarmConfig::new(cc, 200));
+        let swarm = Swarm::start(SwarmConfig { bots_per_socket, ..SwarmConfig::new(cc, 200) });
         let end = Instant::now() + Duration::from_secs(60);
         while swarm.snapshot().logins_ok < 200 && swarm.snapshot().logins_failed == 0 && Instant::now() < end {
             tokio::time::sleep(Duration::from_millis(100)).await;
@@ -339,11 +350,50 @@ fn two_hundred_bots_end_to_end() {
     assert_eq!(report.totals.decode_errors, 0, "{report:?}");
     assert_eq!(report.totals.rejected, 0, "{report:?}");
     assert!(report.moves_ok > report.moves_wrong, "{report:?}");
+    assert!(report.interval_p50_ms > 0.0, "intervals were recorded: {report:?}");
     let deadline = Instant::now() + Duration::from_secs(5);
     while server.players() > 0 && Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(20));
     }
     assert_eq!(server.players(), 0, "every bot said goodbye");
+    server.shutdown().unwrap();
+}
+
+/// A bot on a shared socket whose session another login of its account replaced logs in
+/// again on the same socket, and its neighbours on the socket play on undisturbed.
+#[test]
+fn a_replaced_bot_on_a_shared_socket_logs_in_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rt, server, cc) = start(config(dir.path()), 20);
+    let report = rt.block_on(async {
+        let swarm = Swarm::start(SwarmConfig {
+            bots_per_socket: 10,
+            silence_reconnect: Duration::from_secs(2),
+            ..SwarmConfig::new(cc.clone(), 20)
+        });
+        let end = Instant::now() + Duration::from_secs(30);
+        while swarm.snapshot().own_object_seen < 20 && Instant::now() < end {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        // user3 logs in elsewhere: the server ends bot 3's session (Replaced)...
+        let intruder = Connection::connect(cc, Credentials::test_user(3)).await.unwrap();
+        let end = Instant::now() + Duration::from_secs(20);
+        while swarm.snapshot().totals.reconnects == 0 && Instant::now() < end {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        drop(intruder);
+        // ...and bot 3 took it back; everybody plays on. A bot that heard nothing for
+        // 2 s would log in again (its new session's datagrams not reaching it, say).
+        tokio::time::sleep(Duration::from_secs(4)).await;
+        swarm.stop().await
+    });
+    assert_eq!(report.logins_failed, 0, "{report:?}");
+    assert_eq!(report.totals.reconnects, 1, "bot 3 logged in again: {report:?}");
+    assert_eq!(report.logins_ok, 21, "{report:?}");
+    assert_eq!(report.own_object_seen, 20, "{report:?}");
+    assert_eq!(report.connected, 0, "{report:?}");
+    assert_eq!(report.totals.decode_errors, 0, "{report:?}");
+    assert!(report.first_error.is_none(), "{report:?}");
     server.shutdown().unwrap();
 }
 

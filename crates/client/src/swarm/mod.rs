@@ -1,5 +1,7 @@
-//! A swarm of bots: many [`Connection`]s on one tokio runtime (one task and one UDP
-//! socket per bot, no thread per bot), each playing `user<i>` / `password<i>`.
+//! A swarm of bots: many [`Connection`](crate::Connection)s on one tokio runtime, each playing
+//! `user<i>` / `password<i>`, in groups that share a UDP socket and a task
+//! ([`SwarmConfig::bots_per_socket`]; one bot a group by default: a socket and a task a
+//! bot, as real players have; `group.rs` says why larger groups cost less).
 //!
 //! # How it works
 //!
@@ -11,6 +13,8 @@
 //! horizontal displacement must point the commanded way (idle bots must stay put). A bot
 //! whose session ends (server restart, time-out, replaced) logs in again.
 
+mod group;
+
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -20,8 +24,7 @@ use myriad_protocol::ActionMask;
 use tokio::sync::{Semaphore, watch};
 use tokio::task::JoinSet;
 
-use crate::connection::{ClientConfig, Connection, Credentials, Event};
-use crate::error::ClientError;
+use crate::connection::ClientConfig;
 use crate::stats::ClientStats;
 
 /// How long a bot holds one direction before checking its movement.
@@ -82,6 +85,11 @@ pub struct SwarmConfig {
     pub login_attempts: u32,
     /// A bot that hears nothing for this long logs in again.
     pub silence_reconnect: Duration,
+    /// Bots that share one UDP socket and one task (at least 1). The server tells their
+    /// sessions apart by id; the group's task reads every datagram queued on the socket
+    /// at one wake-up and hands each to its bot, which costs a machine far less than a
+    /// task and a socket a bot when the swarm shares it with the server.
+    pub bots_per_socket: usize,
 }
 
 impl SwarmConfig {
@@ -96,6 +104,7 @@ impl SwarmConfig {
             login_concurrency: 32,
             login_attempts: 200,
             silence_reconnect: Duration::from_secs(5),
+            bots_per_socket: 1,
         }
     }
 }
@@ -120,6 +129,9 @@ struct Shared {
     logins_failed: AtomicU64,
     login_attempts: AtomicU64,
     bots: Vec<Mutex<BotState>>,
+    /// Datagrams on a shared socket for no live session of its group (one that ended,
+    /// or garbage), counted with the rejected ones.
+    stray_datagrams: AtomicU64,
     /// Every bot's intervals between consecutive ticks' updates, in µs: one histogram
     /// for the swarm, which each bot adds its recent intervals to when it publishes (a
     /// histogram a bot was 26 kB, 65 MB for 2,500 bots, touched on every datagram).
@@ -191,15 +203,18 @@ impl Swarm {
             logins_failed: AtomicU64::new(0),
             login_attempts: AtomicU64::new(0),
             bots: (0..config.count).map(|_| Mutex::new(BotState::default())).collect(),
+            stray_datagrams: AtomicU64::new(0),
             intervals: Mutex::new(interval_histogram()),
         });
         let (stop, stop_rx) = watch::channel(false);
         let logins = Arc::new(Semaphore::new(config.login_concurrency.max(1)));
-        let config = Arc::new(config);
+        let per_socket = config.bots_per_socket.max(1);
+        let bots = config.count;
+        let ctx = Arc::new(Ctx { config: Arc::new(config), shared: shared.clone(), logins });
         let mut tasks = JoinSet::new();
-        for i in 0..config.count {
-            let bot = Bot { index: i, config: config.clone(), shared: shared.clone(), logins: logins.clone() };
-            tasks.spawn(bot.run(stop_rx.clone()));
+        for first in (0..bots).step_by(per_socket) {
+            let members = (first..(first + per_socket).min(bots)).collect();
+            tasks.spawn(group::Group { ctx: ctx.clone(), members }.run(stop_rx.clone()));
         }
         Swarm { shared, stop, tasks, started: Instant::now() }
     }
@@ -252,6 +267,7 @@ impl Swarm {
             s.interval_p99_ms = hist.value_at_quantile(0.99) as f64 / 1000.0;
             s.interval_max_ms = hist.max() as f64 / 1000.0;
         }
+        s.totals.rejected += self.shared.stray_datagrams.load(Ordering::Relaxed);
         s.loss = s.totals.loss();
         s
     }
@@ -264,8 +280,9 @@ impl Swarm {
     }
 }
 
-struct Bot {
-    index: usize,
+/// What every group of the swarm shares: the settings, the bots' states, the logins'
+/// semaphore.
+struct Ctx {
     config: Arc<SwarmConfig>,
     shared: Arc<Shared>,
     logins: Arc<Semaphore>,
@@ -289,192 +306,21 @@ fn direction(mask: u8) -> (f32, f32) {
     d
 }
 
-impl Bot {
-    fn state(&self) -> std::sync::MutexGuard<'_, BotState> {
-        self.shared.bots[self.index].lock().unwrap_or_else(|p| p.into_inner())
-    }
-
-    async fn login(&self, stop: &watch::Receiver<bool>) -> Result<Connection, ClientError> {
-        let credentials = Credentials::test_user(self.config.first + self.index);
-        let mut attempt = 0;
-        loop {
-            let result = {
-                let _permit = self.logins.acquire().await.map_err(|_| ClientError::Timeout("swarm stopped"))?;
-                self.shared.login_attempts.fetch_add(1, Ordering::Relaxed);
-                Connection::connect(self.config.client.clone(), credentials.clone()).await
-            };
-            attempt += 1;
-            match result {
-                Ok(c) => return Ok(c),
-                Err(e) if e.is_retryable() && attempt < self.config.login_attempts && !*stop.borrow() => {
-                    let wait = match &e {
-                        ClientError::Refused { retry_after_ms, .. } if *retry_after_ms > 0 => {
-                            Duration::from_millis(u64::from(*retry_after_ms).min(5000))
-                        }
-                        _ => Duration::from_millis(200 * u64::from(attempt.min(10))),
-                    };
-                    tokio::time::sleep(wait).await;
-                }
-                Err(e) => return Err(e),
-            }
-        }
-    }
-
-    async fn run(self, stop: watch::Receiver<bool>) {
-        let mut conn = match self.login(&stop).await {
-            Ok(c) => c,
-            Err(e) => {
-                self.shared.logins_failed.fetch_add(1, Ordering::Relaxed);
-                self.state().error = Some(format!("user{}: {e}", self.config.first + self.index));
-                return;
-            }
-        };
-        self.shared.logins_ok.fetch_add(1, Ordering::Relaxed);
-        self.state().connected = true;
-        let period = Duration::from_secs_f32(1.0 / self.config.rate_hz.max(0.1));
-        let mut ticker = tokio::time::interval(period);
-        ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        let mut seed = (self.index as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        let mut hold_index = 0u64;
-        let mut mask = 0u8;
-        let mut hold_start = Instant::now();
-        let mut hold_from: Option<[f32; 3]> = None;
-        let mut last_tick = 0u64;
-        let mut last_update = None::<Instant>;
-        let mut last_heard = Instant::now();
-        let mut last_publish = Instant::now();
-        // What the bot measured since it last published (its shared state is locked only
-        // then, not for every datagram).
-        let mut intervals: Vec<u64> = Vec::with_capacity(16);
-        let (mut ticks_missed, mut own_seen) = (0u64, false);
-        let mut buf = vec![0u8; myriad_protocol::MAX_DATAGRAM + 64];
-        let mut socket = conn.socket();
-        // One wait for the stop, kept across the loop: made afresh in every `select!`, it
-        // registered and dropped a waiter per datagram (a few % of a large swarm's time).
-        let mut stop_signal = stop.clone();
-        let stopped = stop_signal.changed();
-        tokio::pin!(stopped);
-        loop {
-            tokio::select! {
-                _ = &mut stopped => break,
-                _ = ticker.tick() => {
-                    let now = Instant::now();
-                    if now.duration_since(hold_start) >= HOLD {
-                        self.check_move(mask, hold_from, conn.own_position(), hold_index, conn.dilation_permille());
-                        hold_index += 1;
-                        seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-                        mask = match self.config.behaviour {
-                            Behaviour::Idle => 0,
-                            Behaviour::Circle => [ActionMask::FORWARD, ActionMask::RIGHT, ActionMask::BACK, ActionMask::LEFT][(hold_index % 4) as usize],
-                            Behaviour::Shuttle => [ActionMask::RIGHT, ActionMask::LEFT][(hold_index / SHUTTLE_HOLDS % 2) as usize],
-                            Behaviour::Random => [0, ActionMask::FORWARD, ActionMask::BACK, ActionMask::RIGHT, ActionMask::LEFT][((seed >> 33) % 5) as usize],
-                        };
-                        hold_start = now;
-                        hold_from = conn.own_position();
-                    }
-                    let silent = now.duration_since(last_heard) > self.config.silence_reconnect;
-                    if conn.disconnected().is_some() || silent {
-                        self.state().connected = false;
-                        match self.login_again(&mut conn, &stop).await {
-                            Ok(()) => {
-                                socket = conn.socket();
-                                last_heard = Instant::now();
-                                hold_from = None;
-                                self.state().connected = true;
-                            }
-                            Err(e) => {
-                                self.state().error = Some(format!("user{}: reconnect: {e}", self.config.first + self.index));
-                                break;
-                            }
-                        }
-                        continue;
-                    }
-                    if let Err(e) = conn.send_action(mask).await {
-                        tracing::debug!(bot = self.index, error = %e, "send failed");
-                    }
-                    if now.duration_since(last_publish) >= Duration::from_millis(250) {
-                        last_publish = now;
-                        let in_view = {
-                            let mirror = conn.mirror_mut();
-                            mirror.mark_stale(now);
-                            // A walking bot meets thousands of objects: keep only recent ones.
-                            mirror.forget_older_than(FORGET_AFTER, now);
-                            mirror.fresh()
-                        };
-                        self.publish(&conn, in_view, &mut intervals, ticks_missed, own_seen);
-                    }
-                }
-                r = socket.recv(&mut buf) => {
-                    let Ok(n) = r else { continue };
-                    let now = Instant::now();
-                    match conn.handle_datagram(&mut buf[..n], now) {
-                        Event::Rejected => {}
-                        Event::Update { tick, .. } => {
-                            last_heard = now;
-                            if tick > last_tick {
-                                if let Some(prev) = last_update {
-                                    intervals.push(now.duration_since(prev).as_micros().clamp(1, 60_000_000) as u64);
-                                    ticks_missed += tick - last_tick - 1;
-                                }
-                                last_tick = tick;
-                                last_update = Some(now);
-                            }
-                            own_seen = own_seen || conn.own_position().is_some();
-                        }
-                        _ => last_heard = now,
-                    }
-                }
-            }
-        }
-        let _ = conn.disconnect().await;
-        let in_view = self.state().in_view;
-        self.publish(&conn, in_view, &mut intervals, ticks_missed, own_seen);
-        self.state().connected = false;
-    }
-
-    /// Publishes the bot's numbers: counters and view into its state, the intervals
-    /// measured since the last publish into the swarm's histogram.
-    fn publish(&self, conn: &Connection, in_view: usize, intervals: &mut Vec<u64>, ticks_missed: u64, own_seen: bool) {
-        {
-            let mut s = self.state();
-            s.stats = conn.stats();
-            s.in_view = in_view;
-            s.ticks_missed = ticks_missed;
-            s.own_seen = own_seen;
-        }
-        if !intervals.is_empty() {
-            let mut hist = self.shared.intervals.lock().unwrap_or_else(|p| p.into_inner());
-            for &us in intervals.iter() {
-                let _ = hist.record(us);
-            }
-            intervals.clear();
-        }
-    }
-
-    async fn login_again(&self, conn: &mut Connection, stop: &watch::Receiver<bool>) -> Result<(), ClientError> {
-        let mut attempt = 0;
-        loop {
-            let result = {
-                let _permit = self.logins.acquire().await.map_err(|_| ClientError::Timeout("swarm stopped"))?;
-                self.shared.login_attempts.fetch_add(1, Ordering::Relaxed);
-                conn.reconnect().await
-            };
-            attempt += 1;
-            match result {
-                Ok(()) => {
-                    self.shared.logins_ok.fetch_add(1, Ordering::Relaxed);
-                    return Ok(());
-                }
-                Err(e) if e.is_retryable() && attempt < self.config.login_attempts && !*stop.borrow() => {
-                    tokio::time::sleep(Duration::from_millis(250 * u64::from(attempt.min(8)))).await;
-                }
-                Err(e) => return Err(e),
-            }
-        }
+impl Ctx {
+    fn state(&self, index: usize) -> std::sync::MutexGuard<'_, BotState> {
+        self.shared.bots[index].lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Judges one finished hold: did the own object move the commanded way?
-    fn check_move(&self, mask: u8, from: Option<[f32; 3]>, to: Option<[f32; 3]>, hold_index: u64, dilation: u16) {
+    fn check_move(
+        &self,
+        index: usize,
+        mask: u8,
+        from: Option<[f32; 3]>,
+        to: Option<[f32; 3]>,
+        hold_index: u64,
+        dilation: u16,
+    ) {
         // The first hold starts before the first update arrives: nothing to compare.
         let (Some(a), Some(b)) = (from, to) else { return };
         if hold_index == 0 {
@@ -489,7 +335,7 @@ impl Bot {
             // A dilated world moves slower in real time: scale the expected distance.
             dx * ux + dz * uz > 0.25 * f32::from(dilation) / 1000.0
         };
-        let mut s = self.state();
+        let mut s = self.state(index);
         if ok {
             s.moves_ok += 1;
         } else {

@@ -228,6 +228,7 @@ impl Connection {
         map: Option<MapData>,
         socket: Arc<UdpSocket>,
     ) -> Result<Self, ClientError> {
+        check_peer(&socket, &config, accepted.udp_port)?;
         Self::on_socket(config, credentials, accepted, map, socket, false).await
     }
 
@@ -239,7 +240,6 @@ impl Connection {
         socket: Arc<UdpSocket>,
         owns_socket: bool,
     ) -> Result<Self, ClientError> {
-        check_peer(&socket, &config, accepted.udp_port)?;
         let session = ClientSession::new(&accepted.keys);
         let mut c = Connection {
             mirror: WorldMirror::new(config.stale_after),

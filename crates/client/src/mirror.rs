@@ -23,8 +23,8 @@ pub struct MirrorObject {
 /// replaces the kept state only if its tick is newer, so late datagrams never win).
 #[derive(Debug, Clone)]
 pub struct WorldMirror {
-    /// Seeded foldhash, not SipHash: every record of every datagram is looked up here,
-    /// and a swarm of 2,500 bots spent a third of its time hashing with SipHash.
+    /// Seeded foldhash, not SipHash: every record of every datagram is looked up here;
+    /// with SipHash, `apply` was 31 % of a 2,500-bot swarm's samples (22 % after).
     objects: foldhash::HashMap<u64, MirrorObject>,
     stale_after: Duration,
 }

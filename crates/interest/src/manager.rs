@@ -165,7 +165,7 @@ pub struct InterestManager {
 /// Per-thread working memory, reused across subscribers and ticks.
 #[derive(Default)]
 struct Scratch {
-    /// Candidates (own excluded), sorted by id when over budget.
+    /// Candidates (own excluded), in list order.
     cands: Vec<Candidate>,
     /// The subscriber's stored keys, loaded for lookups; taking a key marks its id
     /// seen, which drops duplicate slots.

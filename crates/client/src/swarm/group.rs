@@ -28,9 +28,15 @@ use crate::connection::{Connection, Credentials, Event, login, server_socket};
 use crate::error::ClientError;
 
 /// Receive buffer asked for a group's socket, per bot (two datagrams of a tick and
-/// slack), within [`MIN_RECV_BUFFER`] and 8 MiB.
+/// slack), within [`MIN_RECV_BUFFER`] and [`MAX_RECV_BUFFER`].
 const RECV_BUFFER_PER_BOT: usize = 16 << 10;
 const MIN_RECV_BUFFER: usize = 256 << 10;
+const MAX_RECV_BUFFER: usize = 8 << 20;
+
+/// The receive buffer asked for the socket of a group of `members` bots.
+fn recv_buffer(members: usize) -> usize {
+    members.saturating_mul(RECV_BUFFER_PER_BOT).clamp(MIN_RECV_BUFFER, MAX_RECV_BUFFER)
+}
 
 /// Datagrams read in one wake-up at most, so that the group's ticker is not starved.
 const MAX_READS: usize = 4096;
@@ -116,6 +122,12 @@ async fn login_retrying(
     }
 }
 
+/// Logs bot `index` (at `at` in its group) in on a task of its own.
+fn spawn_login(logins: &mut JoinSet<LoginDone>, ctx: &Arc<Ctx>, at: usize, index: usize, stop: &watch::Receiver<bool>) {
+    let (ctx, stop) = (ctx.clone(), stop.clone());
+    logins.spawn(async move { (at, login_retrying(ctx, index, stop).await) });
+}
+
 /// A group of bots on one socket; see the module docs.
 pub(super) struct Group {
     pub(super) ctx: Arc<Ctx>,
@@ -130,8 +142,7 @@ impl Group {
         let mut players: Vec<Player> = self.members.iter().map(|&i| Player::new(i)).collect();
         let mut logins: JoinSet<LoginDone> = JoinSet::new();
         for (at, p) in players.iter().enumerate() {
-            let (ctx, index, stop) = (ctx.clone(), p.index, stop.clone());
-            logins.spawn(async move { (at, login_retrying(ctx, index, stop).await) });
+            spawn_login(&mut logins, &ctx, at, p.index, &stop);
         }
         let mut socket: Option<Arc<UdpSocket>> = None;
         let mut by_session: foldhash::HashMap<u64, usize> = foldhash::HashMap::default();
@@ -171,8 +182,7 @@ impl Group {
                     let now = Instant::now();
                     for (at, p) in players.iter_mut().enumerate().filter(|(_, p)| !p.logging_in) {
                         if on_tick(&ctx, p, now).await {
-                            let (ctx, index, stop) = (ctx.clone(), p.index, stop.clone());
-                            logins.spawn(async move { (at, login_retrying(ctx, index, stop).await) });
+                            spawn_login(&mut logins, &ctx, at, p.index, &stop);
                         }
                     }
                 }
@@ -220,8 +230,7 @@ async fn logged_in(
     let client = &ctx.config.client;
     let wanted = std::net::SocketAddr::new(client.login_addr.ip(), accepted.udp_port);
     if socket.as_ref().is_none_or(|s| s.peer_addr().ok() != Some(wanted)) {
-        let recv_buffer = (members * RECV_BUFFER_PER_BOT).clamp(MIN_RECV_BUFFER, 8 << 20);
-        *socket = Some(Arc::new(server_socket(client, accepted.udp_port, recv_buffer).await?));
+        *socket = Some(Arc::new(server_socket(client, accepted.udp_port, recv_buffer(members)).await?));
     }
     let socket = socket.clone().expect("made above");
     match &mut p.conn {
@@ -338,9 +347,8 @@ mod tests {
 
     #[test]
     fn receive_buffers_grow_with_the_group_within_bounds() {
-        let size = |members: usize| (members * RECV_BUFFER_PER_BOT).clamp(MIN_RECV_BUFFER, 8 << 20);
-        assert_eq!(size(1), MIN_RECV_BUFFER);
-        assert_eq!(size(64), 1 << 20);
-        assert_eq!(size(10_000), 8 << 20);
+        assert_eq!(recv_buffer(1), MIN_RECV_BUFFER);
+        assert_eq!(recv_buffer(64), 1 << 20);
+        assert_eq!(recv_buffer(10_000), 8 << 20);
     }
 }

@@ -134,7 +134,7 @@ struct Shared {
     stray_datagrams: AtomicU64,
     /// Every bot's intervals between consecutive ticks' updates, in µs: one histogram
     /// for the swarm, which each bot adds its recent intervals to when it publishes (a
-    /// histogram a bot was 26 kB, 65 MB for 2,500 bots, touched on every datagram).
+    /// histogram a bot was 20 KiB, 50 MiB for 2,500 bots, touched on every datagram).
     intervals: Mutex<Histogram<u64>>,
 }
 

@@ -149,8 +149,12 @@ pub struct Row {
 struct ServerTick {
     players: usize,
     aoi_size: f32,
-    /// The part of `packets` spent in the backend's AOI query (ms).
+    /// The part of `packets` spent in the backend's AOI query on the host (ms; 0 with the
+    /// device outbound).
     aoi_query: f64,
+    /// The part of `packets` spent waiting for the device's interest work (ms; 0 with the
+    /// host outbound).
+    device_wait: f64,
     datagrams: u64,
     bytes: u64,
     records: u64,
@@ -385,6 +389,7 @@ fn server_one(
         players: bench.players(),
         aoi_size: aoi,
         aoi_query: median(samples.iter().map(|s| s.work.aoi_ms).collect()),
+        device_wait: median(samples.iter().map(|s| s.work.device_wait_ms).collect()),
         datagrams: m(|s| s.work.datagrams),
         bytes,
         records: m(|s| s.work.records as u64),
@@ -591,14 +596,14 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         );
         let _ = writeln!(
             s,
-            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which AOI query or device | send | datagrams | KiB sent | kB/s per player | records | actions in | opened by bots | min. players seeing themselves |"
+            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which host AOI query | of which device wait | send | datagrams | KiB sent | kB/s per player | records | actions in | opened by bots | min. players seeing themselves |"
         );
-        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(15));
+        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(16));
         for r in &server_rows {
             let Some(t) = &r.server else { continue };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} |",
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} |",
                 r.scenario,
                 r.backend,
                 t.aoi_size,
@@ -608,6 +613,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
                 fmt_ms(r.receive),
                 fmt_ms(r.packets),
                 fmt_ms(t.aoi_query),
+                fmt_ms(t.device_wait),
                 fmt_ms(r.send),
                 t.datagrams,
                 t.bytes as f64 / 1024.0,
@@ -622,8 +628,9 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
             s,
             "\n`tick` is the sum of the stages (receive included); `server CPU` is the process's CPU time less the bots'. \
              `send` is the mean socket's time sending (the sockets send at once, and with the device outbound \
-             beside the device's work), `packets` the rest of building and sending; `of which AOI query or device`: \
-             the host AOI query, or the time the tick waited for the device. \
+             beside the device's work), `packets` the rest of building and sending; `of which host AOI query`: \
+             the backend's AOI query on the host (0 with the device outbound); `of which device wait`: \
+             the time the tick waited for the device's query, selection, packing and sealing (0 on the host). \
              `kB/s per player`: bytes sent per tick and player at the nominal tick rate ({} Hz). \
              Each bot sends an action every {} ticks. cpu threads: {threads}.",
             ServerConfig::default().tick_rate,

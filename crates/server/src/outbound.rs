@@ -93,10 +93,13 @@ impl BorrowMut<Subscriber> for Recipient<'_> {
 pub struct OutboundReport {
     /// State records packed, over all recipients.
     pub records: usize,
-    /// Time of the AOI query in ms (part of the `packets` stage); for the device
-    /// outbound, the time the tick waited for the device (queueing the work, with the
-    /// AOI query's count, then the first pool thread's waits for chunks).
+    /// Time of the host's AOI query in ms (part of the `packets` stage); 0 for the device
+    /// outbound, whose query runs on the device inside [`Self::device_wait_ms`].
     pub aoi_ms: f64,
+    /// Time the tick waited for the device in ms (part of the `packets` stage): queueing
+    /// the work, with the AOI query's count, then the first pool thread's waits for
+    /// chunks. 0 for the host outbound.
+    pub device_wait_ms: f64,
     /// Recipients whose sealing failed (nothing is sent to them this tick).
     pub seal_failures: usize,
 }

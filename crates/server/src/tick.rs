@@ -100,9 +100,12 @@ impl StateSink for Persister {
 pub struct TickWork {
     /// Milliseconds per stage.
     pub stages: StageTimes,
-    /// The part of `packets` spent in the backend's AOI query, in ms (with the device
-    /// outbound: waiting for the device, see [`crate::outbound::OutboundReport::aoi_ms`]).
+    /// The part of `packets` spent in the backend's AOI query on the host, in ms (0 with
+    /// the device outbound: see [`crate::outbound::OutboundReport::aoi_ms`]).
     pub aoi_ms: f64,
+    /// The part of `packets` spent waiting for the device's interest work, in ms (0 with
+    /// the host outbound: see [`crate::outbound::OutboundReport::device_wait_ms`]).
+    pub device_wait_ms: f64,
     /// Bytes sent (control replies and updates).
     pub bytes: u64,
     /// Datagrams sent.
@@ -485,6 +488,7 @@ impl TickLoop {
         let report = rayon::scope(|_| outbound.build(backend, world, tick, &mut recipients, &sender));
         work.records = report.records;
         work.aoi_ms = report.aoi_ms;
+        work.device_wait_ms = report.device_wait_ms;
         sender.finish()
     }
 

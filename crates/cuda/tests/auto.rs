@@ -6,9 +6,12 @@ use myriad_physics::{BackendKind, PhysicsError};
 #[test]
 fn auto_picks_cuda_when_usable_and_cpu_otherwise() {
     let usable = CudaBackend::new(BackendKind::Cuda).is_ok();
-    let b = create_backend(BackendKind::Auto).unwrap();
+    let created = create_backend(BackendKind::Auto).unwrap();
+    let b = &created.backend;
     let want = if usable { BackendKind::Cuda } else { BackendKind::Cpu };
     assert_eq!(b.kind(), want, "{}", b.description());
+    // The device interest comes with a CUDA backend, and only with one.
+    assert_eq!(created.device_interest.is_some(), usable);
     if std::env::var("MYRIAD_REQUIRE_CUDA").is_ok_and(|v| v == "1") {
         assert!(usable, "MYRIAD_REQUIRE_CUDA=1 but cuda is unavailable");
     }
@@ -18,7 +21,10 @@ fn auto_picks_cuda_when_usable_and_cpu_otherwise() {
 fn cuda_kinds_fail_cleanly_without_a_device() {
     for kind in [BackendKind::Cuda, BackendKind::CudaNaive] {
         match create_backend(kind) {
-            Ok(b) => assert_eq!(b.kind(), kind),
+            Ok(b) => {
+                assert_eq!(b.backend.kind(), kind);
+                assert!(b.device_interest.is_some(), "{kind} without its device interest");
+            }
             Err(PhysicsError::Unavailable { backend, reason }) => {
                 assert_eq!(backend, kind.name());
                 assert!(!reason.is_empty());
@@ -28,7 +34,9 @@ fn cuda_kinds_fail_cleanly_without_a_device() {
         }
     }
     // The CPU kinds go through unchanged, and the names parse.
-    assert_eq!(create_backend(BackendKind::Cpu).unwrap().kind(), BackendKind::Cpu);
+    let cpu = create_backend(BackendKind::Cpu).unwrap();
+    assert_eq!(cpu.backend.kind(), BackendKind::Cpu);
+    assert!(cpu.device_interest.is_none());
     for name in ["cuda", "cuda-naive", "auto"] {
         assert_eq!(name.parse::<BackendKind>().unwrap().name(), name);
     }

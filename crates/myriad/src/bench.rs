@@ -294,7 +294,7 @@ fn set_physics_stages(row: &mut Row, stage: impl Fn(Stage) -> f64) {
 
 fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, progress: &Progress) -> Result<Row> {
     progress.start(format!("scenario {label} · {kind}"));
-    let mut backend = create_backend(kind)?;
+    let mut backend = create_backend(kind)?.backend;
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     let mut w = world.clone();
     let mut row = empty_row(label, world, kind, backend.description(), PHYSICS);
@@ -348,7 +348,7 @@ fn server_one(
 ) -> Result<Row> {
     progress.start(format!("scenario {label} · {kind} server tick, AOI {aoi}"));
     let backend = create_backend(kind)?;
-    let mut row = empty_row(label, world, kind, backend.description(), SERVER);
+    let mut row = empty_row(label, world, kind, backend.backend.description(), SERVER);
     row.ticks = args.ticks;
     row.warmup = args.warmup;
     let config = ServerConfig {

@@ -122,7 +122,7 @@ pub fn run(args: SimArgs) -> Result<()> {
     if args.zones > 1 || args.nats.is_some() {
         return run_zoned(&args, &spec, &world, &script, &k);
     }
-    let mut backend = create_backend(args.backend)?;
+    let mut backend = create_backend(args.backend)?.backend;
     let mut pairs = [0u64; 4];
     let mut actions = 0;
     let start = Instant::now();
@@ -231,7 +231,7 @@ fn run_zoned(
     let gpus = args.gpus as usize;
     let kind = args.backend;
     let backend = move |z: ZoneId| -> Result<Box<dyn myriad_physics::Backend>, ZoneError> {
-        Ok(myriad_cuda::create_backend_on(kind, z.0 as usize % gpus)?)
+        Ok(myriad_cuda::create_backend_on(kind, z.0 as usize % gpus)?.backend)
     };
     let description = backend(ZoneId(0))?.description();
     let grid = layout.shape();

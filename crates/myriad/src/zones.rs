@@ -181,7 +181,7 @@ pub fn run_zone(args: ZoneArgs) -> Result<()> {
         live: c.live,
     };
     let (kind, gpu) = (c.backend, args.gpu);
-    let backend = move || Ok(myriad_cuda::create_backend_on(kind, gpu)?);
+    let backend = move || Ok(myriad_cuda::create_backend_on(kind, gpu)?.backend);
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     run_zone_process(
         &cfg,

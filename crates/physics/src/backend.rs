@@ -209,11 +209,6 @@ pub trait Backend: Send {
     /// For each query box, the dynamic objects whose boxes overlap it (touching counts),
     /// at the world's current positions.
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError>;
-
-    /// The backend as [`Any`](std::any::Any), so code that knows a concrete backend can
-    /// reach it: a device-side outbound in the server shares the CUDA backend's buffers
-    /// this way instead of copying the world back to the host.
-    fn as_any_mut(&mut self) -> &mut dyn std::any::Any;
 }
 
 /// Creates one of the CPU backends this crate implements (`cpu-naive`, `cpu`).

@@ -20,6 +20,19 @@ use crate::error::ConfigError;
 /// The most UDP sockets a server opens on its port.
 const MAX_UDP_SOCKETS: usize = 64;
 
+/// Which outbound builds the players' updates (config key `outbound`; the
+/// implementations are in [`crate::outbound`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OutboundKind {
+    /// The device outbound when the backend has a device interest (a CUDA backend), the
+    /// host one otherwise.
+    #[default]
+    Auto,
+    /// The host outbound whatever the backend.
+    Host,
+}
+
 /// Everything `myriad serve` can be told. See `docs/server.md` for each key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -57,7 +70,7 @@ pub struct ServerConfig {
     pub max_datagrams_per_player: usize,
     /// Where each player's records are selected: `auto` (on the device with a CUDA
     /// backend, else on the host) or `host`.
-    pub outbound: crate::outbound::OutboundKind,
+    pub outbound: OutboundKind,
     /// Players in each chunk the device outbound sends while the device builds the next
     /// (0: up to 8 chunks, each a whole number of the device's waves of selection, 1,056
     /// players on an H200; a value at least the number of players: one chunk, no
@@ -168,7 +181,7 @@ impl Default for ServerConfig {
             seed: 1,
             aoi_size: 100.0,
             max_datagrams_per_player: 2,
-            outbound: crate::outbound::OutboundKind::Auto,
+            outbound: OutboundKind::Auto,
             outbound_chunk_players: 0,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),

@@ -37,7 +37,6 @@
 //! ```
 
 pub mod config;
-pub mod device_outbound;
 pub mod dilation;
 pub mod error;
 pub mod gate;
@@ -247,12 +246,12 @@ impl ServerHandle {
             .spawn(move || {
                 let mut world = world;
                 let made = match backend {
-                    Some(make) => make(&mut world),
+                    Some(make) => make(&mut world).map(myriad_cuda::CreatedBackend::from),
                     None => myriad_cuda::create_backend(tick_config.backend).map_err(ServerError::from),
                 };
-                let backend = match made {
+                let created = match made {
                     Ok(b) => {
-                        tracing::info!(backend = %b.description(), "physics backend ready");
+                        tracing::info!(backend = %b.backend.description(), "physics backend ready");
                         let _ = ready.send(Ok(()));
                         b
                     }
@@ -261,7 +260,8 @@ impl ServerHandle {
                         return;
                     }
                 };
-                let mut builder = tick::TickLoop::builder(tick_config, world, backend, transport)
+                let mut builder = tick::TickLoop::builder(tick_config, world, created.backend, transport)
+                    .device_interest(created.device_interest)
                     .persister(Box::new(persister_for_tick), map_id)
                     .commands(receiver)
                     .shared(tick_shared);

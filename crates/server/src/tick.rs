@@ -34,6 +34,7 @@ use std::time::{Duration, Instant};
 use rayon::prelude::*;
 
 use myriad_core::World;
+use myriad_cuda::DeviceInterest;
 use myriad_interest::TickInfo;
 use myriad_physics::{Backend, TickConstants};
 use myriad_protocol::{DisconnectReason, ServerInfo, ServerMessage};
@@ -47,7 +48,7 @@ use crate::config::ServerConfig;
 use crate::dilation::DilationController;
 use crate::gate::Gate;
 use crate::inbound::{self, Inbox};
-use crate::outbound::{Outbound, Ready, Recipient};
+use crate::outbound::{Job, Outbound, Ready, Recipient};
 use crate::registry::SessionRegistry;
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
 use crate::stages::{StageTimes, TickStage};
@@ -124,9 +125,9 @@ pub struct TickWork {
 }
 
 /// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
-/// rest has defaults (no persister, map 0, no login service, fresh shared state). The
-/// outbound is the config's `outbound` kind for the backend, with the config's AOI size
-/// and budget.
+/// rest has defaults (no persister, map 0, no login service, fresh shared state, no
+/// device interest). The outbound is the config's `outbound` kind
+/// ([`crate::outbound::create`]), on the backend's device interest if it has one.
 pub(crate) struct TickLoopBuilder {
     config: ServerConfig,
     world: World,
@@ -137,9 +138,17 @@ pub(crate) struct TickLoopBuilder {
     commands: Option<Receiver<Command>>,
     shared: Option<Arc<Shared>>,
     registry: Option<Box<dyn SessionRegistry>>,
+    device_interest: Option<DeviceInterest>,
 }
 
 impl TickLoopBuilder {
+    /// The backend's device interest (`myriad_cuda::CreatedBackend`), for the device
+    /// outbound.
+    pub fn device_interest(mut self, device_interest: Option<DeviceInterest>) -> Self {
+        self.device_interest = device_interest;
+        self
+    }
+
     /// Sessions shared with other servers (a zones gateway's cluster).
     pub fn registry(mut self, registry: Box<dyn SessionRegistry>) -> Self {
         self.registry = Some(registry);
@@ -166,10 +175,10 @@ impl TickLoopBuilder {
     }
 
     /// The tick loop.
-    pub fn build(mut self) -> TickLoop {
+    pub fn build(self) -> TickLoop {
         let config = self.config;
         let nominal = Duration::from_secs_f64(1.0 / f64::from(config.tick_rate));
-        let outbound = config.outbound.create(self.backend.as_mut(), &config);
+        let outbound = crate::outbound::create(&config, self.device_interest);
         // Without a login service nothing joins: a receiver whose sender is gone reads
         // as empty.
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
@@ -235,6 +244,7 @@ impl TickLoop {
             commands: None,
             shared: None,
             registry: None,
+            device_interest: None,
         }
     }
 
@@ -485,7 +495,8 @@ impl TickLoop {
         let (outbound, backend, world) = (&mut self.outbound, self.backend.as_mut(), &self.world);
         // On a thread of the pool: the outbound's parallel steps then start as the pool's
         // own work, not injected from outside (tens of microseconds each).
-        let report = rayon::scope(|_| outbound.build(backend, world, tick, &mut recipients, &sender));
+        let report =
+            rayon::scope(|_| outbound.build(&mut Job { backend, world, tick, ready: &sender }, &mut recipients));
         work.records = report.records;
         work.aoi_ms = report.aoi_ms;
         work.device_wait_ms = report.device_wait_ms;

@@ -33,8 +33,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use myriad_core::{ObjectKind, World};
+use myriad_cuda::CreatedBackend;
 use myriad_net::{Endpoint, EndpointConfig};
-use myriad_physics::Backend;
 use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage};
 use myriad_store::UserId;
 
@@ -116,8 +116,14 @@ impl TickBench {
     /// object of `world` a player with a bot socket of its own, and runs one untimed
     /// tick in which the bots' `Ready` messages are received, so every player is active
     /// from the first measured tick. Only the tick-related keys of `config` matter
-    /// (tick rate, AOI size, datagrams per player, session timeout).
-    pub fn new(config: ServerConfig, world: World, backend: Box<dyn Backend>) -> Result<TickBench, ServerError> {
+    /// (tick rate, AOI size, datagrams per player, session timeout). `backend` is the
+    /// factory's (with its device interest, if any) or any other physics backend.
+    pub fn new(
+        config: ServerConfig,
+        world: World,
+        backend: impl Into<CreatedBackend>,
+    ) -> Result<TickBench, ServerError> {
+        let backend = backend.into();
         config.validate()?;
         let loopback = EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)));
         let endpoints = Endpoint::bind_group(loopback, config.udp_socket_count())?;
@@ -140,7 +146,9 @@ impl TickBench {
         } else {
             (Box::new(UdpTransport::group(endpoints)), None)
         };
-        let mut tick = TickLoop::builder(config, world, backend, transport).build();
+        let mut tick = TickLoop::builder(config, world, backend.backend, transport)
+            .device_interest(backend.device_interest)
+            .build();
         let mut bots = Vec::with_capacity(users.len());
         let adopted = tick.adopt_all(users.into_iter().enumerate().map(|(i, entity)| (UserId(i as i64 + 1), entity)));
         for (i, joined) in adopted.into_iter().enumerate() {

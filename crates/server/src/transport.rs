@@ -87,7 +87,15 @@ impl Lane for Endpoint {
 
 /// Below this many datagrams a tick's send stays on one socket: waking the other
 /// senders costs more than it saves.
-pub(crate) const PARALLEL_SEND_MIN: usize = 256;
+const PARALLEL_SEND_MIN: usize = 256;
+
+/// The one rule for splitting a tick's sends across lanes (sockets): each lane's
+/// contiguous share of `items` (datagrams, or players of a datagram or two) on `lanes`
+/// lanes, or `None`: all on one lane, when there is one or the items are too few to pay
+/// for waking the others.
+pub(crate) fn lane_share(items: usize, lanes: usize) -> Option<usize> {
+    (lanes > 1 && items >= PARALLEL_SEND_MIN).then(|| items.div_ceil(lanes))
+}
 
 /// Times a socket may report itself full in a row before the rest of its share is
 /// dropped.
@@ -180,10 +188,9 @@ impl Transport for UdpTransport {
     }
 
     fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
-        if self.endpoints.len() == 1 || out.len() < PARALLEL_SEND_MIN {
+        let Some(share) = lane_share(out.len(), self.endpoints.len()) else {
             return send_all(&mut self.endpoints[0], out);
-        }
-        let share = out.len().div_ceil(self.endpoints.len());
+        };
         let results: Vec<io::Result<Sent>> = self
             .endpoints
             .par_iter_mut()

@@ -13,8 +13,7 @@ use myriad_cuda::CudaBackend;
 use myriad_interest::{Subscriber, TickInfo};
 use myriad_physics::{Backend, BackendKind, TickConstants};
 use myriad_protocol::{Direction, Sealer};
-use myriad_server::device_outbound::DeviceOutbound;
-use myriad_server::outbound::{CpuOutbound, Outbound, Ready, Recipient};
+use myriad_server::outbound::{DeviceOutbound, HostOutbound, Job, Outbound, Ready, Recipient};
 
 /// Whether the run must fail instead of skipping when no GPU is usable.
 fn cuda_required() -> bool {
@@ -69,7 +68,7 @@ fn compare(
     backend: &mut CudaBackend,
     world: &World,
     tick: TickInfo,
-    host: &mut CpuOutbound,
+    host: &mut HostOutbound,
     device: &mut DeviceOutbound,
     players: &mut [&mut Player],
 ) -> (usize, usize) {
@@ -84,8 +83,8 @@ fn compare(
     }
     // Every recipient is handed over once, with its datagrams final by then.
     let (host_ready, device_ready) = (Handed::default(), Handed::default());
-    let h = host.build(backend, world, tick, &mut host_side, &host_ready);
-    let d = device.build(backend, world, tick, &mut device_side, &device_ready);
+    let h = host.build(&mut Job { backend: &mut *backend, world, tick, ready: &host_ready }, &mut host_side);
+    let d = device.build(&mut Job { backend, world, tick, ready: &device_ready }, &mut device_side);
     for (side, ready, recipients) in [("host", host_ready, &host_side), ("device", device_ready, &device_side)] {
         let mut handed = ready.0.into_inner().unwrap();
         handed.sort_unstable();
@@ -122,8 +121,10 @@ fn run(
     chunk: Option<usize>,
 ) -> (usize, usize) {
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
-    let mut host = CpuOutbound::new(aoi, 2);
-    let mut device = DeviceOutbound::new(aoi, 2);
+    let mut host = HostOutbound::new(aoi, 2);
+    // The device interest of the backend that steps the world, as the factory hands it
+    // out beside the backend.
+    let mut device = DeviceOutbound::new(backend.device_interest(), aoi, 2);
     if let Some(chunk) = chunk {
         device = device.with_chunk(chunk);
     }

@@ -539,10 +539,6 @@ impl Backend for ZonesBackend {
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
         self.aoi.query_aoi(world, boxes, out)
     }
-
-    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
-        self
-    }
 }
 
 #[cfg(test)]

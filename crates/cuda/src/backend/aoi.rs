@@ -4,11 +4,11 @@
 use myriad_core::{Aabb, World};
 use myriad_physics::{AoiResults, PhysicsError};
 
-use super::CudaBackend;
+use super::Resident;
 use super::broad::{Queries, count_pass, write_pass};
 use crate::launch::{DevPtr, KAoiCells};
 
-impl CudaBackend {
+impl Resident {
     /// The objects overlapping each box of `boxes`, as CSR lists in `out`.
     pub(super) fn query_impl(
         &mut self,
@@ -42,7 +42,7 @@ impl CudaBackend {
     /// the total comes back to the host. With `sorted`, each query has one list, sorted by
     /// slot. Without, on a tree, each query is walked as `SPLIT`² cells (`k_aoi_cells`), each list in the walk's order. With no box or no object nothing is
     /// launched and the device buffers are not written.
-    pub(super) fn aoi_on_device(
+    pub(crate) fn aoi_on_device(
         &mut self,
         world: &World,
         boxes: &[Aabb],

@@ -2,12 +2,12 @@
 //! targets its box overlaps, a scan turns the counts into ranges, and a write pass fills
 //! each range with the query's sorted targets. Targets come from a tree walk (`cuda`) or
 //! from testing every target (`cuda-naive`). The same passes serve the step's static
-//! and dynamic pairs, [`CudaBackend::broad_pairs`] and the area-of-interest queries.
+//! and dynamic pairs, [`CudaBackend::broad_pairs`](super::CudaBackend::broad_pairs) and the area-of-interest queries.
 
 use myriad_core::World;
 use myriad_physics::PhysicsError;
 
-use super::CudaBackend;
+use super::Resident;
 use super::tree::Tree;
 use crate::device::{DevBuf, Gpu, Pinned};
 use crate::launch::{DevPtr, KNaiveCount, KNaiveWrite, KTreeCount, KTreeWrite};
@@ -121,7 +121,7 @@ pub(super) fn write_pass(
     }
 }
 
-impl CudaBackend {
+impl Resident {
     /// The static primitives as targets.
     pub(super) fn static_targets(&self) -> Targets<'_> {
         if self.naive() {

@@ -5,10 +5,10 @@ use myriad_core::World;
 use myriad_physics::integrate::NpcTurn;
 use myriad_physics::{PhysicsError, TickConstants};
 
-use super::CudaBackend;
+use super::Resident;
 use crate::launch::KForces;
 
-impl CudaBackend {
+impl Resident {
     /// `k_forces` for the tick `world.tick` (not yet advanced: the step advances it after
     /// the state comes back).
     pub(super) fn forces(&self, world: &World, k: &TickConstants) -> Result<(), PhysicsError> {

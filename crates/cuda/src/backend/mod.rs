@@ -19,8 +19,11 @@
 //! The two backends differ only in how step 2 finds candidates.
 //!
 //! # Code map
-//! One file per stage, each adding methods to [`CudaBackend`] or holding the stage's
-//! device state:
+//! [`CudaBackend`] is a handle on the device-resident state (`Resident`), which it shares
+//! with the device interest updates ([`crate::interest::DeviceInterest`], from
+//! [`CudaBackend::device_interest`]): the two run one after the other on the tick's
+//! thread, so the lock between them is never contended. One file per stage, each adding
+//! methods to `Resident` or holding the stage's device state:
 //! - `sync`: the device copies of the world and their uploads, the pinned download
 //!   buffers;
 //! - `tree`: the LBVH build (and the dynamic boxes of `cuda-naive`);
@@ -28,8 +31,8 @@
 //! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];
 //! - `narrow`, `forces`: the narrow-phase launches, the force and integration launch;
 //! - `step`: one tick in order, the download of the new state and the stage times;
-//! - `aoi`: area-of-interest queries;
-//! - `interest`: interest selection on the device over the AOI lists it leaves there.
+//! - `aoi`: area-of-interest queries (the device interest updates start from its lists,
+//!   which stay on the device).
 //!
 //! Every launch goes through the typed argument structs of the crate's `launch` module.
 //!
@@ -41,25 +44,23 @@
 mod aoi;
 mod broad;
 mod forces;
-mod interest;
 mod narrow;
 mod scan;
 mod step;
 mod sync;
 mod tree;
 
+use std::sync::{Arc, Mutex, MutexGuard};
+
 use myriad_core::{Aabb, World};
 use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport, TickConstants};
 
 use crate::device::{DevBuf, Event, Gpu, Pinned};
+use crate::interest::DeviceInterest;
 use crate::params::DeviceParams;
 use scan::Scan;
 use sync::{Host, Objects, Prims};
 use tree::Tree;
-
-pub use interest::{
-    DATAGRAM_STRIDE, InterestChunks, InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS, Payload, Payloads,
-};
 
 /// Events recorded per step (stage boundaries and the download's checkpoints).
 const EVENTS: usize = 15;
@@ -91,10 +92,18 @@ impl Synced {
     }
 }
 
-/// A CUDA backend: `cuda` (LBVH) or `cuda-naive` (all pairs).
+/// A CUDA backend: `cuda` (LBVH) or `cuda-naive` (all pairs): a handle on the device
+/// and the world's copy there, which the device interest updates share.
 pub struct CudaBackend {
+    resident: Arc<Mutex<Resident>>,
+}
+
+/// What a CUDA backend keeps on the device between calls: the world's copy, the stage
+/// buffers, the AOI lists of the last query, and the device itself.
+pub(crate) struct Resident {
     kind: BackendKind,
-    n: usize,
+    /// Objects on the device (`usize::MAX`: unknown, the next call uploads everything).
+    pub(crate) n: usize,
     /// Which dynamics the device holds; `None`: upload everything.
     synced: Option<Synced>,
     /// (stamp, generation) of the statics on the device.
@@ -104,7 +113,7 @@ pub struct CudaBackend {
     params_key: Option<DeviceParams>,
     /// The dynamics generation the dynamic boxes (and tree) were built at.
     boxes_fresh: Option<u64>,
-    obj: Objects,
+    pub(crate) obj: Objects,
     prims: Prims,
     dyn_tree: Tree,
     static_tree: Tree,
@@ -112,16 +121,16 @@ pub struct CudaBackend {
     static_pairs: DevBuf<u32>,
     dynamic_pairs: DevBuf<u32>,
     aoi_boxes: DevBuf<f32>,
-    aoi_counts: DevBuf<u32>,
-    aoi_out: DevBuf<u32>,
+    /// The last AOI query's list offsets and slots ([`Resident::aoi_on_device`]).
+    pub(crate) aoi_counts: DevBuf<u32>,
+    pub(crate) aoi_out: DevBuf<u32>,
     params: DevBuf<DeviceParams>,
     counters: DevBuf<u32>,
     samples: DevBuf<u16>,
-    interest: interest::InterestState,
     host: Host,
     events: Vec<Event>,
     // Last: the context must outlive every buffer above (fields drop in order).
-    gpu: Gpu,
+    pub(crate) gpu: Gpu,
 }
 
 impl CudaBackend {
@@ -134,6 +143,42 @@ impl CudaBackend {
 
     /// [`CudaBackend::new`] on device `ordinal` (zones of one process, one per GPU).
     pub fn on_device(kind: BackendKind, ordinal: usize) -> Result<CudaBackend, PhysicsError> {
+        Ok(CudaBackend { resident: Arc::new(Mutex::new(Resident::on_device(kind, ordinal)?)) })
+    }
+
+    /// The interest selection, packing and sealing on this backend's device, over the
+    /// AOI lists and world copy this backend keeps there. Each call makes a handle with
+    /// interest state of its own (staleness tables, buffers).
+    pub fn device_interest(&self) -> DeviceInterest {
+        DeviceInterest::new(self.resident.clone())
+    }
+
+    /// The resident state, for one call.
+    fn resident(&self) -> MutexGuard<'_, Resident> {
+        lock(&self.resident)
+    }
+
+    /// The candidate pairs of the world as it is, without stepping: static pairs as
+    /// `object << 32 | primitive` sorted by (object, primitive), dynamic pairs as
+    /// `a << 32 | b` with `a < b`, sorted. For checking the broad phase against the CPU.
+    pub fn broad_pairs(&mut self, world: &World) -> Result<(Vec<u64>, Vec<u64>), PhysicsError> {
+        self.resident().checked(|d| d.broad_pairs_impl(world))
+    }
+}
+
+/// Locks the resident state. A panic during a call leaves it poisoned and possibly half
+/// updated: it is then invalidated, so the next call uploads everything.
+pub(crate) fn lock(resident: &Mutex<Resident>) -> MutexGuard<'_, Resident> {
+    resident.lock().unwrap_or_else(|poisoned| {
+        resident.clear_poison();
+        let mut d = poisoned.into_inner();
+        d.invalidate();
+        d
+    })
+}
+
+impl Resident {
+    fn on_device(kind: BackendKind, ordinal: usize) -> Result<Resident, PhysicsError> {
         let name = kind.name();
         if !matches!(kind, BackendKind::Cuda | BackendKind::CudaNaive) {
             return Err(PhysicsError::Unavailable { backend: name, reason: "not a CUDA backend kind".into() });
@@ -141,7 +186,7 @@ impl CudaBackend {
         let gpu = Gpu::new(ordinal).map_err(|reason| PhysicsError::Unavailable { backend: name, reason })?;
         let events = (0..EVENTS).map(|_| Event::new(&gpu)).collect::<Result<Vec<_>, _>>()?;
         let p = Pinned::empty;
-        Ok(CudaBackend {
+        Ok(Resident {
             kind,
             n: 0,
             synced: None,
@@ -162,7 +207,6 @@ impl CudaBackend {
             params: DevBuf::empty(),
             counters: DevBuf::empty(),
             samples: DevBuf::empty(),
-            interest: interest::InterestState::new(),
             host: Host { pos: p(), prev: p(), action: p(), flags: p(), small: p(), aoi_offsets: p(), aoi_objects: p() },
             events,
             gpu,
@@ -171,6 +215,27 @@ impl CudaBackend {
 
     fn naive(&self) -> bool {
         self.kind == BackendKind::CudaNaive
+    }
+
+    fn description(&self) -> String {
+        let how = if self.naive() { "all pairs" } else { "LBVH, device-resident" };
+        format!("{} ({}, sm_{}, {how})", self.kind, self.gpu.info.name, self.gpu.info.arch)
+    }
+
+    /// Makes the next call upload everything: after an error the device copy may be
+    /// half updated.
+    pub(crate) fn invalidate(&mut self) {
+        self.synced = None;
+        self.n = usize::MAX;
+    }
+
+    /// Runs `call`, invalidating the device copy if it fails.
+    fn checked<T>(&mut self, call: impl FnOnce(&mut Resident) -> Result<T, PhysicsError>) -> Result<T, PhysicsError> {
+        let r = call(self);
+        if r.is_err() {
+            self.invalidate();
+        }
+        r
     }
 
     fn step_impl(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
@@ -184,21 +249,9 @@ impl CudaBackend {
             }),
         }
     }
-
-    /// The candidate pairs of the world as it is, without stepping: static pairs as
-    /// `object << 32 | primitive` sorted by (object, primitive), dynamic pairs as
-    /// `a << 32 | b` with `a < b`, sorted. For checking the broad phase against the CPU.
-    pub fn broad_pairs(&mut self, world: &World) -> Result<(Vec<u64>, Vec<u64>), PhysicsError> {
-        let r = self.broad_pairs_impl(world);
-        if r.is_err() {
-            self.synced = None;
-            self.n = usize::MAX;
-        }
-        r
-    }
 }
 
-impl Drop for CudaBackend {
+impl Drop for Resident {
     fn drop(&mut self) {
         if let Some(table) = self.gpu.profile_table() {
             eprintln!("per-kernel device time, {} ({} objects):\n{table}", self.description(), self.n);
@@ -207,35 +260,19 @@ impl Drop for CudaBackend {
 }
 
 impl Backend for CudaBackend {
-    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
-        self
-    }
-
     fn kind(&self) -> BackendKind {
-        self.kind
+        self.resident().kind
     }
 
     fn description(&self) -> String {
-        let how = if self.naive() { "all pairs" } else { "LBVH, device-resident" };
-        format!("{} ({}, sm_{}, {how})", self.kind, self.gpu.info.name, self.gpu.info.arch)
+        self.resident().description()
     }
 
     fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
-        let r = self.step_impl(world, k);
-        if r.is_err() {
-            // The device copy may be half updated: make the next call upload everything.
-            self.synced = None;
-            self.n = usize::MAX;
-        }
-        r
+        self.resident().checked(|d| d.step_impl(world, k))
     }
 
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
-        let r = self.query_impl(world, boxes, out);
-        if r.is_err() {
-            self.synced = None;
-            self.n = usize::MAX;
-        }
-        r
+        self.resident().checked(|d| d.query_impl(world, boxes, out))
     }
 }

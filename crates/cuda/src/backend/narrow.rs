@@ -4,10 +4,10 @@
 
 use myriad_physics::PhysicsError;
 
-use super::CudaBackend;
+use super::Resident;
 use crate::launch::{KNarrowDynamic, KNarrowStatic};
 
-impl CudaBackend {
+impl Resident {
     /// `k_narrow_static` over the static pair list, of which the first `cap` entries
     /// were written (a range past `cap` is left out, and the step is redone).
     pub(super) fn narrow_static(&self, cap: u32) -> Result<(), PhysicsError> {

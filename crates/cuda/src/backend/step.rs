@@ -8,9 +8,9 @@ use myriad_physics::{PhysicsError, Stage, StepReport, TickConstants};
 
 use super::broad::write_pass;
 use super::sync::{flat3_mut, par_copy};
-use super::{CudaBackend, Synced};
+use super::{Resident, Synced};
 
-impl CudaBackend {
+impl Resident {
     /// One step, or `None` (world untouched) when a pair list did not fit: the buffers are
     /// then grown to the exact totals and the device state is marked for re-upload.
     pub(super) fn try_step(

@@ -7,7 +7,7 @@ use myriad_physics::{BackendKind, PhysicsError, TickConstants};
 use rayon::prelude::*;
 
 use super::broad::SLOTS;
-use super::{CudaBackend, Synced};
+use super::{Resident, Synced};
 use crate::device::{DevBuf, Pinned};
 use crate::launch::KBoxes;
 use crate::params::DeviceParams;
@@ -18,7 +18,7 @@ const LEAF_LIMIT: usize = (1 << 31) - 1;
 
 /// Per-object device state.
 /// Vectors are packed floats (x, y, z), boxes six floats (min, max); enums are one byte.
-pub(super) struct Objects {
+pub(crate) struct Objects {
     /// Positions, the state the kernels advance.
     pub pos: DevBuf<f32>,
     /// Positions one tick earlier (velocity is `pos - prev`).
@@ -148,7 +148,7 @@ pub(super) fn par_copy<T: Copy + Send + Sync>(dst: &mut [T], src: &[T]) {
     }
 }
 
-impl CudaBackend {
+impl Resident {
     /// Uploads whatever the host changed since the device last saw the world.
     pub(super) fn sync_world(&mut self, world: &World, k: Option<&TickConstants>) -> Result<(), PhysicsError> {
         let gpu = &self.gpu;

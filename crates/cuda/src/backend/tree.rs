@@ -6,7 +6,7 @@ use myriad_core::World;
 use myriad_physics::PhysicsError;
 use myriad_physics::lbvh::morton::MortonFrame;
 
-use super::CudaBackend;
+use super::Resident;
 use crate::device::{DevBuf, Gpu};
 use crate::launch::{DevPtr, KBoxes, KBoxesMorton, KEmit, KRadixCounts, KRadixPass, KRefit, Node};
 
@@ -156,7 +156,7 @@ impl Tree {
     }
 }
 
-impl CudaBackend {
+impl Resident {
     /// Dynamic boxes (and, for `cuda`, the dynamic tree) at the device's positions.
     pub(super) fn build_dynamic(&mut self, world: &World) -> Result<(), PhysicsError> {
         let n = self.n;

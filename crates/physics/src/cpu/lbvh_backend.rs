@@ -83,10 +83,6 @@ impl BroadPhase for Trees {
 }
 
 impl Backend for CpuLbvh {
-    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
-        self
-    }
-
     fn kind(&self) -> BackendKind {
         BackendKind::Cpu
     }

@@ -49,10 +49,6 @@ impl BroadPhase for AllPairs {
 }
 
 impl Backend for CpuNaive {
-    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
-        self
-    }
-
     fn kind(&self) -> BackendKind {
         BackendKind::CpuNaive
     }

@@ -1,12 +1,12 @@
-//! The device implementation of [`Outbound`]: the CUDA backend answers the AOI boxes,
-//! selects each player's records by the host interest manager's rule, packs them into
-//! state update bodies and seals them, all on the device (`myriad_cuda`'s interest
-//! updates), so only finished datagrams come back, never the AOI lists. Each player's
-//! datagrams are sealed under sequence numbers leased from its sealer
-//! ([`myriad_protocol::Sealer::lease`], as many as its budget of datagrams); the host
-//! checks them, takes them and returns the unused numbers
-//! ([`InterestManager::adopt_sealed`]). What was packed becomes the staleness of the next
-//! tick on the device.
+//! The device implementation of [`Outbound`]: a CUDA backend's [`DeviceInterest`]
+//! answers the AOI boxes, selects each player's records by the host interest manager's
+//! rule, packs them into state update bodies and seals them, all on the device, so only
+//! finished datagrams come back, never the AOI lists. Each player's datagrams are sealed
+//! under sequence numbers leased from its sealer ([`myriad_protocol::Sealer::lease`], as
+//! many as its budget of datagrams); the host checks them, takes them and returns the
+//! unused numbers
+//! ([`InterestManager::adopt_sealed`](myriad_interest::InterestManager::adopt_sealed)).
+//! What was packed becomes the staleness of the next tick on the device.
 //!
 //! The players go in chunks (at most [`MAX_CHUNKS`], each a whole number of the device's
 //! waves of selection): the device queues every chunk at once, and every thread of the
@@ -16,39 +16,41 @@
 //! device's part plus the sending of one chunk, instead of the sum of both; the threads
 //! never wait for each other, so none sleeps and wakes between chunks.
 //!
-//! The datagrams are byte for byte those of [`CpuOutbound`] for the same world, tick and
-//! history (the GPU suite's `device_outbound` test). With another backend, a budget
-//! larger than the device selection holds, or after a device error, it serves the tick
-//! through a [`CpuOutbound`] (a device error is logged and counted as
-//! `myriad_outbound_errors_total{reason="device_select"}`; the players of the chunks the
-//! device had finished keep what it built); players then start their rotation afresh.
+//! The datagrams are byte for byte those of [`HostOutbound`] for the same world, tick and
+//! history (the GPU suite's `device_outbound` test). With a budget larger than the device
+//! selection holds, or after a device error, it serves the tick through its
+//! [`HostOutbound`], whose interest manager also adopts the device's datagrams (a device
+//! error is logged and counted as `myriad_outbound_errors_total{reason="device_select"}`;
+//! the players of the chunks the device had finished keep what it built); players then
+//! start their rotation afresh.
 
 use std::ops::Range;
 use std::sync::Mutex;
 use std::time::Instant;
 
-use myriad_core::{Aabb, Vec3, World};
-use myriad_cuda::CudaBackend;
-use myriad_cuda::backend::{InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS};
-use myriad_interest::{InterestConfig, InterestManager, Packed, TickInfo, TickReport};
-use myriad_physics::Backend;
+use myriad_core::Aabb;
+use myriad_cuda::DeviceInterest;
+use myriad_cuda::interest::{InterestQuery, MAX_PACK_DATAGRAMS, MAX_SELECTED, NO_PREVIOUS};
+use myriad_interest::{Packed, TickReport};
 use myriad_protocol::{MAX_COMPACT_RECORDS, SealLease};
 use rayon::prelude::*;
 
-use crate::outbound::{CpuOutbound, Outbound, OutboundReport, Ready, Recipient};
+use super::{HostOutbound, Job, Outbound, OutboundReport, Recipient};
 
 /// The most chunks a tick's players are split into. Each chunk costs the host a few
 /// hand-overs between threads and the device a partly idle last wave of its selection,
 /// so a chunk holds a whole number of the device's waves
-/// ([`CudaBackend::interest_wave`]), as few as keep the chunks at most this many.
+/// ([`DeviceInterest::wave`]), as few as keep the chunks at most this many.
 pub const MAX_CHUNKS: usize = 8;
 
 /// Interest selection, packing and sealing on the device.
 #[derive(Debug)]
 pub struct DeviceOutbound {
-    interest: InterestManager,
-    half: Vec3,
-    fallback: CpuOutbound,
+    /// The device's selection, packing and sealing.
+    device: DeviceInterest,
+    /// The players' interest manager (the device's datagrams are adopted through it) and
+    /// the outbound of the ticks, or players, the device does not serve.
+    host: HostOutbound,
     /// Players per chunk (`None`: by the device's wave and [`MAX_CHUNKS`]).
     chunk: Option<usize>,
     /// The device's wave of selection, once asked.
@@ -56,16 +58,10 @@ pub struct DeviceOutbound {
 }
 
 impl DeviceOutbound {
-    /// AOI boxes of edge `aoi_size` centred on each player, at most `max_datagrams`
-    /// update datagrams per player and tick.
-    pub fn new(aoi_size: f32, max_datagrams: usize) -> Self {
-        DeviceOutbound {
-            interest: InterestManager::new(InterestConfig { max_datagrams, ..Default::default() }),
-            half: Vec3::splat(aoi_size / 2.0),
-            fallback: CpuOutbound::new(aoi_size, max_datagrams),
-            chunk: None,
-            wave: None,
-        }
+    /// On `device` (a CUDA backend's), AOI boxes of edge `aoi_size` centred on each
+    /// player, at most `max_datagrams` update datagrams per player and tick.
+    pub fn new(device: DeviceInterest, aoi_size: f32, max_datagrams: usize) -> Self {
+        DeviceOutbound { device, host: HostOutbound::new(aoi_size, max_datagrams), chunk: None, wave: None }
     }
 
     /// The same with `players` (at least one) in every chunk but the last, whatever the
@@ -84,45 +80,23 @@ impl DeviceOutbound {
     /// Slots the device may choose for one player: a view that fits can hold
     /// `MAX_COMPACT_RECORDS` a datagram when the player has no own object.
     fn selection_room(&self) -> usize {
-        self.interest.config().max_datagrams.max(1) * MAX_COMPACT_RECORDS
+        self.host.interest.config().max_datagrams.max(1) * MAX_COMPACT_RECORDS
     }
 
     /// Whether the device selection and packing can hold this budget.
     fn budget_fits(&self) -> bool {
-        self.selection_room() <= MAX_SELECTED && self.interest.config().max_datagrams <= MAX_PACK_DATAGRAMS
-    }
-
-    /// Serves the tick on the host; the device's staleness is then out of date.
-    fn on_host(
-        &mut self,
-        backend: &mut dyn Backend,
-        world: &World,
-        tick: TickInfo,
-        recipients: &mut [Recipient<'_>],
-        ready: &dyn Ready,
-    ) -> OutboundReport {
-        self.fallback.build(backend, world, tick, recipients, ready)
+        self.selection_room() <= MAX_SELECTED && self.host.interest.config().max_datagrams <= MAX_PACK_DATAGRAMS
     }
 
     /// After a device error: logs and counts it, and serves the players the device did
     /// not (`parts`) on the host.
-    fn device_failed(
-        &mut self,
-        error: &str,
-        backend: &mut dyn Backend,
-        world: &World,
-        tick: TickInfo,
-        parts: Vec<&mut [Recipient<'_>]>,
-        ready: &dyn Ready,
-    ) -> OutboundReport {
+    fn device_failed(&mut self, error: &str, job: &mut Job<'_>, parts: Vec<&mut [Recipient<'_>]>) -> OutboundReport {
         let players: usize = parts.iter().map(|p| p.len()).sum();
         tracing::error!(error, players, "device interest updates failed; these players are served on the host");
         metrics::counter!("myriad_outbound_errors_total", "reason" => "device_select").increment(1);
         let mut report = OutboundReport::default();
         for part in parts {
-            let rest = self.on_host(backend, world, tick, part, ready);
-            report.records += rest.records;
-            report.seal_failures += rest.seal_failures;
+            report += self.host.build(job, part);
         }
         report
     }
@@ -130,7 +104,7 @@ impl DeviceOutbound {
 
 impl Outbound for DeviceOutbound {
     fn description(&self) -> String {
-        let max = self.interest.config().max_datagrams;
+        let max = self.host.interest.config().max_datagrams;
         if self.budget_fits() {
             format!("device interest selection, packing and sealing ({max} datagrams a player at most)")
         } else {
@@ -140,20 +114,12 @@ impl Outbound for DeviceOutbound {
         }
     }
 
-    fn build(
-        &mut self,
-        backend: &mut dyn Backend,
-        world: &World,
-        tick: TickInfo,
-        recipients: &mut [Recipient<'_>],
-        ready: &dyn Ready,
-    ) -> OutboundReport {
+    fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         if !self.budget_fits() {
-            return self.on_host(backend, world, tick, recipients, ready);
+            // The device's staleness is then out of date: players start afresh on it.
+            return self.host.build(job, recipients);
         }
-        let Some(cuda) = backend.as_any_mut().downcast_mut::<CudaBackend>() else {
-            return self.on_host(backend, world, tick, recipients, ready);
-        };
+        let (world, tick, ready) = (job.world, job.tick, job.ready);
         let mut report = OutboundReport::default();
         if recipients.is_empty() {
             return report;
@@ -162,8 +128,8 @@ impl Outbound for DeviceOutbound {
         // object and centre are the host interest manager's; the device takes them here,
         // with a lease of each player's sequence numbers (none: its sealer ran out, and
         // the player gets nothing, as with the host's sealing).
-        let half = self.half;
-        let config = *self.interest.config();
+        let half = self.host.half;
+        let config = *self.host.interest.config();
         let max_datagrams = config.max_datagrams.max(1);
         let ((boxes, own), (centres, (prev, mut leases))): Inputs = recipients
             .par_iter_mut()
@@ -190,25 +156,25 @@ impl Outbound for DeviceOutbound {
             capacity: self.selection_room() as u32,
         };
         let wave = *self.wave.get_or_insert_with(|| {
-            let wave = cuda.interest_wave().unwrap_or(1);
+            let wave = self.device.wave().unwrap_or(1);
             tracing::info!(players = wave, "the device selects a wave of players at once; chunks hold whole waves");
             wave
         });
         let chunk = self.chunk_players(recipients.len(), wave);
         let queueing = Instant::now();
-        if let Err(e) = cuda.queue_interest_updates(world, &query, chunk) {
+        if let Err(e) = self.device.queue(world, &query, chunk) {
             // Nothing is left queued, but the keys are wiped and the tables start afresh.
-            let _ = cuda.finish_interest_updates(tick.tick, false);
-            return self.device_failed(&e.to_string(), backend, world, tick, vec![recipients], ready);
+            let _ = self.device.finish(tick.tick, false);
+            return self.device_failed(&e.to_string(), job, vec![recipients]);
         }
         let queued = queueing.elapsed();
         let mut failed = None;
         // Every thread of the pool takes its share of each chunk (module docs).
         let threads = rayon::current_num_threads().max(1);
-        let chunks = cuda.interest_chunks();
+        let chunks = self.device.chunks();
         let ranges = (0..chunks.len()).map(|k| chunks.players(k).unwrap_or_default());
         let shares = Shares::new(recipients, &mut leases, ranges, threads);
-        let interest = &self.interest;
+        let interest = &self.host.interest;
         let waited: Vec<(TickReport, std::time::Duration, Option<String>)> = rayon::broadcast(|ctx| {
             let mut report = TickReport::default();
             let mut waited = std::time::Duration::ZERO;
@@ -245,9 +211,10 @@ impl Outbound for DeviceOutbound {
         }
         // The device's share: queueing (which waits for the AOI query's count), then the
         // first thread's waits for chunks.
-        report.device_wait_ms = (queued + waited.first().map_or(std::time::Duration::ZERO, |w| w.1)).as_secs_f64() * 1e3;
+        report.device_wait_ms =
+            (queued + waited.first().map_or(std::time::Duration::ZERO, |w| w.1)).as_secs_f64() * 1e3;
         let unserved = shares.into_rest();
-        if let Err(e) = cuda.finish_interest_updates(tick.tick, unserved.is_empty() && failed.is_none()) {
+        if let Err(e) = self.device.finish(tick.tick, unserved.is_empty() && failed.is_none()) {
             failed = failed.or(Some(e.to_string()));
         }
         if sealed.skipped > 0 {
@@ -260,10 +227,7 @@ impl Outbound for DeviceOutbound {
         report.add_interest(&sealed);
         if failed.is_some() || !unserved.is_empty() {
             let error = failed.unwrap_or_else(|| "chunks left unserved".into());
-            let rest = self.device_failed(&error, backend, world, tick, unserved, ready);
-            report.records += rest.records;
-            report.seal_failures += rest.seal_failures;
-            return report;
+            report += self.device_failed(&error, job, unserved);
         }
         report
     }
@@ -328,6 +292,7 @@ impl<'r, 'a> Shares<'r, 'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use myriad_core::Vec3;
     use myriad_interest::Subscriber;
     use myriad_protocol::{Direction, Sealer};
 

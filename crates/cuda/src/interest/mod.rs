@@ -11,29 +11,39 @@
 //! and writes new ones, and marks what was packed as sent this tick.
 //!
 //! The players are served in chunks, so that the host sends one chunk while the device
-//! builds the next: [`CudaBackend::queue_interest_updates`] queues every chunk's kernels
-//! at once, each chunk ending with an event, and its datagrams reach the host through
-//! stores into mapped host memory (no copy whose size the host would first have to read
-//! back); [`CudaBackend::interest_chunks`] waits for chunks and
-//! [`CudaBackend::finish_interest_updates`] ends the tick.
+//! builds the next: [`DeviceInterest::queue`] queues every chunk's kernels at once, each
+//! chunk ending with an event, and its datagrams reach the host through stores into
+//! mapped host memory (no copy whose size the host would first have to read back);
+//! [`DeviceInterest::chunks`] waits for chunks (`chunks.rs`) and
+//! [`DeviceInterest::finish`] ends the tick.
 //!
 //! The session keys travel to the device in page-locked memory for the tick and are
 //! wiped there and on the device when it ends.
+//!
+//! This is not physics: a [`DeviceInterest`] is a capability of a CUDA backend
+//! ([`CudaBackend::device_interest`](crate::CudaBackend::device_interest), or the factory's
+//! [`CreatedBackend::device_interest`](crate::CreatedBackend)) that shares the device and
+//! the world's copy there with the backend (each call locks it; the backend and its
+//! interest run one after the other on the tick's thread, so the lock is uncontended).
+
+mod chunks;
 
 use std::ops::Range;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::atomic::AtomicU8;
+use std::sync::{Arc, Mutex};
 
 use cudarc::driver::safe::CudaContext;
 
 use myriad_core::{Aabb, World};
 use myriad_physics::PhysicsError;
-use myriad_protocol::{MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM, SealLease};
+use myriad_protocol::{MAX_BODY, MAX_DATAGRAM, SealLease};
 use rayon::prelude::*;
 
-use super::CudaBackend;
+use crate::backend::{Resident, lock};
 use crate::device::{DevBuf, Event, Pinned};
 use crate::launch::{KInterestPack, KInterestSeal, KInterestSelect, KInterestStamp, Kernel};
+use chunks::CHUNK_QUEUED;
+pub use chunks::{InterestChunks, Payload, Payloads};
 
 /// The most records one selected group can hold (`SEL_SORT` in the kernel): the
 /// kernel sorts each group in shared memory.
@@ -64,7 +74,7 @@ const LEASE_WORDS: usize = 12;
 /// `prev` entry of a player absent from the previous selection.
 pub const NO_PREVIOUS: u32 = u32::MAX;
 
-/// What [`CudaBackend::queue_interest_updates`] needs, one entry per player in each
+/// What [`DeviceInterest::queue`] needs, one entry per player in each
 /// slice.
 #[derive(Debug, Clone, Copy)]
 pub struct InterestQuery<'a> {
@@ -95,153 +105,6 @@ pub struct InterestQuery<'a> {
     pub capacity: u32,
 }
 
-/// One player's updates, as packed and sealed on the device.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Payload<'a> {
-    /// Objects in view, own excluded.
-    pub in_view: u32,
-    /// Whether the view was over budget (the records are then the nearest, then the
-    /// stalest).
-    pub over_budget: bool,
-    /// Whether the player's own object is pinned at the start of every datagram.
-    pub pinned: bool,
-    /// Records of other objects packed.
-    pub packed: u32,
-    /// Each datagram's body length (each at most `MAX_BODY`).
-    lens: &'a [u32],
-    /// The player's datagrams, one every [`DATAGRAM_STRIDE`] bytes.
-    bytes: &'a [u8],
-}
-
-impl<'a> Payload<'a> {
-    /// The sealed datagrams, in order, ready to send.
-    pub fn datagrams(&self) -> impl Iterator<Item = &'a [u8]> + use<'a> {
-        let bytes = self.bytes;
-        self.lens.iter().enumerate().map(move |(d, &len)| {
-            let at = d * DATAGRAM_STRIDE;
-            &bytes[at..at + MIN_DATAGRAM + len as usize]
-        })
-    }
-}
-
-/// The updates of one chunk of players ([`InterestChunks::wait`]), in pinned host
-/// memory; player `i` is the chunk's `i`-th.
-#[derive(Debug, Clone, Copy)]
-pub struct Payloads<'a> {
-    /// Per player: in view, flags (over budget, pinned << 1), packed, datagrams.
-    info: &'a [u32],
-    /// Per player, `max_datagrams` body lengths.
-    lens: &'a [u32],
-    /// Per player, `max_datagrams` datagrams of [`DATAGRAM_STRIDE`] bytes.
-    bytes: &'a [u8],
-    max_datagrams: usize,
-}
-
-impl<'a> Payloads<'a> {
-    /// Number of players.
-    pub fn len(&self) -> usize {
-        self.info.len() / 4
-    }
-
-    /// Whether there is no player.
-    pub fn is_empty(&self) -> bool {
-        self.info.is_empty()
-    }
-
-    /// Player `i`'s updates; `None` past the end or if the device's counts cannot be
-    /// right (a body longer than `MAX_BODY`).
-    pub fn get(&self, i: usize) -> Option<Payload<'a>> {
-        let m = self.info.get(4 * i..4 * i + 4)?;
-        let mdg = self.max_datagrams;
-        let datagrams = (m[3] as usize).min(mdg);
-        let lens = self.lens.get(i * mdg..i * mdg + datagrams)?;
-        let bytes = self.bytes.get(i * mdg * DATAGRAM_STRIDE..(i + 1) * mdg * DATAGRAM_STRIDE)?;
-        if lens.iter().any(|&l| l as usize > MAX_BODY) {
-            return None;
-        }
-        Some(Payload { in_view: m[0], over_budget: m[1] & 1 != 0, pinned: m[1] & 2 != 0, packed: m[2], lens, bytes })
-    }
-}
-
-const CHUNK_QUEUED: u8 = 0;
-const CHUNK_WAITED: u8 = 1;
-const CHUNK_DONE: u8 = 2;
-const CHUNK_FAILED: u8 = 3;
-
-/// The chunks of a queued tick ([`CudaBackend::interest_chunks`]): any thread may wait
-/// for any chunk and read its payloads.
-#[derive(Clone, Copy)]
-pub struct InterestChunks<'a> {
-    chunks: &'a [Range<usize>],
-    done: &'a [Event],
-    /// Per chunk: queued, being waited for, done or failed (`CHUNK_*`).
-    state: &'a [AtomicU8],
-    info: &'a Pinned,
-    lens: &'a Pinned,
-    out: &'a Pinned,
-    max_datagrams: usize,
-    ctx: &'a Arc<CudaContext>,
-}
-
-impl std::fmt::Debug for InterestChunks<'_> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("InterestChunks").field("chunks", &self.chunks).finish_non_exhaustive()
-    }
-}
-
-impl<'a> InterestChunks<'a> {
-    /// Number of chunks.
-    pub fn len(&self) -> usize {
-        self.chunks.len()
-    }
-
-    /// Whether there is no chunk (no player).
-    pub fn is_empty(&self) -> bool {
-        self.chunks.is_empty()
-    }
-
-    /// Chunk `k`'s players (a range of the query's), known before it is done.
-    pub fn players(&self, k: usize) -> Option<Range<usize>> {
-        self.chunks.get(k).cloned()
-    }
-
-    /// Waits for chunk `k`; returns its players and their payloads. Of several threads
-    /// waiting for one chunk, one waits in the driver and the others for it.
-    pub fn wait(&self, k: usize) -> Result<(Range<usize>, Payloads<'a>), PhysicsError> {
-        let (Some(players), Some(done), Some(state)) = (self.chunks.get(k), self.done.get(k), self.state.get(k)) else {
-            return Err(PhysicsError::Device { stage: "interest", message: format!("no chunk {k} queued") });
-        };
-        loop {
-            match state.compare_exchange(CHUNK_QUEUED, CHUNK_WAITED, Ordering::Acquire, Ordering::Acquire) {
-                Ok(_) => {
-                    let waited = self
-                        .ctx
-                        .bind_to_thread()
-                        .map_err(|e| PhysicsError::Device { stage: "bind", message: format!("{e:?}") })
-                        .and_then(|()| done.wait());
-                    state.store(if waited.is_ok() { CHUNK_DONE } else { CHUNK_FAILED }, Ordering::Release);
-                    waited?;
-                    break;
-                }
-                Err(CHUNK_DONE) => break,
-                Err(CHUNK_FAILED) => {
-                    return Err(PhysicsError::Device { stage: "interest", message: format!("chunk {k} failed") });
-                }
-                Err(_) => std::hint::spin_loop(),
-            }
-        }
-        let (a, m) = (players.start, players.len());
-        let mdg = self.max_datagrams;
-        let payloads = Payloads {
-            info: self.info.range::<u32>(4 * a, 4 * m),
-            lens: self.lens.range::<u32>(a * mdg, m * mdg),
-            bytes: self.out.range::<u8>(a * mdg * DATAGRAM_STRIDE, m * mdg * DATAGRAM_STRIDE),
-            max_datagrams: mdg,
-        };
-        Ok((players.clone(), payloads))
-    }
-}
-
 /// One generation of staleness tables.
 struct Tables {
     /// Each player's table starts at twice its list's offset (`nq + 1` entries).
@@ -261,7 +124,7 @@ impl Tables {
 }
 
 /// The device state of interest selection.
-pub(super) struct InterestState {
+struct InterestState {
     tables: [Tables; 2],
     /// Index of the tables the last successful selection wrote.
     current: usize,
@@ -305,7 +168,7 @@ pub(super) struct InterestState {
 }
 
 impl InterestState {
-    pub fn new() -> InterestState {
+    fn new() -> InterestState {
         InterestState {
             tables: [Tables::new(), Tables::new()],
             current: 0,
@@ -339,41 +202,61 @@ impl InterestState {
     }
 }
 
-impl CudaBackend {
+/// Interest selection, packing and sealing on a CUDA backend's device (module docs).
+pub struct DeviceInterest {
+    state: InterestState,
+    /// The device's context, bound by the threads that wait for chunks.
+    ctx: Arc<CudaContext>,
+    /// Last: the device state it shares with the backend, which the buffers above belong
+    /// to (fields drop in order).
+    resident: Arc<Mutex<Resident>>,
+}
+
+impl std::fmt::Debug for DeviceInterest {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DeviceInterest").field("chunks", &self.state.chunks).finish_non_exhaustive()
+    }
+}
+
+impl DeviceInterest {
+    /// Interest state of its own over `resident`, the backend's device state.
+    pub(crate) fn new(resident: Arc<Mutex<Resident>>) -> DeviceInterest {
+        let ctx = lock(&resident).gpu.ctx.clone();
+        DeviceInterest { state: InterestState::new(), ctx, resident }
+    }
+
     /// Queues the selection, packing and sealing of each player's state updates for this
     /// tick on the device (see the module docs and `kernels/interest.cu`), in chunks of
     /// `chunk` players (at least one); returns the number of chunks. Wait for them through
-    /// [`interest_chunks`](Self::interest_chunks), in any order, then call
-    /// [`finish_interest_updates`](Self::finish_interest_updates) (also after an error).
-    /// The AOI lists and the selections never leave the device.
+    /// [`chunks`](Self::chunks), in any order, then call [`finish`](Self::finish) (also
+    /// after an error). The AOI lists and the selections never leave the device.
     ///
     /// Every `prev` index must refer to the previous complete build; after an error,
     /// pass [`NO_PREVIOUS`] for everyone.
-    pub fn queue_interest_updates(
-        &mut self,
-        world: &World,
-        q: &InterestQuery<'_>,
-        chunk: usize,
-    ) -> Result<usize, PhysicsError> {
-        self.interest.chunks.clear();
-        let r = self.queue_impl(world, q, chunk.max(1));
+    pub fn queue(&mut self, world: &World, q: &InterestQuery<'_>, chunk: usize) -> Result<usize, PhysicsError> {
+        let s = &mut self.state;
+        let mut resident = lock(&self.resident);
+        let d = &mut *resident;
+        s.chunks.clear();
+        let r = s.queue(d, world, q, chunk.max(1));
         if r.is_err() {
-            self.interest.chunks.clear();
-            self.interest_failed();
+            s.chunks.clear();
+            s.failed(d);
         }
-        r.map(|()| self.interest.chunks.len())
+        r.map(|()| s.chunks.len())
     }
 
     /// The players the device selects at once (one block each, on every multiprocessor):
     /// chunks of a multiple of this keep the device busy to the end of each chunk.
-    pub fn interest_wave(&self) -> Result<usize, PhysicsError> {
-        self.gpu.bind()?;
-        self.gpu.wave(KInterestSelect::NAME, SELECT_THREADS)
+    pub fn wave(&self) -> Result<usize, PhysicsError> {
+        let d = lock(&self.resident);
+        d.gpu.bind()?;
+        d.gpu.wave(KInterestSelect::NAME, SELECT_THREADS)
     }
 
     /// The queued tick's chunks, to wait for and read, from any number of threads.
-    pub fn interest_chunks(&self) -> InterestChunks<'_> {
-        let s = &self.interest;
+    pub fn chunks(&self) -> InterestChunks<'_> {
+        let s = &self.state;
         InterestChunks {
             chunks: &s.chunks,
             done: &s.chunk_done,
@@ -382,50 +265,59 @@ impl CudaBackend {
             lens: &s.host_lens,
             out: &s.host_out,
             max_datagrams: s.queued.1,
-            ctx: &self.gpu.ctx,
+            ctx: &self.ctx,
         }
     }
 
     /// Ends the queued tick: waits for the device, wipes the keys, and, when every
     /// chunk was taken (`complete`), makes the staleness tables it wrote the next tick's;
     /// otherwise the next tick starts afresh.
-    pub fn finish_interest_updates(&mut self, tick: u64, complete: bool) -> Result<(), PhysicsError> {
-        let done = self.gpu.bind().and_then(|()| self.wipe_keys());
-        let s = &mut self.interest;
-        if complete && done.is_ok() && !s.chunks.is_empty() && self.n > 0 {
+    pub fn finish(&mut self, tick: u64, complete: bool) -> Result<(), PhysicsError> {
+        let s = &mut self.state;
+        let mut resident = lock(&self.resident);
+        let d = &mut *resident;
+        let done = d.gpu.bind().and_then(|()| s.wipe_keys(d));
+        if complete && done.is_ok() && !s.chunks.is_empty() && d.n > 0 {
             s.current = 1 - s.current;
             s.tables_tick = Some(tick);
         } else if !complete || done.is_err() {
-            self.interest_failed();
+            s.failed(d);
         }
-        self.interest.chunks.clear();
-        done.and_then(|()| self.gpu.collect_profile())
+        s.chunks.clear();
+        done.and_then(|()| d.gpu.collect_profile())
     }
+}
 
+impl InterestState {
     /// After a failure: the device copy and the staleness tables start afresh.
-    fn interest_failed(&mut self) {
-        self.synced = None;
-        self.n = usize::MAX;
-        self.interest.tables_tick = None;
+    fn failed(&mut self, d: &mut Resident) {
+        d.invalidate();
+        self.tables_tick = None;
     }
 
     /// Waits for the stream, then zeroes the lease table on the host and on the device.
-    fn wipe_keys(&mut self) -> Result<(), PhysicsError> {
-        let s = &mut self.interest;
+    fn wipe_keys(&mut self, d: &Resident) -> Result<(), PhysicsError> {
+        let s = self;
         let words = s.queued.0 * LEASE_WORDS;
         // The stream may still read the host table (an error left work queued).
-        let synced = self.gpu.sync();
+        let synced = d.gpu.sync();
         if s.host_leases.capacity_bytes() >= words * 4 {
             s.host_leases.slice_mut::<u32>(words).fill(0);
         }
         synced?;
         if s.leases.capacity() as usize >= words {
-            self.gpu.zero(s.leases.ptr(), words)?;
+            d.gpu.zero(s.leases.ptr(), words)?;
         }
         Ok(())
     }
 
-    fn queue_impl(&mut self, world: &World, q: &InterestQuery<'_>, chunk: usize) -> Result<(), PhysicsError> {
+    fn queue(
+        &mut self,
+        d: &mut Resident,
+        world: &World,
+        q: &InterestQuery<'_>,
+        chunk: usize,
+    ) -> Result<(), PhysicsError> {
         let nq = q.boxes.len();
         let cap = q.capacity as usize;
         let mdg = q.max_datagrams as usize;
@@ -443,9 +335,9 @@ impl CudaBackend {
             return fail(format!("a lease of fewer than {mdg} sequence numbers"));
         }
         // Unsorted lists: the selection does not depend on their order.
-        let (total, parts) = self.aoi_on_device(world, q.boxes, false)?;
-        let gpu = &self.gpu;
-        let s = &mut self.interest;
+        let (total, parts) = d.aoi_on_device(world, q.boxes, false)?;
+        let gpu = &d.gpu;
+        let s = self;
         s.queued = (nq, mdg);
         if nq == 0 {
             return Ok(());
@@ -459,7 +351,7 @@ impl CudaBackend {
         s.host_info.ensure(gpu, nq * 16)?;
         s.host_lens.ensure(gpu, nq * mdg * 4)?;
         s.host_out.ensure(gpu, nq * mdg * DATAGRAM_STRIDE)?;
-        if self.n == 0 {
+        if d.n == 0 {
             // No object at all: no update and no staleness to keep.
             s.host_info.slice_mut::<u32>(nq * 4).fill(0);
             s.host_lens.slice_mut::<u32>(nq * mdg).fill(0);
@@ -529,12 +421,12 @@ impl CudaBackend {
                 KInterestSelect {
                     first,
                     nq: end,
-                    offsets: self.aoi_counts.ptr(),
+                    offsets: d.aoi_counts.ptr(),
                     parts: parts as u32,
-                    objects: self.aoi_out.ptr(),
-                    n: self.n as u32,
-                    pos: self.obj.pos.ptr(),
-                    ids: self.obj.id.ptr(),
+                    objects: d.aoi_out.ptr(),
+                    n: d.n as u32,
+                    pos: d.obj.pos.ptr(),
+                    ids: d.obj.id.ptr(),
                     own: s.own.ptr(),
                     centres: s.centres.ptr(),
                     prev_index: s.prev.ptr(),
@@ -568,10 +460,10 @@ impl CudaBackend {
                     meta: s.meta.ptr(),
                     sel: s.sel.ptr(),
                     cap: q.capacity,
-                    n: self.n as u32,
-                    pos: self.obj.pos.ptr(),
-                    ids: self.obj.id.ptr(),
-                    shapes: self.obj.shape.ptr(),
+                    n: d.n as u32,
+                    pos: d.obj.pos.ptr(),
+                    ids: d.obj.id.ptr(),
+                    shapes: d.obj.shape.ptr(),
                     own: s.own.ptr(),
                     centres: s.centres.ptr(),
                     tick: q.tick,
@@ -594,7 +486,7 @@ impl CudaBackend {
                     sel: s.sel.ptr(),
                     cap: q.capacity,
                     packed: s.packed.ptr(),
-                    ids: self.obj.id.ptr(),
+                    ids: d.obj.id.ptr(),
                     toff: t.offsets.ptr(),
                     tid: t.ids.ptr(),
                     tkey: t.keys.ptr(),

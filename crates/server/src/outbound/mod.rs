@@ -1,0 +1,172 @@
+//! Building what each player is sent: the AOI query, interest selection, packing and
+//! sealing, behind one trait.
+//!
+//! [`Outbound::build`] gets the physics backend, the world after the step and one
+//! [`Recipient`] per active player, and leaves each recipient's sealed datagrams in its
+//! [`Subscriber`]. It hands every recipient to a [`Ready`] once, as soon as the
+//! recipient's datagrams are final: the tick sends them from there, on several lanes
+//! (sockets) at once, so an implementation that builds in chunks overlaps the sending of
+//! one chunk with the building of the next.
+//!
+//! Two implementations:
+//! - [`HostOutbound`] (`host.rs`): the backend answers the AOI boxes, the
+//!   [`InterestManager`](myriad_interest::InterestManager) selects, packs and seals in
+//!   parallel over players, and every recipient is ready at the end;
+//! - [`DeviceOutbound`] (`device.rs`): a CUDA backend's
+//!   [`DeviceInterest`] (a capability the backend factory hands out beside the backend)
+//!   does all of it on the device, in chunks. Each recipient also brings its sealer, from
+//!   which it leases a key and a range of sequence numbers to seal on the device without
+//!   ever reusing a nonce.
+//!
+//! [`create`] picks one for the config's [`OutboundKind`]: `auto` (the default) is the
+//! device outbound when the backend came with a device interest, the host one otherwise.
+
+mod device;
+mod host;
+
+use std::borrow::{Borrow, BorrowMut};
+use std::net::SocketAddr;
+use std::ops::AddAssign;
+
+use myriad_core::{Vec3, World};
+use myriad_cuda::DeviceInterest;
+use myriad_interest::{Subscriber, TickInfo, TickReport};
+use myriad_physics::Backend;
+use rayon::prelude::*;
+
+/// The config's choice of outbound, owned by [`crate::config`]; here too for callers
+/// that pick one.
+pub use crate::config::OutboundKind;
+use crate::config::ServerConfig;
+use crate::transport::lane_share;
+pub use device::{DeviceOutbound, MAX_CHUNKS};
+pub use host::HostOutbound;
+
+/// The outbound for the config's `outbound` kind, AOI size, datagram budget and (on the
+/// device) chunk size: the device outbound with `device` (the backend's device interest,
+/// if it has one) under `auto`, else the host one.
+pub fn create(config: &ServerConfig, device: Option<DeviceInterest>) -> Box<dyn Outbound> {
+    let (aoi, max_datagrams) = (config.aoi_size, config.max_datagrams_per_player);
+    match (config.outbound, device) {
+        (OutboundKind::Auto, Some(device)) => {
+            let device = DeviceOutbound::new(device, aoi, max_datagrams);
+            Box::new(match config.outbound_chunk_players {
+                0 => device,
+                players => device.with_chunk(players),
+            })
+        }
+        _ => Box::new(HostOutbound::new(aoi, max_datagrams)),
+    }
+}
+
+/// One active player as the outbound sees it.
+#[derive(Debug)]
+pub struct Recipient<'a> {
+    /// The player's session (a stable key for per-player state kept elsewhere).
+    pub session_id: u64,
+    /// Slot of the player's own object in the world's dynamics.
+    pub object: u32,
+    /// Centre of the player's area of interest (its object's position).
+    pub centre: Vec3,
+    /// Where the player's datagrams go (`None`: nowhere yet; nothing is sent).
+    pub addr: Option<SocketAddr>,
+    /// The player's interest state, sealer and this tick's datagrams.
+    pub view: &'a mut Subscriber,
+}
+
+impl Borrow<Subscriber> for Recipient<'_> {
+    fn borrow(&self) -> &Subscriber {
+        self.view
+    }
+}
+
+impl BorrowMut<Subscriber> for Recipient<'_> {
+    fn borrow_mut(&mut self) -> &mut Subscriber {
+        self.view
+    }
+}
+
+/// What one build did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct OutboundReport {
+    /// State records packed, over all recipients.
+    pub records: usize,
+    /// Time of the host's AOI query in ms (part of the `packets` stage); 0 for the device
+    /// outbound, whose query runs on the device inside [`Self::device_wait_ms`] (unless
+    /// it serves players on the host after a device error).
+    pub aoi_ms: f64,
+    /// Time the tick waited for the device in ms (part of the `packets` stage): queueing
+    /// the work, with the AOI query's count, then the first pool thread's waits for
+    /// chunks. 0 for the host outbound.
+    pub device_wait_ms: f64,
+    /// Recipients whose sealing failed (nothing is sent to them this tick).
+    pub seal_failures: usize,
+}
+
+/// Sums the reports of builds that served parts of one tick's players.
+impl AddAssign for OutboundReport {
+    fn add_assign(&mut self, other: OutboundReport) {
+        self.records += other.records;
+        self.aoi_ms += other.aoi_ms;
+        self.device_wait_ms += other.device_wait_ms;
+        self.seal_failures += other.seal_failures;
+    }
+}
+
+impl OutboundReport {
+    /// Takes the interest manager's counts of a build (and counts its seal failures).
+    fn add_interest(&mut self, r: &TickReport) {
+        if r.seal_failures > 0 {
+            metrics::counter!("myriad_seal_failures_total").increment(r.seal_failures as u64);
+        }
+        self.records = r.records;
+        self.seal_failures = r.seal_failures;
+    }
+}
+
+/// Builds every active player's sealed updates for a tick; see the module docs.
+pub trait Outbound: Send {
+    /// A human-readable description (for the start-up log).
+    fn description(&self) -> String;
+
+    /// Fills each recipient's datagrams for this tick and hands every recipient to
+    /// `job.ready` exactly once, as soon as its datagrams are final. Errors are logged
+    /// and counted by the implementation; recipients it could not serve get no datagrams
+    /// (and are still handed over).
+    fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport;
+}
+
+/// What an [`Outbound::build`] works with besides its recipients.
+pub struct Job<'a> {
+    /// The physics backend (the host outbound asks it the AOI query).
+    pub backend: &'a mut dyn Backend,
+    /// The world after the tick's step.
+    pub world: &'a World,
+    /// The tick being built.
+    pub tick: TickInfo,
+    /// Where recipients go once their datagrams are final.
+    pub ready: &'a dyn Ready,
+}
+
+/// Where an [`Outbound`] hands recipients whose datagrams are final: on
+/// [`lanes`](Ready::lanes) lanes, which threads use at once, each lane by one thread at a
+/// time at best (the tick sends each lane's players on a socket of its own).
+pub trait Ready: Sync {
+    /// How many lanes there are (at least one).
+    fn lanes(&self) -> usize;
+
+    /// Hands over `players` on `lane` (any value: it is taken modulo the lanes).
+    fn ready(&self, lane: usize, players: &[Recipient<'_>]);
+}
+
+/// Hands `recipients` to `ready`, split across its lanes in parallel, a contiguous share
+/// per lane ([`lane_share`]: on one lane when they are too few to pay for waking the
+/// others).
+fn spread_over_lanes(recipients: &[Recipient<'_>], ready: &dyn Ready) {
+    match lane_share(recipients.len(), ready.lanes()) {
+        None => ready.ready(0, recipients),
+        Some(share) => {
+            recipients.par_chunks(share).enumerate().for_each(|(lane, players)| ready.ready(lane, players));
+        }
+    }
+}

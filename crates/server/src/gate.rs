@@ -17,7 +17,7 @@
 //! The gate is not session state a client relies on: passing it changes nothing but the
 //! budget, and a datagram that passes may still fail its tag check. So it can run where
 //! the sessions are not: on the receiver thread ([`crate::receiver`]), against the
-//! [`SessionView`] the tick publishes, or inline in the tick against the session table
+//! [`SessionDirectory`] the tick publishes, or inline in the tick against the session table
 //! itself (the in-memory transport of the tests).
 
 use std::net::SocketAddr;
@@ -71,21 +71,22 @@ pub trait SessionAddresses {
     fn address_of(&self, session_id: u64) -> Option<Option<SocketAddr>>;
 }
 
-/// The live sessions as the receiver thread sees them: id and known address. The tick
-/// publishes a new one whenever a session joins, leaves or moves.
+/// The live sessions as the receiver thread sees them: id and known address, a copy of
+/// the session table's directory. The tick publishes a new one whenever a session
+/// joins, leaves or moves.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
-pub struct SessionView {
+pub struct SessionDirectory {
     addresses: foldhash::HashMap<u64, Option<SocketAddr>>,
 }
 
-impl SessionView {
-    /// A view of these sessions (session id, address).
+impl SessionDirectory {
+    /// A directory of these sessions (session id, address).
     pub fn new(addresses: impl IntoIterator<Item = (u64, Option<SocketAddr>)>) -> Self {
-        SessionView { addresses: addresses.into_iter().collect() }
+        SessionDirectory { addresses: addresses.into_iter().collect() }
     }
 }
 
-impl SessionAddresses for SessionView {
+impl SessionAddresses for SessionDirectory {
     fn address_of(&self, session_id: u64) -> Option<Option<SocketAddr>> {
         self.addresses.get(&session_id).copied()
     }
@@ -214,40 +215,40 @@ mod tests {
     fn budgets_are_per_session_per_tick_and_per_address_class() {
         let own: SocketAddr = "127.0.0.1:1000".parse().unwrap();
         let stranger: SocketAddr = "127.0.0.9:9".parse().unwrap();
-        let view = SessionView::new(HashMap::from([(5, Some(own)), (6, None)]));
+        let directory = SessionDirectory::new(HashMap::from([(5, Some(own)), (6, None)]));
         let mut gate = Gate::new(limits());
         let d5 = datagram(5);
         // A stranger's flood spends only the other-address budget...
-        assert_eq!(gate.admit(&view, 1, stranger, &d5), Ok(5));
+        assert_eq!(gate.admit(&directory, 1, stranger, &d5), Ok(5));
         for _ in 0..100 {
-            assert_eq!(gate.admit(&view, 1, stranger, &d5), Err(Refusal::OtherAddress));
+            assert_eq!(gate.admit(&directory, 1, stranger, &d5), Err(Refusal::OtherAddress));
         }
         // ...so the owner still gets its own three.
         for _ in 0..3 {
-            assert_eq!(gate.admit(&view, 1, own, &d5), Ok(5));
+            assert_eq!(gate.admit(&directory, 1, own, &d5), Ok(5));
         }
-        assert_eq!(gate.admit(&view, 1, own, &d5), Err(Refusal::OverBudget));
+        assert_eq!(gate.admit(&directory, 1, own, &d5), Err(Refusal::OverBudget));
         // Another session has its own budget; before its address is known every
         // datagram is "other".
         let d6 = datagram(6);
-        assert_eq!(gate.admit(&view, 1, own, &d6), Ok(6));
-        assert_eq!(gate.admit(&view, 1, own, &d6), Err(Refusal::OtherAddress));
+        assert_eq!(gate.admit(&directory, 1, own, &d6), Ok(6));
+        assert_eq!(gate.admit(&directory, 1, own, &d6), Err(Refusal::OtherAddress));
         // The next tick starts afresh.
-        assert_eq!(gate.admit(&view, 2, own, &d5), Ok(5));
-        assert_eq!(gate.admit(&view, 2, stranger, &d5), Ok(5));
+        assert_eq!(gate.admit(&directory, 2, own, &d5), Ok(5));
+        assert_eq!(gate.admit(&directory, 2, stranger, &d5), Ok(5));
     }
 
     #[test]
     fn bad_headers_and_unknown_sessions_are_refused_before_any_budget() {
         let own: SocketAddr = "127.0.0.1:1000".parse().unwrap();
-        let view = SessionView::new(HashMap::from([(5, Some(own))]));
+        let directory = SessionDirectory::new(HashMap::from([(5, Some(own))]));
         let mut gate = Gate::new(limits());
-        assert_eq!(gate.admit(&view, 1, own, &[0u8; 3]), Err(Refusal::Malformed));
-        assert_eq!(gate.admit(&view, 1, own, &vec![0u8; MAX_DATAGRAM + 1]), Err(Refusal::Oversized));
-        assert_eq!(gate.admit(&view, 1, own, &datagram(77)), Err(Refusal::UnknownSession));
+        assert_eq!(gate.admit(&directory, 1, own, &[0u8; 3]), Err(Refusal::Malformed));
+        assert_eq!(gate.admit(&directory, 1, own, &vec![0u8; MAX_DATAGRAM + 1]), Err(Refusal::Oversized));
+        assert_eq!(gate.admit(&directory, 1, own, &datagram(77)), Err(Refusal::UnknownSession));
         // None of that spent session 5's budget.
         for _ in 0..3 {
-            assert_eq!(gate.admit(&view, 1, own, &datagram(5)), Ok(5));
+            assert_eq!(gate.admit(&directory, 1, own, &datagram(5)), Ok(5));
         }
         assert_eq!(Refusal::OtherAddress.reason(), "other_address");
         assert!(Refusal::OverBudget.over_budget() && !Refusal::UnknownSession.over_budget());
@@ -257,13 +258,13 @@ mod tests {
     fn budgets_of_quiet_sessions_are_swept() {
         let own: SocketAddr = "127.0.0.1:1000".parse().unwrap();
         let sessions: HashMap<u64, Option<SocketAddr>> = (1..=100).map(|s| (s, Some(own))).collect();
-        let view = SessionView::new(sessions);
+        let directory = SessionDirectory::new(sessions);
         let mut gate = Gate::new(limits());
         for s in 1..=100 {
-            gate.admit(&view, 1, own, &datagram(s)).unwrap();
+            gate.admit(&directory, 1, own, &datagram(s)).unwrap();
         }
         assert_eq!(gate.budgets.len(), 100);
-        gate.admit(&view, 1 + 2 * SWEEP_EVERY, own, &datagram(1)).unwrap();
+        gate.admit(&directory, 1 + 2 * SWEEP_EVERY, own, &datagram(1)).unwrap();
         assert_eq!(gate.budgets.len(), 1, "only the session that spoke lately keeps a budget");
     }
 }

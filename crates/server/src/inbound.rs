@@ -91,20 +91,67 @@ pub(crate) struct InboundReport {
     /// Datagrams dropped, before any cryptography, because their session's budget for
     /// this tick was spent (either address).
     pub over_budget: u64,
-    /// Whether receiving stopped at the time limit with datagrams possibly left.
-    pub out_of_time: bool,
     /// Actions applied to the world.
     pub actions: u64,
     /// Sessions that asked to leave (authenticated `Disconnect`), in arrival order.
     pub leaving: Vec<u64>,
 }
 
-/// One batch of datagrams copied out of the transport (whose buffers are lent only for
-/// one call), so that several threads can open them; kept between ticks for its memory.
+/// Datagrams in arrival order, copied into one flat buffer: a batch taken from the
+/// transport (whose buffers are lent only for one call) so that several threads can open
+/// it, or the queue between the receiver thread and the tick ([`crate::receiver`]). Kept
+/// between ticks for its memory.
 #[derive(Debug, Default)]
 pub(crate) struct Inbox {
     bytes: Vec<u8>,
     items: Vec<(SocketAddr, Range<usize>)>,
+}
+
+impl Inbox {
+    /// Appends `datagram` from `from`.
+    pub fn push(&mut self, from: SocketAddr, datagram: &[u8]) {
+        let start = self.bytes.len();
+        self.bytes.extend_from_slice(datagram);
+        self.items.push((from, start..self.bytes.len()));
+    }
+
+    /// Appends `datagram` unless the inbox would then hold more than `max_items`
+    /// datagrams or `max_bytes` bytes; false when it did not.
+    pub fn push_within(&mut self, from: SocketAddr, datagram: &[u8], max_items: usize, max_bytes: usize) -> bool {
+        if self.items.len() >= max_items || self.bytes.len() + datagram.len() > max_bytes {
+            return false;
+        }
+        self.push(from, datagram);
+        true
+    }
+
+    /// Datagrams held.
+    pub fn len(&self) -> usize {
+        self.items.len()
+    }
+
+    /// Whether it holds none.
+    pub fn is_empty(&self) -> bool {
+        self.items.is_empty()
+    }
+
+    /// Every datagram with its sender, in arrival order.
+    pub fn iter(&self) -> impl Iterator<Item = (SocketAddr, &[u8])> {
+        self.items.iter().map(|(from, range)| (*from, &self.bytes[range.clone()]))
+    }
+
+    /// Forgets every datagram, keeping the memory.
+    pub fn clear(&mut self) {
+        self.bytes.clear();
+        self.items.clear();
+    }
+}
+
+/// What a receive works in, kept between ticks for its memory: the batch being opened
+/// and phase 1's bookkeeping (module docs).
+#[derive(Debug, Default)]
+pub(crate) struct ReceiveBuffers {
+    inbox: Inbox,
     /// Phase 1's output, in arrival order.
     admitted: Vec<Admitted>,
     /// Sessions with a datagram from another address than their own in the current
@@ -112,23 +159,10 @@ pub(crate) struct Inbox {
     moving: HashSet<u64>,
 }
 
-impl Inbox {
-    fn push(&mut self, from: SocketAddr, datagram: &[u8]) {
-        let start = self.bytes.len();
-        self.bytes.extend_from_slice(datagram);
-        self.items.push((from, start..self.bytes.len()));
-    }
-
-    fn clear(&mut self) {
-        self.bytes.clear();
-        self.items.clear();
-    }
-}
-
 /// A datagram past the gate, with its session.
 #[derive(Debug)]
 struct Admitted {
-    /// Its index in the inbox.
+    /// Its index in the batch.
     item: usize,
     from: SocketAddr,
     session_id: u64,
@@ -138,35 +172,34 @@ struct Admitted {
     player: usize,
 }
 
-/// Receives what is queued and applies it, gating it here unless the transport did;
-/// see the module docs.
+/// Receives what is queued and applies it; see the module docs. `gate` is the gate
+/// when this receive gates, `None` when the transport did ([`Transport::gates`]); the
+/// caller has published the sessions to a gating transport.
 pub(crate) fn receive(
     transport: &mut dyn Transport,
     sessions: &mut Sessions,
     world: &mut World,
     info: ServerInfo,
-    gate: &mut Gate,
-    inbox: &mut Inbox,
+    gate: Option<&mut Gate>,
+    buffers: &mut ReceiveBuffers,
     now: Instant,
 ) -> InboundReport {
+    debug_assert_eq!(gate.is_none(), transport.gates(), "one gate per place datagrams are received");
     let mut report = InboundReport::default();
-    let gated = transport.gates();
-    if gated {
-        transport.publish(world.tick, sessions.view());
-    }
-    let mut ctx = Ctx { info, gate: (!gated).then_some(gate), tick: world.tick, now };
+    let gated = gate.is_none();
+    let mut ctx = Ctx { info, gate, tick: world.tick, now };
     for _ in 0..MAX_BATCHES {
         if let Some(gate) = &ctx.gate
             && now.elapsed() >= gate.limits().time
         {
-            report.out_of_time = true;
             metrics::counter!("myriad_receive_out_of_time_total").increment(1);
             break;
         }
+        let inbox = &mut buffers.inbox;
         inbox.clear();
         let taken = transport.receive(&mut |from, bytes| inbox.push(from, bytes));
         // A transport that failed part-way may have handed over some datagrams first.
-        handle_batch(sessions, world, &mut ctx, &mut report, inbox);
+        handle_batch(sessions, world, &mut ctx, &mut report, buffers);
         match taken {
             Ok(0) => break,
             Ok(n) if !gated => {
@@ -184,7 +217,7 @@ pub(crate) fn receive(
             break;
         }
     }
-    inbox.clear();
+    buffers.inbox.clear();
     if gated {
         let counts = transport.gate_counts();
         report.received = counts.taken;
@@ -208,28 +241,34 @@ fn handle_batch(
     world: &mut World,
     ctx: &mut Ctx<'_>,
     report: &mut InboundReport,
-    inbox: &mut Inbox,
+    buffers: &mut ReceiveBuffers,
 ) {
     let mut start = 0;
-    while start < inbox.items.len() {
-        start = admit(sessions, ctx, report, inbox, start);
-        let verified = verify(sessions, inbox);
-        for (a, verified) in inbox.admitted.drain(..).zip(verified) {
+    while start < buffers.inbox.len() {
+        start = admit(sessions, ctx, report, buffers, start);
+        let verified = verify(sessions, buffers);
+        for (a, verified) in buffers.admitted.drain(..).zip(verified) {
             apply(sessions, world, ctx, report, a, verified);
         }
     }
 }
 
 /// Phase 1: gates and resolves the datagrams from `start` on, in order, into
-/// `inbox.admitted`, up to the end of the batch or the first datagram whose gating must
-/// wait for what came before to be applied (module docs); returns where it stopped.
-fn admit(sessions: &Sessions, ctx: &mut Ctx<'_>, report: &mut InboundReport, inbox: &mut Inbox, start: usize) -> usize {
-    inbox.moving.clear();
-    for (i, (from, range)) in inbox.items.iter().enumerate().skip(start) {
-        let (from, bytes) = (*from, &inbox.bytes[range.clone()]);
+/// `buffers.admitted`, up to the end of the batch or the first datagram whose gating
+/// must wait for what came before to be applied (module docs); returns where it stopped.
+fn admit(
+    sessions: &Sessions,
+    ctx: &mut Ctx<'_>,
+    report: &mut InboundReport,
+    buffers: &mut ReceiveBuffers,
+    start: usize,
+) -> usize {
+    let ReceiveBuffers { inbox, admitted, moving } = buffers;
+    moving.clear();
+    for (i, (from, bytes)) in inbox.iter().enumerate().skip(start) {
         let header = peek_header(bytes, Direction::ClientToServer);
         if let Ok(h) = &header
-            && inbox.moving.contains(&h.session_id)
+            && moving.contains(&h.session_id)
         {
             return i;
         }
@@ -248,29 +287,27 @@ fn admit(sessions: &Sessions, ctx: &mut Ctx<'_>, report: &mut InboundReport, inb
             Refusal::Malformed.count();
             continue;
         };
-        // With a receiver thread the session may have left since its view was published.
+        // With a receiver thread the session may have left since the directory was
+        // published.
         let Some(player) = sessions.index_of(header.session_id) else {
             Refusal::UnknownSession.count();
             continue;
         };
         if ctx.gate.is_some() && sessions.get(player).and_then(|p| p.addr) != Some(from) {
-            inbox.moving.insert(header.session_id);
+            moving.insert(header.session_id);
         }
-        inbox.admitted.push(Admitted {
-            item: i,
-            from,
-            session_id: header.session_id,
-            sequence: header.sequence,
-            player,
-        });
+        admitted.push(Admitted { item: i, from, session_id: header.session_id, sequence: header.sequence, player });
     }
-    inbox.items.len()
+    inbox.len()
 }
 
 /// Phase 2: verifies every admitted datagram against its session's opener, in parallel
 /// for a large batch; one result per admitted datagram (`None`: its session is gone).
-fn verify(sessions: &Sessions, inbox: &mut Inbox) -> Vec<Option<Result<Verified<ClientMessage>, OpenError>>> {
-    let Inbox { bytes, items, admitted, .. } = inbox;
+fn verify(
+    sessions: &Sessions,
+    buffers: &mut ReceiveBuffers,
+) -> Vec<Option<Result<Verified<ClientMessage>, OpenError>>> {
+    let ReceiveBuffers { inbox: Inbox { bytes, items }, admitted, .. } = buffers;
     let mut jobs: Vec<(Option<&Opener>, &mut [u8])> = Vec::with_capacity(admitted.len());
     // Admitted datagrams lie in the buffer in order and apart: split it into them.
     let (mut rest, mut offset) = (&mut bytes[..], 0);

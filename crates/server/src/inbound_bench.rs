@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerInfo};
 use myriad_store::{MapId, UserId};
 
-use super::{Inbox, PARALLEL_OPEN_MIN, receive};
+use super::{PARALLEL_OPEN_MIN, ReceiveBuffers, receive};
 use crate::gate::{Gate, ReceiveLimits};
 use crate::session::{JoinContext, Sessions};
 use crate::transport::MemoryTransport;
@@ -41,7 +41,7 @@ fn receive_timing() {
     let net = MemoryTransport::new("127.0.0.1:7777".parse().unwrap());
     let mut transport = net.clone();
     let mut gate = Gate::new(ReceiveLimits { per_session: 8, other_address: 2, time: Duration::from_secs(10) });
-    let mut inbox = Inbox::default();
+    let mut buffers = ReceiveBuffers::default();
     let info = ServerInfo { tick_rate_hz: 30, dilation_permille: 1000 };
     let mut times = Vec::new();
     for frame in 1..=60u32 {
@@ -53,7 +53,8 @@ fn receive_timing() {
         }
         world.tick += 1;
         let t = Instant::now();
-        let report = receive(&mut transport, &mut sessions, &mut world, info, &mut gate, &mut inbox, Instant::now());
+        let report =
+            receive(&mut transport, &mut sessions, &mut world, info, Some(&mut gate), &mut buffers, Instant::now());
         times.push(t.elapsed().as_secs_f64() * 1e3);
         assert_eq!(report.actions, n as u64);
     }

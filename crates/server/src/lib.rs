@@ -3,15 +3,16 @@
 //!
 //! - [`config`]: [`ServerConfig`], a TOML file with per-key overrides.
 //! - `tick` (private): the tick loop thread that owns the world and orchestrates one
-//!   tick: receive, step, outbound, send, persistence hand-off, dilation, metrics.
+//!   tick: receive, step, outbound, send, persistence, dilation, metrics.
 //! - `session` (private): the sessions table, the one owner of every player's session.
 //! - `inbound` (private): receiving and applying authenticated datagrams.
 //! - [`outbound`]: the AOI query, interest selection, packing and sealing behind one
 //!   trait ([`outbound::Outbound`]).
 //! - [`transport`]: the datagram transport trait, UDP and in memory.
-//! - [`stages`]: the stages of a server tick ([`TickStage`]) and their times.
-//! - [`scripted`]: the server driven by a scripted sequence of actions in memory (the
-//!   check that the server and `myriad sim` agree on the world).
+//! - [`stages`]: the stages of a server tick ([`TickStage`]), their times, and what a
+//!   tick did ([`TickWork`]).
+//! - `scripted` (feature `harness`): the server driven by a scripted sequence of actions
+//!   in memory (the check that the server and `myriad sim` agree on the world).
 //! - [`login`]: the TLS login service and its rate limiter.
 //! - [`dilation`]: time dilation under overload.
 //! - [`world`]: building the served map and its NPCs.
@@ -45,6 +46,7 @@ pub mod login;
 pub mod outbound;
 pub mod receiver;
 pub mod registry;
+#[cfg(feature = "harness")]
 pub mod scripted;
 mod session;
 pub mod stages;
@@ -66,23 +68,19 @@ pub use config::ServerConfig;
 pub use error::{ConfigError, ServerError};
 pub use myriad_physics::BackendKind;
 pub use session::PLAYER_SHAPE;
-pub use stages::{STAGES, StageTimes, TickStage};
+pub use stages::{STAGES, StageTimes, TickStage, TickWork};
 pub use status::ServerStatus;
-pub use tick::TickWork;
 
 use myriad_net::{Endpoint, EndpointConfig};
 use myriad_store::{Database, FlushReport, Persister, PersisterConfig, PersisterStats, Store, StoreConfig};
 
-use crate::status::Shared;
-
-/// Login connections handled at once; more are closed immediately.
-const MAX_LOGIN_CONNECTIONS: usize = 4096;
+use crate::status::ServerShared;
 
 /// A running server. Dropping it shuts it down gracefully (as [`ServerHandle::shutdown`]).
 pub struct ServerHandle {
     runtime: Option<tokio::runtime::Runtime>,
     tick_thread: Option<JoinHandle<()>>,
-    shared: Arc<Shared>,
+    shared: Arc<ServerShared>,
     persister: Persister,
     store: Store,
     login_addr: SocketAddr,
@@ -141,10 +139,9 @@ impl ServerHandle {
             .map_err(|e| ServerError::io(format!("creating data directory {}", config.data_dir.display()), e))?;
         // The verification pool takes its size at its first use; a second server in the
         // same process (tests) shares the first one's pool.
-        let hashing_threads = config.hashing_threads();
         // Password checks run a little below the tick (like the async runtime's workers):
         // a burst of logins then takes the CPU the tick leaves, not the tick's share.
-        if !myriad_store::configure_hash_pool(hashing_threads, || set_thread_nice(IO_THREAD_NICE)) {
+        if !myriad_store::configure_hash_pool(config.hashing_threads(), || set_thread_nice(IO_THREAD_NICE)) {
             tracing::debug!("the password-verification pool was already running");
         }
         let started = std::sync::atomic::AtomicUsize::new(0);
@@ -198,35 +195,20 @@ impl ServerHandle {
             install_metrics(addr)?;
             tracing::info!(%addr, "metrics on /metrics");
         }
-        let shared = Arc::new(Shared::default());
+        let shared = Arc::new(ServerShared::default());
         shared.dilation_permille.store(1000, Ordering::Relaxed);
         let (commands, receiver) = std::sync::mpsc::channel();
-        let service = Arc::new(login::LoginService {
+        let map =
+            login::ServedMap { id: prepared.map_id, description: prepared.description, frame: prepared.map_frame };
+        let service = Arc::new(login::LoginService::new(
+            &config,
             acceptor,
-            store: store.clone(),
-            map_id: prepared.map_id,
-            map: prepared.description.clone(),
-            map_frame: prepared.map_frame.clone(),
-            udp_port: udp_addr.port(),
-            tick_rate_hz: config.tick_rate.round() as u16,
+            store.clone(),
+            map,
+            udp_addr.port(),
             commands,
-            limiter: login::RateLimiter::new(
-                Duration::from_secs(config.login_window_s),
-                config.login_failures_per_addr,
-                config.login_failures_per_account,
-            ),
-            hashing: login::HashGate::new(
-                hashing_threads,
-                config.login_queue,
-                Duration::from_millis(config.login_queue_deadline_ms),
-            ),
-            connections: Arc::new(tokio::sync::Semaphore::new(MAX_LOGIN_CONNECTIONS)),
-            per_addr: Arc::default(),
-            per_addr_cap: config.login_connections_per_addr,
-            accounts_in_flight: Arc::default(),
-            handshake_timeout: Duration::from_millis(config.login_handshake_timeout_ms),
-            shared: shared.clone(),
-        });
+            shared.clone(),
+        ));
         runtime.spawn(service.serve(listener));
         let transport: Box<dyn transport::Transport> = if config.receive_thread {
             let threaded = receiver::ThreadedUdp::start(endpoints, config.receive_limits())

@@ -4,7 +4,7 @@
 //! datagram even when every datagram is dropped, so a flood of junk that the server
 //! only drops still takes the tick's time if the tick receives. [`ThreadedUdp`] moves
 //! all of that to a thread of its own, at the lowest normal priority: it drains the
-//! sockets as datagrams arrive, gates each one against the [`SessionView`] the tick
+//! sockets as datagrams arrive, gates each one against the [`SessionDirectory`] the tick
 //! publishes, and queues those that pass (at most [`MAX_QUEUED`] datagrams and
 //! [`MAX_QUEUED_BYTES`] bytes; more is dropped as `queue_full`). The tick takes the
 //! queue in one swap and pays only for what passed: the tag checks, which the gate
@@ -27,7 +27,6 @@
 
 use std::io;
 use std::net::SocketAddr;
-use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -35,7 +34,8 @@ use std::time::Duration;
 
 use myriad_net::{Endpoint, RecvBatch};
 
-use crate::gate::{Gate, ReceiveLimits, Refusal, SessionView};
+use crate::gate::{Gate, ReceiveLimits, Refusal, SessionDirectory};
+use crate::inbound::Inbox;
 use crate::transport::{GateCounts, Lane, RECV_BATCH, Sent, Transport, UdpTransport, report_oversized};
 
 /// Most datagrams waiting for the tick; beyond that the receiver drops them.
@@ -54,40 +54,22 @@ const POLL_MS: i32 = 50;
 /// receiver at most a thousand times a second instead of once per datagram.
 const PAUSE: Duration = Duration::from_millis(1);
 
-/// Datagrams gated and waiting for the tick, in arrival order, in one flat buffer.
-#[derive(Debug, Default)]
-struct Inbox {
-    bytes: Vec<u8>,
-    items: Vec<(SocketAddr, Range<usize>)>,
+/// Queues `datagram` in `inbox` unless that would pass [`MAX_QUEUED`] or
+/// [`MAX_QUEUED_BYTES`]; false when it did not.
+fn queue(inbox: &mut Inbox, from: SocketAddr, datagram: &[u8]) -> bool {
+    inbox.push_within(from, datagram, MAX_QUEUED, MAX_QUEUED_BYTES)
 }
 
-impl Inbox {
-    /// Appends `datagram` unless the inbox is full.
-    fn push(&mut self, from: SocketAddr, datagram: &[u8]) -> bool {
-        if self.items.len() >= MAX_QUEUED || self.bytes.len() + datagram.len() > MAX_QUEUED_BYTES {
-            return false;
-        }
-        let start = self.bytes.len();
-        self.bytes.extend_from_slice(datagram);
-        self.items.push((from, start..self.bytes.len()));
-        true
-    }
-
-    fn clear(&mut self) {
-        self.bytes.clear();
-        self.items.clear();
-    }
-}
-
-/// What the tick and the receiver share.
+/// What the tick and the receiver thread share: the link between the two.
 #[derive(Debug, Default)]
-struct Shared {
+struct ReceiverLink {
     stop: AtomicBool,
     /// The tick whose budget arriving datagrams spend.
     tick: AtomicU64,
     /// The sessions to gate against, and a version that changes with it.
-    view: Mutex<Arc<SessionView>>,
-    view_version: AtomicU64,
+    directory: Mutex<Arc<SessionDirectory>>,
+    directory_version: AtomicU64,
+    /// Datagrams gated and waiting for the tick, in arrival order.
     inbox: Mutex<Inbox>,
     /// Datagrams taken from the sockets, and those refused over a budget, since the
     /// tick last asked.
@@ -107,7 +89,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 #[derive(Debug)]
 pub struct ThreadedUdp {
     send: UdpTransport,
-    shared: Arc<Shared>,
+    link: Arc<ReceiverLink>,
     thread: Option<JoinHandle<()>>,
     /// The tick's side of the inbox, swapped with the receiver's each tick.
     taken: Inbox,
@@ -118,12 +100,12 @@ impl ThreadedUdp {
     /// `SO_REUSEPORT` group), gating with `limits`; the tick sends on `endpoints`.
     pub fn start(endpoints: Vec<Endpoint>, limits: ReceiveLimits) -> io::Result<ThreadedUdp> {
         let receiving = endpoints.iter().map(Endpoint::try_clone).collect::<io::Result<Vec<_>>>()?;
-        let shared = Arc::new(Shared::default());
-        let for_thread = shared.clone();
+        let link = Arc::new(ReceiverLink::default());
+        let for_thread = link.clone();
         let thread = std::thread::Builder::new()
             .name("myriad-receive".into())
             .spawn(move || receive_loop(receiving, &for_thread, Gate::new(limits)))?;
-        Ok(ThreadedUdp { send: UdpTransport::group(endpoints), shared, thread: Some(thread), taken: Inbox::default() })
+        Ok(ThreadedUdp { send: UdpTransport::group(endpoints), link, thread: Some(thread), taken: Inbox::default() })
     }
 
     /// How many datagrams the receiver has read from the sockets and dealt with (queued
@@ -131,13 +113,13 @@ impl ThreadedUdp {
     /// that a tick takes everything its bots sent before it, as a tick of `serve` takes
     /// what arrived during the previous period.
     pub fn dealt_with(&self) -> Arc<AtomicU64> {
-        self.shared.dealt_with.clone()
+        self.link.dealt_with.clone()
     }
 }
 
 impl Drop for ThreadedUdp {
     fn drop(&mut self) {
-        self.shared.stop.store(true, Ordering::Release);
+        self.link.stop.store(true, Ordering::Release);
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
@@ -145,9 +127,9 @@ impl Drop for ThreadedUdp {
 }
 
 impl Transport for ThreadedUdp {
-    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize> {
+    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &[u8])) -> io::Result<usize> {
         self.taken.clear();
-        let mut inbox = match self.shared.inbox.try_lock() {
+        let mut inbox = match self.link.inbox.try_lock() {
             Ok(inbox) => inbox,
             Err(std::sync::TryLockError::Poisoned(p)) => p.into_inner(),
             // The receiver is handing over: take it all next tick (module docs).
@@ -155,11 +137,10 @@ impl Transport for ThreadedUdp {
         };
         std::mem::swap(&mut self.taken, &mut inbox);
         drop(inbox);
-        let Inbox { bytes, items } = &mut self.taken;
-        for (from, range) in items.iter() {
-            each(*from, &mut bytes[range.clone()]);
+        for (from, datagram) in self.taken.iter() {
+            each(from, datagram);
         }
-        Ok(items.len())
+        Ok(self.taken.len())
     }
 
     fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> io::Result<Sent> {
@@ -178,18 +159,18 @@ impl Transport for ThreadedUdp {
         true
     }
 
-    fn publish(&mut self, tick: u64, view: Option<Arc<SessionView>>) {
-        if let Some(view) = view {
-            *lock(&self.shared.view) = view;
-            self.shared.view_version.fetch_add(1, Ordering::Release);
+    fn publish(&mut self, tick: u64, directory: Option<Arc<SessionDirectory>>) {
+        if let Some(directory) = directory {
+            *lock(&self.link.directory) = directory;
+            self.link.directory_version.fetch_add(1, Ordering::Release);
         }
-        self.shared.tick.store(tick, Ordering::Release);
+        self.link.tick.store(tick, Ordering::Release);
     }
 
     fn gate_counts(&mut self) -> GateCounts {
         GateCounts {
-            taken: self.shared.taken.swap(0, Ordering::AcqRel),
-            over_budget: self.shared.over_budget.swap(0, Ordering::AcqRel),
+            taken: self.link.taken.swap(0, Ordering::AcqRel),
+            over_budget: self.link.over_budget.swap(0, Ordering::AcqRel),
         }
     }
 }
@@ -214,22 +195,41 @@ fn wait_readable(endpoints: &[Endpoint]) {
     }
 }
 
-fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
+/// The receiver's copy of the published [`SessionDirectory`], and the version it is.
+struct Known {
+    directory: Arc<SessionDirectory>,
+    version: u64,
+}
+
+impl Known {
+    fn new(link: &ReceiverLink) -> Known {
+        let version = link.directory_version.load(Ordering::Acquire);
+        Known { directory: lock(&link.directory).clone(), version }
+    }
+
+    /// Takes the tick's latest directory if it published a newer one; whether it did.
+    fn refresh(&mut self, link: &ReceiverLink) -> bool {
+        let latest = link.directory_version.load(Ordering::Acquire);
+        if latest == self.version {
+            return false;
+        }
+        self.directory = lock(&link.directory).clone();
+        self.version = latest;
+        true
+    }
+}
+
+fn receive_loop(mut endpoints: Vec<Endpoint>, link: &ReceiverLink, mut gate: Gate) {
     crate::set_thread_nice(RECEIVER_NICE);
     let mut batch = RecvBatch::new(RECV_BATCH);
     let mut staged = Inbox::default();
-    let mut view = lock(&shared.view).clone();
-    let mut version = shared.view_version.load(Ordering::Acquire);
+    let mut known = Known::new(link);
     let mut truncated_seen = 0;
-    while !shared.stop.load(Ordering::Acquire) {
+    while !link.stop.load(Ordering::Acquire) {
         wait_readable(&endpoints);
         loop {
-            let latest = shared.view_version.load(Ordering::Acquire);
-            if latest != version {
-                view = lock(&shared.view).clone();
-                version = latest;
-            }
-            let tick = shared.tick.load(Ordering::Acquire);
+            known.refresh(link);
+            let tick = link.tick.load(Ordering::Acquire);
             let mut took = 0;
             let mut over_budget = 0;
             for endpoint in &mut endpoints {
@@ -241,20 +241,16 @@ fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
                     }
                 };
                 for (from, bytes) in batch.iter() {
-                    let mut admitted = gate.admit(&*view, tick, from, bytes);
-                    if admitted == Err(Refusal::UnknownSession) {
-                        // The session may have joined after this batch's view was read
-                        // (its keys leave only after it is published): look again.
-                        let latest = shared.view_version.load(Ordering::Acquire);
-                        if latest != version {
-                            view = lock(&shared.view).clone();
-                            version = latest;
-                            admitted = gate.admit(&*view, tick, from, bytes);
-                        }
+                    let mut admitted = gate.admit(&*known.directory, tick, from, bytes);
+                    // The session may have joined after this batch's directory was read
+                    // (its keys leave only after it is published): look again.
+                    if admitted == Err(Refusal::UnknownSession) && known.refresh(link) {
+                        admitted = gate.admit(&*known.directory, tick, from, bytes);
                     }
                     match admitted {
+                        // A round stages at most `RECV_BATCH` a socket, far below the bounds.
                         Ok(_) => {
-                            staged.push(from, bytes);
+                            queue(&mut staged, from, bytes);
                         }
                         Err(refusal) => {
                             over_budget += u64::from(refusal.over_budget());
@@ -268,10 +264,10 @@ fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
                 break;
             }
             metrics::counter!("myriad_datagrams_received_total").increment(took as u64);
-            shared.taken.fetch_add(took as u64, Ordering::AcqRel);
-            shared.over_budget.fetch_add(over_budget, Ordering::AcqRel);
-            hand_over(&mut staged, shared);
-            shared.dealt_with.fetch_add(took as u64, Ordering::AcqRel);
+            link.taken.fetch_add(took as u64, Ordering::AcqRel);
+            link.over_budget.fetch_add(over_budget, Ordering::AcqRel);
+            hand_over(&mut staged, link);
+            link.dealt_with.fetch_add(took as u64, Ordering::AcqRel);
         }
         report_oversized(&endpoints, &mut truncated_seen);
         std::thread::sleep(PAUSE);
@@ -280,16 +276,16 @@ fn receive_loop(mut endpoints: Vec<Endpoint>, shared: &Shared, mut gate: Gate) {
 
 /// Moves what the receiver staged into the shared inbox, dropping (and counting) what
 /// does not fit.
-fn hand_over(staged: &mut Inbox, shared: &Shared) {
+fn hand_over(staged: &mut Inbox, link: &ReceiverLink) {
     let mut full = 0u64;
     {
-        let mut inbox = lock(&shared.inbox);
-        if inbox.items.is_empty() {
+        let mut inbox = lock(&link.inbox);
+        if inbox.is_empty() {
             // The common case: hand the whole staged buffer over in one swap.
             std::mem::swap(&mut *inbox, staged);
         } else {
-            for (from, range) in &staged.items {
-                if !inbox.push(*from, &staged.bytes[range.clone()]) {
+            for (from, datagram) in staged.iter() {
+                if !queue(&mut inbox, from, datagram) {
                     full += 1;
                 }
             }
@@ -339,9 +335,9 @@ mod tests {
         let server = t.local_addr();
         let player = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
         let stranger = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
-        let view = SessionView::new(HashMap::from([(5, Some(player.local_addr().unwrap()))]));
-        t.publish(1, Some(Arc::new(view)));
-        // Give the receiver a moment to pick the view up before anything arrives.
+        let directory = SessionDirectory::new(HashMap::from([(5, Some(player.local_addr().unwrap()))]));
+        t.publish(1, Some(Arc::new(directory)));
+        // Give the receiver a moment to pick the directory up before anything arrives.
         std::thread::sleep(Duration::from_millis(100));
 
         let d5 = sealed(5);
@@ -384,13 +380,13 @@ mod tests {
         let from: SocketAddr = "127.0.0.1:1".parse().unwrap();
         let big = vec![0u8; 1200];
         let mut n = 0;
-        while inbox.push(from, &big) {
+        while queue(&mut inbox, from, &big) {
             n += 1;
         }
         assert_eq!(n, MAX_QUEUED_BYTES / 1200);
         inbox.clear();
         let mut n = 0;
-        while inbox.push(from, &[1]) {
+        while queue(&mut inbox, from, &[1]) {
             n += 1;
         }
         assert_eq!(n, MAX_QUEUED);

@@ -23,7 +23,7 @@ use myriad_protocol::{DisconnectReason, Opener, ServerMessage, ServerSession, Se
 use myriad_store::{MapId, PlayerState, UserId};
 use ring::rand::{SecureRandom, SystemRandom};
 
-use crate::gate::{SessionAddresses, SessionView};
+use crate::gate::{SessionAddresses, SessionDirectory};
 use crate::world::{clamp_into_world, shape_desc, spawn_point, store_shape};
 
 /// The default player shape (a person-sized capsule).
@@ -51,11 +51,13 @@ pub(crate) struct Player {
     pub session_id: u64,
     /// Opens what the client sends.
     pub opener: Opener,
-    /// Interest state and the sealer of what the server sends.
+    /// What the outbound keeps of this player (the host outbound's interest state, the
+    /// device outbound's index into its own), its datagrams of the tick, and the sealer
+    /// of what the server sends.
     pub view: Subscriber,
     /// Where the last authenticated datagram came from; nothing is sent before that.
     /// Only [`Sessions::set_address`] changes it once the player is in the table (the
-    /// published [`SessionView`] follows it).
+    /// published [`SessionDirectory`] follows it).
     pub addr: Option<SocketAddr>,
     /// The client asked for state updates.
     pub ready: bool,
@@ -119,8 +121,9 @@ pub(crate) struct Sessions {
     rng: SystemRandom,
     max_players: usize,
     map_id: MapId,
-    /// A session joined, left, or changed address since the last [`Sessions::view`].
-    view_stale: bool,
+    /// A session joined, left, or changed address since the last
+    /// [`Sessions::changed_directory`].
+    directory_stale: bool,
 }
 
 /// Counts and logs a player whose object is not in the world.
@@ -140,17 +143,17 @@ impl Sessions {
             rng: SystemRandom::new(),
             max_players,
             map_id,
-            view_stale: true,
+            directory_stale: true,
         }
     }
 
-    /// A fresh [`SessionView`] for the receiver thread, when a session joined, left or
-    /// changed address since the last call; `None` when the last one still holds.
-    pub fn view(&mut self) -> Option<Arc<SessionView>> {
-        if !std::mem::take(&mut self.view_stale) {
+    /// A fresh [`SessionDirectory`] for the receiver thread, when a session joined, left
+    /// or changed address since the last call; `None` when the last one still holds.
+    pub fn changed_directory(&mut self) -> Option<Arc<SessionDirectory>> {
+        if !std::mem::take(&mut self.directory_stale) {
             return None;
         }
-        Some(Arc::new(SessionView::new(self.players.iter().map(|p| (p.session_id, p.addr)))))
+        Some(Arc::new(SessionDirectory::new(self.players.iter().map(|p| (p.session_id, p.addr)))))
     }
 
     /// Records that the player of `session_id` sent an authenticated datagram from
@@ -160,7 +163,7 @@ impl Sessions {
         let p = &mut self.players[idx];
         if p.addr != Some(from) {
             p.addr = Some(from);
-            self.view_stale = true;
+            self.directory_stale = true;
         }
     }
 
@@ -249,7 +252,7 @@ impl Sessions {
             p.jump_tick = None;
             p.last_heard = Instant::now();
             self.by_session.insert(keys.session_id, idx);
-            self.view_stale = true;
+            self.directory_stale = true;
             tracing::info!(user = %username, "session replaced by a new login");
             return Ok((self.joined(world, idx, keys, ctx)?, None));
         }
@@ -312,7 +315,7 @@ impl Sessions {
             last_frame: None,
             jump_tick: None,
         });
-        self.view_stale = true;
+        self.directory_stale = true;
         let idx = self.players.len() - 1;
         self.by_user.insert(user_id.0, idx);
         self.by_session.insert(keys.session_id, idx);
@@ -429,7 +432,7 @@ impl Sessions {
             self.by_user.insert(moved.user_id.0, idx);
         }
         world.dynamics.despawn(p.entity);
-        self.view_stale = true;
+        self.directory_stale = true;
         tracing::info!(user = %p.username, "player left");
         state
     }

@@ -1,4 +1,6 @@
-//! The stages of a server tick, by a typed enum, and their times.
+//! The stages of a server tick, by a typed enum, their times, and what one tick did
+//! ([`TickWork`]: the times and the tick's counts, which the tick loop, the status
+//! window and the tick benchmark all read).
 //!
 //! A server tick runs the physics backend's seven stages ([`Stage`]) between its own:
 //! `receive` (draining and opening client datagrams, before the step), `packets` (the
@@ -124,6 +126,34 @@ impl AddAssign<&StageTimes> for StageTimes {
             *a += b;
         }
     }
+}
+
+/// What one tick did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TickWork {
+    /// Milliseconds per stage.
+    pub stages: StageTimes,
+    /// The part of `packets` spent in the backend's AOI query on the host, in ms (0 with
+    /// the device outbound: see [`crate::outbound::OutboundReport::aoi_ms`]).
+    pub aoi_ms: f64,
+    /// The part of `packets` spent waiting for the device's interest work, in ms (0 with
+    /// the host outbound: see [`crate::outbound::OutboundReport::device_wait_ms`]).
+    pub device_wait_ms: f64,
+    /// Bytes sent (control replies and updates).
+    pub bytes: u64,
+    /// Datagrams sent.
+    pub datagrams: u64,
+    /// State records packed.
+    pub records: usize,
+    /// Datagrams received from clients (before authentication).
+    pub received: u64,
+    /// Actions applied to the world.
+    pub actions: u64,
+    /// Received datagrams that reached the tag check.
+    pub tag_checks: u64,
+    /// Received datagrams dropped over their session's receive budget, before any
+    /// cryptography.
+    pub over_budget: u64,
 }
 
 #[cfg(test)]

@@ -6,12 +6,11 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize};
 use std::time::{Duration, Instant};
 
-use crate::stages::StageTimes;
-use crate::tick::TickWork;
+use crate::stages::{StageTimes, TickWork};
 
 /// State shared between the tick thread, the login service and the handle.
 #[derive(Debug, Default)]
-pub struct Shared {
+pub struct ServerShared {
     /// Set to stop the tick loop.
     pub stop: AtomicBool,
     /// Set with `stop` to stop without the final persistence (simulated crash).

@@ -19,12 +19,15 @@
 //!    rest of the two;
 //! 6. final states of players who left go to the persister.
 //!
-//! [`TickLoop::run`] adds pacing, the periodic persistence hand-off, time dilation and
+//! [`TickLoop::run`] adds pacing, the periodic persistence checkpoint, time dilation and
 //! metrics around it.
 //!
 //! Each piece of state has one owner: the world and backend here, sessions in
-//! [`Sessions`], the interest state and sealer of a player in its session, datagrams in
-//! flight in the transport.
+//! [`Sessions`] (each player's sealer and [`Subscriber`](myriad_interest::Subscriber)
+//! with it), the interest state in the outbound that selects (the host outbound keeps
+//! each player's rotation in its subscriber; the device outbound keeps every player's
+//! staleness resident on the device, the subscriber only the index to find it by),
+//! datagrams in flight in the transport.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::Receiver;
@@ -47,12 +50,12 @@ mod tests;
 use crate::config::ServerConfig;
 use crate::dilation::DilationController;
 use crate::gate::Gate;
-use crate::inbound::{self, Inbox};
+use crate::inbound::{self, ReceiveBuffers};
 use crate::outbound::{Job, Outbound, Ready, Recipient};
 use crate::registry::SessionRegistry;
 use crate::session::{JoinContext, JoinResult, Sessions, missing_entity};
-use crate::stages::{StageTimes, TickStage};
-use crate::status::{Shared, StatusWindow};
+use crate::stages::{TickStage, TickWork};
+use crate::status::{ServerShared, StatusWindow};
 use crate::transport::{Lane, Sent, Transport};
 
 /// What the login service asks of the tick loop.
@@ -66,7 +69,7 @@ pub(crate) enum Command {
     },
 }
 
-/// Where the tick hands player states for persistence (the database writer, or a
+/// Where the tick sends player states to be persisted (the database writer, or a
 /// test's list).
 pub(crate) trait StateSink: Send {
     /// Queues `states` for writing; never blocks the tick.
@@ -96,34 +99,6 @@ impl StateSink for Persister {
     }
 }
 
-/// What one tick did.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct TickWork {
-    /// Milliseconds per stage.
-    pub stages: StageTimes,
-    /// The part of `packets` spent in the backend's AOI query on the host, in ms (0 with
-    /// the device outbound: see [`crate::outbound::OutboundReport::aoi_ms`]).
-    pub aoi_ms: f64,
-    /// The part of `packets` spent waiting for the device's interest work, in ms (0 with
-    /// the host outbound: see [`crate::outbound::OutboundReport::device_wait_ms`]).
-    pub device_wait_ms: f64,
-    /// Bytes sent (control replies and updates).
-    pub bytes: u64,
-    /// Datagrams sent.
-    pub datagrams: u64,
-    /// State records packed.
-    pub records: usize,
-    /// Datagrams received from clients (before authentication).
-    pub received: u64,
-    /// Actions applied to the world.
-    pub actions: u64,
-    /// Received datagrams that reached the tag check.
-    pub tag_checks: u64,
-    /// Received datagrams dropped over their session's receive budget, before any
-    /// cryptography.
-    pub over_budget: u64,
-}
-
 /// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
 /// rest has defaults (no persister, map 0, no login service, fresh shared state, no
 /// device interest). The outbound is the config's `outbound` kind
@@ -136,7 +111,7 @@ pub(crate) struct TickLoopBuilder {
     persister: Option<Box<dyn StateSink>>,
     map_id: MapId,
     commands: Option<Receiver<Command>>,
-    shared: Option<Arc<Shared>>,
+    shared: Option<Arc<ServerShared>>,
     registry: Option<Box<dyn SessionRegistry>>,
     device_interest: Option<DeviceInterest>,
 }
@@ -169,7 +144,7 @@ impl TickLoopBuilder {
     }
 
     /// State shared with the server handle and the login service.
-    pub fn shared(mut self, shared: Arc<Shared>) -> Self {
+    pub fn shared(mut self, shared: Arc<ServerShared>) -> Self {
         self.shared = Some(shared);
         self
     }
@@ -184,8 +159,10 @@ impl TickLoopBuilder {
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
         TickLoop {
             constants: TickConstants::new(&config.physics(), 1.0),
-            gate: Gate::new(config.receive_limits()),
-            inbox: Inbox::default(),
+            // One gate per place datagrams are received: here only when the transport
+            // does not gate on a thread of its own.
+            gate: (!self.transport.gates()).then(|| Gate::new(config.receive_limits())),
+            receive_buffers: ReceiveBuffers::default(),
             dilation: DilationController::new(nominal, config.dilation, config.dilation_min_permille),
             sessions: Sessions::new(config.max_players as usize, self.map_id),
             world: self.world,
@@ -212,16 +189,16 @@ pub(crate) struct TickLoop {
     sessions: Sessions,
     persister: Option<Box<dyn StateSink>>,
     commands: Receiver<Command>,
-    shared: Arc<Shared>,
+    shared: Arc<ServerShared>,
     dilation: DilationController,
     window: StatusWindow,
     /// The physics constants of every step (the configuration does not change).
     constants: TickConstants,
-    /// The receive gate, used when the transport does not gate on a thread of its own
-    /// (`receive_*` keys).
-    gate: Gate,
-    /// The received datagrams being opened (kept for its memory).
-    inbox: Inbox,
+    /// The receive gate when the transport does not gate on a thread of its own
+    /// (`receive_*` keys); `None` when it does.
+    gate: Option<Gate>,
+    /// What a receive works in (kept for its memory).
+    receive_buffers: ReceiveBuffers,
     /// Sessions shared with other servers, if any.
     registry: Option<Box<dyn SessionRegistry>>,
 }
@@ -253,7 +230,8 @@ impl TickLoop {
         &self.world
     }
 
-    /// Ends the loop, keeping the world.
+    /// Ends the loop, keeping the world (the scripted harness's result).
+    #[cfg(feature = "harness")]
     pub fn into_world(self) -> World {
         self.world
     }
@@ -337,14 +315,16 @@ impl TickLoop {
 
         let t = Instant::now();
         let info = self.server_info();
+        // A gating transport spends this tick's budgets from here on.
+        self.publish_sessions();
         let now = Instant::now();
         let inbound = inbound::receive(
             self.transport.as_mut(),
             &mut self.sessions,
             &mut self.world,
             info,
-            &mut self.gate,
-            &mut self.inbox,
+            self.gate.as_mut(),
+            &mut self.receive_buffers,
             now,
         );
         let mut left: Vec<PlayerState> = inbound
@@ -393,7 +373,7 @@ impl TickLoop {
         work.datagrams = (control.datagrams + updates.datagrams) as u64;
 
         if !left.is_empty() {
-            self.hand_off(&left);
+            self.persist(&left);
         }
         work
     }
@@ -417,7 +397,7 @@ impl TickLoop {
             let result = self.sessions.join(&mut self.world, user_id, username, state, ctx).map(|(joined, first)| {
                 // First visit: record the spawn point now so the next login finds it.
                 if let Some(first) = first {
-                    self.hand_off(std::slice::from_ref(&first));
+                    self.persist(std::slice::from_ref(&first));
                 }
                 joined
             });
@@ -439,11 +419,11 @@ impl TickLoop {
         }
     }
 
-    /// Hands a gating transport the sessions as they are now (a no-op for others, and
-    /// when nothing changed).
+    /// Hands a gating transport the current tick and the sessions as they are now (the
+    /// sessions only when they changed; a no-op for a transport that does not gate).
     fn publish_sessions(&mut self) {
         if self.transport.gates() {
-            self.transport.publish(self.world.tick, self.sessions.view());
+            self.transport.publish(self.world.tick, self.sessions.changed_directory());
         }
     }
 
@@ -513,8 +493,9 @@ impl TickLoop {
         sent
     }
 
-    /// Hands player states to the persister, if there is one.
-    fn hand_off(&self, states: &[PlayerState]) {
+    /// Queues player states for the persister, if there is one (players who left, a
+    /// first visit's spawn point).
+    fn persist(&self, states: &[PlayerState]) {
         if let Some(persister) = &self.persister
             && let Err(e) = persister.submit(states)
         {
@@ -543,7 +524,7 @@ impl TickLoop {
         }
     }
 
-    /// Shared counters, the status window and the per-tick metrics.
+    /// The shared counters, the status window and the per-tick metrics.
     fn publish(&mut self, work: &TickWork, elapsed: Duration) {
         let defence = &self.shared.defence;
         defence.tag_checks.fetch_add(work.tag_checks, Ordering::Relaxed);

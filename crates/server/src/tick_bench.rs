@@ -41,7 +41,8 @@ use myriad_store::UserId;
 use crate::config::ServerConfig;
 use crate::error::ServerError;
 use crate::receiver::ThreadedUdp;
-use crate::tick::{TickLoop, TickWork};
+use crate::stages::TickWork;
+use crate::tick::TickLoop;
 use crate::transport::{Transport, UdpTransport};
 
 /// Longest a tick of the benchmark waits for the receiver thread to deal with what the

@@ -14,7 +14,7 @@ use super::{Command, StateSink, TickLoop};
 use crate::config::ServerConfig;
 use crate::transport::MemoryTransport;
 
-/// Collects handed-off states.
+/// Collects the states the tick persists.
 #[derive(Clone, Default)]
 struct Saved(Arc<Mutex<Vec<PlayerState>>>);
 

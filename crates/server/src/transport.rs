@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use myriad_net::{Endpoint, RecvBatch};
 use rayon::prelude::*;
 
-use crate::gate::{Refusal, SessionView};
+use crate::gate::{Refusal, SessionDirectory};
 
 /// Datagrams taken from the socket per `recvmmsg` call.
 pub const RECV_BATCH: usize = 1024;
@@ -41,9 +41,10 @@ pub struct GateCounts {
 /// then the tick publishes the sessions to gate against and takes only what passed.
 pub trait Transport: Send {
     /// Receives one batch of queued datagrams per socket (at most [`RECV_BATCH`] each),
-    /// calling `each` with the sender and the bytes (which it may decrypt in place) for
-    /// every one. Returns how many were taken; 0 means nothing is queued. Never blocks.
-    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize>;
+    /// calling `each` with the sender and the bytes of every one (lent for the call: the
+    /// caller copies what it keeps). Returns how many were taken; 0 means nothing is
+    /// queued. Never blocks.
+    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &[u8])) -> io::Result<usize>;
 
     /// Sends as much of `out` as the network takes now, retrying briefly while a socket
     /// buffer is full; what is left is dropped (the caller counts it). Never blocks for
@@ -65,7 +66,7 @@ pub trait Transport: Send {
 
     /// For a gating transport: the tick whose budget arriving datagrams spend, and the
     /// sessions to gate against when they changed (`None`: the last ones hold).
-    fn publish(&mut self, _tick: u64, _view: Option<Arc<SessionView>>) {}
+    fn publish(&mut self, _tick: u64, _directory: Option<Arc<SessionDirectory>>) {}
 
     /// For a gating transport: what its gate did since the last call.
     fn gate_counts(&mut self) -> GateCounts {
@@ -127,11 +128,6 @@ impl UdpTransport {
         assert!(!endpoints.is_empty(), "a transport needs a socket");
         UdpTransport { endpoints, batch: None, oversized_seen: 0 }
     }
-
-    /// Sockets in the group.
-    pub fn sockets(&self) -> usize {
-        self.endpoints.len()
-    }
 }
 
 /// Datagrams too large for a receive slot never reach the gate: the endpoints drop and
@@ -171,15 +167,13 @@ fn send_all(endpoint: &mut Endpoint, out: &[(SocketAddr, &[u8])]) -> io::Result<
 }
 
 impl Transport for UdpTransport {
-    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize> {
+    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &[u8])) -> io::Result<usize> {
         let mut total = 0;
         let batch = self.batch.get_or_insert_with(|| RecvBatch::new(RECV_BATCH));
         for endpoint in &mut self.endpoints {
             let n = endpoint.recv_batch(batch)?;
-            for i in 0..n {
-                if let Some((from, bytes)) = batch.get_mut(i) {
-                    each(from, bytes);
-                }
+            for (from, bytes) in batch.iter() {
+                each(from, bytes);
             }
             total += n;
         }
@@ -260,7 +254,7 @@ impl MemoryTransport {
 }
 
 impl Transport for MemoryTransport {
-    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &mut [u8])) -> io::Result<usize> {
+    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &[u8])) -> io::Result<usize> {
         // Take the batch out first: `each` may run for a while, and a test thread may
         // want to push meanwhile.
         let batch: Vec<_> = {
@@ -269,8 +263,8 @@ impl Transport for MemoryTransport {
             q.inbox.drain(..n).collect()
         };
         let n = batch.len();
-        for (from, mut bytes) in batch {
-            each(from, &mut bytes);
+        for (from, bytes) in batch {
+            each(from, &bytes);
         }
         Ok(n)
     }
@@ -329,7 +323,6 @@ mod tests {
         use myriad_net::EndpointConfig;
         let group = Endpoint::bind_group(EndpointConfig::new("127.0.0.1:0".parse().unwrap()), 3).unwrap();
         let mut transport = UdpTransport::group(group);
-        assert_eq!(transport.sockets(), 3);
         let server = transport.local_addr();
         let clients: Vec<std::net::UdpSocket> =
             (0..4).map(|_| std::net::UdpSocket::bind("127.0.0.1:0").unwrap()).collect();

@@ -5,7 +5,9 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use myriad_client::{Behaviour, ClientConfig, Swarm, SwarmConfig, SwarmSnapshot, Trust, movement_ok_share};
+use myriad_client::{
+    Behaviour, ClientConfig, ClientStats, Swarm, SwarmConfig, SwarmSnapshot, Trust, movement_ok_share,
+};
 
 /// Arguments of `myriad bots`.
 #[derive(clap::Args, Debug)]
@@ -91,6 +93,36 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
         now.totals.rejected,
         now.totals.decode_errors,
         now.totals.reconnects,
+    )
+}
+
+/// The whole run, from the swarm's final snapshot. Taken after the swarm stopped, when
+/// no bot is connected and none holds a view any more, it reports what the run did:
+/// totals, rates over the run per bot, objects per update received, the run's interval
+/// percentiles and loss.
+pub fn run_line(last: &SwarmSnapshot) -> String {
+    let t = &last.totals;
+    let r = t.rates_since(&ClientStats::default(), last.elapsed_s);
+    let bots = last.bots.max(1) as f64;
+    let per_update = if t.updates > 0 { t.records as f64 / t.updates as f64 } else { 0.0 };
+    format!(
+        "{} bots for {:.0} s: logins {} ok, {} failed, {} reconnects | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} per update | interval p50 {:.1} ms p99 {:.1} ms | loss {:.2}% | own seen {}/{} moves ok {:.0}% | rejected {} decode errors {}",
+        last.bots,
+        last.elapsed_s,
+        last.logins_ok,
+        last.logins_failed,
+        t.reconnects,
+        r.updates_per_s / bots,
+        r.bytes_per_s / bots / 1000.0,
+        per_update,
+        last.interval_p50_ms,
+        last.interval_p99_ms,
+        last.loss * 100.0,
+        last.own_object_seen,
+        last.bots,
+        movement_ok_share(last) * 100.0,
+        t.rejected,
+        t.decode_errors,
     )
 }
 
@@ -207,15 +239,40 @@ pub fn run(args: BotsArgs) -> Result<()> {
             }
             prev = now;
         }
-        let first = SwarmSnapshot::default();
         let last = swarm.stop().await;
         if json {
-            let mut v = stats_json(&first, &last);
+            let mut v = stats_json(&SwarmSnapshot::default(), &last);
             v["event"] = "final".into();
             println!("{v}");
         } else {
-            println!("final: {}", stats_line(&first, &last));
+            println!("final: {}", run_line(&last));
         }
         Ok::<(), anyhow::Error>(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// After the swarm stopped nobody is connected and nobody holds a view: the final
+    /// line reports the run's figures, not the snapshot's zeros.
+    #[test]
+    fn the_final_line_reports_the_run_not_the_stopped_swarm() {
+        let last = SwarmSnapshot {
+            elapsed_s: 10.0,
+            bots: 4,
+            logins_ok: 4,
+            connected: 0,
+            mean_in_view: 0.0,
+            own_object_seen: 4,
+            totals: ClientStats { updates: 1200, records: 48_000, bytes: 4_000_000, ..ClientStats::default() },
+            ..SwarmSnapshot::default()
+        };
+        let line = run_line(&last);
+        assert!(line.starts_with("4 bots for 10 s: logins 4 ok"), "{line}");
+        assert!(line.contains("per bot 30.0 upd/s 100.0 kB/s"), "{line}");
+        assert!(line.contains("in view 40 per update"), "{line}");
+        assert!(line.contains("own seen 4/4"), "{line}");
+    }
 }

@@ -10,7 +10,7 @@ use myriad_physics::Stage;
 use myriad_server::{ServerStatus, TickStage};
 use myriad_store::Store;
 
-use crate::bots::{interrupted_within, stats_line};
+use crate::bots::{interrupted_within, run_line};
 use crate::serve::ConfigArgs;
 
 /// Arguments of `myriad demo`.
@@ -119,7 +119,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         }
         swarm.stop().await
     });
-    println!("bots: {}", stats_line(&SwarmSnapshot::default(), &final_bots));
+    println!("bots: {}", run_line(&final_bots));
     println!("server: {}", server.status().stage_line());
     server.shutdown()?;
     Ok(())

@@ -1,8 +1,17 @@
 //! `myriad`: the command-line front end of the Myriad world server.
 //!
-//! Subcommands: `sim` (run a scenario and print its state hash) and `bench` (the
-//! reference's result tables on this machine). The server, bots, admin and map
-//! commands arrive with their issues.
+//! Subcommands, one module each (`myriad help <command>` gives their flags):
+//! - `sim` ([`sim`]): run a scenario (in one process, or split into zones) and print
+//!   its state hash.
+//! - `bench` ([`bench`]): the reference's result tables on this machine.
+//! - `serve` ([`serve`]): the world server, until SIGINT/SIGTERM.
+//! - `demo` ([`demo`]): a server on the embedded database with built-in bots.
+//! - `bots` ([`bots`]): a swarm of bots against a server.
+//! - `flood` ([`flood`]): a bounded attack on a server on this machine, measured.
+//! - `zone`, `cluster` ([`zones`]): one zone process, and a supervised cluster of them
+//!   over NATS.
+//! - `gateway` ([`gateway`]): logins and sessions for a world run by zones.
+//! - `user`, `map` ([`admin`]): accounts and maps.
 
 mod admin;
 mod bench;

@@ -340,6 +340,35 @@ struct ClusterSummary {
     state_hash: String,
 }
 
+/// A state hash as the cluster prints it.
+fn hash_text(hash: u64) -> String {
+    format!("{hash:016x}")
+}
+
+/// An epoch's start, as the cluster prints it: an event on standard error, a line of the
+/// summary.
+fn start_line(epoch: u64, tick: u64, hash: Option<&str>) -> String {
+    format!("epoch {epoch}      from tick {tick}{}", hash.map(|h| format!(" (state hash {h})")).unwrap_or_default())
+}
+
+/// A fault, likewise.
+fn fault_line(reason: &str) -> String {
+    format!("fault        {reason}")
+}
+
+/// A supervisor's event as the cluster prints it on standard error, in the summary's
+/// layout; the end is the summary's to report (`None`).
+fn event_line(e: &Event) -> Option<String> {
+    match e {
+        Event::Started { epoch, tick, state_hash } => {
+            Some(start_line(*epoch, *tick, state_hash.map(hash_text).as_deref()))
+        }
+        Event::Fault { reason, .. } => Some(fault_line(reason)),
+        Event::Progress { epoch, tick } => Some(format!("epoch {epoch}      at tick {tick}")),
+        Event::Done { .. } => None,
+    }
+}
+
 /// Runs `myriad cluster`.
 pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     let p = prepare(&args.common)?;
@@ -445,10 +474,12 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         out
     };
     let mut on_event = |e: &Event| {
-        eprintln!("{e:?}");
+        if let Some(line) = event_line(e) {
+            eprintln!("{line}");
+        }
         match e {
             Event::Started { epoch, tick, state_hash } => {
-                summary.starts.push((*epoch, *tick, state_hash.map(|h| format!("{h:016x}"))))
+                summary.starts.push((*epoch, *tick, state_hash.map(hash_text)))
             }
             Event::Fault { reason, .. } => summary.faults.push(reason.clone()),
             Event::Progress { .. } | Event::Done { .. } => {}
@@ -470,19 +501,16 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     }
     let hash = result?;
     summary.total_ms = start.elapsed().as_secs_f64() * 1e3;
-    summary.state_hash = format!("{hash:016x}");
+    summary.state_hash = hash_text(hash);
     if args.json {
         println!("{}", serde_json::to_string(&summary)?);
     } else {
         println!("zones        {zones} processes over NATS ({} ticks in {:.0} ms)", summary.ticks, summary.total_ms);
         for (epoch, tick, h) in &summary.starts {
-            println!(
-                "epoch {epoch}      from tick {tick}{}",
-                h.as_ref().map(|h| format!(" (state hash {h})")).unwrap_or_default()
-            );
+            println!("{}", start_line(*epoch, *tick, h.as_deref()));
         }
         for f in &summary.faults {
-            println!("fault        {f}");
+            println!("{}", fault_line(f));
         }
         println!("state hash   {}", summary.state_hash);
     }

@@ -220,15 +220,48 @@ fn the_scale_sweep_adds_rows_and_a_log_log_plot() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Runs `myriad` and returns its standard output's JSON lines, failing on a failed run.
+fn json_run(args: &[&str]) -> Vec<serde_json::Value> {
+    let out = myriad(args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    json_lines(&out.stdout)
+}
+
+/// Each row's backend and mode, in order.
+fn backends_and_modes(rows: &[serde_json::Value]) -> Vec<(&str, &str)> {
+    rows.iter().map(|r| (r["backend"].as_str().unwrap(), r["mode"].as_str().unwrap())).collect()
+}
+
 #[test]
 fn slow_backends_are_skipped_unless_forced() {
     let mut args = vec!["bench", "--format", "json", "--ticks", "2", "--warmup", "1", "--max-tick-ms", "0"];
     args.extend_from_slice(SMALL);
-    let rows = json_lines(&myriad(&args).stdout);
-    assert!(rows.iter().all(|r| r["skipped"].is_string()), "{rows:?}");
+    // Every first tick is too slow: both physics rows say why, and the server tick of a
+    // skipped backend is not run at all.
+    let rows = json_run(&args);
+    assert_eq!(backends_and_modes(&rows), [("cpu", "physics"), ("cpu-naive", "physics")], "{rows:?}");
+    assert!(rows.iter().all(|r| r["skipped"].as_str().is_some_and(|why| why.contains("--force"))), "{rows:?}");
     args.push("--force");
-    let rows = json_lines(&myriad(&args).stdout);
-    assert!(rows.iter().all(|r| r["skipped"].is_null()), "{rows:?}");
+    let rows = json_run(&args);
+    assert_eq!(
+        backends_and_modes(&rows),
+        [("cpu", "physics"), ("cpu-naive", "physics"), ("cpu", "server")],
+        "{rows:?}"
+    );
+    for r in &rows {
+        assert!(r["skipped"].is_null(), "{r}");
+        assert!(r["total_ms"].as_f64().is_some_and(|ms| ms > 0.0), "measured: {r}");
+        assert_eq!(r["state_hash"].as_str().map(str::len), Some(16), "{r}");
+    }
+}
+
+/// The zones backend is a gateway's, built from its cluster: no flag selects it.
+#[test]
+fn the_zones_backend_cannot_be_chosen() {
+    let out = myriad(&["sim", "--backend", "zones"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("unknown backend") && err.contains("zones"), "{err}");
 }
 
 #[test]
@@ -260,9 +293,32 @@ fn a_heightmap_file_can_replace_the_generated_terrain() {
     let bytes: Vec<u8> = (0..33 * 33).flat_map(|i| ((i % 33) as u16 * 2000).to_le_bytes()).collect();
     std::fs::write(&path, bytes).unwrap();
     let p = path.to_string_lossy().to_string();
-    let mut args = vec!["sim", "--json", "--ticks", "10", "--heightmap", &p];
-    args.extend_from_slice(SMALL);
-    let out = myriad(&args);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let hash = |extra: &[&str]| {
+        let mut args = vec!["sim", "--json", "--ticks", "10", "--backend", "cpu"];
+        args.extend_from_slice(SMALL);
+        args.extend_from_slice(extra);
+        json_run(&args)[0]["state_hash"].as_str().unwrap().to_string()
+    };
+    let generated = hash(&[]);
+    let on_file = hash(&["--heightmap", &p]);
+    assert_ne!(on_file, generated, "the heightmap changed the world");
+
+    // The same world built here on the file's terrain (SMALL's flags, applied as
+    // `WorldArgs::spec` applies them) ends in the same state.
+    let mut spec = myriad_core::ScenarioSpec::custom(1);
+    spec.dynamic = 600;
+    spec.static_objects = 90;
+    spec.users = 60;
+    spec.world_size = 64.0;
+    spec.terrain_samples = 65;
+    spec.origin = myriad_core::Vec3::new(-300.0, -20.0, 5000.0);
+    let terrain = myriad_core::Terrain::from_raw(&path, None, spec.max_height, spec.terrain_placement()).unwrap();
+    let mut world = spec.build_on(terrain).unwrap();
+    let mut backend = myriad_physics::create_cpu_backend(myriad_physics::BackendKind::Cpu).unwrap();
+    let k = myriad_physics::TickConstants::new(&myriad_core::PhysicsConfig::default(), 1.0);
+    for _ in 0..10 {
+        backend.step(&mut world, &k).unwrap();
+    }
+    assert_eq!(on_file, format!("{:016x}", world.state_hash()), "the file's terrain, and only it, was used");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -52,9 +52,7 @@ fn disrupted_run(url: &str, ticks: u64, disrupt: impl FnOnce(i32)) -> Vec<String
     // Kill it once every zone is past tick 70, so that a checkpoint after the start (30
     // or 60) is behind everyone: the cluster prints its progress as events.
     let past = |l: &str| {
-        l.strip_prefix("Progress { epoch: 1, tick: ")
-            .and_then(|r| r.trim_end_matches(" }").parse::<u64>().ok())
-            .is_some_and(|t| t > 70)
+        l.strip_prefix("epoch 1      at tick ").and_then(|r| r.trim().parse::<u64>().ok()).is_some_and(|t| t > 70)
     };
     while !log.iter().any(|l| past(l)) && start.elapsed() < Duration::from_secs(120) {
         if let Ok(line) = rx.recv_timeout(Duration::from_millis(200)) {

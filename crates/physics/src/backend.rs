@@ -25,18 +25,27 @@ pub enum BackendKind {
     /// `cuda` when a driver, NVRTC and a device are present, else `cpu` (crate
     /// `myriad-cuda` resolves it).
     Auto,
+    /// Not a local implementation: a gateway's world, stepped remotely by a cluster's
+    /// zones (crate `myriad-zone`'s `ZonesBackend`, whose step sends the players'
+    /// intents and mirrors the zones' world over NATS). A gateway builds it from its
+    /// cluster, so it cannot be chosen: no name parses to it, no configuration
+    /// deserializes to it, and the factories refuse it.
+    #[serde(skip_deserializing)]
+    Zones,
 }
 
 impl BackendKind {
     /// The kinds this crate implements (the CPU backends): [`create_cpu_backend`] makes each.
     pub const ALL: [BackendKind; 2] = [BackendKind::CpuNaive, BackendKind::Cpu];
-    /// Every kind a name can select, the CUDA ones and `auto` included.
+    /// Every kind a name can select, the CUDA ones and `auto` included (not
+    /// [`BackendKind::Zones`], which no name selects).
     pub const EVERY: [BackendKind; 5] =
         [BackendKind::CpuNaive, BackendKind::Cpu, BackendKind::CudaNaive, BackendKind::Cuda, BackendKind::Auto];
     /// Their names, in the order of [`BackendKind::EVERY`].
     pub const NAMES: [&'static str; 5] = ["cpu-naive", "cpu", "cuda-naive", "cuda", "auto"];
 
-    /// The command-line name.
+    /// The command-line name (for [`BackendKind::Zones`], which has none, the name it is
+    /// reported by).
     pub fn name(self) -> &'static str {
         match self {
             BackendKind::CpuNaive => "cpu-naive",
@@ -44,6 +53,7 @@ impl BackendKind {
             BackendKind::CudaNaive => "cuda-naive",
             BackendKind::Cuda => "cuda",
             BackendKind::Auto => "auto",
+            BackendKind::Zones => "zones",
         }
     }
 }
@@ -224,6 +234,14 @@ pub fn create_cpu_backend(kind: BackendKind) -> Result<Box<dyn Backend>, Physics
             return Err(PhysicsError::Unavailable {
                 backend: kind.name(),
                 reason: "the CUDA backends and auto are created by myriad_cuda::create_backend".into(),
+            });
+        }
+        BackendKind::Zones => {
+            return Err(PhysicsError::Unavailable {
+                backend: kind.name(),
+                reason: "a gateway's zones backend is built from its cluster (myriad_zone::ZonesBackend), \
+                         not by a factory; choose a local backend"
+                    .into(),
             });
         }
     })

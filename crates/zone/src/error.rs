@@ -43,9 +43,6 @@ pub enum ZoneError {
     /// Two zones claimed the same object at one tick.
     #[error("object {0:?} arrived twice at tick {1}")]
     Duplicate(EntityId, u64),
-    /// The supervisor's halt or start arrived during a tick.
-    #[error("interrupted by the supervisor: {0:?}")]
-    Interrupted(crate::wire::Message),
     /// A checkpoint could not be stored or read.
     #[error("checkpoint: {0}")]
     Checkpoint(String),

@@ -1,9 +1,9 @@
 //! A gateway's world: the zones step it, the gateway mirrors it.
 //!
 //! A gateway is the ordinary server (TLS login, UDP sessions, interest management,
-//! sealing, persistence) whose physics backend is [`ZonesBackend`]: its "step" sends the
-//! zones what the gateway's players asked since the last tick and takes the newest world
-//! the zones finished. So every player's session stays at its gateway while its object
+//! sealing, persistence) whose physics backend is [`ZonesBackend`], of kind
+//! [`BackendKind::Zones`]: its step is remote. It sends the zones what the gateway's
+//! players asked since the last tick and takes the newest world the zones finished. So every player's session stays at its gateway while its object
 //! moves from zone to zone; a player near a boundary sees the objects of both sides
 //! because the mirror holds them all; and a rollback of the zones changes the mirror,
 //! not the sessions.
@@ -161,7 +161,11 @@ impl TickParts {
     }
 }
 
-/// The physics backend of a gateway (see the module docs).
+/// The physics backend of a gateway (see the module docs), of kind
+/// [`BackendKind::Zones`]: its step is remote. It computes no physics: it sends the
+/// players' intents to the zones and mirrors the world they stepped, over the fabric
+/// (NATS I/O inside [`Backend::step`], bounded by [`GatewayConfig::wait`]). Its AOI queries
+/// run on the mirror, on the CPU.
 pub struct ZonesBackend {
     cfg: GatewayConfig,
     link: Box<dyn GatewayLink>,
@@ -294,19 +298,33 @@ impl ZonesBackend {
             // Zones take a gateway that has not been heard of for a while for dead (and
             // remove its players' objects): with no action to send, an empty message
             // says it is alive.
-            let empty = due && kind == IntentKind::Action && objects.is_empty();
-            let chunks: Vec<&[ObjectState]> =
-                if empty { vec![&[]] } else { objects.chunks(INTENTS_PER_MESSAGE).collect() };
-            for chunk in chunks {
-                let m = Intents {
-                    incarnation: self.incarnation,
-                    tick: t,
-                    gateway: self.cfg.gateway,
-                    kind,
-                    objects: chunk.to_vec(),
-                };
-                self.link.send_intents(encode_intents(&self.cfg.key, &m)?)?;
-            }
+            let keep_alive = due && kind == IntentKind::Action;
+            self.send_kind(t, kind, &objects, keep_alive)?;
+        }
+        Ok(())
+    }
+
+    /// Sends `objects` as intents of `kind` at gateway tick `tick`, in messages of at
+    /// most [`INTENTS_PER_MESSAGE`] records; with none, one empty message if
+    /// `keep_alive`, else nothing.
+    fn send_kind(
+        &mut self,
+        tick: u64,
+        kind: IntentKind,
+        objects: &[ObjectState],
+        keep_alive: bool,
+    ) -> Result<(), ZoneError> {
+        let chunks: Vec<&[ObjectState]> =
+            if objects.is_empty() && keep_alive { vec![&[]] } else { objects.chunks(INTENTS_PER_MESSAGE).collect() };
+        for chunk in chunks {
+            let m = Intents {
+                incarnation: self.incarnation,
+                tick,
+                gateway: self.cfg.gateway,
+                kind,
+                objects: chunk.to_vec(),
+            };
+            self.link.send_intents(encode_intents(&self.cfg.key, &m)?)?;
         }
         Ok(())
     }
@@ -354,7 +372,7 @@ impl ZonesBackend {
         if got.contains_key(&m.part) {
             return self.reject("replayed");
         }
-        got.insert(m.part, m.objects.into_iter().map(|(o, _)| o).collect());
+        got.insert(m.part, m.objects.into_iter().map(|r| r.state).collect());
         while self.pending.len() > PENDING_TICKS {
             self.pending.pop_first();
             self.stats.skipped += 1;
@@ -468,38 +486,33 @@ impl Drop for ZonesBackend {
             return;
         }
         let tick = self.last_tick.saturating_add(1);
-        for chunk in leaves.chunks(INTENTS_PER_MESSAGE) {
-            let m = Intents {
-                incarnation: self.incarnation,
-                tick,
-                gateway: self.cfg.gateway,
-                kind: IntentKind::Leave,
-                objects: chunk.to_vec(),
-            };
-            if let Ok(bytes) = encode_intents(&self.cfg.key, &m) {
-                let _ = self.link.send_intents(bytes);
-            }
+        if let Err(e) = self.send_kind(tick, IntentKind::Leave, &leaves, false) {
+            tracing::debug!(error = %e, "a stopping gateway's leaves were not all sent");
         }
         self.link.flush();
     }
 }
 
 impl Backend for ZonesBackend {
+    /// [`BackendKind::Zones`]: the step is remote (the zones' own backends are theirs to
+    /// report); only the AOI queries run here, on the CPU.
     fn kind(&self) -> BackendKind {
-        // The gateway's own computing is the CPU's (AOI queries); the zones' backends are
-        // theirs to report.
-        BackendKind::Cpu
+        BackendKind::Zones
     }
 
     fn description(&self) -> String {
-        format!("gateway {} of a cluster of {} zones (the zones step the world)", self.cfg.gateway, self.cfg.zones)
+        format!(
+            "zones: gateway {} of a cluster of {} zones (the zones step the world over NATS; AOI on the cpu)",
+            self.cfg.gateway, self.cfg.zones
+        )
     }
 
-    /// Sends the players' intents and takes the zones' newest world. The time goes in
-    /// the `upload` stage (the other stages are the zones'). A fabric error is counted
-    /// and logged when it starts and when it ends, and the step goes on (the world
-    /// stands still for the tick): the sessions never see it, and the tick still
-    /// advances by one.
+    /// Remote: sends the players' intents to the zones and takes the zones' newest world,
+    /// over the fabric (NATS between processes), waiting up to the configured `wait`; no
+    /// physics runs here. The time goes in the `upload` stage (the other stages are the
+    /// zones'). A fabric error is counted and logged when it starts and when it ends, and
+    /// the step goes on (the world stands still for the tick): the sessions never see
+    /// it, and the tick still advances by one.
     fn step(&mut self, world: &mut World, _k: &TickConstants) -> Result<StepReport, PhysicsError> {
         let start = Instant::now();
         let sent = self.send_intents(world);
@@ -582,5 +595,16 @@ mod tests {
         }
         assert_eq!(b.stats().errors, 3);
         assert!(world.dynamics.slot(id).is_some(), "the player's object stays while the zones are out of reach");
+    }
+
+    #[test]
+    fn the_backend_says_it_is_remote_and_cannot_be_chosen_by_name() {
+        let cfg = GatewayConfig { gateway: 0, key: ClusterKey::random(), zones: 1, wait: Duration::ZERO, refresh: 30 };
+        let b = ZonesBackend::new(cfg, Box::new(Down)).unwrap();
+        assert_eq!(b.kind(), BackendKind::Zones);
+        assert!(b.description().starts_with("zones: "), "{}", b.description());
+        assert!("zones".parse::<BackendKind>().is_err(), "no flag or config name selects it");
+        let refused = myriad_physics::create_cpu_backend(BackendKind::Zones).err().expect("refused");
+        assert!(refused.to_string().contains("choose a local backend"), "{refused}");
     }
 }

@@ -38,4 +38,4 @@ pub use local::{RunOptions, ZonedRun, pair_reach, run_zoned};
 pub use nats::NatsFabric;
 pub use stats::ZoneStats;
 pub use wire::{ClusterKey, WireError};
-pub use zone::{Zone, ZoneConfig};
+pub use zone::{TickEnd, Zone, ZoneConfig};

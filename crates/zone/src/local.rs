@@ -14,7 +14,7 @@ use crate::fabric::Fabric;
 use crate::layout::{ZoneId, ZoneLayout};
 use crate::stats::ZoneStats;
 use crate::wire::ClusterKey;
-use crate::zone::{Zone, ZoneConfig};
+use crate::zone::{TickEnd, Zone, ZoneConfig};
 
 /// The outcome of a zoned run.
 #[derive(Debug)]
@@ -91,7 +91,16 @@ pub fn run_zoned(
                     let first = Instant::now();
                     for _ in 0..ticks {
                         let t = zone.tick();
-                        actions += zone.step(script.at(t), k)?;
+                        match zone.step(script.at(t), k)? {
+                            TickEnd::Stepped(applied) => actions += applied,
+                            // No supervisor runs these zones: a halt or start is
+                            // another cluster's (sharing the key), not this run's.
+                            TickEnd::Interrupted(m) => {
+                                return Err(ZoneError::Fabric(format!(
+                                    "a supervisor's message in a run without one: {m:?}"
+                                )));
+                            }
+                        }
                     }
                     let prims = zone.static_prims();
                     Ok((zone.advanced().to_vec(), actions, zone.stats().clone(), prims, first, Instant::now()))

@@ -18,7 +18,7 @@ use crate::fabric::Fabric;
 use crate::layout::{ZoneId, ZoneLayout};
 use crate::nats::{Beat, Heartbeat};
 use crate::wire::{ClusterKey, Message, ZoneState, decode};
-use crate::zone::{Zone, ZoneConfig};
+use crate::zone::{TickEnd, Zone, ZoneConfig};
 
 /// How a zone process runs.
 #[derive(Clone, Debug)]
@@ -126,20 +126,21 @@ pub fn run_zone_process(
             }
             let stepped = Instant::now();
             match zone.step(script.at(t), k) {
-                Ok(_) => {}
+                Ok(TickEnd::Stepped(_)) => {}
+                Ok(TickEnd::Interrupted(Message::Start { run, tick })) if run > started => {
+                    next = Some((run, tick));
+                    break Ok(ZoneState::Waiting);
+                }
+                Ok(TickEnd::Interrupted(Message::Halt { run })) if run > epoch => {
+                    epoch = run;
+                    break Ok(ZoneState::Waiting);
+                }
+                // An older epoch's halt or start: the tick is tried again.
+                Ok(TickEnd::Interrupted(_)) => continue,
                 Err(ZoneError::Stalled { missing, .. }) => {
                     tracing::warn!(zone = cfg.zone.0, tick = t, ?missing, "neighbours silent: stalled");
                     break Ok(ZoneState::Stalled);
                 }
-                Err(ZoneError::Interrupted(Message::Start { run, tick })) if run > started => {
-                    next = Some((run, tick));
-                    break Ok(ZoneState::Waiting);
-                }
-                Err(ZoneError::Interrupted(Message::Halt { run })) if run > epoch => {
-                    epoch = run;
-                    break Ok(ZoneState::Waiting);
-                }
-                Err(ZoneError::Interrupted(_)) => continue,
                 Err(e) => break Err(e),
             }
             tick = zone.tick();

@@ -161,6 +161,25 @@ impl std::fmt::Debug for ClusterKey {
     }
 }
 
+/// One object of a [`Border`] message: its state, and whether the message hands it to
+/// the receiver (a hand-off: the receiver owns it from this tick on; otherwise it is a
+/// ghost the receiver only sees). On the wire, `yours` is the top bit of the flag byte.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BorderRecord {
+    /// The object's state.
+    pub state: ObjectState,
+    /// Whether the receiver now owns it.
+    pub yours: bool,
+}
+
+impl BorderRecord {
+    /// A record that hands nothing (a ghost, or any record of a message that never
+    /// hands objects: states, checkpoints, intents).
+    pub fn seen(state: ObjectState) -> BorderRecord {
+        BorderRecord { state, yours: false }
+    }
+}
+
 /// One part of a zone's border state for one neighbour at one tick: the objects the
 /// neighbour must see (ghosts) and those it now owns (hand-offs, `yours`).
 #[derive(Clone, Debug, PartialEq)]
@@ -178,7 +197,7 @@ pub struct Border {
     /// How many parts the sender sends this tick (at least 1, even with no objects).
     pub parts: u16,
     /// The objects, each with whether it is handed to the receiver.
-    pub objects: Vec<(ObjectState, bool)>,
+    pub objects: Vec<BorderRecord>,
 }
 
 /// What a gateway asks of the zones for its players.
@@ -295,7 +314,11 @@ struct Head {
     aux: [u16; 2],
 }
 
-fn encode_with(key: &ClusterKey, h: Head, records: &[(ObjectState, bool)]) -> Result<Vec<u8>, WireError> {
+fn encode_with(
+    key: &ClusterKey,
+    h: Head,
+    records: impl ExactSizeIterator<Item = BorderRecord>,
+) -> Result<Vec<u8>, WireError> {
     let count = u32::try_from(records.len()).map_err(|_| WireError::Length { count: u32::MAX, actual: 0 })?;
     let mut b = Vec::with_capacity(HEADER_LEN + records.len() * RECORD_LEN + TAG_LEN);
     b.extend_from_slice(&MAGIC);
@@ -308,12 +331,12 @@ fn encode_with(key: &ClusterKey, h: Head, records: &[(ObjectState, bool)]) -> Re
     b.extend_from_slice(&h.aux[0].to_le_bytes());
     b.extend_from_slice(&h.aux[1].to_le_bytes());
     b.extend_from_slice(&count.to_le_bytes());
-    for (o, yours) in records {
+    for BorderRecord { state: o, yours } in records {
         b.extend_from_slice(&o.id.0.to_le_bytes());
         b.push(o.kind as u8);
         b.push(o.shape as u8);
         b.push(o.action);
-        b.push(o.flags | if *yours { YOURS } else { 0 });
+        b.push(o.flags | if yours { YOURS } else { 0 });
         for v in [o.half.x, o.half.y, o.half.z, o.radius, o.pos.x, o.pos.y, o.pos.z, o.prev.x, o.prev.y, o.prev.z] {
             b.extend_from_slice(&v.to_le_bytes());
         }
@@ -327,7 +350,7 @@ pub fn encode_border(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError>
         return Err(WireError::Part { part: m.part, parts: m.parts });
     }
     let h = Head { kind: KIND_BORDER, run: m.run, tick: m.tick, from: m.from, to: m.to, aux: [m.part, m.parts] };
-    encode_with(key, h, &m.objects)
+    encode_with(key, h, m.objects.iter().copied())
 }
 
 /// Encodes and signs a checkpoint of `objects`.
@@ -338,8 +361,8 @@ pub fn encode_checkpoint(
     zone: ZoneId,
     objects: &[ObjectState],
 ) -> Result<Vec<u8>, WireError> {
-    let records: Vec<_> = objects.iter().map(|o| (*o, false)).collect();
-    encode_with(key, Head { kind: KIND_CHECKPOINT, run, tick, from: zone, to: zone, aux: [0, 0] }, &records)
+    let h = Head { kind: KIND_CHECKPOINT, run, tick, from: zone, to: zone, aux: [0, 0] };
+    encode_with(key, h, objects.iter().copied().map(BorderRecord::seen))
 }
 
 /// Encodes and signs a zone's states for the gateways (`m.to` must be [`ALL`], and no
@@ -348,11 +371,11 @@ pub fn encode_states(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError>
     if m.parts == 0 || m.part >= m.parts {
         return Err(WireError::Part { part: m.part, parts: m.parts });
     }
-    if m.to != ALL || m.objects.iter().any(|(_, yours)| *yours) {
+    if m.to != ALL || m.objects.iter().any(|r| r.yours) {
         return Err(WireError::Field("states header"));
     }
     let h = Head { kind: KIND_STATES, run: m.run, tick: m.tick, from: m.from, to: ALL, aux: [m.part, m.parts] };
-    encode_with(key, h, &m.objects)
+    encode_with(key, h, m.objects.iter().copied())
 }
 
 /// Encodes and signs a gateway's intents.
@@ -365,8 +388,7 @@ pub fn encode_intents(key: &ClusterKey, m: &Intents) -> Result<Vec<u8>, WireErro
         to: ALL,
         aux: [m.kind as u16, 0],
     };
-    let records: Vec<_> = m.objects.iter().map(|o| (*o, false)).collect();
-    encode_with(key, h, &records)
+    encode_with(key, h, m.objects.iter().copied().map(BorderRecord::seen))
 }
 
 /// Encodes and signs a message without objects (heartbeat, halt, start, claim).
@@ -384,7 +406,7 @@ pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireErro
             return Err(WireError::Field("kind"));
         }
     };
-    encode_with(key, h, &[])
+    encode_with(key, h, std::iter::empty())
 }
 
 /// Appends the tag of `signed` (header and body) under `key`: a message the cluster
@@ -419,7 +441,7 @@ fn f32_at(b: &[u8], at: usize) -> f32 {
     f32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
 }
 
-fn record(index: usize, r: &[u8]) -> Result<(ObjectState, bool), WireError> {
+fn record(index: usize, r: &[u8]) -> Result<BorderRecord, WireError> {
     let bad = |reason: String| WireError::Record { index, reason };
     let kind = match r[4] {
         0 => ObjectKind::Npc,
@@ -441,17 +463,19 @@ fn record(index: usize, r: &[u8]) -> Result<(ObjectState, bool), WireError> {
     };
     o.validate().map_err(|e| bad(e.to_string()))?;
     debug_assert_eq!(o.flags & !(flags::ON_TERRAIN | flags::SUPPORTED), 0);
-    Ok((o, r[7] & YOURS != 0))
+    Ok(BorderRecord { state: o, yours: r[7] & YOURS != 0 })
 }
 
 /// Records that hand nothing to anyone: the hand-off bit must be clear, so that a
 /// message has one encoding (found by fuzzing, for checkpoints).
-fn plain(records: impl Iterator<Item = Result<(ObjectState, bool), WireError>>) -> Result<Vec<ObjectState>, WireError> {
+fn plain(records: impl Iterator<Item = Result<BorderRecord, WireError>>) -> Result<Vec<ObjectState>, WireError> {
     records
         .enumerate()
         .map(|(index, r)| match r {
-            Ok((_, true)) => Err(WireError::Record { index, reason: "hand-off bit where nothing is handed".into() }),
-            Ok((o, false)) => Ok(o),
+            Ok(BorderRecord { yours: true, .. }) => {
+                Err(WireError::Record { index, reason: "hand-off bit where nothing is handed".into() })
+            }
+            Ok(BorderRecord { state, yours: false }) => Ok(state),
             Err(e) => Err(e),
         })
         .collect()
@@ -498,7 +522,7 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
                 return Err(WireError::Part { part: aux0, parts: aux1 });
             }
             none(to == ALL && from != ALL, "states header")?;
-            let objects = plain(records())?.into_iter().map(|o| (o, false)).collect();
+            let objects = plain(records())?.into_iter().map(BorderRecord::seen).collect();
             Ok(Message::States(Border { run, tick, from, to, part: aux0, parts: aux1, objects }))
         }
         KIND_INTENTS => {
@@ -570,7 +594,10 @@ mod tests {
             to: ZoneId(4),
             part: 1,
             parts: 2,
-            objects: vec![(object(5, 1.0), true), (object(9, -7.5), false)],
+            objects: vec![
+                BorderRecord { state: object(5, 1.0), yours: true },
+                BorderRecord { state: object(9, -7.5), yours: false },
+            ],
         }
     }
 
@@ -591,7 +618,7 @@ mod tests {
             assert_eq!(decode(&key(), &encode_control(&key(), &m).unwrap()).unwrap(), m);
         }
         assert!(encode_control(&key(), &Message::Border(message())).is_err());
-        let states = Border { to: ALL, objects: vec![(object(5, 1.0), false)], ..message() };
+        let states = Border { to: ALL, objects: vec![BorderRecord::seen(object(5, 1.0))], ..message() };
         assert_eq!(decode(&key(), &encode_states(&key(), &states).unwrap()).unwrap(), Message::States(states.clone()));
         assert!(encode_states(&key(), &message()).is_err(), "a state message hands nothing and goes to all");
         for kind in [IntentKind::Join, IntentKind::Action, IntentKind::Leave] {
@@ -618,7 +645,7 @@ mod tests {
         }
         assert_eq!(decode(&key(), &b[..40]), Err(WireError::Truncated(40)));
         let mut bad = message();
-        bad.objects[0].0.pos.x = f32::NAN;
+        bad.objects[0].state.pos.x = f32::NAN;
         let signed = encode_border(&key(), &bad).unwrap();
         assert!(matches!(decode(&key(), &signed), Err(WireError::Record { index: 0, .. })));
         assert!(encode_border(&key(), &Border { part: 2, ..message() }).is_err());
@@ -632,8 +659,8 @@ mod tests {
         let ids = prop_oneof![Just(0u16), Just(1), Just(ALL.0)];
         let record = prop_oneof![
             (any::<u32>(), any::<bool>()).prop_map(|(id, yours)| {
-                let b =
-                    encode_border(&key(), &Border { objects: vec![(object(id, 1.5), yours)], ..message() }).unwrap();
+                let objects = vec![BorderRecord { state: object(id, 1.5), yours }];
+                let b = encode_border(&key(), &Border { objects, ..message() }).unwrap();
                 b[HEADER_LEN..HEADER_LEN + RECORD_LEN].to_vec()
             }),
             proptest::collection::vec(any::<u8>(), RECORD_LEN),

@@ -17,6 +17,7 @@
 //!    dropped (their owners computed them with all their partners).
 
 use std::collections::BTreeMap;
+use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -29,7 +30,8 @@ use crate::intents::IntentBook;
 use crate::layout::{ZoneId, ZoneLayout};
 use crate::stats::ZoneStats;
 use crate::wire::{
-    ALL, Border, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border, encode_states,
+    ALL, Border, BorderRecord, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border,
+    encode_states,
 };
 
 /// What a zone needs besides its world: identity, cluster and patience.
@@ -48,17 +50,37 @@ pub struct ZoneConfig {
     pub live: bool,
 }
 
+/// How a zone's tick ended (a [`Zone::step`] that returns `Ok`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum TickEnd {
+    /// The zone stepped to the next tick, applying this many of the tick's scripted
+    /// actions (those of objects it owns).
+    Stepped(usize),
+    /// The supervisor's halt or start arrived while the zone waited for its neighbours:
+    /// the tick did not happen (the zone is still at it), and the caller decides what
+    /// the message means (a zone process ends its epoch on a newer one).
+    Interrupted(Message),
+}
+
 /// The parts of one neighbour's border state for one tick.
 #[derive(Default)]
 struct Parts {
     parts: u16,
-    got: Vec<Option<Vec<(ObjectState, bool)>>>,
+    got: Vec<Option<Vec<BorderRecord>>>,
 }
 
 impl Parts {
     fn complete(&self) -> bool {
         self.parts > 0 && self.got.iter().all(Option::is_some)
     }
+}
+
+/// An object of the step being assembled, with whether this zone owns it (steps it as
+/// owner and keeps its result) or only sees it (a ghost).
+#[derive(Clone, Copy)]
+struct Member {
+    state: ObjectState,
+    owned: bool,
 }
 
 /// One zone of a world split over several (see the module documentation).
@@ -75,8 +97,8 @@ pub struct Zone {
     stats: ZoneStats,
     /// Whether each slot of the last step was owned (scratch).
     owned_slots: Vec<bool>,
-    /// The objects of the step being assembled, with whether they are owned (scratch).
-    scratch: Vec<(ObjectState, bool)>,
+    /// The objects of the step being assembled (scratch).
+    scratch: Vec<Member>,
     /// Gateways' joins, actions and leaves for players' objects.
     intents: IntentBook,
 }
@@ -160,14 +182,20 @@ impl Zone {
 
     /// One tick: exchange border states with the neighbours, then step. `actions` are
     /// the actions of this tick for the whole world; those of objects this zone owns are
-    /// applied (returns how many).
-    pub fn step(&mut self, actions: &[ScriptedAction], k: &TickConstants) -> Result<usize, ZoneError> {
+    /// applied ([`TickEnd::Stepped`] says how many), unless the supervisor interrupts
+    /// the tick.
+    pub fn step(&mut self, actions: &[ScriptedAction], k: &TickConstants) -> Result<TickEnd, ZoneError> {
         let t = self.world.tick;
         let send = Instant::now();
         self.send_borders(t)?;
         self.stats.send += send.elapsed();
-        let received = self.gather(t)?;
-        self.drain_ready()?;
+        let received = match self.gather(t)? {
+            ControlFlow::Continue(received) => received,
+            ControlFlow::Break(control) => return Ok(TickEnd::Interrupted(control)),
+        };
+        if let Some(control) = self.drain_ready()? {
+            return Ok(TickEnd::Interrupted(control));
+        }
         let start = Instant::now();
         let applied = self.assemble(received, actions)?;
         let physics = Instant::now();
@@ -184,7 +212,7 @@ impl Zone {
         }
         self.intents.expire(self.world.tick);
         self.stats.bytes = self.fabric.bytes();
-        Ok(applied)
+        Ok(TickEnd::Stepped(applied))
     }
 
     /// The advanced set, at the tick just reached, to every gateway.
@@ -197,7 +225,7 @@ impl Zone {
                 to: ALL,
                 part,
                 parts,
-                objects: chunk.iter().map(|o| (*o, false)).collect(),
+                objects: chunk.iter().copied().map(BorderRecord::seen).collect(),
             };
             self.fabric.publish_states(encode_states(&self.cfg.key, &m)?)?;
             self.stats.messages.0 += 1;
@@ -213,13 +241,13 @@ impl Zone {
     fn send_borders(&mut self, t: u64) -> Result<(), ZoneError> {
         let me = self.cfg.id;
         let neighbours = self.layout.neighbours(me);
-        let mut out: Vec<Vec<(ObjectState, bool)>> = vec![Vec::new(); neighbours.len()];
+        let mut out: Vec<Vec<BorderRecord>> = vec![Vec::new(); neighbours.len()];
         for o in &self.advanced {
             let owner = self.layout.zone_at(o.pos);
             for z in self.layout.seers(o.pos).filter(|&z| z != me) {
                 let i =
                     neighbours.iter().position(|&n| n == z).ok_or(ZoneError::TooFar { id: o.id, from: me, to: z })?;
-                out[i].push((*o, z == owner));
+                out[i].push(BorderRecord { state: *o, yours: z == owner });
                 self.stats.handoffs_out += (z == owner) as u64;
             }
         }
@@ -235,8 +263,9 @@ impl Zone {
         Ok(())
     }
 
-    /// Step 2: every neighbour's border state for tick `t`.
-    fn gather(&mut self, t: u64) -> Result<Vec<(ObjectState, bool)>, ZoneError> {
+    /// Step 2: every neighbour's border state for tick `t`, or the supervisor's message
+    /// that interrupted the wait.
+    fn gather(&mut self, t: u64) -> Result<ControlFlow<Message, Vec<BorderRecord>>, ZoneError> {
         let start = Instant::now();
         let deadline = start + self.cfg.wait;
         let neighbours = self.layout.neighbours(self.cfg.id).to_vec();
@@ -247,7 +276,7 @@ impl Zone {
             match self.fabric.recv(deadline)? {
                 Some(bytes) => {
                     if let Some(control) = self.offer(&bytes) {
-                        return Err(ZoneError::Interrupted(control));
+                        return Ok(ControlFlow::Break(control));
                     }
                 }
                 None => {
@@ -271,18 +300,19 @@ impl Zone {
             let parts = self.inbox.remove(&(t, *n)).expect("complete");
             received.extend(parts.got.into_iter().flatten().flatten());
         }
-        Ok(received)
+        Ok(ControlFlow::Continue(received))
     }
 
     /// Takes every message already waiting (gateways' intents arrive whether or not this
-    /// zone waits on neighbours; a zone without any would otherwise never read them).
-    fn drain_ready(&mut self) -> Result<(), ZoneError> {
+    /// zone waits on neighbours; a zone without any would otherwise never read them), up
+    /// to a supervisor's message that interrupts the tick (returned).
+    fn drain_ready(&mut self) -> Result<Option<Message>, ZoneError> {
         while let Some(bytes) = self.fabric.recv(Instant::now())? {
             if let Some(control) = self.offer(&bytes) {
-                return Err(ZoneError::Interrupted(control));
+                return Ok(Some(control));
             }
         }
-        Ok(())
+        Ok(None)
     }
 
     /// Files a message in the inbox, or rejects (and counts) it. Only authenticated
@@ -348,7 +378,7 @@ impl Zone {
 
     /// Step 3: the zone's world for this tick, in entity-id order, with the owned
     /// objects' actions set.
-    fn assemble(&mut self, received: Vec<(ObjectState, bool)>, actions: &[ScriptedAction]) -> Result<usize, ZoneError> {
+    fn assemble(&mut self, received: Vec<BorderRecord>, actions: &[ScriptedAction]) -> Result<usize, ZoneError> {
         let me = self.cfg.id;
         let layout = &self.layout;
         // Reused from tick to tick: a zone's world is rebuilt every tick.
@@ -356,50 +386,51 @@ impl Zone {
         objects.clear();
         for o in &self.advanced {
             if layout.zone_at(o.pos) == me {
-                objects.push((*o, true));
+                objects.push(Member { state: *o, owned: true });
             } else if layout.sees(me, o.pos) {
-                objects.push((*o, false));
+                objects.push(Member { state: *o, owned: false });
             }
         }
         self.stats.ghosts_in += received.len() as u64;
-        self.stats.handoffs_in += received.iter().filter(|r| r.1).count() as u64;
-        objects.extend(received);
+        self.stats.handoffs_in += received.iter().filter(|r| r.yours).count() as u64;
+        // A record handed to this zone is one it owns from now on.
+        objects.extend(received.into_iter().map(|r| Member { state: r.state, owned: r.yours }));
         // Stable sort: the advanced set and each message are runs already sorted by id,
         // which the stable sort merges instead of sorting from scratch.
-        objects.sort_by_key(|(o, _)| o.id);
-        if let Some(w) = objects.windows(2).find(|w| w[0].0.id == w[1].0.id) {
-            return Err(ZoneError::Duplicate(w[0].0.id, self.world.tick));
+        objects.sort_by_key(|m| m.state.id);
+        if let Some(w) = objects.windows(2).find(|w| w[0].state.id == w[1].state.id) {
+            return Err(ZoneError::Duplicate(w[0].state.id, self.world.tick));
         }
         // Players: leaves remove what this zone owns, and so does the death or restart of
         // the object's gateway; joins are adopted by the zone whose region holds them
         // (once: not if the object is here already, or left).
         let (book, now) = (&self.intents, self.world.tick);
         let before = objects.len();
-        objects.retain(|(o, owned)| !(*owned && book.left(o.id)));
+        objects.retain(|m| !(m.owned && book.left(m.state.id)));
         self.stats.leaves += (before - objects.len()) as u64;
         let before = objects.len();
-        objects.retain(|(o, owned)| !*owned || book.keeps(o.id, now));
+        objects.retain(|m| !m.owned || book.keeps(m.state.id, now));
         self.stats.orphans += (before - objects.len()) as u64;
         for j in self.intents.take_joins() {
             if layout.zone_at(j.pos) != me || self.intents.left(j.id) {
                 continue;
             }
-            if let Err(at) = objects.binary_search_by_key(&j.id, |(o, _)| o.id) {
-                objects.insert(at, (j, true));
+            if let Err(at) = objects.binary_search_by_key(&j.id, |m| m.state.id) {
+                objects.insert(at, Member { state: j, owned: true });
                 self.stats.joins += 1;
             }
         }
         let d = &mut self.world.dynamics;
         d.clear();
-        d.insert_all(objects.iter().map(|(o, _)| *o))?;
+        d.insert_all(objects.iter().map(|m| m.state))?;
         self.owned_slots.clear();
-        self.owned_slots.extend(objects.iter().map(|(_, owned)| *owned));
+        self.owned_slots.extend(objects.iter().map(|m| m.owned));
         self.stats.ghosts = objects.len() - self.owned_slots.iter().filter(|o| **o).count();
         let mut applied = 0;
         for a in actions {
             // Slots are in id order: a search, not the id map (which would cost a map of
             // the whole zone every tick).
-            if let Ok(s) = objects.binary_search_by_key(&a.entity, |(o, _)| o.id)
+            if let Ok(s) = objects.binary_search_by_key(&a.entity, |m| m.state.id)
                 && self.owned_slots[s]
             {
                 d.set_action_at(s, a.action);
@@ -407,7 +438,7 @@ impl Zone {
             }
         }
         for (id, action) in self.intents.actions() {
-            if let Ok(s) = objects.binary_search_by_key(&id, |(o, _)| o.id)
+            if let Ok(s) = objects.binary_search_by_key(&id, |m| m.state.id)
                 && self.owned_slots[s]
                 && d.actions()[s] != action
             {

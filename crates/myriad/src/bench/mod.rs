@@ -1,0 +1,230 @@
+//! `myriad bench`: every scenario on every backend, medians per stage, in the layout of
+//! the reference's Tables 1 and 2.
+//!
+//! [`measure`] runs the backends' steps and the server ticks and gives one [`Row`] per
+//! run; [`report`] writes the rows as Markdown tables, JSON lines or CSV.
+
+mod measure;
+mod report;
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use myriad_physics::BackendKind;
+use myriad_server::ServerConfig;
+use myriad_server::outbound::OutboundKind;
+use serde::Serialize;
+
+use crate::scenario_args::{ScenarioName, WorldArgs};
+
+/// Output formats.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Format {
+    /// Markdown tables next to the reference's.
+    Md,
+    /// One JSON object per line.
+    Json,
+    /// Comma-separated values with a header.
+    Csv,
+}
+
+/// Flags of `myriad bench`.
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Scenarios, comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "1,2,3")]
+    pub scenario: Vec<ScenarioName>,
+    /// Backends, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "cpu,cpu-naive")]
+    pub backend: Vec<BackendKind>,
+    /// Measured ticks per run (after the warm-up).
+    #[arg(long, default_value_t = 30)]
+    pub ticks: u64,
+    /// Ticks run before measuring.
+    #[arg(long, default_value_t = 3)]
+    pub warmup: u64,
+    /// Output format on standard output.
+    #[arg(long, value_enum, default_value = "md")]
+    pub format: Format,
+    /// Also write bench.md, bench.json, bench.csv and the plots (PNG and SVG) into this
+    /// directory.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Run backends even when a tick takes longer than --max-tick-ms.
+    #[arg(long)]
+    pub force: bool,
+    /// A backend whose first tick takes longer than this is skipped (the reference's "-").
+    #[arg(long, default_value_t = 1000.0)]
+    pub max_tick_ms: f64,
+    /// Also run a scale sweep over these dynamic-object counts (comma-separated, e.g.
+    /// 10000,100000,1000000): statics at half the count, users at 1/26 (scenario 3's
+    /// share), the map grown to keep scenario 2's density.
+    #[arg(long, value_delimiter = ',')]
+    pub sweep: Vec<u32>,
+    /// Skip the end-to-end server tick (by default each scenario also runs the full
+    /// server tick on every non-naive backend, with one bot per user on loopback, for
+    /// the `packets`, `send` and `receive` columns).
+    #[arg(long)]
+    pub physics_only: bool,
+    /// Area-of-interest edge lengths of the server tick, in world units (comma-separated:
+    /// one server-tick row per size, e.g. `14,100`).
+    #[arg(long, value_delimiter = ',', default_values_t = [ServerConfig::default().aoi_size])]
+    pub aoi_size: Vec<f32>,
+    /// Where the server tick selects each player's records: `auto` (on the device with a
+    /// CUDA backend) or `host` (the host interest manager, for comparison).
+    #[arg(long, default_value = "auto", value_parser = parse_outbound)]
+    pub outbound: OutboundKind,
+    /// UDP sockets the server tick sends on (config `udp_sockets`: 0 is one per core, at
+    /// most 64).
+    #[arg(long, default_value_t = ServerConfig::default().udp_sockets)]
+    pub udp_sockets: usize,
+    /// Players in each chunk the device outbound sends while the device builds the next
+    /// (config `outbound_chunk_players`: 0 by the device's waves; at least the players:
+    /// one chunk).
+    #[arg(long, default_value_t = ServerConfig::default().outbound_chunk_players)]
+    pub outbound_chunk_players: usize,
+    #[command(flatten)]
+    pub world: WorldArgs,
+}
+
+fn parse_outbound(s: &str) -> Result<OutboundKind, String> {
+    match s {
+        "auto" => Ok(OutboundKind::Auto),
+        "host" => Ok(OutboundKind::Host),
+        other => Err(format!("unknown outbound `{other}` (auto or host)")),
+    }
+}
+
+/// One line of results: a scenario on a backend.
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    pub scenario: String,
+    pub backend: String,
+    /// `physics` (the backend's step alone) or `server` (the whole server tick).
+    pub mode: &'static str,
+    description: String,
+    threads: usize,
+    ticks: u64,
+    warmup: u64,
+    pub dynamic: usize,
+    users: usize,
+    npcs: usize,
+    static_objects: usize,
+    static_spheres: usize,
+    static_boxes: usize,
+    static_capsules: usize,
+    upload: f64,
+    build_dynamic_bvh: f64,
+    broad_static: f64,
+    broad_dynamic: f64,
+    narrow_static: f64,
+    narrow_dynamic: f64,
+    forces: f64,
+    packets: f64,
+    send: f64,
+    receive: f64,
+    physics_static_ms: f64,
+    physics_dynamic_ms: f64,
+    pub total_ms: f64,
+    /// CPU time of the whole process per measured tick (all threads), in ms: on a busy
+    /// machine wall times inflate, this does not.
+    cpu_ms: f64,
+    static_pairs: u64,
+    dynamic_pairs: u64,
+    static_contacts: u64,
+    dynamic_contacts: u64,
+    state_hash: String,
+    /// Server tick only: players (one bot socket each), per-tick medians of what was
+    /// sent and what the bots received and opened.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    server: Option<ServerTick>,
+    pub skipped: Option<String>,
+}
+
+/// What a server-tick row adds (medians per tick).
+#[derive(Clone, Debug, Serialize)]
+struct ServerTick {
+    players: usize,
+    aoi_size: f32,
+    /// The part of `packets` spent in the backend's AOI query on the host (ms; 0 with the
+    /// device outbound).
+    aoi_query: f64,
+    /// The part of `packets` spent waiting for the device's interest work (ms; 0 with the
+    /// host outbound).
+    device_wait: f64,
+    datagrams: u64,
+    bytes: u64,
+    records: u64,
+    actions_received: u64,
+    /// Bytes sent per player and second at the nominal tick rate.
+    bytes_per_player_s: f64,
+    delivered: u64,
+    rejected: u64,
+    /// Smallest number over the measured ticks of players whose update held their own
+    /// object.
+    min_saw_own: usize,
+}
+
+impl Row {
+    /// Whether the row belongs to the scale sweep.
+    pub fn is_sweep(&self) -> bool {
+        self.scenario.starts_with("sweep")
+    }
+
+    /// Whether the row is a whole server tick.
+    pub fn is_server(&self) -> bool {
+        self.mode == SERVER
+    }
+
+    /// The backend, with "server tick" and the AOI edge on server-tick rows.
+    pub fn label(&self) -> String {
+        match &self.server {
+            Some(t) => format!("{} server tick, AOI {}", self.backend, t.aoi_size),
+            None => self.backend.clone(),
+        }
+    }
+
+    /// The stage times in the order of [`crate::reference::STAGES`].
+    pub fn stages(&self) -> [f64; 9] {
+        [
+            self.upload,
+            self.build_dynamic_bvh,
+            self.broad_static,
+            self.broad_dynamic,
+            self.narrow_static,
+            self.narrow_dynamic,
+            self.forces,
+            self.packets,
+            self.send,
+        ]
+    }
+}
+
+/// [`Row::mode`] of a backend's step alone.
+const PHYSICS: &str = "physics";
+/// [`Row::mode`] of a whole server tick.
+const SERVER: &str = "server";
+
+/// Runs `myriad bench`.
+pub fn run(args: BenchArgs) -> Result<()> {
+    let rows = measure::measure(&args)?;
+    let md = report::markdown(&rows, &args);
+    let js = report::json(&rows)?;
+    let cs = report::csv(&rows)?;
+    match args.format {
+        Format::Md => print!("{md}"),
+        Format::Json => print!("{js}"),
+        Format::Csv => print!("{cs}"),
+    }
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        for (name, text) in [("bench.md", &md), ("bench.json", &js), ("bench.csv", &cs)] {
+            let path = dir.join(name);
+            std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        }
+        let plots = crate::plots::draw_all(&rows, dir)?;
+        eprintln!("wrote bench.md, bench.json, bench.csv and {} plots to {}", plots.len(), dir.display());
+    }
+    Ok(())
+}

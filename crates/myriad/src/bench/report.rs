@@ -1,0 +1,192 @@
+//! Reporting: the rows as Markdown tables beside the reference's, JSON lines, or CSV.
+
+use std::fmt::Write as _;
+
+use anyhow::Result;
+use myriad_server::ServerConfig;
+
+use super::{BenchArgs, Row};
+use crate::reference;
+
+fn fmt_ms(v: f64) -> String {
+    if v >= 100.0 {
+        format!("{v:.0}")
+    } else if v >= 1.0 {
+        format!("{v:.2}")
+    } else {
+        format!("{v:.3}")
+    }
+}
+
+/// Markdown: our Table 1 and Table 2, then the reference's.
+pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
+    let mut s = String::new();
+    let threads = rows.first().map_or(0, |r| r.threads);
+    let _ = writeln!(
+        s,
+        "#### Table 1: physics time per tick (ms, median of {} ticks after {} warm-up)\n",
+        args.ticks, args.warmup
+    );
+    let _ = writeln!(
+        s,
+        "| scenario | backend | static | dynamic | total | CPU per tick | dynamic pairs | static pairs | state hash |"
+    );
+    let _ = writeln!(s, "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |");
+    for r in rows.iter().filter(|r| !r.is_server()) {
+        match &r.skipped {
+            Some(why) => {
+                let _ = writeln!(s, "| {} | {} | - | - | - | | | | {why} |", r.scenario, r.backend);
+            }
+            None => {
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {} | {} | {} | {} | {} | {} | `{}` |",
+                    r.scenario,
+                    r.backend,
+                    fmt_ms(r.physics_static_ms),
+                    fmt_ms(r.physics_dynamic_ms),
+                    fmt_ms(r.total_ms),
+                    fmt_ms(r.cpu_ms),
+                    r.dynamic_pairs,
+                    r.static_pairs,
+                    r.state_hash
+                );
+            }
+        }
+    }
+    // Table 2 is the whole server tick where it was run; without it (--physics-only),
+    // the physics rows with `packets` and `send` at 0.
+    let server_rows: Vec<&Row> = rows.iter().filter(|r| r.is_server() && r.skipped.is_none()).collect();
+    let table2: Vec<&Row> = if server_rows.is_empty() {
+        rows.iter().filter(|r| r.skipped.is_none()).collect()
+    } else {
+        server_rows.clone()
+    };
+    let _ = writeln!(s, "\n#### Table 2: time per stage (ms, medians)\n");
+    let _ = writeln!(s, "| scenario | backend | {} |", reference::STAGES.join(" | "));
+    let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(reference::STAGES.len()));
+    for r in &table2 {
+        let cells: Vec<String> = r.stages().iter().map(|&v| fmt_ms(v)).collect();
+        let _ = writeln!(s, "| {} | {} | {} |", r.scenario, r.label(), cells.join(" | "));
+    }
+    if server_rows.is_empty() {
+        let _ = writeln!(
+            s,
+            "\n`packets` and `send` belong to the server tick and are 0 in a physics-only run. cpu threads: {threads}."
+        );
+    } else {
+        let _ = writeln!(
+            s,
+            "\n#### Table 3: the whole server tick (medians per tick; one bot socket per user on loopback)\n"
+        );
+        let _ = writeln!(
+            s,
+            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which host AOI query | of which device wait | send | datagrams | KiB sent | kB/s per player | records | actions in | opened by bots | min. players seeing themselves |"
+        );
+        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(16));
+        for r in &server_rows {
+            let Some(t) = &r.server else { continue };
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} |",
+                r.scenario,
+                r.backend,
+                t.aoi_size,
+                t.players,
+                fmt_ms(r.total_ms),
+                fmt_ms(r.cpu_ms),
+                fmt_ms(r.receive),
+                fmt_ms(r.packets),
+                fmt_ms(t.aoi_query),
+                fmt_ms(t.device_wait),
+                fmt_ms(r.send),
+                t.datagrams,
+                t.bytes as f64 / 1024.0,
+                t.bytes_per_player_s / 1000.0,
+                t.records,
+                t.actions_received,
+                t.delivered,
+                t.min_saw_own
+            );
+        }
+        let _ = writeln!(
+            s,
+            "\n`tick` is the sum of the stages (receive included); `server CPU` is the process's CPU time less the bots'. \
+             `send` is the mean socket's time sending (the sockets send at once, and with the device outbound \
+             beside the device's work), `packets` the rest of building and sending; `of which host AOI query`: \
+             the backend's AOI query on the host (0 with the device outbound); `of which device wait`: \
+             the time the tick waited for the device's query, selection, packing and sealing (0 on the host). \
+             `kB/s per player`: bytes sent per tick and player at the nominal tick rate ({} Hz). \
+             Each bot sends an action every {} ticks. cpu threads: {threads}.",
+            ServerConfig::default().tick_rate,
+            myriad_server::tick_bench::ACTION_EVERY
+        );
+    }
+    let _ = writeln!(s, "\n#### The reference ({})\n", reference::MACHINE);
+    let _ = writeln!(
+        s,
+        "| scenario | CPU static | CPU dynamic | naive GPU static | naive GPU dynamic | optimized GPU static | optimized GPU dynamic |"
+    );
+    let _ = writeln!(s, "| --- | ---: | ---: | ---: | ---: | ---: | ---: |");
+    for (name, v) in reference::TABLE1 {
+        let cells: Vec<String> = v.iter().map(|c| c.map_or("-".into(), |x| format!("{x}"))).collect();
+        let _ = writeln!(s, "| {name} | {} |", cells.join(" | "));
+    }
+    let _ = writeln!(s, "\n| scenario (optimized GPU) | {} |", reference::STAGES.join(" | "));
+    let _ = writeln!(s, "| --- |{}", " ---: |".repeat(reference::STAGES.len()));
+    for (name, v) in reference::TABLE2 {
+        let cells: Vec<String> = v.iter().map(|x| format!("{x}")).collect();
+        let _ = writeln!(s, "| {name} | {} |", cells.join(" | "));
+    }
+    s
+}
+
+/// One JSON object per line.
+pub fn json(rows: &[Row]) -> Result<String> {
+    let mut s = String::new();
+    for r in rows {
+        s.push_str(&serde_json::to_string(r)?);
+        s.push('\n');
+    }
+    Ok(s)
+}
+
+/// CSV with a header line: one column per field, nested fields as `server.players`
+/// and so on, empty where a row does not have the field (physics rows have no
+/// `server.*`).
+pub fn csv(rows: &[Row]) -> Result<String> {
+    fn flatten(prefix: &str, v: &serde_json::Value, out: &mut Vec<(String, String)>) {
+        match v {
+            serde_json::Value::Object(o) => {
+                for (k, v) in o {
+                    let key = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+                    flatten(&key, v, out);
+                }
+            }
+            serde_json::Value::String(t) => out.push((prefix.into(), format!("\"{}\"", t.replace('"', "\"\"")))),
+            serde_json::Value::Null => out.push((prefix.into(), String::new())),
+            other => out.push((prefix.into(), other.to_string())),
+        }
+    }
+    let mut flat = Vec::with_capacity(rows.len());
+    let mut header: Vec<String> = Vec::new();
+    for r in rows {
+        let mut cells = Vec::new();
+        flatten("", &serde_json::to_value(r)?, &mut cells);
+        for (k, _) in &cells {
+            if !header.contains(k) {
+                header.push(k.clone());
+            }
+        }
+        flat.push(cells);
+    }
+    let mut s = header.join(",");
+    s.push('\n');
+    for cells in &flat {
+        let line: Vec<&str> =
+            header.iter().map(|h| cells.iter().find(|(k, _)| k == h).map_or("", |(_, v)| v.as_str())).collect();
+        s.push_str(&line.join(","));
+        s.push('\n');
+    }
+    Ok(s)
+}

@@ -17,6 +17,8 @@ shift 3
 modes=${*:-session garbage oversized unknown-logins logins connections lockout max-seq}
 duration=${DURATION:-10}
 data=$(mktemp -d /tmp/myriad-flood.XXXXXX)
+# SERVE_ARGS is a list of flags: split it on whitespace, once.
+read -ra serve_args <<<"${SERVE_ARGS:-}"
 mkdir -p "$out"
 port_udp=17777 port_login=17778 port_metrics=19100
 
@@ -24,7 +26,7 @@ port_udp=17777 port_login=17778 port_metrics=19100
 
 for mode in $modes; do
   "$server_bin" serve --data-dir "$data" --backend cpu --udp 127.0.0.1:$port_udp \
-    --login 127.0.0.1:$port_login --metrics 127.0.0.1:$port_metrics ${SERVE_ARGS:-} \
+    --login 127.0.0.1:$port_login --metrics 127.0.0.1:$port_metrics "${serve_args[@]}" \
     >"$out/serve-$mode.log" 2>&1 &
   server=$!
   for _ in $(seq 100); do

@@ -10,13 +10,21 @@
 # does not have to share the server's cores. MODE=host times the CPU backend's server
 # tick (scenario 2, AOI 14 and 100) and AOI query on the host's cores, with the build in
 # .carry/before/ first when there is one (scripts/gpu-build.sh with PARTS=host).
+#
+# Exits non-zero when any test binary or command fails or any comparison differs, and
+# ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
+# checks that on fake bundles, without a GPU.
 set -uo pipefail
 out=${OUT:-out}
 mkdir -p "$out"
 mode=${MODE:-all}
 export MYRIAD_REQUIRE_CUDA=1
 export MYRIAD_CUBIN_CACHE=${MYRIAD_CUBIN_CACHE:-/tmp/myriad-cubin}
-status=0
+# Failures are appended to a file, not to a variable: most steps below run in the
+# subshells of pipelines (`... | tee`), whose variables die with them.
+failures="$out/failures.txt"
+: >"$failures"
+fail() { echo "$*" >>"$failures"; }
 {
     date -u
     nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.mem --format=csv || true
@@ -25,39 +33,48 @@ status=0
 if [[ $mode == all || $mode == tests ]]; then
     for t in .carry/tests/*; do
         echo "=== $(basename "$t")"
-        "$t" --test-threads=1 --nocapture 2>&1 | grep -v '^$' || status=1
+        "$t" --test-threads=1 --nocapture 2>&1 | grep -v '^$'
+        [[ ${PIPESTATUS[0]} == 0 ]] || fail "test binary $(basename "$t") failed"
     done 2>&1 | tee "$out/tests.log"
     grep -E "^test result|^parity|FAILED|panicked" "$out/tests.log" || true
     # The CLI's own hash on the reference scenario 1, every backend.
     for b in cpu cuda-naive cuda; do
-        .carry/myriad sim --scenario 1 --ticks 200 --backend "$b" --json 2>/dev/null
+        .carry/myriad sim --scenario 1 --ticks 200 --backend "$b" --json 2>/dev/null ||
+            fail "sim scenario 1 --backend $b failed"
     done | tee "$out/sim-hashes.jsonl" | python3 -c '
 import json, sys
 rows = [json.loads(l) for l in sys.stdin if l.strip()]
 for r in rows:
     print("sim scenario 1, 200 ticks:", r["backend"], r["state_hash"], "%.3f ms a tick" % r["mean_tick_ms"])
-print("sim hashes equal:", len({r["state_hash"] for r in rows}) == 1)
-'
+equal = len(rows) == 3 and len({r["state_hash"] for r in rows}) == 1
+print("sim hashes equal:", equal)
+sys.exit(0 if equal else 1)
+' || fail "sim scenario 1: the backends hashes differ (or a run is missing)"
     # Large worlds: CPU and GPU hashes after a few ticks (many sort tiles, deep trees).
     for spec in "300000 150000 1100.0 30" "2000000 1000000 2840.2 5"; do
-        set -- $spec
+        read -r dynamic static size ticks <<<"$spec"
         for b in cpu cuda; do
-            .carry/myriad sim --scenario custom --dynamic "$1" --static "$2" --users $(($1 / 26)) \
-                --world-size "$3" --ticks "$4" --backend "$b" --json 2>/dev/null
+            .carry/myriad sim --scenario custom --dynamic "$dynamic" --static "$static" --users $((dynamic / 26)) \
+                --world-size "$size" --ticks "$ticks" --backend "$b" --json 2>/dev/null ||
+                fail "sim $dynamic dynamic --backend $b failed"
         done
     done | tee -a "$out/sim-hashes.jsonl" | python3 -c '
 import json, sys
 rows = [json.loads(l) for l in sys.stdin if l.strip()]
+ok = len(rows) == 4
 for a, b in zip(rows[::2], rows[1::2]):
-    print("sim %d dynamic, %d ticks: cpu %s cuda %s equal: %s" % (a["dynamic"], a["ticks"], a["state_hash"], b["state_hash"], a["state_hash"] == b["state_hash"]))
-'
+    equal = a["dynamic"] == b["dynamic"] and a["state_hash"] == b["state_hash"]
+    ok = ok and equal
+    print("sim %d dynamic, %d ticks: cpu %s cuda %s equal: %s" % (a["dynamic"], a["ticks"], a["state_hash"], b["state_hash"], equal))
+sys.exit(0 if ok else 1)
+' || fail "sim large worlds: cpu and cuda hashes differ (or a run is missing)"
 fi
 
 if [[ $mode == all || $mode == bench ]]; then
     # Tables 1 to 3: physics on every backend, then the whole server tick (one bot per
     # user on loopback, at AOI 14 and 100) on cuda and cpu; plots into $out/bench.
     .carry/myriad bench --scenario 1,2,3 --backend cuda,cuda-naive,cpu --ticks 30 --warmup 3 --aoi-size 14,100 \
-        --out "$out/bench" > "$out/bench-ref.md" 2> "$out/bench.log" || status=1
+        --out "$out/bench" > "$out/bench-ref.md" 2> "$out/bench.log" || fail "bench tables 1 to 3 failed"
     sed -n '1,/#### The reference/p' "$out/bench-ref.md"
     # Scale sweep: dynamic N, static N/2, world area grows with N (density of scenario 3:
     # 260k objects on a 1024 x 1024 map).
@@ -65,14 +82,14 @@ if [[ $mode == all || $mode == bench ]]; then
         size=$(python3 -c "import math; print(round(1024 * math.sqrt($n / 260000), 1))")
         .carry/myriad bench --scenario custom --dynamic $n --static $((n / 2)) --users $((n / 26)) \
             --world-size "$size" --backend cuda --ticks 20 --warmup 3 --format json --physics-only \
-            2>> "$out/bench.log"
-    done > "$out/sweep.jsonl" || status=1
+            2>> "$out/bench.log" || fail "bench sweep at $n dynamic failed"
+    done > "$out/sweep.jsonl"
     # Per-kernel device times (CUDA events around every launch; slows the step a little).
     MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 1,3 --backend cuda --ticks 20 --warmup 3 --physics-only \
-        > /dev/null 2> "$out/profile.txt" || status=1
+        > /dev/null 2> "$out/profile.txt" || fail "profile of scenarios 1 and 3 failed"
     MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario custom --dynamic 2000000 --static 1000000 \
         --users 76923 --world-size 2840.2 --backend cuda --ticks 10 --warmup 2 --physics-only \
-        > /dev/null 2>> "$out/profile.txt" || status=1
+        > /dev/null 2>> "$out/profile.txt" || fail "profile at 2,000,000 dynamic failed"
     grep -E "per-kernel|^\|" "$out/profile.txt"
     python3 - "$out/sweep.jsonl" <<'PY'
 import json, sys
@@ -99,40 +116,50 @@ if [[ $mode == zones ]]; then
         for sc in 1 2 clustered; do
             ticks=200
             [[ $sc == 1 ]] || ticks=120
-            .carry/myriad sim --scenario $sc --ticks $ticks --backend cpu --json 2>/dev/null
+            .carry/myriad sim --scenario $sc --ticks $ticks --backend cpu --json 2>/dev/null ||
+                fail "sim scenario $sc on cpu failed"
             for k in 2 4 9; do
-                .carry/myriad sim --scenario $sc --ticks $ticks --backend cuda --zones $k --gpus "$gpus" --json 2>/dev/null
+                .carry/myriad sim --scenario $sc --ticks $ticks --backend cuda --zones $k --gpus "$gpus" --json 2>/dev/null ||
+                    fail "sim scenario $sc, $k zones failed"
             done
         done
         # Scenario 3: one zone on one GPU, then two zones, one per GPU (threads of one
         # process), then two zone processes over NATS.
-        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json 2>/dev/null
-        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus 1 --json 2>/dev/null
-        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus "$gpus" --json 2>/dev/null
-        .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --zones 2 --gpus "$gpus" --nats nats://127.0.0.1:4222 --json 2>/dev/null
+        s3=(.carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json)
+        "${s3[@]}" 2>/dev/null || fail "sim scenario 3, one zone failed"
+        "${s3[@]}" --zones 2 --gpus 1 2>/dev/null || fail "sim scenario 3, 2 zones on 1 GPU failed"
+        "${s3[@]}" --zones 2 --gpus "$gpus" 2>/dev/null || fail "sim scenario 3, 2 zones on $gpus GPUs failed"
+        "${s3[@]}" --zones 2 --gpus "$gpus" --nats nats://127.0.0.1:4222 2>/dev/null ||
+            fail "sim scenario 3, 2 zones over NATS failed"
     } | tee "$out/zones.jsonl" | python3 -c '
 import json, sys
 rows = [json.loads(l) for l in sys.stdin if l.strip()]
 want = None
+ok = len(rows) == 16
 for r in rows:
     z = r.get("zoned")
     if z is None:
         want = r["state_hash"]
+    ok = ok and r["state_hash"] == want
     print("sim scenario %s, %d ticks, %s%s: %s, %.3f ms a tick, equal to one process: %s%s" % (
         r["scenario"], r["ticks"], r["description"], "" if z is None else " over " + z["fabric"],
         r["state_hash"], r["mean_tick_ms"], r["state_hash"] == want,
         "" if z is None else "; per zone: physics %s, overhead %s, wait %s ms a tick; %d ghost records, %.1f MB" % (
             [round(x, 2) for x in z["physics_ms"]], [round(x, 2) for x in z["overhead_ms"]], [round(x, 2) for x in z["wait_ms"]],
             z["ghost_records"], z["fabric_bytes"] / 1e6)))
-'
-    .carry/myriad cluster --zones 2 --gpus "$gpus" --scenario 3 --ticks 100 --backend cuda --json 2>"$out/cluster.log" | tee "$out/cluster.json" || status=1
-    [[ -n $nats_pid ]] && kill "$nats_pid"
+sys.exit(0 if ok else 1)
+' || fail "zones: a zoned run differs from one process (or a run is missing)"
+    .carry/myriad cluster --zones 2 --gpus "$gpus" --scenario 3 --ticks 100 --backend cuda --json 2>"$out/cluster.log" |
+        tee "$out/cluster.json"
+    [[ ${PIPESTATUS[0]} == 0 ]] || fail "cluster of 2 zones failed"
+    [[ -z $nats_pid ]] || kill "$nats_pid"
 fi
 
 if [[ $mode == flood ]]; then
-    DURATION=8 bash scripts/flood-figures.sh .carry/myriad .carry/myriad "$out/flood" session garbage oversized busy || status=1
+    DURATION=8 bash scripts/flood-figures.sh .carry/myriad .carry/myriad "$out/flood" session garbage oversized busy ||
+        fail "flood figures failed"
     SERVE_ARGS="--set receive_thread=false" DURATION=8 bash scripts/flood-figures.sh .carry/myriad .carry/myriad \
-        "$out/flood-inline" session garbage || status=1
+        "$out/flood-inline" session garbage || fail "flood figures with receive_thread=false failed"
     nproc
 fi
 
@@ -141,13 +168,13 @@ if [[ $mode == host ]]; then
     for bin in .carry/before/myriad .carry/myriad; do
         [[ -x $bin ]] || continue
         echo "=== $bin"
-        for run in 1 2; do
+        for _ in 1 2; do
             $bin bench --scenario 2 --backend cpu --ticks 30 --warmup 3 --aoi-size 14,100 \
-                2>>"$out/host.log" | grep -E '^\| 2 \| cpu \| (14|100) ' || status=1
+                2>>"$out/host.log" | grep -E '^\| 2 \| cpu \| (14|100) ' || fail "$bin bench scenario 2 failed"
         done
     done
     if [[ -x .carry/aoi_query ]]; then
-        for a in "2 100" "3 100"; do .carry/aoi_query $a || status=1; done
+        for sc in 2 3; do .carry/aoi_query "$sc" 100 || fail "aoi_query scenario $sc failed"; done
     fi
 fi
 
@@ -155,4 +182,9 @@ fi
 if [[ -d $out/bench ]]; then
     tar -C "$out" -czf "$out/bench.tgz" bench && rm -rf "$out/bench"
 fi
-exit $status
+if [[ -s $failures ]]; then
+    echo "=== FAILED ($(wc -l <"$failures")):"
+    sed 's/^/  /' "$failures"
+    exit 1
+fi
+echo "=== all passed"

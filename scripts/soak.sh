@@ -21,12 +21,14 @@ while getopts "b:n:d:c:s:m:" o; do case $o in
   b) BIN=$OPTARG;; n) BOTS=$OPTARG;; d) DUR=$OPTARG;; c) CONC=$OPTARG;; s) SAMPLE=$OPTARG;; m) MAXMIB=$OPTARG;;
   *) sed -n 2,14p "$0"; exit 2;; esac; done
 (( DUR <= 3600 && BOTS <= 10000 )) || { echo "bounded: at most 3600 s and 10000 bots" >&2; exit 2; }
+# SERVE_ARGS is a list of flags: split it on whitespace, once.
+read -ra serve_args <<<"${SERVE_ARGS:-}"
 DIR=$(mktemp -d); trap 'kill $SRV 2>/dev/null || true; rm -rf "$DIR"' EXIT
 P=$((20000 + RANDOM % 20000))
 UDP=127.0.0.1:$P LOGIN=127.0.0.1:$((P+1)) MET=127.0.0.1:$((P+2))
 "$BIN" user seed --count "$BOTS" --data-dir "$DIR" >/dev/null
 "$BIN" serve --data-dir "$DIR" --udp $UDP --login $LOGIN --metrics $MET --backend cpu \
-  --set log_stages_every_s=1 ${SERVE_ARGS:-} >"$DIR/serve.log" 2>&1 & SRV=$!
+  --set log_stages_every_s=1 "${serve_args[@]}" >"$DIR/serve.log" 2>&1 & SRV=$!
 for _ in $(seq 1 120); do grep -q "server started" "$DIR/serve.log" && break; sleep 0.5; done
 rss() { awk '/VmRSS/ {print int($2/1024)}' /proc/$SRV/status; }
 metrics() { curl -s "http://$MET/metrics"; }

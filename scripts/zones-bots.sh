@@ -13,7 +13,8 @@ while getopts "b:k:n:d:s:" o; do case $o in
   b) BIN=$OPTARG;; k) KS=$OPTARG;; n) BOTS=$OPTARG;; d) DUR=$OPTARG;; s) SC=$OPTARG;;
   *) sed -n 2,10p "$0"; exit 2;; esac; done
 URL=${NATS_URL:-nats://127.0.0.1:4222}
-export MYRIAD_CLUSTER_KEY=$(head -c 24 /dev/urandom | od -An -tx1 | tr -d ' \n')
+MYRIAD_CLUSTER_KEY=$(head -c 24 /dev/urandom | od -An -tx1 | tr -d ' \n')
+export MYRIAD_CLUSTER_KEY
 DIR=$(mktemp -d); trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$DIR"' EXIT
 "$BIN" user seed --count "$BOTS" --data-dir "$DIR/d" >/dev/null
 m() { curl -s "http://127.0.0.1:$1/metrics" | awk -v n="$2" '$1 == n || index($1, n "{") == 1 {s += $2} END {print s + 0}'; }

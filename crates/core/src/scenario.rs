@@ -101,6 +101,19 @@ impl ScenarioSpec {
         }
     }
 
+    /// These counts: `dynamic` objects, of which `users` are users, and `static_objects`
+    /// static objects. With [`ScenarioSpec::map_size`], the one-expression test world of
+    /// tests and benches: `ScenarioSpec::custom(seed).counts(300, 0, 30).map_size(96.0, 33)`.
+    pub fn counts(self, dynamic: u32, users: u32, static_objects: u32) -> ScenarioSpec {
+        ScenarioSpec { dynamic, users, static_objects, ..self }
+    }
+
+    /// A map `world_size` long along x and z, with `terrain_samples` heightmap samples per
+    /// side.
+    pub fn map_size(self, world_size: f32, terrain_samples: u32) -> ScenarioSpec {
+        ScenarioSpec { world_size, terrain_samples, ..self }
+    }
+
     /// Scenario 2's counts with most dynamic objects crowding eight hot spots.
     pub fn clustered(seed: u64) -> ScenarioSpec {
         ScenarioSpec {

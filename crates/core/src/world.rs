@@ -49,6 +49,55 @@ pub mod flags {
     pub const SUPPORTED: u8 = 1 << 1;
 }
 
+/// The accessors of the structures of arrays [`Dynamics`] and [`Statics`], whose fields
+/// `pos`, `half`, `radius`, `shape`, `generation` and `stamp` mean the same in both: a
+/// read-only slice of each of those four per-element vectors and of each one listed
+/// (`name: field: type, "doc";`), the shape and the bounding box of element `i`, the
+/// generation and the stamp. The literal first names an element in the docs.
+macro_rules! soa_accessors {
+    ($what:literal; $($name:ident: $field:ident: $t:ty, $doc:literal;)*) => {
+        $(
+            #[doc = $doc]
+            pub fn $name(&self) -> &[$t] {
+                &self.$field
+            }
+        )*
+        #[doc = concat!("Centres (current positions) by ", $what, ".")]
+        pub fn positions(&self) -> &[Vec3] {
+            &self.pos
+        }
+        #[doc = concat!("Bounding-box half extents by ", $what, ".")]
+        pub fn half_extents(&self) -> &[Vec3] {
+            &self.half
+        }
+        #[doc = concat!("Radii by ", $what, " (0 for boxes).")]
+        pub fn radii(&self) -> &[f32] {
+            &self.radius
+        }
+        #[doc = concat!("Shape kinds by ", $what, ".")]
+        pub fn shapes(&self) -> &[ShapeKind] {
+            &self.shape
+        }
+        #[doc = concat!("The shape of the ", $what, " `i`.")]
+        pub fn shape_of(&self, i: usize) -> Shape {
+            Shape::from_compact(self.shape[i], self.half[i], self.radius[i])
+        }
+        #[doc = concat!("The bounding box of the ", $what, " `i`.")]
+        pub fn aabb(&self, i: usize) -> Aabb {
+            Aabb::from_center_half(self.pos[i], self.half[i])
+        }
+        /// A counter bumped by every change made through this type's methods.
+        pub fn generation(&self) -> u64 {
+            self.generation
+        }
+        /// This value's process-unique stamp (a clone has its own): with the
+        /// generation(s), what a device copy is keyed on.
+        pub fn stamp(&self) -> u64 {
+            self.stamp.get()
+        }
+    };
+}
+
 /// Dynamic objects, structure of arrays. See the module documentation for invariants.
 #[derive(Clone, Debug, Default)]
 pub struct Dynamics {
@@ -381,58 +430,13 @@ impl Dynamics {
         }
     }
 
-    /// Entity ids by slot.
-    pub fn ids(&self) -> &[EntityId] {
-        &self.id
-    }
-    /// Current positions by slot.
-    pub fn positions(&self) -> &[Vec3] {
-        &self.pos
-    }
-    /// Previous positions by slot (velocity per tick is `pos - prev`).
-    pub fn prev_positions(&self) -> &[Vec3] {
-        &self.prev
-    }
-    /// Bounding-box half extents by slot.
-    pub fn half_extents(&self) -> &[Vec3] {
-        &self.half
-    }
-    /// Radii by slot (0 for boxes).
-    pub fn radii(&self) -> &[f32] {
-        &self.radius
-    }
-    /// Shape kinds by slot.
-    pub fn shapes(&self) -> &[ShapeKind] {
-        &self.shape
-    }
-    /// NPC or user, by slot.
-    pub fn kinds(&self) -> &[ObjectKind] {
-        &self.kind
-    }
-    /// Held action masks by slot.
-    pub fn actions(&self) -> &[u8] {
-        &self.action
-    }
-    /// Flag bits by slot (see [`flags`]).
-    pub fn flags(&self) -> &[u8] {
-        &self.flags
-    }
-    /// The shape of the object in `slot`.
-    pub fn shape_of(&self, slot: usize) -> Shape {
-        Shape::from_compact(self.shape[slot], self.half[slot], self.radius[slot])
-    }
-    /// The bounding box of the object in `slot`.
-    pub fn aabb(&self, slot: usize) -> Aabb {
-        Aabb::from_center_half(self.pos[slot], self.half[slot])
-    }
-    /// A counter bumped by every mutation through this type's methods.
-    pub fn generation(&self) -> u64 {
-        self.generation
-    }
-    /// This value's process-unique stamp (a clone has its own): with the generations,
-    /// what a device copy is keyed on.
-    pub fn stamp(&self) -> u64 {
-        self.stamp.get()
+    soa_accessors! {
+        "slot";
+        ids: id: EntityId, "Entity ids by slot.";
+        prev_positions: prev: Vec3, "Previous positions by slot (velocity per tick is `pos - prev`).";
+        kinds: kind: ObjectKind, "NPC or user, by slot.";
+        actions: action: u8, "Held action masks by slot.";
+        flags: flags: u8, "Flag bits by slot (see [`flags`]).";
     }
     /// A counter bumped whenever objects are added or removed.
     pub fn layout_generation(&self) -> u64 {
@@ -541,42 +545,9 @@ impl Statics {
     pub fn prim_count(&self) -> usize {
         self.pos.len()
     }
-    /// Primitive centres.
-    pub fn positions(&self) -> &[Vec3] {
-        &self.pos
-    }
-    /// Primitive half extents.
-    pub fn half_extents(&self) -> &[Vec3] {
-        &self.half
-    }
-    /// Primitive radii.
-    pub fn radii(&self) -> &[f32] {
-        &self.radius
-    }
-    /// Primitive shape kinds.
-    pub fn shapes(&self) -> &[ShapeKind] {
-        &self.shape
-    }
-    /// The object each primitive belongs to.
-    pub fn owners(&self) -> &[u32] {
-        &self.owner
-    }
-    /// The shape of primitive `i`.
-    pub fn shape_of(&self, i: usize) -> Shape {
-        Shape::from_compact(self.shape[i], self.half[i], self.radius[i])
-    }
-    /// The bounding box of primitive `i`.
-    pub fn aabb(&self, i: usize) -> Aabb {
-        Aabb::from_center_half(self.pos[i], self.half[i])
-    }
-    /// A counter bumped by every change.
-    pub fn generation(&self) -> u64 {
-        self.generation
-    }
-    /// This value's process-unique stamp (a clone has its own): with the generation,
-    /// what a device copy is keyed on.
-    pub fn stamp(&self) -> u64 {
-        self.stamp.get()
+    soa_accessors! {
+        "primitive";
+        owners: owner: u32, "The object each primitive belongs to.";
     }
     /// Number of primitives of each kind, in [`ShapeKind`] order.
     pub fn prims_by_shape(&self) -> [usize; 3] {
@@ -643,101 +614,4 @@ pub fn hash_state(objects: impl Iterator<Item = ObjectState>, tick: u64, len: us
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::terrain::TerrainPlacement;
-
-    fn world() -> World {
-        let bounds = Aabb::new(Vec3::new(-10.0, -5.0, -10.0), Vec3::new(10.0, 20.0, 10.0));
-        let terrain = Terrain::flat(TerrainPlacement {
-            origin_x: -10.0,
-            origin_z: -10.0,
-            extent_x: 20.0,
-            extent_z: 20.0,
-            base_y: -5.0,
-        });
-        World::new(bounds, terrain, 1).unwrap()
-    }
-
-    #[test]
-    fn despawn_keeps_slots_dense_and_ids_stable() {
-        let mut w = world();
-        let d = &mut w.dynamics;
-        let a = d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap();
-        let b = d.spawn(Shape::Box { half: Vec3::ONE }, Vec3::X, ObjectKind::User).unwrap();
-        let c = d.spawn(Shape::Capsule { radius: 0.5, half_height: 1.0 }, Vec3::Y, ObjectKind::Npc).unwrap();
-        assert!(d.despawn(a));
-        assert!(!d.despawn(a));
-        assert_eq!(d.len(), 2);
-        assert_eq!(d.slot(c), Some(0));
-        assert_eq!(d.positions()[0], Vec3::Y);
-        assert_eq!(d.slot(b), Some(1));
-        assert_eq!(d.shape_of(0), Shape::Capsule { radius: 0.5, half_height: 1.0 });
-        let (g, a) = (d.generation(), d.action_generation());
-        assert!(d.set_action(b, Action::from_bits(Action::JUMP).unwrap()));
-        assert_eq!(d.actions()[1], Action::JUMP);
-        assert_eq!((d.generation() - g, d.action_generation() - a), (1, 1), "only an action changed");
-        assert!(d.teleport(b, Vec3::ONE));
-        assert_ne!(d.generation() - g, d.action_generation() - a, "a teleport is more than an action");
-        assert!(d.spawn(Shape::Sphere { radius: -1.0 }, Vec3::ZERO, ObjectKind::Npc).is_err());
-        assert!(d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::NAN, ObjectKind::Npc).is_err());
-    }
-
-    #[test]
-    fn insert_keeps_the_id_and_refuses_bad_states() {
-        let mut w = world();
-        let a = w.dynamics.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap();
-        let mut s = w.dynamics.state_of(0);
-        assert_eq!(s.id, a);
-        assert!(w.dynamics.insert(&s).is_err(), "the id is taken");
-        s.id = EntityId(40);
-        s.prev = Vec3::X;
-        let g = w.dynamics.generation();
-        w.dynamics.insert(&s).unwrap();
-        assert!(w.dynamics.generation() > g);
-        assert_eq!(w.dynamics.state_of(1), s);
-        assert_eq!(w.dynamics.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap(), EntityId(41));
-        for bad in [
-            ObjectState { id: EntityId(50), pos: Vec3::NAN, ..s },
-            ObjectState { id: EntityId(50), radius: -1.0, ..s },
-            ObjectState { id: EntityId(50), half: Vec3::new(2.0, 1.0, 1.0), ..s },
-            ObjectState { id: EntityId(50), action: 32, ..s },
-            ObjectState { id: EntityId(50), flags: 4, ..s },
-            ObjectState { id: EntityId(u32::MAX), ..s },
-        ] {
-            assert!(w.dynamics.insert(&bad).is_err(), "{bad:?}");
-        }
-        assert_eq!(w.dynamics.len(), 3);
-        // All or none: a bad state in the middle leaves the world as it was.
-        let good = ObjectState { id: EntityId(60), ..s };
-        let dup = ObjectState { id: EntityId(61), ..s };
-        let h = w.state_hash();
-        assert!(w.dynamics.insert_all([good, dup, ObjectState { id: EntityId(61), ..s }].into_iter()).is_err());
-        assert_eq!(w.state_hash(), h);
-        assert!(w.dynamics.slot(EntityId(60)).is_none());
-        w.dynamics.insert_all([good, dup].into_iter()).unwrap();
-        assert_eq!(w.dynamics.state_of(4), dup);
-        assert_eq!(w.dynamics.slot(EntityId(61)), Some(4));
-        let h = w.state_hash();
-        w.dynamics.clear();
-        assert!(w.dynamics.is_empty());
-        assert_ne!(w.state_hash(), h);
-    }
-
-    #[test]
-    fn hash_changes_with_state() {
-        let mut w = world();
-        let id = w.dynamics.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap();
-        let h0 = w.state_hash();
-        assert_eq!(h0, w.clone().state_hash());
-        w.dynamics.teleport(id, Vec3::new(0.0, 1e-6, 0.0));
-        assert_ne!(w.state_hash(), h0);
-    }
-
-    #[test]
-    fn rejects_empty_bounds() {
-        let t =
-            Terrain::flat(TerrainPlacement { origin_x: 0.0, origin_z: 0.0, extent_x: 1.0, extent_z: 1.0, base_y: 0.0 });
-        assert!(World::new(Aabb::new(Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0)), t, 0).is_err());
-    }
-}
+mod tests;

@@ -1,17 +1,28 @@
 //! Compiles every kernel with NVRTC. Needs the NVRTC library only, not a GPU, so CI runs
 //! it on CPU-only machines (with NVRTC from PyPI on LD_LIBRARY_PATH). Skips with a
-//! message when NVRTC is not found, unless `MYRIAD_REQUIRE_CUDA=1`.
+//! message when NVRTC is not found, unless `MYRIAD_REQUIRE_NVRTC=1` (CI) or
+//! `MYRIAD_REQUIRE_CUDA=1` (the GPU machine) makes that a failure.
 
 use myriad_cuda::compile;
 
+/// Whether NVRTC is here; when it is not, fails the test under `MYRIAD_REQUIRE_CUDA=1` or
+/// `MYRIAD_REQUIRE_NVRTC=1`, or says that it skips (`unchecked`: what goes unchecked).
+fn nvrtc(unchecked: &str) -> bool {
+    if compile::nvrtc_present() {
+        return true;
+    }
+    let var =
+        if myriad_testenv::required("MYRIAD_REQUIRE_CUDA") { "MYRIAD_REQUIRE_CUDA" } else { "MYRIAD_REQUIRE_NVRTC" };
+    myriad_testenv::missing(
+        var,
+        format!("the NVRTC library (libnvrtc.so) was not found, so {unchecked}; set LD_LIBRARY_PATH to include it"),
+    );
+    false
+}
+
 #[test]
 fn every_kernel_compiles_for_each_target_architecture() {
-    if !compile::nvrtc_present() {
-        assert!(
-            std::env::var("MYRIAD_REQUIRE_CUDA").as_deref() != Ok("1"),
-            "MYRIAD_REQUIRE_CUDA=1 but NVRTC was not found"
-        );
-        eprintln!("skipping: the NVRTC library (libnvrtc.so) was not found; set LD_LIBRARY_PATH to include it");
+    if !nvrtc("no kernel was compiled") {
         return;
     }
     let (major, minor) = compile::nvrtc_version().unwrap();
@@ -26,8 +37,7 @@ fn every_kernel_compiles_for_each_target_architecture() {
 
 #[test]
 fn a_broken_kernel_reports_the_compiler_log() {
-    if !compile::nvrtc_present() {
-        eprintln!("skipping: the NVRTC library was not found");
+    if !nvrtc("the compiler's error report was not checked") {
         return;
     }
     // The options are right and the sources are fine, so an unknown architecture is
@@ -115,15 +125,7 @@ fn the_params_block_matches_the_kernel_header_field_by_field() {
         "static_assert(sizeof(Params) == {size}, \"sizeof(Params) differs from DeviceParams ({size})\");\n"
     ));
 
-    if !compile::nvrtc_present() {
-        assert!(
-            std::env::var("MYRIAD_REQUIRE_CUDA").as_deref() != Ok("1"),
-            "MYRIAD_REQUIRE_CUDA=1 but NVRTC was not found"
-        );
-        eprintln!(
-            "skipping: the NVRTC library (libnvrtc.so) was not found, so the Params layout was checked \
-             only on the Rust side; set LD_LIBRARY_PATH to include it"
-        );
+    if !nvrtc("the Params layout was checked only on the Rust side") {
         return;
     }
     if let Err(e) = compile::compile_source(&src, 90, &[]) {

@@ -23,15 +23,8 @@ fn kind(s: ShapeKind) -> WireKind {
 
 #[test]
 fn every_player_receives_exactly_its_area_of_interest() {
-    let mut spec = ScenarioSpec::custom(77);
-    spec.dynamic = 3_000;
-    spec.users = 60;
-    spec.static_objects = 30;
-    spec.world_size = 256.0;
-    spec.origin = Vec3::new(-10_000.0, 0.0, 25_000.0);
-    spec.terrain_samples = 65;
-    spec.max_height = 4.0;
-    let start = spec.build().unwrap();
+    let small = ScenarioSpec::custom(77).counts(3_000, 60, 30).map_size(256.0, 65);
+    let start = ScenarioSpec { origin: Vec3::new(-10_000.0, 0.0, 25_000.0), max_height: 4.0, ..small }.build().unwrap();
     let half = Vec3::new(12.0, 50.0, 12.0); // the AOI box: small enough to fit the budget
 
     for backend_kind in BackendKind::ALL {

@@ -9,7 +9,8 @@
 //!   remove gateway 1's players' objects once it is dead, and gateway 0's when its bots
 //!   leave.
 //!
-//! Needs `NATS_URL` (CI sets it); skips with a message without it.
+//! Needs `NATS_URL` (CI sets it); skips with a message without it, fails under
+//! `MYRIAD_REQUIRE_NATS=1`.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
@@ -124,10 +125,7 @@ fn bots(g: &Gateway, first: u32, seconds: u32) -> Child {
 
 #[test]
 fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
-    let Ok(url) = std::env::var("NATS_URL") else {
-        eprintln!("skipped: NATS_URL is not set (CI sets it; e.g. NATS_URL=nats://127.0.0.1:4222)");
-        return;
-    };
+    let Some(url) = myriad_testenv::nats_url() else { return };
     let cluster_name = format!("gw{}", std::process::id());
     let zone_metrics = free_ports(2);
     // The zone metrics are on zone_metrics + zone index.
@@ -213,10 +211,7 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
 /// the cluster ends at its last tick as usual.
 #[test]
 fn a_cluster_starts_its_gateways_and_one_account_has_one_session() {
-    let Ok(url) = std::env::var("NATS_URL") else {
-        eprintln!("skipped: NATS_URL is not set (CI sets it; e.g. NATS_URL=nats://127.0.0.1:4222)");
-        return;
-    };
+    let Some(url) = myriad_testenv::nats_url() else { return };
     let bin = env!("CARGO_BIN_EXE_myriad");
     let dir = tempfile::tempdir().unwrap();
     for g in 0..2 {

@@ -2,11 +2,14 @@
 //! (and restarts a dead one), rolls every zone back to the last checkpoint they all
 //! stored, and ends in the state hash of one process; the checkpoint it resumed from has
 //! the hash of one process at that tick.
-//! Needs `NATS_URL` (CI sets it); skips with a message without it.
+//! Needs `NATS_URL` (CI sets it); skips with a message without it, fails under
+//! `MYRIAD_REQUIRE_NATS=1`.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
+
+use myriad_testenv::nats_url;
 
 fn sim_hash(ticks: u64) -> String {
     let out = Command::new(env!("CARGO_BIN_EXE_myriad"))
@@ -76,14 +79,6 @@ fn disrupted_run(url: &str, ticks: u64, disrupt: impl FnOnce(i32)) -> Vec<String
     assert_eq!(v["state_hash"].as_str().unwrap(), sim_hash(ticks), "the end is one process's state");
     eprintln!("{faults:?}; resumed from tick {tick}; hashes equal");
     faults.iter().map(|f| f.as_str().unwrap().to_string()).collect()
-}
-
-fn nats_url() -> Option<String> {
-    let url = std::env::var("NATS_URL").ok().filter(|u| !u.is_empty());
-    if url.is_none() {
-        eprintln!("skipping: NATS_URL is not set (e.g. NATS_URL=nats://127.0.0.1:4222)");
-    }
-    url
 }
 
 fn signal(pid: i32, sig: i32) {

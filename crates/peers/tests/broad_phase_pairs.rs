@@ -88,13 +88,7 @@ fn duplicates_and_touching_boxes_give_the_same_pairs_on_both_sides() {
 
 #[test]
 fn scenario_pairs_are_equal_and_match_the_backend() {
-    let mut spec = ScenarioSpec::custom(3);
-    spec.dynamic = 3_000;
-    spec.users = 100;
-    spec.static_objects = 600;
-    spec.world_size = 96.0;
-    spec.terrain_samples = 65;
-    let mut world = spec.build().unwrap();
+    let mut world = ScenarioSpec::custom(3).counts(3_000, 100, 600).map_size(96.0, 65).build().unwrap();
     let mut set = AabbSet::from_world("small", &world);
 
     let mut bp = OurBroadPhase::default();

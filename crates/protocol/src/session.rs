@@ -639,10 +639,43 @@ mod tests {
         d
     }
 
+    /// Four threads verify through one shared opener at once (every third datagram has a
+    /// broken tag); then every authentic one commits, in order.
     #[test]
     fn an_opener_can_verify_on_several_threads() {
-        fn shared_across_threads<T: Send + Sync>() {}
-        shared_across_threads::<Opener>();
+        let keys = keys();
+        let mut server = ServerSession::new(&keys);
+        let mut client = ClientSession::new(&keys);
+        let mut datagrams: Vec<Vec<u8>> = (0..64).map(|_| sealed(&mut client, &ClientMessage::KeepAlive)).collect();
+        for d in datagrams.iter_mut().skip(1).step_by(3) {
+            *d.last_mut().unwrap() ^= 1;
+        }
+        let (opener, start) = (&server.opener, std::sync::Barrier::new(4));
+        let results: Vec<_> = std::thread::scope(|s| {
+            let threads: Vec<_> = datagrams
+                .chunks_mut(16)
+                .map(|chunk| {
+                    let start = &start;
+                    s.spawn(move || {
+                        start.wait();
+                        chunk.iter_mut().map(|d| opener.verify(d, ClientMessage::decode_body)).collect::<Vec<_>>()
+                    })
+                })
+                .collect();
+            threads.into_iter().flat_map(|t| t.join().unwrap()).collect()
+        });
+        assert_eq!(results.len(), 64);
+        for (i, r) in results.into_iter().enumerate() {
+            match r {
+                Err(e) => assert!(i % 3 == 1 && e == OpenError::Authentication, "datagram {i}: {e:?}"),
+                Ok(v) => {
+                    assert!(i % 3 != 1, "datagram {i}: a broken tag verified");
+                    let opened = server.opener.commit(v).unwrap();
+                    assert_eq!((opened.header.sequence, opened.message), (i as u64, ClientMessage::KeepAlive));
+                }
+            }
+        }
+        assert_eq!(server.opener.window().newest(), Some(63));
     }
 
     #[test]

@@ -23,13 +23,7 @@ use crate::transport::MemoryTransport;
 #[ignore = "a timing, run by hand (module docs)"]
 fn receive_timing() {
     let n: usize = std::env::var("N").ok().and_then(|v| v.parse().ok()).unwrap_or(3333);
-    let mut spec = myriad_core::ScenarioSpec::custom(11);
-    spec.dynamic = 10;
-    spec.users = 0;
-    spec.static_objects = 0;
-    spec.world_size = 1024.0;
-    spec.terrain_samples = 33;
-    let mut world = spec.build().unwrap();
+    let mut world = myriad_core::ScenarioSpec::custom(11).counts(10, 0, 0).map_size(1024.0, 33).build().unwrap();
     let mut sessions = Sessions::new(n, MapId(1));
     let ctx = JoinContext { tick: 0, dilation_permille: 1000 };
     let mut clients: Vec<ClientSession> = (0..n)

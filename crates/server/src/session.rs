@@ -464,13 +464,7 @@ mod tests {
     use super::*;
 
     fn world() -> World {
-        let mut spec = myriad_core::ScenarioSpec::custom(3);
-        spec.dynamic = 10;
-        spec.users = 0;
-        spec.static_objects = 0;
-        spec.world_size = 64.0;
-        spec.terrain_samples = 17;
-        spec.build().unwrap()
+        myriad_core::ScenarioSpec::custom(3).counts(10, 0, 0).map_size(64.0, 17).build().unwrap()
     }
 
     const CTX: JoinContext = JoinContext { tick: 0, dilation_permille: 1000 };

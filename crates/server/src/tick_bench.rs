@@ -281,13 +281,7 @@ mod tests {
 
     #[test]
     fn every_player_gets_its_own_object_and_packets_and_send_are_timed() {
-        let mut spec = ScenarioSpec::custom(7);
-        spec.dynamic = 1_200;
-        spec.users = 60;
-        spec.static_objects = 300;
-        spec.world_size = 256.0;
-        spec.terrain_samples = 129;
-        let world = spec.build().unwrap();
+        let world = ScenarioSpec::custom(7).counts(1_200, 60, 300).map_size(256.0, 129).build().unwrap();
         let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
         use crate::stages::TickStage::{Packets, Send};
         let mut bench = TickBench::new(ServerConfig::default(), world, backend).unwrap();

@@ -40,13 +40,7 @@ struct Client {
 }
 
 fn rig(config: ServerConfig) -> Rig {
-    let mut spec = ScenarioSpec::custom(11);
-    spec.dynamic = 300;
-    spec.users = 0;
-    spec.static_objects = 30;
-    spec.world_size = 96.0;
-    spec.terrain_samples = 33;
-    let world = spec.build().unwrap();
+    let world = ScenarioSpec::custom(11).counts(300, 0, 30).map_size(96.0, 33).build().unwrap();
     let net = MemoryTransport::new("127.0.0.1:7777".parse().unwrap());
     let (commands, receiver) = std::sync::mpsc::channel();
     let saved = Saved::default();

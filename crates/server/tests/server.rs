@@ -218,10 +218,7 @@ fn persistence_round_trip_sqlite() {
 
 #[test]
 fn persistence_round_trip_mysql() {
-    let Ok(url) = std::env::var("MYSQL_URL") else {
-        eprintln!("skipping: MYSQL_URL not set (e.g. mysql://myriad:myriad@127.0.0.1:3306/test)");
-        return;
-    };
+    let Some(url) = myriad_testenv::mysql_url() else { return };
     let dir = tempfile::tempdir().unwrap();
     let cfg = ServerConfig { database_url: url, ..config(dir.path()) };
     let rt = runtime();

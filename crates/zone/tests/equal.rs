@@ -58,11 +58,7 @@ fn clustered_scenario() {
 /// meet, so that hand-offs and contacts across two and four zones happen every tick.
 #[test]
 fn piles_on_the_cuts() {
-    let mut spec = ScenarioSpec::custom(21);
-    spec.dynamic = 500;
-    spec.users = 50;
-    spec.static_objects = 300;
-    let mut world = spec.build().unwrap();
+    let mut world = ScenarioSpec::custom(21).counts(500, 50, 300).build().unwrap();
     let (lo, size) = (world.bounds.min, world.bounds.size());
     let mut corners = Vec::new();
     for f in [1.0 / 3.0, 0.5, 2.0 / 3.0] {

@@ -14,14 +14,7 @@ use myriad_zone::{ClusterKey, GatewayConfig, MemoryFabric, Zone, ZoneConfig, Zon
 mod common;
 
 fn small_world() -> World {
-    let mut spec = ScenarioSpec::custom(11);
-    spec.world_size = 64.0;
-    spec.terrain_samples = 65;
-    spec.max_height = 2.0;
-    spec.dynamic = 60;
-    spec.users = 0;
-    spec.static_objects = 0;
-    spec.build().unwrap()
+    ScenarioSpec { max_height: 2.0, ..ScenarioSpec::custom(11).counts(60, 0, 0).map_size(64.0, 65) }.build().unwrap()
 }
 
 #[test]

@@ -1,6 +1,6 @@
 //! The zones over a real NATS server: equal to one process, and a stalled neighbour is
 //! detected. Needs `NATS_URL` (CI sets it; these machines run NATS at
-//! 127.0.0.1:4222); skips with a message without it.
+//! 127.0.0.1:4222); skips with a message without it, fails under `MYRIAD_REQUIRE_NATS=1`.
 
 use std::time::{Duration, Instant};
 
@@ -12,14 +12,7 @@ use myriad_zone::{
 
 mod common;
 use common::{clustered, cpu, single};
-
-fn nats_url() -> Option<String> {
-    let url = std::env::var("NATS_URL").ok().filter(|u| !u.is_empty());
-    if url.is_none() {
-        eprintln!("skipping: NATS_URL is not set (e.g. NATS_URL=nats://127.0.0.1:4222)");
-    }
-    url
-}
+use myriad_testenv::nats_url;
 
 fn cluster(name: &str) -> String {
     let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos();

@@ -82,12 +82,9 @@ impl TestDb {
     }
 
     /// A fresh database on the `MYSQL_URL` server, or `None` (after saying so) when the
-    /// variable is unset.
+    /// server is missing; under `MYRIAD_REQUIRE_MYSQL=1` a missing server fails instead.
     pub async fn mysql() -> Option<TestDb> {
-        let Ok(admin_url) = std::env::var("MYSQL_URL") else {
-            eprintln!("skipping: MYSQL_URL not set (e.g. mysql://myriad:myriad@127.0.0.1:3306/test)");
-            return None;
-        };
+        let admin_url = myriad_testenv::mysql_url()?;
         let db_name = format!(
             "myriad_t_{}_{}_{}",
             std::process::id(),

@@ -133,6 +133,8 @@ struct Admitted {
     from: SocketAddr,
     session_id: u64,
     sequence: u64,
+    /// Its length, which earns its session's address reply credit.
+    len: usize,
     /// Its player's position in the session table (stable during a receive: nothing
     /// joins or leaves meanwhile).
     player: usize,
@@ -261,6 +263,7 @@ fn admit(sessions: &Sessions, ctx: &mut Ctx<'_>, report: &mut InboundReport, inb
             from,
             session_id: header.session_id,
             sequence: header.sequence,
+            len: range.len(),
             player,
         });
     }
@@ -335,6 +338,8 @@ fn apply(
             }
             None
         }
+        // Idempotent: the client resends Ready until the session starts, and each copy
+        // is answered (within the reply credit) without resetting anything.
         ClientMessage::Ready => {
             p.ready = true;
             Some(ServerMessage::ServerInfo(ctx.info))
@@ -347,11 +352,8 @@ fn apply(
     };
     // Authenticated: the sender holds the session key, so its address is the player's
     // (this also follows a client whose NAT mapping changed). Set before the reply is
-    // queued, which goes to the player's address.
-    sessions.set_address(a.session_id, a.from);
-    if let Some(reply) = reply {
-        sessions.queue_message_to(a.session_id, &reply);
-    }
+    // queued, which goes to the player's address within its reply credit.
+    sessions.answer(a.session_id, a.from, a.len, reply);
 }
 
 fn dropped(reason: &'static str) {

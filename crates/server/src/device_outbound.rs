@@ -245,8 +245,7 @@ impl Outbound for DeviceOutbound {
         }
         // The device's share: queueing (which waits for the AOI query's count), then the
         // first thread's waits for chunks.
-        report.device_wait_ms =
-            (queued + waited.first().map_or(std::time::Duration::ZERO, |w| w.1)).as_secs_f64() * 1e3;
+        report.device_wait_ms = (queued + waited.first().map_or(std::time::Duration::ZERO, |w| w.1)).as_secs_f64() * 1e3;
         let unserved = shares.into_rest();
         if let Err(e) = cuda.finish_interest_updates(tick.tick, unserved.is_empty() && failed.is_none()) {
             failed = failed.or(Some(e.to_string()));

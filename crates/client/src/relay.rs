@@ -146,49 +146,58 @@ pub struct RelayStats {
     pub peers_refused: u64,
 }
 
+/// One direction's counters, as [`DirectionStats`] names them.
+#[derive(Debug, Default)]
+struct DirectionCounters {
+    received: AtomicU64,
+    lost: AtomicU64,
+    dropped_by_rule: AtomicU64,
+    duplicated: AtomicU64,
+    reordered: AtomicU64,
+    sent: AtomicU64,
+}
+
+impl DirectionCounters {
+    fn snapshot(&self) -> DirectionStats {
+        let f = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        DirectionStats {
+            received: f(&self.received),
+            lost: f(&self.lost),
+            dropped_by_rule: f(&self.dropped_by_rule),
+            duplicated: f(&self.duplicated),
+            reordered: f(&self.reordered),
+            sent: f(&self.sent),
+        }
+    }
+}
+
+/// Adds `n` to a counter.
+fn add(counter: &AtomicU64, n: u64) {
+    counter.fetch_add(n, Ordering::Relaxed);
+}
+
 #[derive(Debug, Default)]
 struct Counters {
-    /// Per direction: received, lost, by rule, duplicated, reordered, sent.
-    dirs: [[AtomicU64; 6]; 2],
+    /// Upstream ([`UP`]) and downstream ([`DOWN`]).
+    dirs: [DirectionCounters; 2],
     peers: AtomicU64,
     peers_refused: AtomicU64,
 }
 
 impl Counters {
-    fn add(&self, dir: usize, field: usize, n: u64) {
-        self.dirs[dir][field].fetch_add(n, Ordering::Relaxed);
-    }
-
     fn snapshot(&self) -> RelayStats {
-        let d = |i: usize| {
-            let f = |j: usize| self.dirs[i][j].load(Ordering::Relaxed);
-            DirectionStats {
-                received: f(RECEIVED),
-                lost: f(LOST),
-                dropped_by_rule: f(BY_RULE),
-                duplicated: f(DUPLICATED),
-                reordered: f(REORDERED),
-                sent: f(SENT),
-            }
-        };
         RelayStats {
-            upstream: d(UP),
-            downstream: d(DOWN),
+            upstream: self.dirs[UP].snapshot(),
+            downstream: self.dirs[DOWN].snapshot(),
             peers: self.peers.load(Ordering::Relaxed),
             peers_refused: self.peers_refused.load(Ordering::Relaxed),
         }
     }
 }
 
+/// The directions' places in `Counters::dirs` and the dice.
 const UP: usize = 0;
 const DOWN: usize = 1;
-// The counters of a direction, in `Counters::dirs`' order.
-const RECEIVED: usize = 0;
-const LOST: usize = 1;
-const BY_RULE: usize = 2;
-const DUPLICATED: usize = 3;
-const REORDERED: usize = 4;
-const SENT: usize = 5;
 
 /// A running relay.
 #[derive(Debug)]
@@ -338,24 +347,24 @@ async fn run(config: RelayConfig, listen: Arc<UdpSocket>, counters: Arc<Counters
             Some((client, bytes)) = from_server.recv() => (DOWN, Target::Client(client), bytes),
         };
         received += 1;
-        counters.add(dir, RECEIVED, 1);
+        add(&counters.dirs[dir].received, 1);
         let kind = peek_header(&bytes, if dir == UP { Direction::ClientToServer } else { Direction::ServerToClient })
             .ok()
             .map(|h| h.kind);
         let (copies, duplicated) = dice[dir].roll();
         if let Some(rule) = rules.iter_mut().find(|r| Some(r.kind) == kind && r.count > 0) {
             rule.count -= 1;
-            counters.add(dir, BY_RULE, 1);
+            add(&counters.dirs[dir].dropped_by_rule, 1);
             continue;
         }
         if copies[0].is_none() {
-            counters.add(dir, LOST, 1);
+            add(&counters.dirs[dir].lost, 1);
             continue;
         }
-        counters.add(dir, DUPLICATED, u64::from(duplicated));
+        add(&counters.dirs[dir].duplicated, u64::from(duplicated));
         let now = Instant::now();
         for (delay, held) in copies.into_iter().flatten() {
-            counters.add(dir, REORDERED, u64::from(held));
+            add(&counters.dirs[dir].reordered, u64::from(held));
             let to = match &target {
                 Target::Server(s) => Target::Server(s.clone()),
                 Target::Client(c) => Target::Client(*c),
@@ -383,14 +392,14 @@ async fn peer(
         return Some(s.clone());
     }
     if peers.len() >= MAX_PEERS {
-        counters.peers_refused.fetch_add(1, Ordering::Relaxed);
+        add(&counters.peers_refused, 1);
         return None;
     }
     let socket = UdpSocket::bind(SocketAddr::new(config.listen.ip(), 0)).await.ok()?;
     socket.connect(config.server).await.ok()?;
     let socket = Arc::new(socket);
     peers.insert(from, socket.clone());
-    counters.peers.fetch_add(1, Ordering::Relaxed);
+    add(&counters.peers, 1);
     let (reader, tx) = (socket.clone(), tx.clone());
     readers.spawn(async move {
         let mut buf = vec![0u8; 65_536];
@@ -416,7 +425,7 @@ async fn send_due(queue: &mut BinaryHeap<Pending>, listen: &UdpSocket, counters:
             Target::Server(s) => (UP, s.send(&p.bytes).await.is_ok()),
             Target::Client(c) => (DOWN, listen.send_to(&p.bytes, c).await.is_ok()),
         };
-        counters.add(dir, SENT, u64::from(sent));
+        add(&counters.dirs[dir].sent, u64::from(sent));
     }
 }
 

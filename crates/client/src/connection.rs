@@ -16,6 +16,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpStream, UdpSocket};
 
 use crate::error::ClientError;
+use crate::liveness::{DISCONNECT_COPIES, Due, Liveness};
 use crate::mirror::WorldMirror;
 use crate::stats::{ClientStats, SequenceTracker};
 use crate::tls::Trust;
@@ -31,8 +32,13 @@ pub struct ClientConfig {
     pub tls: Arc<rustls::ClientConfig>,
     /// Objects without news for this long are marked stale in the mirror.
     pub stale_after: Duration,
-    /// A keep-alive is sent when nothing was sent for this long.
+    /// A keep-alive is sent when nothing was sent for this long ([`Connection::on_timer`];
+    /// zero: no regular keep-alives, the caller sends its own with
+    /// [`Connection::keepalive_if_due`]).
     pub keepalive_every: Duration,
+    /// A session that was silent this long, its keep-alive probes unanswered, is over
+    /// ([`SessionEnd::Silent`]; the rule is in `liveness.rs`).
+    pub silence_timeout: Duration,
     /// Deadline of a login.
     pub login_timeout: Duration,
     /// Ask for the terrain and static objects at login.
@@ -55,6 +61,7 @@ impl ClientConfig {
             tls: trust.client_config()?,
             stale_after: Duration::from_secs(1),
             keepalive_every: Duration::from_secs(1),
+            silence_timeout: Duration::from_secs(5),
             login_timeout: Duration::from_secs(30),
             want_map: false,
             local_ip: None,
@@ -178,6 +185,17 @@ pub enum Event {
     Rejected,
 }
 
+/// Why a session is over, as the client decides it from evidence: the server said so,
+/// or it stayed silent through the retries ([`ClientConfig::silence_timeout`]). One lost
+/// datagram is never such evidence.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SessionEnd {
+    /// The server ended the session.
+    Disconnected(DisconnectReason),
+    /// Nothing authentic arrived for the silence timeout, keep-alive probes included.
+    Silent,
+}
+
 /// A logged-in player: the UDP session and the world mirror.
 pub struct Connection {
     config: ClientConfig,
@@ -196,6 +214,8 @@ pub struct Connection {
     out: Vec<u8>,
     dilation_permille: u16,
     disconnected: Option<DisconnectReason>,
+    /// The session's retransmission and silence timers (made afresh by every login).
+    liveness: Liveness,
 }
 
 impl std::fmt::Debug for Connection {
@@ -241,6 +261,7 @@ impl Connection {
         owns_socket: bool,
     ) -> Result<Self, ClientError> {
         let session = ClientSession::new(&accepted.keys);
+        let liveness = Liveness::start(Instant::now(), config.silence_timeout);
         let mut c = Connection {
             mirror: WorldMirror::new(config.stale_after),
             dilation_permille: accepted.dilation_permille,
@@ -257,6 +278,7 @@ impl Connection {
             last_sent: Instant::now(),
             out: Vec::with_capacity(64),
             disconnected: None,
+            liveness,
         };
         c.send(ClientMessage::Ready).await?;
         Ok(c)
@@ -295,6 +317,7 @@ impl Connection {
         self.mirror.clear();
         self.sequences = SequenceTracker::default();
         self.disconnected = None;
+        self.liveness = Liveness::start(Instant::now(), self.config.silence_timeout);
         self.stats.reconnects += 1;
         self.send(ClientMessage::Ready).await
     }
@@ -349,6 +372,15 @@ impl Connection {
         self.disconnected
     }
 
+    /// Whether the session is over, and why: the server's Disconnect, or silence through
+    /// the retries ([`Connection::on_timer`] decides that).
+    pub fn ended(&self) -> Option<SessionEnd> {
+        match self.disconnected {
+            Some(reason) => Some(SessionEnd::Disconnected(reason)),
+            None => self.liveness.silent().then_some(SessionEnd::Silent),
+        }
+    }
+
     /// The UDP socket (to wait for datagrams in a `select!`).
     pub fn socket(&self) -> Arc<UdpSocket> {
         self.socket.clone()
@@ -369,9 +401,35 @@ impl Connection {
         Ok(())
     }
 
-    /// Tells the server we leave (best effort: one datagram).
+    /// The session's timers, for every caller's loop (a few times a second or more; a
+    /// game's frame or a bot's tick): resends Ready until the session starts, probes a
+    /// silent server with keep-alives and declares it [`SessionEnd::Silent`] when they
+    /// go unanswered, and sends the regular keep-alive
+    /// ([`ClientConfig::keepalive_every`]). [`Connection::recv`] calls it too.
+    pub async fn on_timer(&mut self, now: Instant) -> Result<(), ClientError> {
+        if self.disconnected.is_some() {
+            return Ok(());
+        }
+        while let Some(due) = self.liveness.due(now) {
+            self.stats.resent += 1;
+            match due {
+                Due::Ready => self.send(ClientMessage::Ready).await?,
+                Due::Probe => self.send(ClientMessage::KeepAlive).await?,
+            }
+        }
+        if !self.config.keepalive_every.is_zero() {
+            self.keepalive_if_due().await?;
+        }
+        Ok(())
+    }
+
+    /// Tells the server we leave: [`DISCONNECT_COPIES`] datagrams, so that a lost one
+    /// does not leave the session to its time-out (nothing answers them).
     pub async fn disconnect(&mut self) -> Result<(), ClientError> {
-        self.send(ClientMessage::Disconnect).await
+        for _ in 0..DISCONNECT_COPIES {
+            self.send(ClientMessage::Disconnect).await?;
+        }
+        Ok(())
     }
 
     async fn send(&mut self, msg: ClientMessage) -> Result<(), ClientError> {
@@ -383,8 +441,10 @@ impl Connection {
         Ok(())
     }
 
-    /// Waits up to `timeout` for one datagram and handles it; `None` on timeout.
+    /// Runs the timers ([`Connection::on_timer`]), then waits up to `timeout` for one
+    /// datagram and handles it; `None` on timeout.
     pub async fn recv(&mut self, timeout: Duration) -> Result<Option<Event>, ClientError> {
+        self.on_timer(Instant::now()).await?;
         let mut buf = [0u8; MAX_DATAGRAM + 64];
         let socket = self.socket.clone();
         match tokio::time::timeout(timeout, socket.recv(&mut buf)).await {
@@ -421,6 +481,8 @@ impl Connection {
         self.stats.datagrams += 1;
         self.stats.bytes += len;
         self.stats.lost += self.sequences.record(opened.header.sequence);
+        let started = matches!(opened.message, None | Some(ServerMessage::ServerInfo(_)));
+        self.liveness.heard(now, started);
         match opened.message {
             None => {
                 let body = &datagram[myriad_protocol::HEADER_LEN..datagram.len() - myriad_protocol::TAG_LEN];

@@ -4,6 +4,9 @@
 //! - [`tls`]: [`Trust`]: pin the server's development certificate or trust CA roots.
 //! - [`connection`]: [`login`] and [`Connection`]: actions, keep-alives, receiving
 //!   updates into the [`WorldMirror`], reconnecting with a fresh login.
+//! - [`liveness`]: what a session resends (Ready, keep-alive probes, Disconnect copies)
+//!   and when it is declared silent.
+//! - [`relay`]: a seeded, lossy UDP relay on loopback (tests and `myriad relay`).
 //! - [`mirror`]: [`WorldMirror`], objects by id with the newest state (per-object tick
 //!   rule of docs/protocol.md §5.5) and stale marking.
 //! - [`stats`]: [`ClientStats`] (updates, bytes, last tick, loss from sequence gaps).
@@ -27,12 +30,14 @@
 pub mod connection;
 pub mod error;
 pub mod flood;
+pub mod liveness;
 pub mod mirror;
+pub mod relay;
 pub mod stats;
 pub mod swarm;
 pub mod tls;
 
-pub use connection::{ClientConfig, Connection, Credentials, Event, login, server_socket};
+pub use connection::{ClientConfig, Connection, Credentials, Event, SessionEnd, login, server_socket};
 pub use error::ClientError;
 pub use mirror::{MirrorObject, WorldMirror};
 pub use stats::{ClientStats, Rates};

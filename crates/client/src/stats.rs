@@ -24,6 +24,9 @@ pub struct ClientStats {
     pub sent: u64,
     /// Logins after the first.
     pub reconnects: u64,
+    /// Datagrams sent again because an answer was missing: Readies resent and keep-alive
+    /// probes to a silent server (docs/protocol.md §7a).
+    pub resent: u64,
 }
 
 impl ClientStats {

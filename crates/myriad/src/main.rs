@@ -21,6 +21,7 @@ mod flood;
 mod gateway;
 mod plots;
 mod reference;
+mod relay;
 mod scenario_args;
 mod serve;
 mod sim;
@@ -54,6 +55,9 @@ enum Command {
     Bots(bots::BotsArgs),
     /// Attack a server on this machine (loopback only, bounded) and measure the cost.
     Flood(flood::FloodArgs),
+    /// Relay UDP between clients and a server on this machine, losing, delaying,
+    /// duplicating and reordering datagrams (loopback only, bounded).
+    Relay(relay::RelayArgs),
     /// Run one zone of a world split over several processes (see `cluster`).
     Zone(zones::ZoneArgs),
     /// Run a world split into zones, one process each, over NATS, supervised.
@@ -114,6 +118,7 @@ fn main() -> Result<()> {
         Command::Demo(a) => demo::run(a),
         Command::Bots(a) => bots::run(a),
         Command::Flood(a) => flood::run(a),
+        Command::Relay(a) => relay::run(a),
         Command::Zone(a) => zones::run_zone(a),
         Command::Cluster(a) => zones::run_cluster(a),
         Command::Gateway(a) => gateway::run(a),

@@ -167,6 +167,8 @@ struct Admitted {
     from: SocketAddr,
     session_id: u64,
     sequence: u64,
+    /// Its length, which earns its session's address reply credit.
+    len: usize,
     /// Its player's position in the session table (stable during a receive: nothing
     /// joins or leaves meanwhile).
     player: usize,
@@ -296,7 +298,14 @@ fn admit(
         if ctx.gate.is_some() && sessions.get(player).and_then(|p| p.addr) != Some(from) {
             moving.insert(header.session_id);
         }
-        admitted.push(Admitted { item: i, from, session_id: header.session_id, sequence: header.sequence, player });
+        admitted.push(Admitted {
+            item: i,
+            from,
+            session_id: header.session_id,
+            sequence: header.sequence,
+            len: bytes.len(),
+            player,
+        });
     }
     inbox.len()
 }
@@ -372,6 +381,8 @@ fn apply(
             }
             None
         }
+        // Idempotent: the client resends Ready until the session starts, and each copy
+        // is answered (within the reply credit) without resetting anything.
         ClientMessage::Ready => {
             p.ready = true;
             Some(ServerMessage::ServerInfo(ctx.info))
@@ -384,11 +395,8 @@ fn apply(
     };
     // Authenticated: the sender holds the session key, so its address is the player's
     // (this also follows a client whose NAT mapping changed). Set before the reply is
-    // queued, which goes to the player's address.
-    sessions.set_address(a.session_id, a.from);
-    if let Some(reply) = reply {
-        sessions.queue_message_to(a.session_id, &reply);
-    }
+    // queued, which goes to the player's address within its reply credit.
+    sessions.answer(a.session_id, a.from, a.len, reply);
 }
 
 fn dropped(reason: &'static str) {

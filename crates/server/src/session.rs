@@ -19,12 +19,17 @@ use std::time::{Duration, Instant};
 use myriad_core::{Action, EntityId, ObjectKind, Shape, Vec3, World};
 use myriad_interest::Subscriber;
 use myriad_protocol::login::RefusalReason;
-use myriad_protocol::{DisconnectReason, Opener, ServerMessage, ServerSession, SessionKeys};
+use myriad_protocol::{DisconnectReason, MIN_DATAGRAM, Opener, ServerMessage, ServerSession, SessionKeys};
 use myriad_store::{MapId, PlayerState, UserId};
 use ring::rand::{SecureRandom, SystemRandom};
 
 use crate::gate::{SessionAddresses, SessionDirectory};
 use crate::world::{clamp_into_world, shape_desc, spawn_point, store_shape};
+
+/// Copies of a Disconnect the server sends (each sealed afresh), so that one lost
+/// datagram does not leave the client waiting for its silence timeout
+/// (docs/protocol.md §7a).
+pub(crate) const DISCONNECT_COPIES: usize = 3;
 
 /// The default player shape (a person-sized capsule).
 pub const PLAYER_SHAPE: Shape = Shape::Capsule { radius: 0.4, half_height: 0.5 };
@@ -59,9 +64,15 @@ pub(crate) struct Player {
     /// Only [`Sessions::set_address`] changes it once the player is in the table (the
     /// published [`SessionDirectory`] follows it).
     pub addr: Option<SocketAddr>,
-    /// The client asked for state updates.
+    /// The client asked for state updates. A repeated Ready (the client resends it
+    /// until the session starts) only sets it again: it resets nothing.
     pub ready: bool,
     pub last_heard: Instant,
+    /// Bytes of authenticated datagrams received from `addr` not yet spent on replies
+    /// to it ([`Sessions::answer`]).
+    reply_credit: usize,
+    /// A reply waiting for credit (the newest one).
+    reply_owed: Option<ServerMessage>,
     /// Newest client frame applied (actions of older frames are ignored).
     last_frame: Option<u32>,
     /// The tick of the last action applied with the jump bit set.
@@ -163,10 +174,38 @@ impl Sessions {
         let p = &mut self.players[idx];
         if p.addr != Some(from) {
             p.addr = Some(from);
+            p.reply_credit = 0;
             self.directory_stale = true;
         }
     }
 
+    /// Records an authenticated datagram of `len` bytes from `from` for `session_id`
+    /// (the session's address follows it, [`Sessions::set_address`]) and queues `reply`
+    /// to it, if any, within the reply credit: the server never sends an address more
+    /// bytes in answer than it received from it since it became the session's address
+    /// (docs/protocol.md §6.2). A ServerInfo (38 bytes) answering a session's first
+    /// Ready (34) therefore waits for its next datagram (an action, a resent Ready).
+    pub fn answer(&mut self, session_id: u64, from: SocketAddr, len: usize, reply: Option<ServerMessage>) {
+        self.set_address(session_id, from);
+        let Some(&idx) = self.by_session.get(&session_id) else { return };
+        let p = &mut self.players[idx];
+        p.reply_credit = p.reply_credit.saturating_add(len);
+        if reply.is_some() {
+            p.reply_owed = reply;
+        }
+        let Some(msg) = p.reply_owed.take() else { return };
+        let mut body = Vec::new();
+        let size = match msg.encode_body(&mut body) {
+            Ok(()) => MIN_DATAGRAM + body.len(),
+            Err(_) => usize::MAX,
+        };
+        if size <= p.reply_credit {
+            p.reply_credit -= size;
+            self.queue_message(idx, &msg);
+        } else {
+            p.reply_owed = Some(msg);
+        }
+    }
     /// Players logged in.
     pub fn len(&self) -> usize {
         self.players.len()
@@ -235,7 +274,7 @@ impl Sessions {
     ) -> Result<(Joined, FirstVisit), RefusalReason> {
         if let Some(&idx) = self.by_user.get(&user_id.0) {
             let keys = self.fresh_keys()?;
-            self.queue_message(idx, &ServerMessage::Disconnect(DisconnectReason::Replaced));
+            self.queue_disconnect(idx, DisconnectReason::Replaced);
             let session = ServerSession::new(&keys);
             let p = &mut self.players[idx];
             let Some(slot) = world.dynamics.slot(p.entity) else {
@@ -248,6 +287,8 @@ impl Sessions {
             p.view = Subscriber::new(slot as u32, world.dynamics.positions()[slot].to_array(), session.sealer);
             p.addr = None;
             p.ready = false;
+            p.reply_credit = 0;
+            p.reply_owed = None;
             p.last_frame = None;
             p.jump_tick = None;
             p.last_heard = Instant::now();
@@ -312,6 +353,8 @@ impl Sessions {
             addr: None,
             ready: false,
             last_heard: Instant::now(),
+            reply_credit: 0,
+            reply_owed: None,
             last_frame: None,
             jump_tick: None,
         });
@@ -353,10 +396,10 @@ impl Sessions {
         }
     }
 
-    /// Like [`Sessions::queue_message`], by session id.
-    pub fn queue_message_to(&mut self, session_id: u64, msg: &ServerMessage) {
-        if let Some(&idx) = self.by_session.get(&session_id) {
-            self.queue_message(idx, msg);
+    /// Queues [`DISCONNECT_COPIES`] Disconnects for player `idx`.
+    fn queue_disconnect(&mut self, idx: usize, reason: DisconnectReason) {
+        for _ in 0..DISCONNECT_COPIES {
+            self.queue_message(idx, &ServerMessage::Disconnect(reason));
         }
     }
 
@@ -372,7 +415,7 @@ impl Sessions {
     /// Queues a disconnect for every player (shutdown).
     pub fn disconnect_all(&mut self, reason: DisconnectReason) {
         for idx in 0..self.players.len() {
-            self.queue_message(idx, &ServerMessage::Disconnect(reason));
+            self.queue_disconnect(idx, reason);
         }
     }
 
@@ -421,7 +464,7 @@ impl Sessions {
     ) -> Option<PlayerState> {
         let idx = *self.by_session.get(&session_id)?;
         if let Some(reason) = reason {
-            self.queue_message(idx, &ServerMessage::Disconnect(reason));
+            self.queue_disconnect(idx, reason);
         }
         let state = self.state_of(world, idx);
         let p = self.players.swap_remove(idx);

@@ -440,3 +440,61 @@ fn a_parallel_batch_follows_an_address_that_moves_in_it() {
     let p = r.tick.sessions().iter().next().unwrap();
     assert_eq!(p.addr, Some(c.addr));
 }
+
+/// The client resends Ready until its session starts (docs/protocol.md §7a), so a Ready
+/// may arrive again, late or twice, after the player moved: it is the same Ready. No
+/// second join, nothing reset (object, action, newest frame), no Disconnect; a replayed
+/// copy of the datagram is dropped; each Ready is answered with ServerInfo, never with
+/// more bytes than the address sent (protocol §6.2).
+#[test]
+fn a_repeated_ready_resets_nothing_and_is_answered_within_what_was_received() {
+    let mut r = rig(ServerConfig::default());
+    let mut c = r.join(1, 40_001);
+    let infos = |got: &[Opened<ServerMessage>]| {
+        got.iter().filter(|o| matches!(o.message, ServerMessage::ServerInfo(_))).count()
+    };
+    // Control replies to the player (not state updates) and what they said.
+    let mut replies = 0;
+    let mut take = |r: &mut Rig, c: &mut Client| {
+        let sent = r.net.take_sent();
+        replies += sent
+            .iter()
+            .filter(|(to, d)| *to == c.addr && d[1] != myriad_protocol::PacketKind::StateUpdate as u8)
+            .map(|(_, d)| d.len())
+            .sum::<usize>();
+        r.received(&sent, c)
+    };
+    assert_eq!(infos(&take(&mut r, &mut c)), 0, "a 38-byte ServerInfo does not answer the 34-byte first Ready alone");
+    let mut received = 34;
+    received += r.action(&mut c, ActionMask::FORWARD).len();
+    for _ in 0..10 {
+        r.tick.tick_once();
+    }
+    assert_eq!(infos(&take(&mut r, &mut c)), 1, "the first Ready is answered once the action brought credit");
+    let objects = r.tick.world().dynamics.len();
+    let d = &r.tick.world().dynamics;
+    let before = d.positions()[d.slot(myriad_core::EntityId(c.entity as u32)).unwrap()];
+
+    let again = r.send(&mut c, &ClientMessage::Ready);
+    r.net.push(c.addr, again.clone());
+    received += again.len();
+    let work = r.tick.tick_once();
+    assert_eq!(work.tag_checks, 2, "both copies reached the window");
+    assert_eq!(r.tick.sessions().len(), 1, "no second join");
+    assert_eq!(r.tick.world().dynamics.len(), objects, "no second object");
+    assert_eq!(r.action_of(&c).bits(), Action::FORWARD, "the held action stays");
+    let p = r.tick.sessions().iter().next().unwrap();
+    assert!(p.ready && p.addr == Some(c.addr));
+    let got = take(&mut r, &mut c);
+    assert_eq!(infos(&got), 1, "the resent Ready is answered; its replayed copy is not");
+    assert!(got.iter().all(|o| !matches!(o.message, ServerMessage::Disconnect(_))));
+    // The newest frame stays too: an action of an older frame is still ignored.
+    c.frame -= 1;
+    received += r.action(&mut c, ActionMask::BACK).len();
+    assert_eq!(r.tick.tick_once().actions, 0);
+    let d = &r.tick.world().dynamics;
+    let after = d.positions()[d.slot(myriad_core::EntityId(c.entity as u32)).unwrap()];
+    assert!(after.z > before.z, "it kept walking forward: {before} -> {after}");
+    take(&mut r, &mut c);
+    assert!(replies <= received, "replies {replies} B, received {received} B");
+}

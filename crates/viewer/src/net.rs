@@ -189,6 +189,10 @@ async fn run(conn: &mut Connection, shared: &Shared) {
             _ = send_every.tick() => {
                 let now = Instant::now();
                 if ended.is_none() {
+                    // Resends Ready until the session starts, probes a silent server.
+                    if let Err(e) = conn.on_timer(now).await {
+                        ended = Some(format!("sending: {e}"));
+                    }
                     let mask = shared.with_keys(|k| k.take_mask());
                     if let Err(e) = conn.send_action(mask).await {
                         ended = Some(format!("sending: {e}"));

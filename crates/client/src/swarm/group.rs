@@ -58,9 +58,12 @@ struct Player {
     hold_from: Option<[f32; 3]>,
     last_tick: u64,
     last_update: Option<Instant>,
-    last_heard: Instant,
+    /// When the current session's login answered, until its first state update.
+    awaiting_first_update: Option<Instant>,
     last_publish: Instant,
     intervals: Vec<u64>,
+    /// Logins' times to their first update, µs, since the last publish.
+    first_updates: Vec<u64>,
     ticks_missed: u64,
     own_seen: bool,
     in_view: usize,
@@ -80,9 +83,10 @@ impl Player {
             hold_from: None,
             last_tick: 0,
             last_update: None,
-            last_heard: now,
+            awaiting_first_update: None,
             last_publish: now,
             intervals: Vec::with_capacity(16),
+            first_updates: Vec::new(),
             ticks_missed: 0,
             own_seen: false,
             in_view: 0,
@@ -122,10 +126,19 @@ async fn login_retrying(
     }
 }
 
-/// Logs bot `index` (at `at` in its group) in on a task of its own.
-fn spawn_login(logins: &mut JoinSet<LoginDone>, ctx: &Arc<Ctx>, at: usize, index: usize, stop: &watch::Receiver<bool>) {
+/// Logs bot `index` (at `at` in its group) in on a task of its own, after `delay`.
+fn spawn_login(
+    logins: &mut JoinSet<LoginDone>,
+    ctx: &Arc<Ctx>,
+    (at, index): (usize, usize),
+    delay: Duration,
+    stop: &watch::Receiver<bool>,
+) {
     let (ctx, stop) = (ctx.clone(), stop.clone());
-    logins.spawn(async move { (at, login_retrying(ctx, index, stop).await) });
+    logins.spawn(async move {
+        tokio::time::sleep(delay).await;
+        (at, login_retrying(ctx, index, stop).await)
+    });
 }
 
 /// A group of bots on one socket; see the module docs.
@@ -142,7 +155,9 @@ impl Group {
         let mut players: Vec<Player> = self.members.iter().map(|&i| Player::new(i)).collect();
         let mut logins: JoinSet<LoginDone> = JoinSet::new();
         for (at, p) in players.iter().enumerate() {
-            spawn_login(&mut logins, &ctx, at, p.index, &stop);
+            // Bot i of n starts at i/n of the spread.
+            let delay = ctx.config.login_spread.mul_f64(p.index as f64 / ctx.config.count.max(1) as f64);
+            spawn_login(&mut logins, &ctx, (at, p.index), delay, &stop);
         }
         let mut socket: Option<Arc<UdpSocket>> = None;
         let mut by_session: foldhash::HashMap<u64, usize> = foldhash::HashMap::default();
@@ -182,7 +197,7 @@ impl Group {
                     let now = Instant::now();
                     for (at, p) in players.iter_mut().enumerate().filter(|(_, p)| !p.logging_in) {
                         if on_tick(&ctx, p, now).await {
-                            spawn_login(&mut logins, &ctx, at, p.index, &stop);
+                            spawn_login(&mut logins, &ctx, (at, p.index), Duration::ZERO, &stop);
                         }
                     }
                 }
@@ -247,7 +262,7 @@ async fn logged_in(
     by_session.insert(conn.session_id(), at);
     ctx.shared.logins_ok.fetch_add(1, Ordering::Relaxed);
     ctx.state(p.index).connected = true;
-    p.last_heard = Instant::now();
+    p.awaiting_first_update = Some(Instant::now());
     p.hold_from = None;
     Ok(())
 }
@@ -272,7 +287,12 @@ async fn on_tick(ctx: &Ctx, p: &mut Player, now: Instant) -> bool {
         p.hold_start = now;
         p.hold_from = conn.own_position();
     }
-    if conn.disconnected().is_some() || now.duration_since(p.last_heard) > ctx.config.silence_reconnect {
+    // Resends what the session still waits for, probes a silent server; the session is
+    // over only on evidence (a Disconnect, or silence through the probes).
+    if let Err(e) = conn.on_timer(now).await {
+        tracing::debug!(bot = p.index, error = %e, "send failed");
+    }
+    if conn.ended().is_some() {
         ctx.state(p.index).connected = false;
         p.logging_in = true;
         return true;
@@ -302,22 +322,26 @@ fn on_datagram(ctx: &Ctx, players: &mut [Player], by_session: &foldhash::HashMap
     };
     let Some(conn) = p.conn.as_mut() else { return };
     let now = Instant::now();
-    match conn.handle_datagram(datagram, now) {
-        Event::Rejected => {}
-        Event::Update { tick, .. } => {
-            p.last_heard = now;
-            if tick > p.last_tick {
-                if let Some(prev) = p.last_update {
-                    p.intervals.push(now.duration_since(prev).as_micros().clamp(1, 60_000_000) as u64);
-                    p.ticks_missed += tick - p.last_tick - 1;
-                }
-                p.last_tick = tick;
-                p.last_update = Some(now);
-            }
-            p.own_seen = p.own_seen || conn.own_position().is_some();
-        }
-        _ => p.last_heard = now,
+    // Only updates need the bot's attention; the connection itself keeps what tells it
+    // the session lives (every authentic datagram).
+    let Event::Update { tick, .. } = conn.handle_datagram(datagram, now) else { return };
+    if let Some(login) = p.awaiting_first_update.take() {
+        p.first_updates.push(micros(now.duration_since(login)));
     }
+    if tick > p.last_tick {
+        if let Some(prev) = p.last_update {
+            p.intervals.push(micros(now.duration_since(prev)));
+            p.ticks_missed += tick - p.last_tick - 1;
+        }
+        p.last_tick = tick;
+        p.last_update = Some(now);
+    }
+    p.own_seen = p.own_seen || conn.own_position().is_some();
+}
+
+/// A duration in µs within the swarm's histograms' bounds.
+fn micros(d: Duration) -> u64 {
+    d.as_micros().clamp(1, 60_000_000) as u64
 }
 
 /// Publishes a bot's numbers: counters and view into its state, the intervals measured
@@ -332,12 +356,16 @@ fn publish(ctx: &Ctx, p: &mut Player) {
         s.ticks_missed = p.ticks_missed;
         s.own_seen = p.own_seen;
     }
-    if !p.intervals.is_empty() {
-        let mut hist = ctx.shared.intervals.lock().unwrap_or_else(|e| e.into_inner());
-        for &us in &p.intervals {
-            let _ = hist.record(us);
+    for (samples, hist) in
+        [(&mut p.intervals, &ctx.shared.intervals), (&mut p.first_updates, &ctx.shared.first_updates)]
+    {
+        if !samples.is_empty() {
+            let mut hist = hist.lock().unwrap_or_else(|e| e.into_inner());
+            for &us in samples.iter() {
+                let _ = hist.record(us);
+            }
+            samples.clear();
         }
-        p.intervals.clear();
     }
 }
 

@@ -83,13 +83,17 @@ pub struct SwarmConfig {
     /// server protects its tick by verifying few passwords at once, so a burst of
     /// logins takes a while: bots keep trying, as players would.
     pub login_attempts: u32,
-    /// A bot that hears nothing for this long logs in again.
+    /// A bot whose session stays silent this long, its keep-alive probes unanswered,
+    /// logs in again: every bot's [`ClientConfig::silence_timeout`] (the swarm sets it).
     pub silence_reconnect: Duration,
     /// Bots that share one UDP socket and one task (at least 1). The server tells their
     /// sessions apart by id; the group's task reads every datagram queued on the socket
     /// at one wake-up and hands each to its bot, which costs a machine far less than a
     /// task and a socket a bot when the swarm shares it with the server.
     pub bots_per_socket: usize,
+    /// The bots' first logins are spread evenly over this long (zero: all at once,
+    /// through the semaphore), as players arrive over time rather than in one burst.
+    pub login_spread: Duration,
 }
 
 impl SwarmConfig {
@@ -105,6 +109,7 @@ impl SwarmConfig {
             login_attempts: 200,
             silence_reconnect: Duration::from_secs(5),
             bots_per_socket: 1,
+            login_spread: Duration::ZERO,
         }
     }
 }
@@ -136,6 +141,9 @@ struct Shared {
     /// for the swarm, which each bot adds its recent intervals to when it publishes (a
     /// histogram a bot was 20 KiB, 50 MiB for 2,500 bots, touched on every datagram).
     intervals: Mutex<Histogram<u64>>,
+    /// Every session's time from its login's answer to its first state update, in µs
+    /// (the handshake's cost: a lost Ready shows here).
+    first_updates: Mutex<Histogram<u64>>,
 }
 
 /// An empty histogram of intervals: 1 µs to 1 min, 2 significant digits.
@@ -172,6 +180,13 @@ pub struct SwarmSnapshot {
     pub interval_p99_ms: f64,
     /// The longest such interval, ms.
     pub interval_max_ms: f64,
+    /// Sessions that got their first state update.
+    pub first_updates: u64,
+    /// 99th percentile of the time from a login's answer to the session's first state
+    /// update, ms.
+    pub first_update_p99_ms: f64,
+    /// The longest such time, ms.
+    pub first_update_max_ms: f64,
     /// Server ticks whose update a bot never got (a newer tick's came first), over all
     /// bots: a gap in the updates longer than one tick.
     pub ticks_missed: u64,
@@ -197,7 +212,8 @@ impl std::fmt::Debug for Swarm {
 
 impl Swarm {
     /// Starts every bot on the current tokio runtime.
-    pub fn start(config: SwarmConfig) -> Swarm {
+    pub fn start(mut config: SwarmConfig) -> Swarm {
+        config.client.silence_timeout = config.silence_reconnect;
         let shared = Arc::new(Shared {
             logins_ok: AtomicU64::new(0),
             logins_failed: AtomicU64::new(0),
@@ -205,6 +221,7 @@ impl Swarm {
             bots: (0..config.count).map(|_| Mutex::new(BotState::default())).collect(),
             stray_datagrams: AtomicU64::new(0),
             intervals: Mutex::new(interval_histogram()),
+            first_updates: Mutex::new(interval_histogram()),
         });
         let (stop, stop_rx) = watch::channel(false);
         let logins = Arc::new(Semaphore::new(config.login_concurrency.max(1)));
@@ -248,6 +265,7 @@ impl Swarm {
             t.lost += c.lost;
             t.sent += c.sent;
             t.reconnects += c.reconnects;
+            t.resent += c.resent;
             if b.connected {
                 s.connected += 1;
                 in_view += b.in_view;
@@ -267,6 +285,14 @@ impl Swarm {
             s.interval_p99_ms = hist.value_at_quantile(0.99) as f64 / 1000.0;
             s.interval_max_ms = hist.max() as f64 / 1000.0;
         }
+        drop(hist);
+        let hist = self.shared.first_updates.lock().unwrap_or_else(|p| p.into_inner());
+        if !hist.is_empty() {
+            s.first_updates = hist.len();
+            s.first_update_p99_ms = hist.value_at_quantile(0.99) as f64 / 1000.0;
+            s.first_update_max_ms = hist.max() as f64 / 1000.0;
+        }
+        drop(hist);
         s.totals.rejected += self.shared.stray_datagrams.load(Ordering::Relaxed);
         s.loss = s.totals.loss();
         s

@@ -1,7 +1,7 @@
 //! What a client repeats because UDP may lose it, and when it gives a session up: the
 //! timers of docs/protocol.md §7a, kept I/O-free so that they are tested without sockets
 //! or sleeps. [`Connection`](crate::Connection) owns one per session and sends what
-//! [`Liveness::due`] asks for.
+//! `Liveness::due` asks for.
 //!
 //! - **Ready** is resent after [`READY_FIRST_RETRY`], then at doubling gaps up to
 //!   [`READY_MAX_RETRY`], until the session's first ServerInfo or state update arrives:

@@ -3,7 +3,7 @@
 //! Subcommands, one module each (`myriad help <command>` gives their flags):
 //! - `sim` ([`sim`]): run a scenario (in one process, or split into zones) and print
 //!   its state hash.
-//! - `bench` ([`bench`]): the reference's result tables on this machine.
+//! - `bench` ([`bench`](mod@bench)): the reference's result tables on this machine.
 //! - `serve` ([`serve`]): the world server, until SIGINT/SIGTERM.
 //! - `demo` ([`demo`]): a server on the embedded database with built-in bots.
 //! - `bots` ([`bots`]): a swarm of bots against a server.

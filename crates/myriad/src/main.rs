@@ -8,6 +8,8 @@
 //! - `demo` ([`demo`]): a server on the embedded database with built-in bots.
 //! - `bots` ([`bots`]): a swarm of bots against a server.
 //! - `flood` ([`flood`]): a bounded attack on a server on this machine, measured.
+//! - `relay` ([`relay`]): a seeded, lossy UDP relay between clients and a server on this
+//!   machine (loopback only, bounded).
 //! - `zone`, `cluster` ([`zones`]): one zone process, and a supervised cluster of them
 //!   over NATS.
 //! - `gateway` ([`gateway`]): logins and sessions for a world run by zones.

@@ -63,12 +63,13 @@ impl Bounds {
     }
 }
 
-/// Refuses any address that is not loopback: these floods must never leave the machine.
+/// Refuses any address that is not loopback: floods and the lossy relay
+/// ([`crate::relay`]) must never leave the machine.
 pub fn check_loopback(ip: IpAddr) -> Result<(), ClientError> {
     if ip.is_loopback() || ip.to_canonical().is_loopback() {
         Ok(())
     } else {
-        Err(ClientError::Invalid(format!("{ip} is not a loopback address: floods stay on this machine")))
+        Err(ClientError::Invalid(format!("{ip} is not a loopback address: this traffic stays on this machine")))
     }
 }
 

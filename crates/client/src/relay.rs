@@ -32,6 +32,7 @@ use tokio::task::JoinSet;
 use tokio::time::Instant;
 
 use crate::error::ClientError;
+use crate::flood::check_loopback;
 
 /// The longest a relay may run.
 pub const MAX_DURATION: Duration = Duration::from_secs(3600);
@@ -98,11 +99,9 @@ impl RelayConfig {
     }
 
     fn check(&self) -> Result<(), ClientError> {
-        for (what, addr) in [("listen", self.listen), ("server", self.server)] {
-            if !addr.ip().is_loopback() {
-                return Err(ClientError::Invalid(format!("the relay's {what} address {addr} is not a loopback one")));
-            }
-        }
+        // The one loopback rule of this crate's traffic tools (IPv4-mapped addresses too).
+        check_loopback(self.listen.ip())?;
+        check_loopback(self.server.ip())?;
         let l = &self.link;
         for (what, p) in [("loss", l.loss), ("duplicate", l.duplicate), ("reorder", l.reorder)] {
             if !(0.0..=1.0).contains(&p) {

@@ -61,7 +61,7 @@ pub(crate) struct Player {
     /// of what the server sends.
     pub view: Subscriber,
     /// Where the last authenticated datagram came from; nothing is sent before that.
-    /// Only [`Sessions::set_address`] changes it once the player is in the table (the
+    /// Only [`Sessions::answer`] changes it once the player is in the table (the
     /// published [`SessionDirectory`] follows it).
     pub addr: Option<SocketAddr>,
     /// The client asked for state updates. A repeated Ready (the client resends it
@@ -167,10 +167,10 @@ impl Sessions {
         Some(Arc::new(SessionDirectory::new(self.players.iter().map(|p| (p.session_id, p.addr)))))
     }
 
-    /// Records that the player of `session_id` sent an authenticated datagram from
-    /// `from` (following a client whose NAT mapping changed).
-    pub fn set_address(&mut self, session_id: u64, from: SocketAddr) {
-        let Some(&idx) = self.by_session.get(&session_id) else { return };
+    /// Follows the address of the player at `idx`, whose authenticated datagram came from
+    /// `from` (a client whose NAT mapping changed): a new address starts with no reply
+    /// credit, and the published directory is marked stale.
+    fn follow_address(&mut self, idx: usize, from: SocketAddr) {
         let p = &mut self.players[idx];
         if p.addr != Some(from) {
             p.addr = Some(from);
@@ -180,14 +180,14 @@ impl Sessions {
     }
 
     /// Records an authenticated datagram of `len` bytes from `from` for `session_id`
-    /// (the session's address follows it, [`Sessions::set_address`]) and queues `reply`
-    /// to it, if any, within the reply credit: the server never sends an address more
-    /// bytes in answer than it received from it since it became the session's address
-    /// (docs/protocol.md §6.2). A ServerInfo (38 bytes) answering a session's first
-    /// Ready (34) therefore waits for its next datagram (an action, a resent Ready).
+    /// (the session's address follows it) and queues `reply` to it, if any, within the
+    /// reply credit: the server never sends an address more bytes in answer than it
+    /// received from it since it became the session's address (docs/protocol.md §6.2). A
+    /// ServerInfo (38 bytes) answering a session's first Ready (34) therefore waits for
+    /// its next datagram (an action, a resent Ready).
     pub fn answer(&mut self, session_id: u64, from: SocketAddr, len: usize, reply: Option<ServerMessage>) {
-        self.set_address(session_id, from);
         let Some(&idx) = self.by_session.get(&session_id) else { return };
+        self.follow_address(idx, from);
         let p = &mut self.players[idx];
         p.reply_credit = p.reply_credit.saturating_add(len);
         if reply.is_some() {
@@ -206,6 +206,7 @@ impl Sessions {
             p.reply_owed = Some(msg);
         }
     }
+
     /// Players logged in.
     pub fn len(&self) -> usize {
         self.players.len()

@@ -124,6 +124,9 @@ pub struct Dynamics {
     stamp: Stamp,
     /// Bumped (with `generation`) by [`Dynamics::set_action`] alone.
     action_generation: u64,
+    /// What changed since the last step, while every change is recorded
+    /// ([`Dynamics::changes`]).
+    journal: Option<Changes>,
 }
 
 /// One dynamic object's whole state, detached from any world: what a zone hands to its
@@ -263,6 +266,7 @@ impl Dynamics {
         }
         self.generation += 1;
         self.layout_generation += 1;
+        self.journal = None;
         true
     }
 
@@ -350,6 +354,7 @@ impl Dynamics {
         self.next_id = max;
         self.generation += 1;
         self.layout_generation += 1;
+        self.journal = None;
         Ok(())
     }
 
@@ -368,6 +373,7 @@ impl Dynamics {
         self.slot_of.take();
         self.generation += 1;
         self.layout_generation += 1;
+        self.journal = None;
     }
 
     /// The slot of an entity, if it exists.
@@ -398,6 +404,9 @@ impl Dynamics {
         *a = action.bits();
         self.generation += 1;
         self.action_generation += 1;
+        if let Some(j) = &mut self.journal {
+            j.actions = true;
+        }
         true
     }
 
@@ -411,12 +420,14 @@ impl Dynamics {
         self.pos[s] = pos;
         self.prev[s] = pos;
         self.generation += 1;
+        self.journal = None;
         true
     }
 
     /// Borrows the per-slot state for a physics step (bumps the generation).
     pub fn state_mut(&mut self) -> DynamicsMut<'_> {
         self.generation += 1;
+        self.restart_journal();
         DynamicsMut {
             pos: &mut self.pos,
             prev: &mut self.prev,
@@ -612,6 +623,10 @@ pub fn hash_state(objects: impl Iterator<Item = ObjectState>, tick: u64, len: us
     }
     h.digest()
 }
+
+mod edit;
+
+pub use edit::{Changes, SlotRun, SortedEdit};
 
 #[cfg(test)]
 mod tests;

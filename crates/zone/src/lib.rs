@@ -25,6 +25,7 @@ pub mod layout;
 pub mod local;
 pub mod nats;
 pub mod process;
+pub mod resident;
 pub mod stats;
 pub mod supervisor;
 pub mod wire;

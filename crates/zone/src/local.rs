@@ -103,7 +103,7 @@ pub fn run_zoned(
                         }
                     }
                     let prims = zone.static_prims();
-                    Ok((zone.advanced().to_vec(), actions, zone.stats().clone(), prims, first, Instant::now()))
+                    Ok((zone.advanced(), actions, zone.stats().clone(), prims, first, Instant::now()))
                 })
             })
             .collect();

@@ -114,7 +114,7 @@ pub fn run_zone_process(
             let t = zone.tick();
             let every = cfg.checkpoint_every.max(1);
             if t.is_multiple_of(every) || t == cfg.ticks {
-                store.put(cfg.zone, t, epoch, zone.advanced())?;
+                store.put(cfg.zone, t, epoch, &zone.advanced())?;
                 // Keep the last KEEP checkpoints: zones drift apart by a few ticks at most,
                 // so a tick that all of them stored is among them.
                 if let Some(old) = (t / every * every).checked_sub(KEEP * every) {

@@ -7,27 +7,32 @@
 //!    now holds its centre: a ghost and a hand-off are one record.
 //! 2. *Gather.* `Z` waits for the border states of tick `t` from each neighbour (not a
 //!    global barrier), authenticating and ordering them in its inbox.
-//! 3. *Step.* `Z` assembles a world of what it owns (advanced objects still in its region,
-//!    plus those handed to it) and its ghosts (every other object it sees), sorted by
-//!    entity id, and steps it with any backend. Because a step sums each object's
-//!    responses in the order of its partners' slots, and slots follow entity ids in both
-//!    the zone's world and a scenario's world, an owned object gets the same bits as in
-//!    one process — provided every partner is there, which `reach` guarantees.
-//! 4. *Keep.* The owned objects' new states become the advanced set; ghosts' results are
-//!    dropped (their owners computed them with all their partners).
+//! 3. *Step.* `Z` brings its world up to date: the world it keeps from tick to tick
+//!    ([`ResidentWorld`]) holds what it owns and the ghosts it sees, sorted by entity id;
+//!    the neighbours' records overwrite its ghosts, hand-offs become owned, objects it no
+//!    longer sees go, new ones are inserted, all in one pass that keeps ids ascending.
+//!    It applies this tick's actions to the objects it owns and steps the world with any
+//!    backend. Because a step sums each object's responses in the order of its partners'
+//!    slots, and slots follow entity ids in both the zone's world and a scenario's world,
+//!    an owned object gets the same bits as in one process — provided every partner is
+//!    there, which `reach` guarantees.
+//! 4. *Keep.* The owned objects' new states are the world's; ghosts' results are
+//!    overwritten at the next exchange (their owners computed them with all their
+//!    partners).
 
 use std::collections::BTreeMap;
 use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use myriad_core::{ObjectState, ScriptedAction, Statics, World};
+use myriad_core::{ObjectState, ScriptedAction, World};
 use myriad_physics::{Backend, TickConstants};
 
 use crate::error::ZoneError;
 use crate::fabric::Fabric;
 use crate::intents::IntentBook;
 use crate::layout::{ZoneId, ZoneLayout};
+use crate::resident::ResidentWorld;
 use crate::stats::ZoneStats;
 use crate::wire::{
     ALL, Border, BorderRecord, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border,
@@ -75,30 +80,16 @@ impl Parts {
     }
 }
 
-/// An object of the step being assembled, with whether this zone owns it (steps it as
-/// owner and keeps its result) or only sees it (a ghost).
-#[derive(Clone, Copy)]
-struct Member {
-    state: ObjectState,
-    owned: bool,
-}
-
 /// One zone of a world split over several (see the module documentation).
 pub struct Zone {
     cfg: ZoneConfig,
     layout: Arc<ZoneLayout>,
-    /// Bounds, terrain, the statics within reach, and the objects of the current step.
-    world: World,
-    /// The objects this zone stepped as owner last tick, by id (their states now).
-    advanced: Vec<ObjectState>,
+    /// The zone's world, kept from tick to tick, and which objects it owns.
+    resident: ResidentWorld,
     inbox: BTreeMap<(u64, ZoneId), Parts>,
     backend: Box<dyn Backend>,
     fabric: Box<dyn Fabric>,
     stats: ZoneStats,
-    /// Whether each slot of the last step was owned (scratch).
-    owned_slots: Vec<bool>,
-    /// The objects of the step being assembled (scratch).
-    scratch: Vec<Member>,
     /// Gateways' joins, actions and leaves for players' objects.
     intents: IntentBook,
 }
@@ -127,29 +118,23 @@ impl Zone {
         cfg: ZoneConfig,
         layout: Arc<ZoneLayout>,
         world: &World,
-        mut owned: Vec<ObjectState>,
+        owned: Vec<ObjectState>,
         backend: Box<dyn Backend>,
         fabric: Box<dyn Fabric>,
     ) -> Result<Zone, ZoneError> {
         if cfg.id.0 as usize >= layout.len() {
             return Err(ZoneError::Layout(format!("zone {} of a layout of {}", cfg.id.0, layout.len())));
         }
-        owned.sort_unstable_by_key(|o| o.id);
-        let mut own = World::new(world.bounds, world.terrain.clone(), world.seed)?;
-        own.tick = world.tick;
-        own.statics = statics_within(&world.statics, &layout, cfg.id);
-        let stats = ZoneStats { owned: owned.len(), ..ZoneStats::default() };
+        let resident = ResidentWorld::new(world, &layout, cfg.id, owned)?;
+        let stats = ZoneStats { owned: resident.owned_count(), ..ZoneStats::default() };
         Ok(Zone {
             cfg,
             layout,
-            world: own,
-            advanced: owned,
+            resident,
             inbox: BTreeMap::new(),
             backend,
             fabric,
             stats,
-            owned_slots: Vec::new(),
-            scratch: Vec::new(),
             intents: IntentBook::new(world.tick),
         })
     }
@@ -161,13 +146,35 @@ impl Zone {
 
     /// The tick the next step starts.
     pub fn tick(&self) -> u64 {
-        self.world.tick
+        self.resident.world().tick
     }
 
-    /// The states of the objects this zone stepped last, by id: after the last tick
-    /// the zones' advanced sets partition the world.
-    pub fn advanced(&self) -> &[ObjectState] {
-        &self.advanced
+    /// The states of the objects this zone stepped last as their owner, by id: after the
+    /// last tick the zones' advanced sets partition the world.
+    pub fn advanced(&self) -> Vec<ObjectState> {
+        self.resident.owned_states().collect()
+    }
+
+    /// The layout the zone follows.
+    pub fn layout(&self) -> &Arc<ZoneLayout> {
+        &self.layout
+    }
+
+    /// Follows a new layout (cuts moved) from the next tick on. Every zone of the world
+    /// must switch at the same tick, before stepping it: the objects between an old cut
+    /// and its new place are then handed over at that tick's exchange like any object
+    /// that crossed a boundary. The layout must have this zone's shape.
+    pub fn set_layout(&mut self, layout: Arc<ZoneLayout>) -> Result<(), ZoneError> {
+        if layout.shape() != self.layout.shape() {
+            return Err(ZoneError::Layout(format!(
+                "a {:?} layout for a zone of a {:?} one",
+                layout.shape(),
+                self.layout.shape()
+            )));
+        }
+        self.resident.set_layout(&layout, self.cfg.id);
+        self.layout = layout;
+        Ok(())
     }
 
     /// The counters.
@@ -177,7 +184,7 @@ impl Zone {
 
     /// Static primitives this zone holds.
     pub fn static_prims(&self) -> usize {
-        self.world.statics.prim_count()
+        self.resident.world().statics.prim_count()
     }
 
     /// One tick: exchange border states with the neighbours, then step. `actions` are
@@ -185,7 +192,7 @@ impl Zone {
     /// applied ([`TickEnd::Stepped`] says how many), unless the supervisor interrupts
     /// the tick.
     pub fn step(&mut self, actions: &[ScriptedAction], k: &TickConstants) -> Result<TickEnd, ZoneError> {
-        let t = self.world.tick;
+        let t = self.tick();
         let send = Instant::now();
         self.send_borders(t)?;
         self.stats.send += send.elapsed();
@@ -197,30 +204,30 @@ impl Zone {
             return Ok(TickEnd::Interrupted(control));
         }
         let start = Instant::now();
-        let applied = self.assemble(received, actions)?;
+        let mut received = received;
+        self.resident.apply(&self.layout, self.cfg.id, &mut received, &mut self.intents, &mut self.stats)?;
+        let applied = self.resident.set_actions(actions, &self.intents);
         let physics = Instant::now();
-        self.backend.step(&mut self.world, k)?;
+        self.backend.step(&mut self.resident.world, k)?;
         self.stats.physics += physics.elapsed();
-        let d = &self.world.dynamics;
-        self.advanced.clear();
-        self.advanced.extend((0..d.len()).filter(|&s| self.owned_slots[s]).map(|s| d.state_of(s)));
         self.stats.ticks += 1;
-        self.stats.owned = self.advanced.len();
+        self.stats.owned = self.resident.owned_count();
         self.stats.step += start.elapsed();
         if self.cfg.live {
             self.publish_states()?;
         }
-        self.intents.expire(self.world.tick);
+        self.intents.expire(self.tick());
         self.stats.bytes = self.fabric.bytes();
         Ok(TickEnd::Stepped(applied))
     }
 
     /// The advanced set, at the tick just reached, to every gateway.
     fn publish_states(&mut self) -> Result<(), ZoneError> {
-        for (part, parts, chunk) in split(&self.advanced, self.records_per_part())? {
+        let owned = self.advanced();
+        for (part, parts, chunk) in split(&owned, self.records_per_part())? {
             let m = Border {
                 run: self.cfg.run,
-                tick: self.world.tick,
+                tick: self.tick(),
                 from: self.cfg.id,
                 to: ALL,
                 part,
@@ -237,17 +244,18 @@ impl Zone {
         ((self.fabric.max_message() - HEADER_LEN - TAG_LEN) / RECORD_LEN).max(1)
     }
 
-    /// Step 1: the advanced set to every neighbour that sees it.
+    /// Step 1: the advanced set to every neighbour that sees it (only objects near the
+    /// zone's edges can be seen by another).
     fn send_borders(&mut self, t: u64) -> Result<(), ZoneError> {
         let me = self.cfg.id;
         let neighbours = self.layout.neighbours(me);
         let mut out: Vec<Vec<BorderRecord>> = vec![Vec::new(); neighbours.len()];
-        for o in &self.advanced {
+        for o in self.resident.near_edges(&self.layout, me) {
             let owner = self.layout.zone_at(o.pos);
             for z in self.layout.seers(o.pos).filter(|&z| z != me) {
                 let i =
                     neighbours.iter().position(|&n| n == z).ok_or(ZoneError::TooFar { id: o.id, from: me, to: z })?;
-                out[i].push(BorderRecord { state: *o, yours: z == owner });
+                out[i].push(BorderRecord { state: o, yours: z == owner });
                 self.stats.handoffs_out += (z == owner) as u64;
             }
         }
@@ -320,7 +328,7 @@ impl Zone {
     /// next (a neighbour is never further ahead), and not seen before, are kept. The
     /// supervisor's halt and start are handed back: they interrupt the tick.
     pub fn offer(&mut self, bytes: &[u8]) -> Option<Message> {
-        let t = self.world.tick;
+        let t = self.tick();
         let m = match decode(&self.cfg.key, bytes) {
             Ok(Message::Border(m)) => m,
             Ok(control @ (Message::Halt { .. } | Message::Start { .. })) => return Some(control),
@@ -375,78 +383,6 @@ impl Zone {
     pub fn into_fabric(self) -> Box<dyn Fabric> {
         self.fabric
     }
-
-    /// Step 3: the zone's world for this tick, in entity-id order, with the owned
-    /// objects' actions set.
-    fn assemble(&mut self, received: Vec<BorderRecord>, actions: &[ScriptedAction]) -> Result<usize, ZoneError> {
-        let me = self.cfg.id;
-        let layout = &self.layout;
-        // Reused from tick to tick: a zone's world is rebuilt every tick.
-        let objects = &mut self.scratch;
-        objects.clear();
-        for o in &self.advanced {
-            if layout.zone_at(o.pos) == me {
-                objects.push(Member { state: *o, owned: true });
-            } else if layout.sees(me, o.pos) {
-                objects.push(Member { state: *o, owned: false });
-            }
-        }
-        self.stats.ghosts_in += received.len() as u64;
-        self.stats.handoffs_in += received.iter().filter(|r| r.yours).count() as u64;
-        // A record handed to this zone is one it owns from now on.
-        objects.extend(received.into_iter().map(|r| Member { state: r.state, owned: r.yours }));
-        // Stable sort: the advanced set and each message are runs already sorted by id,
-        // which the stable sort merges instead of sorting from scratch.
-        objects.sort_by_key(|m| m.state.id);
-        if let Some(w) = objects.windows(2).find(|w| w[0].state.id == w[1].state.id) {
-            return Err(ZoneError::Duplicate(w[0].state.id, self.world.tick));
-        }
-        // Players: leaves remove what this zone owns, and so does the death or restart of
-        // the object's gateway; joins are adopted by the zone whose region holds them
-        // (once: not if the object is here already, or left).
-        let (book, now) = (&self.intents, self.world.tick);
-        let before = objects.len();
-        objects.retain(|m| !(m.owned && book.left(m.state.id)));
-        self.stats.leaves += (before - objects.len()) as u64;
-        let before = objects.len();
-        objects.retain(|m| !m.owned || book.keeps(m.state.id, now));
-        self.stats.orphans += (before - objects.len()) as u64;
-        for j in self.intents.take_joins() {
-            if layout.zone_at(j.pos) != me || self.intents.left(j.id) {
-                continue;
-            }
-            if let Err(at) = objects.binary_search_by_key(&j.id, |m| m.state.id) {
-                objects.insert(at, Member { state: j, owned: true });
-                self.stats.joins += 1;
-            }
-        }
-        let d = &mut self.world.dynamics;
-        d.clear();
-        d.insert_all(objects.iter().map(|m| m.state))?;
-        self.owned_slots.clear();
-        self.owned_slots.extend(objects.iter().map(|m| m.owned));
-        self.stats.ghosts = objects.len() - self.owned_slots.iter().filter(|o| **o).count();
-        let mut applied = 0;
-        for a in actions {
-            // Slots are in id order: a search, not the id map (which would cost a map of
-            // the whole zone every tick).
-            if let Ok(s) = objects.binary_search_by_key(&a.entity, |m| m.state.id)
-                && self.owned_slots[s]
-            {
-                d.set_action_at(s, a.action);
-                applied += 1;
-            }
-        }
-        for (id, action) in self.intents.actions() {
-            if let Ok(s) = objects.binary_search_by_key(&id, |m| m.state.id)
-                && self.owned_slots[s]
-                && d.actions()[s] != action
-            {
-                d.set_action_at(s, myriad_core::Action::from_bits_truncate(action));
-            }
-        }
-        Ok(applied)
-    }
 }
 
 /// `items` in parts of at most `per_part` (at least one part, even when empty), each
@@ -458,18 +394,4 @@ fn split<T>(items: &[T], per_part: usize) -> Result<impl Iterator<Item = (u16, u
         let chunk = &items[(i * per_part).min(items.len())..((i + 1) * per_part).min(items.len())];
         (i as u16, count, chunk)
     }))
-}
-
-/// The static objects with a primitive within reach of zone `z`, in their original order
-/// (so that each object's static responses are summed in the same order as in one
-/// process).
-fn statics_within(all: &Statics, layout: &ZoneLayout, z: ZoneId) -> Statics {
-    let region = layout.region(z);
-    all.subset(|_, obj| {
-        (obj.first..obj.first + obj.count).any(|i| {
-            let b = all.aabb(i as usize);
-            let r = crate::layout::Rect { min_x: b.min.x, min_z: b.min.z, max_x: b.max.x, max_z: b.max.z };
-            region.distance_to(&r) <= layout.reach()
-        })
-    })
 }

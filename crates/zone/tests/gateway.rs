@@ -42,7 +42,7 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
                         // Paced, so the gateway follows tick by tick.
                         std::thread::sleep(Duration::from_millis(2));
                     }
-                    (zone.advanced().to_vec(), zone.stats().clone())
+                    (zone.advanced(), zone.stats().clone())
                 })
             })
             .collect();

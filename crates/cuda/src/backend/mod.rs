@@ -45,6 +45,7 @@ mod aoi;
 mod broad;
 mod forces;
 mod narrow;
+mod patch;
 mod scan;
 mod step;
 mod sync;
@@ -58,6 +59,7 @@ use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport,
 use crate::device::{DevBuf, Event, Gpu, Pinned};
 use crate::interest::DeviceInterest;
 use crate::params::DeviceParams;
+use patch::Patch;
 use scan::Scan;
 use sync::{Host, Objects, Prims};
 use tree::Tree;
@@ -114,6 +116,8 @@ pub(crate) struct Resident {
     /// The dynamics generation the dynamic boxes (and tree) were built at.
     boxes_fresh: Option<u64>,
     pub(crate) obj: Objects,
+    /// The incremental upload's spare arrays and staging buffers.
+    patch: Patch,
     prims: Prims,
     dyn_tree: Tree,
     static_tree: Tree,
@@ -195,6 +199,7 @@ impl Resident {
             params_key: None,
             boxes_fresh: None,
             obj: Objects::new(),
+            patch: Patch::new(),
             prims: Prims::new(),
             dyn_tree: Tree::new(),
             static_tree: Tree::new(),
@@ -241,9 +246,10 @@ impl Resident {
     fn step_impl(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
         // A step whose pair lists outgrew their buffers is redone once with buffers of
         // the exact size (the world is only written after a complete step).
-        match self.try_step(world, k)? {
+        let mut sent = 0;
+        match self.try_step(world, k, &mut sent)? {
             Some(report) => Ok(report),
-            None => self.try_step(world, k)?.ok_or(PhysicsError::Device {
+            None => self.try_step(world, k, &mut sent)?.ok_or(PhysicsError::Device {
                 stage: "broad phase",
                 message: "pair buffers still too small after growing them to the exact count".into(),
             }),

@@ -19,8 +19,8 @@
 //! checked first ([`applicable`]); one that does not fit the device copy is not applied
 //! and the caller uploads everything instead.
 
-use myriad_core::{Dynamics, World};
 use myriad_core::world::Changes;
+use myriad_core::{Dynamics, World};
 use myriad_physics::PhysicsError;
 
 use super::Resident;
@@ -115,9 +115,8 @@ impl Spare {
 /// everything instead).
 pub(crate) fn applicable(c: &Changes, old_n: usize, new_n: usize) -> bool {
     let w = &c.written;
-    let written_in = |a: usize, b: usize| {
-        w.partition_point(|&s| (s as usize) < b) - w.partition_point(|&s| (s as usize) < a)
-    };
+    let written_in =
+        |a: usize, b: usize| w.partition_point(|&s| (s as usize) < b) - w.partition_point(|&s| (s as usize) < a);
     if !w.windows(2).all(|p| p[0] < p[1]) || w.last().is_some_and(|&s| s as usize >= new_n) {
         return false;
     }
@@ -179,9 +178,9 @@ impl Resident {
     pub(super) fn patch(&mut self, world: &World, c: &Changes) -> Result<Option<u64>, PhysicsError> {
         let d = &world.dynamics;
         let n = d.len();
-        let at_base = self.synced.is_some_and(|s| {
-            (s.generation, s.layout, s.identity) == (c.base_generation, c.base_layout, d.stamp())
-        });
+        let at_base = self
+            .synced
+            .is_some_and(|s| (s.generation, s.layout, s.identity) == (c.base_generation, c.base_layout, d.stamp()));
         if !at_base || self.n != c.base_len || !applicable(c, self.n, n) {
             return Ok(None);
         }

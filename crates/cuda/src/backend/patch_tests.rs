@@ -27,7 +27,7 @@ fn state(id: u32, v: u32) -> ObjectState {
     };
     ObjectState {
         id: EntityId(id),
-        kind: if v % 2 == 0 { ObjectKind::Npc } else { ObjectKind::User },
+        kind: if v.is_multiple_of(2) { ObjectKind::Npc } else { ObjectKind::User },
         shape,
         half,
         radius,

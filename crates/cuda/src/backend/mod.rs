@@ -2,9 +2,22 @@
 //!
 //! # How it works
 //! World state lives on the device between steps; a step uploads only what the host
-//! changed (detected through the world's generation counters: everything after spawns or
-//! despawns, positions, actions and flags after teleports or new actions, the statics
-//! when they change) and downloads the new state into pinned buffers. Per tick:
+//! changed and downloads the new state into pinned buffers. The upload (`sync`, and
+//! [`StepReport::upload_bytes`] counts it):
+//! - when the device copy was made right after the last step and every change since is
+//!   on the world's record (`Dynamics::changes`: a zone's one `apply_sorted` a tick and
+//!   its actions), only the record travels (`patch`): the runs of kept slots and the
+//!   written states in one staged copy, then `k_patch_gather` moves the kept objects to
+//!   their new slots in a spare set of arrays (swapped in, the old set kept as the next
+//!   spare) and `k_patch_scatter` writes the staged states (`kernels/patch.cu`); the
+//!   actions travel whole when any was set. The bytes follow the objects that changed,
+//!   not the world's size;
+//! - otherwise the generation counters decide: everything after spawns, despawns or an
+//!   edit off the record, positions, actions and flags after teleports, the actions
+//!   alone after new actions, nothing when nothing changed;
+//! - the statics, the terrain and the constants when they change.
+//!
+//! Per tick:
 //!
 //! 1. `build_dynamic_bvh`: object boxes; for `cuda` also Morton codes, the radix sort,
 //!    Karras emission and the refit (`kernels/lbvh.cu`).
@@ -26,6 +39,8 @@
 //! methods to `Resident` or holding the stage's device state:
 //! - `sync`: the device copies of the world and their uploads, the pinned download
 //!   buffers;
+//! - `patch`: the incremental upload of a recorded change (the spare arrays, the staging
+//!   buffer and its layout, the check that a record fits the device copy);
 //! - `tree`: the LBVH build (and the dynamic boxes of `cuda-naive`);
 //! - `scan`: exclusive prefix sums;
 //! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];

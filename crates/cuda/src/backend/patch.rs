@@ -247,7 +247,11 @@ impl Resident {
         if c.actions {
             send(gpu, &o.action, d.actions(), &mut sent)?;
         }
-        self.boxes_fresh = None;
+        // Boxes follow positions and slots: stale unless only actions changed (as on
+        // the full path).
+        if c.moved.is_some() || w > 0 {
+            self.boxes_fresh = None;
+        }
         Ok(Some(sent))
     }
 }

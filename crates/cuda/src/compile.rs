@@ -17,12 +17,13 @@ use std::path::PathBuf;
 use cudarc::nvrtc::sys as nvrtc;
 
 /// The kernel sources, in the order they are concatenated into one program.
-pub const SOURCES: [(&str, &str); 5] = [
+pub const SOURCES: [(&str, &str); 6] = [
     ("scan.cu", include_str!("../kernels/scan.cu")),
     ("lbvh.cu", include_str!("../kernels/lbvh.cu")),
     ("broad.cu", include_str!("../kernels/broad.cu")),
     ("physics.cu", include_str!("../kernels/physics.cu")),
     ("interest.cu", include_str!("../kernels/interest.cu")),
+    ("patch.cu", include_str!("../kernels/patch.cu")),
 ];
 
 /// Headers the sources include, handed to NVRTC by name.
@@ -35,7 +36,7 @@ pub const HEADERS: [(&str, &str); 3] = [
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 21] = [
+pub const KERNELS: [(&str, usize); 23] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -57,6 +58,8 @@ pub const KERNELS: [(&str, usize); 21] = [
     ("k_interest_stamp", 11),
     ("k_interest_pack", 18),
     ("k_interest_seal", 8),
+    ("k_patch_gather", 21),
+    ("k_patch_scatter", 12),
 ];
 
 /// The parameter count of each `extern "C" __global__` function in the sources, read

@@ -384,6 +384,47 @@ kernels! {
         samples: DevPtr<u16>,
     }
 
+    /// `k_patch_gather` (`kernels/patch.cu`): each new slot covered by a run copies its
+    /// object's nine arrays from the old slot into the `out_` arrays.
+    KPatchGather = "k_patch_gather" {
+        n: u32,
+        runs: DevPtr<u32>,
+        nruns: u32,
+        pos: DevPtr<f32>,
+        prev: DevPtr<f32>,
+        half: DevPtr<f32>,
+        radius: DevPtr<f32>,
+        shape: DevPtr<u8>,
+        kind: DevPtr<u8>,
+        id: DevPtr<u32>,
+        action: DevPtr<u8>,
+        flags: DevPtr<u8>,
+        out_pos: DevPtr<f32>,
+        out_prev: DevPtr<f32>,
+        out_half: DevPtr<f32>,
+        out_radius: DevPtr<f32>,
+        out_shape: DevPtr<u8>,
+        out_kind: DevPtr<u8>,
+        out_id: DevPtr<u32>,
+        out_action: DevPtr<u8>,
+        out_flags: DevPtr<u8>,
+    }
+    /// `k_patch_scatter`: the `w` states staged by the host written into their slots.
+    KPatchScatter = "k_patch_scatter" {
+        w: u32,
+        staged: DevPtr<u32>,
+        n: u32,
+        pos: DevPtr<f32>,
+        prev: DevPtr<f32>,
+        half: DevPtr<f32>,
+        radius: DevPtr<f32>,
+        shape: DevPtr<u8>,
+        kind: DevPtr<u8>,
+        id: DevPtr<u32>,
+        action: DevPtr<u8>,
+        flags: DevPtr<u8>,
+    }
+
     /// `k_interest_select` (`kernels/interest.cu`): one block per player picks its
     /// records from its AOI list and writes its new staleness table (players
     /// `first..nq`).

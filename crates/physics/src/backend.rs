@@ -130,6 +130,11 @@ pub struct StepReport {
     pub static_contacts: u64,
     /// Dynamic pairs that touched and were not already separating.
     pub dynamic_contacts: u64,
+    /// Bytes copied from the host to a device to bring its copy of the world up to date
+    /// for this step (0 for the CPU backends): how a zone's upload per tick is measured
+    /// against its boundary traffic. Missing in reports written before it existed.
+    #[serde(default)]
+    pub upload_bytes: u64,
 }
 
 impl StepReport {

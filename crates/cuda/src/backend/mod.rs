@@ -2,9 +2,22 @@
 //!
 //! # How it works
 //! World state lives on the device between steps; a step uploads only what the host
-//! changed (detected through the world's generation counters: everything after spawns or
-//! despawns, positions, actions and flags after teleports or new actions, the statics
-//! when they change) and downloads the new state into pinned buffers. Per tick:
+//! changed and downloads the new state into pinned buffers. The upload (`sync`, and
+//! [`StepReport::upload_bytes`] counts it):
+//! - when the device copy was made right after the last step and every change since is
+//!   on the world's record (`Dynamics::changes`: a zone's one `apply_sorted` a tick and
+//!   its actions), only the record travels (`patch`): the runs of kept slots and the
+//!   written states in one staged copy, then `k_patch_gather` moves the kept objects to
+//!   their new slots in a spare set of arrays (swapped in, the old set kept as the next
+//!   spare) and `k_patch_scatter` writes the staged states (`kernels/patch.cu`); the
+//!   actions travel whole when any was set. The bytes follow the objects that changed,
+//!   not the world's size;
+//! - otherwise the generation counters decide: everything after spawns, despawns or an
+//!   edit off the record, positions, actions and flags after teleports, the actions
+//!   alone after new actions, nothing when nothing changed;
+//! - the statics, the terrain and the constants when they change.
+//!
+//! Per tick:
 //!
 //! 1. `build_dynamic_bvh`: object boxes; for `cuda` also Morton codes, the radix sort,
 //!    Karras emission and the refit (`kernels/lbvh.cu`).
@@ -26,6 +39,8 @@
 //! methods to `Resident` or holding the stage's device state:
 //! - `sync`: the device copies of the world and their uploads, the pinned download
 //!   buffers;
+//! - `patch`: the incremental upload of a recorded change (the spare arrays, the staging
+//!   buffer and its layout, the check that a record fits the device copy);
 //! - `tree`: the LBVH build (and the dynamic boxes of `cuda-naive`);
 //! - `scan`: exclusive prefix sums;
 //! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];
@@ -45,6 +60,7 @@ mod aoi;
 mod broad;
 mod forces;
 mod narrow;
+mod patch;
 mod scan;
 mod step;
 mod sync;
@@ -58,6 +74,7 @@ use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport,
 use crate::device::{DevBuf, Event, Gpu, Pinned};
 use crate::interest::DeviceInterest;
 use crate::params::DeviceParams;
+use patch::Patch;
 use scan::Scan;
 use sync::{Host, Objects, Prims};
 use tree::Tree;
@@ -114,6 +131,8 @@ pub(crate) struct Resident {
     /// The dynamics generation the dynamic boxes (and tree) were built at.
     boxes_fresh: Option<u64>,
     pub(crate) obj: Objects,
+    /// The incremental upload's spare arrays and staging buffers.
+    patch: Patch,
     prims: Prims,
     dyn_tree: Tree,
     static_tree: Tree,
@@ -195,6 +214,7 @@ impl Resident {
             params_key: None,
             boxes_fresh: None,
             obj: Objects::new(),
+            patch: Patch::new(),
             prims: Prims::new(),
             dyn_tree: Tree::new(),
             static_tree: Tree::new(),
@@ -241,9 +261,10 @@ impl Resident {
     fn step_impl(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
         // A step whose pair lists outgrew their buffers is redone once with buffers of
         // the exact size (the world is only written after a complete step).
-        match self.try_step(world, k)? {
+        let mut sent = 0;
+        match self.try_step(world, k, &mut sent)? {
             Some(report) => Ok(report),
-            None => self.try_step(world, k)?.ok_or(PhysicsError::Device {
+            None => self.try_step(world, k, &mut sent)?.ok_or(PhysicsError::Device {
                 stage: "broad phase",
                 message: "pair buffers still too small after growing them to the exact count".into(),
             }),

@@ -13,16 +13,19 @@ use super::{Resident, Synced};
 impl Resident {
     /// One step, or `None` (world untouched) when a pair list did not fit: the buffers are
     /// then grown to the exact totals and the device state is marked for re-upload.
+    /// `sent` adds up the bytes uploaded by this try and any before it in the same step.
     pub(super) fn try_step(
         &mut self,
         world: &mut World,
         k: &TickConstants,
+        sent: &mut u64,
     ) -> Result<Option<StepReport>, PhysicsError> {
         let wall = Instant::now();
         self.gpu.bind()?;
         let mut report = StepReport::default();
         self.gpu.record(self.events[0].raw)?;
-        self.sync_world(world, Some(k))?;
+        *sent += self.sync_world(world, Some(k))?;
+        report.upload_bytes = *sent;
         let n = self.n;
         if n == 0 {
             // The backend's step is the single owner of the world's tick counter: no

@@ -1,6 +1,7 @@
 //! The device copies of the world, what the host downloads into, and the upload of
 //! whatever the host changed since the device last saw the world.
 
+use bytemuck::Pod;
 use myriad_core::{Vec3, World};
 use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{BackendKind, PhysicsError, TickConstants};
@@ -8,7 +9,7 @@ use rayon::prelude::*;
 
 use super::broad::SLOTS;
 use super::{Resident, Synced};
-use crate::device::{DevBuf, Pinned};
+use crate::device::{DevBuf, Gpu, Pinned};
 use crate::launch::KBoxes;
 use crate::params::DeviceParams;
 
@@ -148,57 +149,84 @@ pub(super) fn par_copy<T: Copy + Send + Sync>(dst: &mut [T], src: &[T]) {
     }
 }
 
+/// [`Gpu::upload`], adding the bytes sent to `sent`.
+pub(super) fn send<T: Pod>(gpu: &Gpu, dst: &DevBuf<T>, src: &[T], sent: &mut u64) -> Result<(), PhysicsError> {
+    gpu.upload(dst, src)?;
+    *sent += std::mem::size_of_val(src) as u64;
+    Ok(())
+}
+
+/// Sizes the per-step buffers (boxes, responses, pair counts and kept targets, support
+/// bits) for `n` objects; their contents are rebuilt by every step.
+pub(super) fn size_derived(gpu: &Gpu, o: &mut Objects, n: usize) -> Result<(), PhysicsError> {
+    for b in [&mut o.boxes, &mut o.acc] {
+        b.ensure(gpu, n * 24, 1.25)?;
+    }
+    for b in [&mut o.static_counts, &mut o.dynamic_counts] {
+        b.ensure(gpu, (n + 1) * 4, 1.25)?;
+    }
+    for b in [&mut o.static_keep, &mut o.dynamic_keep] {
+        b.ensure(gpu, n * SLOTS as usize * 4, 1.25)?;
+    }
+    o.sup.ensure(gpu, n, 1.25)?;
+    Ok(())
+}
+
 impl Resident {
-    /// Uploads whatever the host changed since the device last saw the world.
-    pub(super) fn sync_world(&mut self, world: &World, k: Option<&TickConstants>) -> Result<(), PhysicsError> {
-        let gpu = &self.gpu;
+    /// Uploads whatever the host changed since the device last saw the world; returns
+    /// the bytes sent. A device copy made right after the last step, of a world whose
+    /// every change since is recorded, gets only those changes (`patch`); otherwise
+    /// what the generation counters say changed travels whole.
+    pub(super) fn sync_world(&mut self, world: &World, k: Option<&TickConstants>) -> Result<u64, PhysicsError> {
         let d = &world.dynamics;
         let n = d.len();
         if n > LEAF_LIMIT {
             return Err(PhysicsError::TooManyObjects { count: n, max: LEAF_LIMIT });
         }
         let now = Synced::of(world);
+        let mut sent = 0u64;
+        let patched = match d.changes() {
+            Some(c) if self.synced != Some(now) || self.n != n => self.patch(world, c)?,
+            _ => None,
+        };
+        let gpu = &self.gpu;
         let o = &mut self.obj;
-        if self.synced.map(|s| (s.layout, s.identity)) != Some((now.layout, now.identity)) || self.n != n {
-            // Objects came or went: slots changed meaning, upload everything.
-            for b in [&mut o.pos, &mut o.prev, &mut o.half] {
-                b.ensure(gpu, n * 12, 1.25)?;
+        if let Some(bytes) = patched {
+            sent += bytes;
+        } else {
+            if self.synced.map(|s| (s.layout, s.identity)) != Some((now.layout, now.identity)) || self.n != n {
+                // Objects came or went: slots changed meaning, upload everything.
+                for b in [&mut o.pos, &mut o.prev, &mut o.half] {
+                    b.ensure(gpu, n * 12, 1.25)?;
+                }
+                o.radius.ensure(gpu, n * 4, 1.25)?;
+                o.id.ensure(gpu, n * 4, 1.25)?;
+                for b in [&mut o.shape, &mut o.kind, &mut o.action, &mut o.flags] {
+                    b.ensure(gpu, n, 1.25)?;
+                }
+                size_derived(gpu, o, n)?;
+                send(gpu, &o.half, flat3(d.half_extents()), &mut sent)?;
+                send(gpu, &o.radius, d.radii(), &mut sent)?;
+                send(gpu, &o.shape, &d.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>(), &mut sent)?;
+                send(gpu, &o.kind, &d.kinds().iter().map(|s| *s as u8).collect::<Vec<u8>>(), &mut sent)?;
+                send(gpu, &o.id, &d.ids().iter().map(|i| i.0).collect::<Vec<u32>>(), &mut sent)?;
+                self.n = n;
+                self.synced = None;
             }
-            for b in [&mut o.boxes, &mut o.acc] {
-                b.ensure(gpu, n * 24, 1.25)?;
-            }
-            o.radius.ensure(gpu, n * 4, 1.25)?;
-            o.id.ensure(gpu, n * 4, 1.25)?;
-            for b in [&mut o.static_counts, &mut o.dynamic_counts] {
-                b.ensure(gpu, (n + 1) * 4, 1.25)?;
-            }
-            for b in [&mut o.static_keep, &mut o.dynamic_keep] {
-                b.ensure(gpu, n * SLOTS as usize * 4, 1.25)?;
-            }
-            for b in [&mut o.shape, &mut o.kind, &mut o.action, &mut o.flags, &mut o.sup] {
-                b.ensure(gpu, n, 1.25)?;
-            }
-            gpu.upload(&o.half, flat3(d.half_extents()))?;
-            gpu.upload(&o.radius, d.radii())?;
-            gpu.upload(&o.shape, &d.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
-            gpu.upload(&o.kind, &d.kinds().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
-            gpu.upload(&o.id, &d.ids().iter().map(|i| i.0).collect::<Vec<u32>>())?;
-            self.n = n;
-            self.synced = None;
-        }
-        match self.synced {
-            Some(s) if s.generation == now.generation => {}
-            // Every change since the last sync was a `set_action` (a server's players):
-            // only the actions travel, not the whole state.
-            Some(s) if now.generation - s.generation == now.action_generation - s.action_generation => {
-                gpu.upload(&o.action, d.actions())?;
-            }
-            _ => {
-                gpu.upload(&o.pos, flat3(d.positions()))?;
-                gpu.upload(&o.prev, flat3(d.prev_positions()))?;
-                gpu.upload(&o.action, d.actions())?;
-                gpu.upload(&o.flags, d.flags())?;
-                self.boxes_fresh = None;
+            match self.synced {
+                Some(s) if s.generation == now.generation => {}
+                // Every change since the last sync was a `set_action` (a server's
+                // players): only the actions travel, not the whole state.
+                Some(s) if now.generation - s.generation == now.action_generation - s.action_generation => {
+                    send(gpu, &o.action, d.actions(), &mut sent)?;
+                }
+                _ => {
+                    send(gpu, &o.pos, flat3(d.positions()), &mut sent)?;
+                    send(gpu, &o.prev, flat3(d.prev_positions()), &mut sent)?;
+                    send(gpu, &o.action, d.actions(), &mut sent)?;
+                    send(gpu, &o.flags, d.flags(), &mut sent)?;
+                    self.boxes_fresh = None;
+                }
             }
         }
         self.synced = Some(now);
@@ -214,10 +242,10 @@ impl Resident {
             p.boxes.ensure(gpu, m * 24, 1.25)?;
             p.radius.ensure(gpu, m * 4, 1.25)?;
             p.shape.ensure(gpu, m, 1.25)?;
-            gpu.upload(&p.pos, flat3(st.positions()))?;
-            gpu.upload(&p.half, flat3(st.half_extents()))?;
-            gpu.upload(&p.radius, st.radii())?;
-            gpu.upload(&p.shape, &st.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>())?;
+            send(gpu, &p.pos, flat3(st.positions()), &mut sent)?;
+            send(gpu, &p.half, flat3(st.half_extents()), &mut sent)?;
+            send(gpu, &p.radius, st.radii(), &mut sent)?;
+            send(gpu, &p.shape, &st.shapes().iter().map(|s| *s as u8).collect::<Vec<u8>>(), &mut sent)?;
             p.count = m;
             if self.kind == BackendKind::CudaNaive {
                 gpu.launch(m, KBoxes { n: m as u32, pos: p.pos.ptr(), half: p.half.ptr(), boxes: p.boxes.ptr() })?;
@@ -232,17 +260,17 @@ impl Resident {
         let tkey = world.terrain.stamp();
         if self.terrain_key != Some(tkey) {
             self.samples.ensure(gpu, samples.len() * 2, 1.0)?;
-            gpu.upload(&self.samples, samples)?;
+            send(gpu, &self.samples, samples, &mut sent)?;
             self.terrain_key = Some(tkey);
         }
         if let Some(k) = k {
             let params = DeviceParams::new(world, k);
             if self.params_key != Some(params) {
                 self.params.ensure(gpu, std::mem::size_of::<DeviceParams>(), 1.0)?;
-                gpu.upload(&self.params, std::slice::from_ref(&params))?;
+                send(gpu, &self.params, std::slice::from_ref(&params), &mut sent)?;
                 self.params_key = Some(params);
             }
         }
-        Ok(())
+        Ok(sent)
     }
 }

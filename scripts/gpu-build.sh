@@ -6,7 +6,8 @@
 # Usage: scripts/gpu-build.sh        (CARGO_TARGET_DIR is honoured)
 #        PARTS=host BEFORE=path/to/an/older/myriad scripts/gpu-build.sh
 #        (only `myriad`, the AOI query example and the older build in .carry/before/,
-#        for MODE=host of scripts/gpu-run.sh)
+#        for MODE=host of scripts/gpu-run.sh; BEFORE alone adds the older build to the
+#        whole bundle, for MODE=zones)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 carry=.carry
@@ -40,11 +41,11 @@ if [[ $parts == host ]]; then
     nice -n 10 cargo build --release -j "$jobs" -p myriad-physics --example aoi_query
     cp "$target/release/examples/aoi_query" "$carry/aoi_query"
     strip "$carry/aoi_query"
-    if [[ -n ${BEFORE:-} ]]; then
-        mkdir -p "$carry/before"
-        cp "$BEFORE" "$carry/before/myriad"
-        strip "$carry/before/myriad"
-    fi
+fi
+if [[ -n ${BEFORE:-} ]]; then
+    mkdir -p "$carry/before"
+    cp "$BEFORE" "$carry/before/myriad"
+    strip "$carry/before/myriad"
 fi
 strip "$carry/myriad"
 if compgen -G "$carry/tests/*" >/dev/null; then strip "$carry"/tests/*; fi

@@ -4,8 +4,10 @@
 # CPU <-> GPU hash comparisons and the benchmarks. Logs go to $OUT (or ./out).
 #
 # MODE=tests, MODE=bench or MODE=zones runs one part; default: tests and bench. The
-# zones' part (run it on nvidia-h200-x2) checks zoned runs on cuda against one process
-# and times scenario 3 on one GPU against two zones on two GPUs. MODE=flood runs issue
+# zones' part checks zoned runs on cuda against one process and times scenario 3 and four
+# times scenario 3 in one process and in 2 and 4 zones on the GPUs there are (one on
+# nvidia-h200, two on nvidia-h200-x2), with the build in .carry/before/ interleaved when
+# there is one (scripts/gpu-build.sh with BEFORE=path). MODE=flood runs issue
 # 14's UDP floods (scripts/flood-figures.sh) on the host's 16 cores, where the flooder
 # does not have to share the server's cores. MODE=host times the CPU backend's server
 # tick (scenario 2, AOI 14 and 100) and AOI query on the host's cores, with the build in
@@ -110,6 +112,9 @@ if [[ $mode == zones ]]; then
         sleep 1
     fi
     gpus=$(nvidia-smi -L | wc -l)
+    # Every row of zones.jsonl is one `myriad sim --json`; a row without "zoned" is one
+    # process and sets the hash the zoned rows after it must equal. Rows of the build in
+    # .carry/before/ (if any) carry "build": "before" and are timed, not compared.
     {
         # Zoned runs on cuda equal one process on cpu: scenarios 1 and 2 and the
         # clustered one, K = 2, 4, 9.
@@ -123,36 +128,58 @@ if [[ $mode == zones ]]; then
                     fail "sim scenario $sc, $k zones failed"
             done
         done
-        # Scenario 3: one zone on one GPU, then two zones, one per GPU (threads of one
-        # process), then two zone processes over NATS.
-        s3=(.carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json)
-        "${s3[@]}" 2>/dev/null || fail "sim scenario 3, one zone failed"
-        "${s3[@]}" --zones 2 --gpus 1 2>/dev/null || fail "sim scenario 3, 2 zones on 1 GPU failed"
-        "${s3[@]}" --zones 2 --gpus "$gpus" 2>/dev/null || fail "sim scenario 3, 2 zones on $gpus GPUs failed"
-        "${s3[@]}" --zones 2 --gpus "$gpus" --nats nats://127.0.0.1:4222 2>/dev/null ||
-            fail "sim scenario 3, 2 zones over NATS failed"
+        # Scenario 3 and four times scenario 3 (1,040,000 dynamic, 400,000 static on
+        # twice the side): one process on one GPU, then 2 and 4 zones on threads of one
+        # process sharing the GPUs there are, twice each, the older build interleaved.
+        big=(--scenario custom --dynamic 1040000 --users 40000 --static 400000 --world-size 2048)
+        for world in 3 big; do
+            if [[ $world == 3 ]]; then w=(--scenario 3); else w=("${big[@]}"); fi
+            for round in 1 2; do
+                for b in myriad before/myriad; do
+                    [[ -x .carry/$b ]] || continue
+                    tag=after
+                    [[ $b == myriad ]] || tag=before
+                    run=(".carry/$b" sim "${w[@]}" --ticks 100 --backend cuda --json)
+                    for k in 1 2 4; do
+                        if [[ $k == 1 ]]; then z=(); else z=(--zones "$k" --gpus "$gpus"); fi
+                        if out_line=$("${run[@]}" "${z[@]}" 2>/dev/null); then
+                            echo "${out_line%\}},\"build\":\"$tag\",\"world\":\"$world\",\"round\":$round}"
+                        else
+                            fail "sim $world, $k zones ($tag) failed"
+                        fi
+                    done
+                done
+            done
+        done
+        [[ -z $nats_pid ]] || .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json --zones 2 --gpus "$gpus" \
+            --nats nats://127.0.0.1:4222 2>/dev/null || fail "sim scenario 3, 2 zones over NATS failed"
     } | tee "$out/zones.jsonl" | python3 -c '
 import json, sys
 rows = [json.loads(l) for l in sys.stdin if l.strip()]
 want = None
-ok = len(rows) == 16
+ok = len(rows) >= 20
 for r in rows:
     z = r.get("zoned")
-    if z is None:
+    before = r.get("build") == "before"
+    if z is None and not before:
         want = r["state_hash"]
-    ok = ok and r["state_hash"] == want
-    print("sim scenario %s, %d ticks, %s%s: %s, %.3f ms a tick, equal to one process: %s%s" % (
-        r["scenario"], r["ticks"], r["description"], "" if z is None else " over " + z["fabric"],
-        r["state_hash"], r["mean_tick_ms"], r["state_hash"] == want,
+    same = r["state_hash"] == want
+    ok = ok and (same or before)
+    print("%s sim %s%s, %d ticks, %s%s: %s, %.3f ms a tick, equal to one process: %s%s" % (
+        r.get("build", "after"), r.get("world", r["scenario"]), " round %s" % r["round"] if "round" in r else "",
+        r["ticks"], r["description"], "" if z is None else " over " + z["fabric"],
+        r["state_hash"], r["mean_tick_ms"], same,
         "" if z is None else "; per zone: physics %s, overhead %s, wait %s ms a tick; %d ghost records, %.1f MB" % (
             [round(x, 2) for x in z["physics_ms"]], [round(x, 2) for x in z["overhead_ms"]], [round(x, 2) for x in z["wait_ms"]],
             z["ghost_records"], z["fabric_bytes"] / 1e6)))
 sys.exit(0 if ok else 1)
-' || fail "zones: a zoned run differs from one process (or a run is missing)"
-    .carry/myriad cluster --zones 2 --gpus "$gpus" --scenario 3 --ticks 100 --backend cuda --json 2>"$out/cluster.log" |
-        tee "$out/cluster.json"
-    [[ ${PIPESTATUS[0]} == 0 ]] || fail "cluster of 2 zones failed"
-    [[ -z $nats_pid ]] || kill "$nats_pid"
+' || fail "zones: a zoned run differs from one process (or runs are missing)"
+    if [[ -n $nats_pid ]]; then
+        .carry/myriad cluster --zones 2 --gpus "$gpus" --scenario 3 --ticks 100 --backend cuda --json 2>"$out/cluster.log" |
+            tee "$out/cluster.json"
+        [[ ${PIPESTATUS[0]} == 0 ]] || fail "cluster of 2 zones failed"
+        kill "$nats_pid"
+    fi
 fi
 
 if [[ $mode == flood ]]; then

@@ -24,6 +24,7 @@ mod gateway;
 mod plots;
 mod reference;
 mod relay;
+mod replay;
 mod scenario_args;
 mod serve;
 mod sim;
@@ -66,6 +67,9 @@ enum Command {
     Cluster(zones::ClusterArgs),
     /// Log players in and hold their sessions for a world run by zones (`cluster --live`).
     Gateway(gateway::GatewayArgs),
+    /// Re-run a cluster's world from a stored checkpoint with the intents its zones
+    /// logged, and compare the end with the stored result.
+    Replay(replay::ReplayArgs),
     /// Manage accounts.
     #[command(subcommand)]
     User(admin::UserCommand),
@@ -124,6 +128,7 @@ fn main() -> Result<()> {
         Command::Zone(a) => zones::run_zone(a),
         Command::Cluster(a) => zones::run_cluster(a),
         Command::Gateway(a) => gateway::run(a),
+        Command::Replay(a) => replay::run(a),
         Command::User(c) => admin::user(c),
         Command::Map(c) => admin::map(c),
     }

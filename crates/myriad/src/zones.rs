@@ -47,6 +47,10 @@ pub struct ClusterCommon {
     /// Ticks between checkpoints (30 = one second at 30 Hz).
     #[arg(long, default_value_t = 30)]
     pub checkpoint_every: u64,
+    /// Checkpoints (with their intent log segments) each zone keeps, at least 3: `myriad
+    /// replay` can start from the oldest.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(3..))]
+    pub keep_checkpoints: u64,
     /// How long a zone waits for a neighbour before reporting a stall, in ms.
     #[arg(long, default_value_t = 3000)]
     pub stall_ms: u64,
@@ -127,13 +131,14 @@ pub struct ClusterArgs {
     pub common: ClusterCommon,
 }
 
-struct Prepared {
-    world: World,
-    layout: ZoneLayout,
-    script: ActionScript,
+pub(crate) struct Prepared {
+    pub world: World,
+    pub layout: ZoneLayout,
+    pub script: ActionScript,
 }
 
-fn prepare(c: &ClusterCommon) -> Result<Prepared> {
+/// The world, layout and script every process of a cluster makes from its flags.
+pub(crate) fn prepare(c: &ClusterCommon) -> Result<Prepared> {
     let (_, world) = c.world.build(c.scenario)?;
     let script = match &c.actions {
         Some(path) => {
@@ -179,6 +184,7 @@ pub fn run_zone(args: ZoneArgs) -> Result<()> {
         stall: Duration::from_millis(c.stall_ms),
         period: if c.tick_hz > 0.0 { Duration::from_secs_f64(1.0 / c.tick_hz) } else { Duration::ZERO },
         live: c.live,
+        keep: c.keep_checkpoints,
     };
     let (kind, gpu) = (c.backend, args.gpu);
     let backend = move || Ok(myriad_cuda::create_backend_on(kind, gpu)?.backend);

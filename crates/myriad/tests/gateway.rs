@@ -2,6 +2,8 @@
 //! (two zones) and two `myriad gateway`s, each with 12 bots walking back and forth across
 //! the zones' boundary (`--behaviour shuttle`) for a minute. Zone 1 is killed (`kill -9`)
 //! after 15 s and gateway 1 after 30 s.
+//! - The live run, replayed from the rollback's checkpoint with the intents the zones
+//!   logged (`myriad replay`), ends in the hash the live zones stored.
 //! - Gateway 0's bots log in once and never reconnect (the cluster rolls back, their
 //!   sessions stay), see their own objects, miss no tick's update, and their objects
 //!   change zone without their sessions noticing.
@@ -133,6 +135,7 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
         .args(["cluster", "--nats", &url, "--cluster", &cluster_name, "--zones", "2", "--live"])
         .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--tick-hz", "30", "--ticks", "6000"])
         .args(["--checkpoint-every", "30", "--dead-ms", "1000", "--metrics-base-port", &zone_metrics.to_string()])
+        .args(["--keep-checkpoints", "400"])
         .env("MYRIAD_CLUSTER_KEY", KEY)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
@@ -203,6 +206,25 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     }
     assert_eq!(zones("myriad_zone_owned_objects"), 6000.0, "back to the world's 6,000 objects once every player left");
     drop(cluster);
+    // The live run replays bit for bit: from the checkpoint the rollback started at (the
+    // oldest whose logs reach the end in one epoch) to the last tick both zones stored,
+    // with the intents the zones logged, the world ends as the live one did.
+    let replay = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["replay", "--json", "--nats", &url, "--cluster", &cluster_name, "--zones", "2"])
+        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--ticks", "6000"])
+        .args(["--checkpoint-every", "30", "--keep-checkpoints", "400"])
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&replay.stdout);
+    assert!(replay.status.success(), "{text}\n{}", String::from_utf8_lossy(&replay.stderr));
+    let r: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
+    eprintln!("replay: {r}");
+    assert_eq!(r["equal"], true, "{r}");
+    let restart = log.iter().filter_map(|l| l.strip_prefix("epoch ")).last().unwrap_or_default().to_string();
+    assert!(r["epoch"].as_u64().unwrap() >= 2, "the replay is of the epoch after the rollback: {r}, {restart}");
+    assert!(r["intents"].as_u64().unwrap() > 100, "the players' intents were replayed: {r}");
+    assert!(r["to"].as_u64().unwrap() > r["from"].as_u64().unwrap() + 600, "20 s and more replayed: {r}");
 }
 
 /// `myriad cluster --gateways 2` starts the gateways with the zones: bots log in to

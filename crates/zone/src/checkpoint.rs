@@ -28,8 +28,14 @@ pub trait CheckpointStore: Send {
     fn has(&mut self, zone: ZoneId, tick: u64) -> Result<bool, ZoneError>;
     /// Zone `zone`'s objects at `tick`.
     fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError>;
-    /// Drops zone `zone`'s checkpoint at `tick`, if there is one.
+    /// Drops zone `zone`'s checkpoint at `tick`, and its intent log segment that starts
+    /// there, if there are.
     fn forget(&mut self, zone: ZoneId, tick: u64) -> Result<(), ZoneError>;
+    /// Stores zone `zone`'s intent log segment that starts at `tick`
+    /// ([`crate::replay`]; signed by the zone, checked by whoever reads it).
+    fn put_log(&mut self, zone: ZoneId, tick: u64, bytes: &[u8]) -> Result<(), ZoneError>;
+    /// Zone `zone`'s intent log segment that starts at `tick`, as stored.
+    fn get_log(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<u8>, ZoneError>;
 
     /// The first of `candidates` that all `zones` zones have stored, if any.
     fn latest_consistent(&mut self, zones: usize, candidates: &[u64]) -> Result<Option<u64>, ZoneError> {
@@ -51,6 +57,11 @@ pub trait CheckpointStore: Send {
 
 fn name(zone: ZoneId, tick: u64) -> String {
     format!("z{}-t{tick}", zone.0)
+}
+
+/// The name of a zone's intent log segment that starts at `tick`.
+fn log_name(zone: ZoneId, tick: u64) -> String {
+    format!("z{}-t{tick}-log", zone.0)
 }
 
 fn checked(key: &ClusterKey, bytes: &[u8], zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
@@ -111,17 +122,33 @@ impl JetStreamCheckpoints {
     }
 }
 
-impl CheckpointStore for JetStreamCheckpoints {
-    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError> {
-        let bytes = encode_checkpoint(&self.key, run, tick, zone, objects)?;
+impl JetStreamCheckpoints {
+    fn put_bytes(&self, name: &str, bytes: &[u8]) -> Result<(), ZoneError> {
         let store = &self.store;
         self.rt.block_on(async {
             store
-                .put(name(zone, tick).as_str(), &mut bytes.as_slice())
+                .put(name, &mut &bytes[..])
                 .await
                 .map(|_| ())
-                .map_err(|e| ZoneError::Checkpoint(format!("storing {}: {e}", name(zone, tick))))
+                .map_err(|e| ZoneError::Checkpoint(format!("storing {name}: {e}")))
         })
+    }
+
+    fn get_bytes(&self, name: &str) -> Result<Vec<u8>, ZoneError> {
+        let store = &self.store;
+        self.rt.block_on(async {
+            let mut o = store.get(name).await.map_err(|e| ZoneError::Checkpoint(format!("reading {name}: {e}")))?;
+            let mut b = Vec::new();
+            o.read_to_end(&mut b).await.map_err(|e| ZoneError::Checkpoint(format!("reading {name}: {e}")))?;
+            Ok(b)
+        })
+    }
+}
+
+impl CheckpointStore for JetStreamCheckpoints {
+    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError> {
+        let bytes = encode_checkpoint(&self.key, run, tick, zone, objects)?;
+        self.put_bytes(&name(zone, tick), &bytes)
     }
 
     fn has(&mut self, zone: ZoneId, tick: u64) -> Result<bool, ZoneError> {
@@ -130,31 +157,30 @@ impl CheckpointStore for JetStreamCheckpoints {
     }
 
     fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
-        let store = &self.store;
-        let bytes = self.rt.block_on(async {
-            let mut o = store
-                .get(name(zone, tick))
-                .await
-                .map_err(|e| ZoneError::Checkpoint(format!("reading {}: {e}", name(zone, tick))))?;
-            let mut b = Vec::new();
-            o.read_to_end(&mut b)
-                .await
-                .map_err(|e| ZoneError::Checkpoint(format!("reading {}: {e}", name(zone, tick))))?;
-            Ok::<_, ZoneError>(b)
-        })?;
+        let bytes = self.get_bytes(&name(zone, tick))?;
         checked(&self.key, &bytes, zone, tick)
     }
 
     fn forget(&mut self, zone: ZoneId, tick: u64) -> Result<(), ZoneError> {
         let store = &self.store;
         // Deleting what is not there is not an error: an old checkpoint may be gone.
-        let _ = self.rt.block_on(async { store.delete(name(zone, tick)).await });
+        for n in [name(zone, tick), log_name(zone, tick)] {
+            let _ = self.rt.block_on(async { store.delete(n).await });
+        }
         Ok(())
+    }
+
+    fn put_log(&mut self, zone: ZoneId, tick: u64, bytes: &[u8]) -> Result<(), ZoneError> {
+        self.put_bytes(&log_name(zone, tick), bytes)
+    }
+
+    fn get_log(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<u8>, ZoneError> {
+        self.get_bytes(&log_name(zone, tick))
     }
 }
 
-/// Signed checkpoints by (zone, tick).
-type Blobs = BTreeMap<(ZoneId, u64), Vec<u8>>;
+/// Signed checkpoints and intent logs by (zone, tick, whether a log).
+type Blobs = BTreeMap<(ZoneId, u64, bool), Vec<u8>>;
 
 /// Checkpoints in memory, shared by clones (tests, and zones of one process).
 #[derive(Clone, Default)]
@@ -174,25 +200,40 @@ impl CheckpointStore for MemoryCheckpoints {
     fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError> {
         let key = self.key.as_ref().ok_or_else(|| ZoneError::Checkpoint("no key".into()))?;
         let bytes = encode_checkpoint(key, run, tick, zone, objects)?;
-        self.blobs.lock().expect("not poisoned").insert((zone, tick), bytes);
+        self.blobs.lock().expect("not poisoned").insert((zone, tick, false), bytes);
         Ok(())
     }
 
     fn has(&mut self, zone: ZoneId, tick: u64) -> Result<bool, ZoneError> {
-        Ok(self.blobs.lock().expect("not poisoned").contains_key(&(zone, tick)))
+        Ok(self.blobs.lock().expect("not poisoned").contains_key(&(zone, tick, false)))
     }
 
     fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
         let key = self.key.as_ref().ok_or_else(|| ZoneError::Checkpoint("no key".into()))?;
         let blobs = self.blobs.lock().expect("not poisoned");
         let bytes =
-            blobs.get(&(zone, tick)).ok_or_else(|| ZoneError::Checkpoint(format!("no {}", name(zone, tick))))?;
+            blobs.get(&(zone, tick, false)).ok_or_else(|| ZoneError::Checkpoint(format!("no {}", name(zone, tick))))?;
         checked(key, bytes, zone, tick)
     }
 
     fn forget(&mut self, zone: ZoneId, tick: u64) -> Result<(), ZoneError> {
-        self.blobs.lock().expect("not poisoned").remove(&(zone, tick));
+        let mut blobs = self.blobs.lock().expect("not poisoned");
+        blobs.remove(&(zone, tick, false));
+        blobs.remove(&(zone, tick, true));
         Ok(())
+    }
+
+    fn put_log(&mut self, zone: ZoneId, tick: u64, bytes: &[u8]) -> Result<(), ZoneError> {
+        self.blobs.lock().expect("not poisoned").insert((zone, tick, true), bytes.to_vec());
+        Ok(())
+    }
+
+    fn get_log(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<u8>, ZoneError> {
+        let blobs = self.blobs.lock().expect("not poisoned");
+        blobs
+            .get(&(zone, tick, true))
+            .cloned()
+            .ok_or_else(|| ZoneError::Checkpoint(format!("no {}", log_name(zone, tick))))
     }
 }
 

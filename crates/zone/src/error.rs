@@ -46,6 +46,9 @@ pub enum ZoneError {
     /// A checkpoint could not be stored or read.
     #[error("checkpoint: {0}")]
     Checkpoint(String),
+    /// An intent log could not be read, or a replay could not follow it.
+    #[error("replay: {0}")]
+    Replay(String),
     /// A message could not be encoded (too many objects for one part).
     #[error("encoding: {0}")]
     Encode(#[from] WireError),

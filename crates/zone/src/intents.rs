@@ -167,6 +167,114 @@ impl IntentBook {
     }
 }
 
+impl IntentBook {
+    /// The book's whole state as bytes (little-endian; read back by
+    /// [`IntentBook::restore`]): what a replay from a checkpoint needs besides the
+    /// objects, since a book remembers actions, leaves and gateways from before.
+    pub fn snapshot(&self) -> Vec<u8> {
+        let mut b = Vec::new();
+        b.extend_from_slice(&self.since.to_le_bytes());
+        let mut gateways: Vec<_> = self.last.iter().collect();
+        gateways.sort_by_key(|(g, _)| **g);
+        b.extend_from_slice(&(gateways.len() as u32).to_le_bytes());
+        for (g, (incarnation, tick, kind)) in gateways {
+            let heard = self.gateways.get(g).map_or((0, 0), |h| (h.incarnation, h.at));
+            b.extend_from_slice(&g.to_le_bytes());
+            for v in [*incarnation, *tick, heard.0, heard.1] {
+                b.extend_from_slice(&v.to_le_bytes());
+            }
+            b.push(*kind as u8);
+        }
+        b.extend_from_slice(&(self.actions.len() as u32).to_le_bytes());
+        for (id, a) in &self.actions {
+            b.extend_from_slice(&id.0.to_le_bytes());
+            b.push(*a);
+        }
+        b.extend_from_slice(&(self.leaves.len() as u32).to_le_bytes());
+        for (id, at) in &self.leaves {
+            b.extend_from_slice(&id.0.to_le_bytes());
+            b.extend_from_slice(&at.to_le_bytes());
+        }
+        b.extend_from_slice(&(self.joins.len() as u32).to_le_bytes());
+        for j in &self.joins {
+            crate::wire::put_record(&mut b, crate::wire::BorderRecord::seen(*j));
+        }
+        b
+    }
+
+    /// A book from [`IntentBook::snapshot`]'s bytes; a clear error on anything else.
+    pub fn restore(bytes: &[u8]) -> Result<IntentBook, String> {
+        let mut r = Reader { b: bytes, at: 0 };
+        let mut book = IntentBook::new(r.u64()?);
+        for _ in 0..r.count(35)? {
+            let g = r.u16()?;
+            let (incarnation, tick, heard, at) = (r.u64()?, r.u64()?, r.u64()?, r.u64()?);
+            let kind = match r.u8()? {
+                0 => IntentKind::Join,
+                1 => IntentKind::Action,
+                2 => IntentKind::Leave,
+                k => return Err(format!("intent kind {k}")),
+            };
+            book.last.insert(g, (incarnation, tick, kind));
+            book.gateways.insert(g, Heard { incarnation: heard, at });
+        }
+        for _ in 0..r.count(5)? {
+            let (id, a) = (r.u32()?, r.u8()?);
+            if myriad_core::Action::from_bits(a).is_none() {
+                return Err(format!("action {a}"));
+            }
+            book.actions.insert(EntityId(id), a);
+        }
+        for _ in 0..r.count(12)? {
+            let (id, at) = (r.u32()?, r.u64()?);
+            book.leaves.insert(EntityId(id), at);
+        }
+        for i in 0..r.count(crate::wire::RECORD_LEN)? {
+            let rec = crate::wire::record(i, r.take(crate::wire::RECORD_LEN)?).map_err(|e| e.to_string())?;
+            book.joins.push(rec.state);
+        }
+        if r.at != bytes.len() {
+            return Err(format!("{} bytes after the book", bytes.len() - r.at));
+        }
+        Ok(book)
+    }
+}
+
+/// Reads a snapshot, failing on a short one.
+struct Reader<'a> {
+    b: &'a [u8],
+    at: usize,
+}
+
+impl Reader<'_> {
+    fn take(&mut self, n: usize) -> Result<&[u8], String> {
+        let s = self.b.get(self.at..self.at + n).ok_or_else(|| format!("the book ends at byte {}", self.b.len()))?;
+        self.at += n;
+        Ok(s)
+    }
+    fn u8(&mut self) -> Result<u8, String> {
+        Ok(self.take(1)?[0])
+    }
+    fn u16(&mut self) -> Result<u16, String> {
+        Ok(u16::from_le_bytes(self.take(2)?.try_into().expect("2 bytes")))
+    }
+    fn u32(&mut self) -> Result<u32, String> {
+        Ok(u32::from_le_bytes(self.take(4)?.try_into().expect("4 bytes")))
+    }
+    fn u64(&mut self) -> Result<u64, String> {
+        Ok(u64::from_le_bytes(self.take(8)?.try_into().expect("8 bytes")))
+    }
+    /// A count of items of `size` bytes each, no more than the bytes left can hold (a
+    /// corrupt count never makes a large allocation).
+    fn count(&mut self, size: usize) -> Result<usize, String> {
+        let n = self.u32()? as usize;
+        if n.saturating_mul(size) > self.b.len() - self.at {
+            return Err(format!("{n} items of {size} bytes in {} bytes", self.b.len() - self.at));
+        }
+        Ok(n)
+    }
+}
+
 /// [`IntentBook::keeps`], on the book's parts.
 fn keeps(gateways: &HashMap<u16, Heard>, since: u64, id: EntityId, now: u64) -> bool {
     let Some(g) = gateway_of(id) else { return true };
@@ -262,6 +370,28 @@ mod tests {
         }
         assert_eq!(b.tracked(), 0, "nothing of a refused message is taken");
         b.offer(msg(1, IntentKind::Action, vec![player(p(1), 3)]), 0).unwrap();
+    }
+
+    #[test]
+    fn a_snapshot_restores_the_same_book_and_refuses_damage() {
+        let mut b = IntentBook::new(7);
+        b.offer(msg(1, IntentKind::Join, vec![player(p(1), 2), player(p(2), 0)]), 10).unwrap();
+        b.offer(msg(2, IntentKind::Action, vec![player(p(2), 4)]), 11).unwrap();
+        b.offer(msg(3, IntentKind::Leave, vec![player(p(3), 0)]), 12).unwrap();
+        let bytes = b.snapshot();
+        let mut r = IntentBook::restore(&bytes).unwrap();
+        assert_eq!(r.snapshot(), bytes, "restored, the book says the same");
+        assert_eq!((r.since, r.joins.len(), r.action(EntityId(p(2))), r.left(EntityId(p(3)))), (7, 2, Some(4), true));
+        assert_eq!(r.offer(msg(3, IntentKind::Action, vec![]), 13), Err(Refused::Stale), "its order too");
+        for cut in 0..bytes.len() {
+            assert!(IntentBook::restore(&bytes[..cut]).is_err(), "cut at {cut}");
+        }
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert!(IntentBook::restore(&longer).is_err());
+        let mut huge = bytes.clone();
+        huge[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(IntentBook::restore(&huge).is_err(), "a corrupt count is refused, not allocated");
     }
 
     #[test]

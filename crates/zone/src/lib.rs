@@ -11,6 +11,9 @@
 //! - [`gateway`]: a gateway's world, mirrored from the zones ([`ZonesBackend`]), and
 //!   [`intents`]: the players' joins, actions and leaves as a zone keeps them.
 //! - [`local`]: K zones on threads, reassembled ([`run_zoned`]).
+//! - [`resident`]: a zone's world kept from tick to tick, changed where it changed.
+//! - [`replay`]: each zone's log of the intents it took, and the replay of a live run
+//!   from a checkpoint with them.
 //! - [`stats`]: per-zone counters and their Prometheus form.
 //!
 //! Design, subjects, message layouts and measurements: `docs/zones.md`.
@@ -25,6 +28,7 @@ pub mod layout;
 pub mod local;
 pub mod nats;
 pub mod process;
+pub mod replay;
 pub mod resident;
 pub mod stats;
 pub mod supervisor;

@@ -76,7 +76,6 @@ pub fn run_zoned(
     }
     let layout = Arc::new(layout);
     let key = opts.key.clone();
-    type Outcome = (Vec<ObjectState>, usize, ZoneStats, usize, Instant, Instant);
     let results: Vec<Result<Outcome, ZoneError>> = std::thread::scope(|s| {
         let handles: Vec<_> = fabrics
             .into_iter()
@@ -109,11 +108,25 @@ pub fn run_zoned(
             .collect();
         handles.into_iter().map(|h| h.join().expect("a zone thread panicked")).collect()
     });
+    reassemble(results, Some(world.dynamics.len()), world.tick + ticks)
+}
+
+/// What one zone thread returns: its advanced set, the scripted actions it applied, its
+/// counters, its static primitives, and when its first and last ticks began and ended.
+pub(crate) type Outcome = (Vec<ObjectState>, usize, ZoneStats, usize, Instant, Instant);
+
+/// The world of the zones' outcomes at `tick`: checked for duplicates (and for
+/// `expected` objects, when the count is known), hashed, with the zones' counters.
+pub(crate) fn reassemble(
+    results: Vec<Result<Outcome, ZoneError>>,
+    expected: Option<usize>,
+    tick: u64,
+) -> Result<ZonedRun, ZoneError> {
     // A zone that failed makes its neighbours stall; report the cause, not the stalls.
     if let Some(e) = results.iter().position(|r| matches!(r, Err(e) if !matches!(e, ZoneError::Stalled { .. }))) {
         return Err(results.into_iter().nth(e).expect("index").expect_err("an error"));
     }
-    let mut objects = Vec::with_capacity(world.dynamics.len());
+    let mut objects = Vec::with_capacity(expected.unwrap_or(0));
     let (mut actions, mut stats, mut static_prims) = (0, Vec::new(), Vec::new());
     let (mut first, mut last): (Option<Instant>, Option<Instant>) = (None, None);
     for r in results {
@@ -127,12 +140,11 @@ pub fn run_zoned(
     }
     objects.sort_unstable_by_key(|o| o.id);
     if let Some(w) = objects.windows(2).find(|w| w[0].id == w[1].id) {
-        return Err(ZoneError::Duplicate(w[0].id, world.tick + ticks));
+        return Err(ZoneError::Duplicate(w[0].id, tick));
     }
-    if objects.len() != world.dynamics.len() {
-        return Err(ZoneError::Layout(format!("{} objects came back of {}", objects.len(), world.dynamics.len())));
+    if let Some(n) = expected.filter(|n| *n != objects.len()) {
+        return Err(ZoneError::Layout(format!("{} objects came back of {n}", objects.len())));
     }
-    let tick = world.tick + ticks;
     let state_hash = hash_state(objects.iter().copied(), tick, objects.len());
     let ticks_ms = match (first, last) {
         (Some(f), Some(l)) => (l - f).as_secs_f64() * 1e3,

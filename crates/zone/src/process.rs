@@ -2,6 +2,9 @@
 //! checkpoint, steps, stores a checkpoint every `checkpoint_every` ticks, and on a
 //! stall or a halt goes back to waiting — never exits for a neighbour's fault.
 //!
+//! At every checkpoint it also stores the segment of its intent log since the last one
+//! ([`crate::replay`]), so that a live run can be replayed.
+//!
 //! States, as its heartbeat reports them: `Waiting` (for a start), `Running`, `Stalled`
 //! (a neighbour did not answer within `stall`), `Done` (reached the last tick; the
 //! result is stored as the checkpoint of that tick).
@@ -37,9 +40,12 @@ pub struct ProcessConfig {
     pub period: Duration,
     /// Whether the zone serves gateways (publishes its states every tick).
     pub live: bool,
+    /// Checkpoints (and intent log segments) kept; at least [`KEEP`]: a replay can start
+    /// from the oldest.
+    pub keep: u64,
 }
 
-/// Checkpoints each zone keeps.
+/// Checkpoints each zone keeps at least.
 pub const KEEP: u64 = 3;
 
 /// Messages kept while waiting for a start: border states of the coming epoch may
@@ -114,10 +120,16 @@ pub fn run_zone_process(
             let t = zone.tick();
             let every = cfg.checkpoint_every.max(1);
             if t.is_multiple_of(every) || t == cfg.ticks {
+                // The intents taken since the last checkpoint, for a replay (their segment
+                // starts at that checkpoint), stored first: a checkpoint that is there has
+                // the log that leads to it.
+                if let Some((from, segment)) = zone.checkpoint_log(epoch) {
+                    store.put_log(cfg.zone, from, &segment)?;
+                }
                 store.put(cfg.zone, t, epoch, &zone.advanced())?;
-                // Keep the last KEEP checkpoints: zones drift apart by a few ticks at most,
-                // so a tick that all of them stored is among them.
-                if let Some(old) = (t / every * every).checked_sub(KEEP * every) {
+                // Keep the last `keep` checkpoints: zones drift apart by a few ticks at
+                // most, so a tick that all of them stored is among them.
+                if let Some(old) = (t / every * every).checked_sub(cfg.keep.max(KEEP) * every) {
                     store.forget(cfg.zone, old)?;
                 }
             }

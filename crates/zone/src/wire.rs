@@ -331,17 +331,33 @@ fn encode_with(
     b.extend_from_slice(&h.aux[0].to_le_bytes());
     b.extend_from_slice(&h.aux[1].to_le_bytes());
     b.extend_from_slice(&count.to_le_bytes());
-    for BorderRecord { state: o, yours } in records {
-        b.extend_from_slice(&o.id.0.to_le_bytes());
-        b.push(o.kind as u8);
-        b.push(o.shape as u8);
-        b.push(o.action);
-        b.push(o.flags | if yours { YOURS } else { 0 });
-        for v in [o.half.x, o.half.y, o.half.z, o.radius, o.pos.x, o.pos.y, o.pos.z, o.prev.x, o.prev.y, o.prev.z] {
-            b.extend_from_slice(&v.to_le_bytes());
-        }
+    for r in records {
+        put_record(&mut b, r);
     }
     Ok(sign(key, &b))
+}
+
+/// Appends one record ([`RECORD_LEN`] bytes; the layout is in `docs/zones.md`).
+pub(crate) fn put_record(b: &mut Vec<u8>, BorderRecord { state: o, yours }: BorderRecord) {
+    b.extend_from_slice(&o.id.0.to_le_bytes());
+    b.push(o.kind as u8);
+    b.push(o.shape as u8);
+    b.push(o.action);
+    b.push(o.flags | if yours { YOURS } else { 0 });
+    for v in [o.half.x, o.half.y, o.half.z, o.radius, o.pos.x, o.pos.y, o.pos.z, o.prev.x, o.prev.y, o.prev.z] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+}
+
+/// Checks the tag of a signed blob that is not a fabric message (an intent log) and
+/// returns what it signs.
+pub(crate) fn verified<'a>(key: &ClusterKey, b: &'a [u8]) -> Result<&'a [u8], WireError> {
+    if b.len() < TAG_LEN {
+        return Err(WireError::Truncated(b.len()));
+    }
+    let (signed, tag) = b.split_at(b.len() - TAG_LEN);
+    hmac::verify(&key.0, signed, tag).map_err(|_| WireError::Tag)?;
+    Ok(signed)
 }
 
 /// Encodes and signs a border message.
@@ -441,7 +457,8 @@ fn f32_at(b: &[u8], at: usize) -> f32 {
     f32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
 }
 
-fn record(index: usize, r: &[u8]) -> Result<BorderRecord, WireError> {
+/// Decodes and checks one record ([`RECORD_LEN`] bytes), the `index`-th of its message.
+pub(crate) fn record(index: usize, r: &[u8]) -> Result<BorderRecord, WireError> {
     let bad = |reason: String| WireError::Record { index, reason };
     let kind = match r[4] {
         0 => ObjectKind::Npc,

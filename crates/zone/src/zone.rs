@@ -32,6 +32,7 @@ use crate::error::ZoneError;
 use crate::fabric::Fabric;
 use crate::intents::IntentBook;
 use crate::layout::{ZoneId, ZoneLayout};
+use crate::replay::IntentLog;
 use crate::resident::ResidentWorld;
 use crate::stats::ZoneStats;
 use crate::wire::{
@@ -92,6 +93,9 @@ pub struct Zone {
     stats: ZoneStats,
     /// Gateways' joins, actions and leaves for players' objects.
     intents: IntentBook,
+    /// The intents taken since the last checkpoint, when the zone logs them
+    /// ([`Zone::checkpoint_log`]).
+    log: Option<IntentLog>,
 }
 
 impl Zone {
@@ -136,6 +140,7 @@ impl Zone {
             fabric,
             stats,
             intents: IntentBook::new(world.tick),
+            log: None,
         })
     }
 
@@ -153,6 +158,37 @@ impl Zone {
     /// last tick the zones' advanced sets partition the world.
     pub fn advanced(&self) -> Vec<ObjectState> {
         self.resident.owned_states().collect()
+    }
+
+    /// Takes the intent book a replay starts with (the live zone's at that tick).
+    pub fn restore_book(&mut self, book: IntentBook) {
+        self.intents = book;
+    }
+
+    /// Cuts the intent log at a checkpoint of the current tick: returns the segment of
+    /// the ticks since the last cut (signed, of epoch `epoch`, with its first tick) and
+    /// starts the next one here. The first call only starts a log; a second call at the
+    /// same tick keeps the log (the tick was tried again).
+    pub fn checkpoint_log(&mut self, epoch: u64) -> Option<(u64, Vec<u8>)> {
+        let t = self.tick();
+        match &self.log {
+            Some(log) if log.from() == t => None,
+            Some(log) => {
+                let sealed = (log.from(), log.seal(&self.cfg.key, self.cfg.id, epoch, t));
+                self.log = Some(IntentLog::start(t, &self.intents));
+                Some(sealed)
+            }
+            None => {
+                self.log = Some(IntentLog::start(t, &self.intents));
+                None
+            }
+        }
+    }
+
+    /// Offers one intents message (a replay's): whether it was taken.
+    pub fn offer_intents(&mut self, bytes: &[u8]) -> bool {
+        let taken = self.stats.messages.1;
+        self.offer(bytes).is_none() && self.stats.messages.1 > taken
     }
 
     /// The layout the zone follows.
@@ -336,6 +372,9 @@ impl Zone {
                 return match self.intents.offer(i, t) {
                     Ok(()) => {
                         self.stats.messages.1 += 1;
+                        if let Some(log) = &mut self.log {
+                            log.record(t, bytes);
+                        }
                         None
                     }
                     Err(refused) => self.reject(refused.label(), t),

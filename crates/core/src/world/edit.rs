@@ -23,7 +23,7 @@ pub struct SortedEdit {
     /// Slots to remove, ascending.
     pub remove: Vec<u32>,
     /// Whole states written into slots (numbered before the edit), each with the id the
-    /// slot holds: a write never changes which object a slot is.
+    /// slot holds and its shape and kind: a write moves an object, never remakes it.
     pub write: Vec<(u32, ObjectState)>,
     /// Objects to add, ids ascending, none of them kept by the edit.
     pub insert: Vec<ObjectState>,
@@ -135,6 +135,12 @@ impl Dynamics {
             let held = self.id.get(slot as usize);
             if held != Some(&s.id) || e.remove.binary_search(&slot).is_ok() {
                 return Err(CoreError::invalid("written slot", format!("slot {slot} holds {held:?}, not {}", s.id.0)));
+            }
+            // An object keeps its shape and kind: a write moves it, never remakes it (so
+            // a device copy need only take the moving state of a written slot).
+            let i = slot as usize;
+            if (s.shape, s.half, s.radius, s.kind) != (self.shape[i], self.half[i], self.radius[i], self.kind[i]) {
+                return Err(CoreError::invalid("written slot", format!("{} would change its shape or kind", s.id.0)));
             }
             s.validate()?;
         }
@@ -378,6 +384,11 @@ mod tests {
             SortedEdit { insert: vec![state(6, 0.0), state(5, 0.0)], ..SortedEdit::default() },
             SortedEdit { insert: vec![state(u32::MAX, 0.0)], ..SortedEdit::default() },
             SortedEdit { insert: vec![ObjectState { pos: Vec3::NAN, ..state(5, 0.0) }], ..SortedEdit::default() },
+            SortedEdit { write: vec![(1, ObjectState { radius: 0.6, ..state(4, 0.0) })], ..SortedEdit::default() },
+            SortedEdit {
+                write: vec![(1, ObjectState { kind: ObjectKind::User, ..state(4, 0.0) })],
+                ..SortedEdit::default()
+            },
         ];
         for e in bad {
             assert!(d.apply_sorted(&e).is_err(), "{e:?}");

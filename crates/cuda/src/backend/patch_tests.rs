@@ -141,7 +141,12 @@ fn staged_words_replayed_as_the_kernels_do_rebuild_every_edit() {
         for s in 0..n {
             match rng.next(6) {
                 0 => e.remove.push(s),
-                1 => e.write.push((s, state(ids[s as usize], 1000 + s + round))),
+                1 => {
+                    // A write moves an object; its shape and kind stay (apply_sorted checks).
+                    let (mut o, was) = (state(ids[s as usize], 1000 + s + round), d.state_of(s as usize));
+                    (o.shape, o.half, o.radius, o.kind) = (was.shape, was.half, was.radius, was.kind);
+                    e.write.push((s, o));
+                }
                 _ => {}
             }
         }

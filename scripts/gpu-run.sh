@@ -142,7 +142,7 @@ if [[ $mode == zones ]]; then
                     run=(".carry/$b" sim "${w[@]}" --ticks 100 --backend cuda --json)
                     for k in 1 2 4; do
                         if [[ $k == 1 ]]; then z=(); else z=(--zones "$k" --gpus "$gpus"); fi
-                        if out_line=$("${run[@]}" "${z[@]}" 2>/dev/null); then
+                        if out_line=$("${run[@]}" "${z[@]}" 2>>"$out/zones-stderr.log"); then
                             echo "${out_line%\}},\"build\":\"$tag\",\"world\":\"$world\",\"round\":$round}"
                         else
                             fail "sim $world, $k zones ($tag) failed"

@@ -626,7 +626,7 @@ pub fn hash_state(objects: impl Iterator<Item = ObjectState>, tick: u64, len: us
 
 mod edit;
 
-pub use edit::{Changes, SlotRun, SortedEdit};
+pub use edit::{Changes, EditPlan, SlotRun, SortedEdit};
 
 #[cfg(test)]
 mod tests;

@@ -134,7 +134,8 @@ impl ResidentWorld {
         e.clear();
         self.insert_owned.clear();
         let mut inserts: Vec<(ObjectState, bool)> = Vec::new();
-        let mut next_owned: Vec<bool> = Vec::with_capacity(n + received.len());
+        // Owned objects kept; the removed slots' flags drop out with the plan below.
+        let mut owned_count = 0;
         let mut r = 0;
         for s in 0..n {
             let id = ids[s];
@@ -173,7 +174,10 @@ impl ResidentWorld {
                 k => k,
             };
             match keep {
-                Some(owned) => next_owned.push(owned),
+                Some(owned) => {
+                    self.owned[s] = owned;
+                    owned_count += owned as usize;
+                }
                 None => e.remove.push(s as u32),
             }
         }
@@ -203,23 +207,12 @@ impl ResidentWorld {
         inserts.sort_by_key(|(o, _)| o.id);
         e.insert.extend(inserts.iter().map(|(o, _)| *o));
         self.insert_owned.extend(inserts.iter().map(|(_, owned)| *owned));
-        self.world.dynamics.apply_sorted(e)?;
-        // The owned flags in the new slot order: kept ones and inserted ones merge by id
-        // as the objects did.
-        let d = &self.world.dynamics;
-        let mut flags = Vec::with_capacity(d.len());
-        let (mut k, mut j) = (0, 0);
-        for id in d.ids() {
-            if j < e.insert.len() && e.insert[j].id == *id {
-                flags.push(self.insert_owned[j]);
-                j += 1;
-            } else {
-                flags.push(next_owned[k]);
-                k += 1;
-            }
-        }
-        self.owned = flags;
-        self.owned_count = self.owned.iter().filter(|o| **o).count();
+        // The same plan that moved the objects moves the flags.
+        let plan = self.world.dynamics.apply_sorted(e)?;
+        let insert_owned = &self.insert_owned;
+        plan.apply(&mut self.owned, |j| insert_owned[j]);
+        self.owned_count = owned_count + self.insert_owned.iter().filter(|o| **o).count();
+        debug_assert_eq!(self.owned_count, self.owned.iter().filter(|o| **o).count());
         stats.ghosts = self.owned.len() - self.owned_count;
         Ok(())
     }

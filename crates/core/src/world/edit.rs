@@ -122,19 +122,24 @@ impl Dynamics {
     /// keeps them so). Fails, changing nothing, when a slot is out of range or removed and
     /// written, the removals or insertions do not ascend, a written state's id is not its
     /// slot's, an inserted id is already kept or is `u32::MAX`, or a state is not valid.
-    pub fn apply_sorted(&mut self, e: &SortedEdit) -> Result<(), CoreError> {
+    /// Returns where the edit put things ([`EditPlan`]), to edit a column of the
+    /// caller's own alike.
+    pub fn apply_sorted(&mut self, e: &SortedEdit) -> Result<EditPlan<Vec<u32>, Vec<usize>>, CoreError> {
         debug_assert!(self.ids_ascending(), "apply_sorted needs ascending ids");
         let n = self.len();
         if e.is_empty() {
-            return Ok(());
+            return Ok(EditPlan { remove: Vec::new(), at: Vec::new() });
         }
         if !e.remove.windows(2).all(|w| w[0] < w[1]) || e.remove.last().is_some_and(|&s| s as usize >= n) {
             return Err(CoreError::invalid("removed slots", "not ascending or out of range"));
         }
         for &(slot, s) in &e.write {
             let held = self.id.get(slot as usize);
-            if held != Some(&s.id) || e.remove.binary_search(&slot).is_ok() {
+            if held != Some(&s.id) {
                 return Err(CoreError::invalid("written slot", format!("slot {slot} holds {held:?}, not {}", s.id.0)));
+            }
+            if e.remove.binary_search(&slot).is_ok() {
+                return Err(CoreError::invalid("written slot", format!("slot {slot} is removed and written")));
             }
             // An object keeps its shape and kind: a write moves it, never remakes it (so
             // a device copy need only take the moving state of a written slot).
@@ -164,13 +169,28 @@ impl Dynamics {
         let layout_changes = !e.remove.is_empty() || !e.insert.is_empty();
         let runs = layout_changes.then(|| runs(n, &e.remove, &at));
 
-        macro_rules! each_field {
-            ($($field:ident),*) => {$(
-                compact(&mut self.$field, &e.remove);
-                spread(&mut self.$field, &at, |i| e.insert[i].$field);
-            )*};
+        if layout_changes {
+            let plan = EditPlan { remove: &e.remove, at: &at };
+            let Dynamics { id, pos, prev, half, radius, shape, kind, action, flags, .. } = self;
+            // Each field moves in one task: a zone's world moves most of its slots every
+            // tick (an insertion or removal near the front shifts all after it), and
+            // nine arrays moved at once go at the machine's memory speed, not one core's.
+            macro_rules! each_field {
+                ($scope:ident; $($field:ident),*) => {$(
+                    let f = &mut *$field;
+                    $scope.spawn(move |_| plan.apply(f, |i| e.insert[i].$field));
+                )*};
+            }
+            if n >= PARALLEL_FROM {
+                rayon::scope(|s| {
+                    each_field!(s; id, pos, prev, half, radius, shape, kind, action, flags);
+                });
+            } else {
+                let serial = Serial;
+                let s = &serial;
+                each_field!(s; id, pos, prev, half, radius, shape, kind, action, flags);
+            }
         }
-        each_field!(id, pos, prev, half, radius, shape, kind, action, flags);
 
         // A written slot's new number: its kept index plus the insertions before it.
         let renumber = |old: usize| {
@@ -208,7 +228,7 @@ impl Dynamics {
             }
             _ => None,
         };
-        Ok(())
+        Ok(EditPlan { remove: e.remove.clone(), at })
     }
 
     /// Writes a whole state into `slot` (already checked).
@@ -221,6 +241,38 @@ impl Dynamics {
         self.kind[slot] = s.kind;
         self.action[slot] = s.action;
         self.flags[slot] = s.flags;
+    }
+}
+
+/// Objects from which [`Dynamics::apply_sorted`] moves its fields on rayon's pool.
+const PARALLEL_FROM: usize = 16_384;
+
+/// Runs a task on the calling thread: the serial stand-in for a rayon scope.
+struct Serial;
+
+impl Serial {
+    fn spawn(&self, task: impl FnOnce(())) {
+        task(())
+    }
+}
+
+/// Where an edit removed and inserted, in a form that edits any column alike: a caller
+/// that keeps a column of its own beside the dynamics (a zone's owned flags) applies
+/// the plan [`Dynamics::apply_sorted`] returned to it.
+#[derive(Clone, Copy, Debug)]
+pub struct EditPlan<R, A> {
+    /// Slots removed, ascending.
+    remove: R,
+    /// Where each insertion went among the kept elements.
+    at: A,
+}
+
+impl<R: AsRef<[u32]>, A: AsRef<[usize]>> EditPlan<R, A> {
+    /// Removes and inserts in `v` as the edit did in the dynamics: insertion `j` (in the
+    /// edit's order) gets `value(j)`.
+    pub fn apply<T: Copy>(&self, v: &mut Vec<T>, value: impl Fn(usize) -> T) {
+        compact(v, self.remove.as_ref());
+        spread(v, self.at.as_ref(), value);
     }
 }
 
@@ -369,6 +421,33 @@ mod tests {
                 assert_eq!(d.slot(o.id), Some(s), "the slot map follows");
             }
         }
+    }
+
+    #[test]
+    fn a_large_edit_moves_its_fields_on_the_pool_alike() {
+        let n = PARALLEL_FROM as u32 + 1000;
+        let ids: Vec<u32> = (0..n).map(|i| i * 2 + 1).collect();
+        let mut d = dynamics(&ids);
+        let before: Vec<ObjectState> = (0..d.len()).map(|s| d.state_of(s)).collect();
+        let e = SortedEdit {
+            remove: (0..n).filter(|s| s % 97 == 3).collect(),
+            write: (0..n).filter(|s| s % 89 == 5 && s % 97 != 3).map(|s| (s, state(ids[s as usize], -1.0))).collect(),
+            insert: (0..n).filter(|i| i % 101 == 7).map(|i| state(i * 2, 0.5)).collect(),
+        };
+        let plan = d.apply_sorted(&e).unwrap();
+        let mut want: Vec<ObjectState> = before
+            .iter()
+            .enumerate()
+            .filter(|(s, _)| e.remove.binary_search(&(*s as u32)).is_err())
+            .map(|(s, o)| e.write.iter().find(|w| w.0 == s as u32).map_or(*o, |w| w.1))
+            .chain(e.insert.iter().copied())
+            .collect();
+        want.sort_by_key(|o| o.id);
+        assert_eq!((0..d.len()).map(|s| d.state_of(s)).collect::<Vec<_>>(), want);
+        // The plan edits a column of the caller's alike: the ids, as a column.
+        let mut column: Vec<u32> = ids.clone();
+        plan.apply(&mut column, |j| e.insert[j].id.0);
+        assert_eq!(column, d.ids().iter().map(|i| i.0).collect::<Vec<_>>());
     }
 
     #[test]

@@ -15,9 +15,12 @@
 //!
 //! All of it is one [`SortedEdit`], applied in one pass that keeps ids ascending (the
 //! physics sums partners in slot order, and one process's slots follow ids), and
-//! recorded for a device copy ([`myriad_core::world::Changes`]). Objects deep inside
-//! the region are recognised by four comparisons and never looked at again, so the host
-//! work of a tick grows with the objects near the zone's edges, not with its population.
+//! recorded for a device copy ([`myriad_core::world::Changes`]). One tight pass over the
+//! positions finds the slots near the zone's edges (ghosts, and owned objects whose
+//! square of half side `reach` is not inside the region: four comparisons each); the
+//! sending, the records and the decisions look only at those and at the players' slots,
+//! so beyond that pass and the moving of slots (at memory speed) the host work of a tick
+//! grows with the objects near the edges, not with the zone's population.
 
 use myriad_core::world::SortedEdit;
 use myriad_core::{EntityId, ObjectState, Statics, Vec3, World};
@@ -43,6 +46,11 @@ pub struct ResidentWorld {
     edit: SortedEdit,
     /// Whether each inserted object is owned, in the order of `edit.insert` (reused).
     insert_owned: Vec<bool>,
+    /// The slots near the edges (ghosts, and owned objects not deep inside the region),
+    /// ascending, and the dynamics generation and layout they were found for: the only
+    /// slots a tick looks at, found by one tight pass ([`ResidentWorld::scan_edges`]).
+    edge: Vec<u32>,
+    edge_for: Option<(u64, Rect, u32)>,
 }
 
 impl ResidentWorld {
@@ -67,6 +75,8 @@ impl ResidentWorld {
             all_statics: template.statics.clone(),
             edit: SortedEdit::default(),
             insert_owned: Vec::new(),
+            edge: Vec::new(),
+            edge_for: None,
         })
     }
 
@@ -91,13 +101,30 @@ impl ResidentWorld {
         (0..d.len()).filter(|&s| self.owned[s]).map(|s| d.state_of(s))
     }
 
+    /// Finds the slots near the edges of `z`'s region (see the `edge` field), unless they
+    /// are known for the world and layout as they are.
+    pub fn scan_edges(&mut self, layout: &ZoneLayout, z: ZoneId) {
+        let inner = Inner::of(layout, z);
+        let key = (self.world.dynamics.generation(), inner.region, inner.reach.to_bits());
+        if self.edge_for == Some(key) {
+            return;
+        }
+        let positions = self.world.dynamics.positions();
+        self.edge.clear();
+        self.edge.extend(
+            (0..positions.len() as u32).filter(|&s| !self.owned[s as usize] || !inner.holds(positions[s as usize])),
+        );
+        self.edge_for = Some(key);
+    }
+
     /// The owned objects a neighbour may need: every owned object except those whose
     /// square of half side `reach` lies inside `z`'s region (four comparisons; those are
     /// seen by `z` alone and stay its own).
-    pub fn near_edges<'a>(&'a self, layout: &ZoneLayout, z: ZoneId) -> impl Iterator<Item = ObjectState> + 'a {
-        let inner = Inner::of(layout, z);
+    pub fn near_edges(&mut self, layout: &ZoneLayout, z: ZoneId) -> impl Iterator<Item = ObjectState> + '_ {
+        self.scan_edges(layout, z);
         let d = &self.world.dynamics;
-        (0..d.len()).filter(move |&s| self.owned[s] && !inner.holds(d.positions()[s])).map(move |s| d.state_of(s))
+        let owned = &self.owned;
+        self.edge.iter().map(|&s| s as usize).filter(|&s| owned[s]).map(move |s| d.state_of(s))
     }
 
     /// Statics for a new layout (cuts moved): the ones within reach of `z`'s new region.
@@ -108,7 +135,8 @@ impl ResidentWorld {
     /// Makes the world the one zone `z` steps this tick (see the module docs):
     /// `received` are the neighbours' records of the tick (sorted here), `book` the
     /// players' intents. Fails on a duplicate (a record of an object this zone owns, or
-    /// two records of one object).
+    /// two records of one object). Looks only at the slots near the edges, the players'
+    /// and the records'.
     pub fn apply(
         &mut self,
         layout: &ZoneLayout,
@@ -125,63 +153,73 @@ impl ResidentWorld {
         }
         stats.ghosts_in += received.len() as u64;
         stats.handoffs_in += received.iter().filter(|r| r.yours).count() as u64;
-        let inner = Inner::of(layout, z);
+        self.scan_edges(layout, z);
         let d = &self.world.dynamics;
         let (ids, positions) = (d.ids(), d.positions());
-        let n = d.len();
-        let players = ids.partition_point(|id| *id < EntityId(player_ids(0).start));
+        let n = d.len() as u32;
+        // Players' objects (ids from 2^30 on) are the last slots: each is looked at for
+        // leaves and dead gateways, wherever it is.
+        let players = ids.partition_point(|id| *id < EntityId(player_ids(0).start)) as u32;
+        let before_players = self.edge.partition_point(|s| *s < players);
+        let look = self.edge[..before_players].iter().copied().chain(players..n);
         let e = &mut self.edit;
         e.clear();
         self.insert_owned.clear();
         let mut inserts: Vec<(ObjectState, bool)> = Vec::new();
-        // Owned objects kept; the removed slots' flags drop out with the plan below.
-        let mut owned_count = 0;
+        let mut owned_count = self.owned_count;
         let mut r = 0;
-        for s in 0..n {
+        // A record of an object at no slot looked at: new here, or one this zone owns
+        // deep inside its region (a duplicate).
+        let unmatched = |rec: &BorderRecord, inserts: &mut Vec<(ObjectState, bool)>| {
+            if d.slot_in_order(rec.state.id).is_some() {
+                return Err(ZoneError::Duplicate(rec.state.id, tick));
+            }
+            inserts.push((rec.state, rec.yours));
+            Ok(())
+        };
+        for s in look.map(|s| s as usize) {
             let id = ids[s];
-            // Records of objects not here, before this slot's id: new objects.
             while r < received.len() && received[r].state.id < id {
-                inserts.push((received[r].state, received[r].yours));
+                unmatched(&received[r], &mut inserts)?;
                 r += 1;
             }
             let record = (r < received.len() && received[r].state.id == id).then(|| {
                 r += 1;
                 received[r - 1]
             });
-            let keep = match (self.owned[s], record) {
+            let was = self.owned[s];
+            let keep = match (was, record) {
                 (true, Some(_)) => return Err(ZoneError::Duplicate(id, tick)),
                 (false, Some(rec)) => {
                     e.write.push((s as u32, rec.state));
                     Some(rec.yours)
                 }
                 (false, None) => None,
-                (true, None) if inner.holds(positions[s]) => Some(true),
                 (true, None) => {
                     let p = positions[s];
                     if layout.zone_at(p) == z { Some(true) } else { layout.sees(z, p).then_some(false) }
                 }
             };
-            // Players (ids from 2^30 on, the last slots) that left or whose gateway died.
             let keep = match keep {
-                Some(true) if s >= players && book.left(id) => {
+                Some(true) if s as u32 >= players && book.left(id) => {
                     stats.leaves += 1;
                     None
                 }
-                Some(true) if s >= players && !book.keeps(id, tick) => {
+                Some(true) if s as u32 >= players && !book.keeps(id, tick) => {
                     stats.orphans += 1;
                     None
                 }
                 k => k,
             };
             match keep {
-                Some(owned) => {
-                    self.owned[s] = owned;
-                    owned_count += owned as usize;
-                }
+                Some(now) => self.owned[s] = now,
                 None => e.remove.push(s as u32),
             }
+            owned_count = owned_count + usize::from(keep == Some(true)) - usize::from(was);
         }
-        inserts.extend(received[r..].iter().map(|rec| (rec.state, rec.yours)));
+        for rec in &received[r..] {
+            unmatched(rec, &mut inserts)?;
+        }
         // Hand-offs of players that left, or whose gateway died, are not adopted.
         inserts.retain(|&(o, owned)| {
             let gone = owned && book.left(o.id);
@@ -212,6 +250,7 @@ impl ResidentWorld {
         let insert_owned = &self.insert_owned;
         plan.apply(&mut self.owned, |j| insert_owned[j]);
         self.owned_count = owned_count + self.insert_owned.iter().filter(|o| **o).count();
+        self.edge_for = None;
         debug_assert_eq!(self.owned_count, self.owned.iter().filter(|o| **o).count());
         stats.ghosts = self.owned.len() - self.owned_count;
         Ok(())

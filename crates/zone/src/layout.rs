@@ -120,6 +120,49 @@ impl ZoneLayout {
         Ok(layout)
     }
 
+    /// The cuts along x and along z, ascending; the first and last of each are the
+    /// world's edges.
+    pub fn cuts(&self) -> (&[f32], &[f32]) {
+        (&self.xs, &self.zs)
+    }
+
+    /// This layout with its inner cuts moved to `xs` and `zs` (whole lists, edges
+    /// included): same shape, reach and max step. Refuses lists of another length,
+    /// edges that moved (the world's bounds do not change), cuts that are not finite
+    /// and ascending, and a zone not wider than `reach + max step`, as
+    /// [`ZoneLayout::from_cuts`] does.
+    pub fn with_cuts(&self, xs: &[f32], zs: &[f32]) -> Result<ZoneLayout, ZoneError> {
+        if xs.len() != self.xs.len() || zs.len() != self.zs.len() {
+            return Err(ZoneError::Layout(format!(
+                "{} x cuts and {} z cuts for a layout of {} and {}",
+                xs.len(),
+                zs.len(),
+                self.xs.len(),
+                self.zs.len()
+            )));
+        }
+        // Bit comparisons: an edge is the world's bound, exactly, or the move is refused.
+        let same = |a: f32, b: f32| a.to_bits() == b.to_bits();
+        let edges = |new: &[f32], old: &[f32]| same(new[0], old[0]) && same(new[new.len() - 1], old[old.len() - 1]);
+        if !edges(xs, &self.xs) || !edges(zs, &self.zs) {
+            return Err(ZoneError::Layout("the outer cuts are the world's bounds and do not move".into()));
+        }
+        let moved = ZoneLayout::from_cuts(xs.to_vec(), zs.to_vec(), self.reach, self.max_step)?;
+        // Zones wider than the margin make neighbours a matter of the grid alone (two
+        // zones apart are a whole zone apart): a move never changes who exchanges with
+        // whom, which zones switching at one tick rely on.
+        if moved.neighbours != self.neighbours {
+            return Err(ZoneError::Layout("a cut move that changes the zones' neighbours".into()));
+        }
+        Ok(moved)
+    }
+
+    /// The smallest width a zone may have: wider than this is required
+    /// ([`ZoneLayout::from_cuts`]).
+    pub fn margin(&self) -> f32 {
+        self.reach + self.max_step
+    }
+
     /// Number of zones.
     pub fn len(&self) -> usize {
         (self.xs.len() - 1) * (self.zs.len() - 1)

@@ -11,6 +11,8 @@
 //! - [`gateway`]: a gateway's world, mirrored from the zones ([`ZonesBackend`]), and
 //!   [`intents`]: the players' joins, actions and leaves as a zone keeps them.
 //! - [`local`]: K zones on threads, reassembled ([`run_zoned`]).
+//! - [`rebalance`]: boundaries that follow the load: when and where cuts move, and
+//!   how every zone switches at one announced tick.
 //! - [`stats`]: per-zone counters and their Prometheus form.
 //!
 //! Design, subjects, message layouts and measurements: `docs/zones.md`.
@@ -25,6 +27,7 @@ pub mod layout;
 pub mod local;
 pub mod nats;
 pub mod process;
+pub mod rebalance;
 pub mod resident;
 pub mod stats;
 pub mod supervisor;
@@ -36,6 +39,7 @@ pub use fabric::{Fabric, GatewayLink, MemoryFabric, MemoryGatewayLink};
 pub use gateway::{GatewayConfig, ZonesBackend};
 pub use layout::{Rect, ZoneId, ZoneLayout};
 pub use local::{RunOptions, ZonedRun, pair_reach, run_zoned};
+pub use rebalance::{CutMove, RebalanceOptions};
 pub use nats::NatsFabric;
 pub use stats::ZoneStats;
 pub use wire::{ClusterKey, WireError};

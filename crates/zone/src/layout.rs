@@ -294,6 +294,35 @@ mod tests {
     }
 
     #[test]
+    fn with_cuts_moves_inner_cuts_only() {
+        let l = ZoneLayout::for_count(&bounds(), 4, 2.0, 1.0).unwrap();
+        let (xs, zs) = (l.cuts().0.to_vec(), l.cuts().1.to_vec());
+        assert_eq!((xs.as_slice(), zs.as_slice()), (&[-30.0, 15.0, 60.0][..], &[0.0, 45.0, 90.0][..]));
+        let m = l.with_cuts(&[-30.0, 10.0, 60.0], &zs).unwrap();
+        assert_eq!((m.reach(), m.max_step(), m.shape()), (2.0, 1.0, (2, 2)));
+        assert_eq!(m.zone_at(Vec3::new(12.0, 0.0, 1.0)), ZoneId(1), "12 is now right of the cut");
+        assert_eq!(l.zone_at(Vec3::new(12.0, 0.0, 1.0)), ZoneId(0));
+        for (bad_x, bad_z, why) in [
+            (vec![-31.0, 10.0, 60.0], zs.clone(), "outer cuts"),
+            (vec![-30.0, 10.0, 60.5], zs.clone(), "outer cuts"),
+            (vec![-30.0, 10.0, 30.0, 60.0], zs.clone(), "cuts for a layout"),
+            (vec![-30.0, 60.0], zs.clone(), "cuts for a layout"),
+            (vec![-30.0, f32::NAN, 60.0], zs.clone(), "finite"),
+            (vec![-30.0, f32::INFINITY, 60.0], zs.clone(), "finite"),
+            (vec![-30.0, 70.0, 60.0], zs.clone(), "ascending"),
+            (vec![-30.0, -30.0, 60.0], zs.clone(), "ascending"),
+            (xs.clone(), vec![0.0, 3.0, 90.0], "fewer zones"),
+            (vec![-30.0, 57.5, 60.0], zs.clone(), "fewer zones"),
+        ] {
+            let e = l.with_cuts(&bad_x, &bad_z).unwrap_err().to_string();
+            assert!(e.contains(why), "{bad_x:?} {bad_z:?}: {e}");
+        }
+        // A zone exactly as wide as the margin (3) is refused, a hair wider is not.
+        assert!(l.with_cuts(&[-30.0, 57.0, 60.0], &zs).is_err());
+        assert!(l.with_cuts(&[-30.0, 56.99, 60.0], &zs).is_ok());
+    }
+
+    #[test]
     fn refuses_zones_narrower_than_the_margin_and_bad_cuts() {
         assert!(ZoneLayout::for_count(&bounds(), 9, 25.0, 6.0).is_err());
         assert!(ZoneLayout::for_count(&bounds(), 1, 500.0, 6.0).is_ok(), "one zone has no neighbour to see");

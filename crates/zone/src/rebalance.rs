@@ -56,8 +56,26 @@ impl CutMove {
                 self.decided_at, self.apply_at
             )));
         }
-        layout.with_cuts(&self.xs, &self.zs)
+        let moved = layout.with_cuts(&self.xs, &self.zs)?;
+        let (xs, zs) = layout.cuts();
+        let margin = layout.margin();
+        if !within_neighbours(xs, &self.xs, margin) || !within_neighbours(zs, &self.zs, margin) {
+            return Err(ZoneError::Layout(format!(
+                "a cut moved to within reach + max step = {margin} of where its neighbouring cut was: objects would \
+                 pass to zones that are not their owners' neighbours"
+            )));
+        }
+        Ok(moved)
     }
+}
+
+/// Whether every inner cut of `new` lies more than `margin` inside the span of `old`'s
+/// cuts on either side of it. Then an object (at most `max step` outside its owner's old
+/// region) is owned and seen, under the new cuts, only by its owner's column (row) and
+/// the ones next to it: its owner's neighbours, the only zones it exchanges with.
+fn within_neighbours(old: &[f32], new: &[f32], margin: f32) -> bool {
+    let m = margin as f64;
+    (1..old.len() - 1).all(|j| new[j] as f64 - old[j - 1] as f64 > m && (old[j + 1] as f64 - new[j] as f64) > m)
 }
 
 /// Counts of values in fixed bins over `[lo, hi]` (values outside go to the edge bins).
@@ -318,7 +336,9 @@ fn balance_axis(cuts: &[f32], loads: &[u64], hist: &Histogram, frozen: &[bool], 
             continue;
         }
         let j = (i + 1..=n).find(|&j| stays[j]).expect("the edge stays");
-        let (lo, hi) = (new[i - 1] + s.min_width, new[j] - (j - i) as f64 * s.min_width);
+        // Also within the old neighbouring cuts' margin ([`CutMove::validate`]).
+        let lo = (new[i - 1] + s.min_width).max(cuts[i - 1] as f64 + s.min_width);
+        let hi = (new[j] - (j - i) as f64 * s.min_width).min(cuts[i + 1] as f64 - s.min_width);
         if lo > hi {
             return None;
         }

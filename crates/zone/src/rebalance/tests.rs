@@ -107,10 +107,22 @@ fn cut_moves_are_checked() {
         (CutMove { xs: vec![0.0, 398.0, 400.0], ..ok.clone() }, "fewer zones"),
         (CutMove { zs: vec![0.0, 100.0, 200.0, 400.0], ..ok.clone() }, "cuts"),
         (CutMove { xs: vec![0.0, f32::NAN, 400.0], ..ok.clone() }, "finite"),
+        // Past where the next zone's far cut was: objects would jump a zone.
+        (
+            CutMove { xs: vec![0.0, 150.0, 250.0, 400.0], zs: vec![0.0, 400.0], ..ok.clone() },
+            "cuts for a layout",
+        ),
     ] {
         let e = bad.validate(&l).unwrap_err().to_string();
         assert!(e.contains(why), "{bad:?}: {e}");
     }
+    let three = ZoneLayout::for_count(&bounds(), 3, 1.5, 2.0).unwrap();
+    let far = CutMove { decided_at: 0, apply_at: 1, xs: vec![0.0, 270.0, 300.0, 400.0], zs: vec![0.0, 400.0] };
+    assert!(three.with_cuts(&far.xs, &far.zs).is_ok(), "a valid layout");
+    let e = far.validate(&three).unwrap_err().to_string();
+    assert!(e.contains("not their owners' neighbours"), "{e}");
+    let near = CutMove { xs: vec![0.0, 262.0, 300.0, 400.0], ..far };
+    assert!(near.validate(&three).is_ok(), "more than the margin (3.5) short of the old 266.7");
 }
 
 #[test]

@@ -25,13 +25,8 @@ const MOVES: u64 = 17;
 
 /// The moves a crowd member picks from, each with a +x part: straight right three times
 /// out of five, diagonally right the rest.
-const CROWD_MOVES: [u8; 5] = [
-    Action::RIGHT,
-    Action::RIGHT,
-    Action::RIGHT,
-    Action::RIGHT | Action::FORWARD,
-    Action::RIGHT | Action::BACK,
-];
+const CROWD_MOVES: [u8; 5] =
+    [Action::RIGHT, Action::RIGHT, Action::RIGHT, Action::RIGHT | Action::FORWARD, Action::RIGHT | Action::BACK];
 
 /// A crowd walking toward +x through a background world (see the module docs).
 #[derive(Clone, Debug, PartialEq)]

@@ -174,7 +174,10 @@ pub fn run(args: SimArgs) -> Result<()> {
         static_contacts: Some(pairs[2]),
         dynamic_contacts: Some(pairs[3]),
         actions,
-        users_mean_x: crowd_x(&args, world.dynamics.kinds().iter().copied().zip(world.dynamics.positions().iter().copied())),
+        users_mean_x: crowd_x(
+            &args,
+            world.dynamics.kinds().iter().copied().zip(world.dynamics.positions().iter().copied()),
+        ),
         state_hash: format!("{:016x}", world.state_hash()),
         zoned: None,
     };
@@ -289,7 +292,8 @@ fn run_zoned(
     let run = myriad_zone::run_zoned(world, layout, script, k, &backend, fabrics, &opts)?;
     let log = run.rebalance.clone().unwrap_or_default();
     let last_third = last_third(&log.samples, n, run.tick, args.ticks);
-    let physics: Vec<f64> = run.stats.iter().map(|s| s.physics.as_secs_f64() * 1e3 / args.ticks.max(1) as f64).collect();
+    let physics: Vec<f64> =
+        run.stats.iter().map(|s| s.physics.as_secs_f64() * 1e3 / args.ticks.max(1) as f64).collect();
     // The ticks alone, as for one process: world assembly and backend start-up excluded.
     let total_ms = run.ticks_ms;
     let ticks = args.ticks.max(1) as f64;
@@ -344,7 +348,8 @@ fn crowd_x(args: &SimArgs, objects: impl Iterator<Item = (ObjectKind, myriad_cor
     if args.scenario != ScenarioName::MovingCrowd {
         return None;
     }
-    let (sum, n) = objects.filter(|(k, _)| *k == ObjectKind::User).fold((0.0f64, 0u32), |(s, n), (_, p)| (s + p.x as f64, n + 1));
+    let (sum, n) =
+        objects.filter(|(k, _)| *k == ObjectKind::User).fold((0.0f64, 0u32), |(s, n), (_, p)| (s + p.x as f64, n + 1));
     (n > 0).then(|| (sum / n as f64) as f32)
 }
 

@@ -229,7 +229,8 @@ fn run_zone(
                 let s = zone.stats();
                 let positions = zone.advanced().into_iter().map(|o| o.pos);
                 let mut report = LoadReport::of(zone.id(), t, positions, &world.bounds, r.bins);
-                (report.physics, report.step, report.ticks) = (s.physics - since.0, s.step - since.1, s.ticks - since.2);
+                (report.physics, report.step, report.ticks) =
+                    (s.physics - since.0, s.step - since.1, s.ticks - since.2);
                 since = (s.physics, s.step, s.ticks);
                 // A coordinator that is gone failed; the decision's wait below says so.
                 let _ = to.tx.send(Report::Load(Box::new(report)));
@@ -260,7 +261,14 @@ fn run_zone(
         to.ok = true;
     }
     let static_prims = zone.static_prims();
-    Ok(Outcome { objects: zone.advanced(), actions, stats: zone.stats().clone(), static_prims, first, last: Instant::now() })
+    Ok(Outcome {
+        objects: zone.advanced(),
+        actions,
+        stats: zone.stats().clone(),
+        static_prims,
+        first,
+        last: Instant::now(),
+    })
 }
 
 /// The coordinator's thread: reports in, decisions out to every zone, until every zone

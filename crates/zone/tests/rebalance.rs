@@ -103,7 +103,8 @@ fn crowd_mean_x(objects: impl Iterator<Item = (ObjectKind, Vec3)>) -> f32 {
 fn the_moving_crowd_crosses_the_cut_and_the_cuts_follow() {
     let (world, script, size) = small_crowd();
     let ticks = 400;
-    let start = crowd_mean_x((0..world.dynamics.len()).map(|s| (world.dynamics.kinds()[s], world.dynamics.positions()[s])));
+    let start =
+        crowd_mean_x((0..world.dynamics.len()).map(|s| (world.dynamics.kinds()[s], world.dynamics.positions()[s])));
     let want = single(&world, ticks, &script);
     for k in [2, 4] {
         let rebalance = RebalanceOptions { every: 20, ..counts() };
@@ -111,13 +112,20 @@ fn the_moving_crowd_crosses_the_cut_and_the_cuts_follow() {
         assert_eq!(run.state_hash, want, "{k} zones");
         let log = run.rebalance.unwrap();
         let end = crowd_mean_x(run.objects.iter().map(|o| (o.kind, o.pos)));
-        eprintln!("moving crowd, {k} zones: mean x {start:.1} -> {end:.1}; {} cut moves; cuts {:?}", run.cut_moves, log.cuts);
+        eprintln!(
+            "moving crowd, {k} zones: mean x {start:.1} -> {end:.1}; {} cut moves; cuts {:?}",
+            run.cut_moves, log.cuts
+        );
         assert!(start < size / 2.0 && end > size / 2.0, "the crowd crossed the middle: {start} -> {end}");
         assert!(run.cut_moves > 0);
         // The x cut followed the crowd: first left of the middle (toward where it
         // gathered), at the end right of where it was at its leftmost.
         let lowest = log.moves.iter().map(|m| m.xs[1]).fold(f32::INFINITY, f32::min);
-        assert!(lowest < size / 2.0 && log.cuts.0[1] > lowest, "{:?}", log.moves.iter().map(|m| m.xs[1]).collect::<Vec<_>>());
+        assert!(
+            lowest < size / 2.0 && log.cuts.0[1] > lowest,
+            "{:?}",
+            log.moves.iter().map(|m| m.xs[1]).collect::<Vec<_>>()
+        );
     }
 }
 

@@ -108,10 +108,7 @@ fn cut_moves_are_checked() {
         (CutMove { zs: vec![0.0, 100.0, 200.0, 400.0], ..ok.clone() }, "cuts"),
         (CutMove { xs: vec![0.0, f32::NAN, 400.0], ..ok.clone() }, "finite"),
         // Past where the next zone's far cut was: objects would jump a zone.
-        (
-            CutMove { xs: vec![0.0, 150.0, 250.0, 400.0], zs: vec![0.0, 400.0], ..ok.clone() },
-            "cuts for a layout",
-        ),
+        (CutMove { xs: vec![0.0, 150.0, 250.0, 400.0], zs: vec![0.0, 400.0], ..ok.clone() }, "cuts for a layout"),
     ] {
         let e = bad.validate(&l).unwrap_err().to_string();
         assert!(e.contains(why), "{bad:?}: {e}");

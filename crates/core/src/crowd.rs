@@ -65,10 +65,9 @@ impl MovingCrowd {
     /// members' ids.
     pub fn spawn(&self, world: &mut World) -> Result<Vec<EntityId>, CoreError> {
         let b = &self.base;
-        if !(self.spread.is_finite() && self.spread > 0.0)
-            || !(0.0..=1.0).contains(&self.start.0)
-            || !(0.0..=1.0).contains(&self.start.1)
-        {
+        let unit = |v: f32| (0.0..=1.0).contains(&v);
+        let valid = self.spread.is_finite() && self.spread > 0.0 && unit(self.start.0) && unit(self.start.1);
+        if !valid {
             return Err(CoreError::invalid("moving crowd", format!("start {:?}, spread {}", self.start, self.spread)));
         }
         let mut rng = Stream::new(b.seed, PLACEMENT);

@@ -92,6 +92,12 @@ struct ZoneSummary {
     physics_ms_last_third: Vec<f64>,
     /// The slowest zone's physics step over the zones' mean, whole run and last third.
     slowest_over_mean: (f64, f64),
+    /// The most loaded zone's owned objects over the mean, averaged over the report
+    /// ticks of the whole run and of its last third (deterministic, unlike times).
+    most_owned_over_mean: (f64, f64),
+    /// Every report tick: tick, objects owned per zone, physics ms a tick per zone since
+    /// the previous report.
+    samples: Vec<(u64, Vec<usize>, Vec<f64>)>,
 }
 
 #[derive(Serialize)]
@@ -234,7 +240,11 @@ fn print(args: &SimArgs, s: &Summary) -> Result<()> {
                 println!("  move       decided at tick {decided}, applied at {applied}: x {xs:?}, z {zs:?}");
             }
             println!(
-                "load         slowest zone's physics over the mean: {:.2} (whole run), {:.2} (last third: [{}] ms a tick)",
+                "load         most loaded zone's objects over the mean: {:.2} (whole run), {:.2} (last third)",
+                z.most_owned_over_mean.0, z.most_owned_over_mean.1
+            );
+            println!(
+                "             slowest zone's physics over the mean: {:.2} (whole run), {:.2} (last third: [{}] ms a tick)",
                 z.slowest_over_mean.0,
                 z.slowest_over_mean.1,
                 ms(&z.physics_ms_last_third)
@@ -317,6 +327,11 @@ fn run_zoned(
         cuts: log.cuts.clone(),
         slowest_over_mean: (slowest_over_mean(&physics), slowest_over_mean(&last_third)),
         physics_ms_last_third: last_third,
+        most_owned_over_mean: (
+            owned_over_mean(&log.samples, 0),
+            owned_over_mean(&log.samples, run.tick - args.ticks / 3 + 1),
+        ),
+        samples: log.samples.iter().map(|s| (s.tick, s.owned.clone(), s.physics_ms.clone())).collect(),
     };
     let s = Summary {
         scenario: spec.name.clone(),
@@ -371,4 +386,15 @@ fn last_third(samples: &[myriad_zone::rebalance::LoadSample], zones: usize, end:
 fn slowest_over_mean(v: &[f64]) -> f64 {
     let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
     if mean > 0.0 { v.iter().copied().fold(0.0, f64::max) / mean } else { 0.0 }
+}
+
+/// The mean over the samples from tick `from` on of the most loaded zone's objects over
+/// the zones' mean.
+fn owned_over_mean(samples: &[myriad_zone::rebalance::LoadSample], from: u64) -> f64 {
+    let ratios: Vec<f64> = samples
+        .iter()
+        .filter(|s| s.tick >= from)
+        .map(|s| slowest_over_mean(&s.owned.iter().map(|&o| o as f64).collect::<Vec<_>>()))
+        .collect();
+    ratios.iter().sum::<f64>() / ratios.len().max(1) as f64
 }

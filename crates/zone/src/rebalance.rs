@@ -31,6 +31,9 @@ use myriad_core::Vec3;
 use crate::error::ZoneError;
 use crate::layout::{ZoneId, ZoneLayout};
 
+/// Cuts along x and along z, edges included (as [`ZoneLayout::cuts`] gives them).
+pub type Cuts = (Vec<f32>, Vec<f32>);
+
 /// A decided move of the cuts: every zone follows `xs` and `zs` from tick `apply_at` on.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CutMove {
@@ -246,7 +249,7 @@ impl CountPolicy {
         tick: u64,
         layout: &ZoneLayout,
         reports: &[LoadReport],
-    ) -> Result<Option<(Vec<f32>, Vec<f32>)>, ZoneError> {
+    ) -> Result<Option<Cuts>, ZoneError> {
         if reports.len() != layout.len() {
             return Err(ZoneError::Layout(format!("{} reports for {} zones", reports.len(), layout.len())));
         }

@@ -10,7 +10,7 @@
 //! every zone is over budget, moving cuts does not help.
 
 use crate::layout::ZoneLayout;
-use crate::rebalance::safe_width;
+use crate::rebalance::{Cuts, safe_width};
 
 /// The knobs of [`StepTimePolicy`].
 #[derive(Clone, Debug, PartialEq)]
@@ -63,7 +63,7 @@ impl StepTimePolicy {
 
     /// Takes each zone's step time (ms, e.g. a mean over the last second) measured at
     /// `now` (seconds, ascending between calls); returns the cuts to move to, or `None`.
-    pub fn observe(&mut self, now: f64, layout: &ZoneLayout, step_ms: &[f64]) -> Option<(Vec<f32>, Vec<f32>)> {
+    pub fn observe(&mut self, now: f64, layout: &ZoneLayout, step_ms: &[f64]) -> Option<Cuts> {
         if step_ms.len() != layout.len() || step_ms.iter().any(|s| !s.is_finite() || *s < 0.0) {
             return None;
         }

@@ -123,7 +123,7 @@ pub fn run_zoned(
     });
     // A zone that failed makes its neighbours stall, and zones waiting for a decision
     // fail when the coordinator gives up: report the cause, not its echoes.
-    let echo = |e: &ZoneError| matches!(e, ZoneError::Stalled { .. }) || e.to_string().contains(COORDINATOR_GONE);
+    let echo = |e: &ZoneError| matches!(e, ZoneError::Stalled { .. } | ZoneError::CoordinatorGone);
     if let Some(e) = results.iter().position(|r| matches!(r, Err(e) if !echo(e))) {
         return Err(results.into_iter().nth(e).expect("index").expect_err("an error"));
     }
@@ -180,9 +180,6 @@ enum Report {
     End(ZoneId, bool),
 }
 
-/// Said by zones whose coordinator stopped answering (because another zone failed).
-const COORDINATOR_GONE: &str = "the rebalancing coordinator stopped";
-
 /// Tells the coordinator that a zone ended, however it ends (errors and panics too), so
 /// that it never waits for a report that will not come.
 struct ZoneEnd {
@@ -236,7 +233,7 @@ fn run_zone(
                 let _ = to.tx.send(Report::Load(Box::new(report)));
             }
             if t >= r.delay && r.decides(t - r.delay, end) && t - r.delay >= world.tick {
-                let d = decisions.recv().map_err(|_| ZoneError::Layout(COORDINATOR_GONE.into()))?;
+                let d = decisions.recv().map_err(|_| ZoneError::CoordinatorGone)?;
                 if d.apply_at != t {
                     return Err(ZoneError::Layout(format!("a decision for tick {} at tick {t}", d.apply_at)));
                 }

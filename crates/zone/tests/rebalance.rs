@@ -311,3 +311,19 @@ proptest! {
         });
     }
 }
+
+/// A zone that fails in a rebalancing run: its neighbours stall or lose their
+/// coordinator, and the run reports the failing zone's error, not theirs.
+#[test]
+fn a_failing_zone_is_reported_not_its_echoes() {
+    let world = ScenarioSpec::custom(5).counts(200, 20, 20).map_size(64.0, 33).build().unwrap();
+    let layout = ZoneLayout::for_count(&world.bounds, 4, pair_reach(&world), 2.0).unwrap();
+    let failing = |z: myriad_zone::ZoneId| {
+        if z.0 == 1 { Err(myriad_zone::ZoneError::Checkpoint("no backend for zone 1".into())) } else { cpu(z) }
+    };
+    let mut opts = myriad_zone::RunOptions::new(40, Duration::from_secs(2));
+    opts.rebalance = Some(counts());
+    let e = run_zoned(&world, layout, &ActionScript::default(), &TickConstants::default(), &failing, memory(4), &opts)
+        .unwrap_err();
+    assert!(e.to_string().contains("no backend for zone 1"), "{e}");
+}

@@ -94,7 +94,11 @@ impl ResidentWorld {
     /// The owned objects a neighbour may need: every owned object except those whose
     /// square of half side `reach` lies inside `z`'s region (four comparisons; those are
     /// seen by `z` alone and stay its own).
-    pub fn near_edges<'a>(&'a self, layout: &ZoneLayout, z: ZoneId) -> impl Iterator<Item = ObjectState> + 'a {
+    pub fn near_edges<'a>(
+        &'a self,
+        layout: &ZoneLayout,
+        z: ZoneId,
+    ) -> impl Iterator<Item = ObjectState> + 'a {
         let inner = Inner::of(layout, z);
         let d = &self.world.dynamics;
         (0..d.len()).filter(move |&s| self.owned[s] && !inner.holds(d.positions()[s])).map(move |s| d.state_of(s))
@@ -157,7 +161,11 @@ impl ResidentWorld {
                 (true, None) if inner.holds(positions[s]) => Some(true),
                 (true, None) => {
                     let p = positions[s];
-                    if layout.zone_at(p) == z { Some(true) } else { layout.sees(z, p).then_some(false) }
+                    if layout.zone_at(p) == z {
+                        Some(true)
+                    } else {
+                        layout.sees(z, p).then_some(false)
+                    }
                 }
             };
             // Players (ids from 2^30 on, the last slots) that left or whose gateway died.

@@ -7,7 +7,8 @@
 //!   static scenery made of primitives ([`Statics`]), the terrain and the world bounds.
 //! - [`terrain`]: the heightmap, generated from a seed or loaded from a file, with the
 //!   bilinear sampling every backend must reproduce bit for bit.
-//! - [`scenario`]: seeded generators for the reference's three scenarios and custom ones.
+//! - [`scenario`]: seeded generators for the reference's three scenarios and custom ones;
+//!   [`crowd`]: a crowd walking across the map (its load moves from zone to zone).
 //! - [`rng`]: counter-based random numbers (a hash of seed, object and tick), the same on
 //!   every machine and reproducible on a GPU.
 //! - [`config`]: the physics parameters shared by all backends.
@@ -19,6 +20,7 @@
 pub mod aabb;
 pub mod action;
 pub mod config;
+pub mod crowd;
 pub mod error;
 pub mod rng;
 pub mod scenario;
@@ -31,6 +33,7 @@ pub mod world;
 pub use aabb::Aabb;
 pub use action::Action;
 pub use config::PhysicsConfig;
+pub use crowd::MovingCrowd;
 pub use error::CoreError;
 pub use glam::Vec3;
 pub use scenario::{Placement, ScenarioSpec};

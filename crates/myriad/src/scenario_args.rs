@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use myriad_core::{Placement, ScenarioSpec, Terrain, Vec3, World};
+use myriad_core::{ActionScript, MovingCrowd, Placement, ScenarioSpec, Terrain, Vec3, World};
 
 /// Which scenario to generate.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -22,6 +22,10 @@ pub enum ScenarioName {
     Custom,
     /// Scenario 2's counts (or the flags') with most objects crowding eight hot spots.
     Clustered,
+    /// A crowd of users walking toward +x across a 512-unit map of 1,500 NPCs and 750
+    /// static objects (`myriad sim` only: the crowd walks by its script). `--users` is
+    /// the crowd (default 3,000), `--dynamic` the NPCs around it.
+    MovingCrowd,
 }
 
 /// Flags that adjust the generated world.
@@ -75,6 +79,7 @@ impl WorldArgs {
             ScenarioName::Three => ScenarioSpec::reference(3, self.seed)?,
             ScenarioName::Custom => ScenarioSpec::custom(self.seed),
             ScenarioName::Clustered => ScenarioSpec::clustered(self.seed),
+            ScenarioName::MovingCrowd => MovingCrowd::new(self.seed).base,
         };
         let reference = matches!(name, ScenarioName::One | ScenarioName::Two | ScenarioName::Three);
         if reference && (self.dynamic.is_some() || self.static_objects.is_some() || self.users.is_some()) {
@@ -84,10 +89,13 @@ impl WorldArgs {
             spec.dynamic = n;
             spec.users = spec.users.min(n);
         }
+        // The moving crowd's users are its crowd ([`WorldArgs::crowd`]): the objects
+        // around it are NPCs.
+        let users = if name == ScenarioName::MovingCrowd { None } else { self.users };
         if let Some(n) = self.static_objects {
             spec.static_objects = n;
         }
-        if let Some(n) = self.users {
+        if let Some(n) = users {
             spec.users = n;
         }
         if let Some(s) = self.world_size {
@@ -109,8 +117,40 @@ impl WorldArgs {
         Ok(spec)
     }
 
-    /// Builds the world for `name`, on the given heightmap if there is one.
+    /// The moving crowd these flags describe (`--users` is its size).
+    pub fn crowd(&self) -> Result<MovingCrowd> {
+        let mut crowd = MovingCrowd::new(self.seed);
+        crowd.base = self.spec(ScenarioName::MovingCrowd)?;
+        // The crowd keeps its size relative to the map.
+        crowd.spread = crowd.base.world_size / 24.0;
+        if let Some(n) = self.users {
+            crowd.crowd = n;
+        }
+        if self.heightmap.is_some() {
+            bail!("the moving crowd walks on generated terrain: drop --heightmap");
+        }
+        Ok(crowd)
+    }
+
+    /// The world for `name` and the actions that drive it for `ticks` ticks: the moving
+    /// crowd's walk, none for the other scenarios.
+    pub fn build_with_script(&self, name: ScenarioName, ticks: u64) -> Result<(ScenarioSpec, World, ActionScript)> {
+        if name == ScenarioName::MovingCrowd {
+            let crowd = self.crowd()?;
+            let (world, script) = crowd.build_with_script(ticks).context("generating the moving crowd")?;
+            return Ok((crowd.base, world, script));
+        }
+        let (spec, world) = self.build(name)?;
+        Ok((spec, world, ActionScript::default()))
+    }
+
+    /// Builds the world for `name`, on the given heightmap if there is one. The moving
+    /// crowd is refused: without its script it is a crowd standing still
+    /// ([`WorldArgs::build_with_script`]).
     pub fn build(&self, name: ScenarioName) -> Result<(ScenarioSpec, World)> {
+        if name == ScenarioName::MovingCrowd {
+            bail!("the moving crowd walks by its script: run it with `myriad sim --scenario moving-crowd`");
+        }
         let spec = self.spec(name)?;
         let world = match &self.heightmap {
             None => spec.build().with_context(|| format!("generating scenario {}", spec.name))?,

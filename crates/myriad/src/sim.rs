@@ -47,6 +47,14 @@ pub struct SimArgs {
     /// How far an object may move in one tick before zones must refuse to go on.
     #[arg(long, default_value_t = 2.0)]
     pub zone_max_step: f32,
+    /// Move the zones' cuts toward balanced object counts per column and row (decided
+    /// from the objects each zone owns, so the run is reproducible; see docs/zones.md,
+    /// rebalancing). Without it the cuts stay and the load is only watched.
+    #[arg(long, requires = "zones")]
+    pub rebalance: bool,
+    /// Ticks between the zones' load reports (and rebalancing decisions).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(3..))]
+    pub rebalance_every: u64,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -74,6 +82,22 @@ struct ZoneSummary {
     /// the physics), plus choosing and sending border states, ms a tick.
     overhead_ms: Vec<f64>,
     rejected: u64,
+    /// Cut moves every zone applied.
+    cut_moves: u64,
+    /// Each move: decided at, applied at, new x cuts, new z cuts.
+    moves: Vec<(u64, u64, Vec<f32>, Vec<f32>)>,
+    /// The cuts at the end, along x and z.
+    cuts: (Vec<f32>, Vec<f32>),
+    /// Per zone: mean physics step over the last third of the run, ms a tick (measured).
+    physics_ms_last_third: Vec<f64>,
+    /// The slowest zone's physics step over the zones' mean, whole run and last third.
+    slowest_over_mean: (f64, f64),
+    /// The most loaded zone's owned objects over the mean, averaged over the report
+    /// ticks of the whole run and of its last third (deterministic, unlike times).
+    most_owned_over_mean: (f64, f64),
+    /// Every report tick: tick, objects owned per zone, physics ms a tick per zone since
+    /// the previous report.
+    samples: Vec<(u64, Vec<usize>, Vec<f64>)>,
 }
 
 #[derive(Serialize)]
@@ -103,6 +127,9 @@ struct Summary {
     dynamic_contacts: Option<u64>,
     /// Scripted actions applied.
     actions: usize,
+    /// The users' mean x at the end (the moving crowd's position).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    users_mean_x: Option<f32>,
     state_hash: String,
     #[serde(skip_serializing_if = "Option::is_none")]
     zoned: Option<ZoneSummary>,
@@ -110,13 +137,15 @@ struct Summary {
 
 /// Runs `myriad sim`.
 pub fn run(args: SimArgs) -> Result<()> {
-    let (spec, mut world) = args.world.build(args.scenario)?;
+    let (spec, mut world, generated) = args.world.build_with_script(args.scenario, args.ticks)?;
     let script = match &args.actions {
         Some(path) => {
             let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-            ActionScript::parse(&text).with_context(|| format!("in {}", path.display()))?
+            let file = ActionScript::parse(&text).with_context(|| format!("in {}", path.display()))?;
+            // The file's lines after the scenario's, so that on one tick they win.
+            ActionScript::new(generated.entries().iter().chain(file.entries()).copied().collect())
         }
-        None => ActionScript::default(),
+        None => generated,
     };
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     if args.zones > 1 || args.nats.is_some() {
@@ -151,6 +180,10 @@ pub fn run(args: SimArgs) -> Result<()> {
         static_contacts: Some(pairs[2]),
         dynamic_contacts: Some(pairs[3]),
         actions,
+        users_mean_x: crowd_x(
+            &args,
+            world.dynamics.kinds().iter().copied().zip(world.dynamics.positions().iter().copied()),
+        ),
         state_hash: format!("{:016x}", world.state_hash()),
         zoned: None,
     };
@@ -174,8 +207,11 @@ fn print(args: &SimArgs, s: &Summary) -> Result<()> {
             println!("pairs        {sp} static, {dp} dynamic (all ticks)");
             println!("contacts     {sc} static, {dc} dynamic (all ticks)");
         }
-        if args.actions.is_some() {
+        if args.actions.is_some() || s.actions > 0 {
             println!("actions      {} applied from the script", s.actions);
+        }
+        if let Some(x) = s.users_mean_x {
+            println!("crowd        users' mean x at the end {x:.1}");
         }
         if let Some(z) = &s.zoned {
             println!(
@@ -199,6 +235,20 @@ fn print(args: &SimArgs, s: &Summary) -> Result<()> {
                 ms(&z.wait_ms)
             );
             println!("rejected     {} messages", z.rejected);
+            println!("cut moves    {} (cuts at the end: x {:?}, z {:?})", z.cut_moves, z.cuts.0, z.cuts.1);
+            for (decided, applied, xs, zs) in &z.moves {
+                println!("  move       decided at tick {decided}, applied at {applied}: x {xs:?}, z {zs:?}");
+            }
+            println!(
+                "load         most loaded zone's objects over the mean: {:.2} (whole run), {:.2} (last third)",
+                z.most_owned_over_mean.0, z.most_owned_over_mean.1
+            );
+            println!(
+                "             slowest zone's physics over the mean: {:.2} (whole run), {:.2} (last third: [{}] ms a tick)",
+                z.slowest_over_mean.0,
+                z.slowest_over_mean.1,
+                ms(&z.physics_ms_last_third)
+            );
         }
         println!("state hash   {}", s.state_hash);
     }
@@ -236,8 +286,24 @@ fn run_zoned(
     let description = backend(ZoneId(0))?.description();
     let grid = layout.shape();
     let reach = layout.reach();
-    let opts = myriad_zone::RunOptions::new(args.ticks, std::time::Duration::from_secs(300));
+    let mut opts = myriad_zone::RunOptions::new(args.ticks, std::time::Duration::from_secs(300));
+    // Always watched (reports cost a histogram of the owned objects every
+    // `--rebalance-every` ticks); moved with --rebalance.
+    let policy = if args.rebalance {
+        myriad_zone::rebalance::Policy::Counts(Default::default())
+    } else {
+        myriad_zone::rebalance::Policy::Watch
+    };
+    opts.rebalance = Some(myriad_zone::RebalanceOptions {
+        every: args.rebalance_every,
+        policy,
+        ..myriad_zone::RebalanceOptions::default()
+    });
     let run = myriad_zone::run_zoned(world, layout, script, k, &backend, fabrics, &opts)?;
+    let log = run.rebalance.clone().unwrap_or_default();
+    let last_third = last_third(&log.samples, n, run.tick, args.ticks);
+    let physics: Vec<f64> =
+        run.stats.iter().map(|s| s.physics.as_secs_f64() * 1e3 / args.ticks.max(1) as f64).collect();
     // The ticks alone, as for one process: world assembly and backend start-up excluded.
     let total_ms = run.ticks_ms;
     let ticks = args.ticks.max(1) as f64;
@@ -256,6 +322,16 @@ fn run_zoned(
         physics_ms: run.stats.iter().map(|s| s.physics.as_secs_f64() * 1e3 / ticks).collect(),
         overhead_ms: run.stats.iter().map(|s| (s.step + s.send - s.physics).as_secs_f64() * 1e3 / ticks).collect(),
         rejected: run.stats.iter().map(|s| s.rejected_total()).sum(),
+        cut_moves: run.cut_moves,
+        moves: log.moves.iter().map(|m| (m.decided_at, m.apply_at, m.xs.clone(), m.zs.clone())).collect(),
+        cuts: log.cuts.clone(),
+        slowest_over_mean: (slowest_over_mean(&physics), slowest_over_mean(&last_third)),
+        physics_ms_last_third: last_third,
+        most_owned_over_mean: (
+            owned_over_mean(&log.samples, 0),
+            owned_over_mean(&log.samples, run.tick - args.ticks / 3 + 1),
+        ),
+        samples: log.samples.iter().map(|s| (s.tick, s.owned.clone(), s.physics_ms.clone())).collect(),
     };
     let s = Summary {
         scenario: spec.name.clone(),
@@ -275,8 +351,50 @@ fn run_zoned(
         static_contacts: None,
         dynamic_contacts: None,
         actions: run.actions,
+        users_mean_x: crowd_x(args, run.objects.iter().map(|o| (o.kind, o.pos))),
         state_hash: format!("{:016x}", run.state_hash),
         zoned: Some(zoned),
     };
     print(args, &s)
+}
+
+/// The users' mean x, for the moving crowd (whose users are the crowd).
+fn crowd_x(args: &SimArgs, objects: impl Iterator<Item = (ObjectKind, myriad_core::Vec3)>) -> Option<f32> {
+    if args.scenario != ScenarioName::MovingCrowd {
+        return None;
+    }
+    let (sum, n) =
+        objects.filter(|(k, _)| *k == ObjectKind::User).fold((0.0f64, 0u32), |(s, n), (_, p)| (s + p.x as f64, n + 1));
+    (n > 0).then(|| (sum / n as f64) as f32)
+}
+
+/// Each zone's mean physics ms a tick over the samples of the last third of a run of
+/// `ticks` ticks ending at `end`.
+fn last_third(samples: &[myriad_zone::rebalance::LoadSample], zones: usize, end: u64, ticks: u64) -> Vec<f64> {
+    let from = end - ticks / 3;
+    let (mut ms, mut n) = (vec![0.0; zones], 0u64);
+    for s in samples.iter().filter(|s| s.tick > from) {
+        for (acc, v) in ms.iter_mut().zip(&s.physics_ms) {
+            *acc += v * s.ticks as f64;
+        }
+        n += s.ticks;
+    }
+    ms.iter().map(|v| v / n.max(1) as f64).collect()
+}
+
+/// The largest figure over the mean (1 when all are equal; 0 when there are none).
+fn slowest_over_mean(v: &[f64]) -> f64 {
+    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+    if mean > 0.0 { v.iter().copied().fold(0.0, f64::max) / mean } else { 0.0 }
+}
+
+/// The mean over the samples from tick `from` on of the most loaded zone's objects over
+/// the zones' mean.
+fn owned_over_mean(samples: &[myriad_zone::rebalance::LoadSample], from: u64) -> f64 {
+    let ratios: Vec<f64> = samples
+        .iter()
+        .filter(|s| s.tick >= from)
+        .map(|s| slowest_over_mean(&s.owned.iter().map(|&o| o as f64).collect::<Vec<_>>()))
+        .collect();
+    ratios.iter().sum::<f64>() / ratios.len().max(1) as f64
 }

@@ -263,7 +263,7 @@ fn gateway_args(args: &ClusterArgs, zones: usize, url: &str, cluster: &str) -> R
         ScenarioName::One => "1",
         ScenarioName::Two => "2",
         ScenarioName::Three => "3",
-        ScenarioName::Custom | ScenarioName::Clustered => {
+        ScenarioName::Custom | ScenarioName::Clustered | ScenarioName::MovingCrowd => {
             bail!("--gateways serves the reference scenarios 1, 2 and 3 (a gateway builds its map from them)")
         }
     };

@@ -82,6 +82,58 @@ fn zoned_sim_prints_the_single_process_hash() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("use fewer zones"));
 }
 
+/// `sim --scenario moving-crowd --zones K --rebalance`: the crowd walks past the middle,
+/// the cuts follow it, and the hash is one process's; other commands refuse the crowd.
+#[test]
+fn rebalanced_moving_crowd_keeps_the_single_process_hash() {
+    let crowd = [
+        "sim",
+        "--json",
+        "--ticks",
+        "300",
+        "--backend",
+        "cpu",
+        "--scenario",
+        "moving-crowd",
+        "--users",
+        "600",
+        "--dynamic",
+        "300",
+        "--static",
+        "60",
+        "--world-size",
+        "128",
+        "--terrain-samples",
+        "65",
+    ];
+    let run = |extra: &[&str]| {
+        let out = myriad(&[&crowd[..], extra].concat());
+        assert!(out.status.success(), "{extra:?}: {}", String::from_utf8_lossy(&out.stderr));
+        json_lines(&out.stdout)[0].clone()
+    };
+    let one = run(&[]);
+    assert!(one["users_mean_x"].as_f64().unwrap() > 64.0, "the crowd passed the middle: {}", one["users_mean_x"]);
+    assert_eq!(one["users"], 600);
+    for zones in ["2", "4", "9"] {
+        let v = run(&["--zones", zones, "--rebalance", "--rebalance-every", "20"]);
+        assert_eq!(v["state_hash"], one["state_hash"], "{zones} zones");
+        let z = &v["zoned"];
+        assert!(z["cut_moves"].as_u64().unwrap() > 0, "{zones} zones: {z}");
+        assert_eq!(z["moves"].as_array().unwrap().len() as u64, z["cut_moves"].as_u64().unwrap());
+        assert_eq!(z["owned"].as_array().unwrap().iter().map(|o| o.as_u64().unwrap()).sum::<u64>(), 900);
+    }
+    // Without --rebalance the cuts stay (the load is still reported).
+    let fixed = run(&["--zones", "4"]);
+    assert_eq!(fixed["zoned"]["cut_moves"], 0);
+    assert_eq!(fixed["zoned"]["cuts"][0], serde_json::json!([0.0, 64.0, 128.0]));
+    assert_eq!(fixed["state_hash"], one["state_hash"]);
+    let out = myriad(&["bench", "--scenario", "moving-crowd"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("myriad sim --scenario moving-crowd"));
+    let out = myriad(&["sim", "--rebalance"]);
+    assert!(!out.status.success(), "--rebalance needs --zones");
+}
+
 #[test]
 fn bench_reports_every_stage_and_the_table_columns() {
     let dir = std::env::temp_dir().join(format!("myriad-bench-{}", std::process::id()));

@@ -43,6 +43,10 @@ pub enum ZoneError {
     /// Two zones claimed the same object at one tick.
     #[error("object {0:?} arrived twice at tick {1}")]
     Duplicate(EntityId, u64),
+    /// The coordinator of a rebalancing run stopped answering (another zone failed; the
+    /// run reports that zone's error).
+    #[error("the rebalancing coordinator stopped")]
+    CoordinatorGone,
     /// A checkpoint could not be stored or read.
     #[error("checkpoint: {0}")]
     Checkpoint(String),

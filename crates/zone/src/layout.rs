@@ -120,6 +120,49 @@ impl ZoneLayout {
         Ok(layout)
     }
 
+    /// The cuts along x and along z, ascending; the first and last of each are the
+    /// world's edges.
+    pub fn cuts(&self) -> (&[f32], &[f32]) {
+        (&self.xs, &self.zs)
+    }
+
+    /// This layout with its inner cuts moved to `xs` and `zs` (whole lists, edges
+    /// included): same shape, reach and max step. Refuses lists of another length,
+    /// edges that moved (the world's bounds do not change), cuts that are not finite
+    /// and ascending, and a zone not wider than `reach + max step`, as
+    /// [`ZoneLayout::from_cuts`] does.
+    pub fn with_cuts(&self, xs: &[f32], zs: &[f32]) -> Result<ZoneLayout, ZoneError> {
+        if xs.len() != self.xs.len() || zs.len() != self.zs.len() {
+            return Err(ZoneError::Layout(format!(
+                "{} x cuts and {} z cuts for a layout of {} and {}",
+                xs.len(),
+                zs.len(),
+                self.xs.len(),
+                self.zs.len()
+            )));
+        }
+        // Bit comparisons: an edge is the world's bound, exactly, or the move is refused.
+        let same = |a: f32, b: f32| a.to_bits() == b.to_bits();
+        let edges = |new: &[f32], old: &[f32]| same(new[0], old[0]) && same(new[new.len() - 1], old[old.len() - 1]);
+        if !edges(xs, &self.xs) || !edges(zs, &self.zs) {
+            return Err(ZoneError::Layout("the outer cuts are the world's bounds and do not move".into()));
+        }
+        let moved = ZoneLayout::from_cuts(xs.to_vec(), zs.to_vec(), self.reach, self.max_step)?;
+        // Zones wider than the margin make neighbours a matter of the grid alone (two
+        // zones apart are a whole zone apart): a move never changes who exchanges with
+        // whom, which zones switching at one tick rely on.
+        if moved.neighbours != self.neighbours {
+            return Err(ZoneError::Layout("a cut move that changes the zones' neighbours".into()));
+        }
+        Ok(moved)
+    }
+
+    /// The smallest width a zone may have: wider than this is required
+    /// ([`ZoneLayout::from_cuts`]).
+    pub fn margin(&self) -> f32 {
+        self.reach + self.max_step
+    }
+
     /// Number of zones.
     pub fn len(&self) -> usize {
         (self.xs.len() - 1) * (self.zs.len() - 1)
@@ -248,6 +291,35 @@ mod tests {
                 assert!(l.neighbours(*n).contains(&z), "symmetric");
             }
         }
+    }
+
+    #[test]
+    fn with_cuts_moves_inner_cuts_only() {
+        let l = ZoneLayout::for_count(&bounds(), 4, 2.0, 1.0).unwrap();
+        let (xs, zs) = (l.cuts().0.to_vec(), l.cuts().1.to_vec());
+        assert_eq!((xs.as_slice(), zs.as_slice()), (&[-30.0, 15.0, 60.0][..], &[0.0, 45.0, 90.0][..]));
+        let m = l.with_cuts(&[-30.0, 10.0, 60.0], &zs).unwrap();
+        assert_eq!((m.reach(), m.max_step(), m.shape()), (2.0, 1.0, (2, 2)));
+        assert_eq!(m.zone_at(Vec3::new(12.0, 0.0, 1.0)), ZoneId(1), "12 is now right of the cut");
+        assert_eq!(l.zone_at(Vec3::new(12.0, 0.0, 1.0)), ZoneId(0));
+        for (bad_x, bad_z, why) in [
+            (vec![-31.0, 10.0, 60.0], zs.clone(), "outer cuts"),
+            (vec![-30.0, 10.0, 60.5], zs.clone(), "outer cuts"),
+            (vec![-30.0, 10.0, 30.0, 60.0], zs.clone(), "cuts for a layout"),
+            (vec![-30.0, 60.0], zs.clone(), "cuts for a layout"),
+            (vec![-30.0, f32::NAN, 60.0], zs.clone(), "finite"),
+            (vec![-30.0, f32::INFINITY, 60.0], zs.clone(), "finite"),
+            (vec![-30.0, 70.0, 60.0], zs.clone(), "ascending"),
+            (vec![-30.0, -30.0, 60.0], zs.clone(), "ascending"),
+            (xs.clone(), vec![0.0, 3.0, 90.0], "fewer zones"),
+            (vec![-30.0, 57.5, 60.0], zs.clone(), "fewer zones"),
+        ] {
+            let e = l.with_cuts(&bad_x, &bad_z).unwrap_err().to_string();
+            assert!(e.contains(why), "{bad_x:?} {bad_z:?}: {e}");
+        }
+        // A zone exactly as wide as the margin (3) is refused, a hair wider is not.
+        assert!(l.with_cuts(&[-30.0, 57.0, 60.0], &zs).is_err());
+        assert!(l.with_cuts(&[-30.0, 56.99, 60.0], &zs).is_ok());
     }
 
     #[test]

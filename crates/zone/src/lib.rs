@@ -14,6 +14,8 @@
 //! - [`resident`]: a zone's world kept from tick to tick, changed where it changed.
 //! - [`replay`]: each zone's log of the intents it took, and the replay of a live run
 //!   from a checkpoint with them.
+//! - [`rebalance`]: boundaries that follow the load: when and where cuts move, and
+//!   how every zone switches at one announced tick.
 //! - [`stats`]: per-zone counters and their Prometheus form.
 //!
 //! Design, subjects, message layouts and measurements: `docs/zones.md`.
@@ -28,6 +30,7 @@ pub mod layout;
 pub mod local;
 pub mod nats;
 pub mod process;
+pub mod rebalance;
 pub mod replay;
 pub mod resident;
 pub mod stats;
@@ -41,6 +44,7 @@ pub use gateway::{GatewayConfig, ZonesBackend};
 pub use layout::{Rect, ZoneId, ZoneLayout};
 pub use local::{RunOptions, ZonedRun, pair_reach, run_zoned};
 pub use nats::NatsFabric;
+pub use rebalance::{CutMove, RebalanceOptions};
 pub use stats::ZoneStats;
 pub use wire::{ClusterKey, WireError};
 pub use zone::{TickEnd, Zone, ZoneConfig};

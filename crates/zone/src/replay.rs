@@ -264,14 +264,20 @@ pub fn replay(
                             }
                         }
                     }
-                    let prims = zone.static_prims();
-                    Ok((zone.advanced(), actions, zone.stats().clone(), prims, first, Instant::now()))
+                    Ok(crate::local::Outcome {
+                        objects: zone.advanced(),
+                        actions,
+                        stats: zone.stats().clone(),
+                        static_prims: zone.static_prims(),
+                        first,
+                        last: Instant::now(),
+                    })
                 })
             })
             .collect();
         handles.into_iter().map(|h| h.join().expect("a zone thread panicked")).collect()
     });
-    crate::local::reassemble(results, None, to)
+    crate::local::reassemble(results, None, to, None)
 }
 
 /// The hash of the world whose zones stored checkpoints of tick `tick` (the live run's

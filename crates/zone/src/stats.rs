@@ -29,6 +29,8 @@ pub struct ZoneStats {
     pub leaves: u64,
     /// Players' objects removed because their gateway died or restarted, in all.
     pub orphans: u64,
+    /// Layouts followed after the first (cuts moved), in all.
+    pub cut_moves: u64,
     /// Time spent waiting for neighbours' border states.
     pub wait: Duration,
     /// Time spent stepping: assembling the zone's world, the physics, keeping the owned
@@ -66,6 +68,7 @@ impl ZoneStats {
         counter("myriad_zone_player_joins_total", self.joins);
         counter("myriad_zone_player_leaves_total", self.leaves);
         counter("myriad_zone_player_orphans_total", self.orphans);
+        counter("myriad_zone_cut_moves_total", self.cut_moves);
         counter("myriad_zone_fabric_sent_bytes_total", self.bytes.0);
         counter("myriad_zone_fabric_received_bytes_total", self.bytes.1);
         counter("myriad_zone_messages_sent_total", self.messages.0);

@@ -210,6 +210,7 @@ impl Zone {
         }
         self.resident.set_layout(&layout, self.cfg.id);
         self.layout = layout;
+        self.stats.cut_moves += 1;
         Ok(())
     }
 

@@ -104,12 +104,14 @@ pub fn subject_matches(pattern: &str, subject: &str) -> bool {
 /// The requests replies come back on (JetStream's answers and acks).
 const INBOX: &str = "_INBOX.>";
 
-/// What async-nats's object store publishes for the cluster's bucket: the JetStream API
-/// requests of `get_object_store` (stream info), `create_object_store` (stream create),
-/// `put` (chunks and metadata on `$O.<bucket>.>`, a purge of the old chunks), `info`
-/// (direct get of the last metadata, or a message get), `get` (an ordered push consumer
-/// on the chunks: consumer create, flow-control replies) and `delete` (metadata, purge).
-/// `delete_bucket` adds the stream's deletion (the supervisor only).
+/// What async-nats (0.51)'s object store publishes for the cluster's bucket, as a
+/// server's trace of every operation shows: the stream's info (`get_object_store`) and
+/// creation (`create_object_store`); `put`: chunks and metadata on `$O.<bucket>.>` and a
+/// purge of an older version's chunks; `info`: a direct get of the last metadata (the
+/// bucket is made with `allow_direct`); `get`: an ordered push consumer on the chunks
+/// (its creation, and the replies to the server's flow-control messages, which come
+/// once a read is large); `delete`: metadata and a purge. `delete_bucket` adds the
+/// stream's deletion (the supervisor only). Every grant names the cluster's stream.
 fn object_store(cluster: &str, delete_bucket: bool) -> Vec<String> {
     let bucket = bucket_name(cluster);
     let stream = format!("OBJ_{bucket}");
@@ -117,12 +119,8 @@ fn object_store(cluster: &str, delete_bucket: bool) -> Vec<String> {
         format!("$JS.API.STREAM.INFO.{stream}"),
         format!("$JS.API.STREAM.CREATE.{stream}"),
         format!("$JS.API.STREAM.PURGE.{stream}"),
-        format!("$JS.API.STREAM.MSG.GET.{stream}"),
-        format!("$JS.API.DIRECT.GET.{stream}"),
         format!("$JS.API.DIRECT.GET.{stream}.>"),
         format!("$JS.API.CONSUMER.CREATE.{stream}"),
-        format!("$JS.API.CONSUMER.CREATE.{stream}.>"),
-        format!("$JS.API.CONSUMER.DELETE.{stream}.>"),
         format!("$JS.FC.{stream}.>"),
         format!("$O.{bucket}.>"),
     ];

@@ -118,7 +118,10 @@ impl NatsLink {
                 (K::AuthorizationViolation | K::Authentication, None) => ZoneError::Fabric(format!(
                     "NATS wants credentials: set {USER_ENV} and {PASSWORD_ENV}, or {CREDS_ENV}"
                 )),
-                (K::Tls, _) => fabric_err(&format!("TLS to NATS (is {CA_ENV} the server's authority?)"), e),
+                // A certificate the client does not trust comes back as an I/O error.
+                (K::Tls, _) | (K::Io, _) if matches!(e.kind(), K::Tls) || e.to_string().contains("certificate") => {
+                    fabric_err(&format!("TLS to NATS (is {CA_ENV} the server's authority?)"), e)
+                }
                 _ => fabric_err("connecting to NATS", e),
             }
         })?;

@@ -198,7 +198,8 @@ fn quoted_list(items: &[String]) -> String {
 /// `cluster`) with their roles' permissions and nobody else.
 pub fn render_authorization(cluster: &str, creds: &[RoleCredentials]) -> Result<String, ZoneError> {
     check_cluster_name(cluster)?;
-    let mut out = format!("# Myriad cluster {cluster:?}: one user per role (docs/zones.md, \"The fabric\").\n");
+    let mut out =
+        format!("# Myriad cluster {cluster:?}: one user per role (docs/zones.md, \"Who may publish what\").\n");
     out.push_str("authorization {\n  users = [\n");
     for c in creds {
         let safe = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');

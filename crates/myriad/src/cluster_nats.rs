@@ -9,6 +9,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
+use myriad_zone::ZoneId;
 use myriad_zone::fabric_auth::{
     CA_ENV, CLIENT_CERT_ENV, CLIENT_KEY_ENV, CREDS_ENV, NatsAuth, PASSWORD_ENV, Role, USER_ENV, new_credentials,
     parse_creds, render_authorization, render_server_config, write_private,
@@ -18,8 +19,8 @@ use myriad_zone::fabric_auth::{
 pub(crate) struct ClusterNats {
     /// The server's URL.
     pub url: String,
-    /// The zones' credentials.
-    pub zone: NatsAuth,
+    /// Each zone's credentials, by zone.
+    pub zones: Vec<NatsAuth>,
     /// The gateways'.
     pub gateway: NatsAuth,
     /// The supervisor's (this process).
@@ -46,10 +47,10 @@ fn creds_path(dir: &Path, role: Role) -> PathBuf {
     dir.join(format!("{}.creds", role.name()))
 }
 
-/// Every role's credentials from `dir` (`zone.creds`, `gateway.creds`,
-/// `supervisor.creds`), each with the certificate material of this process's
-/// environment (`MYRIAD_NATS_CA`, ...).
-fn from_dir(dir: &Path) -> Result<[NatsAuth; 3]> {
+/// Every role's credentials from `dir` (`zone-<z>.creds` for each of `zones` zones,
+/// `gateway.creds`, `supervisor.creds`), each with the certificate material of this
+/// process's environment (`MYRIAD_NATS_CA`, ...).
+fn from_dir(dir: &Path, zones: u16) -> Result<(Vec<NatsAuth>, NatsAuth, NatsAuth)> {
     let base = NatsAuth::from_env()?;
     let read = |role: Role| -> Result<NatsAuth> {
         let path = creds_path(dir, role);
@@ -64,7 +65,8 @@ fn from_dir(dir: &Path) -> Result<[NatsAuth; 3]> {
         };
         Ok(NatsAuth::from_lookup(var)?)
     };
-    Ok([read(Role::Zone)?, read(Role::Gateway)?, read(Role::Supervisor)?])
+    let z = (0..zones).map(|z| read(Role::Zone(ZoneId(z)))).collect::<Result<Vec<_>>>()?;
+    Ok((z, read(Role::Gateway)?, read(Role::Supervisor)?))
 }
 
 /// Hands `auth` to a child in its environment, and nothing of this process's own NATS
@@ -76,15 +78,17 @@ pub(crate) fn hand(command: &mut Command, auth: &NatsAuth) {
     command.envs(auth.env());
 }
 
-/// The cluster's NATS: `url` when given (or 127.0.0.1:4222 when something answers
-/// there and `private` is off), with the roles' credentials from `creds_dir` or, without
-/// it, this process's own for everyone (`MYRIAD_NATS_USER`, ...; none: a server without
-/// auth); else a private `nats-server` locked down for `cluster`.
+/// The NATS of cluster `cluster` of `zones` zones: `url` when given (or 127.0.0.1:4222
+/// when something answers there and `private` is off), with the roles' credentials from
+/// `creds_dir` or, without it, this process's own for everyone (`MYRIAD_NATS_USER`,
+/// ...; none: a server without auth); else a private `nats-server` locked down for
+/// `cluster`.
 pub(crate) fn nats_for(
     url: Option<&str>,
     creds_dir: Option<&Path>,
     private: bool,
     cluster: &str,
+    zones: u16,
 ) -> Result<ClusterNats> {
     let default = "127.0.0.1:4222";
     let given = match url {
@@ -97,25 +101,25 @@ pub(crate) fn nats_for(
         None => None,
     };
     if let Some(url) = given {
-        let [zone, gateway, supervisor] = match creds_dir {
-            Some(dir) => from_dir(dir)?,
+        let (zones, gateway, supervisor) = match creds_dir {
+            Some(dir) => from_dir(dir, zones)?,
             None => {
                 let own = NatsAuth::from_env()?;
-                [own.clone(), own.clone(), own]
+                (vec![own.clone(); zones as usize], own.clone(), own)
             }
         };
-        return Ok(ClusterNats { url, zone, gateway, supervisor, _local: None });
+        return Ok(ClusterNats { url, zones, gateway, supervisor, _local: None });
     }
     if creds_dir.is_some() {
         bail!("--nats-creds-dir names an operator's credentials: give its server with --nats URL");
     }
-    start_private(cluster)
+    start_private(cluster, zones)
 }
 
-/// Starts a `nats-server` on a free port of 127.0.0.1 that admits the three roles of
-/// `cluster` with fresh random passwords (its configuration, mode 0600, in a private
-/// temporary folder with its JetStream store).
-fn start_private(cluster: &str) -> Result<ClusterNats> {
+/// Starts a `nats-server` on a free port of 127.0.0.1 that admits the roles of
+/// `cluster` (of `zones` zones) with fresh random passwords (its configuration, mode
+/// 0600, in a private temporary folder with its JetStream store).
+fn start_private(cluster: &str, zones: u16) -> Result<ClusterNats> {
     let exe = ["nats-server", "/usr/sbin/nats-server", "/usr/local/bin/nats-server"]
         .into_iter()
         .find(|p| Command::new(p).arg("--version").stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok())
@@ -123,7 +127,7 @@ fn start_private(cluster: &str) -> Result<ClusterNats> {
     let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
     let addr: SocketAddr = format!("127.0.0.1:{port}").parse()?;
     let dir = tempfile::tempdir()?;
-    let creds = new_credentials(cluster)?;
+    let creds = new_credentials(cluster, zones)?;
     let config = dir.path().join("nats-server.conf");
     write_private(&config, &render_server_config(cluster, &creds, &addr.to_string(), &dir.path().join("js"))?)
         .with_context(|| format!("writing {}", config.display()))?;
@@ -146,20 +150,20 @@ fn start_private(cluster: &str) -> Result<ClusterNats> {
     let auth = |role: Role| creds.iter().find(|c| c.role == role).map(|c| c.auth()).expect("every role");
     Ok(ClusterNats {
         url: format!("nats://{addr}"),
-        zone: auth(Role::Zone),
+        zones: (0..zones).map(|z| auth(Role::Zone(ZoneId(z)))).collect(),
         gateway: auth(Role::Gateway),
         supervisor: auth(Role::Supervisor),
         _local: Some(local),
     })
 }
 
-/// `myriad cluster --write-nats-config DIR --cluster NAME`: writes the `authorization`
-/// block an operator's `nats-server` needs for cluster `cluster` (`myriad-NAME.conf`)
-/// and each role's credentials file (`zone.creds`, `gateway.creds`, `supervisor.creds`),
-/// all mode 0600, with fresh random passwords.
-pub(crate) fn write_config(dir: &Path, cluster: &str) -> Result<()> {
+/// `myriad cluster --write-nats-config DIR --cluster NAME --zones K`: writes the
+/// `authorization` block an operator's `nats-server` needs for cluster `cluster` of
+/// `zones` zones (`myriad-NAME.conf`) and each role's credentials file (`zone-<z>.creds`,
+/// `gateway.creds`, `supervisor.creds`), all mode 0600, with fresh random passwords.
+pub(crate) fn write_config(dir: &Path, cluster: &str, zones: u16) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let creds = new_credentials(cluster)?;
+    let creds = new_credentials(cluster, zones)?;
     let conf = dir.join(format!("myriad-{cluster}.conf"));
     write_private(&conf, &render_authorization(cluster, &creds)?)
         .with_context(|| format!("writing {}", conf.display()))?;
@@ -168,7 +172,7 @@ pub(crate) fn write_config(dir: &Path, cluster: &str) -> Result<()> {
         write_private(&path, &c.creds_file()).with_context(|| format!("writing {}", path.display()))?;
     }
     eprintln!(
-        "wrote {} and {}/{{zone,gateway,supervisor}}.creds: run nats-server with JetStream and that file \
+        "wrote {} and {}/{{zone-<z>,gateway,supervisor}}.creds: run nats-server with JetStream and that file \
          (e.g. `nats-server -js -c {}`), then `myriad cluster --nats URL --cluster {cluster} --nats-creds-dir {}`",
         conf.display(),
         dir.display(),

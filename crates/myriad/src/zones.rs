@@ -115,7 +115,7 @@ pub struct ClusterArgs {
     /// Serve each zone's Prometheus metrics on 127.0.0.1:(this port + zone index).
     #[arg(long)]
     pub metrics_base_port: Option<u16>,
-    /// A directory of the roles' NATS credentials for `--nats` (`zone.creds`,
+    /// A directory of the roles' NATS credentials for `--nats` (`zone-<z>.creds`,
     /// `gateway.creds`, `supervisor.creds`, as `--write-nats-config` writes them); without
     /// it every process presents this one's (`MYRIAD_NATS_USER`/`MYRIAD_NATS_PASSWORD` or
     /// `MYRIAD_NATS_CREDS`; none: a server without auth).
@@ -125,9 +125,10 @@ pub struct ClusterArgs {
     /// 127.0.0.1:4222.
     #[arg(long, conflicts_with = "nats")]
     pub private_nats: bool,
-    /// Write the NATS configuration of the cluster `--cluster NAME` (an `authorization`
-    /// block for an operator's `nats-server`, and each role's credentials file) into DIR,
-    /// and exit.
+    /// Write the NATS configuration of the cluster `--cluster NAME` of `--zones K` zones
+    /// (an `authorization` block for an operator's `nats-server`, and each role's
+    /// credentials file: one per zone, the gateways', the supervisor's) into DIR, and
+    /// exit.
     #[arg(long, value_name = "DIR", requires = "cluster")]
     pub write_nats_config: Option<PathBuf>,
     /// Print one JSON object instead of text.
@@ -358,7 +359,9 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     let cluster = args.cluster.clone().unwrap_or_else(|| format!("c{}", std::process::id()));
     myriad_zone::nats::check_cluster_name(&cluster)?;
     if let Some(dir) = &args.write_nats_config {
-        return crate::cluster_nats::write_config(dir, &cluster);
+        // A user per zone: as many as the layout has.
+        let zones = prepare(&args.common)?.layout.len() as u16;
+        return crate::cluster_nats::write_config(dir, &cluster, zones);
     }
     let p = prepare(&args.common)?;
     let zones = p.layout.len();
@@ -367,6 +370,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         args.nats_creds_dir.as_deref(),
         args.private_nats,
         &cluster,
+        zones as u16,
     )?;
     let url = nats.url.clone();
     // The key the gateways were given, or one of this run's own.
@@ -385,7 +389,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
             .args(&flags)
             .env(KEY_ENV, &secret)
             .stdin(Stdio::null());
-        hand(&mut command, &nats.zone);
+        hand(&mut command, &nats.zones[z]);
         die_with_parent(&mut command);
         let child = command.spawn().with_context(|| format!("starting zone {z}"))?;
         eprintln!("zone {z} pid {}", child.id());

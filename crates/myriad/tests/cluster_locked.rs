@@ -108,12 +108,12 @@ fn an_operators_server_with_the_written_configuration_serves_a_live_cluster() {
     let name = format!("op{}", std::process::id());
     let conf_dir = dir.path().join("nats");
     let wrote = Command::new(bin)
-        .args(["cluster", "--cluster", &name, "--write-nats-config", conf_dir.to_str().unwrap()])
+        .args(["cluster", "--cluster", &name, "--zones", "2", "--write-nats-config", conf_dir.to_str().unwrap()])
         .output()
         .unwrap();
     assert!(wrote.status.success(), "{}", String::from_utf8_lossy(&wrote.stderr));
-    for file in [format!("myriad-{name}.conf"), "zone.creds".into(), "gateway.creds".into(), "supervisor.creds".into()]
-    {
+    let files = ["zone-0.creds", "zone-1.creds", "gateway.creds", "supervisor.creds"].map(String::from);
+    for file in std::iter::once(format!("myriad-{name}.conf")).chain(files) {
         use std::os::unix::fs::PermissionsExt;
         let mode = std::fs::metadata(conf_dir.join(&file)).unwrap().permissions().mode();
         assert_eq!(mode & 0o777, 0o600, "{file}");

@@ -6,8 +6,10 @@
 //! signed message can be *replayed* by anyone who can publish on the subject (an old
 //! heartbeat hiding a dead zone, for example). Permissions close that to everyone whose
 //! credentials do not hold the role: a gateway cannot publish border states, states,
-//! heartbeats, control or checkpoints; a zone cannot publish session claims or intents;
-//! a client without credentials cannot connect at all. The table is in `docs/zones.md`
+//! heartbeats, control or checkpoints; a zone cannot publish session claims or intents,
+//! nor another zone's heartbeat (each zone has its own user, allowed its own heartbeat
+//! subject only, and the supervisor checks the subject against the heartbeat's zone); a
+//! client without credentials cannot connect at all. The table is in `docs/zones.md`
 //! ("Who may publish what").
 //!
 //! [`NatsAuth`] is what a process presents: a user and password (from the environment
@@ -20,7 +22,10 @@ use std::path::{Path, PathBuf};
 use crate::checkpoint::bucket_name;
 use crate::claims::sessions_subject;
 use crate::error::ZoneError;
-use crate::nats::{check_cluster_name, control_subject, heartbeat_subject, intents_subject, states_subject};
+use crate::layout::ZoneId;
+use crate::nats::{
+    check_cluster_name, control_subject, heartbeat_subject, heartbeats_subject, intents_subject, states_subject,
+};
 
 /// The user name variable (with [`PASSWORD_ENV`]).
 pub const USER_ENV: &str = "MYRIAD_NATS_USER";
@@ -38,8 +43,9 @@ pub const CLIENT_KEY_ENV: &str = "MYRIAD_NATS_KEY";
 /// A process's part in a cluster.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Role {
-    /// `myriad zone`: steps a zone, talks to its neighbours, stores checkpoints.
-    Zone,
+    /// `myriad zone` of this zone: steps it, talks to its neighbours, stores
+    /// checkpoints, beats its own heartbeat.
+    Zone(ZoneId),
     /// `myriad gateway`: sends its players' intents, mirrors the states, claims sessions.
     Gateway,
     /// `myriad cluster`'s supervisor (also `myriad replay`): control, heartbeats,
@@ -48,15 +54,19 @@ pub enum Role {
 }
 
 impl Role {
-    /// Every role, in the order the configuration lists them.
-    pub const ALL: [Role; 3] = [Role::Zone, Role::Gateway, Role::Supervisor];
+    /// Every role of a cluster of `zones` zones, in the order the configuration lists
+    /// them: the zones, the gateways, the supervisor.
+    pub fn all(zones: u16) -> Vec<Role> {
+        (0..zones).map(|z| Role::Zone(ZoneId(z))).chain([Role::Gateway, Role::Supervisor]).collect()
+    }
 
-    /// The role's name in user names and file names.
-    pub fn name(self) -> &'static str {
+    /// The role's name in user names and file names: `zone-<z>`, `gateway`,
+    /// `supervisor`.
+    pub fn name(self) -> String {
         match self {
-            Role::Zone => "zone",
-            Role::Gateway => "gateway",
-            Role::Supervisor => "supervisor",
+            Role::Zone(z) => format!("zone-{}", z.0),
+            Role::Gateway => "gateway".into(),
+            Role::Supervisor => "supervisor".into(),
         }
     }
 }
@@ -134,8 +144,8 @@ fn object_store(cluster: &str, delete_bucket: bool) -> Vec<String> {
 pub fn permissions(cluster: &str, role: Role) -> Permissions {
     let zones = format!("myriad.{cluster}.zone.*");
     match role {
-        Role::Zone => Permissions {
-            publish: [zones.clone(), heartbeat_subject(cluster), states_subject(cluster)]
+        Role::Zone(z) => Permissions {
+            publish: [zones.clone(), heartbeat_subject(cluster, z), states_subject(cluster)]
                 .into_iter()
                 .chain(object_store(cluster, false))
                 .collect(),
@@ -147,7 +157,7 @@ pub fn permissions(cluster: &str, role: Role) -> Permissions {
         },
         Role::Supervisor => Permissions {
             publish: std::iter::once(control_subject(cluster)).chain(object_store(cluster, true)).collect(),
-            subscribe: vec![heartbeat_subject(cluster), INBOX.into()],
+            subscribe: vec![heartbeats_subject(cluster), INBOX.into()],
         },
     }
 }
@@ -181,12 +191,13 @@ impl RoleCredentials {
     }
 }
 
-/// Fresh credentials for every role of `cluster`, with 192-bit random passwords.
-pub fn new_credentials(cluster: &str) -> Result<Vec<RoleCredentials>, ZoneError> {
+/// Fresh credentials for every role of `cluster` of `zones` zones, with 192-bit random
+/// passwords.
+pub fn new_credentials(cluster: &str, zones: u16) -> Result<Vec<RoleCredentials>, ZoneError> {
     check_cluster_name(cluster)?;
-    Ok(Role::ALL
-        .iter()
-        .map(|&role| RoleCredentials { role, user: user_name(cluster, role), password: crate::wire::random_secret() })
+    Ok(Role::all(zones)
+        .into_iter()
+        .map(|role| RoleCredentials { role, user: user_name(cluster, role), password: crate::wire::random_secret() })
         .collect())
 }
 

@@ -13,6 +13,9 @@ fn patterns_match_as_nats_matches_them() {
     assert!(!subject_matches("a.b", "a.bb"));
 }
 
+/// The roles of the tables below: zones 0 and 1, the gateways, the supervisor.
+const ROLES: [Role; 4] = [Role::Zone(ZoneId(0)), Role::Zone(ZoneId(1)), Role::Gateway, Role::Supervisor];
+
 /// The subject table of docs/zones.md, as the permissions must grant it: every
 /// (subject, role) pair here is checked, in both directions.
 #[test]
@@ -20,32 +23,35 @@ fn each_role_publishes_exactly_its_subjects() {
     let c = "c";
     let zone0 = zone_subject(c, ZoneId(0));
     let zone7 = zone_subject(c, ZoneId(7));
-    let table: &[(&str, [bool; 3])] = &[
-        // subject: may (zone, gateway, supervisor) publish it?
-        (&zone0, [true, false, false]),
-        (&zone7, [true, false, false]),
-        ("myriad.c.states", [true, false, false]),
-        ("myriad.c.heartbeat", [true, false, false]),
-        ("myriad.c.control", [false, false, true]),
-        ("myriad.c.intents", [false, true, false]),
-        ("myriad.c.sessions", [false, true, false]),
-        ("$O.myriad-c.C.abc", [true, false, true]),
-        ("$O.myriad-c.M.ei10LXQzMA==", [true, false, true]),
-        ("$JS.API.STREAM.CREATE.OBJ_myriad-c", [true, false, true]),
-        ("$JS.API.STREAM.DELETE.OBJ_myriad-c", [false, false, true]),
+    let table: &[(&str, [bool; 4])] = &[
+        // subject: may (zone 0, zone 1, gateway, supervisor) publish it?
+        (&zone0, [true, true, false, false]),
+        (&zone7, [true, true, false, false]),
+        ("myriad.c.states", [true, true, false, false]),
+        // Each zone its own heartbeat only.
+        ("myriad.c.heartbeat.0", [true, false, false, false]),
+        ("myriad.c.heartbeat.1", [false, true, false, false]),
+        ("myriad.c.heartbeat", [false; 4]),
+        ("myriad.c.control", [false, false, false, true]),
+        ("myriad.c.intents", [false, false, true, false]),
+        ("myriad.c.sessions", [false, false, true, false]),
+        ("$O.myriad-c.C.abc", [true, true, false, true]),
+        ("$O.myriad-c.M.ei10LXQzMA==", [true, true, false, true]),
+        ("$JS.API.STREAM.CREATE.OBJ_myriad-c", [true, true, false, true]),
+        ("$JS.API.STREAM.DELETE.OBJ_myriad-c", [false, false, false, true]),
         // Another cluster's subjects and bucket, and the JetStream API at large: nobody.
-        ("myriad.d.zone.0", [false, false, false]),
-        ("myriad.d.heartbeat", [false, false, false]),
-        ("myriad.c.zone.0.x", [false, false, false]),
-        ("$O.myriad-d.C.abc", [false, false, false]),
-        ("$JS.API.STREAM.CREATE.OBJ_myriad-d", [false, false, false]),
-        ("$JS.API.STREAM.DELETE.OBJ_myriad-d", [false, false, false]),
-        ("$JS.API.STREAM.LIST", [false, false, false]),
-        ("$JS.API.ACCOUNT.INFO", [false, false, false]),
-        ("_INBOX.abc", [false, false, false]),
+        ("myriad.d.zone.0", [false; 4]),
+        ("myriad.d.heartbeat.0", [false; 4]),
+        ("myriad.c.zone.0.x", [false; 4]),
+        ("$O.myriad-d.C.abc", [false; 4]),
+        ("$JS.API.STREAM.CREATE.OBJ_myriad-d", [false; 4]),
+        ("$JS.API.STREAM.DELETE.OBJ_myriad-d", [false; 4]),
+        ("$JS.API.STREAM.LIST", [false; 4]),
+        ("$JS.API.ACCOUNT.INFO", [false; 4]),
+        ("_INBOX.abc", [false; 4]),
     ];
     for (subject, may) in table {
-        for (role, may) in Role::ALL.into_iter().zip(may) {
+        for (role, may) in ROLES.into_iter().zip(may) {
             assert_eq!(permissions(c, role).may_publish(subject), *may, "{role:?} publishing {subject}");
         }
     }
@@ -54,19 +60,20 @@ fn each_role_publishes_exactly_its_subjects() {
 #[test]
 fn each_role_hears_only_what_is_addressed_to_it() {
     let c = "c";
-    let table: &[(&str, [bool; 3])] = &[
-        ("myriad.c.zone.3", [true, false, false]),
-        ("myriad.c.control", [true, false, false]),
-        ("myriad.c.intents", [true, false, false]),
-        ("myriad.c.heartbeat", [false, false, true]),
-        ("myriad.c.states", [false, true, false]),
-        ("myriad.c.sessions", [false, true, false]),
-        ("_INBOX.abc.def", [true, false, true]),
-        ("$O.myriad-c.C.abc", [false, false, false]),
-        ("myriad.d.zone.3", [false, false, false]),
+    let table: &[(&str, [bool; 4])] = &[
+        ("myriad.c.zone.3", [true, true, false, false]),
+        ("myriad.c.control", [true, true, false, false]),
+        ("myriad.c.intents", [true, true, false, false]),
+        ("myriad.c.heartbeat.0", [false, false, false, true]),
+        ("myriad.c.heartbeat.*", [false, false, false, true]),
+        ("myriad.c.states", [false, false, true, false]),
+        ("myriad.c.sessions", [false, false, true, false]),
+        ("_INBOX.abc.def", [true, true, false, true]),
+        ("$O.myriad-c.C.abc", [false; 4]),
+        ("myriad.d.zone.3", [false; 4]),
     ];
     for (subject, may) in table {
-        for (role, may) in Role::ALL.into_iter().zip(may) {
+        for (role, may) in ROLES.into_iter().zip(may) {
             assert_eq!(permissions(c, role).may_subscribe(subject), *may, "{role:?} subscribing to {subject}");
         }
     }
@@ -74,10 +81,10 @@ fn each_role_hears_only_what_is_addressed_to_it() {
 
 #[test]
 fn the_configuration_lists_every_role_with_its_permissions() {
-    let creds = new_credentials("w1").unwrap();
+    let creds = new_credentials("w1", 2).unwrap();
     assert_eq!(
         creds.iter().map(|c| c.user.as_str()).collect::<Vec<_>>(),
-        ["myriad-w1-zone", "myriad-w1-gateway", "myriad-w1-supervisor"]
+        ["myriad-w1-zone-0", "myriad-w1-zone-1", "myriad-w1-gateway", "myriad-w1-supervisor"]
     );
     assert_ne!(creds[0].password, creds[1].password, "a password per role");
     assert!(creds[0].password.len() >= 48, "192 bits in hex");
@@ -119,7 +126,7 @@ fn credentials_come_from_variables_or_a_file_never_half() {
     let dir = std::env::temp_dir().join(format!("myriad-creds-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let file = dir.join("zone.creds");
-    let creds = &new_credentials("c").unwrap()[0];
+    let creds = &new_credentials("c", 1).unwrap()[0];
     write_private(&file, &creds.creds_file()).unwrap();
     #[cfg(unix)]
     {

@@ -3,7 +3,7 @@
 //! Subjects of cluster `c` (all documented in `docs/zones.md`):
 //! - `myriad.c.zone.<z>`: border states for zone `z`;
 //! - `myriad.c.control`: the supervisor's halt and start, to every zone;
-//! - `myriad.c.heartbeat`: every zone's heartbeat, to the supervisor;
+//! - `myriad.c.heartbeat.<z>`: zone `z`'s heartbeat, to the supervisor;
 //! - `myriad.c.states`: every zone's owned objects after each step, to the gateways;
 //! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone.
 //!
@@ -37,9 +37,15 @@ pub fn control_subject(cluster: &str) -> String {
     format!("myriad.{cluster}.control")
 }
 
-/// The subject of the zones' heartbeats.
-pub fn heartbeat_subject(cluster: &str) -> String {
-    format!("myriad.{cluster}.heartbeat")
+/// The subject of zone `z`'s heartbeats: a subject per zone, so that the server's
+/// permissions let only zone `z`'s user speak for it ([`crate::fabric_auth`]).
+pub fn heartbeat_subject(cluster: &str, z: ZoneId) -> String {
+    format!("myriad.{cluster}.heartbeat.{}", z.0)
+}
+
+/// Every zone's heartbeat subject, for the supervisor.
+pub fn heartbeats_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.heartbeat.*")
 }
 
 /// The subject of the zones' states for the gateways.
@@ -237,7 +243,7 @@ impl NatsFabric {
     pub fn heartbeat(&self, key: ClusterKey, period: Duration) -> Heartbeat {
         let beat = Arc::new(Mutex::new(Beat { run: 0, tick: 0, state: ZoneState::Waiting }));
         let (b, client, zone) = (beat.clone(), self.link.client.clone(), self.zone);
-        let subject = heartbeat_subject(&self.cluster);
+        let subject = heartbeat_subject(&self.cluster, zone);
         let task = self.link.rt.spawn(async move {
             let mut every = tokio::time::interval(period);
             loop {

@@ -1,7 +1,7 @@
 //! The locked-down fabric on a real `nats-server` of the test's own, configured by
 //! `fabric_auth`: a gateway's credentials cannot publish zone states, heartbeats,
 //! control, states or checkpoints (the server refuses, nothing reaches the zones); a
-//! zone's cannot publish claims or intents; the legitimate flows (zones over NATS, the
+//! zone's cannot publish claims, intents or another zone's heartbeat; the legitimate flows (zones over NATS, the
 //! checkpoint store) still work; a wrong password is refused; `tls://` works with the
 //! cluster's authority. Needs the `nats-server` program; skips with a message without it,
 //! fails under `MYRIAD_REQUIRE_NATS=1`.
@@ -45,7 +45,7 @@ impl Server {
         let dir = std::env::temp_dir().join(format!("myriad-locked-{}-{nanos}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-        let creds = new_credentials(cluster).unwrap();
+        let creds = new_credentials(cluster, 4).unwrap();
         let listen = format!("127.0.0.1:{port}");
         let mut config = render_server_config(cluster, &creds, &listen, &dir.join("js")).unwrap();
         config.push_str(&extra(&dir));
@@ -104,15 +104,15 @@ fn silent(link: &NatsLink, sub: &mut async_nats::Subscriber, what: &str) {
 fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() {
     let Some(exe) = nats_server() else { return };
     let server = Server::start(&exe, "c", |_| String::new(), "nats");
-    let zone = server.link(Role::Zone);
-    let other_zone = server.link(Role::Zone);
+    let zone = server.link(Role::Zone(ZoneId(0)));
+    let other_zone = server.link(Role::Zone(ZoneId(1)));
     let supervisor = server.link(Role::Supervisor);
     let gateway = server.link(Role::Gateway);
     let other_gateway = server.link(Role::Gateway);
     let mut borders = zone.subscribe("myriad.c.zone.0".into()).unwrap();
     let mut control = zone.subscribe("myriad.c.control".into()).unwrap();
     let mut intents = other_zone.subscribe("myriad.c.intents".into()).unwrap();
-    let mut beats = supervisor.subscribe("myriad.c.heartbeat".into()).unwrap();
+    let mut beats = supervisor.subscribe("myriad.c.heartbeat.*".into()).unwrap();
     let mut states = other_gateway.subscribe("myriad.c.states".into()).unwrap();
     let mut claims = other_gateway.subscribe("myriad.c.sessions".into()).unwrap();
 
@@ -127,7 +127,7 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     assert_eq!(heard(&other_gateway, &mut claims), b"claim");
     other_zone.publish("myriad.c.zone.0".into(), b"border".to_vec()).unwrap();
     assert_eq!(heard(&zone, &mut borders), b"border");
-    other_zone.publish("myriad.c.heartbeat".into(), b"beat".to_vec()).unwrap();
+    other_zone.publish("myriad.c.heartbeat.1".into(), b"beat".to_vec()).unwrap();
     assert_eq!(heard(&supervisor, &mut beats), b"beat");
     other_zone.publish("myriad.c.states".into(), b"states".to_vec()).unwrap();
     assert_eq!(heard(&other_gateway, &mut states), b"states");
@@ -138,7 +138,7 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     // checkpoints.
     let forbidden = [
         "myriad.c.zone.0",
-        "myriad.c.heartbeat",
+        "myriad.c.heartbeat.0",
         "myriad.c.control",
         "myriad.c.states",
         "$O.myriad-c.C.forged",
@@ -168,13 +168,20 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     let errors = errors_after(&zone, 2);
     assert!(errors.iter().all(|e| e.contains("Permissions Violation for Publish")), "{errors:?}");
 
+    // Nor may a zone beat another zone's heartbeat (to hide its death).
+    other_zone.publish("myriad.c.heartbeat.0".into(), b"forged".to_vec()).unwrap();
+    other_zone.flush().unwrap();
+    silent(&supervisor, &mut beats, "zone 1's heartbeat for zone 0");
+    let errors = errors_after(&other_zone, 1);
+    assert!(errors[0].contains("Permissions Violation for Publish to \"myriad.c.heartbeat.0\""), "{errors:?}");
+
     // Nor may a gateway listen to what is not its own (the zones' borders).
     let _spy = gateway.subscribe("myriad.c.zone.1".into()).unwrap();
     gateway.flush().unwrap();
     let errors = errors_after(&gateway, forbidden.len() as u64 + 1);
     assert!(errors.iter().any(|e| e.contains("Permissions Violation for Subscription to \"myriad.c.zone.1\"")));
     // The lawful links saw no refusal.
-    for link in [&other_zone, &supervisor, &other_gateway] {
+    for link in [&supervisor, &other_gateway] {
         assert_eq!(link.server_errors().0, 0, "{:?}", link.server_errors().1);
     }
 }
@@ -202,9 +209,11 @@ fn the_legitimate_flows_work_on_the_locked_server() {
     let world = clustered(2, 4_000, 400, 1_500);
     let script = ActionScript::walkers(&world, 400, 60, 3);
     let layout = ZoneLayout::for_count(&world.bounds, 4, pair_reach(&world), 2.0).unwrap();
-    let auth = server.auth(Role::Zone);
     let fabrics = (0..4)
-        .map(|z| NatsFabric::connect(&server.url, cluster, ZoneId(z), &auth).map(|f| Box::new(f) as Box<dyn Fabric>))
+        .map(|z| {
+            let auth = server.auth(Role::Zone(ZoneId(z)));
+            NatsFabric::connect(&server.url, cluster, ZoneId(z), &auth).map(|f| Box::new(f) as Box<dyn Fabric>)
+        })
         .collect::<Result<Vec<_>, _>>()
         .unwrap();
     let opts = RunOptions::new(60, Duration::from_secs(60));
@@ -218,7 +227,7 @@ fn the_legitimate_flows_work_on_the_locked_server() {
     let objects: Vec<ObjectState> = (0..80_000)
         .map(|i| ObjectState { id: myriad_core::EntityId(i as u32 + 1), ..world.dynamics.state_of(i % n) })
         .collect();
-    let zone = server.link(Role::Zone);
+    let zone = server.link(Role::Zone(ZoneId(0)));
     let mut store = JetStreamCheckpoints::open(zone.rt.clone(), zone.client.clone(), cluster, key.clone()).unwrap();
     store.put(ZoneId(0), 30, 1, &objects).unwrap();
     store.put(ZoneId(0), 30, 1, &objects).unwrap();
@@ -285,7 +294,7 @@ fn tls_urls_need_the_clusters_authority() {
         }
     };
     let server = Server::start(&exe, "c", tls(false), "tls");
-    let zone = server.auth(Role::Zone);
+    let zone = server.auth(Role::Zone(ZoneId(1)));
     let link = NatsLink::connect(&server.url, "tls".into(), &zone.clone().with_ca(p.ca.clone())).unwrap();
     let mut sub = link.subscribe("myriad.c.zone.1".into()).unwrap();
     link.publish("myriad.c.zone.1".into(), b"over tls".to_vec()).unwrap();
@@ -300,7 +309,7 @@ fn tls_urls_need_the_clusters_authority() {
     // A server that verifies clients: the client certificate comes from the environment
     // (MYRIAD_NATS_CERT, MYRIAD_NATS_KEY) like the rest.
     let server = Server::start(&exe, "c", tls(true), "tls");
-    let creds = server.creds.iter().find(|c| c.role == Role::Zone).unwrap().clone();
+    let creds = server.creds.iter().find(|c| c.role == Role::Zone(ZoneId(1))).unwrap().clone();
     let vars = |with_cert: bool| {
         let mut v = vec![
             ("MYRIAD_NATS_USER", creds.user.clone()),

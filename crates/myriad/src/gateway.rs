@@ -12,6 +12,7 @@ use anyhow::{Context, Result, bail};
 use myriad_server::registry::SessionRegistry;
 use myriad_server::{ServerError, ServerHandle};
 use myriad_zone::claims::NatsSessions;
+use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::gateway::MAX_GATEWAYS;
 use myriad_zone::nats::NatsGatewayLink;
 use myriad_zone::{GatewayConfig, ZonesBackend};
@@ -58,7 +59,9 @@ pub fn run(args: GatewayArgs) -> Result<()> {
     }
     let key = key_from_env()?;
     let config = args.config.effective()?;
-    let link = NatsGatewayLink::connect(&args.nats, &args.cluster, args.gateway)
+    // The gateway role's credentials, from the environment or a file (docs/zones.md).
+    let auth = NatsAuth::from_env()?;
+    let link = NatsGatewayLink::connect(&args.nats, &args.cluster, args.gateway, &auth)
         .with_context(|| format!("joining cluster {}", args.cluster))?;
     let cfg_key = key.clone();
     let cfg = GatewayConfig {
@@ -73,7 +76,7 @@ pub fn run(args: GatewayArgs) -> Result<()> {
         backend.prepare(world);
         Ok(Box::new(backend))
     });
-    let sessions = NatsSessions::connect(&args.nats, &args.cluster, args.gateway, cfg_key)
+    let sessions = NatsSessions::connect(&args.nats, &args.cluster, args.gateway, cfg_key, &auth)
         .with_context(|| format!("joining cluster {}'s sessions", args.cluster))?;
     let server = ServerHandle::start_with(config, Some(factory), Some(Box::new(Registry(sessions))))
         .context("starting the gateway")?;

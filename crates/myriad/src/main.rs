@@ -18,6 +18,7 @@
 mod admin;
 mod bench;
 mod bots;
+mod cluster_nats;
 mod demo;
 mod flood;
 mod gateway;

@@ -10,6 +10,7 @@ use myriad_core::PhysicsConfig;
 use myriad_physics::TickConstants;
 use myriad_zone::ZoneId;
 use myriad_zone::checkpoint::{CheckpointStore, JetStreamCheckpoints};
+use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::nats::NatsLink;
 use myriad_zone::replay::{load, replay, stored_hash};
 use serde::Serialize;
@@ -64,7 +65,8 @@ pub fn run(args: ReplayArgs) -> Result<()> {
     let c = &args.common;
     let p = prepare(c)?;
     let zones = p.layout.len();
-    let link = NatsLink::connect(&args.nats, format!("myriad-{}-replay", args.cluster))?;
+    // The supervisor role's credentials (it reads the bucket), from the environment.
+    let link = NatsLink::connect(&args.nats, format!("myriad-{}-replay", args.cluster), &NatsAuth::from_env()?)?;
     let mut store = JetStreamCheckpoints::open(link.rt.clone(), link.client.clone(), &args.cluster, key.clone())?;
     let every = c.checkpoint_every.max(1);
     let to = match args.to {

@@ -41,6 +41,11 @@ pub struct SimArgs {
     /// instead of in-process channels.
     #[arg(long, value_name = "URL")]
     pub nats: Option<String>,
+    /// The cluster name of the zones on `--nats` (default: one of its own per run); on a
+    /// locked-down server, the cluster whose zone credentials this process presents
+    /// (`MYRIAD_NATS_USER`/`MYRIAD_NATS_PASSWORD` or `MYRIAD_NATS_CREDS`).
+    #[arg(long, requires = "nats")]
+    pub cluster: Option<String>,
     /// GPUs to spread zones over with the CUDA backends (zone i on device i mod N).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
     pub gpus: u16,
@@ -269,10 +274,14 @@ fn run_zoned(
     let (fabrics, fabric): (Vec<Box<dyn Fabric>>, _) = match &args.nats {
         None => (MemoryFabric::mesh(n).into_iter().map(|f| Box::new(f) as Box<dyn Fabric>).collect(), "memory"),
         Some(url) => {
-            // A cluster name of its own per run, so that concurrent runs never mix.
-            let cluster = format!("sim-{}-{}", std::process::id(), world.seed);
+            // A cluster name of its own per run by default, so that concurrent runs never mix.
+            let cluster = args.cluster.clone().unwrap_or_else(|| format!("sim-{}-{}", std::process::id(), world.seed));
+            // The zones' credentials, from the environment (none: a server without auth).
+            let auth = myriad_zone::fabric_auth::NatsAuth::from_env()?;
             let f = (0..n)
-                .map(|z| NatsFabric::connect(url, &cluster, ZoneId(z as u16)).map(|f| Box::new(f) as Box<dyn Fabric>))
+                .map(|z| {
+                    NatsFabric::connect(url, &cluster, ZoneId(z as u16), &auth).map(|f| Box::new(f) as Box<dyn Fabric>)
+                })
                 .collect::<Result<Vec<_>, _>>()
                 .context("connecting the zones to NATS")?;
             (f, "nats")

@@ -1,10 +1,10 @@
 //! `myriad zone` and `myriad cluster`: one world on several processes over NATS.
 //!
 //! `myriad cluster --zones K` is the one-command local cluster: it finds NATS (or starts
-//! a private `nats-server` when none answers and one is installed), starts K `myriad
-//! zone` processes, supervises them (restarting any that exits, rolling the cluster back
-//! to its last consistent checkpoint) and prints the final state hash, comparable with
-//! `myriad sim`. See docs/zones.md.
+//! a private `nats-server`, locked down by role, when none answers and one is installed:
+//! `cluster_nats.rs`), starts K `myriad zone` processes, supervises them (restarting any
+//! that exits, rolling the cluster back to its last consistent checkpoint) and prints
+//! the final state hash, comparable with `myriad sim`. See docs/zones.md.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -17,12 +17,14 @@ use clap::Args;
 use myriad_core::{ActionScript, PhysicsConfig, World};
 use myriad_physics::{BackendKind, TickConstants};
 use myriad_zone::checkpoint::JetStreamCheckpoints;
+use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::nats::NatsLink;
 use myriad_zone::process::{ProcessConfig, run_zone_process};
 use myriad_zone::supervisor::{Event, SupervisorConfig, supervise};
 use myriad_zone::{ClusterKey, Fabric, NatsFabric, ZoneId, ZoneLayout};
 use serde::Serialize;
 
+use crate::cluster_nats::hand;
 use crate::scenario_args::{ScenarioName, WorldArgs};
 
 /// The environment variable that carries the cluster's key (at least 16 bytes) to zone
@@ -113,6 +115,22 @@ pub struct ClusterArgs {
     /// Serve each zone's Prometheus metrics on 127.0.0.1:(this port + zone index).
     #[arg(long)]
     pub metrics_base_port: Option<u16>,
+    /// A directory of the roles' NATS credentials for `--nats` (`zone-<z>.creds`,
+    /// `gateway.creds`, `supervisor.creds`, as `--write-nats-config` writes them); without
+    /// it every process presents this one's (`MYRIAD_NATS_USER`/`MYRIAD_NATS_PASSWORD` or
+    /// `MYRIAD_NATS_CREDS`; none: a server without auth).
+    #[arg(long, value_name = "DIR")]
+    pub nats_creds_dir: Option<PathBuf>,
+    /// Start a private `nats-server` (locked down by role) even when one answers at
+    /// 127.0.0.1:4222.
+    #[arg(long, conflicts_with = "nats")]
+    pub private_nats: bool,
+    /// Write the NATS configuration of the cluster `--cluster NAME` of `--zones K` zones
+    /// (an `authorization` block for an operator's `nats-server`, and each role's
+    /// credentials file: one per zone, the gateways', the supervisor's) into DIR, and
+    /// exit.
+    #[arg(long, value_name = "DIR", requires = "cluster")]
+    pub write_nats_config: Option<PathBuf>,
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
@@ -171,7 +189,8 @@ pub fn run_zone(args: ZoneArgs) -> Result<()> {
             .context("starting the metrics endpoint")?;
     }
     let zone = ZoneId(args.zone);
-    let fabric = NatsFabric::connect(&args.nats, &args.cluster, zone)?;
+    let auth = NatsAuth::from_env()?;
+    let fabric = NatsFabric::connect(&args.nats, &args.cluster, zone, &auth)?;
     let heartbeat = fabric.heartbeat(key.clone(), Duration::from_millis(250));
     let link = fabric.link();
     let mut store = JetStreamCheckpoints::open(link.rt.clone(), link.client.clone(), &args.cluster, key.clone())?;
@@ -213,7 +232,13 @@ const CLUSTER_ONLY: &[&str] = &[
     "--gateways",
     "--gateway-port",
     "--gateway-data",
+    "--nats-creds-dir",
+    "--private-nats",
+    "--write-nats-config",
 ];
+
+/// The flags of [`CLUSTER_ONLY`] that take no value.
+const SWITCHES: &[&str] = &["--private-nats"];
 
 /// The command line of the cluster, less its own flags: what every zone gets.
 fn zone_flags() -> Vec<String> {
@@ -225,7 +250,7 @@ fn zone_flags() -> Vec<String> {
             continue;
         }
         if CLUSTER_ONLY.contains(&name.as_str()) {
-            if !a.contains('=') {
+            if !a.contains('=') && !SWITCHES.contains(&name.as_str()) {
                 args.next();
             }
             continue;
@@ -289,52 +314,6 @@ fn gateway_args(args: &ClusterArgs, zones: usize, url: &str, cluster: &str) -> R
         .collect())
 }
 
-/// A private NATS server for one run.
-struct LocalNats {
-    child: Child,
-    _dir: tempfile::TempDir,
-}
-
-impl Drop for LocalNats {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn nats_for(args: &ClusterArgs) -> Result<(String, Option<LocalNats>)> {
-    if let Some(url) = &args.nats {
-        return Ok((url.clone(), None));
-    }
-    let default = "nats://127.0.0.1:4222".to_string();
-    if std::net::TcpStream::connect_timeout(&"127.0.0.1:4222".parse()?, Duration::from_millis(300)).is_ok() {
-        return Ok((default, None));
-    }
-    let exe = ["nats-server", "/usr/sbin/nats-server", "/usr/local/bin/nats-server"]
-        .into_iter()
-        .find(|p| Command::new(p).arg("--version").stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok())
-        .context("no NATS server answers at 127.0.0.1:4222 and nats-server is not installed: pass --nats URL")?;
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
-    let dir = tempfile::tempdir()?;
-    let child = Command::new(exe)
-        .args(["-a", "127.0.0.1", "-p", &port.to_string(), "-js", "-sd"])
-        .arg(dir.path())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting nats-server")?;
-    let addr: SocketAddr = format!("127.0.0.1:{port}").parse()?;
-    let start = Instant::now();
-    while std::net::TcpStream::connect_timeout(&addr, Duration::from_millis(100)).is_err() {
-        if start.elapsed() > Duration::from_secs(10) {
-            bail!("the nats-server started for this run does not answer");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    eprintln!("started a private nats-server on {addr} for this run");
-    Ok((format!("nats://{addr}"), Some(LocalNats { child, _dir: dir })))
-}
-
 #[derive(Serialize)]
 struct ClusterSummary {
     zones: usize,
@@ -377,11 +356,23 @@ fn event_line(e: &Event) -> Option<String> {
 
 /// Runs `myriad cluster`.
 pub fn run_cluster(args: ClusterArgs) -> Result<()> {
-    let p = prepare(&args.common)?;
-    let zones = p.layout.len();
-    let (url, _local) = nats_for(&args)?;
     let cluster = args.cluster.clone().unwrap_or_else(|| format!("c{}", std::process::id()));
     myriad_zone::nats::check_cluster_name(&cluster)?;
+    if let Some(dir) = &args.write_nats_config {
+        // A user per zone: as many as the layout has.
+        let zones = prepare(&args.common)?.layout.len() as u16;
+        return crate::cluster_nats::write_config(dir, &cluster, zones);
+    }
+    let p = prepare(&args.common)?;
+    let zones = p.layout.len();
+    let nats = crate::cluster_nats::nats_for(
+        args.nats.as_deref(),
+        args.nats_creds_dir.as_deref(),
+        args.private_nats,
+        &cluster,
+        zones as u16,
+    )?;
+    let url = nats.url.clone();
     // The key the gateways were given, or one of this run's own.
     let secret = std::env::var(KEY_ENV).unwrap_or_else(|_| myriad_zone::wire::random_secret());
     let key = ClusterKey::new(secret.as_bytes())?;
@@ -398,6 +389,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
             .args(&flags)
             .env(KEY_ENV, &secret)
             .stdin(Stdio::null());
+        hand(&mut command, &nats.zones[z]);
         die_with_parent(&mut command);
         let child = command.spawn().with_context(|| format!("starting zone {z}"))?;
         eprintln!("zone {z} pid {}", child.id());
@@ -423,6 +415,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
             )
             .env(KEY_ENV, &secret)
             .stdin(Stdio::null());
+        hand(&mut command, &nats.gateway);
         die_with_parent(&mut command);
         let child = command.spawn().with_context(|| format!("starting gateway {g}"))?;
         eprintln!(
@@ -433,7 +426,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         Ok(child)
     };
     let mut gateways = (0..args.gateways).map(spawn_gateway).collect::<Result<Vec<_>>>()?;
-    let link = NatsLink::connect(&url, format!("myriad-{cluster}-supervisor"))?;
+    let link = NatsLink::connect(&url, format!("myriad-{cluster}-supervisor"), &nats.supervisor)?;
     let mut store = JetStreamCheckpoints::open(link.rt.clone(), link.client.clone(), &cluster, key.clone())?;
     let cfg = SupervisorConfig {
         cluster: cluster.clone(),

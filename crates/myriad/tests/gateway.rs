@@ -221,7 +221,7 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     let r: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
     eprintln!("replay: {r}");
     assert_eq!(r["equal"], true, "{r}");
-    let restart = log.iter().filter_map(|l| l.strip_prefix("epoch ")).last().unwrap_or_default().to_string();
+    let restart = log.iter().filter_map(|l| l.strip_prefix("epoch ")).next_back().unwrap_or_default().to_string();
     assert!(r["epoch"].as_u64().unwrap() >= 2, "the replay is of the epoch after the rollback: {r}, {restart}");
     assert!(r["intents"].as_u64().unwrap() > 40, "the players' intents were replayed: {r}");
     assert!(r["to"].as_u64().unwrap() > r["from"].as_u64().unwrap() + 600, "20 s and more replayed: {r}");

@@ -50,6 +50,29 @@ pub fn nats_url() -> Option<String> {
     service_url("NATS_URL", "MYRIAD_REQUIRE_NATS", "nats://127.0.0.1:4222")
 }
 
+/// The `nats-server` program (for tests that start a server of their own, with a
+/// configuration of theirs): `NATS_SERVER` if set, else the first of `nats-server` on the
+/// `PATH`, `/usr/sbin/nats-server` and `/usr/local/bin/nats-server` that runs; `None`
+/// after [`missing`] (under `MYRIAD_REQUIRE_NATS`) when there is none.
+pub fn nats_server() -> Option<std::path::PathBuf> {
+    let given = std::env::var("NATS_SERVER").ok().filter(|p| !p.is_empty());
+    let mut candidates =
+        given.iter().map(String::as_str).chain(["nats-server", "/usr/sbin/nats-server", "/usr/local/bin/nats-server"]);
+    let runs = |p: &&str| {
+        std::process::Command::new(p)
+            .arg("--version")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success())
+    };
+    let found = candidates.find(runs).map(std::path::PathBuf::from);
+    if found.is_none() {
+        missing("MYRIAD_REQUIRE_NATS", "no nats-server program (NATS_SERVER, PATH, /usr/sbin, /usr/local/bin)");
+    }
+    found
+}
+
 /// `MYSQL_URL` (the MariaDB tests), required under `MYRIAD_REQUIRE_MYSQL=1`.
 pub fn mysql_url() -> Option<String> {
     service_url("MYSQL_URL", "MYRIAD_REQUIRE_MYSQL", "mysql://myriad:myriad@127.0.0.1:3306/test")

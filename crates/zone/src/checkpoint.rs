@@ -55,6 +55,11 @@ pub trait CheckpointStore: Send {
     }
 }
 
+/// The object store bucket of `cluster`'s checkpoints: `myriad-<cluster>`.
+pub fn bucket_name(cluster: &str) -> String {
+    format!("myriad-{cluster}")
+}
+
 fn name(zone: ZoneId, tick: u64) -> String {
     format!("z{}-t{tick}", zone.0)
 }
@@ -94,7 +99,7 @@ impl JetStreamCheckpoints {
             let _inside = rt.enter();
             async_nats::jetstream::new(client)
         };
-        let bucket = format!("myriad-{cluster}");
+        let bucket = bucket_name(cluster);
         let store = rt.block_on(async {
             match js.get_object_store(&bucket).await {
                 Ok(s) => Ok(s),

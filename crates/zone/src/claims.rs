@@ -11,6 +11,7 @@ use std::collections::HashMap;
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use crate::error::ZoneError;
+use crate::fabric_auth::NatsAuth;
 use crate::nats::{NatsLink, check_cluster_name};
 use crate::wire::{ClusterKey, Message, decode, encode_control};
 
@@ -71,10 +72,17 @@ pub struct NatsSessions {
 }
 
 impl NatsSessions {
-    /// Connects to `url` as gateway `gateway` of `cluster` and listens for claims.
-    pub fn connect(url: &str, cluster: &str, gateway: u16, key: ClusterKey) -> Result<NatsSessions, ZoneError> {
+    /// Connects to `url` as gateway `gateway` of `cluster`, presenting `auth`, and
+    /// listens for claims.
+    pub fn connect(
+        url: &str,
+        cluster: &str,
+        gateway: u16,
+        key: ClusterKey,
+        auth: &NatsAuth,
+    ) -> Result<NatsSessions, ZoneError> {
         check_cluster_name(cluster)?;
-        let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}-sessions"))?;
+        let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}-sessions"), auth)?;
         let subject = sessions_subject(cluster);
         let sub = link.subscribe(subject.clone())?;
         Ok(NatsSessions { link, sub, subject, claims: Claims::new(gateway, key.clone()), key })

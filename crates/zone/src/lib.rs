@@ -7,7 +7,8 @@
 //!   objects with ghosts, keep the owned results.
 //! - [`wire`]: the fabric's messages: versioned, length-checked, signed (HMAC-SHA256).
 //! - [`fabric`]: the [`Fabric`] trait and the in-process [`MemoryFabric`]; [`nats`]: the
-//!   [`NatsFabric`] between processes.
+//!   [`NatsFabric`] between processes; [`fabric_auth`]: who may publish what on it (the
+//!   NATS users of a cluster's roles) and the credentials a process presents.
 //! - [`gateway`]: a gateway's world, mirrored from the zones ([`ZonesBackend`]), and
 //!   [`intents`]: the players' joins, actions and leaves as a zone keeps them.
 //! - [`local`]: K zones on threads, reassembled ([`run_zoned`]).
@@ -24,6 +25,7 @@ pub mod checkpoint;
 pub mod claims;
 pub mod error;
 pub mod fabric;
+pub mod fabric_auth;
 pub mod gateway;
 pub mod intents;
 pub mod layout;

@@ -3,9 +3,12 @@
 //! Subjects of cluster `c` (all documented in `docs/zones.md`):
 //! - `myriad.c.zone.<z>`: border states for zone `z`;
 //! - `myriad.c.control`: the supervisor's halt and start, to every zone;
-//! - `myriad.c.heartbeat`: every zone's heartbeat, to the supervisor;
+//! - `myriad.c.heartbeat.<z>`: zone `z`'s heartbeat, to the supervisor;
 //! - `myriad.c.states`: every zone's owned objects after each step, to the gateways;
 //! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone.
+//!
+//! Who may publish and subscribe to each is [`crate::fabric_auth`]'s table; every
+//! connection presents a [`NatsAuth`] (none: a server without auth).
 //!
 //! NATS delivers a publisher's messages in order and at most once; a loss (a slow
 //! consumer, a restarted server) shows as a stalled neighbour, which the fault path
@@ -20,6 +23,7 @@ use futures_util::stream::SelectAll;
 
 use crate::error::ZoneError;
 use crate::fabric::Fabric;
+use crate::fabric_auth::{CA_ENV, CREDS_ENV, NatsAuth, PASSWORD_ENV, USER_ENV};
 use crate::layout::ZoneId;
 use crate::wire::{ClusterKey, Message, ZoneState, encode_control};
 
@@ -33,9 +37,15 @@ pub fn control_subject(cluster: &str) -> String {
     format!("myriad.{cluster}.control")
 }
 
-/// The subject of the zones' heartbeats.
-pub fn heartbeat_subject(cluster: &str) -> String {
-    format!("myriad.{cluster}.heartbeat")
+/// The subject of zone `z`'s heartbeats: a subject per zone, so that the server's
+/// permissions let only zone `z`'s user speak for it ([`crate::fabric_auth`]).
+pub fn heartbeat_subject(cluster: &str, z: ZoneId) -> String {
+    format!("myriad.{cluster}.heartbeat.{}", z.0)
+}
+
+/// Every zone's heartbeat subject, for the supervisor.
+pub fn heartbeats_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.heartbeat.*")
 }
 
 /// The subject of the zones' states for the gateways.
@@ -66,21 +76,75 @@ pub struct NatsLink {
     pub rt: Arc<tokio::runtime::Runtime>,
     /// The client.
     pub client: async_nats::Client,
+    refusals: Arc<Mutex<Refusals>>,
+}
+
+/// The errors the server sent this connection (permissions violations above all): NATS
+/// refuses a publish or subscribe it does not allow with an error *event*, never with a
+/// failed publish.
+#[derive(Debug, Default)]
+struct Refusals {
+    count: u64,
+    /// The latest few, for diagnostics and tests.
+    latest: std::collections::VecDeque<String>,
 }
 
 impl NatsLink {
-    /// Connects to `url` under the connection name `name`. The address is never logged:
-    /// it may carry credentials.
-    pub fn connect(url: &str, name: String) -> Result<NatsLink, ZoneError> {
+    /// Connects to `url` under the connection name `name`, presenting `auth`. The address
+    /// is never logged: it may carry credentials. Every error the server reports later (a
+    /// publish or subscribe the credentials do not allow) is logged, counted
+    /// (`myriad_nats_server_errors_total`) and kept ([`NatsLink::server_errors`]).
+    pub fn connect(url: &str, name: String, auth: &NatsAuth) -> Result<NatsLink, ZoneError> {
         let rt = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .enable_all()
             .build()
             .map_err(|e| fabric_err("runtime", e))?;
-        let client = rt
-            .block_on(async_nats::ConnectOptions::new().name(name).connect(url))
-            .map_err(|e| fabric_err("connecting to NATS", e))?;
-        Ok(NatsLink { rt: Arc::new(rt), client })
+        let refusals = Arc::new(Mutex::new(Refusals::default()));
+        let seen = refusals.clone();
+        let options = auth.options(url).name(name).event_callback(move |event| {
+            if let async_nats::Event::ServerError(e) = &event {
+                tracing::warn!(error = %e, "the NATS server refused something");
+                metrics::counter!("myriad_nats_server_errors_total").increment(1);
+                let mut r = seen.lock().expect("not poisoned");
+                r.count += 1;
+                if r.latest.len() == 16 {
+                    r.latest.pop_front();
+                }
+                r.latest.push_back(e.to_string());
+            }
+            async {}
+        });
+        let client = rt.block_on(options.connect(url)).map_err(|e| {
+            use async_nats::ConnectErrorKind as K;
+            match (e.kind(), auth.user_name()) {
+                (K::AuthorizationViolation | K::Authentication, Some(user)) => ZoneError::Fabric(format!(
+                    "NATS refused user {user:?}: wrong user or password ({USER_ENV}/{PASSWORD_ENV} or {CREDS_ENV})"
+                )),
+                (K::AuthorizationViolation | K::Authentication, None) => ZoneError::Fabric(format!(
+                    "NATS wants credentials: set {USER_ENV} and {PASSWORD_ENV}, or {CREDS_ENV}"
+                )),
+                // A certificate the client does not trust comes back as an I/O error.
+                (K::Tls, _) | (K::Io, _) if matches!(e.kind(), K::Tls) || e.to_string().contains("certificate") => {
+                    fabric_err(&format!("TLS to NATS (is {CA_ENV} the server's authority?)"), e)
+                }
+                _ => fabric_err("connecting to NATS", e),
+            }
+        })?;
+        Ok(NatsLink { rt: Arc::new(rt), client, refusals })
+    }
+
+    /// How many errors the server has reported on this connection, and the latest few
+    /// (for example `nats: Permissions Violation for Publish to "myriad.c.zone.0"`).
+    pub fn server_errors(&self) -> (u64, Vec<String>) {
+        let r = self.refusals.lock().expect("not poisoned");
+        (r.count, r.latest.iter().cloned().collect())
+    }
+
+    /// Waits until the server has answered everything sent so far (a round trip), so
+    /// that any refusal of it has been reported.
+    pub fn flush(&self) -> Result<(), ZoneError> {
+        self.rt.block_on(self.client.flush()).map_err(|e| fabric_err("flushing", e))
     }
 
     /// Subscribes to `subject`; messages published after this returns are delivered.
@@ -156,12 +220,12 @@ pub struct NatsFabric {
 }
 
 impl NatsFabric {
-    /// Connects to `url` as zone `zone` of `cluster` and subscribes to its subject, the
-    /// control subject and the intents subject; when this returns, messages published to
-    /// them are delivered.
-    pub fn connect(url: &str, cluster: &str, zone: ZoneId) -> Result<NatsFabric, ZoneError> {
+    /// Connects to `url` as zone `zone` of `cluster`, presenting `auth`, and subscribes
+    /// to its subject, the control subject and the intents subject; when this returns,
+    /// messages published to them are delivered.
+    pub fn connect(url: &str, cluster: &str, zone: ZoneId, auth: &NatsAuth) -> Result<NatsFabric, ZoneError> {
         check_cluster_name(cluster)?;
-        let link = NatsLink::connect(url, format!("myriad-{cluster}-zone-{}", zone.0))?;
+        let link = NatsLink::connect(url, format!("myriad-{cluster}-zone-{}", zone.0), auth)?;
         let borders = link.subscribe(zone_subject(cluster, zone))?;
         let control = link.subscribe(control_subject(cluster))?;
         let intents = link.subscribe(intents_subject(cluster))?;
@@ -179,7 +243,7 @@ impl NatsFabric {
     pub fn heartbeat(&self, key: ClusterKey, period: Duration) -> Heartbeat {
         let beat = Arc::new(Mutex::new(Beat { run: 0, tick: 0, state: ZoneState::Waiting }));
         let (b, client, zone) = (beat.clone(), self.link.client.clone(), self.zone);
-        let subject = heartbeat_subject(&self.cluster);
+        let subject = heartbeat_subject(&self.cluster, zone);
         let task = self.link.rt.spawn(async move {
             let mut every = tokio::time::interval(period);
             loop {
@@ -229,13 +293,18 @@ pub struct NatsGatewayLink {
 }
 
 impl NatsGatewayLink {
-    /// Connects to `url` as gateway `gateway` of `cluster` and subscribes to the states
-    /// subject.
-    pub fn connect(url: &str, cluster: &str, gateway: u16) -> Result<NatsGatewayLink, ZoneError> {
+    /// Connects to `url` as gateway `gateway` of `cluster`, presenting `auth`, and
+    /// subscribes to the states subject.
+    pub fn connect(url: &str, cluster: &str, gateway: u16, auth: &NatsAuth) -> Result<NatsGatewayLink, ZoneError> {
         check_cluster_name(cluster)?;
-        let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}"))?;
+        let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}"), auth)?;
         let states = link.subscribe(states_subject(cluster))?;
         Ok(NatsGatewayLink { link, states, cluster: cluster.to_string() })
+    }
+
+    /// The connection.
+    pub fn link(&self) -> &NatsLink {
+        &self.link
     }
 }
 

@@ -13,7 +13,7 @@ use myriad_core::{ObjectState, hash_state};
 use crate::checkpoint::CheckpointStore;
 use crate::error::ZoneError;
 use crate::layout::ZoneId;
-use crate::nats::{NatsLink, control_subject, heartbeat_subject};
+use crate::nats::{NatsLink, control_subject, heartbeat_subject, heartbeats_subject};
 use crate::wire::{ClusterKey, Message, ZoneState, decode, encode_control};
 
 /// How the supervisor watches.
@@ -101,7 +101,7 @@ pub fn supervise(
     restarted: &mut dyn FnMut() -> Vec<ZoneId>,
     on_event: &mut dyn FnMut(&Event),
 ) -> Result<u64, ZoneError> {
-    let mut beats = link.subscribe(heartbeat_subject(&cfg.cluster))?;
+    let mut beats = link.subscribe(heartbeats_subject(&cfg.cluster))?;
     let mut last: BTreeMap<ZoneId, (Instant, u64, u64, ZoneState)> = BTreeMap::new();
     let mut epoch = 0u64;
     let mut halting = true;
@@ -112,6 +112,13 @@ pub fn supervise(
         let next = link.rt.block_on(async { tokio::time::timeout(Duration::from_millis(100), beats.next()).await });
         if let Ok(Some(m)) = next {
             match decode(&cfg.key, &m.payload) {
+                // A heartbeat counts only on its own zone's subject, which only that
+                // zone's NATS user may publish on (on a locked-down server): another
+                // zone, or anyone else, cannot replay it to hide the zone's death.
+                Ok(Message::Heartbeat { zone, .. }) if m.subject.as_str() != heartbeat_subject(&cfg.cluster, zone) => {
+                    tracing::warn!(subject = %m.subject, zone = zone.0, "a heartbeat on another zone's subject");
+                    metrics::counter!("myriad_supervisor_rejected_total", "reason" => "heartbeat_subject").increment(1);
+                }
                 Ok(Message::Heartbeat { run, tick, zone, state }) if (zone.0 as usize) < cfg.zones => {
                     // Heartbeats are signed but could be replayed: one that goes back in
                     // (epoch, tick) is an old one and is ignored. A restarted zone starts

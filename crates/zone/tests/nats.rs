@@ -13,6 +13,7 @@ use myriad_zone::{
 mod common;
 use common::{clustered, cpu, single};
 use myriad_testenv::nats_url;
+use myriad_zone::fabric_auth::NatsAuth;
 
 fn cluster(name: &str) -> String {
     let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos();
@@ -27,7 +28,9 @@ fn nine_zones_over_nats_equal_one_process() {
     let layout = ZoneLayout::for_count(&world.bounds, 9, pair_reach(&world), 2.0).unwrap();
     let name = cluster("nine");
     let fabrics = (0..9)
-        .map(|z| NatsFabric::connect(&url, &name, ZoneId(z)).map(|f| Box::new(f) as Box<dyn Fabric>))
+        .map(|z| {
+            NatsFabric::connect(&url, &name, ZoneId(z), &NatsAuth::default()).map(|f| Box::new(f) as Box<dyn Fabric>)
+        })
         .collect::<Result<Vec<_>, _>>()
         .unwrap();
     let opts = RunOptions::new(150, Duration::from_secs(60));
@@ -44,7 +47,7 @@ fn a_silent_neighbour_is_a_stall() {
     let world = ScenarioSpec::reference(1, 1).unwrap().build().unwrap();
     let layout = std::sync::Arc::new(ZoneLayout::for_count(&world.bounds, 2, pair_reach(&world), 2.0).unwrap());
     let name = cluster("stall");
-    let fabric = NatsFabric::connect(&url, &name, ZoneId(0)).unwrap();
+    let fabric = NatsFabric::connect(&url, &name, ZoneId(0), &NatsAuth::default()).unwrap();
     let cfg = ZoneConfig {
         id: ZoneId(0),
         run: 1,

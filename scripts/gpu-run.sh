@@ -151,20 +151,42 @@ if [[ $mode == zones ]]; then
                 done
             done
         done
-        [[ -z $nats_pid ]] || .carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json --zones 2 --gpus "$gpus" \
-            --nats nats://127.0.0.1:4222 2>/dev/null || fail "sim scenario 3, 2 zones over NATS failed"
+        if [[ -n $nats_pid ]]; then
+            if out_line=$(.carry/myriad sim --scenario 3 --ticks 100 --backend cuda --json --zones 2 --gpus "$gpus" \
+                --nats nats://127.0.0.1:4222 2>>"$out/zones-stderr.log"); then
+                echo "${out_line%\}},\"world\":\"3\"}"
+            else
+                fail "sim scenario 3, 2 zones over NATS failed"
+            fi
+        fi
+        # The moving crowd (a crowd walking across the cuts) in 4 zones on cuda, with
+        # fixed cuts and with rebalancing, against one process on cpu.
+        mc=(--scenario moving-crowd --ticks 2000 --json)
+        for z in "--backend cpu" "--backend cuda --zones 4" "--backend cuda --zones 4 --rebalance"; do
+            read -ra zz <<<"$z"
+            if out_line=$(.carry/myriad sim "${mc[@]}" "${zz[@]}" 2>>"$out/zones-stderr.log"); then
+                echo "${out_line%\}},\"world\":\"moving-crowd\"}"
+            else
+                fail "sim moving crowd $z failed"
+            fi
+        done
     } | tee "$out/zones.jsonl" | python3 -c '
 import json, sys
 rows = [json.loads(l) for l in sys.stdin if l.strip()]
-want = None
-ok = len(rows) >= 20
+want = {}
+ok = len(rows) >= 23
 for r in rows:
     z = r.get("zoned")
     before = r.get("build") == "before"
+    key = r.get("world", r["scenario"])
     if z is None and not before:
-        want = r["state_hash"]
-    same = r["state_hash"] == want
+        want[key] = r["state_hash"]
+    same = r["state_hash"] == want.get(key)
     ok = ok and (same or before)
+    if z is not None and "slowest_over_mean" in z:
+        print("  %s: cut moves %d, slowest zone physics / mean %s, most owned / mean %s (whole run, last third)" % (
+            key, z["cut_moves"], [round(x, 2) for x in z["slowest_over_mean"]],
+            [round(x, 2) for x in z["most_owned_over_mean"]]))
     print("%s sim %s%s, %d ticks, %s%s: %s, %.3f ms a tick, equal to one process: %s%s" % (
         r.get("build", "after"), r.get("world", r["scenario"]), " round %s" % r["round"] if "round" in r else "",
         r["ticks"], r["description"], "" if z is None else " over " + z["fabric"],

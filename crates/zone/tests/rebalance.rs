@@ -1,6 +1,6 @@
 //! Boundaries that follow the load end in one process's state hash: runs whose cuts move
-//! (decided from object counts, or forced) on scenario 1, the clustered scenario, a
-//! custom world and the moving crowd, K = 2, 4 and 9; a cut moved through a crowd; a cut
+//! (decided from object counts, or forced) on scenario 1, scenario 2, the clustered
+//! scenario, a custom world and the moving crowd, K = 2, 4 and 9; a cut moved through a crowd; a cut
 //! moved at a tick where objects cross it on their own; random layouts and random moves.
 
 use std::time::Duration;
@@ -156,6 +156,28 @@ fn a_cut_moved_through_a_crowd() {
         assert_eq!(run.cut_moves, 2, "{k} zones");
         assert_eq!(run.state_hash, want, "{k} zones");
     }
+}
+
+/// Scenario 2 (55,000 objects, uniform, so the count policy has nothing to move): both
+/// cuts of a 2 × 2 grid forced 40 units one way, then 60 back the other, thousands of
+/// objects handed over at each move; the hash is one process's.
+#[test]
+fn scenario_two_with_cuts_forced_both_ways() {
+    let world = ScenarioSpec::reference(2, 5).unwrap().build().unwrap();
+    let ticks = 80;
+    let want = single(&world, ticks, &ActionScript::default());
+    let l = ZoneLayout::for_count(&world.bounds, 4, pair_reach(&world), 2.0).unwrap();
+    let (xs, zs) = (l.cuts().0.to_vec(), l.cuts().1.to_vec());
+    let shifted = |v: &[f32], d: f32| vec![v[0], v[1] + d, v[2]];
+    let moves = vec![
+        ForcedMove { at: 20, xs: shifted(&xs, 40.0), zs: shifted(&zs, -40.0) },
+        ForcedMove { at: 50, xs: shifted(&xs, -20.0), zs: shifted(&zs, 20.0) },
+    ];
+    let run = zoned(&world, 4, ticks, &ActionScript::default(), forced(moves, 10, 2));
+    assert_eq!(run.cut_moves, 2);
+    let handed: u64 = run.stats.iter().map(|s| s.handoffs_in).sum();
+    assert!(handed > 5_000, "the moves handed over whole strips: {handed} hand-offs");
+    assert_eq!(run.state_hash, want);
 }
 
 /// A cut that moves at a tick where an object crosses it on its own: the tick is found

@@ -109,6 +109,11 @@ pub struct GatewayStats {
     pub rejected: BTreeMap<&'static str, u64>,
     /// The zones' tick of the mirror.
     pub zone_tick: u64,
+    /// Bytes of the zones' states messages taken (what this gateway receives from the
+    /// zones, beside its intents out).
+    pub zone_bytes_in: u64,
+    /// Object records in those messages.
+    pub zone_objects_in: u64,
 }
 
 impl GatewayStats {
@@ -128,6 +133,8 @@ impl GatewayStats {
             metrics::counter!("myriad_gateway_rejected_total", "reason" => *reason).absolute(*n);
         }
         metrics::gauge!("myriad_gateway_zone_tick").set(self.zone_tick as f64);
+        metrics::counter!("myriad_gateway_zone_bytes_in_total").absolute(self.zone_bytes_in);
+        metrics::counter!("myriad_gateway_zone_objects_in_total").absolute(self.zone_objects_in);
     }
 }
 
@@ -372,6 +379,8 @@ impl ZonesBackend {
         if got.contains_key(&m.part) {
             return self.reject("replayed");
         }
+        self.stats.zone_bytes_in += bytes.len() as u64;
+        self.stats.zone_objects_in += m.objects.len() as u64;
         got.insert(m.part, m.objects.into_iter().map(|r| r.state).collect());
         while self.pending.len() > PENDING_TICKS {
             self.pending.pop_first();

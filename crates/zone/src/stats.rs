@@ -44,6 +44,9 @@ pub struct ZoneStats {
     pub messages: (u64, u64),
     /// Fabric payload bytes sent and received.
     pub bytes: (u64, u64),
+    /// Of the bytes sent, those of the states published for gateways (live zones): what
+    /// every gateway receives from this zone, the whole mirror today.
+    pub states_bytes: u64,
     /// Messages rejected, by reason ([`crate::wire::WireError::label`], or `run`,
     /// `misrouted`, `stranger`, `stale`, `early`, `replayed`, `parts`).
     pub rejected: BTreeMap<&'static str, u64>,
@@ -71,6 +74,7 @@ impl ZoneStats {
         counter("myriad_zone_cut_moves_total", self.cut_moves);
         counter("myriad_zone_fabric_sent_bytes_total", self.bytes.0);
         counter("myriad_zone_fabric_received_bytes_total", self.bytes.1);
+        counter("myriad_zone_states_sent_bytes_total", self.states_bytes);
         counter("myriad_zone_messages_sent_total", self.messages.0);
         counter("myriad_zone_messages_received_total", self.messages.1);
         metrics::gauge!("myriad_zone_owned_objects", "zone" => z.clone()).set(self.owned as f64);

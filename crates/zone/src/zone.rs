@@ -271,7 +271,9 @@ impl Zone {
                 parts,
                 objects: chunk.iter().copied().map(BorderRecord::seen).collect(),
             };
-            self.fabric.publish_states(encode_states(&self.cfg.key, &m)?)?;
+            let bytes = encode_states(&self.cfg.key, &m)?;
+            self.stats.states_bytes += bytes.len() as u64;
+            self.fabric.publish_states(bytes)?;
             self.stats.messages.0 += 1;
         }
         Ok(())

@@ -113,8 +113,13 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
     assert_eq!(stats.duplicates, 0, "no object was claimed by two zones");
     assert!(stats.mirrors > 30, "{stats:?}");
     assert_eq!(stats.rejected.values().sum::<u64>(), 0, "{stats:?}");
+    // What the gateway takes from the zones: today the whole world at every mirror.
+    assert!(stats.zone_objects_in >= stats.mirrors * world.dynamics.len() as u64, "{stats:?}");
+    assert!(stats.zone_bytes_in > 48 * stats.zone_objects_in, "48 bytes a record, plus headers: {stats:?}");
     assert_eq!(shown, world.dynamics.len() + 1, "the world and the second player");
     let (a, b) = (&zones_out[0], &zones_out[1]);
+    assert!(a.1.states_bytes > 0 && b.1.states_bytes > 0, "live zones publish their states");
+    assert!(a.1.states_bytes <= a.1.bytes.0, "the states are part of what a zone sends");
     assert_eq!(a.1.joins + b.1.joins, 2, "one zone adopted each player, once");
     assert_eq!(a.1.joins, 2, "zone 0 holds the spawn points");
     assert!(a.1.handoffs_out >= 1 && b.1.handoffs_in >= 1, "the player was handed from zone 0 to zone 1");

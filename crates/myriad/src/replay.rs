@@ -12,7 +12,8 @@ use myriad_zone::ZoneId;
 use myriad_zone::checkpoint::{CheckpointStore, JetStreamCheckpoints};
 use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::nats::NatsLink;
-use myriad_zone::replay::{load, replay, stored_hash};
+use myriad_zone::replay::{load, replay};
+use myriad_zone::supervisor::assemble;
 use serde::Serialize;
 
 use crate::zones::{ClusterCommon, key_from_env, prepare};
@@ -103,7 +104,7 @@ pub fn run(args: ReplayArgs) -> Result<()> {
         bail!("no checkpoint to replay from: {}", last_error.map_or("none stored".into(), |e| e.to_string()));
     };
     let intents = inputs.iter().map(|z| z.entries.len()).sum();
-    let live = stored_hash(&mut store, zones, to)?;
+    let live = assemble(&mut store, zones, to, None)?.0;
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     let (kind, gpus) = (c.backend, args.gpus.max(1));
     let backend = move |z: ZoneId| Ok(myriad_cuda::create_backend_on(kind, z.0 as usize % gpus)?.backend);

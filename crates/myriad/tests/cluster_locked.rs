@@ -11,59 +11,17 @@
 //! Needs the `nats-server` program; skips with a message without it, fails under
 //! `MYRIAD_REQUIRE_NATS=1`.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use myriad_testenv::nats_server;
 use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::nats::NatsLink;
 
+mod common;
+use common::{Killed, collect_stderr, free_ports, sim_hash};
+
 const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
-
-struct Killed(Child);
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn sim_hash(ticks: u64) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_myriad"))
-        .args(["sim", "--json", "--backend", "cpu", "--scenario", "1", "--ticks", &ticks.to_string()])
-        .output()
-        .unwrap();
-    assert!(out.status.success());
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    v["state_hash"].as_str().unwrap().to_string()
-}
-
-/// A child's standard error, line by line, on a thread.
-fn collect_stderr(child: &mut Child) -> std::sync::mpsc::Receiver<String> {
-    let stderr = BufReader::new(child.stderr.take().expect("stderr piped"));
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in stderr.lines().map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
-    rx
-}
-
-/// Ports `base .. base + n` free on loopback for TCP and UDP, below the ephemeral range.
-fn free_ports(n: u16) -> u16 {
-    let free = |base: u16| {
-        (base..base + n).all(|p| {
-            std::net::TcpListener::bind(("127.0.0.1", p)).is_ok() && std::net::UdpSocket::bind(("127.0.0.1", p)).is_ok()
-        })
-    };
-    let mut base = 21_000 + (std::process::id() % 500) as u16 * 20;
-    while !free(base) {
-        base += n;
-    }
-    base
-}
 
 #[test]
 fn a_private_server_admits_only_the_clusters_roles_and_the_run_equals_one_process() {

@@ -14,47 +14,11 @@
 //! Needs `NATS_URL` (CI sets it); skips with a message without it, fails under
 //! `MYRIAD_REQUIRE_NATS=1`.
 
-use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// The first of `n` consecutive ports that are free on loopback for TCP and UDP alike.
-///
-/// They are taken below the kernel's ephemeral range (32768 and up on Linux): a port the
-/// kernel hands out for `127.0.0.1:0` can be handed to another socket (a bot's, in the
-/// test running beside this one) before the server binds it, and a gateway that cannot
-/// bind its UDP port never listens (the cluster restarts it in a loop).
-fn free_ports(n: u16) -> u16 {
-    use std::sync::atomic::{AtomicU16, Ordering};
-    static NEXT: AtomicU16 = AtomicU16::new(0);
-    let spread = (std::process::id() % 400) as u16 * 30;
-    loop {
-        let base = 20_000 + (spread + NEXT.fetch_add(n, Ordering::Relaxed)) % 12_000;
-        if free_ports_at(base, n) {
-            return base;
-        }
-    }
-}
-
-/// Whether ports `base .. base + n` are free on loopback for TCP and UDP.
-fn free_ports_at(base: u16, n: u16) -> bool {
-    (base..base + n).all(|p| {
-        std::net::TcpListener::bind(("127.0.0.1", p)).is_ok() && std::net::UdpSocket::bind(("127.0.0.1", p)).is_ok()
-    })
-}
-
-/// Collects a child's standard error on a thread (a pipe nobody reads stops the child
-/// once it is full); the lines arrive on the receiver.
-fn collect_stderr(child: &mut Child) -> std::sync::mpsc::Receiver<String> {
-    let stderr = BufReader::new(child.stderr.take().expect("stderr piped"));
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in stderr.lines().map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
-    rx
-}
+mod common;
+use common::{Killed, collect_stderr, free_ports, free_ports_at};
 
 /// The sum of a metric's samples (all label sets) on a Prometheus endpoint.
 fn metric(port: u16, name: &str) -> f64 {
@@ -71,14 +35,6 @@ fn metric(port: u16, name: &str) -> f64 {
         .filter(|l| l.starts_with(name) && l[name.len()..].starts_with([' ', '{']))
         .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
         .sum()
-}
-
-struct Killed(Child);
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
 }
 
 const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";

@@ -11,15 +11,8 @@ use std::time::{Duration, Instant};
 
 use myriad_testenv::nats_url;
 
-fn sim_hash(ticks: u64) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_myriad"))
-        .args(["sim", "--json", "--backend", "cpu", "--scenario", "1", "--ticks", &ticks.to_string()])
-        .output()
-        .unwrap();
-    assert!(out.status.success());
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    v["state_hash"].as_str().unwrap().to_string()
-}
+mod common;
+use common::sim_hash;
 
 /// Runs a 4-zone cluster on scenario 1 for `ticks` ticks, calls `disrupt` with zone 1's
 /// process id once every zone is past tick 70, and checks that the cluster noticed a

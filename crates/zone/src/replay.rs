@@ -24,7 +24,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use myriad_core::{ActionScript, ObjectState, World, hash_state};
+use myriad_core::{ActionScript, ObjectState, World};
 use myriad_physics::{Backend, TickConstants};
 
 use crate::checkpoint::CheckpointStore;
@@ -207,7 +207,8 @@ pub fn load(
 /// Re-runs `zones` (from [`load`]) from tick `from` to `to` on threads of this process,
 /// each with the backend `backend(zone)`, offering each zone the intents it took at each
 /// tick before stepping it; `world` supplies bounds, terrain, statics and seed (as for
-/// [`Zone::resume`]). The result is comparable with the live run's checkpoint of `to`.
+/// [`Zone::resume`]). The result is comparable with the live run's checkpoints of `to`
+/// ([`crate::supervisor::assemble`]).
 #[allow(clippy::too_many_arguments)]
 pub fn replay(
     world: &World,
@@ -278,20 +279,6 @@ pub fn replay(
         handles.into_iter().map(|h| h.join().expect("a zone thread panicked")).collect()
     });
     crate::local::reassemble(results, None, to, None)
-}
-
-/// The hash of the world whose zones stored checkpoints of tick `tick` (the live run's
-/// result, to compare a replay with).
-pub fn stored_hash(store: &mut dyn CheckpointStore, zones: usize, tick: u64) -> Result<u64, ZoneError> {
-    let mut objects = Vec::new();
-    for z in 0..zones {
-        objects.extend(store.get(ZoneId(z as u16), tick)?);
-    }
-    objects.sort_unstable_by_key(|o| o.id);
-    if let Some(w) = objects.windows(2).find(|w| w[0].id == w[1].id) {
-        return Err(ZoneError::Duplicate(w[0].id, tick));
-    }
-    Ok(hash_state(objects.iter().copied(), tick, objects.len()))
 }
 
 #[cfg(test)]

@@ -90,11 +90,6 @@ impl ResidentWorld {
         self.owned_count
     }
 
-    /// Objects held that are not owned (ghosts).
-    pub fn ghost_count(&self) -> usize {
-        self.owned.len() - self.owned_count
-    }
-
     /// The owned objects' states, by id: after a step, the zone's advanced set.
     pub fn owned_states(&self) -> impl Iterator<Item = ObjectState> + '_ {
         let d = &self.world.dynamics;

@@ -185,15 +185,39 @@ impl Zone {
         }
     }
 
-    /// Offers one intents message (a replay's): whether it was taken.
+    /// Offers one intents message (a replay's): whether it was taken. Anything else, or
+    /// intents the book refuses, is counted as [`Zone::offer`] counts it.
     pub fn offer_intents(&mut self, bytes: &[u8]) -> bool {
-        let taken = self.stats.messages.1;
-        self.offer(bytes).is_none() && self.stats.messages.1 > taken
+        let t = self.tick();
+        match decode(&self.cfg.key, bytes) {
+            Ok(Message::Intents(i)) => self.take_intents(i, bytes, t),
+            Ok(_) => {
+                self.reject("kind", t);
+                false
+            }
+            Err(e) => {
+                self.reject(e.label(), t);
+                false
+            }
+        }
     }
 
-    /// The layout the zone follows.
-    pub fn layout(&self) -> &Arc<ZoneLayout> {
-        &self.layout
+    /// Files one authenticated intents message in the book (and the log), or counts why
+    /// not: whether it was taken.
+    fn take_intents(&mut self, i: crate::wire::Intents, bytes: &[u8], t: u64) -> bool {
+        match self.intents.offer(i, t) {
+            Ok(()) => {
+                self.stats.messages.1 += 1;
+                if let Some(log) = &mut self.log {
+                    log.record(t, bytes);
+                }
+                true
+            }
+            Err(refused) => {
+                self.reject(refused.label(), t);
+                false
+            }
+        }
     }
 
     /// Follows a new layout (cuts moved) from the next tick on. Every zone of the world
@@ -372,16 +396,8 @@ impl Zone {
             Ok(Message::Border(m)) => m,
             Ok(control @ (Message::Halt { .. } | Message::Start { .. })) => return Some(control),
             Ok(Message::Intents(i)) => {
-                return match self.intents.offer(i, t) {
-                    Ok(()) => {
-                        self.stats.messages.1 += 1;
-                        if let Some(log) = &mut self.log {
-                            log.record(t, bytes);
-                        }
-                        None
-                    }
-                    Err(refused) => self.reject(refused.label(), t),
-                };
+                self.take_intents(i, bytes, t);
+                return None;
             }
             Ok(_) => return self.reject("kind", t),
             Err(e) => return self.reject(e.label(), t),

@@ -12,7 +12,8 @@ use std::time::Duration;
 use myriad_core::{Action, ActionScript, ObjectKind, ScenarioSpec, Shape, Vec3, World};
 use myriad_physics::{Backend, TickConstants};
 use myriad_zone::checkpoint::{CheckpointStore, MemoryCheckpoints};
-use myriad_zone::replay::{load, replay, stored_hash};
+use myriad_zone::replay::{load, replay};
+use myriad_zone::supervisor::assemble;
 use myriad_zone::{ClusterKey, GatewayConfig, MemoryFabric, Zone, ZoneConfig, ZoneId, ZoneLayout, ZonesBackend};
 
 mod common;
@@ -108,7 +109,7 @@ fn a_live_run_with_players_replays_to_its_hash() {
     });
 
     let mut store = store;
-    let live = stored_hash(&mut store, 2, TICKS).unwrap();
+    let live = assemble(&mut store, 2, TICKS, None).unwrap().0;
     let script = ActionScript::default();
     let backend = |z: ZoneId| common::cpu(z);
     let replayed = |store: &mut MemoryCheckpoints, from: u64, strip: bool| {
@@ -173,6 +174,6 @@ fn damaged_or_missing_logs_are_refused() {
     store.forget(ZoneId(1), EVERY).unwrap();
     assert!(load(&mut store, &key, 2, EVERY, 2 * EVERY).is_err(), "a forgotten checkpoint takes its log");
     // Without players, a stored run replays to its hash too.
-    let live = stored_hash(&mut store, 2, 2 * EVERY).unwrap();
+    let live = assemble(&mut store, 2, 2 * EVERY, None).unwrap().0;
     assert_eq!(live, common::single(&world, 2 * EVERY, &ActionScript::default()));
 }

@@ -1,0 +1,65 @@
+//! What the cluster tests share: children killed with the test, their standard error on
+//! a thread, free ports, and one process's hash to compare with.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command};
+
+/// A child process killed (and reaped) when the test ends, however it ends.
+pub struct Killed(pub Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Collects a child's standard error on a thread (a pipe nobody reads stops the child
+/// once it is full); the lines arrive on the receiver.
+pub fn collect_stderr(child: &mut Child) -> std::sync::mpsc::Receiver<String> {
+    let stderr = BufReader::new(child.stderr.take().expect("stderr piped"));
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in stderr.lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    rx
+}
+
+/// The first of `n` consecutive ports that are free on loopback for TCP and UDP alike.
+///
+/// They are taken below the kernel's ephemeral range (32768 and up on Linux): a port the
+/// kernel hands out for `127.0.0.1:0` can be handed to another socket (a bot's, in the
+/// test running beside this one) before the server binds it, and a gateway that cannot
+/// bind its UDP port never listens (the cluster restarts it in a loop).
+pub fn free_ports(n: u16) -> u16 {
+    use std::sync::atomic::{AtomicU16, Ordering};
+    static NEXT: AtomicU16 = AtomicU16::new(0);
+    let spread = (std::process::id() % 400) as u16 * 30;
+    loop {
+        let base = 20_000 + (spread + NEXT.fetch_add(n, Ordering::Relaxed)) % 12_000;
+        if free_ports_at(base, n) {
+            return base;
+        }
+    }
+}
+
+/// Whether ports `base .. base + n` are free on loopback for TCP and UDP.
+pub fn free_ports_at(base: u16, n: u16) -> bool {
+    (base..base + n).all(|p| {
+        std::net::TcpListener::bind(("127.0.0.1", p)).is_ok() && std::net::UdpSocket::bind(("127.0.0.1", p)).is_ok()
+    })
+}
+
+/// `myriad sim`'s state hash of scenario 1 on `cpu` after `ticks` ticks.
+pub fn sim_hash(ticks: u64) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["sim", "--json", "--backend", "cpu", "--scenario", "1", "--ticks", &ticks.to_string()])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    v["state_hash"].as_str().unwrap().to_string()
+}

@@ -13,6 +13,8 @@
 # tick (scenario 2, AOI 14 and 100) and AOI query on the host's cores, with the build in
 # .carry/before/ first when there is one (scripts/gpu-build.sh with PARTS=host).
 #
+# MODE=zprofile splits the tick of scenario 3 in 4 zones on one GPU (see below).
+#
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
 # checks that on fake bundles, without a GPU.
@@ -201,6 +203,41 @@ sys.exit(0 if ok else 1)
             tee "$out/cluster.json"
         [[ ${PIPESTATUS[0]} == 0 ]] || fail "cluster of 2 zones failed"
         kill "$nats_pid"
+    fi
+fi
+
+if [[ $mode == zprofile ]]; then
+    # Where a zone's tick goes on one GPU. Parts (ZPROFILE, default all three):
+    # split: scenario 3 in one process, a quarter of it alone (one zone's share, stepped
+    # by nobody else) and in 4 zones sharing the GPU, three times each; threads: 4 zones
+    # against the size of rayon's pool (the zones' threads and the pool's share the
+    # host's cores); kernels: per-kernel device times (MYRIAD_CUDA_PROFILE=1).
+    parts=" ${ZPROFILE:-split threads kernels} "
+    quarter=(--scenario custom --dynamic 65000 --users 2500 --static 25000 --world-size 512)
+    if [[ $parts == *" split "* ]]; then
+        for _ in 1 2 3; do
+            for args in "--scenario 3" "${quarter[*]}" "--scenario 3 --zones 4 --gpus 1"; do
+                echo "=== sim $args"
+                # shellcheck disable=SC2086
+                .carry/myriad sim $args --ticks 100 --backend cuda 2>>"$out/zprofile-stderr.log" |
+                    grep -E "tick|per zone|of which|state hash" || fail "sim $args failed"
+            done
+        done 2>&1 | tee "$out/zprofile.log"
+    fi
+    if [[ $parts == *" threads "* ]]; then
+        for threads in 4 8 12 16 4 8 12 16; do
+            echo "=== RAYON_NUM_THREADS=$threads sim --scenario 3 --zones 4 --gpus 1"
+            RAYON_NUM_THREADS=$threads .carry/myriad sim --scenario 3 --zones 4 --gpus 1 --ticks 100 --backend cuda \
+                2>>"$out/zprofile-stderr.log" | grep -E "ticks |per zone|of which" || fail "sim with $threads threads failed"
+        done 2>&1 | tee "$out/zprofile-threads.log"
+    fi
+    if [[ $parts == *" kernels "* ]]; then
+        for args in "--scenario 3" "--scenario 3 --zones 4 --gpus 1"; do
+            echo "=== profiled: sim $args"
+            # shellcheck disable=SC2086
+            MYRIAD_CUDA_PROFILE=1 .carry/myriad sim $args --ticks 100 --backend cuda 2>&1 | tail -60
+        done >"$out/zprofile-kernels.log" 2>&1
+        tail -c 6000 "$out/zprofile-kernels.log"
     fi
 fi
 

@@ -86,6 +86,15 @@ struct ZoneSummary {
     /// Per zone: mean time assembling the zone's world and keeping results (the step less
     /// the physics), plus choosing and sending border states, ms a tick.
     overhead_ms: Vec<f64>,
+    /// Per zone, of the overhead: the pass finding the slots near the edges, the rest of
+    /// the world's edit, and of that the moving of slots, ms a tick.
+    scan_ms: Vec<f64>,
+    edit_ms: Vec<f64>,
+    moving_ms: Vec<f64>,
+    /// Per zone, of the physics: the backend's copies to and from the device, ms a tick.
+    copies_ms: Vec<f64>,
+    /// Per zone: objects inserted, removed, and ticks that moved slots, in all.
+    slots: Vec<(u64, u64, u64)>,
     rejected: u64,
     /// Cut moves every zone applied.
     cut_moves: u64,
@@ -239,6 +248,19 @@ fn print(args: &SimArgs, s: &Summary) -> Result<()> {
                 ms(&z.overhead_ms),
                 ms(&z.wait_ms)
             );
+            println!(
+                "  of which   scan [{}], edit [{}] (moving slots [{}]); device copies [{}] ms a tick",
+                ms(&z.scan_ms),
+                ms(&z.edit_ms),
+                ms(&z.moving_ms),
+                ms(&z.copies_ms)
+            );
+            println!(
+                "  slots      inserted {:?}, removed {:?}, ticks that moved slots {:?}",
+                z.slots.iter().map(|s| s.0).collect::<Vec<_>>(),
+                z.slots.iter().map(|s| s.1).collect::<Vec<_>>(),
+                z.slots.iter().map(|s| s.2).collect::<Vec<_>>()
+            );
             println!("rejected     {} messages", z.rejected);
             println!("cut moves    {} (cuts at the end: x {:?}, z {:?})", z.cut_moves, z.cuts.0, z.cuts.1);
             for (decided, applied, xs, zs) in &z.moves {
@@ -330,6 +352,11 @@ fn run_zoned(
         wait_ms: run.stats.iter().map(|s| s.wait.as_secs_f64() * 1e3 / ticks).collect(),
         physics_ms: run.stats.iter().map(|s| s.physics.as_secs_f64() * 1e3 / ticks).collect(),
         overhead_ms: run.stats.iter().map(|s| (s.step + s.send - s.physics).as_secs_f64() * 1e3 / ticks).collect(),
+        scan_ms: run.stats.iter().map(|s| s.scan.as_secs_f64() * 1e3 / ticks).collect(),
+        edit_ms: run.stats.iter().map(|s| s.edit.as_secs_f64() * 1e3 / ticks).collect(),
+        moving_ms: run.stats.iter().map(|s| s.moving.as_secs_f64() * 1e3 / ticks).collect(),
+        copies_ms: run.stats.iter().map(|s| s.copies.as_secs_f64() * 1e3 / ticks).collect(),
+        slots: run.stats.iter().map(|s| (s.slots_inserted, s.slots_removed, s.moving_ticks)).collect(),
         rejected: run.stats.iter().map(|s| s.rejected_total()).sum(),
         cut_moves: run.cut_moves,
         moves: log.moves.iter().map(|m| (m.decided_at, m.apply_at, m.xs.clone(), m.zs.clone())).collect(),

@@ -40,6 +40,23 @@ pub struct ZoneStats {
     pub physics: Duration,
     /// Time spent choosing, encoding and sending border states.
     pub send: Duration,
+    /// Of `step`, the pass over the positions that finds the slots near the edges.
+    pub scan: Duration,
+    /// Of `step`, making the world the one to step ([`crate::resident::ResidentWorld::apply`],
+    /// the scan excluded).
+    pub edit: Duration,
+    /// Of `edit`, moving the slots (removals and insertions that keep ids ascending).
+    pub moving: Duration,
+    /// Objects inserted into the zone's world and removed from it (ghosts and hand-offs
+    /// arriving and leaving, joins, leaves), in all.
+    pub slots_inserted: u64,
+    /// See `slots_inserted`.
+    pub slots_removed: u64,
+    /// Ticks whose edit inserted or removed an object: ticks that moved slots.
+    pub moving_ticks: u64,
+    /// Of `physics`, the backend's own copies ([`myriad_physics::Stage::Upload`]: to the
+    /// device, and on `cuda` the new state back into the world).
+    pub copies: Duration,
     /// Messages sent and received.
     pub messages: (u64, u64),
     /// Fabric payload bytes sent and received.

@@ -26,7 +26,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use myriad_core::{ObjectState, ScriptedAction, World};
-use myriad_physics::{Backend, TickConstants};
+use myriad_physics::{Backend, Stage, TickConstants};
 
 use crate::error::ZoneError;
 use crate::fabric::Fabric;
@@ -269,8 +269,9 @@ impl Zone {
         self.resident.apply(&self.layout, self.cfg.id, &mut received, &mut self.intents, &mut self.stats)?;
         let applied = self.resident.set_actions(actions, &self.intents);
         let physics = Instant::now();
-        self.backend.step(&mut self.resident.world, k)?;
+        let report = self.backend.step(&mut self.resident.world, k)?;
         self.stats.physics += physics.elapsed();
+        self.stats.copies += Duration::from_secs_f64(report.stage_ms[Stage::Upload as usize].max(0.0) / 1e3);
         self.stats.ticks += 1;
         self.stats.owned = self.resident.owned_count();
         self.stats.step += start.elapsed();
@@ -313,7 +314,7 @@ impl Zone {
         let me = self.cfg.id;
         let neighbours = self.layout.neighbours(me);
         let mut out: Vec<Vec<BorderRecord>> = vec![Vec::new(); neighbours.len()];
-        for o in self.resident.near_edges(&self.layout, me) {
+        for o in self.resident.near_edges(&self.layout, me, &mut self.stats) {
             let owner = self.layout.zone_at(o.pos);
             for z in self.layout.seers(o.pos).filter(|&z| z != me) {
                 let i =

@@ -172,27 +172,17 @@ impl Dynamics {
         if layout_changes {
             let plan = EditPlan { remove: &e.remove, at: &at };
             let Dynamics { id, pos, prev, half, radius, shape, kind, action, flags, .. } = self;
-            // Each field moves in one task: a zone's world moves most of its slots every
-            // tick (an insertion or removal near the front shifts all after it), and
-            // nine arrays moved at once go at the machine's memory speed, not one core's.
+            // On the calling thread, field after field: zones share a process's cores
+            // (and rayon's pool, which the backends' copies use), and moving the nine
+            // fields at once on the pool made 4 zones of scenario 3 on one H200's host
+            // slower, not faster (moving 0.29–0.41 ms a tick against 0.22–0.25 serial,
+            // docs/zones.md).
             macro_rules! each_field {
-                ($scope:ident; $($field:ident),*) => {$(
-                    let f = &mut *$field;
-                    $scope.spawn(move |_| plan.apply(f, |i| e.insert[i].$field));
+                ($($field:ident),*) => {$(
+                    plan.apply($field, |i| e.insert[i].$field);
                 )*};
             }
-            // On a machine of few cores the pool is busy with the physics (a CPU backend
-            // steps on it): queueing nine copies behind it costs more than it saves
-            // (measured on two cores: the zone's overhead doubled).
-            if n >= PARALLEL_FROM && rayon::current_num_threads() >= PARALLEL_THREADS {
-                rayon::scope(|s| {
-                    each_field!(s; id, pos, prev, half, radius, shape, kind, action, flags);
-                });
-            } else {
-                let serial = Serial;
-                let s = &serial;
-                each_field!(s; id, pos, prev, half, radius, shape, kind, action, flags);
-            }
+            each_field!(id, pos, prev, half, radius, shape, kind, action, flags);
         }
 
         // A written slot's new number: its kept index plus the insertions before it.
@@ -244,21 +234,6 @@ impl Dynamics {
         self.kind[slot] = s.kind;
         self.action[slot] = s.action;
         self.flags[slot] = s.flags;
-    }
-}
-
-/// Objects from which [`Dynamics::apply_sorted`] moves its fields on rayon's pool.
-const PARALLEL_FROM: usize = 16_384;
-
-/// Threads rayon's pool must have for [`Dynamics::apply_sorted`] to use it.
-const PARALLEL_THREADS: usize = 8;
-
-/// Runs a task on the calling thread: the serial stand-in for a rayon scope.
-struct Serial;
-
-impl Serial {
-    fn spawn(&self, task: impl FnOnce(())) {
-        task(())
     }
 }
 
@@ -427,35 +402,6 @@ mod tests {
                 assert_eq!(d.slot(o.id), Some(s), "the slot map follows");
             }
         }
-    }
-
-    #[test]
-    fn a_large_edit_moves_its_fields_on_the_pool_alike() {
-        let n = PARALLEL_FROM as u32 + 1000;
-        let ids: Vec<u32> = (0..n).map(|i| i * 2 + 1).collect();
-        let mut d = dynamics(&ids);
-        let before: Vec<ObjectState> = (0..d.len()).map(|s| d.state_of(s)).collect();
-        let e = SortedEdit {
-            remove: (0..n).filter(|s| s % 97 == 3).collect(),
-            write: (0..n).filter(|s| s % 89 == 5 && s % 97 != 3).map(|s| (s, state(ids[s as usize], -1.0))).collect(),
-            insert: (0..n).filter(|i| i % 101 == 7).map(|i| state(i * 2, 0.5)).collect(),
-        };
-        // In a pool large enough for the fields to move at once, whatever this machine has.
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(PARALLEL_THREADS).build().unwrap();
-        let plan = pool.install(|| d.apply_sorted(&e)).unwrap();
-        let mut want: Vec<ObjectState> = before
-            .iter()
-            .enumerate()
-            .filter(|(s, _)| e.remove.binary_search(&(*s as u32)).is_err())
-            .map(|(s, o)| e.write.iter().find(|w| w.0 == s as u32).map_or(*o, |w| w.1))
-            .chain(e.insert.iter().copied())
-            .collect();
-        want.sort_by_key(|o| o.id);
-        assert_eq!((0..d.len()).map(|s| d.state_of(s)).collect::<Vec<_>>(), want);
-        // The plan edits a column of the caller's alike: the ids, as a column.
-        let mut column: Vec<u32> = ids.clone();
-        plan.apply(&mut column, |j| e.insert[j].id.0);
-        assert_eq!(column, d.ids().iter().map(|i| i.0).collect::<Vec<_>>());
     }
 
     #[test]

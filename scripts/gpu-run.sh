@@ -119,7 +119,7 @@ if [[ $mode == zones ]]; then
     # .carry/before/ (if any) carry "build": "before" and are timed, not compared.
     {
         # Zoned runs on cuda equal one process on cpu: scenarios 1 and 2 and the
-        # clustered one, K = 2, 4, 9.
+        # clustered one, K = 2, 4, 9, with fixed cuts and rebalanced.
         for sc in 1 2 clustered; do
             ticks=200
             [[ $sc == 1 ]] || ticks=120
@@ -128,6 +128,9 @@ if [[ $mode == zones ]]; then
             for k in 2 4 9; do
                 .carry/myriad sim --scenario $sc --ticks $ticks --backend cuda --zones $k --gpus "$gpus" --json 2>/dev/null ||
                     fail "sim scenario $sc, $k zones failed"
+                # The same with cuts that follow the objects (every 20 ticks).
+                .carry/myriad sim --scenario $sc --ticks $ticks --backend cuda --zones $k --gpus "$gpus" --json \
+                    --rebalance --rebalance-every 20 2>/dev/null || fail "sim scenario $sc, $k zones, rebalanced failed"
             done
         done
         # Scenario 3 and four times scenario 3 (1,040,000 dynamic, 400,000 static on

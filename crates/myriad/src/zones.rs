@@ -20,7 +20,9 @@ use myriad_zone::checkpoint::JetStreamCheckpoints;
 use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::nats::NatsLink;
 use myriad_zone::process::{ProcessConfig, run_zone_process};
-use myriad_zone::supervisor::{Event, SupervisorConfig, supervise};
+use myriad_zone::rebalance::announce::{Announcement, LiveOptions, LivePolicy};
+use myriad_zone::rebalance::{ForcedMove, StepTimeOptions};
+use myriad_zone::supervisor::{Event, SupervisorConfig, cut_move_line, supervise};
 use myriad_zone::{ClusterKey, Fabric, NatsFabric, ZoneId, ZoneLayout};
 use serde::Serialize;
 
@@ -145,8 +147,61 @@ pub struct ClusterArgs {
     /// Where the gateways keep their data.
     #[arg(long, default_value = "myriad-cluster")]
     pub gateway_data: PathBuf,
+    /// Move the cuts while the cluster runs, from the step times the zones report (a zone
+    /// over 80 % of the tick budget or 1.3 × the mean for 3 s gives up area; docs/zones.md,
+    /// "Boundaries that follow the load").
+    #[arg(long)]
+    pub rebalance: bool,
+    /// Ticks between the highest tick any zone reported and a cut move's tick: more than
+    /// the zones step between two heartbeats (250 ms) and a delivery.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..))]
+    pub rebalance_lead_ticks: u64,
+    /// Instead of the step-time policy, exactly these moves (repeatable): `AT:X1,X2/Z1`
+    /// moves the inner cuts (edges implied) to x = X1, X2 and z = Z1 at tick AT + the
+    /// lead (an empty list keeps an axis's cuts).
+    #[arg(long, value_name = "AT:XS/ZS", conflicts_with = "rebalance")]
+    pub rebalance_force: Vec<String>,
+    /// Serve the supervisor's Prometheus metrics (the zones' load and the cut moves) on
+    /// this address (`/metrics`).
+    #[arg(long)]
+    pub supervisor_metrics: Option<SocketAddr>,
     #[command(flatten)]
     pub common: ClusterCommon,
+}
+
+/// A forced cut move from `AT:X1,X2/Z1` (inner cuts; the layout's edges are kept; an
+/// empty list keeps the axis's cuts).
+fn parse_forced(text: &str, layout: &ZoneLayout) -> Result<ForcedMove> {
+    let bad = || anyhow::anyhow!("--rebalance-force {text:?}: expected AT:X1,X2/Z1 (inner cuts)");
+    let (at, cuts) = text.split_once(':').ok_or_else(bad)?;
+    let (xs, zs) = cuts.split_once('/').ok_or_else(bad)?;
+    let at: u64 = at.trim().parse().map_err(|_| bad())?;
+    let inner = |list: &str, now: &[f32]| -> Result<Vec<f32>> {
+        if list.trim().is_empty() {
+            return Ok(now.to_vec());
+        }
+        let mid = list.split(',').map(|c| c.trim().parse::<f32>().map_err(|_| bad())).collect::<Result<Vec<_>>>()?;
+        if mid.len() + 2 != now.len() {
+            bail!("--rebalance-force {text:?}: {} inner cuts for an axis that has {}", mid.len(), now.len() - 2);
+        }
+        Ok(std::iter::once(now[0]).chain(mid).chain(std::iter::once(now[now.len() - 1])).collect())
+    };
+    let (now_x, now_z) = layout.cuts();
+    Ok(ForcedMove { at, xs: inner(xs, now_x)?, zs: inner(zs, now_z)? })
+}
+
+/// The supervisor's rebalancing from the flags (`None`: the cuts stay).
+fn live_options(args: &ClusterArgs, layout: &ZoneLayout) -> Result<Option<LiveOptions>> {
+    let policy = if !args.rebalance_force.is_empty() {
+        LivePolicy::Forced(args.rebalance_force.iter().map(|f| parse_forced(f, layout)).collect::<Result<_>>()?)
+    } else if args.rebalance {
+        let hz = args.common.tick_hz;
+        let budget_ms = if hz > 0.0 { 1e3 / hz } else { StepTimeOptions::default().budget_ms };
+        LivePolicy::StepTime(StepTimeOptions { budget_ms, ..StepTimeOptions::default() })
+    } else {
+        return Ok(None);
+    };
+    Ok(Some(LiveOptions::new(args.rebalance_lead_ticks, policy)))
 }
 
 pub(crate) struct Prepared {
@@ -235,10 +290,14 @@ const CLUSTER_ONLY: &[&str] = &[
     "--nats-creds-dir",
     "--private-nats",
     "--write-nats-config",
+    "--rebalance",
+    "--rebalance-lead-ticks",
+    "--rebalance-force",
+    "--supervisor-metrics",
 ];
 
 /// The flags of [`CLUSTER_ONLY`] that take no value.
-const SWITCHES: &[&str] = &["--private-nats"];
+const SWITCHES: &[&str] = &["--private-nats", "--rebalance"];
 
 /// The command line of the cluster, less its own flags: what every zone gets.
 fn zone_flags() -> Vec<String> {
@@ -322,6 +381,12 @@ struct ClusterSummary {
     /// Every epoch's start: (epoch, checkpoint tick, its state hash).
     starts: Vec<(u64, u64, Option<String>)>,
     faults: Vec<String>,
+    /// Cut moves announced: (epoch, decided at, applied at, x cuts, z cuts).
+    cut_moves: Vec<(u64, u64, u64, Vec<f32>, Vec<f32>)>,
+    /// Ticks of the cut moves every zone applied.
+    cut_moves_applied: Vec<u64>,
+    /// Cut moves proposed and not announced, with why.
+    cut_moves_refused: Vec<String>,
     state_hash: String,
 }
 
@@ -350,7 +415,16 @@ fn event_line(e: &Event) -> Option<String> {
         }
         Event::Fault { reason, .. } => Some(fault_line(reason)),
         Event::Progress { epoch, tick } => Some(format!("epoch {epoch}      at tick {tick}")),
-        Event::Done { .. } => None,
+        Event::Cuts { what: Announcement::Send { cut, .. }, .. } => {
+            Some(format!("cut move     {}", cut_move_line(cut)))
+        }
+        Event::Cuts { what: Announcement::Applied(cut), .. } => {
+            Some(format!("cut move     applied by every zone at tick {}", cut.apply_at))
+        }
+        Event::Cuts { what: Announcement::Refused { decided_at, reason }, .. } => {
+            Some(format!("cut move     of tick {decided_at} refused: {reason}"))
+        }
+        Event::Cuts { .. } | Event::Done { .. } => None,
     }
 }
 
@@ -365,6 +439,13 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     }
     let p = prepare(&args.common)?;
     let zones = p.layout.len();
+    let rebalance = live_options(&args, &p.layout)?;
+    if let Some(addr) = args.supervisor_metrics {
+        metrics_exporter_prometheus::PrometheusBuilder::new()
+            .with_http_listener(addr)
+            .install()
+            .context("starting the supervisor's metrics endpoint")?;
+    }
     let nats = crate::cluster_nats::nats_for(
         args.nats.as_deref(),
         args.nats_creds_dir.as_deref(),
@@ -436,6 +517,8 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         objects: (!args.common.live).then_some(p.world.dynamics.len()),
         dead_after: Duration::from_millis(args.dead_ms),
         checkpoint_every: args.common.checkpoint_every,
+        layout: p.layout.clone(),
+        rebalance,
     };
     let mut summary = ClusterSummary {
         zones,
@@ -443,6 +526,9 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         total_ms: 0.0,
         starts: Vec::new(),
         faults: Vec::new(),
+        cut_moves: Vec::new(),
+        cut_moves_applied: Vec::new(),
+        cut_moves_refused: Vec::new(),
         state_hash: String::new(),
     };
     let start = Instant::now();
@@ -481,7 +567,14 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
                 summary.starts.push((*epoch, *tick, state_hash.map(hash_text)))
             }
             Event::Fault { reason, .. } => summary.faults.push(reason.clone()),
-            Event::Progress { .. } | Event::Done { .. } => {}
+            Event::Cuts { epoch, what: Announcement::Send { cut, .. } } => {
+                summary.cut_moves.push((*epoch, cut.decided_at, cut.apply_at, cut.xs.clone(), cut.zs.clone()))
+            }
+            Event::Cuts { what: Announcement::Applied(cut), .. } => summary.cut_moves_applied.push(cut.apply_at),
+            Event::Cuts { what: Announcement::Refused { decided_at, reason }, .. } => {
+                summary.cut_moves_refused.push(format!("tick {decided_at}: {reason}"))
+            }
+            Event::Cuts { .. } | Event::Progress { .. } | Event::Done { .. } => {}
         }
     };
     let result = supervise(&cfg, &link, &mut store, &mut restarted, &mut on_event);
@@ -510,6 +603,12 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         }
         for f in &summary.faults {
             println!("{}", fault_line(f));
+        }
+        for (epoch, decided, apply, xs, zs) in &summary.cut_moves {
+            let applied = if summary.cut_moves_applied.contains(apply) { "applied" } else { "not applied" };
+            println!(
+                "cut move     epoch {epoch}, decided at tick {decided}, tick {apply} ({applied}): x {xs:?}, z {zs:?}"
+            );
         }
         println!("state hash   {}", summary.state_hash);
     }

@@ -32,6 +32,8 @@ use crate::error::ZoneError;
 use crate::fabric::Fabric;
 use crate::intents::IntentBook;
 use crate::layout::{ZoneId, ZoneLayout};
+use crate::rebalance::live::{CutBook, CutRefused, layout_digest};
+use crate::rebalance::{CutMove, Cuts};
 use crate::replay::IntentLog;
 use crate::resident::ResidentWorld;
 use crate::stats::ZoneStats;
@@ -96,6 +98,11 @@ pub struct Zone {
     /// The intents taken since the last checkpoint, when the zone logs them
     /// ([`Zone::checkpoint_log`]).
     log: Option<IntentLog>,
+    /// The supervisor's cut move held for a coming tick ([`crate::rebalance::live`]).
+    cuts: CutBook,
+    /// The layout of the last step (or the one the zone started with): the cuts its
+    /// objects were stepped to this tick with, which a checkpoint of this tick records.
+    stepped_with: Arc<ZoneLayout>,
 }
 
 impl Zone {
@@ -133,6 +140,7 @@ impl Zone {
         let stats = ZoneStats { owned: resident.owned_count(), ..ZoneStats::default() };
         Ok(Zone {
             cfg,
+            stepped_with: layout.clone(),
             layout,
             resident,
             inbox: BTreeMap::new(),
@@ -141,6 +149,7 @@ impl Zone {
             stats,
             intents: IntentBook::new(world.tick),
             log: None,
+            cuts: CutBook::default(),
         })
     }
 
@@ -238,6 +247,61 @@ impl Zone {
         Ok(())
     }
 
+    /// The cuts the zone's objects were stepped to this tick with (its last step's, or
+    /// those it started with): what a checkpoint of this tick records.
+    pub fn stepped_cuts(&self) -> Cuts {
+        let (xs, zs) = self.stepped_with.cuts();
+        (xs.to_vec(), zs.to_vec())
+    }
+
+    /// [`crate::rebalance::live::cuts_digest`] of [`Zone::stepped_cuts`], for the
+    /// heartbeat.
+    pub fn stepped_digest(&self) -> u64 {
+        layout_digest(&self.stepped_with)
+    }
+
+    /// The tick of the cut move held for a coming tick (0: none), for the heartbeat.
+    pub fn pending_cut_move(&self) -> u64 {
+        self.cuts.pending()
+    }
+
+    /// Applies a cut move a replay logged at this tick (the live zone applied it before
+    /// stepping this tick): whether it could. A move for another tick, or one invalid
+    /// for the layout, is refused.
+    pub fn apply_logged_cut(&mut self, bytes: &[u8]) -> bool {
+        let t = self.tick();
+        let cut = match decode(&self.cfg.key, bytes) {
+            Ok(Message::CutMove { cut, .. }) if cut.apply_at == t => cut,
+            _ => return false,
+        };
+        match cut.validate(&self.layout) {
+            Ok(layout) => self.set_layout(Arc::new(layout)).is_ok(),
+            Err(_) => false,
+        }
+    }
+
+    /// Files a supervisor's cut move in the book, or counts why not.
+    fn take_cut_move(&mut self, run: u64, cut: CutMove, bytes: &[u8], t: u64) {
+        let taken = if run != self.cfg.run {
+            Err(CutRefused::Run { got: run, epoch: self.cfg.run })
+        } else {
+            self.cuts.offer(cut, bytes, t, &self.layout)
+        };
+        match taken {
+            Ok(fresh) => {
+                self.stats.messages.1 += 1;
+                if fresh {
+                    tracing::info!(zone = self.cfg.id.0, tick = t, apply_at = self.cuts.pending(), "cut move held");
+                }
+            }
+            Err(refused) => {
+                tracing::warn!(zone = self.cfg.id.0, tick = t, %refused, "cut move refused");
+                self.stats.cut_moves_refused += 1;
+                self.reject(refused.label(), t);
+            }
+        }
+    }
+
     /// The counters.
     pub fn stats(&self) -> &ZoneStats {
         &self.stats
@@ -254,6 +318,15 @@ impl Zone {
     /// the tick.
     pub fn step(&mut self, actions: &[ScriptedAction], k: &TickConstants) -> Result<TickEnd, ZoneError> {
         let t = self.tick();
+        // A cut move held for this tick: every zone follows it before sending this
+        // tick's borders, so the objects it moves are handed over at this exchange.
+        if let Some(held) = self.cuts.due(t) {
+            self.set_layout(held.layout)?;
+            if let Some(log) = &mut self.log {
+                log.record(t, &held.bytes);
+            }
+            tracing::info!(zone = self.cfg.id.0, tick = t, "cut move applied");
+        }
         let send = Instant::now();
         self.send_borders(t)?;
         self.stats.send += send.elapsed();
@@ -270,6 +343,7 @@ impl Zone {
         let applied = self.resident.set_actions(actions, &self.intents);
         let physics = Instant::now();
         self.backend.step(&mut self.resident.world, k)?;
+        self.stepped_with = self.layout.clone();
         self.stats.physics += physics.elapsed();
         self.stats.ticks += 1;
         self.stats.owned = self.resident.owned_count();
@@ -389,7 +463,8 @@ impl Zone {
     /// Files a message in the inbox, or rejects (and counts) it. Only authenticated
     /// border messages of this run, for this zone, from a neighbour, for this tick or the
     /// next (a neighbour is never further ahead), and not seen before, are kept. The
-    /// supervisor's halt and start are handed back: they interrupt the tick.
+    /// supervisor's halt and start are handed back: they interrupt the tick. Intents go
+    /// to the intent book, the supervisor's cut moves to the cut book.
     pub fn offer(&mut self, bytes: &[u8]) -> Option<Message> {
         let t = self.tick();
         let m = match decode(&self.cfg.key, bytes) {
@@ -397,6 +472,10 @@ impl Zone {
             Ok(control @ (Message::Halt { .. } | Message::Start { .. })) => return Some(control),
             Ok(Message::Intents(i)) => {
                 self.take_intents(i, bytes, t);
+                return None;
+            }
+            Ok(Message::CutMove { run, cut }) => {
+                self.take_cut_move(run, cut, bytes, t);
                 return None;
             }
             Ok(_) => return self.reject("kind", t),

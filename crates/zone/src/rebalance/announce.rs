@@ -104,6 +104,8 @@ struct Outstanding {
     digest: u64,
     /// When it was last sent (seconds).
     sent_at: f64,
+    /// Whether it was a forced move (announced again after a rollback to before it).
+    forced: bool,
 }
 
 /// Counts of a run's cut moves, for the summary and the metrics.
@@ -162,12 +164,17 @@ impl Announcer {
     }
 
     /// An epoch starts at `tick` on `cuts` (its checkpoint's): a move outstanding is
-    /// dropped, and forced moves whose tick has passed with it.
+    /// dropped (a forced one is announced again when its tick is still to come), and
+    /// forced moves whose tick has passed with it.
     pub fn restart(&mut self, tick: u64, cuts: &Cuts) -> Result<(), ZoneError> {
         self.layout = Arc::new(self.layout.with_cuts(&cuts.0, &cuts.1)?);
         self.history = vec![(0, cuts_digest(&cuts.0, &cuts.1))];
         if let Some(o) = self.outstanding.take() {
             tracing::warn!(apply_at = o.cut.apply_at, tick, "a rollback dropped the cut move outstanding");
+            if o.forced {
+                let CutMove { decided_at: at, xs, zs, .. } = o.cut;
+                self.forced.insert(0, ForcedMove { at, xs, zs });
+            }
         }
         let lead = self.opts.lead;
         self.forced.retain(|f| f.at + lead > tick);
@@ -220,6 +227,7 @@ impl Announcer {
             return out;
         };
         let top = view.iter().map(|b| b.tick).max().unwrap_or(0);
+        let forced = self.policy.is_none();
         let proposal = match &mut self.policy {
             Some(p) => {
                 let step_ms: Vec<f64> = view.iter().map(|b| b.load.step_us as f64 / 1e3).collect();
@@ -244,7 +252,7 @@ impl Announcer {
                 let digest = cuts_digest(&cut.xs, &cut.zs);
                 self.layout = Arc::new(layout);
                 self.history.push((apply_at, digest));
-                self.outstanding = Some(Outstanding { cut: cut.clone(), digest, sent_at: now });
+                self.outstanding = Some(Outstanding { cut: cut.clone(), digest, sent_at: now, forced });
                 self.counts.announced += 1;
                 out.push(Announcement::Send { cut, first: true });
             }

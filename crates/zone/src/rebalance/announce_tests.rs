@@ -40,7 +40,7 @@ fn a_forced_move_is_sent_until_held_and_applied_by_every_zone() {
 }
 
 #[test]
-fn a_zone_past_the_tick_on_the_old_cuts_is_a_divergence_and_a_rollback_drops_the_move() {
+fn a_zone_past_the_tick_on_the_old_cuts_is_a_divergence_and_a_rollback_announces_a_forced_move_again() {
     let l = layout();
     let old = cuts_digest(l.cuts().0, l.cuts().1);
     let moves = vec![forced(60, 230.0), forced(600, 250.0)];
@@ -55,10 +55,22 @@ fn a_zone_past_the_tick_on_the_old_cuts_is_a_divergence_and_a_rollback_drops_the
     // A zone on cuts nobody announced is caught the same way.
     let out = a.observe(0.6, &[beat(50, 12345, 0, 1), beat(50, old, 90, 1)]);
     assert!(matches!(&out[..], [Announcement::Diverged(_)]), "{out:?}");
-    // The rollback to tick 60 restarts on the checkpoint's (old) cuts: the move is gone;
-    // the next forced one is announced, for its own tick.
+    // The rollback to tick 60 restarts on the checkpoint's (old) cuts: the forced move,
+    // whose tick is still to come, is announced again; then the next one, for its tick.
     a.restart(60, &(vec![0.0, 200.0, 400.0], vec![0.0, 400.0])).unwrap();
-    let out = a.observe(1.0, &[beat(61, old, 0, 1), beat(61, old, 0, 1)]);
+    let out = a.observe(0.9, &[beat(61, old, 0, 1), beat(61, old, 0, 1)]);
+    assert!(matches!(&out[..], [Announcement::Send { cut, first: true }] if cut.apply_at == 90), "{out:?}");
+    let new = cuts_digest(&[0.0, 230.0, 400.0], &[0.0, 400.0]);
+    // Applied; the next forced move follows at once.
+    let out = a.observe(0.95, &[beat(91, new, 0, 1), beat(91, new, 0, 1)]);
+    assert!(
+        matches!(&out[..], [Announcement::Applied(_), Announcement::Send { cut, .. }] if cut.apply_at == 630),
+        "{out:?}"
+    );
+    // A rollback to after the first move's tick keeps it (the checkpoint's cuts hold it)
+    // and announces the second again.
+    a.restart(120, &(vec![0.0, 230.0, 400.0], vec![0.0, 400.0])).unwrap();
+    let out = a.observe(1.0, &[beat(121, new, 0, 1), beat(121, new, 0, 1)]);
     assert!(matches!(&out[..], [Announcement::Send { cut, first: true }] if cut.apply_at == 630), "{out:?}");
 }
 

@@ -95,13 +95,10 @@ pub fn run_zone_process(
                         pending.clear();
                     }
                     // Border states and cut moves of the coming epoch may come before its
-                    // start (the zone checks them once started).
-                    Ok(Message::Border(_) | Message::CutMove { .. }) => {
-                        if pending.len() == PENDING {
-                            pending.remove(0);
-                        }
-                        pending.push(bytes);
-                    }
+                    // start (the zone checks them once started; the supervisor's repeats
+                    // of an older epoch's move are dropped here, not counted as refused).
+                    Ok(Message::Border(_)) => hold(&mut pending, bytes),
+                    Ok(Message::CutMove { run, .. }) if run >= epoch => hold(&mut pending, bytes),
                     _ => {}
                 }
             },
@@ -190,6 +187,14 @@ pub fn run_zone_process(
             tracing::info!(zone = cfg.zone.0, epoch, tick, "done");
         }
     }
+}
+
+/// Keeps a message that came before its epoch's start (the oldest goes when full).
+fn hold(pending: &mut Vec<Vec<u8>>, bytes: Vec<u8>) {
+    if pending.len() == PENDING {
+        pending.remove(0);
+    }
+    pending.push(bytes);
 }
 
 /// A zone's step time (its own work and the physics, not the wait), averaged over about

@@ -112,8 +112,8 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     let other_gateway = server.link(Role::Gateway);
     let mut borders = zone.subscribe("myriad.c.zone.0".into()).unwrap();
     let mut control = zone.subscribe("myriad.c.control".into()).unwrap();
-    let mut cuts = other_zone.subscribe("myriad.c.cuts".into()).unwrap();
     let mut intents = other_zone.subscribe("myriad.c.intents".into()).unwrap();
+    let mut cuts = other_zone.subscribe("myriad.c.cuts".into()).unwrap();
     let mut beats = supervisor.subscribe("myriad.c.heartbeat.*".into()).unwrap();
     let mut states = other_gateway.subscribe("myriad.c.states".into()).unwrap();
     let mut claims = other_gateway.subscribe("myriad.c.sessions".into()).unwrap();

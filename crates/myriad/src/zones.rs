@@ -20,13 +20,13 @@ use myriad_zone::checkpoint::JetStreamCheckpoints;
 use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::nats::NatsLink;
 use myriad_zone::process::{ProcessConfig, run_zone_process};
-use myriad_zone::rebalance::announce::{Announcement, LiveOptions, LivePolicy};
-use myriad_zone::rebalance::{ForcedMove, StepTimeOptions};
+use myriad_zone::rebalance::announce::Announcement;
 use myriad_zone::supervisor::{Event, SupervisorConfig, cut_move_line, supervise};
 use myriad_zone::{ClusterKey, Fabric, NatsFabric, ZoneId, ZoneLayout};
 use serde::Serialize;
 
 use crate::cluster_nats::hand;
+use crate::cluster_rebalance::live_options;
 use crate::scenario_args::{ScenarioName, WorldArgs};
 
 /// The environment variable that carries the cluster's key (at least 16 bytes) to zone
@@ -167,41 +167,6 @@ pub struct ClusterArgs {
     pub supervisor_metrics: Option<SocketAddr>,
     #[command(flatten)]
     pub common: ClusterCommon,
-}
-
-/// A forced cut move from `AT:X1,X2/Z1` (inner cuts; the layout's edges are kept; an
-/// empty list keeps the axis's cuts).
-fn parse_forced(text: &str, layout: &ZoneLayout) -> Result<ForcedMove> {
-    let bad = || anyhow::anyhow!("--rebalance-force {text:?}: expected AT:X1,X2/Z1 (inner cuts)");
-    let (at, cuts) = text.split_once(':').ok_or_else(bad)?;
-    let (xs, zs) = cuts.split_once('/').ok_or_else(bad)?;
-    let at: u64 = at.trim().parse().map_err(|_| bad())?;
-    let inner = |list: &str, now: &[f32]| -> Result<Vec<f32>> {
-        if list.trim().is_empty() {
-            return Ok(now.to_vec());
-        }
-        let mid = list.split(',').map(|c| c.trim().parse::<f32>().map_err(|_| bad())).collect::<Result<Vec<_>>>()?;
-        if mid.len() + 2 != now.len() {
-            bail!("--rebalance-force {text:?}: {} inner cuts for an axis that has {}", mid.len(), now.len() - 2);
-        }
-        Ok(std::iter::once(now[0]).chain(mid).chain(std::iter::once(now[now.len() - 1])).collect())
-    };
-    let (now_x, now_z) = layout.cuts();
-    Ok(ForcedMove { at, xs: inner(xs, now_x)?, zs: inner(zs, now_z)? })
-}
-
-/// The supervisor's rebalancing from the flags (`None`: the cuts stay).
-fn live_options(args: &ClusterArgs, layout: &ZoneLayout) -> Result<Option<LiveOptions>> {
-    let policy = if !args.rebalance_force.is_empty() {
-        LivePolicy::Forced(args.rebalance_force.iter().map(|f| parse_forced(f, layout)).collect::<Result<_>>()?)
-    } else if args.rebalance {
-        let hz = args.common.tick_hz;
-        let budget_ms = if hz > 0.0 { 1e3 / hz } else { StepTimeOptions::default().budget_ms };
-        LivePolicy::StepTime(StepTimeOptions { budget_ms, ..StepTimeOptions::default() })
-    } else {
-        return Ok(None);
-    };
-    Ok(Some(LiveOptions::new(args.rebalance_lead_ticks, policy)))
 }
 
 pub(crate) struct Prepared {
@@ -381,13 +346,23 @@ struct ClusterSummary {
     /// Every epoch's start: (epoch, checkpoint tick, its state hash).
     starts: Vec<(u64, u64, Option<String>)>,
     faults: Vec<String>,
-    /// Cut moves announced: (epoch, decided at, applied at, x cuts, z cuts).
-    cut_moves: Vec<(u64, u64, u64, Vec<f32>, Vec<f32>)>,
+    /// Cut moves announced.
+    cut_moves: Vec<CutMoveSummary>,
     /// Ticks of the cut moves every zone applied.
     cut_moves_applied: Vec<u64>,
     /// Cut moves proposed and not announced, with why.
     cut_moves_refused: Vec<String>,
     state_hash: String,
+}
+
+/// A cut move the supervisor announced.
+#[derive(Serialize)]
+struct CutMoveSummary {
+    epoch: u64,
+    decided_at: u64,
+    apply_at: u64,
+    xs: Vec<f32>,
+    zs: Vec<f32>,
 }
 
 /// A state hash as the cluster prints it.
@@ -567,9 +542,13 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
                 summary.starts.push((*epoch, *tick, state_hash.map(hash_text)))
             }
             Event::Fault { reason, .. } => summary.faults.push(reason.clone()),
-            Event::Cuts { epoch, what: Announcement::Send { cut, .. } } => {
-                summary.cut_moves.push((*epoch, cut.decided_at, cut.apply_at, cut.xs.clone(), cut.zs.clone()))
-            }
+            Event::Cuts { epoch, what: Announcement::Send { cut, .. } } => summary.cut_moves.push(CutMoveSummary {
+                epoch: *epoch,
+                decided_at: cut.decided_at,
+                apply_at: cut.apply_at,
+                xs: cut.xs.clone(),
+                zs: cut.zs.clone(),
+            }),
             Event::Cuts { what: Announcement::Applied(cut), .. } => summary.cut_moves_applied.push(cut.apply_at),
             Event::Cuts { what: Announcement::Refused { decided_at, reason }, .. } => {
                 summary.cut_moves_refused.push(format!("tick {decided_at}: {reason}"))
@@ -604,10 +583,11 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         for f in &summary.faults {
             println!("{}", fault_line(f));
         }
-        for (epoch, decided, apply, xs, zs) in &summary.cut_moves {
-            let applied = if summary.cut_moves_applied.contains(apply) { "applied" } else { "not applied" };
+        for m in &summary.cut_moves {
+            let applied = if summary.cut_moves_applied.contains(&m.apply_at) { "applied" } else { "not applied" };
             println!(
-                "cut move     epoch {epoch}, decided at tick {decided}, tick {apply} ({applied}): x {xs:?}, z {zs:?}"
+                "cut move     epoch {}, decided at tick {}, tick {} ({applied}): x {:?}, z {:?}",
+                m.epoch, m.decided_at, m.apply_at, m.xs, m.zs
             );
         }
         println!("state hash   {}", summary.state_hash);

@@ -66,11 +66,12 @@ fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
     // The first move in epoch 1; the second announced in epoch 1 and again after the
     // rollback; both applied by every zone.
     let moves = v["cut_moves"].as_array().unwrap();
-    let ticks: Vec<(u64, u64)> = moves.iter().map(|m| (m[0].as_u64().unwrap(), m[2].as_u64().unwrap())).collect();
+    let ticks: Vec<(u64, u64)> =
+        moves.iter().map(|m| (m["epoch"].as_u64().unwrap(), m["apply_at"].as_u64().unwrap())).collect();
     assert_eq!(ticks.first(), Some(&(1, 90)), "{v}");
     assert_eq!(ticks.last().map(|t| t.1), Some(250), "{v}");
     assert!(ticks.last().unwrap().0 >= 2, "the second move was announced in the new epoch: {v}");
-    assert_eq!(moves.last().unwrap()[3], serde_json::json!([0.0, 500.0, 1024.0]), "{v}");
+    assert_eq!(moves.last().unwrap()["xs"], serde_json::json!([0.0, 500.0, 1024.0]), "{v}");
     let applied: Vec<u64> = v["cut_moves_applied"].as_array().unwrap().iter().map(|t| t.as_u64().unwrap()).collect();
     assert!(applied.contains(&90) && applied.contains(&250), "{v}");
     assert_eq!(v["state_hash"].as_str().unwrap(), sim_hash(360), "the end is one process's state");

@@ -23,6 +23,10 @@ use ring::hmac;
 use crate::layout::ZoneId;
 use crate::rebalance::{CutMove, Cuts};
 
+mod cuts;
+pub use cuts::Load;
+use cuts::{cut_block, read_cuts};
+
 /// First two bytes of every message.
 pub const MAGIC: [u8; 2] = *b"MZ";
 /// The format's version; a message of another version is refused. (2: heartbeats carry
@@ -54,9 +58,6 @@ pub const KIND_CLAIM: u8 = 8;
 pub const KIND_CUT_MOVE: u8 = 9;
 /// Bytes of a heartbeat's body: the zone's [`Load`].
 pub const LOAD_LEN: usize = 24;
-/// Most cuts per axis a message carries (a grid of at most `u16::MAX` zones has at most
-/// that many columns, plus one).
-const MAX_CUTS: u16 = u16::MAX;
 /// Bit of a record's flag byte that hands the object to the receiver.
 const YOURS: u8 = 1 << 7;
 
@@ -330,21 +331,6 @@ pub enum Message {
 /// The `to` field of messages for every zone.
 pub const ALL: ZoneId = ZoneId(u16::MAX);
 
-/// What a zone's heartbeat says of its work and its cuts, for the supervisor's
-/// rebalancing ([`crate::rebalance::announce`]).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Load {
-    /// Its step (the zone's own work and the physics, not the wait for neighbours), a
-    /// moving average over about a second, in microseconds.
-    pub step_us: u32,
-    /// Objects it owns.
-    pub owned: u32,
-    /// [`crate::rebalance::live::cuts_digest`] of the cuts it stepped its last tick with.
-    pub cuts: u64,
-    /// The `apply_at` of the cut move it accepted and has not applied yet (0: none).
-    pub pending: u64,
-}
-
 struct Head {
     kind: u8,
     run: u64,
@@ -444,33 +430,6 @@ pub fn encode_cut_move(key: &ClusterKey, run: u64, m: &CutMove) -> Result<Vec<u8
     encode_with_prefix(key, h, &prefix, std::iter::empty())
 }
 
-/// The header's counts of cuts (x, z) and the cuts' bytes: each axis at least two cuts,
-/// finite and ascending (what [`crate::ZoneLayout`] accepts as cuts at all).
-fn cut_block((xs, zs): &Cuts) -> Result<([u16; 2], Vec<u8>), WireError> {
-    let mut counts = [0u16; 2];
-    for (n, cuts) in counts.iter_mut().zip([xs, zs]) {
-        *n = u16::try_from(cuts.len()).ok().filter(|n| *n <= MAX_CUTS).ok_or(WireError::Field("cuts"))?;
-        check_cuts(cuts)?;
-    }
-    let b = xs.iter().chain(zs).flat_map(|c| c.to_le_bytes()).collect();
-    Ok((counts, b))
-}
-
-fn check_cuts(cuts: &[f32]) -> Result<(), WireError> {
-    let ok = cuts.len() >= 2 && cuts.iter().all(|c| c.is_finite()) && cuts.windows(2).all(|w| w[0] < w[1]);
-    if ok { Ok(()) } else { Err(WireError::Field("cuts")) }
-}
-
-/// Reads the cuts a header counts (`counts`: x, z) from the start of `body`.
-fn read_cuts(body: &[u8], counts: [u16; 2]) -> Result<Cuts, WireError> {
-    let (nx, nz) = (counts[0] as usize, counts[1] as usize);
-    let all: Vec<f32> = (0..nx + nz).map(|i| f32_at(body, 4 * i)).collect();
-    let (xs, zs) = (all[..nx].to_vec(), all[nx..].to_vec());
-    check_cuts(&xs)?;
-    check_cuts(&zs)?;
-    Ok((xs, zs))
-}
-
 /// Encodes and signs a zone's states for the gateways (`m.to` must be [`ALL`], and no
 /// object handed to anyone).
 pub fn encode_states(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError> {
@@ -501,12 +460,7 @@ pub fn encode_intents(key: &ClusterKey, m: &Intents) -> Result<Vec<u8>, WireErro
 pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
     let (h, prefix) = match m {
         &Message::Heartbeat { run, tick, zone, state, load } => {
-            let mut b = Vec::with_capacity(LOAD_LEN);
-            b.extend_from_slice(&load.step_us.to_le_bytes());
-            b.extend_from_slice(&load.owned.to_le_bytes());
-            b.extend_from_slice(&load.cuts.to_le_bytes());
-            b.extend_from_slice(&load.pending.to_le_bytes());
-            (Head { kind: KIND_HEARTBEAT, run, tick, from: zone, to: ALL, aux: [state as u16, 0] }, b)
+            (Head { kind: KIND_HEARTBEAT, run, tick, from: zone, to: ALL, aux: [state as u16, 0] }, load.to_bytes())
         }
         &Message::Halt { run } => (Head { kind: KIND_HALT, run, tick: 0, from: ALL, to: ALL, aux: [0, 0] }, vec![]),
         Message::Start { run, tick, cuts } => {
@@ -667,12 +621,7 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
         }
         KIND_HEARTBEAT => {
             none(count == 0 && aux1 == 0 && to == ALL, "heartbeat header")?;
-            let load = Load {
-                step_us: u32_at(fixed, 0),
-                owned: u32_at(fixed, 4),
-                cuts: u64_at(fixed, 8),
-                pending: u64_at(fixed, 16),
-            };
+            let load = Load::from_bytes(fixed);
             let state = match aux0 {
                 0 => ZoneState::Waiting,
                 1 => ZoneState::Running,

@@ -57,6 +57,9 @@ impl Fabric for WithSupervisor {
     }
 }
 
+/// How a zone thread makes its zone, given its fabric.
+type MakeZone<'a> = Box<dyn FnOnce(Box<dyn Fabric>) -> Zone + Send + 'a>;
+
 /// A small dense world: strips of objects lie between a cut and its moved place.
 fn world() -> World {
     ScenarioSpec::custom(5).counts(600, 60, 60).map_size(96.0, 33).build().unwrap()
@@ -81,7 +84,7 @@ fn good_move(l: &ZoneLayout) -> CutMove {
 /// checkpoint and its log segment every [`EVERY`] ticks (as a zone process does), with
 /// `messages` waiting on every zone's supervisor channel; returns each zone's counters.
 fn run(
-    zones: Vec<Box<dyn FnOnce(Box<dyn Fabric>) -> Zone + Send + '_>>,
+    zones: Vec<MakeZone<'_>>,
     messages: &[Vec<u8>],
     script: &ActionScript,
     until: u64,
@@ -126,17 +129,13 @@ fn config(key: &ClusterKey, z: usize) -> ZoneConfig {
 }
 
 /// Zones made from the generated world on `layout`.
-fn fresh<'a>(
-    world: &'a World,
-    layout: &ZoneLayout,
-    key: &'a ClusterKey,
-) -> Vec<Box<dyn FnOnce(Box<dyn Fabric>) -> Zone + Send + 'a>> {
+fn fresh<'a>(world: &'a World, layout: &ZoneLayout, key: &'a ClusterKey) -> Vec<MakeZone<'a>> {
     let shared = Arc::new(layout.clone());
     (0..layout.len())
         .map(|z| {
             let l = shared.clone();
             Box::new(move |f: Box<dyn Fabric>| Zone::new(config(key, z), l, world, cpu(ZoneId(0)).unwrap(), f).unwrap())
-                as Box<dyn FnOnce(Box<dyn Fabric>) -> Zone + Send + 'a>
+                as MakeZone<'a>
         })
         .collect()
 }
@@ -201,14 +200,14 @@ fn zones_restarted_after_a_move_resume_on_its_cuts_and_a_replay_applies_it_at_it
     // Killed at tick 90 and restarted from the checkpoint: on the moved cuts.
     let mut at = world.clone();
     at.tick = 90;
-    let restarted: Vec<Box<dyn FnOnce(Box<dyn Fabric>) -> Zone + Send + '_>> = (0..4)
+    let restarted: Vec<MakeZone<'_>> = (0..4)
         .map(|z| {
             let snap = s.get(ZoneId(z as u16), 90).unwrap();
             let moved = Arc::new(l.with_cuts(&snap.cuts.0, &snap.cuts.1).unwrap());
             let (at, key) = (&at, &key);
             Box::new(move |f: Box<dyn Fabric>| {
                 Zone::resume(config(key, z), moved, at, snap.objects, cpu(ZoneId(0)).unwrap(), f).unwrap()
-            }) as Box<dyn FnOnce(Box<dyn Fabric>) -> Zone + Send + '_>
+            }) as MakeZone<'_>
         })
         .collect();
     run(restarted, &[], &script, 150, &store);

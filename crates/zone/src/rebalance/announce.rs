@@ -183,7 +183,7 @@ impl Announcer {
 
     /// The digest of the cuts announced for stepping tick `t`.
     fn expected(&self, t: u64) -> u64 {
-        let after_start = self.history.iter().skip(1).filter(|(a, _)| *a <= t).last();
+        let after_start = self.history.iter().skip(1).rfind(|(a, _)| *a <= t);
         after_start.unwrap_or(&self.history[0]).1
     }
 

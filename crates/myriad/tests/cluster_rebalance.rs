@@ -10,7 +10,7 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
-use common::{collect_stderr, sim_hash};
+use common::{collect_stderr, free_ports, sim_hash};
 
 const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
 
@@ -18,11 +18,12 @@ const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
 fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
     let Some(url) = myriad_testenv::nats_url() else { return };
     let name = format!("rb{}", std::process::id());
+    let metrics = format!("127.0.0.1:{}", free_ports(1));
     let world = ["--zones", "2", "--scenario", "1", "--backend", "cpu", "--ticks", "360", "--checkpoint-every", "30"];
     let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
         .args(["cluster", "--json", "--nats", &url, "--cluster", &name])
         .args(world)
-        .args(["--tick-hz", "60", "--dead-ms", "1000", "--keep-checkpoints", "20"])
+        .args(["--tick-hz", "60", "--dead-ms", "1000", "--keep-checkpoints", "20", "--supervisor-metrics", &metrics])
         // Scenario 1 spans x 0..1024: the cut at 512 goes to 530 at tick 90, then to 500
         // at tick 250.
         .args(["--rebalance-force", "60:530/", "--rebalance-force", "220:500/", "--rebalance-lead-ticks", "30"])
@@ -49,6 +50,24 @@ fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
     }
     assert!(log.iter().any(|l| past(l)), "the cluster never got past tick 150: {log:#?}");
     let victim = victim.expect("zone 1's pid");
+    // The supervisor's metrics: the first move applied, the second announced, and each
+    // zone's load from its heartbeats.
+    let page = {
+        use std::io::{Read, Write};
+        let mut s = std::net::TcpStream::connect(&metrics).unwrap();
+        s.write_all(b"GET /metrics HTTP/1.0\r\nHost: x\r\n\r\n").unwrap();
+        let mut page = String::new();
+        s.read_to_string(&mut page).unwrap();
+        page
+    };
+    for line in [
+        "myriad_supervisor_cut_moves_total{outcome=\"announced\"} 2",
+        "myriad_supervisor_cut_moves_total{outcome=\"applied\"} 1",
+        "myriad_supervisor_zone_owned_objects{zone=\"1\"}",
+        "myriad_supervisor_zone_step_seconds{zone=\"0\"}",
+    ] {
+        assert!(page.contains(line), "{line} not in {page}");
+    }
     // SAFETY: a signal to a process this test's cluster started; no memory is involved.
     assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
     let out = cluster.wait_with_output().unwrap();

@@ -20,6 +20,11 @@
 //!   from the checkpoint's cuts, and the policy decides again). So zones never go on
 //!   with different cuts unseen; the lead only makes a rollback rare.
 //!
+//! Not [`crate::rebalance::Coordinator`]: it waits for every zone's report of one tick
+//! and makes the zones wait for its answer, which a live cluster's zones must not do for
+//! the supervisor; the announcer decides from whatever heartbeats it has and announces
+//! far enough ahead instead.
+//!
 //! Forced moves (tests, `myriad cluster --rebalance-force`) are announced as soon as
 //! nothing is outstanding, each for its own `at + lead`, so a test knows the tick a
 //! cut moves at; one whose tick the zones have passed before it could be announced is

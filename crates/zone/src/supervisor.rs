@@ -330,3 +330,60 @@ fn rebalance(
 pub fn cut_move_line(cut: &CutMove) -> String {
     format!("decided at tick {}, applied at tick {}: x {:?}, z {:?}", cut.decided_at, cut.apply_at, cut.xs, cut.zs)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::checkpoint::MemoryCheckpoints;
+    use myriad_core::{Aabb, EntityId, ObjectKind, ShapeKind, Vec3};
+
+    fn object(id: u32) -> ObjectState {
+        ObjectState {
+            id: EntityId(id),
+            kind: ObjectKind::Npc,
+            shape: ShapeKind::Sphere,
+            half: Vec3::splat(0.5),
+            radius: 0.5,
+            pos: Vec3::ONE,
+            prev: Vec3::ONE,
+            action: 0,
+            flags: 0,
+        }
+    }
+
+    /// A zone that missed a cut move stores its checkpoints on the old cuts: a rollback
+    /// passes over the ticks whose checkpoints disagree, to the newest where all agree.
+    #[test]
+    fn a_rollback_starts_from_the_newest_checkpoint_whose_cuts_agree() {
+        let key = ClusterKey::random();
+        let layout = ZoneLayout::for_count(&Aabb::new(Vec3::ZERO, Vec3::splat(100.0)), 2, 1.5, 2.0).unwrap();
+        let cfg = SupervisorConfig {
+            cluster: "c".into(),
+            key: key.clone(),
+            zones: 2,
+            ticks: 300,
+            objects: Some(2),
+            dead_after: Duration::from_secs(1),
+            checkpoint_every: 30,
+            layout,
+            rebalance: None,
+        };
+        let mut store = MemoryCheckpoints::new(key);
+        let old = (vec![0.0, 50.0, 100.0], vec![0.0, 100.0]);
+        let moved = (vec![0.0, 60.0, 100.0], vec![0.0, 100.0]);
+        for (t, zone1_cuts) in [(30, &old), (60, &old), (90, &moved)] {
+            store.put(ZoneId(0), t, 1, if t == 30 { &old } else { &moved }, &[object(1)]).unwrap();
+            store.put(ZoneId(1), t, 1, zone1_cuts, &[object(2)]).unwrap();
+        }
+        // Tick 60: zone 1 still on the old cuts (it missed the move of tick 45).
+        let (tick, cuts, hash) = start_point(&cfg, &mut store, &[60, 30, 0]).unwrap();
+        assert_eq!((tick, &cuts), (30, &old));
+        assert!(hash.is_some());
+        assert!(assemble(&mut store, 2, 60, None).is_err(), "a world of two cuts is not one world");
+        // Tick 90 agrees again (on the moved cuts) and is the newest: taken.
+        assert_eq!(start_point(&cfg, &mut store, &[90, 60, 30]).unwrap().1, moved);
+        // No checkpoint: the generated world on the layout's own cuts.
+        let (tick, cuts, hash) = start_point(&cfg, &mut store, &[150, 120]).unwrap();
+        assert_eq!((tick, cuts, hash), (0, old, None));
+    }
+}

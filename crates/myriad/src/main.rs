@@ -19,6 +19,7 @@ mod admin;
 mod bench;
 mod bots;
 mod cluster_nats;
+mod cluster_rebalance;
 mod demo;
 mod flood;
 mod gateway;

@@ -54,6 +54,7 @@ struct ReplaySummary {
     to: u64,
     epoch: u64,
     intents: usize,
+    cut_moves: usize,
     replay_ms: f64,
     state_hash: String,
     live_state_hash: String,
@@ -103,7 +104,12 @@ pub fn run(args: ReplayArgs) -> Result<()> {
     let Some((from, (epoch, inputs))) = loaded else {
         bail!("no checkpoint to replay from: {}", last_error.map_or("none stored".into(), |e| e.to_string()));
     };
-    let intents = inputs.iter().map(|z| z.entries.len()).sum();
+    // Every zone logs every cut move it applied: count them once, and the intents of all.
+    let moves_of = |z: &myriad_zone::replay::ZoneReplay| {
+        z.entries.iter().filter(|(_, m)| myriad_zone::replay::is_cut_move(m)).count()
+    };
+    let cut_moves = inputs.first().map_or(0, moves_of);
+    let intents = inputs.iter().map(|z| z.entries.len() - moves_of(z)).sum();
     let live = assemble(&mut store, zones, to, None)?.0;
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     let (kind, gpus) = (c.backend, args.gpus.max(1));
@@ -116,6 +122,7 @@ pub fn run(args: ReplayArgs) -> Result<()> {
         to,
         epoch,
         intents,
+        cut_moves,
         replay_ms: start.elapsed().as_secs_f64() * 1e3,
         state_hash: format!("{:016x}", run.state_hash),
         live_state_hash: format!("{live:016x}"),
@@ -125,8 +132,9 @@ pub fn run(args: ReplayArgs) -> Result<()> {
         println!("{}", serde_json::to_string(&summary)?);
     } else {
         println!(
-            "replay       {zones} zones, ticks {from}..{to} of epoch {epoch}, {intents} intents messages, {:.0} ms",
-            summary.replay_ms
+            "replay       {zones} zones, ticks {from}..{to} of epoch {epoch}, {intents} intents messages, {} cut \
+             moves, {:.0} ms",
+            summary.cut_moves, summary.replay_ms
         );
         println!("state hash   {} (live: {})", summary.state_hash, summary.live_state_hash);
     }

@@ -20,11 +20,13 @@ use myriad_zone::checkpoint::JetStreamCheckpoints;
 use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::nats::NatsLink;
 use myriad_zone::process::{ProcessConfig, run_zone_process};
-use myriad_zone::supervisor::{Event, SupervisorConfig, supervise};
+use myriad_zone::rebalance::announce::Announcement;
+use myriad_zone::supervisor::{Event, SupervisorConfig, cut_move_line, supervise};
 use myriad_zone::{ClusterKey, Fabric, NatsFabric, ZoneId, ZoneLayout};
 use serde::Serialize;
 
 use crate::cluster_nats::hand;
+use crate::cluster_rebalance::live_options;
 use crate::scenario_args::{ScenarioName, WorldArgs};
 
 /// The environment variable that carries the cluster's key (at least 16 bytes) to zone
@@ -145,6 +147,24 @@ pub struct ClusterArgs {
     /// Where the gateways keep their data.
     #[arg(long, default_value = "myriad-cluster")]
     pub gateway_data: PathBuf,
+    /// Move the cuts while the cluster runs, from the step times the zones report (a zone
+    /// over 80 % of the tick budget or 1.3 × the mean for 3 s gives up area; docs/zones.md,
+    /// "Boundaries that follow the load").
+    #[arg(long)]
+    pub rebalance: bool,
+    /// Ticks between the highest tick any zone reported and a cut move's tick: more than
+    /// the zones step between two heartbeats (250 ms) and a delivery.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..))]
+    pub rebalance_lead_ticks: u64,
+    /// Instead of the step-time policy, exactly these moves (repeatable): `AT:X1,X2/Z1`
+    /// moves the inner cuts (edges implied) to x = X1, X2 and z = Z1 at tick AT + the
+    /// lead (an empty list keeps an axis's cuts).
+    #[arg(long, value_name = "AT:XS/ZS", conflicts_with = "rebalance")]
+    pub rebalance_force: Vec<String>,
+    /// Serve the supervisor's Prometheus metrics (the zones' load and the cut moves) on
+    /// this address (`/metrics`).
+    #[arg(long)]
+    pub supervisor_metrics: Option<SocketAddr>,
     #[command(flatten)]
     pub common: ClusterCommon,
 }
@@ -235,10 +255,14 @@ const CLUSTER_ONLY: &[&str] = &[
     "--nats-creds-dir",
     "--private-nats",
     "--write-nats-config",
+    "--rebalance",
+    "--rebalance-lead-ticks",
+    "--rebalance-force",
+    "--supervisor-metrics",
 ];
 
 /// The flags of [`CLUSTER_ONLY`] that take no value.
-const SWITCHES: &[&str] = &["--private-nats"];
+const SWITCHES: &[&str] = &["--private-nats", "--rebalance"];
 
 /// The command line of the cluster, less its own flags: what every zone gets.
 fn zone_flags() -> Vec<String> {
@@ -322,7 +346,23 @@ struct ClusterSummary {
     /// Every epoch's start: (epoch, checkpoint tick, its state hash).
     starts: Vec<(u64, u64, Option<String>)>,
     faults: Vec<String>,
+    /// Cut moves announced.
+    cut_moves: Vec<CutMoveSummary>,
+    /// Ticks of the cut moves every zone applied.
+    cut_moves_applied: Vec<u64>,
+    /// Cut moves proposed and not announced, with why.
+    cut_moves_refused: Vec<String>,
     state_hash: String,
+}
+
+/// A cut move the supervisor announced.
+#[derive(Serialize)]
+struct CutMoveSummary {
+    epoch: u64,
+    decided_at: u64,
+    apply_at: u64,
+    xs: Vec<f32>,
+    zs: Vec<f32>,
 }
 
 /// A state hash as the cluster prints it.
@@ -350,7 +390,16 @@ fn event_line(e: &Event) -> Option<String> {
         }
         Event::Fault { reason, .. } => Some(fault_line(reason)),
         Event::Progress { epoch, tick } => Some(format!("epoch {epoch}      at tick {tick}")),
-        Event::Done { .. } => None,
+        Event::Cuts { what: Announcement::Send { cut, .. }, .. } => {
+            Some(format!("cut move     {}", cut_move_line(cut)))
+        }
+        Event::Cuts { what: Announcement::Applied(cut), .. } => {
+            Some(format!("cut move     applied by every zone at tick {}", cut.apply_at))
+        }
+        Event::Cuts { what: Announcement::Refused { decided_at, reason }, .. } => {
+            Some(format!("cut move     of tick {decided_at} refused: {reason}"))
+        }
+        Event::Cuts { .. } | Event::Done { .. } => None,
     }
 }
 
@@ -365,6 +414,13 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
     }
     let p = prepare(&args.common)?;
     let zones = p.layout.len();
+    let rebalance = live_options(&args, &p.layout)?;
+    if let Some(addr) = args.supervisor_metrics {
+        metrics_exporter_prometheus::PrometheusBuilder::new()
+            .with_http_listener(addr)
+            .install()
+            .context("starting the supervisor's metrics endpoint")?;
+    }
     let nats = crate::cluster_nats::nats_for(
         args.nats.as_deref(),
         args.nats_creds_dir.as_deref(),
@@ -436,6 +492,8 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         objects: (!args.common.live).then_some(p.world.dynamics.len()),
         dead_after: Duration::from_millis(args.dead_ms),
         checkpoint_every: args.common.checkpoint_every,
+        layout: p.layout.clone(),
+        rebalance,
     };
     let mut summary = ClusterSummary {
         zones,
@@ -443,6 +501,9 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         total_ms: 0.0,
         starts: Vec::new(),
         faults: Vec::new(),
+        cut_moves: Vec::new(),
+        cut_moves_applied: Vec::new(),
+        cut_moves_refused: Vec::new(),
         state_hash: String::new(),
     };
     let start = Instant::now();
@@ -481,7 +542,18 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
                 summary.starts.push((*epoch, *tick, state_hash.map(hash_text)))
             }
             Event::Fault { reason, .. } => summary.faults.push(reason.clone()),
-            Event::Progress { .. } | Event::Done { .. } => {}
+            Event::Cuts { epoch, what: Announcement::Send { cut, .. } } => summary.cut_moves.push(CutMoveSummary {
+                epoch: *epoch,
+                decided_at: cut.decided_at,
+                apply_at: cut.apply_at,
+                xs: cut.xs.clone(),
+                zs: cut.zs.clone(),
+            }),
+            Event::Cuts { what: Announcement::Applied(cut), .. } => summary.cut_moves_applied.push(cut.apply_at),
+            Event::Cuts { what: Announcement::Refused { decided_at, reason }, .. } => {
+                summary.cut_moves_refused.push(format!("tick {decided_at}: {reason}"))
+            }
+            Event::Cuts { .. } | Event::Progress { .. } | Event::Done { .. } => {}
         }
     };
     let result = supervise(&cfg, &link, &mut store, &mut restarted, &mut on_event);
@@ -510,6 +582,13 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         }
         for f in &summary.faults {
             println!("{}", fault_line(f));
+        }
+        for m in &summary.cut_moves {
+            let applied = if summary.cut_moves_applied.contains(&m.apply_at) { "applied" } else { "not applied" };
+            println!(
+                "cut move     epoch {}, decided at tick {}, tick {} ({applied}): x {:?}, z {:?}",
+                m.epoch, m.decided_at, m.apply_at, m.xs, m.zs
+            );
         }
         println!("state hash   {}", summary.state_hash);
     }

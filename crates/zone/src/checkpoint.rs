@@ -17,17 +17,29 @@ use tokio::io::AsyncReadExt;
 
 use crate::error::ZoneError;
 use crate::layout::ZoneId;
+use crate::rebalance::Cuts;
 use crate::wire::{ClusterKey, Message, decode, encode_checkpoint};
+
+/// A zone's checkpoint: its objects at a tick and the cuts they were stepped there
+/// with (so a zone restarted after a cut move resumes on the moved cuts).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Snapshot {
+    /// The cuts along x and z.
+    pub cuts: Cuts,
+    /// The objects, by id.
+    pub objects: Vec<ObjectState>,
+}
 
 /// Where checkpoints live. Names are `z<zone>-t<tick>`, so that nobody needs to list a
 /// bucket (listing a bucket that others write to is slow on JetStream).
 pub trait CheckpointStore: Send {
-    /// Stores zone `zone`'s objects at `tick`.
-    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError>;
+    /// Stores zone `zone`'s objects at `tick`, stepped there with `cuts`.
+    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, cuts: &Cuts, objects: &[ObjectState])
+    -> Result<(), ZoneError>;
     /// Whether zone `zone` has a checkpoint at `tick`.
     fn has(&mut self, zone: ZoneId, tick: u64) -> Result<bool, ZoneError>;
-    /// Zone `zone`'s objects at `tick`.
-    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError>;
+    /// Zone `zone`'s checkpoint of `tick`.
+    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Snapshot, ZoneError>;
     /// Drops zone `zone`'s checkpoint at `tick`, and its intent log segment that starts
     /// there, if there are.
     fn forget(&mut self, zone: ZoneId, tick: u64) -> Result<(), ZoneError>;
@@ -69,9 +81,11 @@ fn log_name(zone: ZoneId, tick: u64) -> String {
     format!("z{}-t{tick}-log", zone.0)
 }
 
-fn checked(key: &ClusterKey, bytes: &[u8], zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
+fn checked(key: &ClusterKey, bytes: &[u8], zone: ZoneId, tick: u64) -> Result<Snapshot, ZoneError> {
     match decode(key, bytes) {
-        Ok(Message::Checkpoint { tick: t, zone: z, objects, .. }) if t == tick && z == zone => Ok(objects),
+        Ok(Message::Checkpoint { tick: t, zone: z, cuts, objects, .. }) if t == tick && z == zone => {
+            Ok(Snapshot { cuts, objects })
+        }
         Ok(_) => Err(ZoneError::Checkpoint(format!("{} holds another zone's or tick's state", name(zone, tick)))),
         Err(e) => Err(ZoneError::Checkpoint(format!("{} refused: {e}", name(zone, tick)))),
     }
@@ -151,8 +165,15 @@ impl JetStreamCheckpoints {
 }
 
 impl CheckpointStore for JetStreamCheckpoints {
-    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError> {
-        let bytes = encode_checkpoint(&self.key, run, tick, zone, objects)?;
+    fn put(
+        &mut self,
+        zone: ZoneId,
+        tick: u64,
+        run: u64,
+        cuts: &Cuts,
+        objects: &[ObjectState],
+    ) -> Result<(), ZoneError> {
+        let bytes = encode_checkpoint(&self.key, run, tick, zone, cuts, objects)?;
         self.put_bytes(&name(zone, tick), &bytes)
     }
 
@@ -161,7 +182,7 @@ impl CheckpointStore for JetStreamCheckpoints {
         Ok(self.rt.block_on(async { store.info(name(zone, tick)).await }).is_ok_and(|i| !i.deleted))
     }
 
-    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
+    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Snapshot, ZoneError> {
         let bytes = self.get_bytes(&name(zone, tick))?;
         checked(&self.key, &bytes, zone, tick)
     }
@@ -202,9 +223,16 @@ impl MemoryCheckpoints {
 }
 
 impl CheckpointStore for MemoryCheckpoints {
-    fn put(&mut self, zone: ZoneId, tick: u64, run: u64, objects: &[ObjectState]) -> Result<(), ZoneError> {
+    fn put(
+        &mut self,
+        zone: ZoneId,
+        tick: u64,
+        run: u64,
+        cuts: &Cuts,
+        objects: &[ObjectState],
+    ) -> Result<(), ZoneError> {
         let key = self.key.as_ref().ok_or_else(|| ZoneError::Checkpoint("no key".into()))?;
-        let bytes = encode_checkpoint(key, run, tick, zone, objects)?;
+        let bytes = encode_checkpoint(key, run, tick, zone, cuts, objects)?;
         self.blobs.lock().expect("not poisoned").insert((zone, tick, false), bytes);
         Ok(())
     }
@@ -213,7 +241,7 @@ impl CheckpointStore for MemoryCheckpoints {
         Ok(self.blobs.lock().expect("not poisoned").contains_key(&(zone, tick, false)))
     }
 
-    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Vec<ObjectState>, ZoneError> {
+    fn get(&mut self, zone: ZoneId, tick: u64) -> Result<Snapshot, ZoneError> {
         let key = self.key.as_ref().ok_or_else(|| ZoneError::Checkpoint("no key".into()))?;
         let blobs = self.blobs.lock().expect("not poisoned");
         let bytes =
@@ -263,14 +291,15 @@ mod tests {
         };
         let candidates = [60, 30, 0];
         assert_eq!(s.latest_consistent(2, &candidates).unwrap(), None);
+        let cuts = (vec![0.0, 5.0, 10.0], vec![0.0, 10.0]);
         for (z, t) in [(0, 0), (1, 0), (0, 30), (1, 30), (0, 60)] {
-            s.put(ZoneId(z), t, 1, &[o]).unwrap();
+            s.put(ZoneId(z), t, 1, &cuts, &[o]).unwrap();
         }
         assert_eq!(s.latest_consistent(2, &candidates).unwrap(), Some(30));
         assert_eq!(s.latest_consistent(3, &candidates).unwrap(), None);
         s.forget(ZoneId(1), 30).unwrap();
         assert_eq!(s.latest_consistent(2, &candidates).unwrap(), Some(0));
-        assert_eq!(s.get(ZoneId(0), 60).unwrap(), vec![o]);
+        assert_eq!(s.get(ZoneId(0), 60).unwrap(), Snapshot { cuts, objects: vec![o] });
         assert!(s.get(ZoneId(1), 60).is_err());
         // A blob signed with another key is refused.
         let mut other = MemoryCheckpoints { blobs: s.blobs.clone(), key: Some(ClusterKey::random()) };

@@ -6,7 +6,8 @@
 //! signed message can be *replayed* by anyone who can publish on the subject (an old
 //! heartbeat hiding a dead zone, for example). Permissions close that to everyone whose
 //! credentials do not hold the role: a gateway cannot publish border states, states,
-//! heartbeats, control or checkpoints; a zone cannot publish session claims or intents,
+//! heartbeats, control, cut moves or checkpoints; a zone cannot publish session claims,
+//! intents or cut moves,
 //! nor another zone's heartbeat (each zone has its own user, allowed its own heartbeat
 //! subject only, and the supervisor checks the subject against the heartbeat's zone); a
 //! client without credentials cannot connect at all. The table is in `docs/zones.md`
@@ -24,7 +25,8 @@ use crate::claims::sessions_subject;
 use crate::error::ZoneError;
 use crate::layout::ZoneId;
 use crate::nats::{
-    check_cluster_name, control_subject, heartbeat_subject, heartbeats_subject, intents_subject, states_subject,
+    check_cluster_name, control_subject, cuts_subject, heartbeat_subject, heartbeats_subject, intents_subject,
+    states_subject,
 };
 
 /// The user name variable (with [`PASSWORD_ENV`]).
@@ -149,14 +151,23 @@ pub fn permissions(cluster: &str, role: Role) -> Permissions {
                 .into_iter()
                 .chain(object_store(cluster, false))
                 .collect(),
-            subscribe: vec![zones, control_subject(cluster), intents_subject(cluster), INBOX.into()],
+            subscribe: vec![
+                zones,
+                control_subject(cluster),
+                intents_subject(cluster),
+                cuts_subject(cluster),
+                INBOX.into(),
+            ],
         },
         Role::Gateway => Permissions {
             publish: vec![intents_subject(cluster), sessions_subject(cluster)],
             subscribe: vec![states_subject(cluster), sessions_subject(cluster)],
         },
         Role::Supervisor => Permissions {
-            publish: std::iter::once(control_subject(cluster)).chain(object_store(cluster, true)).collect(),
+            publish: [control_subject(cluster), cuts_subject(cluster)]
+                .into_iter()
+                .chain(object_store(cluster, true))
+                .collect(),
             subscribe: vec![heartbeats_subject(cluster), INBOX.into()],
         },
     }

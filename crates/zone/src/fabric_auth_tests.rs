@@ -33,6 +33,9 @@ fn each_role_publishes_exactly_its_subjects() {
         ("myriad.c.heartbeat.1", [false, true, false, false]),
         ("myriad.c.heartbeat", [false; 4]),
         ("myriad.c.control", [false, false, false, true]),
+        // Cut moves: the supervisor's alone.
+        ("myriad.c.cuts", [false, false, false, true]),
+        ("myriad.d.cuts", [false; 4]),
         ("myriad.c.intents", [false, false, true, false]),
         ("myriad.c.sessions", [false, false, true, false]),
         ("$O.myriad-c.C.abc", [true, true, false, true]),
@@ -63,6 +66,8 @@ fn each_role_hears_only_what_is_addressed_to_it() {
     let table: &[(&str, [bool; 4])] = &[
         ("myriad.c.zone.3", [true, true, false, false]),
         ("myriad.c.control", [true, true, false, false]),
+        // Every zone hears the cut moves; gateways route nothing by the cuts.
+        ("myriad.c.cuts", [true, true, false, false]),
         ("myriad.c.intents", [true, true, false, false]),
         ("myriad.c.heartbeat.0", [false, false, false, true]),
         ("myriad.c.heartbeat.*", [false, false, false, true]),

@@ -5,7 +5,8 @@
 //! - `myriad.c.control`: the supervisor's halt and start, to every zone;
 //! - `myriad.c.heartbeat.<z>`: zone `z`'s heartbeat, to the supervisor;
 //! - `myriad.c.states`: every zone's owned objects after each step, to the gateways;
-//! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone.
+//! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone;
+//! - `myriad.c.cuts`: the supervisor's cut moves, to every zone.
 //!
 //! Who may publish and subscribe to each is [`crate::fabric_auth`]'s table; every
 //! connection presents a [`NatsAuth`] (none: a server without auth).
@@ -25,7 +26,7 @@ use crate::error::ZoneError;
 use crate::fabric::Fabric;
 use crate::fabric_auth::{CA_ENV, CREDS_ENV, NatsAuth, PASSWORD_ENV, USER_ENV};
 use crate::layout::ZoneId;
-use crate::wire::{ClusterKey, Message, ZoneState, encode_control};
+use crate::wire::{ClusterKey, Load, Message, ZoneState, encode_control};
 
 /// The subject zone `z` of `cluster` listens on.
 pub fn zone_subject(cluster: &str, z: ZoneId) -> String {
@@ -56,6 +57,11 @@ pub fn states_subject(cluster: &str) -> String {
 /// The subject of the gateways' intents for the zones.
 pub fn intents_subject(cluster: &str) -> String {
     format!("myriad.{cluster}.intents")
+}
+
+/// The subject of the supervisor's cut moves for the zones.
+pub fn cuts_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.cuts")
 }
 
 /// Checks a cluster name: letters, digits, `-` and `_`, so it is one subject token.
@@ -186,6 +192,8 @@ pub struct Beat {
     pub tick: u64,
     /// The state.
     pub state: ZoneState,
+    /// The zone's load and cuts.
+    pub load: Load,
 }
 
 /// Publishes a zone's heartbeat every period until dropped.
@@ -207,8 +215,8 @@ impl Drop for Heartbeat {
     }
 }
 
-/// A zone's endpoint: its border subject, the control subject and the gateways' intents,
-/// merged.
+/// A zone's endpoint: its border subject, the control subject, the gateways' intents and
+/// the supervisor's cut moves, merged.
 pub struct NatsFabric {
     link: NatsLink,
     sub: SelectAll<async_nats::Subscriber>,
@@ -221,16 +229,17 @@ pub struct NatsFabric {
 
 impl NatsFabric {
     /// Connects to `url` as zone `zone` of `cluster`, presenting `auth`, and subscribes
-    /// to its subject, the control subject and the intents subject; when this returns,
-    /// messages published to them are delivered.
+    /// to its subject, the control subject, the intents subject and the cuts subject;
+    /// when this returns, messages published to them are delivered.
     pub fn connect(url: &str, cluster: &str, zone: ZoneId, auth: &NatsAuth) -> Result<NatsFabric, ZoneError> {
         check_cluster_name(cluster)?;
         let link = NatsLink::connect(url, format!("myriad-{cluster}-zone-{}", zone.0), auth)?;
         let borders = link.subscribe(zone_subject(cluster, zone))?;
         let control = link.subscribe(control_subject(cluster))?;
         let intents = link.subscribe(intents_subject(cluster))?;
+        let cuts = link.subscribe(cuts_subject(cluster))?;
         let max = link.client.server_info().max_payload;
-        let sub = futures_util::stream::select_all([borders, control, intents]);
+        let sub = futures_util::stream::select_all([borders, control, intents, cuts]);
         Ok(NatsFabric { link, sub, cluster: cluster.to_string(), zone, max, sent: 0, received: 0 })
     }
 
@@ -241,15 +250,15 @@ impl NatsFabric {
 
     /// Starts publishing this zone's heartbeat every `period`, signed with `key`.
     pub fn heartbeat(&self, key: ClusterKey, period: Duration) -> Heartbeat {
-        let beat = Arc::new(Mutex::new(Beat { run: 0, tick: 0, state: ZoneState::Waiting }));
+        let beat = Arc::new(Mutex::new(Beat { run: 0, tick: 0, state: ZoneState::Waiting, load: Load::default() }));
         let (b, client, zone) = (beat.clone(), self.link.client.clone(), self.zone);
         let subject = heartbeat_subject(&self.cluster, zone);
         let task = self.link.rt.spawn(async move {
             let mut every = tokio::time::interval(period);
             loop {
                 every.tick().await;
-                let Beat { run, tick, state } = *b.lock().expect("not poisoned");
-                if let Ok(bytes) = encode_control(&key, &Message::Heartbeat { run, tick, zone, state }) {
+                let Beat { run, tick, state, load } = *b.lock().expect("not poisoned");
+                if let Ok(bytes) = encode_control(&key, &Message::Heartbeat { run, tick, zone, state, load }) {
                     // A lost heartbeat is what the supervisor's deadline is for.
                     let _ = client.publish(subject.clone(), bytes.into()).await;
                 }

@@ -13,12 +13,17 @@
 //! - [`StepTimePolicy`] (for a live cluster): from measured step times, which no two
 //!   runs share.
 //!
+//! In a live cluster the supervisor decides ([`announce`]) and publishes each move on
+//! the fabric; the zones take it and follow it at its tick ([`live`]).
+//!
 //! A grid's cuts are global per axis (one x cut bounds every zone of its two columns),
 //! so both policies balance columns and rows, not single zones. Neither ever makes a
 //! zone as narrow as `reach + max step` ([`ZoneLayout::with_cuts`] refuses it), which
 //! also keeps every zone's neighbours what they were.
 
+pub mod announce;
 mod coordinator;
+pub mod live;
 mod step_time;
 
 pub use coordinator::{Coordinator, Decision, ForcedMove, LoadSample, Policy, RebalanceLog, RebalanceOptions};

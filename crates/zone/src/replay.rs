@@ -15,11 +15,16 @@
 //! epochs is refused); [`replay`] steps the zones on threads, offering each zone the
 //! intents of each tick before stepping it, exactly as the live zone took them.
 //!
+//! Cut moves of a live cluster ([`crate::rebalance::live`]) are logged the same way: the
+//! supervisor's signed message, at the tick the zone applied it (before stepping it). A
+//! replay starts on the cuts the checkpoint holds and applies each logged move at its
+//! tick, so every zone follows the live run's cuts.
+//!
 //! Segment layout (little-endian): magic `MZL1`, zone (u16), 0 (u16), epoch (u64),
 //! first tick (u64), end tick (u64, exclusive), book length (u32), entries (u32), the
 //! book ([`IntentBook::snapshot`]), then per entry its tick (u64), length (u32) and the
-//! intents message as it arrived (itself signed), and a 32-byte HMAC-SHA256 tag over
-//! everything before it.
+//! message as it arrived (itself signed: intents, or a cut move), and a 32-byte
+//! HMAC-SHA256 tag over everything before it.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -33,7 +38,8 @@ use crate::fabric::{Fabric, MemoryFabric};
 use crate::intents::IntentBook;
 use crate::layout::{ZoneId, ZoneLayout};
 use crate::local::ZonedRun;
-use crate::wire::{ClusterKey, sign, verified};
+use crate::rebalance::Cuts;
+use crate::wire::{ClusterKey, KIND_CUT_MOVE, sign, verified};
 use crate::zone::{TickEnd, Zone, ZoneConfig};
 
 /// The first bytes of a segment.
@@ -66,7 +72,8 @@ impl IntentLog {
         self.from
     }
 
-    /// An intents message taken at tick `tick`, as it arrived.
+    /// An intents message taken at tick `tick`, or a cut move applied before stepping
+    /// it, as it arrived.
     pub fn record(&mut self, tick: u64, bytes: &[u8]) {
         self.entries.push((tick, bytes.to_vec()));
     }
@@ -106,8 +113,14 @@ pub struct Segment {
     pub to: u64,
     /// The zone's book at `from` ([`IntentBook::snapshot`]).
     pub book: Vec<u8>,
-    /// The intents messages taken, with their ticks, in order.
+    /// The messages taken (intents, cut moves), with their ticks, in order.
     pub entries: Vec<(u64, Vec<u8>)>,
+}
+
+/// Whether a logged message is a cut move (an intents message otherwise; the zone
+/// authenticates either when it takes it).
+pub fn is_cut_move(message: &[u8]) -> bool {
+    message.get(3) == Some(&KIND_CUT_MOVE)
 }
 
 /// Checks a segment's tag, then its fields; a clear error on anything else.
@@ -156,9 +169,11 @@ pub struct ZoneReplay {
     pub zone: ZoneId,
     /// Its objects at the first tick (its checkpoint).
     pub objects: Vec<ObjectState>,
+    /// The cuts its checkpoint holds.
+    pub cuts: Cuts,
     /// Its intent book then.
     pub book: IntentBook,
-    /// The intents messages it took, with their ticks, in order.
+    /// The messages it took (intents) or applied (cut moves), with their ticks, in order.
     pub entries: Vec<(u64, Vec<u8>)>,
 }
 
@@ -177,7 +192,10 @@ pub fn load(
     let mut epoch = None;
     let mut out = Vec::with_capacity(zones);
     for z in (0..zones).map(|z| ZoneId(z as u16)) {
-        let objects = store.get(z, from)?;
+        let snap = store.get(z, from)?;
+        if out.first().is_some_and(|first: &ZoneReplay| first.cuts != snap.cuts) {
+            return Err(ZoneError::Replay(format!("the zones' checkpoints of tick {from} hold different cuts")));
+        }
         let (mut t, mut book, mut entries) = (from, None, Vec::new());
         while t < to {
             let seg = open_segment(key, &store.get_log(z, t)?)?;
@@ -199,15 +217,16 @@ pub fn load(
             t = seg.to;
         }
         let book = book.unwrap_or_else(|| IntentBook::new(from));
-        out.push(ZoneReplay { zone: z, objects, book, entries });
+        out.push(ZoneReplay { zone: z, objects: snap.objects, cuts: snap.cuts, book, entries });
     }
     Ok((epoch.unwrap_or(0), out))
 }
 
 /// Re-runs `zones` (from [`load`]) from tick `from` to `to` on threads of this process,
-/// each with the backend `backend(zone)`, offering each zone the intents it took at each
-/// tick before stepping it; `world` supplies bounds, terrain, statics and seed (as for
-/// [`Zone::resume`]). The result is comparable with the live run's checkpoints of `to`
+/// each with the backend `backend(zone)`, on the cuts of their checkpoints (`layout`
+/// gives the grid), offering each zone the intents it took at each tick and applying
+/// the cut moves it applied, before stepping it; `world` supplies bounds, terrain,
+/// statics and seed (as for [`Zone::resume`]). The result is comparable with the live run's checkpoints of `to`
 /// ([`crate::supervisor::assemble`]).
 #[allow(clippy::too_many_arguments)]
 pub fn replay(
@@ -224,7 +243,11 @@ pub fn replay(
     if zones.len() != layout.len() {
         return Err(ZoneError::Layout(format!("{} zones to replay in a layout of {}", zones.len(), layout.len())));
     }
-    let layout = Arc::new(layout);
+    let cuts = zones.first().map(|z| z.cuts.clone());
+    let layout = Arc::new(match cuts {
+        Some((xs, zs)) => layout.with_cuts(&xs, &zs)?,
+        None => layout,
+    });
     let mut start = world.clone();
     start.tick = from;
     let start = &start;
@@ -251,9 +274,14 @@ pub fn replay(
                     let (first, mut actions) = (Instant::now(), 0);
                     for t in from..to {
                         while let Some((_, m)) = entries.next_if(|(at, _)| *at == t) {
-                            if !zone.offer_intents(m) {
+                            let (taken, what) = if is_cut_move(m) {
+                                (zone.apply_logged_cut(m), "a cut move it applied")
+                            } else {
+                                (zone.offer_intents(m), "an intents message it took")
+                            };
+                            if !taken {
                                 return Err(ZoneError::Replay(format!(
-                                    "zone {} refused an intents message it took live at tick {t}",
+                                    "zone {} refused {what} live at tick {t}",
                                     z.zone.0
                                 )));
                             }

@@ -31,6 +31,9 @@ pub struct ZoneStats {
     pub orphans: u64,
     /// Layouts followed after the first (cuts moved), in all.
     pub cut_moves: u64,
+    /// Cut moves from the fabric refused ([`crate::rebalance::live::CutRefused`]; each is
+    /// also in `rejected` under its reason), in all.
+    pub cut_moves_refused: u64,
     /// Time spent waiting for neighbours' border states.
     pub wait: Duration,
     /// Time spent stepping: assembling the zone's world, the physics, keeping the owned
@@ -65,7 +68,8 @@ pub struct ZoneStats {
     /// every gateway receives from this zone, the whole mirror today.
     pub states_bytes: u64,
     /// Messages rejected, by reason ([`crate::wire::WireError::label`], or `run`,
-    /// `misrouted`, `stranger`, `stale`, `early`, `replayed`, `parts`).
+    /// `misrouted`, `stranger`, `stale`, `early`, `replayed`, `parts`, or a refused cut
+    /// move's [`crate::rebalance::live::CutRefused::label`]).
     pub rejected: BTreeMap<&'static str, u64>,
 }
 
@@ -89,6 +93,7 @@ impl ZoneStats {
         counter("myriad_zone_player_leaves_total", self.leaves);
         counter("myriad_zone_player_orphans_total", self.orphans);
         counter("myriad_zone_cut_moves_total", self.cut_moves);
+        counter("myriad_zone_cut_moves_refused_total", self.cut_moves_refused);
         counter("myriad_zone_fabric_sent_bytes_total", self.bytes.0);
         counter("myriad_zone_fabric_received_bytes_total", self.bytes.1);
         counter("myriad_zone_states_sent_bytes_total", self.states_bytes);

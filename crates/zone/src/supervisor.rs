@@ -1,10 +1,16 @@
 //! The supervisor: starts a cluster's epoch, watches heartbeats, and on a fault (a zone
 //! silent for `dead_after`, a zone stalled, a zone process that exited) halts every
 //! zone, lets dead ones come back, and starts a new epoch from the latest checkpoint
-//! that every zone stored. At the run's last tick it reassembles the world from the
-//! zones' results and reports its state hash.
+//! that every zone stored with the same cuts. At the run's last tick it reassembles the
+//! world from the zones' results and reports its state hash.
+//!
+//! With [`SupervisorConfig::rebalance`] it also moves the cuts while the cluster runs:
+//! from the load the heartbeats report, it announces cut moves on the cuts subject and
+//! rolls the cluster back when a zone steps on other cuts than announced
+//! ([`crate::rebalance::announce`]).
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
@@ -12,9 +18,11 @@ use myriad_core::{ObjectState, hash_state};
 
 use crate::checkpoint::CheckpointStore;
 use crate::error::ZoneError;
-use crate::layout::ZoneId;
-use crate::nats::{NatsLink, control_subject, heartbeat_subject, heartbeats_subject};
-use crate::wire::{ClusterKey, Message, ZoneState, decode, encode_control};
+use crate::layout::{ZoneId, ZoneLayout};
+use crate::nats::{NatsLink, control_subject, cuts_subject, heartbeat_subject, heartbeats_subject};
+use crate::rebalance::announce::{Announcement, Announcer, LiveOptions, ZoneBeat};
+use crate::rebalance::{CutMove, Cuts};
+use crate::wire::{ClusterKey, Load, Message, ZoneState, decode, encode_control, encode_cut_move};
 
 /// How the supervisor watches.
 #[derive(Clone, Debug)]
@@ -34,6 +42,10 @@ pub struct SupervisorConfig {
     pub dead_after: Duration,
     /// Ticks between the zones' checkpoints.
     pub checkpoint_every: u64,
+    /// The layout the zones start the run on (tick 0).
+    pub layout: ZoneLayout,
+    /// Move the cuts while the cluster runs (`None`: they stay).
+    pub rebalance: Option<LiveOptions>,
 }
 
 /// What happened, for the log and the caller.
@@ -63,6 +75,15 @@ pub enum Event {
         /// The lowest tick any zone reported.
         tick: u64,
     },
+    /// A cut move was announced, every zone applied one, or one was refused (a zone that
+    /// steps on other cuts than announced is a [`Event::Fault`]).
+    Cuts {
+        /// The epoch.
+        epoch: u64,
+        /// What happened: [`Announcement::Send`] (announced), [`Announcement::Applied`]
+        /// or [`Announcement::Refused`].
+        what: Announcement,
+    },
     /// Every zone reached the last tick.
     Done {
         /// The reassembled world's state hash.
@@ -70,16 +91,36 @@ pub enum Event {
     },
 }
 
-/// Reassembles the world at `tick` from every zone's checkpoint and hashes it.
+/// Reassembles the world at `tick` from every zone's checkpoint and hashes it; the zones'
+/// checkpoints must hold the same cuts.
 pub fn assemble(
     store: &mut dyn CheckpointStore,
     zones: usize,
     tick: u64,
     objects: Option<usize>,
 ) -> Result<(u64, Vec<ObjectState>), ZoneError> {
+    match assemble_with_cuts(store, zones, tick, objects)? {
+        Some((hash, all, _)) => Ok((hash, all)),
+        None => Err(ZoneError::Checkpoint(format!("tick {tick}: the zones' checkpoints hold different cuts"))),
+    }
+}
+
+/// [`assemble`], with the cuts every zone's checkpoint holds; `None` when they differ
+/// (a zone missed a cut move: the world of `tick` is not one world).
+pub fn assemble_with_cuts(
+    store: &mut dyn CheckpointStore,
+    zones: usize,
+    tick: u64,
+    objects: Option<usize>,
+) -> Result<Option<(u64, Vec<ObjectState>, Cuts)>, ZoneError> {
     let mut all = Vec::with_capacity(objects.unwrap_or(0));
+    let mut cuts: Option<Cuts> = None;
     for z in 0..zones {
-        all.extend(store.get(ZoneId(z as u16), tick)?);
+        let snap = store.get(ZoneId(z as u16), tick)?;
+        if cuts.get_or_insert_with(|| snap.cuts.clone()) != &snap.cuts {
+            return Ok(None);
+        }
+        all.extend(snap.objects);
     }
     all.sort_unstable_by_key(|o| o.id);
     if let Some(w) = all.windows(2).find(|w| w[0].id == w[1].id) {
@@ -88,7 +129,38 @@ pub fn assemble(
     if let Some(n) = objects.filter(|n| *n != all.len()) {
         return Err(ZoneError::Checkpoint(format!("tick {tick}: {} objects reassembled, {n} expected", all.len())));
     }
-    Ok((hash_state(all.iter().copied(), tick, all.len()), all))
+    Ok(Some((hash_state(all.iter().copied(), tick, all.len()), all, cuts.unwrap_or_default())))
+}
+
+/// The tick a new epoch starts from: the newest of `candidates` that every zone stored
+/// with the same cuts, with those cuts and its state hash; tick 0 (the generated world on
+/// `layout`'s cuts) when there is none.
+fn start_point(
+    cfg: &SupervisorConfig,
+    store: &mut dyn CheckpointStore,
+    candidates: &[u64],
+) -> Result<(u64, Cuts, Option<u64>), ZoneError> {
+    for &t in candidates.iter().filter(|t| **t > 0) {
+        if store.latest_consistent(cfg.zones, &[t])?.is_none() {
+            continue;
+        }
+        match assemble_with_cuts(store, cfg.zones, t, cfg.objects)? {
+            Some((hash, _, cuts)) => return Ok((t, cuts, Some(hash))),
+            None => tracing::warn!(tick = t, "the zones' checkpoints hold different cuts: an older one"),
+        }
+    }
+    let (xs, zs) = cfg.layout.cuts();
+    Ok((0, (xs.to_vec(), zs.to_vec()), None))
+}
+
+/// The latest heartbeat of a zone.
+#[derive(Clone, Copy, Debug)]
+struct Heard {
+    at: Instant,
+    run: u64,
+    tick: u64,
+    state: ZoneState,
+    load: Load,
 }
 
 /// Runs the cluster to its last tick. `restarted` is asked often which zones' processes
@@ -102,7 +174,11 @@ pub fn supervise(
     on_event: &mut dyn FnMut(&Event),
 ) -> Result<u64, ZoneError> {
     let mut beats = link.subscribe(heartbeats_subject(&cfg.cluster))?;
-    let mut last: BTreeMap<ZoneId, (Instant, u64, u64, ZoneState)> = BTreeMap::new();
+    let mut last: BTreeMap<ZoneId, Heard> = BTreeMap::new();
+    let mut announcer = match &cfg.rebalance {
+        Some(o) => Some(Announcer::new(o.clone(), Arc::new(cfg.layout.clone()), cfg.ticks)?),
+        None => None,
+    };
     let mut epoch = 0u64;
     let mut halting = true;
     let mut last_halt = Instant::now() - Duration::from_secs(1);
@@ -119,13 +195,13 @@ pub fn supervise(
                     tracing::warn!(subject = %m.subject, zone = zone.0, "a heartbeat on another zone's subject");
                     metrics::counter!("myriad_supervisor_rejected_total", "reason" => "heartbeat_subject").increment(1);
                 }
-                Ok(Message::Heartbeat { run, tick, zone, state }) if (zone.0 as usize) < cfg.zones => {
+                Ok(Message::Heartbeat { run, tick, zone, state, load }) if (zone.0 as usize) < cfg.zones => {
                     // Heartbeats are signed but could be replayed: one that goes back in
                     // (epoch, tick) is an old one and is ignored. A restarted zone starts
                     // at epoch 0 and is heard again once it takes the halt.
-                    let fresh = last.get(&zone).is_none_or(|b| (run, tick) >= (b.1, b.2) || run == 0);
+                    let fresh = last.get(&zone).is_none_or(|b| (run, tick) >= (b.run, b.tick) || run == 0);
                     if fresh {
-                        last.insert(zone, (Instant::now(), run, tick, state));
+                        last.insert(zone, Heard { at: Instant::now(), run, tick, state, load });
                     }
                 }
                 Ok(_) | Err(_) => tracing::debug!("a message on the heartbeat subject was not a heartbeat"),
@@ -135,29 +211,31 @@ pub fn supervise(
         if halting {
             if epoch == 0 {
                 // The first epoch follows whatever epochs zones already went through.
-                epoch = last.values().map(|b| b.1).max().unwrap_or(0) + 1;
+                epoch = last.values().map(|b| b.run).max().unwrap_or(0) + 1;
             }
             let ready = (0..cfg.zones).all(|z| {
                 last.get(&ZoneId(z as u16))
-                    .is_some_and(|b| b.1 == epoch && b.3 == ZoneState::Waiting && now - b.0 < cfg.dead_after)
+                    .is_some_and(|b| b.run == epoch && b.state == ZoneState::Waiting && now - b.at < cfg.dead_after)
             });
             if ready {
                 // The checkpoints zones may still hold, newest first.
                 let every = cfg.checkpoint_every.max(1);
-                let newest = last.values().map(|b| b.2).max().unwrap_or(0).min(cfg.ticks) / every * every;
+                let newest = last.values().map(|b| b.tick).max().unwrap_or(0).min(cfg.ticks) / every * every;
                 let candidates: Vec<u64> =
                     (0..=crate::process::KEEP).filter_map(|i| newest.checked_sub(i * every)).collect();
-                let tick = store.latest_consistent(cfg.zones, &candidates)?.unwrap_or(0);
-                let state_hash = if tick > 0 { Some(assemble(store, cfg.zones, tick, cfg.objects)?.0) } else { None };
+                let (tick, cuts, state_hash) = start_point(cfg, store, &candidates)?;
+                if let Some(a) = &mut announcer {
+                    a.restart(tick, &cuts)?;
+                }
                 link.publish(
                     control_subject(&cfg.cluster),
-                    encode_control(&cfg.key, &Message::Start { run: epoch, tick })?,
+                    encode_control(&cfg.key, &Message::Start { run: epoch, tick, cuts })?,
                 )?;
                 on_event(&Event::Started { epoch, tick, state_hash });
                 halting = false;
                 // Zones get a fresh deadline from the start.
                 for b in last.values_mut() {
-                    b.0 = now;
+                    b.at = now;
                 }
             } else if now - last_halt > Duration::from_millis(300) && now - since > Duration::from_millis(300) {
                 link.publish(control_subject(&cfg.cluster), encode_control(&cfg.key, &Message::Halt { run: epoch })?)?;
@@ -168,17 +246,22 @@ pub fn supervise(
         let mut fault = restarted().first().map(|z| format!("zone {} exited", z.0));
         for z in (0..cfg.zones).map(|z| ZoneId(z as u16)) {
             match last.get(&z) {
-                Some(b) if now - b.0 > cfg.dead_after => {
-                    fault.get_or_insert_with(|| format!("zone {} silent for {} ms", z.0, (now - b.0).as_millis()));
+                Some(b) if now - b.at > cfg.dead_after => {
+                    fault.get_or_insert_with(|| format!("zone {} silent for {} ms", z.0, (now - b.at).as_millis()));
                 }
-                Some(b) if b.1 == epoch && b.3 == ZoneState::Stalled => {
-                    fault.get_or_insert_with(|| format!("zone {} stalled at tick {}", z.0, b.2));
+                Some(b) if b.run == epoch && b.state == ZoneState::Stalled => {
+                    fault.get_or_insert_with(|| format!("zone {} stalled at tick {}", z.0, b.tick));
                 }
                 None => {
                     fault.get_or_insert_with(|| format!("zone {} never heard", z.0));
                 }
                 _ => {}
             }
+        }
+        if fault.is_none()
+            && let Some(a) = &mut announcer
+        {
+            fault = rebalance(cfg, link, a, &last, epoch, since.elapsed().as_secs_f64(), on_event)?;
         }
         if let Some(reason) = fault {
             on_event(&Event::Fault { epoch, reason });
@@ -189,16 +272,118 @@ pub fn supervise(
         }
         if now - last_progress > Duration::from_millis(500) {
             last_progress = now;
-            let tick = last.values().filter(|b| b.1 == epoch).map(|b| b.2).min().unwrap_or(0);
+            let tick = last.values().filter(|b| b.run == epoch).map(|b| b.tick).min().unwrap_or(0);
             on_event(&Event::Progress { epoch, tick });
         }
         let done = (0..cfg.zones).all(|z| {
-            last.get(&ZoneId(z as u16)).is_some_and(|b| b.1 == epoch && b.3 == ZoneState::Done && b.2 == cfg.ticks)
+            last.get(&ZoneId(z as u16))
+                .is_some_and(|b| b.run == epoch && b.state == ZoneState::Done && b.tick == cfg.ticks)
         });
         if done {
             let (state_hash, _) = assemble(store, cfg.zones, cfg.ticks, cfg.objects)?;
             on_event(&Event::Done { state_hash });
             return Ok(state_hash);
         }
+    }
+}
+
+/// One look of the rebalancing at the epoch's heartbeats: publishes what the announcer
+/// sends, reports the rest, and returns a fault when a zone steps on other cuts than
+/// announced.
+fn rebalance(
+    cfg: &SupervisorConfig,
+    link: &NatsLink,
+    a: &mut Announcer,
+    last: &BTreeMap<ZoneId, Heard>,
+    epoch: u64,
+    now: f64,
+    on_event: &mut dyn FnMut(&Event),
+) -> Result<Option<String>, ZoneError> {
+    let beats: Vec<Option<ZoneBeat>> = (0..cfg.zones)
+        .map(|z| {
+            last.get(&ZoneId(z as u16)).filter(|b| b.run == epoch).map(|b| ZoneBeat {
+                tick: b.tick,
+                state: b.state,
+                load: b.load,
+            })
+        })
+        .collect();
+    let mut fault = None;
+    for what in a.observe(now, &beats) {
+        match what {
+            Announcement::Send { ref cut, first } => {
+                link.publish(cuts_subject(&cfg.cluster), encode_cut_move(&cfg.key, epoch, cut)?)?;
+                if first {
+                    tracing::info!(epoch, apply_at = cut.apply_at, xs = ?cut.xs, zs = ?cut.zs, "cut move announced");
+                    on_event(&Event::Cuts { epoch, what });
+                }
+            }
+            Announcement::Diverged(reason) => fault = Some(reason),
+            what @ (Announcement::Applied(_) | Announcement::Refused { .. }) => on_event(&Event::Cuts { epoch, what }),
+        }
+    }
+    a.export(&beats);
+    Ok(fault)
+}
+
+/// A cut move as the cluster prints it.
+pub fn cut_move_line(cut: &CutMove) -> String {
+    format!("decided at tick {}, applied at tick {}: x {:?}, z {:?}", cut.decided_at, cut.apply_at, cut.xs, cut.zs)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::checkpoint::MemoryCheckpoints;
+    use myriad_core::{Aabb, EntityId, ObjectKind, ShapeKind, Vec3};
+
+    fn object(id: u32) -> ObjectState {
+        ObjectState {
+            id: EntityId(id),
+            kind: ObjectKind::Npc,
+            shape: ShapeKind::Sphere,
+            half: Vec3::splat(0.5),
+            radius: 0.5,
+            pos: Vec3::ONE,
+            prev: Vec3::ONE,
+            action: 0,
+            flags: 0,
+        }
+    }
+
+    /// A zone that missed a cut move stores its checkpoints on the old cuts: a rollback
+    /// passes over the ticks whose checkpoints disagree, to the newest where all agree.
+    #[test]
+    fn a_rollback_starts_from_the_newest_checkpoint_whose_cuts_agree() {
+        let key = ClusterKey::random();
+        let layout = ZoneLayout::for_count(&Aabb::new(Vec3::ZERO, Vec3::splat(100.0)), 2, 1.5, 2.0).unwrap();
+        let cfg = SupervisorConfig {
+            cluster: "c".into(),
+            key: key.clone(),
+            zones: 2,
+            ticks: 300,
+            objects: Some(2),
+            dead_after: Duration::from_secs(1),
+            checkpoint_every: 30,
+            layout,
+            rebalance: None,
+        };
+        let mut store = MemoryCheckpoints::new(key);
+        let old = (vec![0.0, 50.0, 100.0], vec![0.0, 100.0]);
+        let moved = (vec![0.0, 60.0, 100.0], vec![0.0, 100.0]);
+        for (t, zone1_cuts) in [(30, &old), (60, &old), (90, &moved)] {
+            store.put(ZoneId(0), t, 1, if t == 30 { &old } else { &moved }, &[object(1)]).unwrap();
+            store.put(ZoneId(1), t, 1, zone1_cuts, &[object(2)]).unwrap();
+        }
+        // Tick 60: zone 1 still on the old cuts (it missed the move of tick 45).
+        let (tick, cuts, hash) = start_point(&cfg, &mut store, &[60, 30, 0]).unwrap();
+        assert_eq!((tick, &cuts), (30, &old));
+        assert!(hash.is_some());
+        assert!(assemble(&mut store, 2, 60, None).is_err(), "a world of two cuts is not one world");
+        // Tick 90 agrees again (on the moved cuts) and is the newest: taken.
+        assert_eq!(start_point(&cfg, &mut store, &[90, 60, 30]).unwrap().1, moved);
+        // No checkpoint: the generated world on the layout's own cuts.
+        let (tick, cuts, hash) = start_point(&cfg, &mut store, &[150, 120]).unwrap();
+        assert_eq!((tick, cuts, hash), (0, old, None));
     }
 }

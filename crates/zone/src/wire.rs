@@ -21,11 +21,17 @@ use myriad_core::{EntityId, ObjectKind, ObjectState, ShapeKind, Vec3};
 use ring::hmac;
 
 use crate::layout::ZoneId;
+use crate::rebalance::{CutMove, Cuts};
+
+mod cuts;
+pub use cuts::Load;
+use cuts::{cut_block, read_cuts};
 
 /// First two bytes of every message.
 pub const MAGIC: [u8; 2] = *b"MZ";
-/// The format's version; a message of another version is refused.
-pub const VERSION: u8 = 1;
+/// The format's version; a message of another version is refused. (2: heartbeats carry
+/// the zone's load, starts and checkpoints the cuts, and cut moves exist.)
+pub const VERSION: u8 = 2;
 /// Bytes before the body.
 pub const HEADER_LEN: usize = 32;
 /// Bytes of one object record.
@@ -48,6 +54,10 @@ pub const KIND_STATES: u8 = 6;
 pub const KIND_INTENTS: u8 = 7;
 /// Message kind: a gateway's claim of an account's session, to every gateway.
 pub const KIND_CLAIM: u8 = 8;
+/// Message kind: the supervisor's move of the cuts, to every zone.
+pub const KIND_CUT_MOVE: u8 = 9;
+/// Bytes of a heartbeat's body: the zone's [`Load`].
+pub const LOAD_LEN: usize = 24;
 /// Bit of a record's flag byte that hands the object to the receiver.
 const YOURS: u8 = 1 << 7;
 
@@ -258,6 +268,9 @@ pub enum Message {
         tick: u64,
         /// The zone.
         zone: ZoneId,
+        /// The cuts the zone stepped the objects to `tick` with (the layout under which
+        /// every zone's checkpoint of `tick` together is the world).
+        cuts: Cuts,
         /// The objects.
         objects: Vec<ObjectState>,
     },
@@ -271,6 +284,8 @@ pub enum Message {
         zone: ZoneId,
         /// What it is doing.
         state: ZoneState,
+        /// Its load and the cuts it follows.
+        load: Load,
     },
     /// Supervisor to zones: stop stepping; epoch `run` will start.
     Halt {
@@ -278,12 +293,23 @@ pub enum Message {
         run: u64,
     },
     /// Supervisor to zones: start epoch `run` from the checkpoint at `tick` (0 with no
-    /// checkpoint: the generated world).
+    /// checkpoint: the generated world) with `cuts` (those every zone's checkpoint of
+    /// `tick` holds).
     Start {
         /// The epoch.
         run: u64,
         /// The checkpoint's tick.
         tick: u64,
+        /// The cuts the zones start with.
+        cuts: Cuts,
+    },
+    /// Supervisor to zones: from tick `cut.apply_at` on, the cuts are `cut`'s
+    /// ([`crate::rebalance::live`]).
+    CutMove {
+        /// The epoch it belongs to.
+        run: u64,
+        /// The move.
+        cut: CutMove,
     },
     /// Zone to gateways, every tick: part of the objects the zone owns after the step
     /// that ended at `tick` (a [`Border`] whose `to` is [`ALL`] and with no hand-off).
@@ -319,8 +345,19 @@ fn encode_with(
     h: Head,
     records: impl ExactSizeIterator<Item = BorderRecord>,
 ) -> Result<Vec<u8>, WireError> {
+    encode_with_prefix(key, h, &[], records)
+}
+
+/// A message whose body opens with `prefix` (a kind's fixed fields or cuts) before the
+/// records.
+fn encode_with_prefix(
+    key: &ClusterKey,
+    h: Head,
+    prefix: &[u8],
+    records: impl ExactSizeIterator<Item = BorderRecord>,
+) -> Result<Vec<u8>, WireError> {
     let count = u32::try_from(records.len()).map_err(|_| WireError::Length { count: u32::MAX, actual: 0 })?;
-    let mut b = Vec::with_capacity(HEADER_LEN + records.len() * RECORD_LEN + TAG_LEN);
+    let mut b = Vec::with_capacity(HEADER_LEN + prefix.len() + records.len() * RECORD_LEN + TAG_LEN);
     b.extend_from_slice(&MAGIC);
     b.push(VERSION);
     b.push(h.kind);
@@ -331,6 +368,7 @@ fn encode_with(
     b.extend_from_slice(&h.aux[0].to_le_bytes());
     b.extend_from_slice(&h.aux[1].to_le_bytes());
     b.extend_from_slice(&count.to_le_bytes());
+    b.extend_from_slice(prefix);
     for r in records {
         put_record(&mut b, r);
     }
@@ -369,16 +407,27 @@ pub fn encode_border(key: &ClusterKey, m: &Border) -> Result<Vec<u8>, WireError>
     encode_with(key, h, m.objects.iter().copied())
 }
 
-/// Encodes and signs a checkpoint of `objects`.
+/// Encodes and signs a checkpoint of `objects`, stepped to `tick` with `cuts`.
 pub fn encode_checkpoint(
     key: &ClusterKey,
     run: u64,
     tick: u64,
     zone: ZoneId,
+    cuts: &Cuts,
     objects: &[ObjectState],
 ) -> Result<Vec<u8>, WireError> {
-    let h = Head { kind: KIND_CHECKPOINT, run, tick, from: zone, to: zone, aux: [0, 0] };
-    encode_with(key, h, objects.iter().copied().map(BorderRecord::seen))
+    let (counts, prefix) = cut_block(cuts)?;
+    let h = Head { kind: KIND_CHECKPOINT, run, tick, from: zone, to: zone, aux: counts };
+    encode_with_prefix(key, h, &prefix, objects.iter().copied().map(BorderRecord::seen))
+}
+
+/// Encodes and signs the supervisor's cut move for epoch `run`.
+pub fn encode_cut_move(key: &ClusterKey, run: u64, m: &CutMove) -> Result<Vec<u8>, WireError> {
+    let (counts, cuts) = cut_block(&(m.xs.clone(), m.zs.clone()))?;
+    let mut prefix = m.decided_at.to_le_bytes().to_vec();
+    prefix.extend_from_slice(&cuts);
+    let h = Head { kind: KIND_CUT_MOVE, run, tick: m.apply_at, from: ALL, to: ALL, aux: counts };
+    encode_with_prefix(key, h, &prefix, std::iter::empty())
 }
 
 /// Encodes and signs a zone's states for the gateways (`m.to` must be [`ALL`], and no
@@ -407,22 +456,27 @@ pub fn encode_intents(key: &ClusterKey, m: &Intents) -> Result<Vec<u8>, WireErro
     encode_with(key, h, m.objects.iter().copied().map(BorderRecord::seen))
 }
 
-/// Encodes and signs a message without objects (heartbeat, halt, start, claim).
+/// Encodes and signs a message without objects (heartbeat, halt, start, claim, cut move).
 pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
-    let h = match *m {
-        Message::Heartbeat { run, tick, zone, state } => {
-            Head { kind: KIND_HEARTBEAT, run, tick, from: zone, to: ALL, aux: [state as u16, 0] }
+    let (h, prefix) = match m {
+        &Message::Heartbeat { run, tick, zone, state, load } => {
+            (Head { kind: KIND_HEARTBEAT, run, tick, from: zone, to: ALL, aux: [state as u16, 0] }, load.to_bytes())
         }
-        Message::Halt { run } => Head { kind: KIND_HALT, run, tick: 0, from: ALL, to: ALL, aux: [0, 0] },
-        Message::Start { run, tick } => Head { kind: KIND_START, run, tick, from: ALL, to: ALL, aux: [0, 0] },
-        Message::Claim { time_ms, account, gateway } => {
-            Head { kind: KIND_CLAIM, run: time_ms, tick: account, from: ZoneId(gateway), to: ALL, aux: [0, 0] }
+        &Message::Halt { run } => (Head { kind: KIND_HALT, run, tick: 0, from: ALL, to: ALL, aux: [0, 0] }, vec![]),
+        Message::Start { run, tick, cuts } => {
+            let (counts, b) = cut_block(cuts)?;
+            (Head { kind: KIND_START, run: *run, tick: *tick, from: ALL, to: ALL, aux: counts }, b)
         }
+        &Message::Claim { time_ms, account, gateway } => {
+            let h = Head { kind: KIND_CLAIM, run: time_ms, tick: account, from: ZoneId(gateway), to: ALL, aux: [0, 0] };
+            (h, vec![])
+        }
+        Message::CutMove { run, cut } => return encode_cut_move(key, *run, cut),
         Message::Border(_) | Message::Checkpoint { .. } | Message::States(_) | Message::Intents(_) => {
             return Err(WireError::Field("kind"));
         }
     };
-    encode_with(key, h, std::iter::empty())
+    encode_with_prefix(key, h, &prefix, std::iter::empty())
 }
 
 /// Appends the tag of `signed` (header and body) under `key`: a message the cluster
@@ -437,7 +491,9 @@ pub fn sign(key: &ClusterKey, signed: &[u8]) -> Vec<u8> {
 pub fn encode(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
     match m {
         Message::Border(b) => encode_border(key, b),
-        Message::Checkpoint { run, tick, zone, objects } => encode_checkpoint(key, *run, *tick, *zone, objects),
+        Message::Checkpoint { run, tick, zone, cuts, objects } => {
+            encode_checkpoint(key, *run, *tick, *zone, cuts, objects)
+        }
         Message::States(b) => encode_states(key, b),
         Message::Intents(i) => encode_intents(key, i),
         _ => encode_control(key, m),
@@ -515,10 +571,19 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
     let (run, tick) = (u64_at(signed, 4), u64_at(signed, 12));
     let (from, to) = (ZoneId(u16_at(signed, 20)), ZoneId(u16_at(signed, 22)));
     let (aux0, aux1, count) = (u16_at(signed, 24), u16_at(signed, 26), u32_at(signed, 28));
+    // Bytes before the records: a kind's fixed fields, or the cuts the header counts.
+    let cut_bytes = 4 * (aux0 as u64 + aux1 as u64);
+    let prefix = match signed[3] {
+        KIND_HEARTBEAT => LOAD_LEN as u64,
+        KIND_CHECKPOINT | KIND_START => cut_bytes,
+        KIND_CUT_MOVE => 8 + cut_bytes,
+        _ => 0,
+    };
     let body = &signed[HEADER_LEN..];
-    if body.len() as u64 != count as u64 * RECORD_LEN as u64 {
+    if body.len() as u64 != prefix + count as u64 * RECORD_LEN as u64 {
         return Err(WireError::Length { count, actual: body.len() });
     }
+    let (fixed, body) = body.split_at(prefix as usize);
     let records = || body.chunks_exact(RECORD_LEN).enumerate().map(|(i, r)| record(i, r));
     let none = |ok: bool, field| if ok { Ok(()) } else { Err(WireError::Field(field)) };
     match signed[3] {
@@ -530,9 +595,10 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
             Ok(Message::Border(Border { run, tick, from, to, part: aux0, parts: aux1, objects }))
         }
         KIND_CHECKPOINT => {
-            none(aux0 == 0 && aux1 == 0 && from == to, "checkpoint header")?;
+            none(from == to, "checkpoint header")?;
+            let cuts = read_cuts(fixed, [aux0, aux1])?;
             let objects = plain(records())?;
-            Ok(Message::Checkpoint { run, tick, zone: from, objects })
+            Ok(Message::Checkpoint { run, tick, zone: from, cuts, objects })
         }
         KIND_STATES => {
             if aux1 == 0 || aux0 >= aux1 {
@@ -555,6 +621,7 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
         }
         KIND_HEARTBEAT => {
             none(count == 0 && aux1 == 0 && to == ALL, "heartbeat header")?;
+            let load = Load::from_bytes(fixed);
             let state = match aux0 {
                 0 => ZoneState::Waiting,
                 1 => ZoneState::Running,
@@ -562,7 +629,7 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
                 3 => ZoneState::Done,
                 _ => return Err(WireError::Field("state")),
             };
-            Ok(Message::Heartbeat { run, tick, zone: from, state })
+            Ok(Message::Heartbeat { run, tick, zone: from, state, load })
         }
         KIND_HALT => {
             none(count == 0 && aux0 == 0 && aux1 == 0 && tick == 0 && from == ALL && to == ALL, "halt header")?;
@@ -573,8 +640,14 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
             Ok(Message::Claim { time_ms: run, account: tick, gateway: from.0 })
         }
         KIND_START => {
-            none(count == 0 && aux0 == 0 && aux1 == 0 && from == ALL && to == ALL, "start header")?;
-            Ok(Message::Start { run, tick })
+            none(count == 0 && from == ALL && to == ALL, "start header")?;
+            Ok(Message::Start { run, tick, cuts: read_cuts(fixed, [aux0, aux1])? })
+        }
+        KIND_CUT_MOVE => {
+            none(count == 0 && from == ALL && to == ALL, "cut move header")?;
+            let (xs, zs) = read_cuts(&fixed[8..], [aux0, aux1])?;
+            let cut = CutMove { decided_at: u64_at(fixed, 0), apply_at: tick, xs, zs };
+            Ok(Message::CutMove { run, cut })
         }
         k => Err(WireError::Kind(k)),
     }

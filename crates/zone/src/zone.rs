@@ -32,6 +32,7 @@ use crate::error::ZoneError;
 use crate::fabric::Fabric;
 use crate::intents::IntentBook;
 use crate::layout::{ZoneId, ZoneLayout};
+use crate::rebalance::live::CutBook;
 use crate::replay::IntentLog;
 use crate::resident::ResidentWorld;
 use crate::stats::ZoneStats;
@@ -39,6 +40,8 @@ use crate::wire::{
     ALL, Border, BorderRecord, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border,
     encode_states,
 };
+
+mod cuts;
 
 /// What a zone needs besides its world: identity, cluster and patience.
 #[derive(Clone, Debug)]
@@ -96,6 +99,11 @@ pub struct Zone {
     /// The intents taken since the last checkpoint, when the zone logs them
     /// ([`Zone::checkpoint_log`]).
     log: Option<IntentLog>,
+    /// The supervisor's cut move held for a coming tick ([`crate::rebalance::live`]).
+    cuts: CutBook,
+    /// The layout of the last step (or the one the zone started with): the cuts its
+    /// objects were stepped to this tick with, which a checkpoint of this tick records.
+    stepped_with: Arc<ZoneLayout>,
 }
 
 impl Zone {
@@ -133,6 +141,7 @@ impl Zone {
         let stats = ZoneStats { owned: resident.owned_count(), ..ZoneStats::default() };
         Ok(Zone {
             cfg,
+            stepped_with: layout.clone(),
             layout,
             resident,
             inbox: BTreeMap::new(),
@@ -141,6 +150,7 @@ impl Zone {
             stats,
             intents: IntentBook::new(world.tick),
             log: None,
+            cuts: CutBook::default(),
         })
     }
 
@@ -254,6 +264,15 @@ impl Zone {
     /// the tick.
     pub fn step(&mut self, actions: &[ScriptedAction], k: &TickConstants) -> Result<TickEnd, ZoneError> {
         let t = self.tick();
+        // A cut move held for this tick: every zone follows it before sending this
+        // tick's borders, so the objects it moves are handed over at this exchange.
+        if let Some(held) = self.cuts.due(t) {
+            self.set_layout(held.layout)?;
+            if let Some(log) = &mut self.log {
+                log.record(t, &held.bytes);
+            }
+            tracing::info!(zone = self.cfg.id.0, tick = t, "cut move applied");
+        }
         let send = Instant::now();
         self.send_borders(t)?;
         self.stats.send += send.elapsed();
@@ -270,6 +289,7 @@ impl Zone {
         let applied = self.resident.set_actions(actions, &self.intents);
         let physics = Instant::now();
         let report = self.backend.step(&mut self.resident.world, k)?;
+        self.stepped_with = self.layout.clone();
         self.stats.physics += physics.elapsed();
         self.stats.copies += Duration::from_secs_f64(report.stage_ms[Stage::Upload as usize].max(0.0) / 1e3);
         self.stats.ticks += 1;
@@ -390,7 +410,8 @@ impl Zone {
     /// Files a message in the inbox, or rejects (and counts) it. Only authenticated
     /// border messages of this run, for this zone, from a neighbour, for this tick or the
     /// next (a neighbour is never further ahead), and not seen before, are kept. The
-    /// supervisor's halt and start are handed back: they interrupt the tick.
+    /// supervisor's halt and start are handed back: they interrupt the tick. Intents go
+    /// to the intent book, the supervisor's cut moves to the cut book.
     pub fn offer(&mut self, bytes: &[u8]) -> Option<Message> {
         let t = self.tick();
         let m = match decode(&self.cfg.key, bytes) {
@@ -398,6 +419,10 @@ impl Zone {
             Ok(control @ (Message::Halt { .. } | Message::Start { .. })) => return Some(control),
             Ok(Message::Intents(i)) => {
                 self.take_intents(i, bytes, t);
+                return None;
+            }
+            Ok(Message::CutMove { run, cut }) => {
+                self.take_cut_move(run, cut, bytes, t);
                 return None;
             }
             Ok(_) => return self.reject("kind", t),

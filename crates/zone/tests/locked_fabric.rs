@@ -1,7 +1,8 @@
 //! The locked-down fabric on a real `nats-server` of the test's own, configured by
 //! `fabric_auth`: a gateway's credentials cannot publish zone states, heartbeats,
-//! control, states or checkpoints (the server refuses, nothing reaches the zones); a
-//! zone's cannot publish claims, intents or another zone's heartbeat; the legitimate flows (zones over NATS, the
+//! control, cut moves, states or checkpoints (the server refuses, nothing reaches the
+//! zones); a zone's cannot publish claims, intents, cut moves or another zone's
+//! heartbeat; the legitimate flows (zones over NATS, the
 //! checkpoint store) still work; a wrong password is refused; `tls://` works with the
 //! cluster's authority. Needs the `nats-server` program; skips with a message without it,
 //! fails under `MYRIAD_REQUIRE_NATS=1`.
@@ -112,6 +113,7 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     let mut borders = zone.subscribe("myriad.c.zone.0".into()).unwrap();
     let mut control = zone.subscribe("myriad.c.control".into()).unwrap();
     let mut intents = other_zone.subscribe("myriad.c.intents".into()).unwrap();
+    let mut cuts = other_zone.subscribe("myriad.c.cuts".into()).unwrap();
     let mut beats = supervisor.subscribe("myriad.c.heartbeat.*".into()).unwrap();
     let mut states = other_gateway.subscribe("myriad.c.states".into()).unwrap();
     let mut claims = other_gateway.subscribe("myriad.c.sessions".into()).unwrap();
@@ -133,13 +135,16 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     assert_eq!(heard(&other_gateway, &mut states), b"states");
     supervisor.publish("myriad.c.control".into(), b"halt".to_vec()).unwrap();
     assert_eq!(heard(&zone, &mut control), b"halt");
+    supervisor.publish("myriad.c.cuts".into(), b"move".to_vec()).unwrap();
+    assert_eq!(heard(&other_zone, &mut cuts), b"move");
 
-    // A gateway's credentials: no border states, heartbeats, control, states or
-    // checkpoints.
+    // A gateway's credentials: no border states, heartbeats, control, cut moves, states
+    // or checkpoints.
     let forbidden = [
         "myriad.c.zone.0",
         "myriad.c.heartbeat.0",
         "myriad.c.control",
+        "myriad.c.cuts",
         "myriad.c.states",
         "$O.myriad-c.C.forged",
         "$JS.API.STREAM.CREATE.OBJ_myriad-c",
@@ -150,6 +155,7 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     gateway.flush().unwrap();
     silent(&zone, &mut borders, "a gateway's border state");
     silent(&zone, &mut control, "a gateway's halt");
+    silent(&other_zone, &mut cuts, "a gateway's cut move");
     silent(&supervisor, &mut beats, "a gateway's heartbeat");
     silent(&other_gateway, &mut states, "a gateway's states");
     let errors = errors_after(&gateway, forbidden.len() as u64);
@@ -158,14 +164,16 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
         assert!(errors.iter().any(|e| e.contains(&refused)), "{refused} not in {errors:?}");
     }
 
-    // A zone's credentials: no claims, no intents.
-    for subject in ["myriad.c.sessions", "myriad.c.intents"] {
+    // A zone's credentials: no claims, no intents, no cut moves (a zone cannot move
+    // the cuts for the others).
+    for subject in ["myriad.c.sessions", "myriad.c.intents", "myriad.c.cuts"] {
         zone.publish(subject.into(), b"forged".to_vec()).unwrap();
     }
     zone.flush().unwrap();
     silent(&other_gateway, &mut claims, "a zone's claim");
     silent(&other_zone, &mut intents, "a zone's intents");
-    let errors = errors_after(&zone, 2);
+    silent(&other_zone, &mut cuts, "a zone's cut move");
+    let errors = errors_after(&zone, 3);
     assert!(errors.iter().all(|e| e.contains("Permissions Violation for Publish")), "{errors:?}");
 
     // Nor may a zone beat another zone's heartbeat (to hide its death).
@@ -229,19 +237,21 @@ fn the_legitimate_flows_work_on_the_locked_server() {
         .collect();
     let zone = server.link(Role::Zone(ZoneId(0)));
     let mut store = JetStreamCheckpoints::open(zone.rt.clone(), zone.client.clone(), cluster, key.clone()).unwrap();
-    store.put(ZoneId(0), 30, 1, &objects).unwrap();
-    store.put(ZoneId(0), 30, 1, &objects).unwrap();
+    let cuts = (vec![0.0, 100.0, 200.0], vec![0.0, 200.0]);
+    store.put(ZoneId(0), 30, 1, &cuts, &objects).unwrap();
+    store.put(ZoneId(0), 30, 1, &cuts, &objects).unwrap();
     store.put_log(ZoneId(0), 30, b"log").unwrap();
     assert!(store.has(ZoneId(0), 30).unwrap());
-    assert_eq!(store.get(ZoneId(0), 30).unwrap(), objects);
+    assert_eq!(store.get(ZoneId(0), 30).unwrap().objects, objects);
     assert_eq!(store.get_log(ZoneId(0), 30).unwrap(), b"log");
-    store.put(ZoneId(0), 60, 1, &objects[..10]).unwrap();
+    store.put(ZoneId(0), 60, 1, &cuts, &objects[..10]).unwrap();
     store.forget(ZoneId(0), 30).unwrap();
     assert!(!store.has(ZoneId(0), 30).unwrap());
     let supervisor = server.link(Role::Supervisor);
     let mut s = JetStreamCheckpoints::open(supervisor.rt.clone(), supervisor.client.clone(), cluster, key).unwrap();
     assert_eq!(s.latest_consistent(1, &[60, 30]).unwrap(), Some(60));
-    assert_eq!(s.get(ZoneId(0), 60).unwrap(), objects[..10]);
+    let snap = s.get(ZoneId(0), 60).unwrap();
+    assert_eq!((snap.objects.as_slice(), &snap.cuts), (&objects[..10], &cuts));
     s.delete().unwrap();
     for link in [&zone, &supervisor] {
         assert_eq!(link.server_errors().0, 0, "{:?}", link.server_errors().1);

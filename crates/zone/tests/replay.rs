@@ -29,7 +29,7 @@ fn small_world() -> World {
 /// What a zone process does at a checkpoint: the objects, then the log since the last.
 fn checkpoint(zone: &mut Zone, store: &mut MemoryCheckpoints) {
     let t = zone.tick();
-    store.put(zone.id(), t, EPOCH, &zone.advanced()).unwrap();
+    store.put(zone.id(), t, EPOCH, &zone.stepped_cuts(), &zone.advanced()).unwrap();
     if let Some((from, segment)) = zone.checkpoint_log(EPOCH) {
         store.put_log(zone.id(), from, &segment).unwrap();
     }

@@ -40,15 +40,36 @@ fn round_trips_and_is_the_documented_size() {
     assert_eq!(b.len(), HEADER_LEN + 2 * RECORD_LEN + TAG_LEN);
     assert_eq!(decode(&key(), &b).unwrap(), Message::Border(message()));
     let objects = vec![object(1, 0.5), object(2, 3.0)];
-    let c = encode_checkpoint(&key(), 9, 30, ZoneId(2), &objects).unwrap();
-    assert_eq!(decode(&key(), &c).unwrap(), Message::Checkpoint { run: 9, tick: 30, zone: ZoneId(2), objects });
+    let cuts = (vec![0.0, 100.5, 200.0], vec![-4.0, 8.0]);
+    let c = encode_checkpoint(&key(), 9, 30, ZoneId(2), &cuts, &objects).unwrap();
+    assert_eq!(c.len(), HEADER_LEN + 5 * 4 + 2 * RECORD_LEN + TAG_LEN, "the cuts, then the records");
+    let checkpoint = Message::Checkpoint { run: 9, tick: 30, zone: ZoneId(2), cuts: cuts.clone(), objects };
+    assert_eq!(decode(&key(), &c).unwrap(), checkpoint);
+    let load = Load { step_us: 12_345, owned: 6_000, cuts: 0x0123_4567_89ab_cdef, pending: 90 };
+    let cut = CutMove { decided_at: 60, apply_at: 90, xs: vec![0.0, 120.0, 200.0], zs: vec![-4.0, 8.0] };
     for m in [
-        Message::Heartbeat { run: 3, tick: 77, zone: ZoneId(1), state: ZoneState::Stalled },
+        Message::Heartbeat { run: 3, tick: 77, zone: ZoneId(1), state: ZoneState::Stalled, load },
         Message::Halt { run: 4 },
-        Message::Start { run: 4, tick: 60 },
+        Message::Start { run: 4, tick: 60, cuts: cuts.clone() },
         Message::Claim { time_ms: 1_764_000_000_000, account: 0xdead_beef, gateway: 3 },
+        Message::CutMove { run: 4, cut: cut.clone() },
     ] {
         assert_eq!(decode(&key(), &encode_control(&key(), &m).unwrap()).unwrap(), m);
+    }
+    assert_eq!(encode_cut_move(&key(), 4, &cut).unwrap().len(), HEADER_LEN + 8 + 5 * 4 + TAG_LEN);
+    // Cuts that are no cuts are refused when encoding and when decoding.
+    for (xs, zs) in
+        [(vec![0.0], vec![0.0, 1.0]), (vec![0.0, f32::NAN], vec![0.0, 1.0]), (vec![2.0, 1.0], vec![0.0, 1.0])]
+    {
+        let bad = CutMove { xs: xs.clone(), zs: zs.clone(), ..cut.clone() };
+        assert_eq!(encode_cut_move(&key(), 4, &bad), Err(WireError::Field("cuts")));
+        let mut raw = encode_cut_move(&key(), 4, &cut).unwrap();
+        raw.truncate(raw.len() - TAG_LEN);
+        raw[24..26].copy_from_slice(&(xs.len() as u16).to_le_bytes());
+        raw[26..28].copy_from_slice(&(zs.len() as u16).to_le_bytes());
+        raw.truncate(HEADER_LEN + 8);
+        raw.extend(xs.iter().chain(&zs).flat_map(|c| c.to_le_bytes()));
+        assert_eq!(decode(&key(), &sign(&key(), &raw)), Err(WireError::Field("cuts")), "{xs:?} {zs:?}");
     }
     assert!(encode_control(&key(), &Message::Border(message())).is_err());
     let states = Border { to: ALL, objects: vec![BorderRecord::seen(object(5, 1.0))], ..message() };
@@ -63,7 +84,7 @@ fn round_trips_and_is_the_documented_size() {
     }
     // A checkpoint record with the hand-off bit is refused, not silently cleared.
     let mut raw = c[..c.len() - TAG_LEN].to_vec();
-    raw[HEADER_LEN + 7] |= YOURS;
+    raw[HEADER_LEN + 5 * 4 + 7] |= YOURS;
     assert!(matches!(decode(&key(), &sign(&key(), &raw)), Err(WireError::Record { index: 0, .. })));
 }
 
@@ -98,8 +119,16 @@ fn signed_message() -> impl Strategy<Value = Vec<u8>> {
         }),
         proptest::collection::vec(any::<u8>(), RECORD_LEN),
     ];
-    (1u8..=9, any::<u64>(), any::<u64>(), ids.clone(), ids, 0u16..4, 0u16..3, proptest::collection::vec(record, 0..3))
-        .prop_map(|(kind, run, tick, from, to, aux0, aux1, records)| {
+    // What may open a body: nothing, a heartbeat's load, cuts as the header counts them
+    // (a start's, a checkpoint's), or a decision tick and cuts (a cut move's).
+    let prefix = (0u8..4, any::<[u64; 3]>());
+    (
+        (1u8..=10, any::<u64>(), any::<u64>()),
+        (ids.clone(), ids, 0u16..4, 0u16..4),
+        prefix,
+        proptest::collection::vec(record, 0..3),
+    )
+        .prop_map(|((kind, run, tick), (from, to, aux0, aux1), (shape, words), records)| {
             let mut b = MAGIC.to_vec();
             b.extend_from_slice(&[VERSION, kind]);
             b.extend_from_slice(&run.to_le_bytes());
@@ -108,6 +137,16 @@ fn signed_message() -> impl Strategy<Value = Vec<u8>> {
                 b.extend_from_slice(&v.to_le_bytes());
             }
             b.extend_from_slice(&(records.len() as u32).to_le_bytes());
+            let cuts = (0..aux0).map(|i| i as f32 * 3.0).chain((0..aux1).map(|i| i as f32 - 1.0));
+            match shape {
+                0 => {}
+                1 => words.iter().for_each(|w| b.extend_from_slice(&w.to_le_bytes())),
+                2 => cuts.for_each(|c| b.extend_from_slice(&c.to_le_bytes())),
+                _ => {
+                    b.extend_from_slice(&words[0].to_le_bytes());
+                    cuts.for_each(|c| b.extend_from_slice(&c.to_le_bytes()));
+                }
+            }
             records.iter().for_each(|r| b.extend_from_slice(r));
             sign(&key(), &b)
         })

@@ -1,0 +1,113 @@
+//! Cuts that move in a live cluster (`myriad cluster --rebalance-force`): two zone
+//! processes over NATS follow a cut move the supervisor announces, zone 1 is killed
+//! (`kill -9`) after it, the cluster resumes from a checkpoint on the moved cuts, a
+//! second move is announced again in the new epoch and applied, and the run ends in
+//! `myriad sim`'s hash; `myriad replay` of the epoch after the rollback applies the
+//! logged move at its tick and ends in the live hash.
+//! Needs `NATS_URL` (CI sets it); skips with a message without it.
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+mod common;
+use common::{collect_stderr, free_ports, sim_hash};
+
+const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
+
+#[test]
+fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
+    let Some(url) = myriad_testenv::nats_url() else { return };
+    let name = format!("rb{}", std::process::id());
+    let metrics = format!("127.0.0.1:{}", free_ports(1));
+    let world = ["--zones", "2", "--scenario", "1", "--backend", "cpu", "--ticks", "360", "--checkpoint-every", "30"];
+    let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["cluster", "--json", "--nats", &url, "--cluster", &name])
+        .args(world)
+        .args(["--tick-hz", "60", "--dead-ms", "1000", "--keep-checkpoints", "20", "--supervisor-metrics", &metrics])
+        // Scenario 1 spans x 0..1024: the cut at 512 goes to 530 at tick 90, then to 500
+        // at tick 250.
+        .args(["--rebalance-force", "60:530/", "--rebalance-force", "220:500/", "--rebalance-lead-ticks", "30"])
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let lines = collect_stderr(&mut cluster);
+    let start = Instant::now();
+    let mut log = Vec::new();
+    let mut victim = None;
+    // Kill zone 1 once every zone is past tick 150: after the first move, before the
+    // second.
+    let past = |l: &str| {
+        l.strip_prefix("epoch 1      at tick ").and_then(|r| r.trim().parse::<u64>().ok()).is_some_and(|t| t > 150)
+    };
+    while start.elapsed() < Duration::from_secs(120) && !log.iter().any(|l: &String| past(l)) {
+        if let Ok(line) = lines.recv_timeout(Duration::from_millis(200)) {
+            victim = victim.or_else(|| line.strip_prefix("zone 1 pid ").map(|p| p.trim().parse::<i32>().unwrap()));
+            log.push(line);
+        }
+    }
+    assert!(log.iter().any(|l| past(l)), "the cluster never got past tick 150: {log:#?}");
+    let victim = victim.expect("zone 1's pid");
+    // The supervisor's metrics: the first move applied, the second announced, and each
+    // zone's load from its heartbeats.
+    let page = {
+        use std::io::{Read, Write};
+        let mut s = std::net::TcpStream::connect(&metrics).unwrap();
+        s.write_all(b"GET /metrics HTTP/1.0\r\nHost: x\r\n\r\n").unwrap();
+        let mut page = String::new();
+        s.read_to_string(&mut page).unwrap();
+        page
+    };
+    for line in [
+        "myriad_supervisor_cut_moves_total{outcome=\"announced\"} 2",
+        "myriad_supervisor_cut_moves_total{outcome=\"applied\"} 1",
+        "myriad_supervisor_zone_owned_objects{zone=\"1\"}",
+        "myriad_supervisor_zone_step_seconds{zone=\"0\"}",
+    ] {
+        assert!(page.contains(line), "{line} not in {page}");
+    }
+    // SAFETY: a signal to a process this test's cluster started; no memory is involved.
+    assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
+    let out = cluster.wait_with_output().unwrap();
+    log.extend(lines.try_iter());
+    assert!(out.status.success(), "cluster failed: {log:#?}");
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    eprintln!("{v}");
+    assert_eq!(v["faults"].as_array().unwrap().len(), 1, "the kill and nothing else (no zone on other cuts): {v}");
+    assert_eq!(v["faults"][0], "zone 1 exited");
+    let starts = v["starts"].as_array().unwrap();
+    let resumed = starts.last().unwrap();
+    let from = resumed[1].as_u64().unwrap();
+    assert!((120..250).contains(&from), "resumed after the first move, before the second: {v}");
+    assert_eq!(resumed[2].as_str().unwrap(), sim_hash(from), "the checkpoint is one process's state");
+    // The first move in epoch 1; the second announced in epoch 1 and again after the
+    // rollback; both applied by every zone.
+    let moves = v["cut_moves"].as_array().unwrap();
+    let ticks: Vec<(u64, u64)> =
+        moves.iter().map(|m| (m["epoch"].as_u64().unwrap(), m["apply_at"].as_u64().unwrap())).collect();
+    assert_eq!(ticks.first(), Some(&(1, 90)), "{v}");
+    assert_eq!(ticks.last().map(|t| t.1), Some(250), "{v}");
+    assert!(ticks.last().unwrap().0 >= 2, "the second move was announced in the new epoch: {v}");
+    assert_eq!(moves.last().unwrap()["xs"], serde_json::json!([0.0, 500.0, 1024.0]), "{v}");
+    let applied: Vec<u64> = v["cut_moves_applied"].as_array().unwrap().iter().map(|t| t.as_u64().unwrap()).collect();
+    assert!(applied.contains(&90) && applied.contains(&250), "{v}");
+    assert_eq!(v["state_hash"].as_str().unwrap(), sim_hash(360), "the end is one process's state");
+
+    // The epoch after the rollback replays from its checkpoint with the logged move.
+    let replay = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["replay", "--json", "--nats", &url, "--cluster", &name])
+        .args(world)
+        .args(["--keep-checkpoints", "20"])
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&replay.stdout);
+    assert!(replay.status.success(), "{text}\n{}", String::from_utf8_lossy(&replay.stderr));
+    let r: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
+    eprintln!("replay: {r}");
+    assert_eq!(r["equal"], true, "{r}");
+    assert_eq!((r["from"].as_u64(), r["to"].as_u64()), (Some(from), Some(360)), "{r}");
+    assert_eq!(r["cut_moves"], 1, "the move of tick 250, logged and applied: {r}");
+}

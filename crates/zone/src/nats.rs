@@ -16,6 +16,7 @@
 //! handles, never as a wrong state. The client runs on its own small tokio runtime, so a
 //! zone's tick stays a plain blocking loop.
 
+use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -27,6 +28,9 @@ use crate::fabric::Fabric;
 use crate::fabric_auth::{CA_ENV, CREDS_ENV, NatsAuth, PASSWORD_ENV, USER_ENV};
 use crate::layout::ZoneId;
 use crate::wire::{ClusterKey, Load, Message, ZoneState, encode_control};
+
+/// How long [`NatsLink::echo`] waits for its probe.
+const ECHO_WAIT: Duration = Duration::from_secs(10);
 
 /// The subject zone `z` of `cluster` listens on.
 pub fn zone_subject(cluster: &str, z: ZoneId) -> String {
@@ -92,7 +96,7 @@ pub struct NatsLink {
 struct Refusals {
     count: u64,
     /// The latest few, for diagnostics and tests.
-    latest: std::collections::VecDeque<String>,
+    latest: VecDeque<String>,
 }
 
 impl NatsLink {
@@ -153,14 +157,43 @@ impl NatsLink {
         self.rt.block_on(self.client.flush()).map_err(|e| fabric_err("flushing", e))
     }
 
-    /// Subscribes to `subject`; messages published after this returns are delivered.
+    /// Subscribes to `subject`. The subscription is written to the socket when this
+    /// returns, not yet taken by the server: a message another connection publishes
+    /// right after may still miss it. [`NatsLink::echo`] is the round trip that settles
+    /// it.
     pub fn subscribe(&self, subject: String) -> Result<async_nats::Subscriber, ZoneError> {
         self.rt.block_on(async {
             let sub = self.client.subscribe(subject).await.map_err(|e| fabric_err("subscribing", e))?;
-            // The subscription is on the server once a flush returns.
             self.client.flush().await.map_err(|e| fabric_err("flushing", e))?;
             Ok(sub)
         })
+    }
+
+    /// Publishes a probe on `subject`, which `stream` (this connection's subscriptions)
+    /// receives, and waits for it to come back: the server takes a connection's
+    /// operations in order, so every subscription made before is then in force. (A
+    /// flush only writes to the socket; async-nats offers no PING round trip.) Messages
+    /// that arrive before the probe are returned, in order, for the caller to take
+    /// first.
+    pub fn echo<S>(&self, subject: &str, stream: &mut S) -> Result<VecDeque<Vec<u8>>, ZoneError>
+    where
+        S: futures_util::Stream<Item = async_nats::Message> + Unpin,
+    {
+        let probe = format!("myriad-probe {}", self.client.new_inbox()).into_bytes();
+        self.publish(subject.to_string(), probe.clone())?;
+        let deadline = Instant::now() + ECHO_WAIT;
+        let mut early = VecDeque::new();
+        loop {
+            match self.next_before(stream, deadline)? {
+                Some(m) if m == probe => return Ok(early),
+                Some(m) => early.push_back(m),
+                None => {
+                    return Err(ZoneError::Fabric(format!(
+                        "NATS did not echo a probe on {subject} within {ECHO_WAIT:?} (may this user publish there?)"
+                    )));
+                }
+            }
+        }
     }
 
     /// The next message of `sub`'s stream, or `None` once `deadline` has passed.
@@ -220,6 +253,8 @@ impl Drop for Heartbeat {
 pub struct NatsFabric {
     link: NatsLink,
     sub: SelectAll<async_nats::Subscriber>,
+    /// Messages that arrived before the probe of [`NatsFabric::connect`], taken first.
+    early: VecDeque<Vec<u8>>,
     cluster: String,
     zone: ZoneId,
     max: usize,
@@ -239,8 +274,13 @@ impl NatsFabric {
         let intents = link.subscribe(intents_subject(cluster))?;
         let cuts = link.subscribe(cuts_subject(cluster))?;
         let max = link.client.server_info().max_payload;
-        let sub = futures_util::stream::select_all([borders, control, intents, cuts]);
-        Ok(NatsFabric { link, sub, cluster: cluster.to_string(), zone, max, sent: 0, received: 0 })
+        let mut sub = futures_util::stream::select_all([borders, control, intents, cuts]);
+        // Until the server has taken the subscriptions, a neighbour's first borders can
+        // miss them, and the zone waits for them for ever (`myriad sim --zones 4
+        // --nats` stalled at tick 0 about one run in eight): a probe on the zone's own
+        // border subject settles them.
+        let early = link.echo(&zone_subject(cluster, zone), &mut sub)?;
+        Ok(NatsFabric { link, sub, early, cluster: cluster.to_string(), zone, max, sent: 0, received: 0 })
     }
 
     /// The connection, for checkpoints.
@@ -280,7 +320,10 @@ impl Fabric for NatsFabric {
     }
 
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
-        let got = self.link.next_before(&mut self.sub, deadline)?;
+        let got = match self.early.pop_front() {
+            Some(m) => Some(m),
+            None => self.link.next_before(&mut self.sub, deadline)?,
+        };
         self.received += got.as_ref().map_or(0, |b| b.len() as u64);
         Ok(got)
     }

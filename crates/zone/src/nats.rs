@@ -5,7 +5,10 @@
 //! - `myriad.c.control`: the supervisor's halt and start, to every zone;
 //! - `myriad.c.heartbeat.<z>`: zone `z`'s heartbeat, to the supervisor;
 //! - `myriad.c.states`: every zone's owned objects after each step, to the gateways;
-//! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone.
+//! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone;
+//! - `myriad.c.subscriptions`: the gateways' subscriptions (states by interest), to every
+//!   zone;
+//! - `myriad.c.view.<g>`: every zone's view for gateway `g` after each step.
 //!
 //! Who may publish and subscribe to each is [`crate::fabric_auth`]'s table; every
 //! connection presents a [`NatsAuth`] (none: a server without auth).
@@ -56,6 +59,22 @@ pub fn states_subject(cluster: &str) -> String {
 /// The subject of the gateways' intents for the zones.
 pub fn intents_subject(cluster: &str) -> String {
     format!("myriad.{cluster}.intents")
+}
+
+/// The subject of the gateways' subscriptions for the zones.
+pub fn subscriptions_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.subscriptions")
+}
+
+/// The subject of the zones' views for gateway `g`.
+pub fn view_subject(cluster: &str, g: u16) -> String {
+    format!("myriad.{cluster}.view.{g}")
+}
+
+/// Every gateway's view subject (the zones publish, the gateways subscribe, each to its
+/// own).
+pub fn views_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.view.*")
 }
 
 /// Checks a cluster name: letters, digits, `-` and `_`, so it is one subject token.
@@ -207,8 +226,8 @@ impl Drop for Heartbeat {
     }
 }
 
-/// A zone's endpoint: its border subject, the control subject and the gateways' intents,
-/// merged.
+/// A zone's endpoint: its border subject, the control subject and the gateways' intents
+/// and subscriptions, merged.
 pub struct NatsFabric {
     link: NatsLink,
     sub: SelectAll<async_nats::Subscriber>,
@@ -221,7 +240,7 @@ pub struct NatsFabric {
 
 impl NatsFabric {
     /// Connects to `url` as zone `zone` of `cluster`, presenting `auth`, and subscribes
-    /// to its subject, the control subject and the intents subject; when this returns,
+    /// to its subject, the control subject, the intents and the subscriptions subjects; when this returns,
     /// messages published to them are delivered.
     pub fn connect(url: &str, cluster: &str, zone: ZoneId, auth: &NatsAuth) -> Result<NatsFabric, ZoneError> {
         check_cluster_name(cluster)?;
@@ -229,8 +248,9 @@ impl NatsFabric {
         let borders = link.subscribe(zone_subject(cluster, zone))?;
         let control = link.subscribe(control_subject(cluster))?;
         let intents = link.subscribe(intents_subject(cluster))?;
+        let subscriptions = link.subscribe(subscriptions_subject(cluster))?;
         let max = link.client.server_info().max_payload;
-        let sub = futures_util::stream::select_all([borders, control, intents]);
+        let sub = futures_util::stream::select_all([borders, control, intents, subscriptions]);
         Ok(NatsFabric { link, sub, cluster: cluster.to_string(), zone, max, sent: 0, received: 0 })
     }
 
@@ -270,6 +290,11 @@ impl Fabric for NatsFabric {
         self.link.publish(states_subject(&self.cluster), bytes)
     }
 
+    fn send_view(&mut self, gateway: u16, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.sent += bytes.len() as u64;
+        self.link.publish(view_subject(&self.cluster, gateway), bytes)
+    }
+
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         let got = self.link.next_before(&mut self.sub, deadline)?;
         self.received += got.as_ref().map_or(0, |b| b.len() as u64);
@@ -285,20 +310,23 @@ impl Fabric for NatsFabric {
     }
 }
 
-/// A gateway's endpoint: intents out to every zone, the zones' states in.
+/// A gateway's endpoint: intents and subscriptions out to every zone, the zones' states
+/// and this gateway's views in.
 pub struct NatsGatewayLink {
     link: NatsLink,
-    states: async_nats::Subscriber,
+    states: SelectAll<async_nats::Subscriber>,
     cluster: String,
 }
 
 impl NatsGatewayLink {
     /// Connects to `url` as gateway `gateway` of `cluster`, presenting `auth`, and
-    /// subscribes to the states subject.
+    /// subscribes to the states subject and its view subject.
     pub fn connect(url: &str, cluster: &str, gateway: u16, auth: &NatsAuth) -> Result<NatsGatewayLink, ZoneError> {
         check_cluster_name(cluster)?;
         let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}"), auth)?;
-        let states = link.subscribe(states_subject(cluster))?;
+        let mirror = link.subscribe(states_subject(cluster))?;
+        let views = link.subscribe(view_subject(cluster, gateway))?;
+        let states = futures_util::stream::select_all([mirror, views]);
         Ok(NatsGatewayLink { link, states, cluster: cluster.to_string() })
     }
 
@@ -311,6 +339,10 @@ impl NatsGatewayLink {
 impl crate::fabric::GatewayLink for NatsGatewayLink {
     fn send_intents(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
         self.link.publish(intents_subject(&self.cluster), bytes)
+    }
+
+    fn send_subscription(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.link.publish(subscriptions_subject(&self.cluster), bytes)
     }
 
     fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {

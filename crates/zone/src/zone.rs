@@ -35,6 +35,7 @@ use crate::layout::{ZoneId, ZoneLayout};
 use crate::replay::IntentLog;
 use crate::resident::ResidentWorld;
 use crate::stats::ZoneStats;
+use crate::views::Subscribers;
 use crate::wire::{
     ALL, Border, BorderRecord, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border,
     encode_states,
@@ -51,8 +52,10 @@ pub struct ZoneConfig {
     pub key: ClusterKey,
     /// How long to wait for a neighbour's border state before declaring it stalled.
     pub wait: Duration,
-    /// Whether the zone serves gateways: it publishes its owned objects' states after
-    /// every step ([`Fabric::publish_states`]). Players' intents are taken either way.
+    /// Whether the zone serves gateways: after every step it sends each subscribed
+    /// gateway its view ([`crate::views`]) and, unless [`Zone::set_mirror`] turned it
+    /// off, publishes its owned objects' states for every gateway (the mirror,
+    /// [`Fabric::publish_states`]). Players' intents are taken either way.
     pub live: bool,
 }
 
@@ -96,6 +99,10 @@ pub struct Zone {
     /// The intents taken since the last checkpoint, when the zone logs them
     /// ([`Zone::checkpoint_log`]).
     log: Option<IntentLog>,
+    /// The gateways' subscriptions (states by interest).
+    subscribers: Subscribers,
+    /// Whether a live zone also publishes the whole mirror.
+    mirror: bool,
 }
 
 impl Zone {
@@ -132,7 +139,6 @@ impl Zone {
         let resident = ResidentWorld::new(world, &layout, cfg.id, owned)?;
         let stats = ZoneStats { owned: resident.owned_count(), ..ZoneStats::default() };
         Ok(Zone {
-            cfg,
             layout,
             resident,
             inbox: BTreeMap::new(),
@@ -141,7 +147,17 @@ impl Zone {
             stats,
             intents: IntentBook::new(world.tick),
             log: None,
+            subscribers: Subscribers::default(),
+            mirror: cfg.live,
+            cfg,
         })
+    }
+
+    /// Whether a live zone publishes the whole mirror for every gateway besides the
+    /// subscribed gateways' views (on by default for a live zone; `myriad cluster
+    /// --gateway-states interest` turns it off).
+    pub fn set_mirror(&mut self, on: bool) {
+        self.mirror = on && self.cfg.live;
     }
 
     /// This zone's id.
@@ -275,7 +291,10 @@ impl Zone {
         self.stats.owned = self.resident.owned_count();
         self.stats.step += start.elapsed();
         if self.cfg.live {
-            self.publish_states()?;
+            if self.mirror {
+                self.publish_states()?;
+            }
+            self.publish_views()?;
         }
         self.intents.expire(self.tick());
         self.stats.bytes = self.fabric.bytes();
@@ -300,6 +319,23 @@ impl Zone {
             self.fabric.publish_states(bytes)?;
             self.stats.messages.0 += 1;
         }
+        Ok(())
+    }
+
+    /// Each subscribed gateway's view, at the tick just reached.
+    fn publish_views(&mut self) -> Result<(), ZoneError> {
+        let at = (self.cfg.run, self.tick(), self.cfg.id);
+        let max = self.fabric.max_message();
+        let fabric = &mut self.fabric;
+        let owned = self.resident.owned_states();
+        let sent = self.subscribers.publish(&self.cfg.key, at, owned, max, |g, b| fabric.send_view(g, b))?;
+        for (g, s) in sent {
+            let v = self.stats.views.entry(g).or_default();
+            v.0 += s.bytes;
+            v.1 += s.objects;
+            self.stats.messages.0 += s.messages;
+        }
+        self.stats.subscribers = self.subscribers.len();
         Ok(())
     }
 
@@ -398,6 +434,16 @@ impl Zone {
             Ok(Message::Intents(i)) => {
                 self.take_intents(i, bytes, t);
                 return None;
+            }
+            Ok(Message::Subscription(s)) => {
+                let bounds = self.resident.world().bounds;
+                return match self.subscribers.offer(s, self.cfg.run, t, &bounds) {
+                    Ok(()) => {
+                        self.stats.messages.1 += 1;
+                        None
+                    }
+                    Err(e) => self.reject(e.label(), t),
+                };
             }
             Ok(_) => return self.reject("kind", t),
             Err(e) => return self.reject(e.label(), t),

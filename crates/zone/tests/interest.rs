@@ -58,7 +58,7 @@ fn world() -> World {
 fn interest(world: &World) -> InterestConfig {
     InterestConfig {
         aoi_half: AOI_HALF,
-        cell: 16.0,
+        cell: 8.0,
         margin: InterestConfig::margin_for(3, 2.0, pair_reach(world) / 2.0),
         linger: 10,
     }
@@ -125,10 +125,10 @@ fn hostile(key: &ClusterKey, port: &GatewayPort) {
         gateway: GW + 1,
         version: 1,
         confirmed: None,
-        cell: 16.0,
-        cols: 8,
-        rows: 8,
-        cells: vec![0xff; 8],
+        cell: 8.0,
+        cols: 16,
+        rows: 16,
+        cells: vec![0xff; 32],
     };
     let stranger = ClusterKey::new(b"another cluster's key, not ours").unwrap();
     let bytes = encode_subscription(key, &good).unwrap();
@@ -140,7 +140,7 @@ fn hostile(key: &ClusterKey, port: &GatewayPort) {
         bytes[..40].to_vec(),
         sign(key, &huge),
         encode_subscription(key, &Subscription { gateway: 200, ..good.clone() }).unwrap(),
-        encode_subscription(key, &Subscription { cell: 8.0, ..good.clone() }).unwrap(),
+        encode_subscription(key, &Subscription { cell: 16.0, ..good.clone() }).unwrap(),
         // The zones are in run 2 when they read it.
         encode_subscription(key, &Subscription { confirmed: Some((2, 1 << 40)), ..good.clone() }).unwrap(),
     ];

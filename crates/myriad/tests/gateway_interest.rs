@@ -32,7 +32,8 @@ struct Lockstep {
     inner: ZonesBackend,
     go: Vec<Sender<()>>,
     done: Receiver<()>,
-    stats: Arc<Mutex<GatewayStats>>,
+    /// The gateway's counters after each step.
+    stats: Arc<Mutex<Vec<GatewayStats>>>,
 }
 
 impl Backend for Lockstep {
@@ -44,7 +45,7 @@ impl Backend for Lockstep {
     }
     fn step(&mut self, world: &mut World, k: &TickConstants) -> Result<StepReport, PhysicsError> {
         let report = self.inner.step(world, k);
-        *self.stats.lock().unwrap() = self.inner.stats().clone();
+        self.stats.lock().unwrap().push(self.inner.stats().clone());
         for g in &self.go {
             g.send(()).unwrap();
         }
@@ -65,13 +66,53 @@ fn world() -> World {
 struct Outcome {
     run: ScriptedRun,
     gateway: GatewayStats,
+    /// The gateway's counters after each step.
+    history: Vec<GatewayStats>,
     zones: Vec<ZoneStats>,
     players: Vec<(Vec3, Vec3)>,
 }
 
+/// Players of a run: where each starts (x, z), and its script, given the zones' layout
+/// and the players' ids.
+type Players = dyn Fn(&ZoneLayout) -> Vec<(f32, f32)>;
+type Script = dyn Fn(&[myriad_core::EntityId]) -> ActionScript;
+
+/// The players of the equality test: on both sides of both cuts, walking across them
+/// and back among the NPCs.
+fn across_the_cuts(layout: &ZoneLayout) -> Vec<(f32, f32)> {
+    let cut = layout.region(ZoneId(0)).max_x;
+    (0..8).map(|i| (cut - 4.0 + (i % 4) as f32 * 2.5, cut - 5.0 + (i / 4) as f32 * 8.0 + (i % 3) as f32)).collect()
+}
+
+fn there_and_back(ids: &[myriad_core::EntityId]) -> ActionScript {
+    let mut script = Vec::new();
+    for (i, &entity) in ids.iter().enumerate() {
+        let (there, back) = match i % 4 {
+            0 => (Action::RIGHT, Action::LEFT),
+            1 => (Action::LEFT, Action::RIGHT),
+            2 => (Action::FORWARD, Action::BACK),
+            _ => (Action::BACK | Action::RIGHT, Action::FORWARD),
+        };
+        for (tick, bits) in [(2, there), (70 + i as u64, back), (130, 0)] {
+            script.push(ScriptedAction { tick, entity, action: Action::from_bits(bits).unwrap() });
+        }
+    }
+    ActionScript::new(script)
+}
+
 /// One run: mirror (`interest` none) or by interest.
 fn run(interest: Option<InterestConfig>) -> Outcome {
-    let world = world();
+    run_with(world(), interest, AOI, TICKS, &across_the_cuts, &there_and_back)
+}
+
+fn run_with(
+    world: World,
+    interest: Option<InterestConfig>,
+    aoi: f32,
+    ticks: u64,
+    players: &Players,
+    script: &Script,
+) -> Outcome {
     let layout = Arc::new(ZoneLayout::for_count(&world.bounds, 4, pair_reach(&world), 2.0).unwrap());
     let key = ClusterKey::random();
     let (fabrics, mut links) = MemoryFabric::mesh_with_gateways(4, &[GW]);
@@ -89,7 +130,7 @@ fn run(interest: Option<InterestConfig>) -> Outcome {
                 s.spawn(move || {
                     let id = ZoneId(i as u16);
                     let cfg = ZoneConfig { id, run: 1, key, wait: Duration::from_secs(10), live: true };
-                    let backend = create_cpu_backend(BackendKind::CpuNaive).unwrap();
+                    let backend = create_cpu_backend(BackendKind::Cpu).unwrap();
                     let mut zone = myriad_zone::Zone::new(cfg, layout, world, backend, Box::new(fabric)).unwrap();
                     zone.set_mirror(interest.is_none());
                     while rx.recv().is_ok() {
@@ -111,39 +152,26 @@ fn run(interest: Option<InterestConfig>) -> Outcome {
         let inner = ZonesBackend::new(cfg, Box::new(links.pop().unwrap())).unwrap();
         let mut gw = world.clone();
         inner.prepare(&mut gw);
-        // Players on both sides of both cuts, in one quarter of the map's width around
-        // the centre, walking across them and back among the NPCs.
-        let cut = layout.region(ZoneId(0)).max_x;
-        let mut script = Vec::new();
         let mut ids = Vec::new();
-        for i in 0..8 {
-            let (x, z) = (cut - 4.0 + (i % 4) as f32 * 2.5, cut - 5.0 + (i / 4) as f32 * 8.0 + (i % 3) as f32);
+        for (x, z) in players(&layout) {
             let at = Vec3::new(x, gw.terrain.height_at(x, z) + 1.2, z);
             let id = gw.dynamics.spawn(myriad_server::PLAYER_SHAPE, at, ObjectKind::User).unwrap();
             ids.push((id, at));
-            let (there, back) = match i % 4 {
-                0 => (Action::RIGHT, Action::LEFT),
-                1 => (Action::LEFT, Action::RIGHT),
-                2 => (Action::FORWARD, Action::BACK),
-                _ => (Action::BACK | Action::RIGHT, Action::FORWARD),
-            };
-            for (tick, bits) in [(2, there), (70 + i as u64, back), (130, 0)] {
-                script.push(ScriptedAction { tick, entity: id, action: Action::from_bits(bits).unwrap() });
-            }
         }
-        let script = ActionScript::new(script);
-        let stats = Arc::new(Mutex::new(GatewayStats::default()));
+        let script = script(&ids.iter().map(|(id, _)| *id).collect::<Vec<_>>());
+        let stats = Arc::new(Mutex::new(Vec::new()));
         let backend = Lockstep { inner, go: std::mem::take(&mut go), done, stats: stats.clone() };
-        let config = ServerConfig { aoi_size: AOI, ..ServerConfig::default() };
-        let run = myriad_server::scripted::run(config, gw, Box::new(backend), &script, TICKS).unwrap();
+        let config = ServerConfig { aoi_size: aoi, ..ServerConfig::default() };
+        let run = myriad_server::scripted::run(config, gw, Box::new(backend), &script, ticks).unwrap();
         let players = ids
             .iter()
             .map(|(id, at)| (*at, run.world.dynamics.positions()[run.world.dynamics.slot(*id).expect("in the world")]))
             .collect();
         // The backend (and with it the zones' release channels) is gone: the zones end.
         let zones = zones.into_iter().map(|h| h.join().unwrap()).collect();
-        let gateway = stats.lock().unwrap().clone();
-        Outcome { run, gateway, zones, players }
+        let history = std::mem::take(&mut *stats.lock().unwrap());
+        let gateway = history.last().cloned().unwrap_or_default();
+        Outcome { run, gateway, history, zones, players }
     })
 }
 
@@ -192,5 +220,83 @@ fn every_client_receives_the_same_records_by_interest_as_with_the_mirror() {
     }
     for z in &mirror.zones {
         assert!(z.states_bytes > 0 && z.views.is_empty());
+    }
+}
+
+/// A number from the environment, or `default`.
+fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
+    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+}
+
+/// Measures a gateway's bytes in from the zones against its bytes out to its players,
+/// mirror and by interest, at scenario 2's density (55,000 dynamic objects a 1,024²
+/// map) over `MYRIAD_MEASURE_SCALE` (1) times its area, with `MYRIAD_MEASURE_PLAYERS`
+/// (100) players spread over the map, each walking one way and turning every two
+/// seconds, for `MYRIAD_MEASURE_TICKS` (120) ticks, the first 30 left out. Prints one
+/// line per mode (docs/zones.md, "States by interest", measured):
+/// `cargo test -p myriad --test gateway_interest -- --ignored --nocapture`.
+#[test]
+#[ignore = "a measurement (minutes): run it by name with --ignored"]
+fn measure_bytes_in_against_bytes_out() {
+    let scale: f32 = env_or("MYRIAD_MEASURE_SCALE", 1.0);
+    let count: usize = env_or("MYRIAD_MEASURE_PLAYERS", 100);
+    let ticks: u64 = env_or("MYRIAD_MEASURE_TICKS", 120);
+    let warm = 30usize;
+    let side = (1024.0 * scale.sqrt()).round();
+    let n = |base: f32| (base * scale).round() as u32;
+    let spec = ScenarioSpec::reference(2, 1)
+        .unwrap()
+        .counts(n(55_000.0), n(5_000.0), n(15_000.0))
+        .map_size(side, side as u32 + 1);
+    let world = spec.build().unwrap();
+    let aoi = ServerConfig::default().aoi_size;
+    // Spread over the map (a fixed sequence, so both modes get the same players).
+    let spread = move |_: &ZoneLayout| {
+        let mut x = 0x9e37_79b9_u32;
+        let mut next = move || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            0.05 + 0.9 * (x as f32 / u32::MAX as f32)
+        };
+        (0..count).map(|_| (next() * side, next() * side)).collect()
+    };
+    let walk = move |ids: &[myriad_core::EntityId]| {
+        let ways = [Action::RIGHT, Action::FORWARD | Action::RIGHT, Action::FORWARD, Action::LEFT, Action::BACK];
+        let mut script = Vec::new();
+        for (i, &entity) in ids.iter().enumerate() {
+            for (k, tick) in (1..ticks).step_by(60).enumerate() {
+                let action = Action::from_bits(ways[(i * 7 + k * 3) % ways.len()]).unwrap();
+                script.push(ScriptedAction { tick, entity, action });
+            }
+        }
+        ActionScript::new(script)
+    };
+    let interest = InterestConfig {
+        aoi_half: aoi / 2.0,
+        cell: aoi,
+        margin: InterestConfig::margin_for(8, 2.0, pair_reach(&world) / 2.0),
+        linger: 30,
+    };
+    for (mode, cfg) in [("mirror", None), ("interest", Some(interest))] {
+        let started = std::time::Instant::now();
+        let o = run_with(world.clone(), cfg, aoi, ticks, &spread, &walk);
+        let h = &o.history;
+        let window = (h.len() - warm) as f64;
+        let (a, b) = (&h[warm - 1], &h[h.len() - 1]);
+        let bytes_in = (b.zone_bytes_in - a.zone_bytes_in) as f64 / window;
+        let objects_in = (b.zone_objects_in - a.zone_objects_in) as f64 / window;
+        let bytes_out = o.run.bytes_out[warm..].iter().sum::<u64>() as f64 / (o.run.bytes_out.len() - warm) as f64;
+        println!(
+            "scale {scale} ({side} units, {} objects), {count} players, {mode}: in {:.0} B/tick ({objects_in:.0} records), \
+             out {bytes_out:.0} B/tick, in/out {:.2}, cells {}, wall {:.0} s",
+            world.dynamics.len(),
+            bytes_in,
+            bytes_in / bytes_out,
+            b.subscription_cells,
+            started.elapsed().as_secs_f64()
+        );
+        assert_eq!(o.run.updates_without_own, 0);
+        assert_eq!(b.duplicates, 0);
     }
 }

@@ -73,8 +73,8 @@ pub struct ScriptedRun {
     /// order. Two runs whose clients saw the same thing have the same hash, however the
     /// server ordered its datagrams.
     pub records_hash: u64,
-    /// Bytes of the datagrams sent to the clients.
-    pub bytes_out: u64,
+    /// Bytes of the datagrams sent to the clients, per tick.
+    pub bytes_out: Vec<u64>,
 }
 
 struct Client {
@@ -111,7 +111,7 @@ pub fn run(
         by_entity.insert(entity.0, addr);
     }
     let (mut actions_applied, mut datagrams_opened, mut rejected, mut updates_without_own) = (0, 0, 0, 0);
-    let (mut records_hash, mut bytes_out) = (std::hash::DefaultHasher::new(), 0u64);
+    let (mut records_hash, mut bytes_out) = (std::hash::DefaultHasher::new(), Vec::new());
     for _ in 0..ticks {
         for a in script.at(tick.world().tick) {
             let addr = by_entity[&a.entity.0];
@@ -123,9 +123,10 @@ pub fn run(
         }
         actions_applied += tick.tick_once().actions;
         let mut seen: std::collections::BTreeMap<u64, Vec<(UpdateHeader, StateRecord)>> = Default::default();
+        bytes_out.push(0);
         for (to, mut datagram) in transport.take_sent() {
             let Some(client) = clients.get_mut(&to) else { continue };
-            bytes_out += datagram.len() as u64;
+            *bytes_out.last_mut().expect("pushed") += datagram.len() as u64;
             match client.session.open(&mut datagram) {
                 Ok(opened) => {
                     datagrams_opened += 1;

@@ -149,7 +149,8 @@ fn run_with(
             refresh: 30,
             interest,
         };
-        let inner = ZonesBackend::new(cfg, Box::new(links.pop().unwrap())).unwrap();
+        // One incarnation for both runs: the players' ids follow from it.
+        let inner = ZonesBackend::with_incarnation(cfg, Box::new(links.pop().unwrap()), 1_764_000_000_000).unwrap();
         let mut gw = world.clone();
         inner.prepare(&mut gw);
         let mut ids = Vec::new();
@@ -300,3 +301,4 @@ fn measure_bytes_in_against_bytes_out() {
         assert_eq!(b.duplicates, 0);
     }
 }
+

@@ -228,8 +228,24 @@ pub struct ZonesBackend {
 }
 
 impl ZonesBackend {
-    /// A gateway following the zones through `link`.
+    /// A gateway following the zones through `link`, whose incarnation is the time now.
     pub fn new(cfg: GatewayConfig, link: Box<dyn GatewayLink>) -> Result<ZonesBackend, ZoneError> {
+        // Milliseconds since the epoch: a restarted gateway's intents are newer.
+        let incarnation = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_millis() as u64)
+            .unwrap_or(1);
+        ZonesBackend::with_incarnation(cfg, link, incarnation)
+    }
+
+    /// [`ZonesBackend::new`] with a given incarnation (its players' ids follow from it:
+    /// [`incarnation_ids`]), for runs that must be the same twice. It must grow from one
+    /// start of a gateway to the next.
+    pub fn with_incarnation(
+        cfg: GatewayConfig,
+        link: Box<dyn GatewayLink>,
+        incarnation: u64,
+    ) -> Result<ZonesBackend, ZoneError> {
         if cfg.gateway >= MAX_GATEWAYS {
             return Err(ZoneError::Layout(format!("gateway {} of at most {MAX_GATEWAYS}", cfg.gateway)));
         }
@@ -237,11 +253,6 @@ impl ZonesBackend {
             return Err(ZoneError::Layout("a gateway needs at least one zone".into()));
         }
         let aoi = myriad_physics::create_cpu_backend(BackendKind::Cpu)?;
-        // Milliseconds since the epoch: a restarted gateway's intents are newer.
-        let incarnation = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_millis() as u64)
-            .unwrap_or(1);
         let interest = cfg.interest.map(Interest::new);
         Ok(ZonesBackend {
             ids: incarnation_ids(cfg.gateway, incarnation),

@@ -13,7 +13,7 @@ use std::sync::mpsc::{Receiver, Sender, channel};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use myriad_core::{Action, ActionScript, Aabb, ObjectKind, ScenarioSpec, ScriptedAction, Vec3, World};
+use myriad_core::{Aabb, Action, ActionScript, ObjectKind, ScenarioSpec, ScriptedAction, Vec3, World};
 use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport, TickConstants, create_cpu_backend};
 use myriad_server::ServerConfig;
 use myriad_server::scripted::ScriptedRun;
@@ -212,7 +212,12 @@ fn every_client_receives_the_same_records_by_interest_as_with_the_mirror() {
     // in the players' cells.
     let (m, i) = (&mirror.gateway, &interest.gateway);
     assert!(m.zone_objects_in >= m.mirrors * w.dynamics.len() as u64, "{m:?}");
-    assert!(i.zone_objects_in * 2 < m.zone_objects_in, "by interest {} records, mirror {}", i.zone_objects_in, m.zone_objects_in);
+    assert!(
+        i.zone_objects_in * 2 < m.zone_objects_in,
+        "by interest {} records, mirror {}",
+        i.zone_objects_in,
+        m.zone_objects_in
+    );
     assert!(i.zone_gone_in > 0, "objects left the subscription: {i:?}");
     assert!(i.subscriptions >= TICKS && i.subscription_cells > 0 && i.subscription_cells < 64, "{i:?}");
     for z in &interest.zones {
@@ -301,4 +306,3 @@ fn measure_bytes_in_against_bytes_out() {
         assert_eq!(b.duplicates, 0);
     }
 }
-

@@ -47,7 +47,9 @@ use std::net::SocketAddr;
 
 use myriad_core::{ActionScript, World};
 use myriad_physics::Backend;
-use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateRecord, UpdateHeader};
+use myriad_protocol::{
+    ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateRecord, UpdateHeader,
+};
 use myriad_store::UserId;
 
 use crate::config::ServerConfig;

@@ -44,7 +44,13 @@ impl MemoryFabric {
         let (senders, receivers): (Vec<_>, Vec<_>) = (0..n).map(|_| mpsc::channel()).unzip();
         receivers
             .into_iter()
-            .map(|inbox| MemoryFabric { peers: senders.clone(), gateways: Routes::default(), inbox, sent: 0, received: 0 })
+            .map(|inbox| MemoryFabric {
+                peers: senders.clone(),
+                gateways: Routes::default(),
+                inbox,
+                sent: 0,
+                received: 0,
+            })
             .collect()
     }
 

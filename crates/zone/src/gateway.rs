@@ -42,7 +42,9 @@ use crate::error::ZoneError;
 use crate::fabric::GatewayLink;
 use crate::gateway_view::{Part, ZoneViews};
 use crate::subscription::{Interest, InterestConfig};
-use crate::wire::{ClusterKey, IntentKind, Intents, Message, Subscription, decode, encode_intents, encode_subscription};
+use crate::wire::{
+    ClusterKey, IntentKind, Intents, Message, Subscription, decode, encode_intents, encode_subscription,
+};
 
 /// Gateways a cluster can have (each owns a range of player ids).
 pub const MAX_GATEWAYS: u16 = 64;

@@ -41,8 +41,8 @@ pub mod resident;
 pub mod stats;
 pub mod subscription;
 pub mod supervisor;
-pub mod wire;
 pub mod views;
+pub mod wire;
 pub mod zone;
 
 pub use error::ZoneError;

@@ -404,6 +404,5 @@ fn parts<'a>(
     let parts = u16::try_from(n).map_err(|_| ZoneError::Fabric(format!("a view of {n} parts")))?;
     let records = |i: usize| &objects[(i * per_records).min(objects.len())..((i + 1) * per_records).min(objects.len())];
     let ids = |i: usize| &gone[(i * per_gone).min(gone.len())..((i + 1) * per_gone).min(gone.len())];
-    Ok((0..n).map(|i| (i as u16, parts, records(i), ids(i)))
-        .collect())
+    Ok((0..n).map(|i| (i as u16, parts, records(i), ids(i))).collect())
 }

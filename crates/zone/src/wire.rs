@@ -23,7 +23,9 @@ use ring::hmac;
 use crate::layout::ZoneId;
 
 mod interest;
-pub use interest::{KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, Subscription, View, cell_bytes, encode_subscription, encode_view};
+pub use interest::{
+    KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, Subscription, View, cell_bytes, encode_subscription, encode_view,
+};
 
 /// First two bytes of every message.
 pub const MAGIC: [u8; 2] = *b"MZ";

@@ -51,15 +51,14 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
             .collect();
 
         let gateway = s.spawn(|| {
-            let cfg =
-                GatewayConfig {
-                    gateway: GW,
-                    key: key.clone(),
-                    zones: 2,
-                    wait: Duration::from_secs(2),
-                    refresh: 30,
-                    interest: None,
-                };
+            let cfg = GatewayConfig {
+                gateway: GW,
+                key: key.clone(),
+                zones: 2,
+                wait: Duration::from_secs(2),
+                refresh: 30,
+                interest: None,
+            };
             let mut backend = ZonesBackend::new(cfg, Box::new(link)).unwrap();
             let mut gw = world.clone();
             backend.prepare(&mut gw);

@@ -170,8 +170,8 @@ fn a_gateway_holds_exactly_what_its_players_see_through_a_rollback_and_its_resta
                 s.spawn(move || {
                     let id = ZoneId(i as u16);
                     let cfg = |run| ZoneConfig { id, run, key: key.clone(), wait: Duration::from_secs(10), live: true };
-                    let mut zone = Zone::new(cfg(1), layout.clone(), world, common::cpu(id).unwrap(), Box::new(fabric))
-                        .unwrap();
+                    let mut zone =
+                        Zone::new(cfg(1), layout.clone(), world, common::cpu(id).unwrap(), Box::new(fabric)).unwrap();
                     zone.set_mirror(false);
                     let mut stats = ZoneStats::default();
                     while let Ok(cmd) = rx.recv() {
@@ -252,8 +252,7 @@ fn a_gateway_holds_exactly_what_its_players_see_through_a_rollback_and_its_resta
         handles.into_iter().map(|h| h.join().unwrap()).collect()
     });
     for z in &stats {
-        for reason in
-            ["tag", "truncated", "cells", "subscription_stranger", "subscription_grid", "subscription_ahead"]
+        for reason in ["tag", "truncated", "cells", "subscription_stranger", "subscription_grid", "subscription_ahead"]
         {
             assert_eq!(z.rejected.get(reason), Some(&1), "zone refuses a {reason} subscription: {:?}", z.rejected);
         }

@@ -75,15 +75,14 @@ fn a_live_run_with_players_replays_to_its_hash() {
             })
             .collect();
         s.spawn(|| {
-            let cfg =
-                GatewayConfig {
-                    gateway: GW,
-                    key: key.clone(),
-                    zones: 2,
-                    wait: Duration::from_secs(2),
-                    refresh: 30,
-                    interest: None,
-                };
+            let cfg = GatewayConfig {
+                gateway: GW,
+                key: key.clone(),
+                zones: 2,
+                wait: Duration::from_secs(2),
+                refresh: 30,
+                interest: None,
+            };
             let mut backend = ZonesBackend::new(cfg, Box::new(link)).unwrap();
             let mut gw = world.clone();
             backend.prepare(&mut gw);

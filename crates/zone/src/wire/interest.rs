@@ -138,7 +138,8 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     }
     let count = u32::try_from(v.objects.len()).map_err(|_| WireError::Field("view records"))?;
     let gone = u32::try_from(v.gone.len()).map_err(|_| WireError::Field("view gone"))?;
-    let h = Head { kind: KIND_VIEW, run: v.run, tick: v.tick, from: v.zone, to: ZoneId(v.gateway), aux: [v.part, v.parts] };
+    let h =
+        Head { kind: KIND_VIEW, run: v.run, tick: v.tick, from: v.zone, to: ZoneId(v.gateway), aux: [v.part, v.parts] };
     let mut b = header(&h, count, VIEW_FIXED + v.objects.len() * RECORD_LEN + v.gone.len() * 4);
     b.extend_from_slice(&v.base.unwrap_or(WHOLE).to_le_bytes());
     b.extend_from_slice(&gone.to_le_bytes());

@@ -100,7 +100,10 @@ fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
     assert_eq!(s.len(), HEADER_LEN + 24 + 2 + TAG_LEN);
     assert_eq!(decode(&key(), &s).unwrap(), Message::Subscription(subscription()));
     let none = Subscription { confirmed: None, ..subscription() };
-    assert_eq!(decode(&key(), &encode(&key(), &Message::Subscription(none.clone())).unwrap()).unwrap(), Message::Subscription(none));
+    assert_eq!(
+        decode(&key(), &encode(&key(), &Message::Subscription(none.clone())).unwrap()).unwrap(),
+        Message::Subscription(none)
+    );
     let v = encode_view(&key(), &view()).unwrap();
     assert_eq!(v.len(), HEADER_LEN + 16 + 2 * RECORD_LEN + 2 * 4 + TAG_LEN);
     assert_eq!(decode(&key(), &v).unwrap(), Message::View(view()));
@@ -133,7 +136,10 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
     assert_eq!(resigned(&s, &|r| r[HEADER_LEN] = 2), Err(WireError::Field("subscription confirmation")));
     assert_eq!(resigned(&s, &|r| *r.last_mut().unwrap() = 0xff), Err(WireError::Field("subscription cells")));
     let v = encode_view(&key(), &view()).unwrap();
-    assert_eq!(resigned(&v, &|r| r[22..24].copy_from_slice(&ALL.0.to_le_bytes())), Err(WireError::Field("view header")));
+    assert_eq!(
+        resigned(&v, &|r| r[22..24].copy_from_slice(&ALL.0.to_le_bytes())),
+        Err(WireError::Field("view header"))
+    );
     assert!(matches!(resigned(&v, &|r| r.extend_from_slice(&[0; 4])), Err(WireError::Length { .. })));
     // Gone ids out of order (swap the two).
     let n = v.len() - TAG_LEN;

@@ -238,7 +238,9 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
 /// mirror and by interest, at scenario 2's density (55,000 dynamic objects a 1,024²
 /// map) over `MYRIAD_MEASURE_SCALE` (1) times its area, with `MYRIAD_MEASURE_PLAYERS`
 /// (100) players spread over the map, each walking one way and turning every two
-/// seconds, for `MYRIAD_MEASURE_TICKS` (120) ticks, the first 30 left out. Prints one
+/// seconds, for `MYRIAD_MEASURE_TICKS` (120) ticks, the first 30 left out; cells of
+/// `MYRIAD_MEASURE_CELL` (the AOI size), a margin for `MYRIAD_MEASURE_LAG` (8) ticks of
+/// lag at the zones' max step (2). Prints one
 /// line per mode (docs/zones.md, "States by interest", measured):
 /// `cargo test -p myriad --test gateway_interest -- --ignored --nocapture`.
 #[test]
@@ -278,10 +280,11 @@ fn measure_bytes_in_against_bytes_out() {
         }
         ActionScript::new(script)
     };
+    let (cell, lag) = (env_or("MYRIAD_MEASURE_CELL", aoi), env_or("MYRIAD_MEASURE_LAG", 8));
     let interest = InterestConfig {
         aoi_half: aoi / 2.0,
-        cell: aoi,
-        margin: InterestConfig::margin_for(8, 2.0, pair_reach(&world) / 2.0),
+        cell,
+        margin: InterestConfig::margin_for(lag, 2.0, pair_reach(&world) / 2.0),
         linger: 30,
     };
     for (mode, cfg) in [("mirror", None), ("interest", Some(interest))] {
@@ -294,8 +297,8 @@ fn measure_bytes_in_against_bytes_out() {
         let objects_in = (b.zone_objects_in - a.zone_objects_in) as f64 / window;
         let bytes_out = o.run.bytes_out[warm..].iter().sum::<u64>() as f64 / (o.run.bytes_out.len() - warm) as f64;
         println!(
-            "scale {scale} ({side} units, {} objects), {count} players, {mode}: in {:.0} B/tick ({objects_in:.0} records), \
-             out {bytes_out:.0} B/tick, in/out {:.2}, cells {}, wall {:.0} s",
+            "scale {scale} ({side} units, {} objects), {count} players, cell {cell}, lag {lag}, {mode}: \
+             in {:.0} B/tick ({objects_in:.0} records), out {bytes_out:.0} B/tick, in/out {:.2}, cells {}, wall {:.0} s",
             world.dynamics.len(),
             bytes_in,
             bytes_in / bytes_out,

@@ -406,3 +406,7 @@ fn parts<'a>(
     let ids = |i: usize| &gone[(i * per_gone).min(gone.len())..((i + 1) * per_gone).min(gone.len())];
     Ok((0..n).map(|i| (i as u16, parts, records(i), ids(i))).collect())
 }
+
+#[cfg(test)]
+#[path = "views_tests.rs"]
+mod tests;

@@ -1,7 +1,7 @@
 //! The locked-down fabric on a real `nats-server` of the test's own, configured by
 //! `fabric_auth`: a gateway's credentials cannot publish zone states, heartbeats,
-//! control, states or checkpoints (the server refuses, nothing reaches the zones); a
-//! zone's cannot publish claims, intents or another zone's heartbeat; the legitimate flows (zones over NATS, the
+//! control, states, views or checkpoints (the server refuses, nothing reaches the zones); a
+//! zone's cannot publish claims, intents, subscriptions or another zone's heartbeat; the legitimate flows (zones over NATS, the
 //! checkpoint store) still work; a wrong password is refused; `tls://` works with the
 //! cluster's authority. Needs the `nats-server` program; skips with a message without it,
 //! fails under `MYRIAD_REQUIRE_NATS=1`.
@@ -115,6 +115,8 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     let mut beats = supervisor.subscribe("myriad.c.heartbeat.*".into()).unwrap();
     let mut states = other_gateway.subscribe("myriad.c.states".into()).unwrap();
     let mut claims = other_gateway.subscribe("myriad.c.sessions".into()).unwrap();
+    let mut subscriptions = other_zone.subscribe("myriad.c.subscriptions".into()).unwrap();
+    let mut views = other_gateway.subscribe("myriad.c.view.3".into()).unwrap();
 
     // What each role may say still arrives: the silences below are refusals, not a deaf
     // listener.
@@ -133,6 +135,10 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     assert_eq!(heard(&other_gateway, &mut states), b"states");
     supervisor.publish("myriad.c.control".into(), b"halt".to_vec()).unwrap();
     assert_eq!(heard(&zone, &mut control), b"halt");
+    gateway.publish("myriad.c.subscriptions".into(), b"cells".to_vec()).unwrap();
+    assert_eq!(heard(&other_zone, &mut subscriptions), b"cells");
+    zone.publish("myriad.c.view.3".into(), b"view".to_vec()).unwrap();
+    assert_eq!(heard(&other_gateway, &mut views), b"view");
 
     // A gateway's credentials: no border states, heartbeats, control, states or
     // checkpoints.
@@ -141,6 +147,7 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
         "myriad.c.heartbeat.0",
         "myriad.c.control",
         "myriad.c.states",
+        "myriad.c.view.3",
         "$O.myriad-c.C.forged",
         "$JS.API.STREAM.CREATE.OBJ_myriad-c",
     ];
@@ -152,20 +159,22 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     silent(&zone, &mut control, "a gateway's halt");
     silent(&supervisor, &mut beats, "a gateway's heartbeat");
     silent(&other_gateway, &mut states, "a gateway's states");
+    silent(&other_gateway, &mut views, "a gateway's view for another gateway");
     let errors = errors_after(&gateway, forbidden.len() as u64);
     for subject in forbidden {
         let refused = format!("Permissions Violation for Publish to \"{subject}\"");
         assert!(errors.iter().any(|e| e.contains(&refused)), "{refused} not in {errors:?}");
     }
 
-    // A zone's credentials: no claims, no intents.
-    for subject in ["myriad.c.sessions", "myriad.c.intents"] {
+    // A zone's credentials: no claims, no intents, no subscriptions.
+    for subject in ["myriad.c.sessions", "myriad.c.intents", "myriad.c.subscriptions"] {
         zone.publish(subject.into(), b"forged".to_vec()).unwrap();
     }
     zone.flush().unwrap();
     silent(&other_gateway, &mut claims, "a zone's claim");
     silent(&other_zone, &mut intents, "a zone's intents");
-    let errors = errors_after(&zone, 2);
+    silent(&other_zone, &mut subscriptions, "a zone's subscription");
+    let errors = errors_after(&zone, 3);
     assert!(errors.iter().all(|e| e.contains("Permissions Violation for Publish")), "{errors:?}");
 
     // Nor may a zone beat another zone's heartbeat (to hide its death).

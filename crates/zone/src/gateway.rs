@@ -125,7 +125,7 @@ pub struct GatewayStats {
     /// Bytes of the zones' states messages taken (what this gateway receives from the
     /// zones, beside its intents out).
     pub zone_bytes_in: u64,
-    /// Object records in those messages.
+    /// Object records in those messages (whole, or moves of objects held).
     pub zone_objects_in: u64,
     /// Ids of objects the zones' views said were gone (states by interest).
     pub zone_gone_in: u64,
@@ -417,14 +417,16 @@ impl ZonesBackend {
     fn offer(&mut self, bytes: &[u8]) {
         let (m, part) = match (decode(&self.cfg.key, bytes), self.interest.is_some()) {
             (Ok(Message::States(m)), false) => {
-                let part = Part { base: None, objects: m.objects.iter().map(|r| r.state).collect(), gone: Vec::new() };
+                let objects = m.objects.iter().map(|r| r.state).collect();
+                let part = Part { base: None, objects, moves: Vec::new(), gone: Vec::new() };
                 ((m.run, m.tick, m.from, m.part, m.parts), part)
             }
             (Ok(Message::View(v)), true) => {
                 if v.gateway != self.cfg.gateway {
                     return self.reject("misrouted");
                 }
-                ((v.run, v.tick, v.zone, v.part, v.parts), Part { base: v.base, objects: v.objects, gone: v.gone })
+                let part = Part { base: v.base, objects: v.objects, moves: v.moves, gone: v.gone };
+                ((v.run, v.tick, v.zone, v.part, v.parts), part)
             }
             // The mirror to a gateway that subscribes, or a view to one that does not.
             (Ok(Message::States(_) | Message::View(_)), _) => return self.reject("mode"),
@@ -466,7 +468,7 @@ impl ZonesBackend {
             return self.reject("replayed");
         }
         self.stats.zone_bytes_in += bytes.len() as u64;
-        self.stats.zone_objects_in += part.objects.len() as u64;
+        self.stats.zone_objects_in += (part.objects.len() + part.moves.len()) as u64;
         self.stats.zone_gone_in += part.gone.len() as u64;
         got.insert(part_no, part);
         while self.pending.len() > PENDING_TICKS {
@@ -492,7 +494,10 @@ impl ZonesBackend {
             return None;
         }
         for (z, p) in zones {
-            self.views.apply(z, p);
+            let unknown = self.views.apply(z, p);
+            if unknown > 0 {
+                *self.stats.rejected.entry("move").or_default() += unknown;
+            }
         }
         let mut all = self.views.assemble();
         let before = all.len();

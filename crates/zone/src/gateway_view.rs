@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use myriad_core::{EntityId, ObjectState};
+use myriad_core::{EntityId, ObjectState, Vec3};
 
 /// One part of a zone's message of one tick, as the gateway files it.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -12,8 +12,10 @@ pub(crate) struct Part {
     /// `None`: whole (replaces what the gateway holds of the zone); `Some(c)`: the
     /// changes since tick `c`.
     pub base: Option<u64>,
-    /// States, ids ascending.
+    /// Whole states, ids ascending.
     pub objects: Vec<ObjectState>,
+    /// New positions of objects held.
+    pub moves: Vec<(EntityId, Vec3)>,
     /// Ids to drop.
     pub gone: Vec<EntityId>,
 }
@@ -37,18 +39,31 @@ impl ZoneViews {
         parts.iter().all(|p| p.base.is_none_or(|c| taken.is_some_and(|t| c <= t)))
     }
 
-    /// Applies zone `zone`'s parts of one tick (all of the same base).
-    pub fn apply(&mut self, zone: u16, parts: Vec<Part>) {
+    /// Applies zone `zone`'s parts of one tick (all of the same base); returns how many
+    /// moves named an object not held (ignored: never sent to a gateway that holds what
+    /// it confirmed).
+    pub fn apply(&mut self, zone: u16, parts: Vec<Part>) -> u64 {
         let held = self.zones.entry(zone).or_default();
-        if parts.first().is_some_and(|p| p.base.is_none()) {
-            held.clear();
+        let mut parts = parts.into_iter().peekable();
+        if parts.peek().is_some_and(|p| p.base.is_none()) {
+            // Whole: built at once from the sorted records.
+            let first = parts.next().expect("peeked");
+            *held = first.objects.into_iter().map(|o| (o.id, o)).collect();
         }
+        let mut unknown = 0;
         for p in parts {
             for id in &p.gone {
                 held.remove(id);
             }
             held.extend(p.objects.into_iter().map(|o| (o.id, o)));
+            for (id, pos) in p.moves {
+                match held.get_mut(&id) {
+                    Some(o) => o.pos = pos,
+                    None => unknown += 1,
+                }
+            }
         }
+        unknown
     }
 
     /// Every zone's objects with the zone that sent each, sorted by id (an object two

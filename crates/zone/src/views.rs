@@ -6,8 +6,11 @@
 //! they are. The zone remembers which objects of V the gateway was sent (`known`, each
 //! with the tick it entered) and sends, relative to the last tick the gateway confirmed
 //! having whole (`c`):
-//! - every object of V that changed after c (its state differs bit for bit from the
-//!   tick before) or entered V after c;
+//! - every object of V that entered V after c, whole (48 bytes), and the new position
+//!   of every other object of V that changed after c (its state differs bit for bit
+//!   from the tick before): a *move* of 16 bytes, since an object's id, kind, shape and
+//!   extents never change and nothing at a gateway reads another object's previous
+//!   position, action or flags (the gateway's own players always come whole);
 //! - the ids of objects that left V (moved out of the cells, cells unsubscribed, handed
 //!   to another zone, removed) after c: **gone**, until the gateway confirms past them;
 //! - with no confirmation (a new subscriber, a restarted gateway, a new run after a
@@ -29,13 +32,13 @@
 
 use std::collections::{BTreeMap, HashMap};
 
-use myriad_core::{Aabb, EntityId, ObjectState};
+use myriad_core::{Aabb, EntityId, ObjectState, Vec3};
 
 use crate::error::ZoneError;
 use crate::gateway::{MAX_GATEWAYS, player_ids};
 use crate::layout::ZoneId;
 use crate::subscription::{CellGrid, CellSet};
-use crate::wire::{ClusterKey, HEADER_LEN, RECORD_LEN, Subscription, TAG_LEN, View, encode_view};
+use crate::wire::{ClusterKey, HEADER_LEN, MOVE_LEN, RECORD_LEN, Subscription, TAG_LEN, View, encode_view};
 
 /// Ticks after which a silent subscriber is dropped (5 s at 30 Hz, as a silent
 /// gateway's players are: [`crate::intents`]).
@@ -286,10 +289,10 @@ impl Subscribers {
         let mut out = Vec::with_capacity(self.gateways.len());
         for (&g, s) in &mut self.gateways {
             let buckets = &self.buckets.iter().find(|(grid, _)| *grid == s.grid).expect("filled").1;
-            let (objects, gone) = view_of(g, s, &self.tracked, buckets, tick);
+            let (objects, moves, gone) = view_of(g, s, &self.tracked, buckets, tick);
             let base = s.confirmed;
-            let mut sent = Sent { objects: objects.len() as u64, ..Sent::default() };
-            for (part, parts, records, ids) in parts(&objects, &gone, max_message)? {
+            let mut sent = Sent { objects: (objects.len() + moves.len()) as u64, ..Sent::default() };
+            for (part, parts, (records, moved, ids)) in parts(&objects, &moves, &gone, max_message)? {
                 let v = View {
                     run,
                     tick,
@@ -299,6 +302,7 @@ impl Subscribers {
                     parts,
                     base,
                     objects: records.to_vec(),
+                    moves: moved.to_vec(),
                     gone: ids.to_vec(),
                 };
                 let bytes = encode_view(key, &v)?;
@@ -329,37 +333,39 @@ impl Subscribers {
     }
 }
 
-/// Gateway `g`'s view at `tick`: the records to send (ids ascending) and the ids gone.
-/// Updates what it was sent.
-fn view_of(
-    g: u16,
-    s: &mut Subscriber,
-    tracked: &[Tracked],
-    buckets: &Buckets,
-    tick: u64,
-) -> (Vec<ObjectState>, Vec<EntityId>) {
+/// What a view holds: whole records, moves, gone ids (each ids ascending).
+type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<EntityId>);
+
+/// Gateway `g`'s view at `tick`. Updates what it was sent.
+fn view_of(g: u16, s: &mut Subscriber, tracked: &[Tracked], buckets: &Buckets, tick: u64) -> ViewLists {
     let base = s.confirmed;
     if base.is_none() {
         s.known.clear();
         s.gone.clear();
     }
     let c = base.unwrap_or(0);
-    let mut objects = Vec::new();
+    let players = player_ids(g);
+    let (mut objects, mut moves) = (Vec::new(), Vec::new());
     let mut visit = |t: &Tracked, s: &mut Subscriber| {
         let id = t.state.id;
-        let send = match s.known.get_mut(&id) {
+        // Whole: new to the gateway since what it confirmed (it may lack the record), or
+        // one of its own players; else a move when it changed.
+        let (whole, moved) = match s.known.get_mut(&id) {
             Some(k) => {
                 k.seen = tick;
-                base.is_none() || t.changed_at > c || k.since > c
+                let whole = base.is_none() || k.since > c || (t.changed_at > c && players.contains(&id.0));
+                (whole, !whole && t.changed_at > c)
             }
             None => {
                 s.known.insert(id, Known { since: tick, seen: tick });
                 s.gone.remove(&id);
-                true
+                (true, false)
             }
         };
-        if send {
+        if whole {
             objects.push(t.state);
+        } else if moved {
+            moves.push((id, t.state.pos));
         }
     };
     let cells: Vec<u32> = s.cells.iter().collect();
@@ -369,9 +375,8 @@ fn view_of(
         }
     }
     // The gateway's own players, wherever they are (players' ids come last).
-    let ids = player_ids(g);
-    let from = tracked.partition_point(|t| t.state.id.0 < ids.start);
-    let to = tracked.partition_point(|t| t.state.id.0 < ids.end);
+    let from = tracked.partition_point(|t| t.state.id.0 < players.start);
+    let to = tracked.partition_point(|t| t.state.id.0 < players.end);
     for (i, t) in tracked.iter().enumerate().take(to).skip(from) {
         if !s.cells.contains(buckets.cell[i]) {
             visit(t, s);
@@ -385,26 +390,33 @@ fn view_of(
     s.gone.retain(|_, left| *left > c);
     let mut gone: Vec<EntityId> = if base.is_some() { s.gone.keys().copied().collect() } else { Vec::new() };
     objects.sort_unstable_by_key(|o| o.id);
+    moves.sort_unstable_by_key(|m| m.0);
     gone.sort_unstable();
-    (objects, gone)
+    (objects, moves, gone)
 }
 
-/// A view's records and gone ids in parts that fit `max_message` bytes (at least one
-/// part, even when empty): (part, parts, records, gone ids).
-#[allow(clippy::type_complexity)]
+/// One part's slices of a view's lists.
+type PartLists<'a> = (&'a [ObjectState], &'a [(EntityId, Vec3)], &'a [EntityId]);
+
+/// A view's records, moves and gone ids in parts that fit `max_message` bytes (at least
+/// one part, even when empty): (part, parts, its slices).
 fn parts<'a>(
     objects: &'a [ObjectState],
+    moves: &'a [(EntityId, Vec3)],
     gone: &'a [EntityId],
     max_message: usize,
-) -> Result<Vec<(u16, u16, &'a [ObjectState], &'a [EntityId])>, ZoneError> {
-    // Half of a message for each list, so that a part with both still fits.
-    let room = max_message.saturating_sub(HEADER_LEN + TAG_LEN + 16) / 2;
-    let (per_records, per_gone) = ((room / RECORD_LEN).max(1), (room / 4).max(1));
-    let n = objects.len().div_ceil(per_records).max(gone.len().div_ceil(per_gone)).max(1);
+) -> Result<Vec<(u16, u16, PartLists<'a>)>, ZoneError> {
+    // A third of a message for each list, so that a part with all three still fits.
+    let room = max_message.saturating_sub(HEADER_LEN + TAG_LEN + 16) / 3;
+    let per = [(room / RECORD_LEN).max(1), (room / MOVE_LEN).max(1), (room / 4).max(1)];
+    let n = objects.len().div_ceil(per[0]).max(moves.len().div_ceil(per[1])).max(gone.len().div_ceil(per[2])).max(1);
     let parts = u16::try_from(n).map_err(|_| ZoneError::Fabric(format!("a view of {n} parts")))?;
-    let records = |i: usize| &objects[(i * per_records).min(objects.len())..((i + 1) * per_records).min(objects.len())];
-    let ids = |i: usize| &gone[(i * per_gone).min(gone.len())..((i + 1) * per_gone).min(gone.len())];
-    Ok((0..n).map(|i| (i as u16, parts, records(i), ids(i))).collect())
+    fn chunk<T>(all: &[T], per: usize, i: usize) -> &[T] {
+        &all[(i * per).min(all.len())..((i + 1) * per).min(all.len())]
+    }
+    Ok((0..n)
+        .map(|i| (i as u16, parts, (chunk(objects, per[0], i), chunk(moves, per[1], i), chunk(gone, per[2], i))))
+        .collect())
 }
 
 #[cfg(test)]

@@ -49,14 +49,20 @@ fn subscription(incarnation: u64, version: u64, confirmed: Option<u64>) -> Subsc
     }
 }
 
-/// One tick's views: (base, ids sent, ids gone) per gateway.
+/// One tick's views: (base, ids sent whole, ids moved, ids gone) per gateway.
 #[allow(clippy::type_complexity)]
-fn publish(subs: &mut Subscribers, tick: u64, owned: &[ObjectState]) -> Vec<(u16, Option<u64>, Vec<u32>, Vec<u32>)> {
+fn publish(
+    subs: &mut Subscribers,
+    tick: u64,
+    owned: &[ObjectState],
+) -> Vec<(u16, Option<u64>, Vec<u32>, Vec<u32>, Vec<u32>)> {
     let mut out = Vec::new();
     subs.publish(&key(), (RUN, tick, ZoneId(0)), owned.iter().copied(), 1 << 20, |g, bytes| {
         let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
         assert_eq!((v.run, v.tick, v.gateway, v.parts), (RUN, tick, g, 1));
-        out.push((g, v.base, v.objects.iter().map(|o| o.id.0).collect(), v.gone.iter().map(|id| id.0).collect()));
+        let ids = |v: &[EntityId]| v.iter().map(|id| id.0).collect::<Vec<_>>();
+        let moved: Vec<EntityId> = v.moves.iter().map(|m| m.0).collect();
+        out.push((g, v.base, v.objects.iter().map(|o| o.id.0).collect(), ids(&moved), ids(&v.gone)));
         Ok(())
     })
     .unwrap();
@@ -71,30 +77,32 @@ fn a_view_is_whole_then_only_what_changed_and_what_left_until_confirmed() {
     assert!(publish(&mut subs, 1, &world).is_empty(), "nothing for nobody");
     subs.offer(subscription(10, 1, None), RUN, 1, &bounds()).unwrap();
     // Whole: the objects in the cells, and the gateway's own player wherever it is.
-    assert_eq!(publish(&mut subs, 2, &world), [(G, None, vec![1, 2, player], vec![])]);
+    assert_eq!(publish(&mut subs, 2, &world), [(G, None, vec![1, 2, player], vec![], vec![])]);
     subs.offer(subscription(10, 1, Some(2)), RUN, 2, &bounds()).unwrap();
     // At rest: nothing.
-    assert_eq!(publish(&mut subs, 3, &world), [(G, Some(2), vec![], vec![])]);
-    // One moves inside the cells, one leaves them, one enters.
+    assert_eq!(publish(&mut subs, 3, &world), [(G, Some(2), vec![], vec![], vec![])]);
+    // One moves inside the cells (a move), one leaves them (gone), one enters (whole).
     world[0].pos.x = 6.0;
     world[1].pos.x = 35.0;
     world[2].pos.x = 29.0;
-    assert_eq!(publish(&mut subs, 4, &world), [(G, Some(2), vec![1, 3], vec![2])]);
+    assert_eq!(publish(&mut subs, 4, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
     // Not confirmed yet: the same again (changes since 2), however old.
-    assert_eq!(publish(&mut subs, 5, &world), [(G, Some(2), vec![1, 3], vec![2])]);
+    assert_eq!(publish(&mut subs, 5, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
     subs.offer(subscription(10, 1, Some(5)), RUN, 5, &bounds()).unwrap();
-    assert_eq!(publish(&mut subs, 6, &world), [(G, Some(5), vec![], vec![])]);
+    // The gateway's own player comes whole when it changes.
+    world[3].pos.x = 91.0;
+    assert_eq!(publish(&mut subs, 6, &world), [(G, Some(5), vec![player], vec![], vec![])]);
     // Handed to another zone: gone from this one.
     world.remove(0);
-    assert_eq!(publish(&mut subs, 7, &world), [(G, Some(5), vec![], vec![1])]);
+    assert_eq!(publish(&mut subs, 7, &world), [(G, Some(5), vec![player], vec![], vec![1])]);
     // A confirmation of another run (the gateway followed a rollback): whole again.
     let mut other = subscription(10, 2, Some(6));
     other.confirmed = Some((RUN + 1, 6));
     subs.offer(other, RUN, 7, &bounds()).unwrap();
-    assert_eq!(publish(&mut subs, 8, &world), [(G, None, vec![3, player], vec![])]);
+    assert_eq!(publish(&mut subs, 8, &world), [(G, None, vec![3, player], vec![], vec![])]);
     // A restarted gateway (a newer incarnation) starts whole too; an older one is refused.
     subs.offer(subscription(11, 1, Some(8)), RUN, 8, &bounds()).unwrap();
-    assert_eq!(publish(&mut subs, 9, &world), [(G, None, vec![3, player], vec![])]);
+    assert_eq!(publish(&mut subs, 9, &world), [(G, None, vec![3, player], vec![], vec![])]);
     let stale = subs.offer(subscription(10, 9, Some(8)), RUN, 9, &bounds());
     assert_eq!(stale, Err(SubscriptionError::Stale { incarnation: 10, version: 9 }));
     // A subscriber silent for longer than EXPIRE_TICKS (last heard at 8) is dropped.

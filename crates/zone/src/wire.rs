@@ -24,7 +24,7 @@ use crate::layout::ZoneId;
 
 mod interest;
 pub use interest::{
-    KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, Subscription, View, cell_bytes, encode_subscription, encode_view,
+    KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, MOVE_LEN, Subscription, View, cell_bytes, encode_subscription, encode_view,
 };
 
 /// First two bytes of every message.

@@ -7,7 +7,7 @@
 //! records only), so their lengths are checked here, after the tag, like every other
 //! field: every message has exactly one encoding.
 
-use myriad_core::{EntityId, ObjectState};
+use myriad_core::{EntityId, ObjectState, Vec3};
 
 use super::{ALL, ClusterKey, Head, RECORD_LEN, WireError, header, plain, record, sign};
 use crate::layout::ZoneId;
@@ -22,6 +22,8 @@ pub const MAX_CELLS: u64 = 1 << 18;
 const SUBSCRIPTION_FIXED: usize = 24;
 /// Bytes of a view's body before its records.
 const VIEW_FIXED: usize = 16;
+/// Bytes of a move: id and position.
+pub const MOVE_LEN: usize = 16;
 /// A view's base when it is whole (the gateway drops what it had of the zone).
 const WHOLE: u64 = u64::MAX;
 
@@ -71,8 +73,13 @@ pub struct View {
     /// `None`: the whole view (the gateway replaces what it had of this zone); `Some(c)`:
     /// the changes since tick `c`, which the gateway has whole.
     pub base: Option<u64>,
-    /// States, ids ascending.
+    /// Whole states, ids ascending: objects that entered the view, and the gateway's
+    /// own players.
     pub objects: Vec<ObjectState>,
+    /// New positions of objects the gateway already holds (ids ascending): all that
+    /// changes of an object a gateway shows, in a third of a whole record. None in a
+    /// whole view.
+    pub moves: Vec<(EntityId, Vec3)>,
     /// Objects of this zone the gateway must drop (they left its cells, or the zone),
     /// ids ascending; none in a whole view.
     pub gone: Vec<EntityId>,
@@ -126,26 +133,41 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     if v.parts == 0 || v.part >= v.parts {
         return Err(WireError::Part { part: v.part, parts: v.parts });
     }
-    if v.gateway == ALL.0 || v.zone == ALL || (v.base.is_none() && !v.gone.is_empty()) || v.base == Some(WHOLE) {
+    let whole_with_changes = v.base.is_none() && !(v.gone.is_empty() && v.moves.is_empty());
+    if v.gateway == ALL.0 || v.zone == ALL || whole_with_changes || v.base == Some(WHOLE) {
         return Err(WireError::Field("view"));
     }
     let ascending = |ids: &mut dyn Iterator<Item = EntityId>| {
         let ids: Vec<EntityId> = ids.collect();
         ids.windows(2).all(|w| w[0] < w[1])
     };
-    if !ascending(&mut v.objects.iter().map(|o| o.id)) || !ascending(&mut v.gone.iter().copied()) {
+    if !ascending(&mut v.objects.iter().map(|o| o.id))
+        || !ascending(&mut v.moves.iter().map(|m| m.0))
+        || !ascending(&mut v.gone.iter().copied())
+    {
         return Err(WireError::Field("view ids"));
+    }
+    if v.moves.iter().any(|(_, p)| !p.is_finite()) {
+        return Err(WireError::Field("view moves"));
     }
     let count = u32::try_from(v.objects.len()).map_err(|_| WireError::Field("view records"))?;
     let gone = u32::try_from(v.gone.len()).map_err(|_| WireError::Field("view gone"))?;
+    let moves = u32::try_from(v.moves.len()).map_err(|_| WireError::Field("view moves"))?;
     let h =
         Head { kind: KIND_VIEW, run: v.run, tick: v.tick, from: v.zone, to: ZoneId(v.gateway), aux: [v.part, v.parts] };
-    let mut b = header(&h, count, VIEW_FIXED + v.objects.len() * RECORD_LEN + v.gone.len() * 4);
+    let body = VIEW_FIXED + v.objects.len() * RECORD_LEN + v.moves.len() * MOVE_LEN + v.gone.len() * 4;
+    let mut b = header(&h, count, body);
     b.extend_from_slice(&v.base.unwrap_or(WHOLE).to_le_bytes());
     b.extend_from_slice(&gone.to_le_bytes());
-    b.extend_from_slice(&0u32.to_le_bytes());
+    b.extend_from_slice(&moves.to_le_bytes());
     for o in &v.objects {
         super::put_record(&mut b, super::BorderRecord::seen(*o));
+    }
+    for (id, p) in &v.moves {
+        b.extend_from_slice(&id.0.to_le_bytes());
+        for c in [p.x, p.y, p.z] {
+            b.extend_from_slice(&c.to_le_bytes());
+        }
     }
     for id in &v.gone {
         b.extend_from_slice(&id.0.to_le_bytes());
@@ -213,20 +235,35 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         return Err(WireError::Length { count: f.count, actual: body.len() });
     }
     let base = u64_at(body, 0);
-    let gone = u32_at(body, 8);
-    let expected = VIEW_FIXED as u64 + u64::from(f.count) * RECORD_LEN as u64 + u64::from(gone) * 4;
+    let (gone, moves) = (u32_at(body, 8), u32_at(body, 12));
+    let expected = VIEW_FIXED as u64
+        + u64::from(f.count) * RECORD_LEN as u64
+        + u64::from(moves) * MOVE_LEN as u64
+        + u64::from(gone) * 4;
     if body.len() as u64 != expected {
         return Err(WireError::Length { count: f.count, actual: body.len() });
     }
-    if u32_at(body, 12) != 0 || (base == WHOLE && gone != 0) {
+    if base == WHOLE && (gone != 0 || moves != 0) {
         return Err(WireError::Field("view body"));
     }
     let records_end = VIEW_FIXED + f.count as usize * RECORD_LEN;
+    let moves_end = records_end + moves as usize * MOVE_LEN;
     let objects = plain(body[VIEW_FIXED..records_end].chunks_exact(RECORD_LEN).enumerate().map(|(i, r)| record(i, r)))?;
+    let f32_at = |b: &[u8], at: usize| f32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"));
+    let moves: Vec<(EntityId, Vec3)> = body[records_end..moves_end]
+        .chunks_exact(MOVE_LEN)
+        .map(|m| (EntityId(u32_at(m, 0)), Vec3::new(f32_at(m, 4), f32_at(m, 8), f32_at(m, 12))))
+        .collect();
     let gone: Vec<EntityId> =
-        body[records_end..].chunks_exact(4).map(|b| EntityId(u32::from_le_bytes(b.try_into().expect("4")))).collect();
-    if objects.windows(2).any(|w| w[0].id >= w[1].id) || gone.windows(2).any(|w| w[0] >= w[1]) {
+        body[moves_end..].chunks_exact(4).map(|b| EntityId(u32::from_le_bytes(b.try_into().expect("4")))).collect();
+    if objects.windows(2).any(|w| w[0].id >= w[1].id)
+        || moves.windows(2).any(|w| w[0].0 >= w[1].0)
+        || gone.windows(2).any(|w| w[0] >= w[1])
+    {
         return Err(WireError::Field("view ids"));
+    }
+    if moves.iter().any(|(_, p)| !p.is_finite()) {
+        return Err(WireError::Field("view moves"));
     }
     Ok(View {
         run: f.run,
@@ -237,6 +274,7 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         parts: f.aux1,
         base: (base != WHOLE).then_some(base),
         objects,
+        moves,
         gone,
     })
 }

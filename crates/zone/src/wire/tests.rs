@@ -90,6 +90,7 @@ fn view() -> View {
         parts: 2,
         base: Some(99),
         objects: vec![object(5, 1.0), object(9, -7.5)],
+        moves: vec![(EntityId(2), Vec3::new(1.0, 2.0, 3.0)), (EntityId(6), Vec3::new(-4.0, 0.5, 9.0))],
         gone: vec![EntityId(3), EntityId(1 << 30)],
     }
 }
@@ -105,9 +106,9 @@ fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
         Message::Subscription(none)
     );
     let v = encode_view(&key(), &view()).unwrap();
-    assert_eq!(v.len(), HEADER_LEN + 16 + 2 * RECORD_LEN + 2 * 4 + TAG_LEN);
+    assert_eq!(v.len(), HEADER_LEN + 16 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + TAG_LEN);
     assert_eq!(decode(&key(), &v).unwrap(), Message::View(view()));
-    let whole = View { base: None, gone: vec![], ..view() };
+    let whole = View { base: None, gone: vec![], moves: vec![], ..view() };
     assert_eq!(decode(&key(), &encode(&key(), &Message::View(whole.clone())).unwrap()).unwrap(), Message::View(whole));
     assert_eq!(decode(&ClusterKey::new(&[8; 32]).unwrap(), &s), Err(WireError::Tag));
 }
@@ -121,7 +122,12 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
     let tail = Subscription { cells: vec![0, 0b1000_0000], ..subscription() };
     assert!(encode_subscription(&key(), &tail).is_err(), "a cell past the grid");
     assert!(encode_subscription(&key(), &Subscription { cell: f32::NAN, ..subscription() }).is_err());
-    assert!(encode_view(&key(), &View { base: None, ..view() }).is_err(), "gone ids in a whole view");
+    assert!(encode_view(&key(), &View { base: None, moves: vec![], ..view() }).is_err(), "gone ids in a whole view");
+    assert!(encode_view(&key(), &View { base: None, gone: vec![], ..view() }).is_err(), "moves in a whole view");
+    let nan = vec![(EntityId(2), Vec3::new(f32::NAN, 0.0, 0.0))];
+    assert!(encode_view(&key(), &View { moves: nan, ..view() }).is_err(), "a move nowhere");
+    let twice = vec![(EntityId(2), Vec3::ZERO), (EntityId(2), Vec3::ONE)];
+    assert!(encode_view(&key(), &View { moves: twice, ..view() }).is_err(), "one object moved twice");
     assert!(encode_view(&key(), &View { gone: vec![EntityId(4), EntityId(3)], ..view() }).is_err(), "ids descend");
     assert!(encode_view(&key(), &View { part: 2, ..view() }).is_err());
     // Refused when decoding, behind a valid tag: each signed as the cluster would.

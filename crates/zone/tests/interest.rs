@@ -1,10 +1,11 @@
 //! States by interest, in memory: four zones on threads and a gateway that subscribes to
 //! what its players see, in lockstep (the zones step one tick after each gateway step).
 //! After every step the gateway's world holds exactly the zones' objects (id, kind,
-//! shape, extents, position; its own players whole) of the objects it holds, and every object that touches a player's AOI box; it holds far
-//! fewer than the world. That stays true through a rollback of every zone (a new run:
-//! whole views again) and a restart of the gateway (a new incarnation: whole views);
-//! bad subscriptions are refused and counted, and change nothing.
+//! shape, extents, position; its own players whole) of the objects it holds, and every
+//! object that touches a player's AOI box; it holds far fewer than the world. That stays
+//! true through a rollback of every zone (a new run: whole views again) and a restart of
+//! the gateway (a new incarnation: whole views); bad subscriptions are refused and
+//! counted, and change nothing.
 
 use std::collections::HashMap;
 use std::sync::Arc;

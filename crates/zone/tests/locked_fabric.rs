@@ -1,8 +1,9 @@
 //! The locked-down fabric on a real `nats-server` of the test's own, configured by
 //! `fabric_auth`: a gateway's credentials cannot publish zone states, heartbeats,
-//! control, states, views or checkpoints (the server refuses, nothing reaches the zones); a
-//! zone's cannot publish claims, intents, subscriptions or another zone's heartbeat; the legitimate flows (zones over NATS, the
-//! checkpoint store) still work; a wrong password is refused; `tls://` works with the
+//! control, states, views or checkpoints (the server refuses, nothing reaches the
+//! zones); a zone's cannot publish claims, intents, subscriptions or another zone's
+//! heartbeat; the legitimate flows (zones over NATS, the checkpoint store, subscriptions
+//! and views by role) still work; a wrong password is refused; `tls://` works with the
 //! cluster's authority. Needs the `nats-server` program; skips with a message without it,
 //! fails under `MYRIAD_REQUIRE_NATS=1`.
 

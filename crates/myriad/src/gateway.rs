@@ -15,10 +15,11 @@ use myriad_zone::claims::NatsSessions;
 use myriad_zone::fabric_auth::NatsAuth;
 use myriad_zone::gateway::MAX_GATEWAYS;
 use myriad_zone::nats::NatsGatewayLink;
+use myriad_zone::subscription::InterestConfig;
 use myriad_zone::{GatewayConfig, ZonesBackend};
 
 use crate::serve::{ConfigArgs, wait_for_shutdown};
-use crate::zones::key_from_env;
+use crate::zones::{GatewayStates, key_from_env};
 
 /// Flags of `myriad gateway`.
 #[derive(clap::Args, Debug)]
@@ -44,6 +45,23 @@ pub struct GatewayArgs {
     /// Ticks between re-sending every player's action to the zones.
     #[arg(long, default_value_t = 30)]
     refresh_ticks: u64,
+    /// What to take from the zones: `interest` (subscribe to the cells the players see)
+    /// or `mirror` (every object, every tick); as the zones were started with.
+    #[arg(long, value_enum, default_value = "interest")]
+    gateway_states: GatewayStates,
+    /// The side of a subscription's cells (default: the AOI size).
+    #[arg(long)]
+    interest_cell: Option<f32>,
+    /// Ticks between the positions a subscription is computed from and the zones'
+    /// views that follow it, which the cells' margin covers.
+    #[arg(long, default_value_t = 8)]
+    interest_lag_ticks: u64,
+    /// Ticks a cell stays subscribed after it was last needed.
+    #[arg(long, default_value_t = 30)]
+    interest_linger_ticks: u64,
+    /// How far an object may move in one tick (as the zones were given).
+    #[arg(long, default_value_t = 2.0)]
+    zone_max_step: f32,
     /// Stop after this many seconds (default: at SIGINT/SIGTERM).
     #[arg(long)]
     duration: Option<f64>,
@@ -64,14 +82,29 @@ pub fn run(args: GatewayArgs) -> Result<()> {
     let link = NatsGatewayLink::connect(&args.nats, &args.cluster, args.gateway, &auth)
         .with_context(|| format!("joining cluster {}", args.cluster))?;
     let cfg_key = key.clone();
-    let cfg = GatewayConfig {
+    let mut cfg = GatewayConfig {
         gateway: args.gateway,
         key,
         zones: args.zones as usize,
         wait: Duration::from_millis(args.wait_ms),
         refresh: args.refresh_ticks,
+        interest: None,
     };
+    let aoi = config.aoi_size;
+    let interest = (args.gateway_states == GatewayStates::Interest).then_some(());
+    let (cell, lag, linger, max_step) =
+        (args.interest_cell.unwrap_or(aoi), args.interest_lag_ticks, args.interest_linger_ticks, args.zone_max_step);
     let factory: myriad_server::BackendFactory = Box::new(move |world| {
+        // The largest object's half extent, from the world's own objects (before the
+        // zones' replace them): the reach is twice it and a little more.
+        let player = myriad_server::PLAYER_SHAPE.half_extents();
+        let half = (myriad_zone::pair_reach(world) / 2.0).max(player.x).max(player.z);
+        cfg.interest = interest.map(|()| InterestConfig {
+            aoi_half: aoi / 2.0,
+            cell,
+            margin: InterestConfig::margin_for(lag, max_step, half),
+            linger,
+        });
         let backend = ZonesBackend::new(cfg, Box::new(link)).map_err(|e| ServerError::Internal(e.to_string()))?;
         backend.prepare(world);
         Ok(Box::new(backend))

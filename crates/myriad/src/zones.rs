@@ -69,11 +69,35 @@ pub struct ClusterCommon {
     /// `--ticks`.
     #[arg(long)]
     pub live: bool,
+    /// What live zones send the gateways: `interest` (each gateway's subscribed cells,
+    /// only what changed since it confirmed) or `mirror` (every object to every gateway,
+    /// every tick). Gateways started by `myriad cluster` get the same.
+    #[arg(long, value_enum, default_value = "interest")]
+    pub gateway_states: GatewayStates,
     /// A script of players' actions (`TICK ENTITY MASK` lines).
     #[arg(long, value_name = "FILE")]
     pub actions: Option<PathBuf>,
     #[command(flatten)]
     pub world: WorldArgs,
+}
+
+/// What zones send gateways (docs/zones.md, "States by interest").
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GatewayStates {
+    /// Each gateway's view of the cells its players see, changes only.
+    Interest,
+    /// Every zone's every object to every gateway, every tick.
+    Mirror,
+}
+
+impl GatewayStates {
+    /// The flag's value.
+    pub fn name(self) -> &'static str {
+        match self {
+            GatewayStates::Interest => "interest",
+            GatewayStates::Mirror => "mirror",
+        }
+    }
 }
 
 /// Flags of `myriad zone`.
@@ -223,6 +247,7 @@ pub fn run_zone(args: ZoneArgs) -> Result<()> {
         stall: Duration::from_millis(c.stall_ms),
         period: if c.tick_hz > 0.0 { Duration::from_secs_f64(1.0 / c.tick_hz) } else { Duration::ZERO },
         live: c.live,
+        mirror: c.gateway_states == GatewayStates::Mirror,
         keep: c.keep_checkpoints,
     };
     let (kind, gpu) = (c.backend, args.gpu);
@@ -335,6 +360,8 @@ fn gateway_args(args: &ClusterArgs, zones: usize, url: &str, cluster: &str) -> R
         .into_iter()
         .map(String::from)
         .chain(["--seed".to_string(), w.seed.to_string()])
+        .chain(["--gateway-states".to_string(), c.gateway_states.name().to_string()])
+        .chain(["--zone-max-step".to_string(), c.zone_max_step.to_string()])
         .collect())
 }
 

@@ -47,7 +47,9 @@ use std::net::SocketAddr;
 
 use myriad_core::{ActionScript, World};
 use myriad_physics::Backend;
-use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage};
+use myriad_protocol::{
+    ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateRecord, UpdateHeader,
+};
 use myriad_store::UserId;
 
 use crate::config::ServerConfig;
@@ -68,6 +70,13 @@ pub struct ScriptedRun {
     pub rejected: u64,
     /// State updates that lacked the receiving player's own object (always 0).
     pub updates_without_own: u64,
+    /// A hash of every state record every client received: per tick, each player's
+    /// records (with their update's header: tick, dilation, origin) sorted by id, players in entity
+    /// order. Two runs whose clients saw the same thing have the same hash, however the
+    /// server ordered its datagrams.
+    pub records_hash: u64,
+    /// Bytes of the datagrams sent to the clients, per tick.
+    pub bytes_out: Vec<u64>,
 }
 
 struct Client {
@@ -104,6 +113,7 @@ pub fn run(
         by_entity.insert(entity.0, addr);
     }
     let (mut actions_applied, mut datagrams_opened, mut rejected, mut updates_without_own) = (0, 0, 0, 0);
+    let (mut records_hash, mut bytes_out) = (std::hash::DefaultHasher::new(), Vec::new());
     for _ in 0..ticks {
         for a in script.at(tick.world().tick) {
             let addr = by_entity[&a.entity.0];
@@ -114,22 +124,39 @@ pub fn run(
             push(&transport, addr, client, &ClientMessage::Action(input))?;
         }
         actions_applied += tick.tick_once().actions;
+        let mut seen: std::collections::BTreeMap<u64, Vec<(UpdateHeader, StateRecord)>> = Default::default();
+        bytes_out.push(0);
         for (to, mut datagram) in transport.take_sent() {
             let Some(client) = clients.get_mut(&to) else { continue };
+            *bytes_out.last_mut().expect("pushed") += datagram.len() as u64;
             match client.session.open(&mut datagram) {
                 Ok(opened) => {
                     datagrams_opened += 1;
-                    if let ServerMessage::StateUpdate(u) = opened.message
-                        && !u.records.iter().any(|r| r.id == client.entity)
-                    {
-                        updates_without_own += 1;
+                    if let ServerMessage::StateUpdate(u) = opened.message {
+                        if !u.records.iter().any(|r| r.id == client.entity) {
+                            updates_without_own += 1;
+                        }
+                        let mine = seen.entry(client.entity).or_default();
+                        mine.extend(u.records.iter().map(|r| (u.header, *r)));
                     }
                 }
                 Err(_) => rejected += 1,
             }
         }
+        for (entity, mut records) in seen {
+            records.sort_by_key(|(h, r)| (h.tick, r.id));
+            std::hash::Hash::hash(&(entity, records), &mut records_hash);
+        }
     }
-    Ok(ScriptedRun { world: tick.into_world(), actions_applied, datagrams_opened, rejected, updates_without_own })
+    Ok(ScriptedRun {
+        world: tick.into_world(),
+        actions_applied,
+        datagrams_opened,
+        rejected,
+        updates_without_own,
+        records_hash: std::hash::Hasher::finish(&records_hash),
+        bytes_out,
+    })
 }
 
 fn push(

@@ -3,7 +3,7 @@
 //! process (tests, and `myriad sim --zones K` without `--nats`). Zones see only this
 //! trait, so the zoned step is the same code on both.
 
-use std::sync::mpsc;
+use std::sync::{Arc, Mutex, mpsc};
 use std::time::Instant;
 
 use crate::error::ZoneError;
@@ -17,6 +17,9 @@ pub trait Fabric: Send {
     /// Sends one message of this zone's states to every gateway (a live zone's, after
     /// each step).
     fn publish_states(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError>;
+    /// Sends one message of this zone's view to gateway `gateway` (states by interest:
+    /// [`crate::views`]).
+    fn send_view(&mut self, gateway: u16, bytes: Vec<u8>) -> Result<(), ZoneError>;
     /// The next message addressed to this zone, or `None` once `deadline` has passed.
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError>;
     /// The largest message it carries, in bytes.
@@ -28,8 +31,8 @@ pub trait Fabric: Send {
 /// Channels between threads of one process.
 pub struct MemoryFabric {
     peers: Vec<mpsc::Sender<Vec<u8>>>,
-    /// Where states go: the in-process gateway's inbox, if there is one.
-    gateway: Option<mpsc::Sender<Vec<u8>>>,
+    /// Where states and views go: the in-process gateways' inboxes, by gateway.
+    gateways: Routes,
     inbox: mpsc::Receiver<Vec<u8>>,
     sent: u64,
     received: u64,
@@ -41,20 +44,61 @@ impl MemoryFabric {
         let (senders, receivers): (Vec<_>, Vec<_>) = (0..n).map(|_| mpsc::channel()).unzip();
         receivers
             .into_iter()
-            .map(|inbox| MemoryFabric { peers: senders.clone(), gateway: None, inbox, sent: 0, received: 0 })
+            .map(|inbox| MemoryFabric {
+                peers: senders.clone(),
+                gateways: Routes::default(),
+                inbox,
+                sent: 0,
+                received: 0,
+            })
             .collect()
     }
 
-    /// [`MemoryFabric::mesh`] with one gateway attached: the zones' states reach the
-    /// returned [`MemoryGatewayLink`], whose intents reach every zone.
-    pub fn mesh_with_gateway(n: usize) -> (Vec<MemoryFabric>, MemoryGatewayLink) {
+    /// [`MemoryFabric::mesh`] with a port where gateways attach, at any time.
+    pub fn mesh_with_port(n: usize) -> (Vec<MemoryFabric>, GatewayPort) {
         let mut zones = MemoryFabric::mesh(n);
-        let (states, inbox) = mpsc::channel();
+        let routes = Routes::default();
         for z in &mut zones {
-            z.gateway = Some(states.clone());
+            z.gateways = routes.clone();
         }
-        let link = MemoryGatewayLink { zones: zones[0].peers.clone(), inbox };
-        (zones, link)
+        let port = GatewayPort { zones: zones[0].peers.clone(), routes };
+        (zones, port)
+    }
+
+    /// [`MemoryFabric::mesh`] with gateway `gateway` attached: the zones' states and
+    /// views for it reach the returned [`MemoryGatewayLink`], whose intents and
+    /// subscriptions reach every zone.
+    pub fn mesh_with_gateway(n: usize, gateway: u16) -> (Vec<MemoryFabric>, MemoryGatewayLink) {
+        let (zones, mut links) = MemoryFabric::mesh_with_gateways(n, &[gateway]);
+        (zones, links.pop().expect("one gateway"))
+    }
+
+    /// [`MemoryFabric::mesh`] with the gateways `gateways` attached, one link each.
+    pub fn mesh_with_gateways(n: usize, gateways: &[u16]) -> (Vec<MemoryFabric>, Vec<MemoryGatewayLink>) {
+        let (zones, port) = MemoryFabric::mesh_with_port(n);
+        (zones, gateways.iter().map(|&g| port.attach(g)).collect())
+    }
+}
+
+/// The gateways' routes of an in-process cluster, shared by its zones.
+type Routes = Arc<Mutex<Vec<(u16, mpsc::Sender<Vec<u8>>)>>>;
+
+/// Where gateways attach to an in-process cluster ([`MemoryFabric::mesh_with_port`]).
+pub struct GatewayPort {
+    zones: Vec<mpsc::Sender<Vec<u8>>>,
+    routes: Routes,
+}
+
+impl GatewayPort {
+    /// A link for gateway `gateway`, receiving the zones' states and its views from now
+    /// on; a gateway of the same number attached before (a restarted gateway's earlier
+    /// self) hears nothing more.
+    pub fn attach(&self, gateway: u16) -> MemoryGatewayLink {
+        let (states, inbox) = mpsc::channel();
+        let mut routes = self.routes.lock().expect("not poisoned");
+        routes.retain(|(g, _)| *g != gateway);
+        routes.push((gateway, states));
+        MemoryGatewayLink { zones: self.zones.clone(), inbox }
     }
 }
 
@@ -63,7 +107,10 @@ impl MemoryFabric {
 pub trait GatewayLink: Send {
     /// Sends one message of intents to every zone.
     fn send_intents(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError>;
-    /// The next message of states, or `None` once `deadline` has passed.
+    /// Sends one subscription to every zone (states by interest).
+    fn send_subscription(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError>;
+    /// The next message of states or of a view for this gateway, or `None` once
+    /// `deadline` has passed.
     fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError>;
     /// Waits (briefly) until what was sent has left this process: before it exits.
     fn flush(&mut self) {}
@@ -82,6 +129,11 @@ impl GatewayLink for MemoryGatewayLink {
             let _ = z.send(bytes.clone());
         }
         Ok(())
+    }
+
+    fn send_subscription(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        // The same way as intents: every zone hears it.
+        self.send_intents(bytes)
     }
 
     fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
@@ -104,9 +156,21 @@ impl Fabric for MemoryFabric {
     }
 
     fn publish_states(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
-        if let Some(g) = &self.gateway {
-            self.sent += bytes.len() as u64;
+        let routes = self.gateways.lock().expect("not poisoned");
+        for (_, g) in routes.iter() {
             // A gateway that has stopped no longer listens; that is not this zone's error.
+            let _ = g.send(bytes.clone());
+        }
+        if !routes.is_empty() {
+            self.sent += bytes.len() as u64;
+        }
+        Ok(())
+    }
+
+    fn send_view(&mut self, gateway: u16, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        let routes = self.gateways.lock().expect("not poisoned");
+        if let Some((_, g)) = routes.iter().find(|(id, _)| *id == gateway) {
+            self.sent += bytes.len() as u64;
             let _ = g.send(bytes);
         }
         Ok(())

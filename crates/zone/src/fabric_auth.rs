@@ -26,7 +26,7 @@ use crate::error::ZoneError;
 use crate::layout::ZoneId;
 use crate::nats::{
     check_cluster_name, control_subject, cuts_subject, heartbeat_subject, heartbeats_subject, intents_subject,
-    states_subject,
+    states_subject, subscriptions_subject, views_subject,
 };
 
 /// The user name variable (with [`PASSWORD_ENV`]).
@@ -147,7 +147,7 @@ pub fn permissions(cluster: &str, role: Role) -> Permissions {
     let zones = format!("myriad.{cluster}.zone.*");
     match role {
         Role::Zone(z) => Permissions {
-            publish: [zones.clone(), heartbeat_subject(cluster, z), states_subject(cluster)]
+            publish: [zones.clone(), heartbeat_subject(cluster, z), states_subject(cluster), views_subject(cluster)]
                 .into_iter()
                 .chain(object_store(cluster, false))
                 .collect(),
@@ -156,12 +156,13 @@ pub fn permissions(cluster: &str, role: Role) -> Permissions {
                 control_subject(cluster),
                 intents_subject(cluster),
                 cuts_subject(cluster),
+                subscriptions_subject(cluster),
                 INBOX.into(),
             ],
         },
         Role::Gateway => Permissions {
-            publish: vec![intents_subject(cluster), sessions_subject(cluster)],
-            subscribe: vec![states_subject(cluster), sessions_subject(cluster)],
+            publish: vec![intents_subject(cluster), sessions_subject(cluster), subscriptions_subject(cluster)],
+            subscribe: vec![states_subject(cluster), sessions_subject(cluster), views_subject(cluster)],
         },
         Role::Supervisor => Permissions {
             publish: [control_subject(cluster), cuts_subject(cluster)]

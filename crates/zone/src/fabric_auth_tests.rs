@@ -28,6 +28,12 @@ fn each_role_publishes_exactly_its_subjects() {
         (&zone0, [true, true, false, false]),
         (&zone7, [true, true, false, false]),
         ("myriad.c.states", [true, true, false, false]),
+        // States by interest: views from zones, subscriptions from gateways.
+        ("myriad.c.view.0", [true, true, false, false]),
+        ("myriad.c.view.63", [true, true, false, false]),
+        ("myriad.c.view", [false; 4]),
+        ("myriad.c.subscriptions", [false, false, true, false]),
+        ("myriad.d.subscriptions", [false; 4]),
         // Each zone its own heartbeat only.
         ("myriad.c.heartbeat.0", [true, false, false, false]),
         ("myriad.c.heartbeat.1", [false, true, false, false]),
@@ -73,6 +79,10 @@ fn each_role_hears_only_what_is_addressed_to_it() {
         ("myriad.c.heartbeat.*", [false, false, false, true]),
         ("myriad.c.states", [false, false, true, false]),
         ("myriad.c.sessions", [false, false, true, false]),
+        ("myriad.c.subscriptions", [true, true, false, false]),
+        ("myriad.c.view.1", [false, false, true, false]),
+        ("myriad.c.view.*", [false, false, true, false]),
+        ("myriad.d.view.1", [false; 4]),
         ("_INBOX.abc.def", [true, true, false, true]),
         ("$O.myriad-c.C.abc", [false; 4]),
         ("myriad.d.zone.3", [false; 4]),

@@ -16,10 +16,16 @@
 //!    once after a rollback, the gateway sends every player's action again, and the join
 //!    of every player the zones have not shown for a while: intents are lost when a zone
 //!    restarts.
-//! 2. **Mirror.** The zones publish their owned objects after every step
-//!    ([`crate::wire::Message::States`]). The backend takes the newest tick for which
-//!    every zone's states are complete (waiting up to `wait` when none is newer than the
-//!    last), and replaces the world's objects with them. The gateway's players that the
+//! 2. **Subscription** (states by interest, [`GatewayConfig::interest`]): the cells its
+//!    players can see ([`crate::subscription`]), with the last zones' tick it took,
+//!    to every zone ([`crate::wire::Subscription`]), every step.
+//! 3. **World.** After every step each zone sends the gateway its view: the objects in
+//!    its cells that changed since the tick it confirmed, and those gone
+//!    ([`crate::wire::Message::View`], [`crate::views`]); or, in mirror mode, all its
+//!    owned objects ([`crate::wire::Message::States`]). The backend takes the newest
+//!    tick for which every zone's message is complete (waiting up to `wait` when none is
+//!    newer than the last), applies it to what it holds of each zone, and replaces the
+//!    world's objects with the result. The gateway's players that the
 //!    zones have not adopted yet stay as they are; players that left are left out; the
 //!    newest action a player asked for is kept on its object.
 //!
@@ -34,7 +40,11 @@ use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport,
 
 use crate::error::ZoneError;
 use crate::fabric::GatewayLink;
-use crate::wire::{ClusterKey, IntentKind, Intents, Message, decode, encode_intents};
+use crate::gateway_view::{Part, ZoneViews};
+use crate::subscription::{Interest, InterestConfig};
+use crate::wire::{
+    ClusterKey, IntentKind, Intents, Message, Subscription, decode, encode_intents, encode_subscription,
+};
 
 /// Gateways a cluster can have (each owns a range of player ids).
 pub const MAX_GATEWAYS: u16 = 64;
@@ -84,6 +94,9 @@ pub struct GatewayConfig {
     pub wait: Duration,
     /// Ticks between re-sending every player's action (and missing joins).
     pub refresh: u64,
+    /// States by interest: how the gateway subscribes to what its players see. `None`:
+    /// the mirror (every zone's every object, every tick).
+    pub interest: Option<InterestConfig>,
 }
 
 /// What a gateway's backend counts.
@@ -112,8 +125,16 @@ pub struct GatewayStats {
     /// Bytes of the zones' states messages taken (what this gateway receives from the
     /// zones, beside its intents out).
     pub zone_bytes_in: u64,
-    /// Object records in those messages.
+    /// Object records in those messages (whole, or moves of objects held).
     pub zone_objects_in: u64,
+    /// Ids of objects the zones' views said were gone (states by interest).
+    pub zone_gone_in: u64,
+    /// Subscriptions sent (one a step, states by interest).
+    pub subscriptions: u64,
+    /// Their bytes.
+    pub subscription_bytes_out: u64,
+    /// Cells of the subscription after the last step.
+    pub subscription_cells: usize,
 }
 
 impl GatewayStats {
@@ -135,6 +156,10 @@ impl GatewayStats {
         metrics::gauge!("myriad_gateway_zone_tick").set(self.zone_tick as f64);
         metrics::counter!("myriad_gateway_zone_bytes_in_total").absolute(self.zone_bytes_in);
         metrics::counter!("myriad_gateway_zone_objects_in_total").absolute(self.zone_objects_in);
+        metrics::counter!("myriad_gateway_zone_gone_in_total").absolute(self.zone_gone_in);
+        metrics::counter!("myriad_gateway_subscriptions_total").absolute(self.subscriptions);
+        metrics::counter!("myriad_gateway_subscription_bytes_out_total").absolute(self.subscription_bytes_out);
+        metrics::gauge!("myriad_gateway_subscription_cells").set(self.subscription_cells as f64);
     }
 }
 
@@ -155,11 +180,11 @@ struct Mine {
     zone: Option<u16>,
 }
 
-/// The zones' states of one tick, as they arrive.
+/// The zones' states (or views) of one tick, as they arrive.
 #[derive(Default)]
 struct TickParts {
     /// Per zone: (parts announced, parts received).
-    zones: HashMap<u16, (u16, BTreeMap<u16, Vec<ObjectState>>)>,
+    zones: HashMap<u16, (u16, BTreeMap<u16, Part>)>,
 }
 
 impl TickParts {
@@ -196,11 +221,33 @@ pub struct ZonesBackend {
     /// Whether the last step's fabric work failed (for logging changes only).
     failing: bool,
     stats: GatewayStats,
+    /// The subscription, with states by interest.
+    interest: Option<Interest>,
+    /// What the gateway holds of each zone's view.
+    views: ZoneViews,
+    /// The AOI boxes the server queried last (the subscription covers them too).
+    boxes: Vec<Aabb>,
 }
 
 impl ZonesBackend {
-    /// A gateway following the zones through `link`.
+    /// A gateway following the zones through `link`, whose incarnation is the time now.
     pub fn new(cfg: GatewayConfig, link: Box<dyn GatewayLink>) -> Result<ZonesBackend, ZoneError> {
+        // Milliseconds since the epoch: a restarted gateway's intents are newer.
+        let incarnation = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_millis() as u64)
+            .unwrap_or(1);
+        ZonesBackend::with_incarnation(cfg, link, incarnation)
+    }
+
+    /// [`ZonesBackend::new`] with a given incarnation (its players' ids follow from it:
+    /// [`incarnation_ids`]), for runs that must be the same twice. It must grow from one
+    /// start of a gateway to the next.
+    pub fn with_incarnation(
+        cfg: GatewayConfig,
+        link: Box<dyn GatewayLink>,
+        incarnation: u64,
+    ) -> Result<ZonesBackend, ZoneError> {
         if cfg.gateway >= MAX_GATEWAYS {
             return Err(ZoneError::Layout(format!("gateway {} of at most {MAX_GATEWAYS}", cfg.gateway)));
         }
@@ -208,11 +255,7 @@ impl ZonesBackend {
             return Err(ZoneError::Layout("a gateway needs at least one zone".into()));
         }
         let aoi = myriad_physics::create_cpu_backend(BackendKind::Cpu)?;
-        // Milliseconds since the epoch: a restarted gateway's intents are newer.
-        let incarnation = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_millis() as u64)
-            .unwrap_or(1);
+        let interest = cfg.interest.map(Interest::new);
         Ok(ZonesBackend {
             ids: incarnation_ids(cfg.gateway, incarnation),
             cfg,
@@ -229,6 +272,9 @@ impl ZonesBackend {
             last_tick: 0,
             failing: false,
             stats: GatewayStats::default(),
+            interest,
+            views: ZoneViews::default(),
+            boxes: Vec::new(),
         })
     }
 
@@ -336,26 +382,67 @@ impl ZonesBackend {
         Ok(())
     }
 
+    /// Step 2 (states by interest): the subscription for the world as it is, with the
+    /// confirmation of the last zones' tick taken, to every zone.
+    fn send_subscription(&mut self, world: &World) -> Result<(), ZoneError> {
+        let Some(interest) = &mut self.interest else { return Ok(()) };
+        let players = self.mine.values().map(|m| m.state.pos);
+        interest.update(&world.bounds, world.tick + 1, players, &self.boxes)?;
+        let grid = *interest.grid().expect("set by the update");
+        let (cells, version) = interest.cells();
+        let (cols, rows) = grid.shape();
+        let s = Subscription {
+            incarnation: self.incarnation,
+            gateway: self.cfg.gateway,
+            version,
+            confirmed: self.taken.map(|t| (self.run, t)),
+            cell: grid.cell(),
+            cols,
+            rows,
+            cells: cells.to_bytes(cols, rows),
+        };
+        self.stats.subscription_cells = cells.count();
+        let bytes = encode_subscription(&self.cfg.key, &s)?;
+        self.stats.subscriptions += 1;
+        self.stats.subscription_bytes_out += bytes.len() as u64;
+        self.link.send_subscription(bytes)
+    }
+
     fn reject(&mut self, reason: &'static str) {
         *self.stats.rejected.entry(reason).or_default() += 1;
     }
 
-    /// Files one message of states; returns nothing, counts what it refuses.
+    /// Files one message of states (mirror) or of a view (by interest); returns nothing,
+    /// counts what it refuses.
     fn offer(&mut self, bytes: &[u8]) {
-        let m = match decode(&self.cfg.key, bytes) {
-            Ok(Message::States(m)) => m,
-            Ok(_) => return self.reject("kind"),
-            Err(e) => return self.reject(e.label()),
+        let (m, part) = match (decode(&self.cfg.key, bytes), self.interest.is_some()) {
+            (Ok(Message::States(m)), false) => {
+                let objects = m.objects.iter().map(|r| r.state).collect();
+                let part = Part { base: None, objects, moves: Vec::new(), gone: Vec::new() };
+                ((m.run, m.tick, m.from, m.part, m.parts), part)
+            }
+            (Ok(Message::View(v)), true) => {
+                if v.gateway != self.cfg.gateway {
+                    return self.reject("misrouted");
+                }
+                let part = Part { base: v.base, objects: v.objects, moves: v.moves, gone: v.gone };
+                ((v.run, v.tick, v.zone, v.part, v.parts), part)
+            }
+            // The mirror to a gateway that subscribes, or a view to one that does not.
+            (Ok(Message::States(_) | Message::View(_)), _) => return self.reject("mode"),
+            (Ok(_), _) => return self.reject("kind"),
+            (Err(e), _) => return self.reject(e.label()),
         };
-        if m.from.0 as usize >= self.cfg.zones || m.from == crate::wire::ALL {
+        let (run, tick, from, part_no, parts) = m;
+        if from.0 as usize >= self.cfg.zones || from == crate::wire::ALL {
             return self.reject("stranger");
         }
-        if m.run < self.run {
+        if run < self.run {
             return self.reject("run");
         }
-        if m.run > self.run {
+        if run > self.run {
             // The zones rolled back (or this gateway joined a running cluster): follow
-            // the new run from whatever tick it starts at.
+            // the new run from whatever tick it starts at, from whole views.
             if self.taken.is_some() {
                 self.stats.rollbacks += 1;
                 self.refresh_now = true;
@@ -364,24 +451,26 @@ impl ZonesBackend {
                     m.joined_at = 0;
                 }
             }
-            self.run = m.run;
+            self.run = run;
             self.taken = None;
             self.pending.clear();
+            self.views.clear();
         }
-        if self.taken.is_some_and(|t| m.tick <= t) {
+        if self.taken.is_some_and(|t| tick <= t) {
             return self.reject("stale");
         }
-        let entry = self.pending.entry(m.tick).or_default();
-        let (parts, got) = entry.zones.entry(m.from.0).or_insert((m.parts, BTreeMap::new()));
-        if *parts != m.parts {
+        let entry = self.pending.entry(tick).or_default();
+        let (announced, got) = entry.zones.entry(from.0).or_insert((parts, BTreeMap::new()));
+        if *announced != parts || got.values().next().is_some_and(|p| p.base != part.base) {
             return self.reject("parts");
         }
-        if got.contains_key(&m.part) {
+        if got.contains_key(&part_no) {
             return self.reject("replayed");
         }
         self.stats.zone_bytes_in += bytes.len() as u64;
-        self.stats.zone_objects_in += m.objects.len() as u64;
-        got.insert(m.part, m.objects.into_iter().map(|r| r.state).collect());
+        self.stats.zone_objects_in += (part.objects.len() + part.moves.len()) as u64;
+        self.stats.zone_gone_in += part.gone.len() as u64;
+        got.insert(part_no, part);
         while self.pending.len() > PENDING_TICKS {
             self.pending.pop_first();
             self.stats.skipped += 1;
@@ -396,12 +485,21 @@ impl ZonesBackend {
         std::mem::swap(&mut older, &mut self.pending);
         self.stats.skipped += older.len() as u64;
         let parts = self.pending.pop_first().expect("the complete tick").1;
-        let mut all: Vec<(ObjectState, u16)> = parts
-            .zones
-            .into_iter()
-            .flat_map(|(z, (_, got))| got.into_values().flatten().map(move |o| (o, z)))
-            .collect();
-        all.sort_unstable_by_key(|(o, _)| o.id);
+        let zones: Vec<(u16, Vec<Part>)> =
+            parts.zones.into_iter().map(|(z, (_, got))| (z, got.into_values().collect())).collect();
+        if !zones.iter().all(|(_, p)| ZoneViews::applicable(p, self.taken)) {
+            // Changes since a tick this gateway does not hold: never sent to a gateway
+            // that confirmed what it holds (a zone sends whole views until then).
+            self.reject("base");
+            return None;
+        }
+        for (z, p) in zones {
+            let unknown = self.views.apply(z, p);
+            if unknown > 0 {
+                *self.stats.rejected.entry("move").or_default() += unknown;
+            }
+        }
+        let mut all = self.views.assemble();
         let before = all.len();
         all.dedup_by_key(|(o, _)| o.id);
         self.stats.duplicates += (before - all.len()) as u64;
@@ -524,7 +622,7 @@ impl Backend for ZonesBackend {
     /// it, and the tick still advances by one.
     fn step(&mut self, world: &mut World, _k: &TickConstants) -> Result<StepReport, PhysicsError> {
         let start = Instant::now();
-        let sent = self.send_intents(world);
+        let sent = self.send_intents(world).and_then(|()| self.send_subscription(world));
         let taken = self.next_world().and_then(|next| match next {
             Some((tick, objects)) => {
                 self.mirror(world, objects)?;
@@ -558,7 +656,13 @@ impl Backend for ZonesBackend {
         Ok(report)
     }
 
+    /// The AOI query on the gateway's world, on the CPU; the boxes are kept for the next
+    /// subscription.
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
+        if self.interest.is_some() {
+            self.boxes.clear();
+            self.boxes.extend_from_slice(boxes);
+        }
         self.aoi.query_aoi(world, boxes, out)
     }
 }
@@ -573,6 +677,9 @@ mod tests {
 
     impl GatewayLink for Down {
         fn send_intents(&mut self, _: Vec<u8>) -> Result<(), ZoneError> {
+            Err(ZoneError::Fabric("down".into()))
+        }
+        fn send_subscription(&mut self, _: Vec<u8>) -> Result<(), ZoneError> {
             Err(ZoneError::Fabric("down".into()))
         }
         fn recv_states(&mut self, _: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
@@ -591,6 +698,7 @@ mod tests {
             zones: 2,
             wait: Duration::from_millis(1),
             refresh: 30,
+            interest: None,
         };
         let mut b = ZonesBackend::new(cfg, Box::new(Down)).unwrap();
         b.prepare(&mut world);
@@ -608,7 +716,14 @@ mod tests {
 
     #[test]
     fn the_backend_says_it_is_remote_and_cannot_be_chosen_by_name() {
-        let cfg = GatewayConfig { gateway: 0, key: ClusterKey::random(), zones: 1, wait: Duration::ZERO, refresh: 30 };
+        let cfg = GatewayConfig {
+            gateway: 0,
+            key: ClusterKey::random(),
+            zones: 1,
+            wait: Duration::ZERO,
+            refresh: 30,
+            interest: None,
+        };
         let b = ZonesBackend::new(cfg, Box::new(Down)).unwrap();
         assert_eq!(b.kind(), BackendKind::Zones);
         assert!(b.description().starts_with("zones: "), "{}", b.description());

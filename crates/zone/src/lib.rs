@@ -17,6 +17,8 @@
 //!   from a checkpoint with them.
 //! - [`rebalance`]: boundaries that follow the load: when and where cuts move, and
 //!   how every zone switches at one announced tick.
+//! - [`subscription`] and [`views`]: states by interest: the cells a gateway subscribes
+//!   to, and the view of them each zone sends it.
 //! - [`stats`]: per-zone counters and their Prometheus form.
 //!
 //! Design, subjects, message layouts and measurements: `docs/zones.md`.
@@ -27,6 +29,7 @@ pub mod error;
 pub mod fabric;
 pub mod fabric_auth;
 pub mod gateway;
+mod gateway_view;
 pub mod intents;
 pub mod layout;
 pub mod local;
@@ -36,7 +39,9 @@ pub mod rebalance;
 pub mod replay;
 pub mod resident;
 pub mod stats;
+pub mod subscription;
 pub mod supervisor;
+pub mod views;
 pub mod wire;
 pub mod zone;
 

@@ -6,7 +6,10 @@
 //! - `myriad.c.heartbeat.<z>`: zone `z`'s heartbeat, to the supervisor;
 //! - `myriad.c.states`: every zone's owned objects after each step, to the gateways;
 //! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone;
-//! - `myriad.c.cuts`: the supervisor's cut moves, to every zone.
+//! - `myriad.c.cuts`: the supervisor's cut moves, to every zone;
+//! - `myriad.c.subscriptions`: the gateways' subscriptions (states by interest), to every
+//!   zone;
+//! - `myriad.c.view.<g>`: every zone's view for gateway `g` after each step.
 //!
 //! Who may publish and subscribe to each is [`crate::fabric_auth`]'s table; every
 //! connection presents a [`NatsAuth`] (none: a server without auth).
@@ -66,6 +69,22 @@ pub fn intents_subject(cluster: &str) -> String {
 /// The subject of the supervisor's cut moves for the zones.
 pub fn cuts_subject(cluster: &str) -> String {
     format!("myriad.{cluster}.cuts")
+}
+
+/// The subject of the gateways' subscriptions for the zones.
+pub fn subscriptions_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.subscriptions")
+}
+
+/// The subject of the zones' views for gateway `g`.
+pub fn view_subject(cluster: &str, g: u16) -> String {
+    format!("myriad.{cluster}.view.{g}")
+}
+
+/// Every gateway's view subject (the zones publish, the gateways subscribe, each to its
+/// own).
+pub fn views_subject(cluster: &str) -> String {
+    format!("myriad.{cluster}.view.*")
 }
 
 /// Checks a cluster name: letters, digits, `-` and `_`, so it is one subject token.
@@ -249,7 +268,7 @@ impl Drop for Heartbeat {
 }
 
 /// A zone's endpoint: its border subject, the control subject, the gateways' intents and
-/// the supervisor's cut moves, merged.
+/// subscriptions, and the supervisor's cut moves, merged.
 pub struct NatsFabric {
     link: NatsLink,
     sub: SelectAll<async_nats::Subscriber>,
@@ -264,8 +283,8 @@ pub struct NatsFabric {
 
 impl NatsFabric {
     /// Connects to `url` as zone `zone` of `cluster`, presenting `auth`, and subscribes
-    /// to its subject, the control subject, the intents subject and the cuts subject;
-    /// when this returns, messages published to them are delivered.
+    /// to its subject, the control subject, the intents, cuts and subscriptions
+    /// subjects; when this returns, messages published to them are delivered.
     pub fn connect(url: &str, cluster: &str, zone: ZoneId, auth: &NatsAuth) -> Result<NatsFabric, ZoneError> {
         check_cluster_name(cluster)?;
         let link = NatsLink::connect(url, format!("myriad-{cluster}-zone-{}", zone.0), auth)?;
@@ -273,8 +292,9 @@ impl NatsFabric {
         let control = link.subscribe(control_subject(cluster))?;
         let intents = link.subscribe(intents_subject(cluster))?;
         let cuts = link.subscribe(cuts_subject(cluster))?;
+        let subscriptions = link.subscribe(subscriptions_subject(cluster))?;
         let max = link.client.server_info().max_payload;
-        let mut sub = futures_util::stream::select_all([borders, control, intents, cuts]);
+        let mut sub = futures_util::stream::select_all([borders, control, intents, cuts, subscriptions]);
         // Until the server has taken the subscriptions, a neighbour's first borders can
         // miss them, and the zone waits for them for ever (`myriad sim --zones 4
         // --nats` stalled at tick 0 about one run in eight): a probe on the zone's own
@@ -319,6 +339,11 @@ impl Fabric for NatsFabric {
         self.link.publish(states_subject(&self.cluster), bytes)
     }
 
+    fn send_view(&mut self, gateway: u16, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.sent += bytes.len() as u64;
+        self.link.publish(view_subject(&self.cluster, gateway), bytes)
+    }
+
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         let got = match self.early.pop_front() {
             Some(m) => Some(m),
@@ -337,20 +362,23 @@ impl Fabric for NatsFabric {
     }
 }
 
-/// A gateway's endpoint: intents out to every zone, the zones' states in.
+/// A gateway's endpoint: intents and subscriptions out to every zone, the zones' states
+/// and this gateway's views in.
 pub struct NatsGatewayLink {
     link: NatsLink,
-    states: async_nats::Subscriber,
+    states: SelectAll<async_nats::Subscriber>,
     cluster: String,
 }
 
 impl NatsGatewayLink {
     /// Connects to `url` as gateway `gateway` of `cluster`, presenting `auth`, and
-    /// subscribes to the states subject.
+    /// subscribes to the states subject and its view subject.
     pub fn connect(url: &str, cluster: &str, gateway: u16, auth: &NatsAuth) -> Result<NatsGatewayLink, ZoneError> {
         check_cluster_name(cluster)?;
         let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}"), auth)?;
-        let states = link.subscribe(states_subject(cluster))?;
+        let mirror = link.subscribe(states_subject(cluster))?;
+        let views = link.subscribe(view_subject(cluster, gateway))?;
+        let states = futures_util::stream::select_all([mirror, views]);
         Ok(NatsGatewayLink { link, states, cluster: cluster.to_string() })
     }
 
@@ -363,6 +391,10 @@ impl NatsGatewayLink {
 impl crate::fabric::GatewayLink for NatsGatewayLink {
     fn send_intents(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
         self.link.publish(intents_subject(&self.cluster), bytes)
+    }
+
+    fn send_subscription(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.link.publish(subscriptions_subject(&self.cluster), bytes)
     }
 
     fn recv_states(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {

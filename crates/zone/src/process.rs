@@ -43,8 +43,11 @@ pub struct ProcessConfig {
     pub stall: Duration,
     /// The tick period, or zero to step as fast as the neighbours allow.
     pub period: Duration,
-    /// Whether the zone serves gateways (publishes its states every tick).
+    /// Whether the zone serves gateways (sends its views, or states, every tick).
     pub live: bool,
+    /// Whether a live zone also publishes the whole mirror for every gateway
+    /// ([`Zone::set_mirror`]); subscribed gateways get their views either way.
+    pub mirror: bool,
     /// Checkpoints (and intent log segments) kept; at least [`KEEP`]: a replay can start
     /// from the oldest.
     pub keep: u64,
@@ -124,6 +127,7 @@ pub fn run_zone_process(
             }
             Zone::resume(zcfg, moved, &at, snap.objects, backend()?, fabric)?
         };
+        zone.set_mirror(cfg.mirror);
         for bytes in pending.drain(..) {
             // Controls seen here are older than this start: ignored.
             let _ = zone.offer(&bytes);

@@ -67,9 +67,15 @@ pub struct ZoneStats {
     /// Of the bytes sent, those of the states published for gateways (live zones): what
     /// every gateway receives from this zone, the whole mirror today.
     pub states_bytes: u64,
+    /// Per subscribed gateway: the bytes and object records of the views sent to it, in
+    /// all (states by interest).
+    pub views: BTreeMap<u16, (u64, u64)>,
+    /// Gateways subscribed after the last tick.
+    pub subscribers: usize,
     /// Messages rejected, by reason ([`crate::wire::WireError::label`], or `run`,
-    /// `misrouted`, `stranger`, `stale`, `early`, `replayed`, `parts`, or a refused cut
-    /// move's [`crate::rebalance::live::CutRefused::label`]).
+    /// `misrouted`, `stranger`, `stale`, `early`, `replayed`, `parts`, a refused cut
+    /// move's [`crate::rebalance::live::CutRefused::label`], or a refused
+    /// subscription's [`crate::views::SubscriptionError::label`]).
     pub rejected: BTreeMap<&'static str, u64>,
 }
 
@@ -99,6 +105,12 @@ impl ZoneStats {
         counter("myriad_zone_states_sent_bytes_total", self.states_bytes);
         counter("myriad_zone_messages_sent_total", self.messages.0);
         counter("myriad_zone_messages_received_total", self.messages.1);
+        for (g, (bytes, objects)) in &self.views {
+            let labels = [("zone", z.clone()), ("gateway", g.to_string())];
+            metrics::counter!("myriad_zone_view_sent_bytes_total", &labels).absolute(*bytes);
+            metrics::counter!("myriad_zone_view_objects_total", &labels).absolute(*objects);
+        }
+        metrics::gauge!("myriad_zone_subscribers", "zone" => z.clone()).set(self.subscribers as f64);
         metrics::gauge!("myriad_zone_owned_objects", "zone" => z.clone()).set(self.owned as f64);
         metrics::gauge!("myriad_zone_ghosts", "zone" => z.clone()).set(self.ghosts as f64);
         metrics::gauge!("myriad_zone_wait_seconds_total", "zone" => z.clone()).set(self.wait.as_secs_f64());

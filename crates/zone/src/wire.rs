@@ -27,6 +27,11 @@ mod cuts;
 pub use cuts::Load;
 use cuts::{cut_block, read_cuts};
 
+mod interest;
+pub use interest::{
+    KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, MOVE_LEN, Subscription, View, cell_bytes, encode_subscription, encode_view,
+};
+
 /// First two bytes of every message.
 pub const MAGIC: [u8; 2] = *b"MZ";
 /// The format's version; a message of another version is refused. (2: heartbeats carry
@@ -110,6 +115,9 @@ pub enum WireError {
     /// A key shorter than 16 bytes.
     #[error("a cluster key needs at least 16 bytes")]
     WeakKey,
+    /// A subscription's grid has no cells or more than [`MAX_CELLS`].
+    #[error("a subscription of {0} cells (at most {MAX_CELLS})")]
+    Cells(u64),
 }
 
 impl WireError {
@@ -126,6 +134,7 @@ impl WireError {
             WireError::Record { .. } => "record",
             WireError::Field(_) => "field",
             WireError::WeakKey => "key",
+            WireError::Cells(_) => "cells",
         }
     }
 }
@@ -316,6 +325,10 @@ pub enum Message {
     States(Border),
     /// Gateway to zones.
     Intents(Intents),
+    /// Gateway to zones, every gateway tick: what its players can see.
+    Subscription(Subscription),
+    /// Zone to one gateway, every tick: what changed in its subscription.
+    View(View),
     /// Gateway to gateways: a session of the account whose name hashes to `account`
     /// was admitted at `gateway` at `time_ms` (wall clock, ms since the Unix epoch).
     Claim {
@@ -340,6 +353,23 @@ struct Head {
     aux: [u16; 2],
 }
 
+/// The header of `h` with `count`, in a buffer with room for `body` more bytes and the
+/// tag.
+fn header(h: &Head, count: u32, body: usize) -> Vec<u8> {
+    let mut b = Vec::with_capacity(HEADER_LEN + body + TAG_LEN);
+    b.extend_from_slice(&MAGIC);
+    b.push(VERSION);
+    b.push(h.kind);
+    b.extend_from_slice(&h.run.to_le_bytes());
+    b.extend_from_slice(&h.tick.to_le_bytes());
+    b.extend_from_slice(&h.from.0.to_le_bytes());
+    b.extend_from_slice(&h.to.0.to_le_bytes());
+    b.extend_from_slice(&h.aux[0].to_le_bytes());
+    b.extend_from_slice(&h.aux[1].to_le_bytes());
+    b.extend_from_slice(&count.to_le_bytes());
+    b
+}
+
 fn encode_with(
     key: &ClusterKey,
     h: Head,
@@ -357,17 +387,7 @@ fn encode_with_prefix(
     records: impl ExactSizeIterator<Item = BorderRecord>,
 ) -> Result<Vec<u8>, WireError> {
     let count = u32::try_from(records.len()).map_err(|_| WireError::Length { count: u32::MAX, actual: 0 })?;
-    let mut b = Vec::with_capacity(HEADER_LEN + prefix.len() + records.len() * RECORD_LEN + TAG_LEN);
-    b.extend_from_slice(&MAGIC);
-    b.push(VERSION);
-    b.push(h.kind);
-    b.extend_from_slice(&h.run.to_le_bytes());
-    b.extend_from_slice(&h.tick.to_le_bytes());
-    b.extend_from_slice(&h.from.0.to_le_bytes());
-    b.extend_from_slice(&h.to.0.to_le_bytes());
-    b.extend_from_slice(&h.aux[0].to_le_bytes());
-    b.extend_from_slice(&h.aux[1].to_le_bytes());
-    b.extend_from_slice(&count.to_le_bytes());
+    let mut b = header(&h, count, prefix.len() + records.len() * RECORD_LEN);
     b.extend_from_slice(prefix);
     for r in records {
         put_record(&mut b, r);
@@ -472,7 +492,12 @@ pub fn encode_control(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireErro
             (h, vec![])
         }
         Message::CutMove { run, cut } => return encode_cut_move(key, *run, cut),
-        Message::Border(_) | Message::Checkpoint { .. } | Message::States(_) | Message::Intents(_) => {
+        Message::Border(_)
+        | Message::Checkpoint { .. }
+        | Message::States(_)
+        | Message::Intents(_)
+        | Message::Subscription(_)
+        | Message::View(_) => {
             return Err(WireError::Field("kind"));
         }
     };
@@ -496,6 +521,8 @@ pub fn encode(key: &ClusterKey, m: &Message) -> Result<Vec<u8>, WireError> {
         }
         Message::States(b) => encode_states(key, b),
         Message::Intents(i) => encode_intents(key, i),
+        Message::Subscription(s) => encode_subscription(key, s),
+        Message::View(v) => encode_view(key, v),
         _ => encode_control(key, m),
     }
 }
@@ -580,6 +607,15 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
         _ => 0,
     };
     let body = &signed[HEADER_LEN..];
+    // The kinds of states by interest have bodies of their own.
+    if let k @ (KIND_SUBSCRIPTION | KIND_VIEW) = signed[3] {
+        let f = interest::Fields { run, tick, from, to, aux0, aux1, count };
+        return if k == KIND_SUBSCRIPTION {
+            interest::decode_subscription(&f, body).map(Message::Subscription)
+        } else {
+            interest::decode_view(&f, body).map(Message::View)
+        };
+    }
     if body.len() as u64 != prefix + count as u64 * RECORD_LEN as u64 {
         return Err(WireError::Length { count, actual: body.len() });
     }

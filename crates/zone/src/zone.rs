@@ -36,6 +36,7 @@ use crate::rebalance::live::CutBook;
 use crate::replay::IntentLog;
 use crate::resident::ResidentWorld;
 use crate::stats::ZoneStats;
+use crate::views::Subscribers;
 use crate::wire::{
     ALL, Border, BorderRecord, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border,
     encode_states,
@@ -54,8 +55,10 @@ pub struct ZoneConfig {
     pub key: ClusterKey,
     /// How long to wait for a neighbour's border state before declaring it stalled.
     pub wait: Duration,
-    /// Whether the zone serves gateways: it publishes its owned objects' states after
-    /// every step ([`Fabric::publish_states`]). Players' intents are taken either way.
+    /// Whether the zone serves gateways: after every step it sends each subscribed
+    /// gateway its view ([`crate::views`]) and, unless [`Zone::set_mirror`] turned it
+    /// off, publishes its owned objects' states for every gateway (the mirror,
+    /// [`Fabric::publish_states`]). Players' intents are taken either way.
     pub live: bool,
 }
 
@@ -104,6 +107,10 @@ pub struct Zone {
     /// The layout of the last step (or the one the zone started with): the cuts its
     /// objects were stepped to this tick with, which a checkpoint of this tick records.
     stepped_with: Arc<ZoneLayout>,
+    /// The gateways' subscriptions (states by interest).
+    subscribers: Subscribers,
+    /// Whether a live zone also publishes the whole mirror.
+    mirror: bool,
 }
 
 impl Zone {
@@ -140,7 +147,6 @@ impl Zone {
         let resident = ResidentWorld::new(world, &layout, cfg.id, owned)?;
         let stats = ZoneStats { owned: resident.owned_count(), ..ZoneStats::default() };
         Ok(Zone {
-            cfg,
             stepped_with: layout.clone(),
             layout,
             resident,
@@ -151,7 +157,17 @@ impl Zone {
             intents: IntentBook::new(world.tick),
             log: None,
             cuts: CutBook::default(),
+            subscribers: Subscribers::default(),
+            mirror: cfg.live,
+            cfg,
         })
+    }
+
+    /// Whether a live zone publishes the whole mirror for every gateway besides the
+    /// subscribed gateways' views (on by default for a live zone; `myriad cluster
+    /// --gateway-states interest` turns it off).
+    pub fn set_mirror(&mut self, on: bool) {
+        self.mirror = on && self.cfg.live;
     }
 
     /// This zone's id.
@@ -296,7 +312,10 @@ impl Zone {
         self.stats.owned = self.resident.owned_count();
         self.stats.step += start.elapsed();
         if self.cfg.live {
-            self.publish_states()?;
+            if self.mirror {
+                self.publish_states()?;
+            }
+            self.publish_views()?;
         }
         self.intents.expire(self.tick());
         self.stats.bytes = self.fabric.bytes();
@@ -321,6 +340,23 @@ impl Zone {
             self.fabric.publish_states(bytes)?;
             self.stats.messages.0 += 1;
         }
+        Ok(())
+    }
+
+    /// Each subscribed gateway's view, at the tick just reached.
+    fn publish_views(&mut self) -> Result<(), ZoneError> {
+        let at = (self.cfg.run, self.tick(), self.cfg.id);
+        let max = self.fabric.max_message();
+        let fabric = &mut self.fabric;
+        let owned = self.resident.owned_states();
+        let sent = self.subscribers.publish(&self.cfg.key, at, owned, max, |g, b| fabric.send_view(g, b))?;
+        for (g, s) in sent {
+            let v = self.stats.views.entry(g).or_default();
+            v.0 += s.bytes;
+            v.1 += s.objects;
+            self.stats.messages.0 += s.messages;
+        }
+        self.stats.subscribers = self.subscribers.len();
         Ok(())
     }
 
@@ -424,6 +460,16 @@ impl Zone {
             Ok(Message::CutMove { run, cut }) => {
                 self.take_cut_move(run, cut, bytes, t);
                 return None;
+            }
+            Ok(Message::Subscription(s)) => {
+                let bounds = self.resident.world().bounds;
+                return match self.subscribers.offer(s, self.cfg.run, t, &bounds) {
+                    Ok(()) => {
+                        self.stats.messages.1 += 1;
+                        None
+                    }
+                    Err(e) => self.reject(e.label(), t),
+                };
             }
             Ok(_) => return self.reject("kind", t),
             Err(e) => return self.reject(e.label(), t),

@@ -13,6 +13,9 @@ use myriad_zone::{ClusterKey, GatewayConfig, MemoryFabric, Zone, ZoneConfig, Zon
 
 mod common;
 
+/// The gateway of the test.
+const GW: u16 = 3;
+
 fn small_world() -> World {
     ScenarioSpec { max_height: 2.0, ..ScenarioSpec::custom(11).counts(60, 0, 0).map_size(64.0, 65) }.build().unwrap()
 }
@@ -22,7 +25,7 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
     let world = small_world();
     let layout = Arc::new(ZoneLayout::for_count(&world.bounds, 2, myriad_zone::pair_reach(&world), 2.0).unwrap());
     let key = ClusterKey::random();
-    let (fabrics, link) = MemoryFabric::mesh_with_gateway(2);
+    let (fabrics, link) = MemoryFabric::mesh_with_gateway(2, GW);
     let k = TickConstants::default();
     const ZONE_TICKS: u64 = 500;
 
@@ -48,8 +51,14 @@ fn a_player_joins_crosses_a_cut_without_a_gap_and_leaves() {
             .collect();
 
         let gateway = s.spawn(|| {
-            let cfg =
-                GatewayConfig { gateway: 3, key: key.clone(), zones: 2, wait: Duration::from_secs(2), refresh: 30 };
+            let cfg = GatewayConfig {
+                gateway: GW,
+                key: key.clone(),
+                zones: 2,
+                wait: Duration::from_secs(2),
+                refresh: 30,
+                interest: None,
+            };
             let mut backend = ZonesBackend::new(cfg, Box::new(link)).unwrap();
             let mut gw = world.clone();
             backend.prepare(&mut gw);

@@ -1,9 +1,10 @@
 //! The locked-down fabric on a real `nats-server` of the test's own, configured by
 //! `fabric_auth`: a gateway's credentials cannot publish zone states, heartbeats,
-//! control, cut moves, states or checkpoints (the server refuses, nothing reaches the
-//! zones); a zone's cannot publish claims, intents, cut moves or another zone's
-//! heartbeat; the legitimate flows (zones over NATS, the
-//! checkpoint store) still work; a wrong password is refused; `tls://` works with the
+//! control, cut moves, states, views or checkpoints (the server refuses, nothing reaches
+//! the zones); a zone's cannot publish claims, intents, cut moves, subscriptions or
+//! another zone's heartbeat; the legitimate flows (zones over NATS, the checkpoint
+//! store, subscriptions and views by role) still work; a wrong password is refused;
+//! `tls://` works with the
 //! cluster's authority. Needs the `nats-server` program; skips with a message without it,
 //! fails under `MYRIAD_REQUIRE_NATS=1`.
 
@@ -117,6 +118,12 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     let mut beats = supervisor.subscribe("myriad.c.heartbeat.*".into()).unwrap();
     let mut states = other_gateway.subscribe("myriad.c.states".into()).unwrap();
     let mut claims = other_gateway.subscribe("myriad.c.sessions".into()).unwrap();
+    let mut subscriptions = other_zone.subscribe("myriad.c.subscriptions".into()).unwrap();
+    let mut views = other_gateway.subscribe("myriad.c.view.3".into()).unwrap();
+    // A subscription is written to the socket when `subscribe` returns, not yet taken by
+    // the server, and these links have no subject of their own to echo a probe on
+    // (`NatsLink::echo`): a message published by another link at once could miss it.
+    std::thread::sleep(Duration::from_millis(300));
 
     // What each role may say still arrives: the silences below are refusals, not a deaf
     // listener.
@@ -137,15 +144,20 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     assert_eq!(heard(&zone, &mut control), b"halt");
     supervisor.publish("myriad.c.cuts".into(), b"move".to_vec()).unwrap();
     assert_eq!(heard(&other_zone, &mut cuts), b"move");
+    gateway.publish("myriad.c.subscriptions".into(), b"cells".to_vec()).unwrap();
+    assert_eq!(heard(&other_zone, &mut subscriptions), b"cells");
+    zone.publish("myriad.c.view.3".into(), b"view".to_vec()).unwrap();
+    assert_eq!(heard(&other_gateway, &mut views), b"view");
 
-    // A gateway's credentials: no border states, heartbeats, control, cut moves, states
-    // or checkpoints.
+    // A gateway's credentials: no border states, heartbeats, control, cut moves, states,
+    // views or checkpoints.
     let forbidden = [
         "myriad.c.zone.0",
         "myriad.c.heartbeat.0",
         "myriad.c.control",
         "myriad.c.cuts",
         "myriad.c.states",
+        "myriad.c.view.3",
         "$O.myriad-c.C.forged",
         "$JS.API.STREAM.CREATE.OBJ_myriad-c",
     ];
@@ -158,6 +170,7 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     silent(&other_zone, &mut cuts, "a gateway's cut move");
     silent(&supervisor, &mut beats, "a gateway's heartbeat");
     silent(&other_gateway, &mut states, "a gateway's states");
+    silent(&other_gateway, &mut views, "a gateway's view for another gateway");
     let errors = errors_after(&gateway, forbidden.len() as u64);
     for subject in forbidden {
         let refused = format!("Permissions Violation for Publish to \"{subject}\"");
@@ -165,15 +178,16 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     }
 
     // A zone's credentials: no claims, no intents, no cut moves (a zone cannot move
-    // the cuts for the others).
-    for subject in ["myriad.c.sessions", "myriad.c.intents", "myriad.c.cuts"] {
+    // the cuts for the others), no subscriptions.
+    for subject in ["myriad.c.sessions", "myriad.c.intents", "myriad.c.cuts", "myriad.c.subscriptions"] {
         zone.publish(subject.into(), b"forged".to_vec()).unwrap();
     }
     zone.flush().unwrap();
     silent(&other_gateway, &mut claims, "a zone's claim");
     silent(&other_zone, &mut intents, "a zone's intents");
     silent(&other_zone, &mut cuts, "a zone's cut move");
-    let errors = errors_after(&zone, 3);
+    silent(&other_zone, &mut subscriptions, "a zone's subscription");
+    let errors = errors_after(&zone, 4);
     assert!(errors.iter().all(|e| e.contains("Permissions Violation for Publish")), "{errors:?}");
 
     // Nor may a zone beat another zone's heartbeat (to hide its death).

@@ -18,6 +18,9 @@ use myriad_zone::{ClusterKey, GatewayConfig, MemoryFabric, Zone, ZoneConfig, Zon
 
 mod common;
 
+/// The gateway of the test.
+const GW: u16 = 2;
+
 const TICKS: u64 = 260;
 const EVERY: u64 = 20;
 const EPOCH: u64 = 1;
@@ -42,7 +45,7 @@ fn a_live_run_with_players_replays_to_its_hash() {
     let shared = Arc::new(layout.clone());
     let key = ClusterKey::random();
     let store = MemoryCheckpoints::new(key.clone());
-    let (fabrics, link) = MemoryFabric::mesh_with_gateway(2);
+    let (fabrics, link) = MemoryFabric::mesh_with_gateway(2, GW);
     let k = TickConstants::default();
     let cut = layout.region(ZoneId(0)).max_x;
     let finished = AtomicUsize::new(0);
@@ -72,8 +75,14 @@ fn a_live_run_with_players_replays_to_its_hash() {
             })
             .collect();
         s.spawn(|| {
-            let cfg =
-                GatewayConfig { gateway: 2, key: key.clone(), zones: 2, wait: Duration::from_secs(2), refresh: 30 };
+            let cfg = GatewayConfig {
+                gateway: GW,
+                key: key.clone(),
+                zones: 2,
+                wait: Duration::from_secs(2),
+                refresh: 30,
+                interest: None,
+            };
             let mut backend = ZonesBackend::new(cfg, Box::new(link)).unwrap();
             let mut gw = world.clone();
             backend.prepare(&mut gw);

@@ -88,6 +88,98 @@ fn round_trips_and_is_the_documented_size() {
     assert!(matches!(decode(&key(), &sign(&key(), &raw)), Err(WireError::Record { index: 0, .. })));
 }
 
+fn subscription() -> Subscription {
+    Subscription {
+        incarnation: 1_764_000_000_123,
+        gateway: 7,
+        version: 3,
+        confirmed: Some((2, 99)),
+        cell: 32.0,
+        cols: 3,
+        rows: 5,
+        cells: vec![0b1010_0101, 0b0110_0000],
+    }
+}
+
+fn view() -> View {
+    View {
+        run: 2,
+        tick: 101,
+        zone: ZoneId(1),
+        gateway: 7,
+        part: 0,
+        parts: 2,
+        base: Some(99),
+        objects: vec![object(5, 1.0), object(9, -7.5)],
+        moves: vec![(EntityId(2), Vec3::new(1.0, 2.0, 3.0)), (EntityId(6), Vec3::new(-4.0, 0.5, 9.0))],
+        gone: vec![EntityId(3), EntityId(1 << 30)],
+    }
+}
+
+#[test]
+fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
+    let s = encode_subscription(&key(), &subscription()).unwrap();
+    assert_eq!(s.len(), HEADER_LEN + 24 + 2 + TAG_LEN);
+    assert_eq!(decode(&key(), &s).unwrap(), Message::Subscription(subscription()));
+    let none = Subscription { confirmed: None, ..subscription() };
+    assert_eq!(
+        decode(&key(), &encode(&key(), &Message::Subscription(none.clone())).unwrap()).unwrap(),
+        Message::Subscription(none)
+    );
+    let v = encode_view(&key(), &view()).unwrap();
+    assert_eq!(v.len(), HEADER_LEN + 16 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + TAG_LEN);
+    assert_eq!(decode(&key(), &v).unwrap(), Message::View(view()));
+    let whole = View { base: None, gone: vec![], moves: vec![], ..view() };
+    assert_eq!(decode(&key(), &encode(&key(), &Message::View(whole.clone())).unwrap()).unwrap(), Message::View(whole));
+    assert_eq!(decode(&ClusterKey::new(&[8; 32]).unwrap(), &s), Err(WireError::Tag));
+}
+
+#[test]
+fn bad_subscriptions_and_views_are_refused_with_their_reason() {
+    // Refused when encoding.
+    let cells = |cols, rows| Subscription { cols, rows, cells: vec![0; cell_bytes(cols, rows)], ..subscription() };
+    assert_eq!(encode_subscription(&key(), &cells(1024, 1024)), Err(WireError::Cells(1 << 20)));
+    assert_eq!(encode_subscription(&key(), &cells(0, 4)), Err(WireError::Cells(0)));
+    let tail = Subscription { cells: vec![0, 0b1000_0000], ..subscription() };
+    assert!(encode_subscription(&key(), &tail).is_err(), "a cell past the grid");
+    assert!(encode_subscription(&key(), &Subscription { cell: f32::NAN, ..subscription() }).is_err());
+    assert!(encode_view(&key(), &View { base: None, moves: vec![], ..view() }).is_err(), "gone ids in a whole view");
+    assert!(encode_view(&key(), &View { base: None, gone: vec![], ..view() }).is_err(), "moves in a whole view");
+    let nan = vec![(EntityId(2), Vec3::new(f32::NAN, 0.0, 0.0))];
+    assert!(encode_view(&key(), &View { moves: nan, ..view() }).is_err(), "a move nowhere");
+    let twice = vec![(EntityId(2), Vec3::ZERO), (EntityId(2), Vec3::ONE)];
+    assert!(encode_view(&key(), &View { moves: twice, ..view() }).is_err(), "one object moved twice");
+    assert!(encode_view(&key(), &View { gone: vec![EntityId(4), EntityId(3)], ..view() }).is_err(), "ids descend");
+    assert!(encode_view(&key(), &View { part: 2, ..view() }).is_err());
+    // Refused when decoding, behind a valid tag: each signed as the cluster would.
+    let s = encode_subscription(&key(), &subscription()).unwrap();
+    let resigned = |b: &[u8], edit: &dyn Fn(&mut Vec<u8>)| {
+        let mut raw = b[..b.len() - TAG_LEN].to_vec();
+        edit(&mut raw);
+        decode(&key(), &sign(&key(), &raw))
+    };
+    assert_eq!(resigned(&s, &|r| r[24..28].copy_from_slice(&[0xff; 4])), Err(WireError::Cells(65_535 * 65_535)));
+    assert!(matches!(resigned(&s, &|r| r.truncate(r.len() - 1)), Err(WireError::Length { .. })));
+    assert_eq!(resigned(&s, &|r| r[HEADER_LEN] = 2), Err(WireError::Field("subscription confirmation")));
+    assert_eq!(resigned(&s, &|r| *r.last_mut().unwrap() = 0xff), Err(WireError::Field("subscription cells")));
+    let v = encode_view(&key(), &view()).unwrap();
+    assert_eq!(
+        resigned(&v, &|r| r[22..24].copy_from_slice(&ALL.0.to_le_bytes())),
+        Err(WireError::Field("view header"))
+    );
+    assert!(matches!(resigned(&v, &|r| r.extend_from_slice(&[0; 4])), Err(WireError::Length { .. })));
+    // Gone ids out of order (swap the two).
+    let n = v.len() - TAG_LEN;
+    assert_eq!(
+        resigned(&v, &|r| {
+            let (a, b) = (r[n - 8..n - 4].to_vec(), r[n - 4..n].to_vec());
+            r[n - 8..n - 4].copy_from_slice(&b);
+            r[n - 4..n].copy_from_slice(&a);
+        }),
+        Err(WireError::Field("view ids"))
+    );
+}
+
 #[test]
 fn refuses_other_keys_alterations_and_bad_records() {
     let b = encode_border(&key(), &message()).unwrap();
@@ -120,10 +212,12 @@ fn signed_message() -> impl Strategy<Value = Vec<u8>> {
         proptest::collection::vec(any::<u8>(), RECORD_LEN),
     ];
     // What may open a body: nothing, a heartbeat's load, cuts as the header counts them
-    // (a start's, a checkpoint's), or a decision tick and cuts (a cut move's).
+    // (a start's, a checkpoint's), or a decision tick and cuts (a cut move's). Kinds 10
+    // and 11 (subscription, view) have bodies of their own: random words and records
+    // reach their parsers too.
     let prefix = (0u8..4, any::<[u64; 3]>());
     (
-        (1u8..=10, any::<u64>(), any::<u64>()),
+        (1u8..=12, any::<u64>(), any::<u64>()),
         (ids.clone(), ids, 0u16..4, 0u16..4),
         prefix,
         proptest::collection::vec(record, 0..3),

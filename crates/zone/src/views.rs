@@ -1,0 +1,424 @@
+//! States by interest, the zone's side: each gateway's subscription, and after each step
+//! the view the zone sends it (see `docs/zones.md`, "States by interest").
+//!
+//! A gateway's **view** of a zone at tick t is the set V: the zone's owned objects whose
+//! centres lie in the gateway's subscribed cells, and the gateway's own players wherever
+//! they are. The zone remembers which objects of V the gateway was sent (`known`, each
+//! with the tick it entered) and sends, relative to the last tick the gateway confirmed
+//! having whole (`c`):
+//! - every object of V that entered V after c, whole (48 bytes), and the new position
+//!   of every other object of V that changed after c (its state differs bit for bit
+//!   from the tick before): a *move* of 16 bytes, since an object's id, kind, shape and
+//!   extents never change and nothing at a gateway reads another object's previous
+//!   position, action or flags (the gateway's own players always come whole);
+//! - the ids of objects that left V (moved out of the cells, cells unsubscribed, handed
+//!   to another zone, removed) after c: **gone**, until the gateway confirms past them;
+//! - with no confirmation (a new subscriber, a restarted gateway, a new run after a
+//!   rollback) the **whole** view, which replaces what the gateway had of this zone.
+//!
+//! So a gateway that has the zone's view of any tick s ≥ c and applies the view of
+//! tick t > s has exactly V at t: what is unchanged since c it already holds, the rest
+//! is in the message. Lost messages cost nothing but a later confirmation; an object at
+//! rest costs nothing after it was sent once.
+//!
+//! The work per tick is one pass over the owned objects that keeps each one's last
+//! change (a merge by id with the last tick's), one pass that buckets them by cell
+//! (shared by every gateway with that grid), and for each gateway only its subscribed
+//! cells' buckets and its known set: never a scan of every object for every gateway.
+//! A zone sends a gateway nothing until the gateway subscribes; a gateway subscribes
+//! every tick (the message also carries its confirmation), so a zone that restarted
+//! learns every subscription within a gateway tick. A subscriber not heard from for
+//! [`EXPIRE_TICKS`] is dropped.
+
+use std::collections::{BTreeMap, HashMap};
+
+use myriad_core::{Aabb, EntityId, ObjectState, Vec3};
+
+use crate::error::ZoneError;
+use crate::gateway::{MAX_GATEWAYS, player_ids};
+use crate::layout::ZoneId;
+use crate::subscription::{CellGrid, CellSet};
+use crate::wire::{ClusterKey, HEADER_LEN, MOVE_LEN, RECORD_LEN, Subscription, TAG_LEN, View, encode_view};
+
+/// Ticks after which a silent subscriber is dropped (5 s at 30 Hz, as a silent
+/// gateway's players are: [`crate::intents`]).
+pub const EXPIRE_TICKS: u64 = 150;
+
+/// Why a zone refused a subscription (counted by [`SubscriptionError::label`]).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum SubscriptionError {
+    /// A gateway number no cluster has.
+    #[error("gateway {0} (at most {MAX_GATEWAYS})")]
+    Stranger(u16),
+    /// A grid other than the one its cell side gives over this world.
+    #[error("a grid of {got:?} cells where the world has {expected:?}")]
+    Grid {
+        /// The message's columns and rows.
+        got: (u16, u16),
+        /// This world's.
+        expected: (u16, u16),
+    },
+    /// An earlier incarnation of the gateway, or an older version of its cells.
+    #[error("incarnation {incarnation} version {version} is older than the one held")]
+    Stale {
+        /// The message's incarnation.
+        incarnation: u64,
+        /// The message's version.
+        version: u64,
+    },
+    /// A confirmation of a tick this zone has not reached.
+    #[error("confirms tick {confirmed}, the zone is at {tick}")]
+    Ahead {
+        /// What it confirms.
+        confirmed: u64,
+        /// The zone's tick.
+        tick: u64,
+    },
+}
+
+impl SubscriptionError {
+    /// A short stable name, for metrics labels.
+    pub fn label(&self) -> &'static str {
+        match self {
+            SubscriptionError::Stranger(_) => "subscription_stranger",
+            SubscriptionError::Grid { .. } => "subscription_grid",
+            SubscriptionError::Stale { .. } => "subscription_stale",
+            SubscriptionError::Ahead { .. } => "subscription_ahead",
+        }
+    }
+}
+
+/// An object of V the gateway was sent.
+#[derive(Clone, Copy, Debug)]
+struct Known {
+    /// The tick it entered the gateway's view.
+    since: u64,
+    /// The last tick it was in it.
+    seen: u64,
+}
+
+/// One gateway's subscription and what it was sent.
+#[derive(Debug)]
+struct Subscriber {
+    incarnation: u64,
+    version: u64,
+    grid: CellGrid,
+    cells: CellSet,
+    /// The last tick of this zone's run the gateway has whole.
+    confirmed: Option<u64>,
+    heard_at: u64,
+    known: HashMap<EntityId, Known>,
+    /// Objects that left its view, with the tick they left, until it confirms past it.
+    gone: HashMap<EntityId, u64>,
+}
+
+/// An owned object and the last tick its state changed.
+#[derive(Clone, Copy, Debug)]
+struct Tracked {
+    state: ObjectState,
+    changed_at: u64,
+}
+
+/// The owned objects of one grid, by cell.
+#[derive(Default)]
+struct Buckets {
+    /// `order[start[c]..start[c + 1]]` are the indices (into the tracked objects) in cell `c`.
+    start: Vec<u32>,
+    order: Vec<u32>,
+    /// Each tracked object's cell.
+    cell: Vec<u32>,
+}
+
+impl Buckets {
+    fn fill(&mut self, grid: &CellGrid, tracked: &[Tracked]) {
+        self.cell.clear();
+        self.cell.extend(tracked.iter().map(|t| grid.cell_of(t.state.pos)));
+        self.start.clear();
+        self.start.resize(grid.len() + 1, 0);
+        for &c in &self.cell {
+            self.start[c as usize + 1] += 1;
+        }
+        for i in 1..self.start.len() {
+            self.start[i] += self.start[i - 1];
+        }
+        let mut next = self.start.clone();
+        self.order.clear();
+        self.order.resize(tracked.len(), 0);
+        for (i, &c) in self.cell.iter().enumerate() {
+            self.order[next[c as usize] as usize] = i as u32;
+            next[c as usize] += 1;
+        }
+    }
+
+    fn of(&self, cell: u32) -> &[u32] {
+        let c = cell as usize;
+        &self.order[self.start[c] as usize..self.start[c + 1] as usize]
+    }
+}
+
+/// Whether two states are the same bits (floats compared as bits: a state that did not
+/// change is bit for bit the same).
+fn same(a: &ObjectState, b: &ObjectState) -> bool {
+    let bits = |o: &ObjectState| {
+        [o.half.x, o.half.y, o.half.z, o.radius, o.pos.x, o.pos.y, o.pos.z, o.prev.x, o.prev.y, o.prev.z]
+            .map(f32::to_bits)
+    };
+    a.id == b.id
+        && a.kind == b.kind
+        && a.shape == b.shape
+        && a.action == b.action
+        && a.flags == b.flags
+        && bits(a) == bits(b)
+}
+
+/// What a zone sent one gateway in one tick.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Sent {
+    /// Messages.
+    pub messages: u64,
+    /// Their bytes.
+    pub bytes: u64,
+    /// Object records.
+    pub objects: u64,
+}
+
+/// Every gateway's subscription to one zone (see the module docs).
+#[derive(Default)]
+pub struct Subscribers {
+    gateways: BTreeMap<u16, Subscriber>,
+    tracked: Vec<Tracked>,
+    buckets: Vec<(CellGrid, Buckets)>,
+}
+
+impl Subscribers {
+    /// Gateways subscribed.
+    pub fn len(&self) -> usize {
+        self.gateways.len()
+    }
+
+    /// Whether no gateway is subscribed.
+    pub fn is_empty(&self) -> bool {
+        self.gateways.is_empty()
+    }
+
+    /// Cells gateway `g` subscribed to, if it did.
+    pub fn cells_of(&self, g: u16) -> Option<usize> {
+        self.gateways.get(&g).map(|s| s.cells.count())
+    }
+
+    /// Takes a subscription, at zone tick `tick` of run `run`, for a world of `bounds`.
+    pub fn offer(&mut self, s: Subscription, run: u64, tick: u64, bounds: &Aabb) -> Result<(), SubscriptionError> {
+        if s.gateway >= MAX_GATEWAYS {
+            return Err(SubscriptionError::Stranger(s.gateway));
+        }
+        let grid = CellGrid::new(bounds, s.cell)
+            .map_err(|_| SubscriptionError::Grid { got: (s.cols, s.rows), expected: (0, 0) })?;
+        if grid.shape() != (s.cols, s.rows) {
+            return Err(SubscriptionError::Grid { got: (s.cols, s.rows), expected: grid.shape() });
+        }
+        let confirmed = match s.confirmed {
+            Some((r, c)) if r == run => {
+                if c > tick {
+                    return Err(SubscriptionError::Ahead { confirmed: c, tick });
+                }
+                Some(c)
+            }
+            // Nothing of this run yet (a whole view follows).
+            _ => None,
+        };
+        let cells = CellSet::from_bytes(&s.cells, grid.len());
+        match self.gateways.get_mut(&s.gateway) {
+            Some(e) if (s.incarnation, s.version) < (e.incarnation, e.version) => {
+                return Err(SubscriptionError::Stale { incarnation: s.incarnation, version: s.version });
+            }
+            Some(e) if s.incarnation == e.incarnation => {
+                e.version = s.version;
+                e.grid = grid;
+                e.cells = cells;
+                // Confirmations only grow; none (the gateway dropped what it had) asks
+                // for a whole view.
+                e.confirmed = confirmed.map(|c| e.confirmed.map_or(c, |was| was.max(c)));
+                e.heard_at = tick;
+            }
+            _ => {
+                // A new subscriber, or a restarted gateway: whole views until it confirms.
+                let fresh = Subscriber {
+                    incarnation: s.incarnation,
+                    version: s.version,
+                    grid,
+                    cells,
+                    confirmed: None,
+                    heard_at: tick,
+                    known: HashMap::new(),
+                    gone: HashMap::new(),
+                };
+                self.gateways.insert(s.gateway, fresh);
+            }
+        }
+        Ok(())
+    }
+
+    /// After the step that reached `tick`: each subscribed gateway's view of `owned`
+    /// (the zone's owned objects, ids ascending), encoded in parts of at most
+    /// `max_message` bytes and handed to `send(gateway, bytes)`. Returns what went to
+    /// each gateway.
+    pub fn publish(
+        &mut self,
+        key: &ClusterKey,
+        (run, tick, zone): (u64, u64, ZoneId),
+        owned: impl Iterator<Item = ObjectState>,
+        max_message: usize,
+        mut send: impl FnMut(u16, Vec<u8>) -> Result<(), ZoneError>,
+    ) -> Result<Vec<(u16, Sent)>, ZoneError> {
+        self.gateways.retain(|_, s| tick.saturating_sub(s.heard_at) <= EXPIRE_TICKS);
+        if self.gateways.is_empty() {
+            // Nobody to compare with: a later subscriber starts with a whole view.
+            self.tracked.clear();
+            return Ok(Vec::new());
+        }
+        self.track(tick, owned);
+        self.buckets.retain(|(g, _)| self.gateways.values().any(|s| s.grid == *g));
+        for s in self.gateways.values() {
+            if !self.buckets.iter().any(|(g, _)| *g == s.grid) {
+                self.buckets.push((s.grid, Buckets::default()));
+            }
+        }
+        for (grid, b) in &mut self.buckets {
+            b.fill(grid, &self.tracked);
+        }
+        let mut out = Vec::with_capacity(self.gateways.len());
+        for (&g, s) in &mut self.gateways {
+            let buckets = &self.buckets.iter().find(|(grid, _)| *grid == s.grid).expect("filled").1;
+            let (objects, moves, gone) = view_of(g, s, &self.tracked, buckets, tick);
+            let base = s.confirmed;
+            let mut sent = Sent { objects: (objects.len() + moves.len()) as u64, ..Sent::default() };
+            for (part, parts, (records, moved, ids)) in parts(&objects, &moves, &gone, max_message)? {
+                let v = View {
+                    run,
+                    tick,
+                    zone,
+                    gateway: g,
+                    part,
+                    parts,
+                    base,
+                    objects: records.to_vec(),
+                    moves: moved.to_vec(),
+                    gone: ids.to_vec(),
+                };
+                let bytes = encode_view(key, &v)?;
+                sent.bytes += bytes.len() as u64;
+                sent.messages += 1;
+                send(g, bytes)?;
+            }
+            out.push((g, sent));
+        }
+        Ok(out)
+    }
+
+    /// Keeps each owned object's last change: one merge by id with the last tick's.
+    fn track(&mut self, tick: u64, owned: impl Iterator<Item = ObjectState>) {
+        let old = std::mem::take(&mut self.tracked);
+        let mut i = 0;
+        self.tracked.reserve(old.len());
+        for state in owned {
+            while i < old.len() && old[i].state.id < state.id {
+                i += 1;
+            }
+            let changed_at = match old.get(i) {
+                Some(t) if same(&t.state, &state) => t.changed_at,
+                _ => tick,
+            };
+            self.tracked.push(Tracked { state, changed_at });
+        }
+    }
+}
+
+/// What a view holds: whole records, moves, gone ids (each ids ascending).
+type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<EntityId>);
+
+/// Gateway `g`'s view at `tick`. Updates what it was sent.
+fn view_of(g: u16, s: &mut Subscriber, tracked: &[Tracked], buckets: &Buckets, tick: u64) -> ViewLists {
+    let base = s.confirmed;
+    if base.is_none() {
+        s.known.clear();
+        s.gone.clear();
+    }
+    let c = base.unwrap_or(0);
+    let players = player_ids(g);
+    let (mut objects, mut moves) = (Vec::new(), Vec::new());
+    let mut visit = |t: &Tracked, s: &mut Subscriber| {
+        let id = t.state.id;
+        // Whole: new to the gateway since what it confirmed (it may lack the record), or
+        // one of its own players; else a move when it changed.
+        let (whole, moved) = match s.known.get_mut(&id) {
+            Some(k) => {
+                k.seen = tick;
+                let whole = base.is_none() || k.since > c || (t.changed_at > c && players.contains(&id.0));
+                (whole, !whole && t.changed_at > c)
+            }
+            None => {
+                s.known.insert(id, Known { since: tick, seen: tick });
+                s.gone.remove(&id);
+                (true, false)
+            }
+        };
+        if whole {
+            objects.push(t.state);
+        } else if moved {
+            moves.push((id, t.state.pos));
+        }
+    };
+    let cells: Vec<u32> = s.cells.iter().collect();
+    for cell in cells {
+        for &i in buckets.of(cell) {
+            visit(&tracked[i as usize], s);
+        }
+    }
+    // The gateway's own players, wherever they are (players' ids come last).
+    let from = tracked.partition_point(|t| t.state.id.0 < players.start);
+    let to = tracked.partition_point(|t| t.state.id.0 < players.end);
+    for (i, t) in tracked.iter().enumerate().take(to).skip(from) {
+        if !s.cells.contains(buckets.cell[i]) {
+            visit(t, s);
+        }
+    }
+    let gone_now: Vec<EntityId> = s.known.iter().filter(|(_, k)| k.seen != tick).map(|(id, _)| *id).collect();
+    for id in gone_now {
+        s.known.remove(&id);
+        s.gone.insert(id, tick);
+    }
+    s.gone.retain(|_, left| *left > c);
+    let mut gone: Vec<EntityId> = if base.is_some() { s.gone.keys().copied().collect() } else { Vec::new() };
+    objects.sort_unstable_by_key(|o| o.id);
+    moves.sort_unstable_by_key(|m| m.0);
+    gone.sort_unstable();
+    (objects, moves, gone)
+}
+
+/// One part's slices of a view's lists.
+type PartLists<'a> = (&'a [ObjectState], &'a [(EntityId, Vec3)], &'a [EntityId]);
+
+/// A view's records, moves and gone ids in parts that fit `max_message` bytes (at least
+/// one part, even when empty): (part, parts, its slices).
+fn parts<'a>(
+    objects: &'a [ObjectState],
+    moves: &'a [(EntityId, Vec3)],
+    gone: &'a [EntityId],
+    max_message: usize,
+) -> Result<Vec<(u16, u16, PartLists<'a>)>, ZoneError> {
+    // A third of a message for each list, so that a part with all three still fits.
+    let room = max_message.saturating_sub(HEADER_LEN + TAG_LEN + 16) / 3;
+    let per = [(room / RECORD_LEN).max(1), (room / MOVE_LEN).max(1), (room / 4).max(1)];
+    let n = objects.len().div_ceil(per[0]).max(moves.len().div_ceil(per[1])).max(gone.len().div_ceil(per[2])).max(1);
+    let parts = u16::try_from(n).map_err(|_| ZoneError::Fabric(format!("a view of {n} parts")))?;
+    fn chunk<T>(all: &[T], per: usize, i: usize) -> &[T] {
+        &all[(i * per).min(all.len())..((i + 1) * per).min(all.len())]
+    }
+    Ok((0..n)
+        .map(|i| (i as u16, parts, (chunk(objects, per[0], i), chunk(moves, per[1], i), chunk(gone, per[2], i))))
+        .collect())
+}
+
+#[cfg(test)]
+#[path = "views_tests.rs"]
+mod tests;

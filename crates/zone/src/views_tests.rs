@@ -1,0 +1,126 @@
+use super::*;
+use crate::wire::{Message, decode};
+use myriad_core::{ObjectKind, ShapeKind, Vec3};
+
+const RUN: u64 = 4;
+const G: u16 = 1;
+
+fn key() -> ClusterKey {
+    ClusterKey::new(&[3; 32]).unwrap()
+}
+
+fn bounds() -> Aabb {
+    Aabb::new(Vec3::ZERO, Vec3::new(100.0, 20.0, 100.0))
+}
+
+fn object(id: u32, x: f32, z: f32) -> ObjectState {
+    ObjectState {
+        id: EntityId(id),
+        kind: ObjectKind::Npc,
+        shape: ShapeKind::Sphere,
+        half: Vec3::splat(0.5),
+        radius: 0.5,
+        pos: Vec3::new(x, 1.0, z),
+        prev: Vec3::new(x, 1.0, z),
+        action: 0,
+        flags: 0,
+    }
+}
+
+/// Gateway `G`'s subscription to the cells of the first three columns (x < 30) of a
+/// 10 × 10 grid.
+fn subscription(incarnation: u64, version: u64, confirmed: Option<u64>) -> Subscription {
+    let grid = CellGrid::new(&bounds(), 10.0).unwrap();
+    let mut cells = CellSet::new(grid.len());
+    for row in 0..10 {
+        for col in 0..3 {
+            cells.insert(row * 10 + col);
+        }
+    }
+    Subscription {
+        incarnation,
+        gateway: G,
+        version,
+        confirmed: confirmed.map(|c| (RUN, c)),
+        cell: 10.0,
+        cols: 10,
+        rows: 10,
+        cells: cells.to_bytes(10, 10),
+    }
+}
+
+/// One tick's views: (base, ids sent whole, ids moved, ids gone) per gateway.
+#[allow(clippy::type_complexity)]
+fn publish(
+    subs: &mut Subscribers,
+    tick: u64,
+    owned: &[ObjectState],
+) -> Vec<(u16, Option<u64>, Vec<u32>, Vec<u32>, Vec<u32>)> {
+    let mut out = Vec::new();
+    subs.publish(&key(), (RUN, tick, ZoneId(0)), owned.iter().copied(), 1 << 20, |g, bytes| {
+        let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
+        assert_eq!((v.run, v.tick, v.gateway, v.parts), (RUN, tick, g, 1));
+        let ids = |v: &[EntityId]| v.iter().map(|id| id.0).collect::<Vec<_>>();
+        let moved: Vec<EntityId> = v.moves.iter().map(|m| m.0).collect();
+        out.push((g, v.base, v.objects.iter().map(|o| o.id.0).collect(), ids(&moved), ids(&v.gone)));
+        Ok(())
+    })
+    .unwrap();
+    out
+}
+
+#[test]
+fn a_view_is_whole_then_only_what_changed_and_what_left_until_confirmed() {
+    let player = player_ids(G).start + 5;
+    let mut world = vec![object(1, 5.0, 5.0), object(2, 25.0, 50.0), object(3, 50.0, 50.0), object(player, 90.0, 90.0)];
+    let mut subs = Subscribers::default();
+    assert!(publish(&mut subs, 1, &world).is_empty(), "nothing for nobody");
+    subs.offer(subscription(10, 1, None), RUN, 1, &bounds()).unwrap();
+    // Whole: the objects in the cells, and the gateway's own player wherever it is.
+    assert_eq!(publish(&mut subs, 2, &world), [(G, None, vec![1, 2, player], vec![], vec![])]);
+    subs.offer(subscription(10, 1, Some(2)), RUN, 2, &bounds()).unwrap();
+    // At rest: nothing.
+    assert_eq!(publish(&mut subs, 3, &world), [(G, Some(2), vec![], vec![], vec![])]);
+    // One moves inside the cells (a move), one leaves them (gone), one enters (whole).
+    world[0].pos.x = 6.0;
+    world[1].pos.x = 35.0;
+    world[2].pos.x = 29.0;
+    assert_eq!(publish(&mut subs, 4, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
+    // Not confirmed yet: the same again (changes since 2), however old.
+    assert_eq!(publish(&mut subs, 5, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
+    subs.offer(subscription(10, 1, Some(5)), RUN, 5, &bounds()).unwrap();
+    // The gateway's own player comes whole when it changes.
+    world[3].pos.x = 91.0;
+    assert_eq!(publish(&mut subs, 6, &world), [(G, Some(5), vec![player], vec![], vec![])]);
+    // Handed to another zone: gone from this one.
+    world.remove(0);
+    assert_eq!(publish(&mut subs, 7, &world), [(G, Some(5), vec![player], vec![], vec![1])]);
+    // A confirmation of another run (the gateway followed a rollback): whole again.
+    let mut other = subscription(10, 2, Some(6));
+    other.confirmed = Some((RUN + 1, 6));
+    subs.offer(other, RUN, 7, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, 8, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    // A restarted gateway (a newer incarnation) starts whole too; an older one is refused.
+    subs.offer(subscription(11, 1, Some(8)), RUN, 8, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, 9, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    let stale = subs.offer(subscription(10, 9, Some(8)), RUN, 9, &bounds());
+    assert_eq!(stale, Err(SubscriptionError::Stale { incarnation: 10, version: 9 }));
+    // A subscriber silent for longer than EXPIRE_TICKS (last heard at 8) is dropped.
+    assert_eq!(publish(&mut subs, 8 + EXPIRE_TICKS, &world).len(), 1);
+    assert!(publish(&mut subs, 9 + EXPIRE_TICKS, &world).is_empty());
+    assert!(subs.is_empty());
+}
+
+#[test]
+fn bad_subscriptions_are_refused_with_their_reason() {
+    let mut subs = Subscribers::default();
+    let s = subscription(10, 1, None);
+    let refused = |s: Subscription, subs: &mut Subscribers| subs.offer(s, RUN, 20, &bounds()).unwrap_err().label();
+    assert_eq!(refused(Subscription { gateway: MAX_GATEWAYS, ..s.clone() }, &mut subs), "subscription_stranger");
+    let coarse = Subscription { cell: 20.0, ..s.clone() };
+    assert_eq!(refused(coarse, &mut subs), "subscription_grid");
+    assert_eq!(refused(subscription(10, 1, Some(21)), &mut subs), "subscription_ahead");
+    assert!(subs.is_empty(), "nothing refused was kept");
+    subs.offer(s, RUN, 20, &bounds()).unwrap();
+    assert_eq!(subs.cells_of(G), Some(30));
+}

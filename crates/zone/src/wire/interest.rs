@@ -1,0 +1,280 @@
+//! The messages of states by interest (`docs/zones.md`, "States by interest"): a
+//! gateway's [`Subscription`] (the cells its players can see, and the last zones' tick it
+//! has whole), to every zone, and a zone's [`View`] for one gateway (what changed in
+//! those cells since that tick, and what left them).
+//!
+//! Both share the fabric's header and tag; their bodies are their own (not 48-byte
+//! records only), so their lengths are checked here, after the tag, like every other
+//! field: every message has exactly one encoding.
+
+use myriad_core::{EntityId, ObjectState, Vec3};
+
+use super::{ALL, ClusterKey, Head, RECORD_LEN, WireError, header, plain, record, sign};
+use crate::layout::ZoneId;
+
+/// Message kind: a gateway's subscription, to every zone.
+pub const KIND_SUBSCRIPTION: u8 = 10;
+/// Message kind: a zone's view for one gateway.
+pub const KIND_VIEW: u8 = 11;
+/// Most cells a subscription's grid may have (a 32 KiB bit set).
+pub const MAX_CELLS: u64 = 1 << 18;
+/// Bytes of a subscription's body before its cells.
+const SUBSCRIPTION_FIXED: usize = 24;
+/// Bytes of a view's body before its records.
+const VIEW_FIXED: usize = 16;
+/// Bytes of a move: id and position.
+pub const MOVE_LEN: usize = 16;
+/// A view's base when it is whole (the gateway drops what it had of the zone).
+const WHOLE: u64 = u64::MAX;
+
+/// What a gateway's players can see, as cells of a grid over the world, and how far it
+/// has followed the zones. Sent to every zone every gateway tick.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Subscription {
+    /// The gateway's incarnation (its start time in ms): a restarted gateway is a new
+    /// subscriber, which gets whole views.
+    pub incarnation: u64,
+    /// The gateway.
+    pub gateway: u16,
+    /// Grows by one whenever the cells change (a zone refuses an older one).
+    pub version: u64,
+    /// The zones' run and the last tick of it whose views this gateway has taken whole,
+    /// from every zone: a zone sends what changed since then. `None`: nothing yet.
+    pub confirmed: Option<(u64, u64)>,
+    /// The grid's cell side, in world units (the grid starts at the world's lower x and
+    /// z bounds).
+    pub cell: f32,
+    /// The grid's columns (along x).
+    pub cols: u16,
+    /// The grid's rows (along z).
+    pub rows: u16,
+    /// One bit per cell, row-major (cell `row × cols + col` is bit `i % 8` of byte
+    /// `i / 8`); the bits past the last cell are zero.
+    pub cells: Vec<u8>,
+}
+
+/// One part of what a zone sends one gateway after a step: its owned objects in the
+/// gateway's cells (and the gateway's own players, wherever they are) whose state the
+/// gateway lacks, and the ids of those it must drop.
+#[derive(Clone, Debug, PartialEq)]
+pub struct View {
+    /// The zones' run.
+    pub run: u64,
+    /// The zone's tick after the step.
+    pub tick: u64,
+    /// The zone.
+    pub zone: ZoneId,
+    /// The gateway.
+    pub gateway: u16,
+    /// This part's index.
+    pub part: u16,
+    /// Parts of this zone's view of this tick (at least 1, even when empty).
+    pub parts: u16,
+    /// `None`: the whole view (the gateway replaces what it had of this zone); `Some(c)`:
+    /// the changes since tick `c`, which the gateway has whole.
+    pub base: Option<u64>,
+    /// Whole states, ids ascending: objects that entered the view, and the gateway's
+    /// own players.
+    pub objects: Vec<ObjectState>,
+    /// New positions of objects the gateway already holds (ids ascending): all that
+    /// changes of an object a gateway shows, in a third of a whole record. None in a
+    /// whole view.
+    pub moves: Vec<(EntityId, Vec3)>,
+    /// Objects of this zone the gateway must drop (they left its cells, or the zone),
+    /// ids ascending; none in a whole view.
+    pub gone: Vec<EntityId>,
+}
+
+/// Bytes of the bit set of `cols × rows` cells.
+pub fn cell_bytes(cols: u16, rows: u16) -> usize {
+    (usize::from(cols) * usize::from(rows)).div_ceil(8)
+}
+
+/// Encodes and signs a subscription.
+pub fn encode_subscription(key: &ClusterKey, s: &Subscription) -> Result<Vec<u8>, WireError> {
+    let n = u64::from(s.cols) * u64::from(s.rows);
+    if n == 0 || n > MAX_CELLS {
+        return Err(WireError::Cells(n));
+    }
+    if s.cells.len() != cell_bytes(s.cols, s.rows)
+        || !tail_clear(&s.cells, n)
+        || s.gateway == ALL.0
+        || !(s.cell.is_finite() && s.cell > 0.0)
+    {
+        return Err(WireError::Field("subscription"));
+    }
+    let len = SUBSCRIPTION_FIXED + s.cells.len();
+    let h = Head {
+        kind: KIND_SUBSCRIPTION,
+        run: s.incarnation,
+        tick: s.version,
+        from: ZoneId(s.gateway),
+        to: ALL,
+        aux: [s.cols, s.rows],
+    };
+    let mut b = header(&h, len as u32, len);
+    let (run, tick) = s.confirmed.unwrap_or((0, 0));
+    b.extend_from_slice(&u32::from(s.confirmed.is_some()).to_le_bytes());
+    b.extend_from_slice(&s.cell.to_le_bytes());
+    b.extend_from_slice(&run.to_le_bytes());
+    b.extend_from_slice(&tick.to_le_bytes());
+    b.extend_from_slice(&s.cells);
+    Ok(sign(key, &b))
+}
+
+/// Whether the bits past the last of `n` cells are zero (one encoding per set).
+fn tail_clear(cells: &[u8], n: u64) -> bool {
+    let used = (n % 8) as u32;
+    used == 0 || cells.last().is_none_or(|b| b >> used == 0)
+}
+
+/// Encodes and signs one part of a view.
+pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
+    if v.parts == 0 || v.part >= v.parts {
+        return Err(WireError::Part { part: v.part, parts: v.parts });
+    }
+    let whole_with_changes = v.base.is_none() && !(v.gone.is_empty() && v.moves.is_empty());
+    if v.gateway == ALL.0 || v.zone == ALL || whole_with_changes || v.base == Some(WHOLE) {
+        return Err(WireError::Field("view"));
+    }
+    let ascending = |ids: &mut dyn Iterator<Item = EntityId>| {
+        let ids: Vec<EntityId> = ids.collect();
+        ids.windows(2).all(|w| w[0] < w[1])
+    };
+    if !ascending(&mut v.objects.iter().map(|o| o.id))
+        || !ascending(&mut v.moves.iter().map(|m| m.0))
+        || !ascending(&mut v.gone.iter().copied())
+    {
+        return Err(WireError::Field("view ids"));
+    }
+    if v.moves.iter().any(|(_, p)| !p.is_finite()) {
+        return Err(WireError::Field("view moves"));
+    }
+    let count = u32::try_from(v.objects.len()).map_err(|_| WireError::Field("view records"))?;
+    let gone = u32::try_from(v.gone.len()).map_err(|_| WireError::Field("view gone"))?;
+    let moves = u32::try_from(v.moves.len()).map_err(|_| WireError::Field("view moves"))?;
+    let h =
+        Head { kind: KIND_VIEW, run: v.run, tick: v.tick, from: v.zone, to: ZoneId(v.gateway), aux: [v.part, v.parts] };
+    let body = VIEW_FIXED + v.objects.len() * RECORD_LEN + v.moves.len() * MOVE_LEN + v.gone.len() * 4;
+    let mut b = header(&h, count, body);
+    b.extend_from_slice(&v.base.unwrap_or(WHOLE).to_le_bytes());
+    b.extend_from_slice(&gone.to_le_bytes());
+    b.extend_from_slice(&moves.to_le_bytes());
+    for o in &v.objects {
+        super::put_record(&mut b, super::BorderRecord::seen(*o));
+    }
+    for (id, p) in &v.moves {
+        b.extend_from_slice(&id.0.to_le_bytes());
+        for c in [p.x, p.y, p.z] {
+            b.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    for id in &v.gone {
+        b.extend_from_slice(&id.0.to_le_bytes());
+    }
+    Ok(sign(key, &b))
+}
+
+/// The header's fields, as [`super::decode`] reads them.
+pub(super) struct Fields {
+    pub run: u64,
+    pub tick: u64,
+    pub from: ZoneId,
+    pub to: ZoneId,
+    pub aux0: u16,
+    pub aux1: u16,
+    pub count: u32,
+}
+
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
+}
+fn u64_at(b: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
+}
+
+/// Decodes an authenticated subscription's body.
+pub(super) fn decode_subscription(f: &Fields, body: &[u8]) -> Result<Subscription, WireError> {
+    let (cols, rows) = (f.aux0, f.aux1);
+    let n = u64::from(cols) * u64::from(rows);
+    if n == 0 || n > MAX_CELLS {
+        return Err(WireError::Cells(n));
+    }
+    let len = SUBSCRIPTION_FIXED + cell_bytes(cols, rows);
+    if body.len() != len || f.count as usize != len {
+        return Err(WireError::Length { count: f.count, actual: body.len() });
+    }
+    if f.to != ALL || f.from == ALL {
+        return Err(WireError::Field("subscription header"));
+    }
+    let confirmed = match u32_at(body, 0) {
+        0 if u64_at(body, 8) == 0 && u64_at(body, 16) == 0 => None,
+        1 => Some((u64_at(body, 8), u64_at(body, 16))),
+        _ => return Err(WireError::Field("subscription confirmation")),
+    };
+    let cell = f32::from_le_bytes(body[4..8].try_into().expect("4 bytes"));
+    if !(cell.is_finite() && cell > 0.0) {
+        return Err(WireError::Field("subscription cell"));
+    }
+    let cells = body[SUBSCRIPTION_FIXED..].to_vec();
+    if !tail_clear(&cells, n) {
+        return Err(WireError::Field("subscription cells"));
+    }
+    Ok(Subscription { incarnation: f.run, gateway: f.from.0, version: f.tick, confirmed, cell, cols, rows, cells })
+}
+
+/// Decodes an authenticated view's body.
+pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
+    if f.aux1 == 0 || f.aux0 >= f.aux1 {
+        return Err(WireError::Part { part: f.aux0, parts: f.aux1 });
+    }
+    if f.to == ALL || f.from == ALL {
+        return Err(WireError::Field("view header"));
+    }
+    if body.len() < VIEW_FIXED {
+        return Err(WireError::Length { count: f.count, actual: body.len() });
+    }
+    let base = u64_at(body, 0);
+    let (gone, moves) = (u32_at(body, 8), u32_at(body, 12));
+    let expected = VIEW_FIXED as u64
+        + u64::from(f.count) * RECORD_LEN as u64
+        + u64::from(moves) * MOVE_LEN as u64
+        + u64::from(gone) * 4;
+    if body.len() as u64 != expected {
+        return Err(WireError::Length { count: f.count, actual: body.len() });
+    }
+    if base == WHOLE && (gone != 0 || moves != 0) {
+        return Err(WireError::Field("view body"));
+    }
+    let records_end = VIEW_FIXED + f.count as usize * RECORD_LEN;
+    let moves_end = records_end + moves as usize * MOVE_LEN;
+    let objects = plain(body[VIEW_FIXED..records_end].chunks_exact(RECORD_LEN).enumerate().map(|(i, r)| record(i, r)))?;
+    let f32_at = |b: &[u8], at: usize| f32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"));
+    let moves: Vec<(EntityId, Vec3)> = body[records_end..moves_end]
+        .chunks_exact(MOVE_LEN)
+        .map(|m| (EntityId(u32_at(m, 0)), Vec3::new(f32_at(m, 4), f32_at(m, 8), f32_at(m, 12))))
+        .collect();
+    let gone: Vec<EntityId> =
+        body[moves_end..].chunks_exact(4).map(|b| EntityId(u32::from_le_bytes(b.try_into().expect("4")))).collect();
+    if objects.windows(2).any(|w| w[0].id >= w[1].id)
+        || moves.windows(2).any(|w| w[0].0 >= w[1].0)
+        || gone.windows(2).any(|w| w[0] >= w[1])
+    {
+        return Err(WireError::Field("view ids"));
+    }
+    if moves.iter().any(|(_, p)| !p.is_finite()) {
+        return Err(WireError::Field("view moves"));
+    }
+    Ok(View {
+        run: f.run,
+        tick: f.tick,
+        zone: f.from,
+        gateway: f.to.0,
+        part: f.aux0,
+        parts: f.aux1,
+        base: (base != WHOLE).then_some(base),
+        objects,
+        moves,
+        gone,
+    })
+}

@@ -43,6 +43,9 @@ impl Fabric for WithSupervisor {
     fn publish_states(&mut self, bytes: Vec<u8>) -> Result<(), ZoneError> {
         self.inner.publish_states(bytes)
     }
+    fn send_view(&mut self, gateway: u16, bytes: Vec<u8>) -> Result<(), ZoneError> {
+        self.inner.send_view(gateway, bytes)
+    }
     fn recv(&mut self, deadline: Instant) -> Result<Option<Vec<u8>>, ZoneError> {
         match self.supervisor.try_recv() {
             Ok(b) => Ok(Some(b)),

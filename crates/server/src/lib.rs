@@ -87,6 +87,10 @@ pub struct ServerHandle {
     udp_addr: SocketAddr,
     certificate: PathBuf,
     shutdown_flush: Duration,
+    /// The SQLite database's lock file, held while the server runs (released when the
+    /// handle drops, after the store closed), so that `myriad db restore` refuses to swap
+    /// the file under it. `None` on MariaDB.
+    _database_lock: Option<myriad_store::DatabaseLock>,
 }
 
 impl std::fmt::Debug for ServerHandle {
@@ -163,7 +167,10 @@ impl ServerHandle {
             .enable_all()
             .build()
             .map_err(|e| ServerError::io("starting the async runtime", e))?;
-        let store = runtime.block_on(Store::open(&store_config(&config)))?;
+        let store_config = store_config(&config);
+        // Before the store opens (and may create the file): a restore in progress holds it.
+        let database_lock = myriad_store::DatabaseLock::for_database(&store_config.database)?;
+        let store = runtime.block_on(Store::open(&store_config))?;
         // A real write before any player is accepted: a store that cannot write stops
         // the start here, with the database's own error.
         runtime.block_on(store.check_writable()).map_err(ServerError::NotWritable)?;
@@ -277,6 +284,7 @@ impl ServerHandle {
             udp_addr,
             certificate,
             shutdown_flush: Duration::from_secs_f32(config.shutdown_flush_s),
+            _database_lock: database_lock,
         })
     }
 

@@ -51,7 +51,8 @@ pub fn db(cmd: DbCommand) -> Result<()> {
             let config = store.store_config()?;
             let depth = if full { CheckDepth::Full } else { CheckDepth::Quick };
             let report = rt.block_on(check_database(&config.database, depth)).context("checking the database")?;
-            let what = if report.tables.is_empty() { String::new() } else { format!(" ({})", report.tables.join(", ")) };
+            let what =
+                if report.tables.is_empty() { String::new() } else { format!(" ({})", report.tables.join(", ")) };
             if report.is_intact() {
                 println!(
                     "{}{what}: intact ({:?} check, {:.1} s)",

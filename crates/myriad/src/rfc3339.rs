@@ -63,7 +63,8 @@ pub fn parse_ms(text: &str) -> Result<i64> {
     if time.len() < 9 || time.as_bytes()[2] != b':' || time.as_bytes()[5] != b':' {
         return Err(bad());
     }
-    let (hour, minute, second) = (number(&time[..2], "hour")?, number(&time[3..5], "minute")?, number(&time[6..8], "second")?);
+    let (hour, minute, second) =
+        (number(&time[..2], "hour")?, number(&time[3..5], "minute")?, number(&time[6..8], "second")?);
     let mut rest = &time[8..];
     let mut millis = 0;
     if let Some(frac) = rest.strip_prefix('.') {

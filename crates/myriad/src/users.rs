@@ -184,7 +184,8 @@ fn state(account: &Account, now_ms: i64) -> String {
         parts.push("disabled".to_string());
     }
     if let Some(ban) = &account.ban {
-        let until = ban.until_ms.map_or_else(|| "without end".to_string(), |t| format!("until {}", rfc3339::format_ms(t)));
+        let until =
+            ban.until_ms.map_or_else(|| "without end".to_string(), |t| format!("until {}", rfc3339::format_ms(t)));
         if ban.in_force_at(now_ms) {
             parts.push(format!("banned ({}) {until}", ban.reason));
         } else {

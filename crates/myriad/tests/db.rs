@@ -11,8 +11,7 @@ use std::time::{Duration, Instant};
 use myriad_store::{HashCost, MapId, PlayerState, Store, StoreConfig, StoredShape};
 
 /// Cheap password hashes for the accounts the commands create (`--set` keys).
-const FAST_HASH: [&str; 6] =
-    ["--set", "hash_memory_kib=64", "--set", "hash_passes=1", "--set", "hash_lanes=1"];
+const FAST_HASH: [&str; 6] = ["--set", "hash_memory_kib=64", "--set", "hash_passes=1", "--set", "hash_lanes=1"];
 
 fn myriad_cmd(dir: &Path, args: &[&str]) -> Command {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_myriad"));
@@ -244,7 +243,12 @@ fn offline_account_commands_round_trip() {
     let list = ok(&dir, &["user", "list"], "");
     assert!(line(&list, "alice").ends_with("active"), "{list}");
     assert!(line(&list, "bob").contains("banned (spamming chat) until 2999-01-01T00:00:00Z"), "{list}");
-    let past = run(&dir, &["user", "ban", "bob", "--reason", "x", "--until", "2001-01-01T00:00:00Z"], "", Duration::from_secs(60));
+    let past = run(
+        &dir,
+        &["user", "ban", "bob", "--reason", "x", "--until", "2001-01-01T00:00:00Z"],
+        "",
+        Duration::from_secs(60),
+    );
     assert!(!past.status.success() && text(&past).contains("not in the future"), "{}", text(&past));
     let bad = run(&dir, &["user", "ban", "bob", "--reason", "x", "--until", "soon"], "", Duration::from_secs(60));
     assert!(!bad.status.success() && text(&bad).contains("RFC 3339"), "{}", text(&bad));

@@ -41,7 +41,10 @@ fn disabled_and_banned_accounts_are_refused_with_their_reasons() {
     rt.block_on(async {
         let ok = Connection::connect(cc.clone(), Credentials::test_user(0)).await.expect("user0 logs in");
         drop(ok);
-        assert_eq!(refusal(Connection::connect(cc.clone(), Credentials::test_user(1)).await).0, RefusalReason::Disabled);
+        assert_eq!(
+            refusal(Connection::connect(cc.clone(), Credentials::test_user(1)).await).0,
+            RefusalReason::Disabled
+        );
         assert_eq!(
             refusal(Connection::connect(cc.clone(), Credentials::test_user(2)).await),
             (RefusalReason::Banned, 0),

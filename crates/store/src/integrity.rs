@@ -206,7 +206,8 @@ async fn mysql_problems(conn: &mut MySqlConnection, depth: CheckDepth) -> Result
         CheckDepth::Full => "EXTENDED",
     };
     // The names come from the constant list above, never from input.
-    let sql = format!("CHECK TABLE {} {option}", tables.iter().map(|t| format!("`{t}`")).collect::<Vec<_>>().join(", "));
+    let sql =
+        format!("CHECK TABLE {} {option}", tables.iter().map(|t| format!("`{t}`")).collect::<Vec<_>>().join(", "));
     let rows = sqlx::raw_sql(sqlx::AssertSqlSafe(sql)).fetch_all(&mut *conn).await?;
     let mut problems = Vec::new();
     for row in rows {
@@ -240,7 +241,8 @@ async fn vacuum_into(source: &Path, dest: &Path) -> Result<()> {
         Err(e) => return Err(StoreError::file(format!("removing {}", dest.display()))(e)),
     }
     let mut conn = open_read_only(source).await?;
-    let dest_text = dest.to_str().ok_or_else(|| StoreError::InvalidInput(format!("{} is not UTF-8", dest.display())))?;
+    let dest_text =
+        dest.to_str().ok_or_else(|| StoreError::InvalidInput(format!("{} is not UTF-8", dest.display())))?;
     let done = sqlx::query("VACUUM INTO ?").bind(dest_text).execute(&mut conn).await;
     let _ = conn.close().await;
     if let Err(e) = done {
@@ -272,7 +274,7 @@ pub async fn backup_sqlite(database: &Database, dest: &Path, overwrite: bool) ->
     let started = Instant::now();
     let Some(source) = sqlite_file(database)? else {
         return Err(StoreError::InvalidInput(
-            "backups of a MariaDB/MySQL store are made with mariadb-dump (see docs/server.md, \"Backups\")".into(),
+            "backups of a MariaDB/MySQL store are made with mariadb-dump (see docs/server.md, \"Integrity and backups\")".into(),
         ));
     };
     if !source.is_file() {
@@ -343,7 +345,8 @@ pub async fn restore_sqlite(database: &Database, backup: &Path) -> Result<Option
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
         Err(e) => return Err(StoreError::file(format!("removing {}", shm.display()))(e)),
     }
-    std::fs::rename(&temp, &target).map_err(StoreError::file(format!("renaming the restored copy to {}", target.display())))?;
+    std::fs::rename(&temp, &target)
+        .map_err(StoreError::file(format!("renaming the restored copy to {}", target.display())))?;
     sync_dir(dir)?;
     Ok(moved)
 }

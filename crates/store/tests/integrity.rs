@@ -71,10 +71,7 @@ async fn overwritten_pages_are_found_by_the_check() {
     std::fs::write(&file, &bytes).unwrap();
     let report = check_database(&Database::SqliteDir(dir.clone()), CheckDepth::Full).await.unwrap();
     assert!(!report.is_intact(), "{report:?}");
-    assert!(matches!(
-        Store::open(&test_config(Database::SqliteDir(dir))).await,
-        Err(StoreError::Damaged { .. })
-    ));
+    assert!(matches!(Store::open(&test_config(Database::SqliteDir(dir))).await, Err(StoreError::Damaged { .. })));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

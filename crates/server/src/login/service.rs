@@ -254,9 +254,8 @@ impl LoginService {
             }
             Err(StoreError::AccountBanned { until_ms }) => {
                 tracing::info!(%peer, user = %req.username, ?until_ms, "login refused: account banned");
-                let left = until_ms.map_or(0, |until| {
-                    u32::try_from((until - myriad_store::now_ms()).max(1)).unwrap_or(u32::MAX)
-                });
+                let left = until_ms
+                    .map_or(0, |until| u32::try_from((until - myriad_store::now_ms()).max(1)).unwrap_or(u32::MAX));
                 return refuse(RefusalReason::Banned, left);
             }
             Err(e) => {

@@ -98,12 +98,13 @@ impl Store {
         let (dialect, options) = connect_options(&config.database).await?;
         // A damaged SQLite file is refused before anything (the WAL pragma, a migration,
         // the caller) writes to it: writing into malformed pages spreads the damage.
-        if dialect == Dialect::Sqlite && config.check_at_open {
-            if let Some(file) = sqlite_file(&config.database)?.filter(|f| f.is_file()) {
-                let problems = sqlite_problems(&file, CheckDepth::Quick).await?;
-                if !problems.is_empty() {
-                    return Err(StoreError::Damaged { database: file.display().to_string(), problems });
-                }
+        if dialect == Dialect::Sqlite
+            && config.check_at_open
+            && let Some(file) = sqlite_file(&config.database)?.filter(|f| f.is_file())
+        {
+            let problems = sqlite_problems(&file, CheckDepth::Quick).await?;
+            if !problems.is_empty() {
+                return Err(StoreError::Damaged { database: file.display().to_string(), problems });
             }
         }
         let busy_ms = i64::try_from(config.sqlite_busy_timeout.as_millis()).unwrap_or(i64::MAX);

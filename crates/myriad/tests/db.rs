@@ -277,3 +277,88 @@ fn offline_account_commands_round_trip() {
         store.close().await;
     });
 }
+
+/// The parts of `mysql://user:password@host:port/db` the mariadb tools take as flags.
+struct MariaDb {
+    user: String,
+    password: String,
+    host: String,
+    port: String,
+    /// The URL up to (without) the database name.
+    base: String,
+}
+
+impl MariaDb {
+    fn parse(url: &str) -> MariaDb {
+        let rest = url.strip_prefix("mysql://").or_else(|| url.strip_prefix("mariadb://")).expect("a mysql:// URL");
+        let authority = rest.split(['/', '?']).next().unwrap();
+        let (userinfo, host_port) = authority.rsplit_once('@').expect("MYSQL_URL names a user");
+        let (user, password) = userinfo.split_once(':').unwrap_or((userinfo, ""));
+        let (host, port) = host_port.split_once(':').unwrap_or((host_port, "3306"));
+        MariaDb {
+            user: user.into(),
+            password: password.into(),
+            host: host.into(),
+            port: port.into(),
+            base: format!("mysql://{authority}"),
+        }
+    }
+
+    /// A mariadb tool with the connection flags (the password through the environment,
+    /// not the command line).
+    fn tool(&self, name: &str) -> Command {
+        let mut cmd = Command::new(name);
+        cmd.args(["-h", &self.host, "-P", &self.port, "-u", &self.user]).env("MYSQL_PWD", &self.password);
+        cmd
+    }
+
+    fn sql(&self, statement: &str) {
+        let out = self.tool("mariadb").args(["-e", statement]).output().expect("running mariadb");
+        assert!(out.status.success(), "{statement}: {}", text(&out));
+    }
+}
+
+#[test]
+fn a_mariadb_dump_restores_and_passes_db_check() {
+    let Some(url) = myriad_testenv::mysql_url() else { return };
+    if Command::new("mariadb-dump").arg("--version").output().is_err() {
+        eprintln!("SKIPPED: mariadb-dump is not installed");
+        return;
+    }
+    let db = MariaDb::parse(&url);
+    let (src, dst) =
+        (format!("myriad_dump_src_{}", std::process::id()), format!("myriad_dump_dst_{}", std::process::id()));
+    let create = |name: &str| {
+        db.sql(&format!(
+            "DROP DATABASE IF EXISTS {name}; CREATE DATABASE {name} CHARACTER SET utf8mb4 COLLATE utf8mb4_unicode_ci"
+        ))
+    };
+    create(&src);
+    let tmp = tempfile::tempdir().unwrap();
+    let src_url = format!("{}/{src}", db.base);
+    let dst_url = format!("{}/{dst}", db.base);
+    ok(tmp.path(), &["user", "seed", "--count", "3", "--database-url", &src_url], "");
+    ok(tmp.path(), &["user", "ban", "user1", "--reason", "dumped", "--database-url", &src_url], "");
+    // The command docs/server.md gives.
+    let dump = db
+        .tool("mariadb-dump")
+        .args(["--single-transaction", "--routines", "--triggers", &src])
+        .output()
+        .expect("running mariadb-dump");
+    assert!(dump.status.success(), "{}", String::from_utf8_lossy(&dump.stderr));
+    create(&dst);
+    let mut restore = db.tool("mariadb").arg(&dst).stdin(Stdio::piped()).spawn().expect("running mariadb");
+    restore.stdin.take().unwrap().write_all(&dump.stdout).unwrap();
+    assert!(restore.wait().unwrap().success(), "the dump restores");
+    let said = ok(tmp.path(), &["db", "check", "--full", "--database-url", &dst_url], "");
+    assert!(
+        said.contains("intact") && said.contains("users") && !said.contains(&format!(":{}@", db.password)),
+        "{said}"
+    );
+    let list = ok(tmp.path(), &["user", "list", "--database-url", &dst_url], "");
+    assert!(list.lines().any(|l| l.contains("user1") && l.contains("banned (dumped)")), "{list}");
+    assert_eq!(list.lines().filter(|l| l.contains("user")).count(), 3, "{list}");
+    let refused = run(tmp.path(), &["db", "backup", "x.db", "--database-url", &dst_url], "", Duration::from_secs(60));
+    assert!(!refused.status.success() && text(&refused).contains("mariadb-dump"), "{}", text(&refused));
+    db.sql(&format!("DROP DATABASE {src}; DROP DATABASE {dst}"));
+}

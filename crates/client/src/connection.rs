@@ -47,8 +47,8 @@ pub struct ClientConfig {
     /// tool log in from `127.0.0.2` and so on, as another client would.
     pub local_ip: Option<std::net::IpAddr>,
     /// Login request version to send first ([`myriad_protocol::login::LOGIN_VERSION`]).
-    /// A server older than version 2 answers a version-2 request "malformed"; the
-    /// client then repeats it once as version 1.
+    /// A server older than this version answers the request "malformed"; the client
+    /// then repeats it once as version 1, which every server reads.
     pub login_version: u8,
 }
 
@@ -99,7 +99,7 @@ pub async fn login(
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
     tokio::time::timeout(config.login_timeout, async {
         match login_inner(config, credentials, config.login_version).await {
-            // A server that predates login version 2 calls a version-2 request malformed.
+            // A server older than the request's version calls it malformed.
             Err(ClientError::Refused { reason: RefusalReason::BadRequest, .. })
                 if config.login_version > myriad_protocol::login::MIN_LOGIN_VERSION =>
             {

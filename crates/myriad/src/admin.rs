@@ -1,4 +1,5 @@
-//! `myriad user …` and `myriad map …`: accounts and maps in the store.
+//! `myriad map …`, and what the store commands share (`user`, `map`, `db`): which store,
+//! a runtime, reading a password.
 
 use std::io::{BufRead, IsTerminal};
 use std::path::PathBuf;
@@ -18,32 +19,19 @@ pub struct StoreArgs {
 }
 
 impl StoreArgs {
-    fn open(&self, rt: &tokio::runtime::Runtime) -> Result<Store> {
+    /// The store's configuration (the server's configuration file and overrides).
+    pub fn store_config(&self) -> Result<myriad_store::StoreConfig> {
+        Ok(myriad_server::store_config(&self.config.effective()?))
+    }
+
+    /// Opens the store, after its integrity check on SQLite (a damaged database is
+    /// refused before anything writes to it).
+    pub fn open(&self, rt: &tokio::runtime::Runtime) -> Result<Store> {
         let config = self.config.effective()?;
         std::fs::create_dir_all(&config.data_dir)
             .with_context(|| format!("creating data directory {}", config.data_dir.display()))?;
         rt.block_on(Store::open(&myriad_server::store_config(&config))).context("opening the store")
     }
-}
-
-/// `myriad user`.
-#[derive(clap::Subcommand, Debug)]
-pub enum UserCommand {
-    /// Create an account; the password is asked for (or read from standard input).
-    Add {
-        /// Account name (letters, digits, `_`, `-`, `.`; at most 32 bytes).
-        name: String,
-        #[command(flatten)]
-        store: StoreArgs,
-    },
-    /// Create the test accounts `user<i>` / `password<i>` for i in 0..count (existing ones are kept).
-    Seed {
-        /// How many.
-        #[arg(long, default_value_t = 100)]
-        count: u32,
-        #[command(flatten)]
-        store: StoreArgs,
-    },
 }
 
 /// `myriad map`.
@@ -72,11 +60,14 @@ pub enum MapCommand {
     },
 }
 
-fn runtime() -> Result<tokio::runtime::Runtime> {
+/// A small runtime for one store command.
+pub fn runtime() -> Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?)
 }
 
-fn read_password() -> Result<String> {
+/// Reads a password: prompted twice on a terminal, else one line of standard input (never
+/// an argument, which other users could read in the process list).
+pub fn read_password() -> Result<String> {
     let password = if std::io::stdin().is_terminal() {
         let first = rpassword::prompt_password("password: ")?;
         let again = rpassword::prompt_password("again: ")?;
@@ -93,34 +84,6 @@ fn read_password() -> Result<String> {
         bail!("empty password");
     }
     Ok(password)
-}
-
-/// Runs `myriad user …`.
-pub fn user(cmd: UserCommand) -> Result<()> {
-    let rt = runtime()?;
-    match cmd {
-        UserCommand::Add { name, store } => {
-            let password = read_password()?;
-            let store = store.open(&rt)?;
-            let id = rt.block_on(store.create_user(&name, &password)).with_context(|| format!("creating {name}"))?;
-            rt.block_on(store.close());
-            println!("created user {name} (id {})", id.0);
-        }
-        UserCommand::Seed { count, store } => {
-            let store = store.open(&rt)?;
-            let t = std::time::Instant::now();
-            let r = rt.block_on(store.seed_users(count)).context("seeding users")?;
-            rt.block_on(store.close());
-            println!(
-                "user0..user{}: {} created, {} already there ({:.1} s)",
-                count.saturating_sub(1),
-                r.created,
-                r.skipped,
-                t.elapsed().as_secs_f64()
-            );
-        }
-    }
-    Ok(())
 }
 
 /// Runs `myriad map …`.

@@ -13,13 +13,15 @@
 //! - `zone`, `cluster` ([`zones`]): one zone process, and a supervised cluster of them
 //!   over NATS.
 //! - `gateway` ([`gateway`]): logins and sessions for a world run by zones.
-//! - `user`, `map` ([`admin`]): accounts and maps.
+//! - `user` ([`users`]), `map` ([`admin`]): accounts and maps.
+//! - `db` ([`db`]): integrity check, online backup and restore of the store.
 
 mod admin;
 mod bench;
 mod bots;
 mod cluster_nats;
 mod cluster_rebalance;
+mod db;
 mod demo;
 mod flood;
 mod gateway;
@@ -27,9 +29,11 @@ mod plots;
 mod reference;
 mod relay;
 mod replay;
+mod rfc3339;
 mod scenario_args;
 mod serve;
 mod sim;
+mod users;
 mod zones;
 
 use anyhow::{Context, Result};
@@ -72,12 +76,15 @@ enum Command {
     /// Re-run a cluster's world from a stored checkpoint with the intents its zones
     /// logged, and compare the end with the stored result.
     Replay(replay::ReplayArgs),
-    /// Manage accounts.
+    /// Manage accounts (also disable, ban, reset passwords) on the database.
     #[command(subcommand)]
-    User(admin::UserCommand),
+    User(users::UserCommand),
     /// Manage maps.
     #[command(subcommand)]
     Map(admin::MapCommand),
+    /// Check, back up or restore the database.
+    #[command(subcommand)]
+    Db(db::DbCommand),
 }
 
 /// Large allocations at or above this size get their own mapping, returned to the system
@@ -131,7 +138,8 @@ fn main() -> Result<()> {
         Command::Cluster(a) => zones::run_cluster(a),
         Command::Gateway(a) => gateway::run(a),
         Command::Replay(a) => replay::run(a),
-        Command::User(c) => admin::user(c),
+        Command::User(c) => users::user(c),
+        Command::Db(c) => db::db(c),
         Command::Map(c) => admin::map(c),
     }
 }

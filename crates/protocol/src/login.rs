@@ -16,10 +16,11 @@ use crate::session::SessionKeys;
 use crate::update::ShapeKind;
 use crate::wire::Reader;
 
-/// Version byte at the start of every login request this crate sends. Version 2 adds
-/// nothing to the request; it tells the server the client understands
-/// [`RefusalReason::Busy`].
-pub const LOGIN_VERSION: u8 = 2;
+/// Version byte at the start of every login request this crate sends. Versions 2 and 3
+/// add nothing to the request; they tell the server which refusal reasons the client
+/// understands: [`RefusalReason::Busy`] from version 2, [`RefusalReason::Disabled`] and
+/// [`RefusalReason::Banned`] from version 3.
+pub const LOGIN_VERSION: u8 = 3;
 /// Oldest login request version a server accepts (version 1: no `Busy` refusal; a
 /// server answers such a client `Unavailable` with a retry hint instead).
 pub const MIN_LOGIN_VERSION: u8 = 1;
@@ -356,6 +357,13 @@ pub enum RefusalReason {
     ShuttingDown = 6,
     /// Too many password checks are waiting; retry after the hint (login version 2).
     Busy = 7,
+    /// The account is disabled by an operator (login version 3). Told only after a
+    /// correct password.
+    Disabled = 8,
+    /// The account is banned (login version 3); the retry hint is the time left of a
+    /// timed ban in milliseconds (saturated at `u32::MAX`), 0 for a ban without end.
+    /// Told only after a correct password.
+    Banned = 9,
 }
 
 impl RefusalReason {
@@ -368,16 +376,21 @@ impl RefusalReason {
             5 => Self::Unavailable,
             6 => Self::ShuttingDown,
             7 => Self::Busy,
+            8 => Self::Disabled,
+            9 => Self::Banned,
             _ => return None,
         })
     }
 
     /// This reason as a client of login version `version` understands it: a version-1
     /// client does not know [`RefusalReason::Busy`] and gets
-    /// [`RefusalReason::Unavailable`] (which it already retries) instead.
+    /// [`RefusalReason::Unavailable`] (which it already retries) instead; a client before
+    /// version 3 does not know [`RefusalReason::Disabled`] or [`RefusalReason::Banned`]
+    /// and gets [`RefusalReason::WrongCredentials`], the refusal it does not retry.
     pub fn understood_by(self, version: u8) -> RefusalReason {
         match self {
             Self::Busy if version < 2 => Self::Unavailable,
+            Self::Disabled | Self::Banned if version < 3 => Self::WrongCredentials,
             other => other,
         }
     }
@@ -393,6 +406,8 @@ impl std::fmt::Display for RefusalReason {
             Self::Unavailable => "the account database is unavailable",
             Self::ShuttingDown => "the server is shutting down",
             Self::Busy => "the server is busy checking other logins, retry later",
+            Self::Disabled => "the account is disabled",
+            Self::Banned => "the account is banned",
         })
     }
 }
@@ -604,8 +619,15 @@ mod tests {
         assert_eq!(RefusalReason::Busy.understood_by(LOGIN_VERSION), RefusalReason::Busy);
         assert_eq!(RefusalReason::RateLimited.understood_by(1), RefusalReason::RateLimited);
         let mut bad = out[4..].to_vec();
-        bad[1] = 3;
-        assert_eq!(LoginRequest::decode(&bad), Err(DecodeError::BadVersion(3)));
+        bad[1] = LOGIN_VERSION + 1;
+        assert_eq!(LoginRequest::decode(&bad), Err(DecodeError::BadVersion(LOGIN_VERSION + 1)));
+        // Version 3's reasons reach older clients as the refusal they do not retry.
+        for old in [1, 2] {
+            assert_eq!(RefusalReason::Disabled.understood_by(old), RefusalReason::WrongCredentials);
+            assert_eq!(RefusalReason::Banned.understood_by(old), RefusalReason::WrongCredentials);
+        }
+        assert_eq!(RefusalReason::Banned.understood_by(3), RefusalReason::Banned);
+        assert_eq!(RefusalReason::Disabled.understood_by(3), RefusalReason::Disabled);
         // Busy has its own code, 7, with the retry hint.
         let mut out = Vec::new();
         LoginRefused { reason: RefusalReason::Busy, retry_after_ms: 250 }.encode(&mut out);
@@ -618,6 +640,8 @@ mod tests {
             LoginResponse::Accepted(Box::new(accepted())),
             LoginResponse::Refused(LoginRefused { reason: RefusalReason::RateLimited, retry_after_ms: 500 }),
             LoginResponse::Refused(LoginRefused { reason: RefusalReason::Busy, retry_after_ms: 250 }),
+            LoginResponse::Refused(LoginRefused { reason: RefusalReason::Disabled, retry_after_ms: 0 }),
+            LoginResponse::Refused(LoginRefused { reason: RefusalReason::Banned, retry_after_ms: 60_000 }),
         ] {
             let mut out = Vec::new();
             resp.encode(&mut out);

@@ -158,6 +158,13 @@ pub struct ServerConfig {
     /// Limit on the memory that password checks may take at once,
     /// `login_concurrency × hash_memory_kib`, in MiB. Raise it for a bigger pool.
     pub max_hash_memory_mib: u32,
+    /// Seconds between online backups of the SQLite database into
+    /// `<data_dir>/backups/` (0 = none). SQLite only: a MariaDB store is backed up with
+    /// `mariadb-dump` (docs/server.md).
+    pub backup_every_s: u64,
+    /// Backups kept in `<data_dir>/backups/`: the newest this many; older ones are
+    /// deleted after each new backup.
+    pub backup_keep: u32,
 }
 
 /// The highest `max_objects` accepted: the slot and entity indices are 32-bit and a
@@ -213,6 +220,8 @@ impl Default for ServerConfig {
             max_objects: 1_000_000,
             max_hash_memory_mib: 4096,
             background_low_priority: true,
+            backup_every_s: 0,
+            backup_keep: 24,
         }
     }
 }
@@ -311,6 +320,12 @@ impl ServerConfig {
         }
         if !(self.log_stages_every_s.is_finite() && self.log_stages_every_s >= 0.0) {
             return bad("log_stages_every_s", format!("{}", self.log_stages_every_s));
+        }
+        if self.backup_every_s > 0 && !(self.database_url.is_empty() || self.database_url.starts_with("sqlite:")) {
+            return bad("backup_every_s", "periodic backups are for SQLite; back MariaDB up with mariadb-dump".into());
+        }
+        if !(1..=10_000).contains(&self.backup_keep) {
+            return bad("backup_keep", format!("{} (1 to 10000)", self.backup_keep));
         }
         self.validate_abuse_limits()?;
         self.validate_limits()?;

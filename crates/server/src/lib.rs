@@ -37,6 +37,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod backups;
 pub mod config;
 pub mod dilation;
 pub mod error;
@@ -87,6 +88,10 @@ pub struct ServerHandle {
     udp_addr: SocketAddr,
     certificate: PathBuf,
     shutdown_flush: Duration,
+    /// The SQLite database's lock file, held while the server runs (released when the
+    /// handle drops, after the store closed), so that `myriad db restore` refuses to swap
+    /// the file under it. `None` on MariaDB.
+    _database_lock: Option<myriad_store::DatabaseLock>,
 }
 
 impl std::fmt::Debug for ServerHandle {
@@ -163,7 +168,10 @@ impl ServerHandle {
             .enable_all()
             .build()
             .map_err(|e| ServerError::io("starting the async runtime", e))?;
-        let store = runtime.block_on(Store::open(&store_config(&config)))?;
+        let store_settings = store_config(&config);
+        // Before the store opens (and may create the file): a restore in progress holds it.
+        let database_lock = myriad_store::DatabaseLock::for_database(&store_settings.database)?;
+        let store = runtime.block_on(Store::open(&store_settings))?;
         // A real write before any player is accepted: a store that cannot write stops
         // the start here, with the database's own error.
         runtime.block_on(store.check_writable()).map_err(ServerError::NotWritable)?;
@@ -210,6 +218,12 @@ impl ServerHandle {
             shared.clone(),
         ));
         runtime.spawn(service.serve(listener));
+        if config.backup_every_s > 0 {
+            let dir = backups::backup_dir(&config.data_dir);
+            let every = Duration::from_secs(config.backup_every_s);
+            tracing::info!(dir = %dir.display(), ?every, keep = config.backup_keep, "periodic backups");
+            runtime.spawn(backups::run(store_settings.database.clone(), dir, every, config.backup_keep as usize));
+        }
         let transport: Box<dyn transport::Transport> = if config.receive_thread {
             let threaded = receiver::ThreadedUdp::start(endpoints, config.receive_limits())
                 .map_err(|e| ServerError::io("starting the receive thread", e))?;
@@ -277,6 +291,7 @@ impl ServerHandle {
             udp_addr,
             certificate,
             shutdown_flush: Duration::from_secs_f32(config.shutdown_flush_s),
+            _database_lock: database_lock,
         })
     }
 

@@ -37,6 +37,10 @@ pub struct StoreConfig {
     /// SQLite only: how long a statement waits for another connection's write lock before
     /// failing with `SQLITE_BUSY` (reported as unavailable).
     pub sqlite_busy_timeout: Duration,
+    /// SQLite only: run `PRAGMA quick_check` on an existing file before opening it, and
+    /// refuse a damaged one ([`StoreError::Damaged`](crate::StoreError::Damaged)). On by
+    /// default; it reads the whole file once (about a second per GB on an SSD).
+    pub check_at_open: bool,
 }
 
 impl StoreConfig {
@@ -57,6 +61,7 @@ impl StoreConfig {
             max_connections: 8,
             acquire_timeout: Duration::from_secs(5),
             sqlite_busy_timeout: Duration::from_secs(5),
+            check_at_open: true,
         }
     }
 

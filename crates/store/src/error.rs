@@ -37,6 +37,52 @@ pub enum StoreError {
     /// Password hashing failed, or a background task panicked or was cancelled.
     #[error("internal error: {0}")]
     Internal(String),
+    /// The password was right but the account is disabled by an operator
+    /// ([`Store::set_disabled`](crate::Store::set_disabled)). Only told after a correct
+    /// password, so it reveals nothing to someone guessing.
+    #[error("the account is disabled")]
+    AccountDisabled,
+    /// The password was right but the account is banned
+    /// ([`Store::ban`](crate::Store::ban)); `until_ms` is the end of the ban (milliseconds
+    /// since the Unix epoch), `None` for a ban without end.
+    #[error("the account is banned")]
+    AccountBanned {
+        /// When the ban ends; `None`: it does not.
+        until_ms: Option<i64>,
+    },
+    /// The database file (or a table, on MariaDB) failed its integrity check: nothing is
+    /// written to it. `database` names the file or the database (never a password).
+    #[error(
+        "database {database} is damaged ({} problem(s); first: {}): it is left untouched. \
+         Stop the server and restore a backup with `myriad db restore BACKUP`; \
+         `myriad db check --full` lists every problem",
+        problems.len(),
+        problems.first().map_or("unknown", String::as_str)
+    )]
+    Damaged {
+        /// The file (SQLite) or database (MariaDB) checked.
+        database: String,
+        /// What the check reported, one line each.
+        problems: Vec<String>,
+    },
+    /// Another process holds the database's lock file (a running server): a restore
+    /// must wait until it stops.
+    #[error("database {database} is in use (another process holds {}); stop the server first", lock.display())]
+    InUse {
+        /// The database file.
+        database: String,
+        /// The lock file held by the other process.
+        lock: std::path::PathBuf,
+    },
+    /// A file operation of a backup or a restore failed.
+    #[error("{what}: {source}")]
+    File {
+        /// What was being done, with the path.
+        what: String,
+        /// The error.
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 impl StoreError {
@@ -100,6 +146,14 @@ impl From<sqlx::migrate::MigrateError> for StoreError {
 /// Whether a database error is a unique-key (or primary-key) violation.
 pub(crate) fn is_unique_violation(err: &sqlx::Error) -> bool {
     err.as_database_error().is_some_and(|db| db.is_unique_violation())
+}
+
+impl StoreError {
+    /// A [`StoreError::File`] for `what` (which names the path).
+    pub(crate) fn file(what: impl Into<String>) -> impl FnOnce(std::io::Error) -> StoreError {
+        let what = what.into();
+        move |source| StoreError::File { what, source }
+    }
 }
 
 /// Shorthand for results of store operations.

@@ -23,8 +23,10 @@
 //! # Ok(()) }
 //! ```
 
+mod accounts;
 mod config;
 mod error;
+mod integrity;
 mod maps;
 mod model;
 mod names;
@@ -34,8 +36,12 @@ mod players;
 mod store;
 mod users;
 
+pub use accounts::{Account, Ban, MAX_BAN_REASON_LEN, validate_ban_reason};
 pub use config::{Database, SQLITE_FILE_NAME, StoreConfig};
 pub use error::{Result, StoreError};
+pub use integrity::{
+    BackupReport, CheckDepth, DatabaseLock, IntegrityReport, backup_sqlite, check_database, restore_sqlite, sqlite_file,
+};
 pub use maps::{MAX_HEIGHTMAP_PATH_LEN, MAX_HEIGHTMAP_SAMPLES, MAX_MAP_NAME_LEN};
 pub use model::{
     Heightmap, LoginInfo, MapId, MapInfo, MapSummary, NewMap, PlayerState, SeedReport, StaticObject, StoredShape,

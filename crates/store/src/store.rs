@@ -10,6 +10,7 @@ use sqlx::{AnyConnection, AnyPool, AssertSqlSafe, ConnectOptions, Connection, Ex
 
 use crate::config::{Database, SQLITE_FILE_NAME, StoreConfig};
 use crate::error::{Result, StoreError};
+use crate::integrity::{CheckDepth, sqlite_file, sqlite_problems};
 use crate::password::{self, HashCost};
 
 /// The database engine behind a [`Store`].
@@ -25,17 +26,23 @@ const SQLITE_INIT: &str = include_str!("../migrations/sqlite/0001_init.sql");
 const MYSQL_INIT: &str = include_str!("../migrations/mysql/0001_init.sql");
 const SQLITE_PROBE: &str = include_str!("../migrations/sqlite/0002_probe.sql");
 const MYSQL_PROBE: &str = include_str!("../migrations/mysql/0002_probe.sql");
+const SQLITE_ACCOUNTS: &str = include_str!("../migrations/sqlite/0003_account_control.sql");
+const MYSQL_ACCOUNTS: &str = include_str!("../migrations/mysql/0003_account_control.sql");
 
 /// The embedded migrations of one dialect.
 fn migrator(dialect: Dialect) -> Migrator {
-    let (init, probe) = match dialect {
-        Dialect::Sqlite => (SQLITE_INIT, SQLITE_PROBE),
-        Dialect::MySql => (MYSQL_INIT, MYSQL_PROBE),
+    let (init, probe, accounts) = match dialect {
+        Dialect::Sqlite => (SQLITE_INIT, SQLITE_PROBE, SQLITE_ACCOUNTS),
+        Dialect::MySql => (MYSQL_INIT, MYSQL_PROBE, MYSQL_ACCOUNTS),
     };
     let migration = |version, name, sql: &'static str| {
         Migration::new(version, Cow::Borrowed(name), MigrationType::Simple, sql.into_sql_str(), false)
     };
-    Migrator::with_migrations(vec![migration(1, "init", init), migration(2, "probe", probe)])
+    Migrator::with_migrations(vec![
+        migration(1, "init", init),
+        migration(2, "probe", probe),
+        migration(3, "account_control", accounts),
+    ])
 }
 
 /// Handle to the database: cheap to clone (the pool is shared), safe to use from any task.
@@ -80,12 +87,26 @@ impl Store {
     ///
     /// Fails with [`StoreError::Unavailable`] when the server cannot be reached,
     /// [`StoreError::InvalidInput`] for a malformed URL or hash cost, and
-    /// [`StoreError::Migration`] when the schema cannot be brought up to date.
+    /// [`StoreError::Migration`] when the schema cannot be brought up to date. An
+    /// existing SQLite file first gets `PRAGMA quick_check` (unless
+    /// [`StoreConfig::check_at_open`] is off) and a damaged one fails with
+    /// [`StoreError::Damaged`], untouched.
     pub async fn open(config: &StoreConfig) -> Result<Store> {
         sqlx::any::install_default_drivers();
         config.hash_cost.validate()?;
 
         let (dialect, options) = connect_options(&config.database).await?;
+        // A damaged SQLite file is refused before anything (the WAL pragma, a migration,
+        // the caller) writes to it: writing into malformed pages spreads the damage.
+        if dialect == Dialect::Sqlite
+            && config.check_at_open
+            && let Some(file) = sqlite_file(&config.database)?.filter(|f| f.is_file())
+        {
+            let problems = sqlite_problems(&file, CheckDepth::Quick).await?;
+            if !problems.is_empty() {
+                return Err(StoreError::Damaged { database: file.display().to_string(), problems });
+            }
+        }
         let busy_ms = i64::try_from(config.sqlite_busy_timeout.as_millis()).unwrap_or(i64::MAX);
         let pragmas = format!(
             "PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; \

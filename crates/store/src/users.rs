@@ -4,6 +4,7 @@
 
 use sqlx::{Any, QueryBuilder, Row};
 
+use crate::accounts::{account_columns, account_from_row};
 use crate::error::{Result, StoreError, is_unique_violation};
 use crate::model::{LoginInfo, MapId, SeedReport, UserId, now_ms};
 use crate::names::validate_username;
@@ -85,27 +86,25 @@ impl Store {
     /// of the same cost is verified anyway, so the answer takes as long either way and its
     /// timing does not reveal which usernames exist. Malformed input (wrong length, bad
     /// characters) is [`StoreError::InvalidInput`]: those limits are public.
+    ///
+    /// With the right password, a disabled account fails with
+    /// [`StoreError::AccountDisabled`] and a banned one with
+    /// [`StoreError::AccountBanned`] (only then: a wrong guess learns nothing about them).
     pub async fn check_credentials(&self, username: &str, password: &str) -> Result<User> {
         validate_username(username)?;
         validate_password(password)?;
-        let row = sqlx::query("SELECT id, username, password_hash, created_at FROM users WHERE username = ?")
-            .bind(username)
-            .fetch_optional(&self.pool)
-            .await?;
-        let (user, hash) = match row {
-            Some(row) => (
-                Some(User {
-                    id: UserId(row.try_get("id")?),
-                    username: row.try_get("username")?,
-                    created_at_ms: row.try_get("created_at")?,
-                }),
-                row.try_get::<String, _>("password_hash")?,
-            ),
+        let sql = concat!("SELECT ", account_columns!(), ", password_hash FROM users WHERE username = ?");
+        let row = sqlx::query(sql).bind(username).fetch_optional(&self.pool).await?;
+        let (account, hash) = match row {
+            Some(row) => (Some(account_from_row(&row)?), row.try_get::<String, _>("password_hash")?),
             None => (None, self.dummy_hash.to_string()),
         };
         let matches = password::verify_password(password, hash).await?;
-        match user {
-            Some(user) if matches => Ok(user),
+        match account {
+            Some(account) if matches => match account.refusal_at(now_ms()) {
+                Some(refusal) => Err(refusal),
+                None => Ok(User { id: account.id, username: account.username, created_at_ms: account.created_at_ms }),
+            },
             _ => Err(StoreError::WrongCredentials),
         }
     }

@@ -12,7 +12,8 @@ async fn a_garbage_database_file_names_the_real_cause() {
     let text = err.to_string();
     assert!(text.contains("file is not a database"), "{text}");
     assert!(!text.contains("pool timed out"), "{text}");
-    assert!(matches!(err, StoreError::Database(_)), "not retryable: {err:?}");
+    // The start-up integrity check finds it first (issue 29): damaged, not retryable.
+    assert!(matches!(err, StoreError::Damaged { .. }) && !err.is_transient(), "not retryable: {err:?}");
     assert!(started.elapsed() < std::time::Duration::from_secs(3), "no wait for a pool timeout");
 }
 

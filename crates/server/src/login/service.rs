@@ -246,6 +246,18 @@ impl LoginService {
             Err(StoreError::WrongCredentials | StoreError::InvalidInput(_) | StoreError::NotFound(_)) => {
                 return self.wrong_credentials(req, peer);
             }
+            // The password was right: not a failure for the rate limiter, and the
+            // operator's decision is told (to a client that knows the reason).
+            Err(StoreError::AccountDisabled) => {
+                tracing::info!(%peer, user = %req.username, "login refused: account disabled");
+                return refuse(RefusalReason::Disabled, 0);
+            }
+            Err(StoreError::AccountBanned { until_ms }) => {
+                tracing::info!(%peer, user = %req.username, ?until_ms, "login refused: account banned");
+                let left = until_ms
+                    .map_or(0, |until| u32::try_from((until - myriad_store::now_ms()).max(1)).unwrap_or(u32::MAX));
+                return refuse(RefusalReason::Banned, left);
+            }
             Err(e) => {
                 tracing::warn!(%peer, error = %e, "login failed: store unavailable");
                 return refuse(RefusalReason::Unavailable, 1000);
@@ -305,6 +317,8 @@ fn count_login(shared: &ServerShared, result: Result<(), RefusalReason>) {
                 bump(&shared.defence.logins_busy);
                 "busy"
             }
+            RefusalReason::Disabled => "disabled",
+            RefusalReason::Banned => "banned",
         },
     };
     metrics::counter!("myriad_logins_total", "result" => label).increment(1);

@@ -156,7 +156,12 @@ impl TestDb {
 
     /// A small map with the given name and no terrain.
     pub async fn map(&self, name: &str) -> MapId {
-        self.store
+        Self::map_on(&self.store, name).await
+    }
+
+    /// [`TestDb::map`] on any store.
+    pub async fn map_on(store: &Store, name: &str) -> MapId {
+        store
             .create_map(&NewMap {
                 name: name.to_owned(),
                 heightmap: Heightmap::None,

@@ -10,7 +10,7 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
-use common::{collect_stderr, free_ports, sim_hash};
+use common::{collect_stderr, free_ports, replay_equal, sim_hash};
 
 const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
 
@@ -96,18 +96,9 @@ fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
     assert_eq!(v["state_hash"].as_str().unwrap(), sim_hash(360), "the end is one process's state");
 
     // The epoch after the rollback replays from its checkpoint with the logged move.
-    let replay = Command::new(env!("CARGO_BIN_EXE_myriad"))
-        .args(["replay", "--json", "--nats", &url, "--cluster", &name])
-        .args(world)
-        .args(["--keep-checkpoints", "20"])
-        .env("MYRIAD_CLUSTER_KEY", KEY)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&replay.stdout);
-    assert!(replay.status.success(), "{text}\n{}", String::from_utf8_lossy(&replay.stderr));
-    let r: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
-    eprintln!("replay: {r}");
-    assert_eq!(r["equal"], true, "{r}");
+    let mut args = world.to_vec();
+    args.extend(["--keep-checkpoints", "20"]);
+    let r = replay_equal(&url, &name, KEY, &args);
     assert_eq!((r["from"].as_u64(), r["to"].as_u64()), (Some(from), Some(360)), "{r}");
     assert_eq!(r["cut_moves"], 1, "the move of tick 250, logged and applied: {r}");
 }

@@ -18,7 +18,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
-use common::{Killed, collect_stderr, free_ports, free_ports_at};
+use common::{Killed, collect_stderr, free_ports, free_ports_at, replay_equal};
 
 /// The sum of a metric's samples (all label sets) on a Prometheus endpoint.
 fn metric(port: u16, name: &str) -> f64 {
@@ -165,18 +165,9 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     // The live run replays bit for bit: from the checkpoint the rollback started at (the
     // oldest whose logs reach the end in one epoch) to the last tick both zones stored,
     // with the intents the zones logged, the world ends as the live one did.
-    let replay = Command::new(env!("CARGO_BIN_EXE_myriad"))
-        .args(["replay", "--json", "--nats", &url, "--cluster", &cluster_name, "--zones", "2"])
-        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--ticks", "6000"])
-        .args(["--checkpoint-every", "30", "--keep-checkpoints", "400"])
-        .env("MYRIAD_CLUSTER_KEY", KEY)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&replay.stdout);
-    assert!(replay.status.success(), "{text}\n{}", String::from_utf8_lossy(&replay.stderr));
-    let r: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
-    eprintln!("replay: {r}");
-    assert_eq!(r["equal"], true, "{r}");
+    let args =
+        "--zones 2 --scenario 1 --seed 1 --backend cpu --ticks 6000 --checkpoint-every 30 --keep-checkpoints 400";
+    let r = replay_equal(&url, &cluster_name, KEY, &args.split(' ').collect::<Vec<_>>());
     let restart = log.iter().filter_map(|l| l.strip_prefix("epoch ")).next_back().unwrap_or_default().to_string();
     assert!(r["epoch"].as_u64().unwrap() >= 2, "the replay is of the epoch after the rollback: {r}, {restart}");
     assert!(r["intents"].as_u64().unwrap() > 40, "the players' intents were replayed: {r}");

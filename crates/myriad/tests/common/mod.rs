@@ -1,5 +1,5 @@
 //! What the cluster tests share: children killed with the test, their standard error on
-//! a thread, free ports, and one process's hash to compare with.
+//! a thread, free ports, one process's hash to compare with, and a replay checked equal.
 #![allow(dead_code)]
 
 use std::io::{BufRead, BufReader};
@@ -62,4 +62,22 @@ pub fn sim_hash(ticks: u64) -> String {
     assert!(out.status.success());
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     v["state_hash"].as_str().unwrap().to_string()
+}
+
+/// Runs `myriad replay --json --nats url --cluster name` with `args` and the cluster key
+/// `key`, checks that it succeeded and ended equal to the live run, and returns its
+/// summary.
+pub fn replay_equal(url: &str, name: &str, key: &str, args: &[&str]) -> serde_json::Value {
+    let replay = std::process::Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["replay", "--json", "--nats", url, "--cluster", name])
+        .args(args)
+        .env("MYRIAD_CLUSTER_KEY", key)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&replay.stdout);
+    assert!(replay.status.success(), "{text}\n{}", String::from_utf8_lossy(&replay.stderr));
+    let r: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
+    eprintln!("replay: {r}");
+    assert_eq!(r["equal"], true, "{r}");
+    r
 }

@@ -273,22 +273,12 @@ impl CheckpointStore for MemoryCheckpoints {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use myriad_core::{EntityId, ObjectKind, ShapeKind, Vec3};
+    use myriad_core::Vec3;
 
     #[test]
     fn the_latest_consistent_tick_is_common_to_all_zones() {
         let mut s = MemoryCheckpoints::new(ClusterKey::random());
-        let o = ObjectState {
-            id: EntityId(1),
-            kind: ObjectKind::Npc,
-            shape: ShapeKind::Sphere,
-            half: Vec3::splat(0.5),
-            radius: 0.5,
-            pos: Vec3::ONE,
-            prev: Vec3::ONE,
-            action: 0,
-            flags: 0,
-        };
+        let o = crate::test_objects::npc_at(1, Vec3::ONE);
         let candidates = [60, 30, 0];
         assert_eq!(s.latest_consistent(2, &candidates).unwrap(), None);
         let cuts = (vec![0.0, 5.0, 10.0], vec![0.0, 10.0]);

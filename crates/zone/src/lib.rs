@@ -41,6 +41,8 @@ pub mod resident;
 pub mod stats;
 pub mod subscription;
 pub mod supervisor;
+#[cfg(test)]
+mod test_objects;
 pub mod views;
 pub mod wire;
 pub mod zone;

@@ -57,8 +57,9 @@ pub struct ZoneStats {
     pub slots_removed: u64,
     /// Ticks whose edit inserted or removed an object: ticks that moved slots.
     pub moving_ticks: u64,
-    /// Of `physics`, the backend's own copies ([`myriad_physics::Stage::Upload`]: to the
-    /// device, and on `cuda` the new state back into the world).
+    /// Of `physics`, the backend's host side as its [`myriad_physics::Stage::Upload`]
+    /// counts it: copies to the device and, on `cuda`, of the new state back into the
+    /// world, plus its binding and launching (0 on the CPU).
     pub copies: Duration,
     /// Messages sent and received.
     pub messages: (u64, u64),

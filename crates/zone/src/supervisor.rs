@@ -335,20 +335,10 @@ pub fn cut_move_line(cut: &CutMove) -> String {
 mod tests {
     use super::*;
     use crate::checkpoint::MemoryCheckpoints;
-    use myriad_core::{Aabb, EntityId, ObjectKind, ShapeKind, Vec3};
+    use myriad_core::{Aabb, Vec3};
 
     fn object(id: u32) -> ObjectState {
-        ObjectState {
-            id: EntityId(id),
-            kind: ObjectKind::Npc,
-            shape: ShapeKind::Sphere,
-            half: Vec3::splat(0.5),
-            radius: 0.5,
-            pos: Vec3::ONE,
-            prev: Vec3::ONE,
-            action: 0,
-            flags: 0,
-        }
+        crate::test_objects::npc_at(id, Vec3::ONE)
     }
 
     /// A zone that missed a cut move stores its checkpoints on the old cuts: a rollback

@@ -1,6 +1,6 @@
 use super::*;
 use crate::wire::{Message, decode};
-use myriad_core::{ObjectKind, ShapeKind, Vec3};
+use myriad_core::Vec3;
 
 const RUN: u64 = 4;
 const G: u16 = 1;
@@ -14,17 +14,7 @@ fn bounds() -> Aabb {
 }
 
 fn object(id: u32, x: f32, z: f32) -> ObjectState {
-    ObjectState {
-        id: EntityId(id),
-        kind: ObjectKind::Npc,
-        shape: ShapeKind::Sphere,
-        half: Vec3::splat(0.5),
-        radius: 0.5,
-        pos: Vec3::new(x, 1.0, z),
-        prev: Vec3::new(x, 1.0, z),
-        action: 0,
-        flags: 0,
-    }
+    crate::test_objects::npc_at(id, Vec3::new(x, 1.0, z))
 }
 
 /// Gateway `G`'s subscription to the cells of the first three columns (x < 30) of a

@@ -14,6 +14,11 @@
 # .carry/before/ first when there is one (scripts/gpu-build.sh with PARTS=host).
 #
 # MODE=zprofile splits the tick of scenario 3 in 4 zones on one GPU (see below).
+# MODE=rebalance measures live rebalancing (scripts/rebalance-live.sh): the moving crowd
+# in a live cluster of 4 zone processes on the host's cores, fixed cuts against the
+# step-time policy, on cpu and on cuda (REBALANCE_BACKENDS, default "cpu cuda").
+# MODE=million runs a million-object live world with gateways and bots
+# (scripts/million-live.sh: 4 zones on the GPU, 2 gateways, 200 bots, MILLION_SECONDS).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -241,6 +246,37 @@ if [[ $mode == zprofile ]]; then
             MYRIAD_CUDA_PROFILE=1 .carry/myriad sim $args --ticks 100 --backend cuda 2>&1 | tail -60
         done >"$out/zprofile-kernels.log" 2>&1
         tail -c 6000 "$out/zprofile-kernels.log"
+    fi
+fi
+
+if [[ $mode == rebalance ]]; then
+    if [[ -x .carry/nats-server ]]; then
+        .carry/nats-server -a 127.0.0.1 -p 4222 -js -sd /tmp/myriad-nats >/dev/null 2>&1 &
+        rb_nats=$!
+        sleep 1
+        for backend in ${REBALANCE_BACKENDS:-cpu cuda}; do
+            echo "=== rebalance-live on $backend"
+            # Each zone process gets a share of the host's cores for its rayon pool.
+            RAYON_NUM_THREADS=$(($(nproc) / 4)) bash scripts/rebalance-live.sh -b .carry/myriad -k 4 -x "$backend" \
+                -o "$out/rebalance-$backend" || fail "rebalance-live on $backend failed"
+        done 2>&1 | tee "$out/rebalance.log"
+        kill "$rb_nats"
+    else
+        fail "rebalance: no .carry/nats-server"
+    fi
+fi
+
+if [[ $mode == million ]]; then
+    if [[ -x .carry/nats-server ]]; then
+        .carry/nats-server -a 127.0.0.1 -p 4222 -js -sd /tmp/myriad-nats >/dev/null 2>&1 &
+        ml_nats=$!
+        sleep 1
+        bash scripts/million-live.sh -b .carry/myriad -d "${MILLION_SECONDS:-60}" -o "$out/million" 2>&1 |
+            tee "$out/million.log"
+        [[ ${PIPESTATUS[0]} == 0 ]] || fail "million-live failed"
+        kill "$ml_nats"
+    else
+        fail "million: no .carry/nats-server"
     fi
 fi
 

@@ -199,15 +199,34 @@ pub(crate) struct Prepared {
     pub script: ActionScript,
 }
 
+/// The longest run of the moving crowd in a cluster: its script (about one entry per
+/// member every 40 ticks) is held whole by every process; 200,000 ticks (almost two
+/// hours at 30 Hz) are 15 million entries for the default 3,000 members.
+const MOVING_CROWD_MAX_TICKS: u64 = 200_000;
+
 /// The world, layout and script every process of a cluster makes from its flags.
 pub(crate) fn prepare(c: &ClusterCommon) -> Result<Prepared> {
-    let (_, world) = c.world.build(c.scenario)?;
-    let script = match &c.actions {
-        Some(path) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-            ActionScript::parse(&text).with_context(|| format!("in {}", path.display()))?
+    let (world, script) = if c.scenario == ScenarioName::MovingCrowd {
+        // The crowd walks by a script made from the seed for the whole run, so every
+        // process of the cluster makes the same one (and `myriad sim` too).
+        if c.actions.is_some() {
+            bail!("the moving crowd walks by its own script: drop --actions");
         }
-        None => ActionScript::default(),
+        if c.ticks > MOVING_CROWD_MAX_TICKS {
+            bail!("the moving crowd's script is made for the whole run: at most {MOVING_CROWD_MAX_TICKS} ticks");
+        }
+        let (_, world, script) = c.world.build_with_script(c.scenario, c.ticks)?;
+        (world, script)
+    } else {
+        let (_, world) = c.world.build(c.scenario)?;
+        let script = match &c.actions {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+                ActionScript::parse(&text).with_context(|| format!("in {}", path.display()))?
+            }
+            None => ActionScript::default(),
+        };
+        (world, script)
     };
     let layout = ZoneLayout::for_count(&world.bounds, c.zones, myriad_zone::pair_reach(&world), c.zone_max_step)?;
     Ok(Prepared { world, layout, script })
@@ -341,17 +360,17 @@ fn gateway_args(args: &ClusterArgs, zones: usize, url: &str, cluster: &str) -> R
             bail!("--gateways serves the reference scenarios 1, 2 and 3 (a gateway builds its map from them)")
         }
     };
+    // A gateway builds the scenario's map (bounds, terrain, statics) and takes every
+    // moving object from the zones: the counts of NPCs and users may change, the map not.
     let w = &c.world;
-    let changed = w.dynamic.is_some()
-        || w.static_objects.is_some()
-        || w.users.is_some()
+    let changed = w.static_objects.is_some()
         || w.world_size.is_some()
         || w.origin.is_some()
         || w.terrain_samples.is_some()
         || w.max_height.is_some()
         || w.heightmap.is_some();
     if changed {
-        bail!("--gateways needs the scenario's own map: only --seed may change the world");
+        bail!("--gateways needs the scenario's own map: only --seed, --dynamic and --users may change the world");
     }
     if args.gateways > myriad_zone::gateway::MAX_GATEWAYS {
         bail!("--gateways {}: at most {}", args.gateways, myriad_zone::gateway::MAX_GATEWAYS);
@@ -379,7 +398,24 @@ struct ClusterSummary {
     cut_moves_applied: Vec<u64>,
     /// Cut moves proposed and not announced, with why.
     cut_moves_refused: Vec<String>,
+    /// Every zone's load about twice a second, from the heartbeats: how even the zones
+    /// were (`scripts/rebalance-live.sh` reads these).
+    load_samples: Vec<LoadSample>,
     state_hash: String,
+}
+
+/// The zones' loads at one look of the supervisor ([`Event::Progress`]).
+#[derive(Serialize)]
+struct LoadSample {
+    epoch: u64,
+    /// Seconds since the cluster started.
+    at_s: f64,
+    /// The lowest tick any zone had reached.
+    tick: u64,
+    /// Each zone's step time, ms (averaged over about a second; `null`: not heard).
+    step_ms: Vec<Option<f64>>,
+    /// Each zone's owned objects.
+    owned: Vec<Option<u32>>,
 }
 
 /// A cut move the supervisor announced.
@@ -416,7 +452,7 @@ fn event_line(e: &Event) -> Option<String> {
             Some(start_line(*epoch, *tick, state_hash.map(hash_text).as_deref()))
         }
         Event::Fault { reason, .. } => Some(fault_line(reason)),
-        Event::Progress { epoch, tick } => Some(format!("epoch {epoch}      at tick {tick}")),
+        Event::Progress { epoch, tick, .. } => Some(format!("epoch {epoch}      at tick {tick}")),
         Event::Cuts { what: Announcement::Send { cut, .. }, .. } => {
             Some(format!("cut move     {}", cut_move_line(cut)))
         }
@@ -531,6 +567,7 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
         cut_moves: Vec::new(),
         cut_moves_applied: Vec::new(),
         cut_moves_refused: Vec::new(),
+        load_samples: Vec::new(),
         state_hash: String::new(),
     };
     let start = Instant::now();
@@ -580,7 +617,14 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
             Event::Cuts { what: Announcement::Refused { decided_at, reason }, .. } => {
                 summary.cut_moves_refused.push(format!("tick {decided_at}: {reason}"))
             }
-            Event::Cuts { .. } | Event::Progress { .. } | Event::Done { .. } => {}
+            Event::Progress { epoch, tick, loads } => summary.load_samples.push(LoadSample {
+                epoch: *epoch,
+                at_s: start.elapsed().as_secs_f64(),
+                tick: *tick,
+                step_ms: loads.iter().map(|l| l.map(|l| f64::from(l.step_us) / 1e3)).collect(),
+                owned: loads.iter().map(|l| l.map(|l| l.owned)).collect(),
+            }),
+            Event::Cuts { .. } | Event::Done { .. } => {}
         }
     };
     let result = supervise(&cfg, &link, &mut store, &mut restarted, &mut on_event);

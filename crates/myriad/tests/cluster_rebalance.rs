@@ -4,6 +4,7 @@
 //! second move is announced again in the new epoch and applied, and the run ends in
 //! `myriad sim`'s hash; `myriad replay` of the epoch after the rollback applies the
 //! logged move at its tick and ends in the live hash.
+//! A second test lets the step-time policy move a cut toward the moving crowd.
 //! Needs `NATS_URL` (CI sets it); skips with a message without it.
 
 use std::process::{Command, Stdio};
@@ -101,4 +102,54 @@ fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
     let r = replay_equal(&url, &name, KEY, &args);
     assert_eq!((r["from"].as_u64(), r["to"].as_u64()), (Some(from), Some(360)), "{r}");
     assert_eq!(r["cut_moves"], 1, "the move of tick 250, logged and applied: {r}");
+}
+
+/// The supervisor's own policy, end to end: the moving crowd starts in zone 0 of two
+/// (a fifth of the way along x), so zone 0 steps several times the objects zone 1 does;
+/// from the step times in the heartbeats the supervisor moves the x cut toward the
+/// crowd (zone 0 shrinks), both zone processes follow it, and the run ends in
+/// `myriad sim`'s hash of the same world and ticks.
+#[test]
+fn step_times_move_the_cut_toward_the_crowd() {
+    let Some(url) = myriad_testenv::nats_url() else { return };
+    let name = format!("rs{}", std::process::id());
+    // A crowd of 16,000 (the default is 3,000) so that zone 0's step is well over 80 % of
+    // the tick budget at 60 Hz while zone 1's is not, even on two cores shared with other
+    // tests (zone 1's step time is mostly waiting for a core there).
+    let world = ["--scenario", "moving-crowd", "--users", "16000", "--backend", "cpu", "--ticks", "600"];
+    let out = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["cluster", "--json", "--nats", &url, "--cluster", &name, "--zones", "2"])
+        .args(world)
+        .args(["--tick-hz", "60", "--rebalance", "--rebalance-lead-ticks", "30"])
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "cluster failed: {log}");
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    eprintln!("{v}");
+    assert_eq!(v["faults"].as_array().unwrap().len(), 0, "{v}");
+    // The zones' loads as the supervisor saw them: zone 0, with the crowd, the slower.
+    let samples = v["load_samples"].as_array().unwrap();
+    let heard: Vec<(f64, f64)> = samples
+        .iter()
+        .filter_map(|s| Some((s["step_ms"][0].as_f64()?, s["step_ms"][1].as_f64()?)))
+        .filter(|(a, b)| *a > 0.0 && *b > 0.0)
+        .collect();
+    assert!(!heard.is_empty(), "no load samples with both zones: {v}");
+    let mean = |f: fn(&(f64, f64)) -> f64| heard.iter().map(f).sum::<f64>() / heard.len() as f64;
+    assert!(mean(|h| h.0) > mean(|h| h.1), "zone 0 holds the crowd and steps slower: {v}");
+    // The policy's move, decided from those step times: the x cut (256 on this 512-unit
+    // map) moves toward the crowd, by at most 32 units.
+    let moves = v["cut_moves"].as_array().unwrap();
+    assert!(!moves.is_empty(), "the step-time policy moved no cut: {v}");
+    let x = moves[0]["xs"][1].as_f64().unwrap();
+    assert!((224.0..256.0).contains(&x), "the first move shrinks zone 0: x cut {x}: {v}");
+    let applied = v["cut_moves_applied"].as_array().unwrap();
+    assert_eq!(applied[0].as_u64(), moves[0]["apply_at"].as_u64(), "both zones followed the first move: {v}");
+    let sim = Command::new(env!("CARGO_BIN_EXE_myriad")).args(["sim", "--json"]).args(world).output().unwrap();
+    assert!(sim.status.success(), "{}", String::from_utf8_lossy(&sim.stderr));
+    let s: serde_json::Value = serde_json::from_slice(&sim.stdout).unwrap();
+    assert_eq!(v["state_hash"], s["state_hash"], "the end is one process's state");
 }

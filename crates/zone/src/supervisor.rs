@@ -68,12 +68,15 @@ pub enum Event {
         /// What happened.
         reason: String,
     },
-    /// The slowest zone's tick, about twice a second while an epoch runs.
+    /// The slowest zone's tick and every zone's load, about twice a second while an
+    /// epoch runs.
     Progress {
         /// The epoch.
         epoch: u64,
         /// The lowest tick any zone reported.
         tick: u64,
+        /// Each zone's last heartbeat of this epoch, by zone (`None`: not heard in it).
+        loads: Vec<Option<ZoneLoad>>,
     },
     /// A cut move was announced, every zone applied one, or one was refused (a zone that
     /// steps on other cuts than announced is a [`Event::Fault`]).
@@ -89,6 +92,19 @@ pub enum Event {
         /// The reassembled world's state hash.
         state_hash: u64,
     },
+}
+
+/// A zone's load as its last heartbeat reported it ([`Event::Progress`]): what the
+/// cluster's summary records to show how even the zones are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ZoneLoad {
+    /// The tick it had reached.
+    pub tick: u64,
+    /// Its step time (own work and physics, not the wait), averaged over about a second,
+    /// in microseconds.
+    pub step_us: u32,
+    /// Objects it owned.
+    pub owned: u32,
 }
 
 /// Reassembles the world at `tick` from every zone's checkpoint and hashes it; the zones'
@@ -273,7 +289,13 @@ pub fn supervise(
         if now - last_progress > Duration::from_millis(500) {
             last_progress = now;
             let tick = last.values().filter(|b| b.run == epoch).map(|b| b.tick).min().unwrap_or(0);
-            on_event(&Event::Progress { epoch, tick });
+            let loads = (0..cfg.zones)
+                .map(|z| {
+                    let b = last.get(&ZoneId(z as u16)).filter(|b| b.run == epoch)?;
+                    Some(ZoneLoad { tick: b.tick, step_us: b.load.step_us, owned: b.load.owned })
+                })
+                .collect();
+            on_event(&Event::Progress { epoch, tick, loads });
         }
         let done = (0..cfg.zones).all(|z| {
             last.get(&ZoneId(z as u16))

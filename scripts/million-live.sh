@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # A million-object live world (issue 25's goal): `myriad cluster --live` with K zone
-# processes (default 4, scenario 3's map with 1,000,000 NPCs, on cuda with every zone on
-# GPU 0, 30 ticks a second), G gateways started by the cluster (default 2) and N bots on
+# processes (default 4; scenario 3's map, its 99,999 statics and 10,000 users, with
+# 1,000,000 dynamic objects in all: `--scenario custom` on the map of reference scenario
+# MAP, which the gateways build; on cuda with every zone on GPU 0; 30 ticks a second), G gateways started by the cluster (default 2) and N bots on
 # each (default 100, shuttling back and forth along x across the cuts) for D seconds.
 # Prints what the bots saw (logins, reconnects, own object seen, moves), each zone's
 # tick, step and fabric bytes, each gateway's bytes in from the zones and out to its
 # players and its player hand-offs between zones, and every process's memory (RSS and
 # peak); the raw metrics, logs and bots' JSON stay in OUT_DIR.
 #
-# Usage: scripts/million-live.sh [-b BINARY] [-x BACKEND] [-n DYNAMIC] [-s SCENARIO] [-k ZONES] [-g GATEWAYS] [-p BOTS_PER_GATEWAY] [-d SECONDS] [-o OUT_DIR]
+# Usage: scripts/million-live.sh [-b BINARY] [-x BACKEND] [-n DYNAMIC] [-s MAP] [-k ZONES] [-g GATEWAYS] [-p BOTS_PER_GATEWAY] [-d SECONDS] [-o OUT_DIR]
 # Needs NATS at 127.0.0.1:4222 (or NATS_URL).
 set -euo pipefail
 BIN=target/release/myriad; BACKEND=cuda; DYN=1000000; SC=3; K=4; G=2; P=100; D=60; OUTDIR=""
@@ -16,6 +17,10 @@ while getopts "b:x:n:s:k:g:p:d:o:" o; do case $o in
   b) BIN=$OPTARG;; x) BACKEND=$OPTARG;; n) DYN=$OPTARG;; s) SC=$OPTARG;; k) K=$OPTARG;; g) G=$OPTARG;;
   p) P=$OPTARG;; d) D=$OPTARG;; o) OUTDIR=$OPTARG;;
   *) sed -n 2,12p "$0"; exit 2;; esac; done
+# The statics and users of reference scenario MAP (its map: size 1024, the default).
+case $SC in
+  1) MAP=(--static 3000 --users 1000);; 2) MAP=(--static 15000 --users 5000);; 3) MAP=(--static 99999 --users 10000);;
+  *) echo "-s: a reference scenario's map, 1, 2 or 3" >&2; exit 2;; esac
 URL=${NATS_URL:-nats://127.0.0.1:4222}
 MYRIAD_CLUSTER_KEY=$(head -c 24 /dev/urandom | od -An -tx1 | tr -d ' \n')
 export MYRIAD_CLUSTER_KEY
@@ -29,7 +34,7 @@ for g in $(seq 0 $((G - 1))); do
 done
 START=$(date +%s)
 "$BIN" cluster --nats "$URL" --cluster "ml$$" --zones "$K" --gpus 1 --live --tick-hz 30 --ticks 10000000 \
-  --scenario "$SC" --dynamic "$DYN" --seed 1 --backend "$BACKEND" --gateways "$G" --gateway-port "$PORT" \
+  --scenario custom "${MAP[@]}" --dynamic "$DYN" --seed 1 --backend "$BACKEND" --gateways "$G" --gateway-port "$PORT" \
   --gateway-data "$DIR/gw" --metrics-base-port "$MPORT" >"$DIR/cluster.out" 2>"$DIR/cluster.log" &
 pids+=($!)
 # A metric's value (summed over its labels) from the endpoint on port $1; 0 when down.

@@ -179,6 +179,20 @@ impl ScenarioSpec {
         }
     }
 
+    /// Whether `self` and `other` generate the same map: the same bounds, terrain and
+    /// static objects. The map is made from these fields alone (the statics draw from a
+    /// stream of their own), so worlds that differ only in their moving objects (counts,
+    /// users, placement) share it: a gateway serving a reference scenario's map can front
+    /// zones that run more NPCs on it.
+    pub fn same_map(&self, other: &ScenarioSpec) -> bool {
+        self.seed == other.seed
+            && self.static_objects == other.static_objects
+            && self.world_size == other.world_size
+            && self.origin == other.origin
+            && self.terrain_samples == other.terrain_samples
+            && self.max_height == other.max_height
+    }
+
     /// Generates the world, terrain included.
     pub fn build(&self) -> Result<World, CoreError> {
         self.validate()?;
@@ -303,6 +317,33 @@ mod tests {
     fn small(mut s: ScenarioSpec) -> ScenarioSpec {
         s.terrain_samples = 65;
         s
+    }
+
+    #[test]
+    fn the_map_does_not_depend_on_the_moving_objects() {
+        let reference = small(ScenarioSpec::reference(1, 4).unwrap());
+        let more = ScenarioSpec {
+            name: "custom".into(),
+            dynamic: 9_000,
+            users: 50,
+            placement: Placement::Clustered { hotspots: 3, fraction: 0.5, spread: 20.0 },
+            ..reference.clone()
+        };
+        assert!(more.same_map(&reference));
+        let (a, b) = (reference.build().unwrap(), more.build().unwrap());
+        assert_eq!(a.bounds, b.bounds);
+        assert_eq!(a.terrain.samples(), b.terrain.samples());
+        assert_eq!(a.statics.positions(), b.statics.positions());
+        assert_eq!(a.statics.shapes(), b.statics.shapes());
+        assert_ne!(a.dynamics.len(), b.dynamics.len());
+        for other in [
+            ScenarioSpec { static_objects: 2_999, ..reference.clone() },
+            ScenarioSpec { seed: 5, ..reference.clone() },
+            ScenarioSpec { world_size: reference.world_size + 1.0, ..reference.clone() },
+            ScenarioSpec { max_height: 1.0, ..reference.clone() },
+        ] {
+            assert!(!other.same_map(&reference), "{other:?}");
+        }
     }
 
     #[test]

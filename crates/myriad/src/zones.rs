@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use myriad_core::{ActionScript, PhysicsConfig, World};
+use myriad_core::{ActionScript, PhysicsConfig, ScenarioSpec, World};
 use myriad_physics::{BackendKind, TickConstants};
 use myriad_zone::checkpoint::JetStreamCheckpoints;
 use myriad_zone::fabric_auth::NatsAuth;
@@ -160,7 +160,8 @@ pub struct ClusterArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
-    /// Gateways to start for players (with `--live`, on scenarios 1-3): gateway i serves
+    /// Gateways to start for players (with `--live`, on the map of a reference scenario:
+    /// its statics, size and terrain, with any moving objects): gateway i serves
     /// UDP on 127.0.0.1:(gateway-port + 2i) and its TLS login on the next port, keeps its
     /// data (SQLite, certificate) in GATEWAY_DATA/gateway-i, and is restarted if it exits.
     #[arg(long, default_value_t = 0, requires = "live")]
@@ -352,30 +353,24 @@ fn gateway_args(args: &ClusterArgs, zones: usize, url: &str, cluster: &str) -> R
         return Ok(Vec::new());
     }
     let c = &args.common;
-    let scenario = match c.scenario {
-        ScenarioName::One => "1",
-        ScenarioName::Two => "2",
-        ScenarioName::Three => "3",
-        ScenarioName::Custom | ScenarioName::Clustered | ScenarioName::MovingCrowd => {
-            bail!("--gateways serves the reference scenarios 1, 2 and 3 (a gateway builds its map from them)")
-        }
-    };
-    // A gateway builds the scenario's map (bounds, terrain, statics) and takes every
-    // moving object from the zones: the counts of NPCs and users may change, the map not.
+    // A gateway builds a reference scenario's map (bounds, terrain, statics) from its
+    // number and seed and takes every moving object from the zones: the zones' world may
+    // have other moving objects (counts, users, placement) on one of those maps.
+    let spec = c.world.spec(c.scenario)?;
+    let scenario = (1..=3u8)
+        .find(|&n| c.world.heightmap.is_none() && ScenarioSpec::reference(n, spec.seed).is_ok_and(|r| r.same_map(&spec)))
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "--gateways serves the maps of the reference scenarios 1, 2 and 3 (a gateway builds its map from \
+                 them): the world's statics, size, origin and terrain must be one of theirs; its moving objects may differ"
+            )
+        })?
+        .to_string();
     let w = &c.world;
-    let changed = w.static_objects.is_some()
-        || w.world_size.is_some()
-        || w.origin.is_some()
-        || w.terrain_samples.is_some()
-        || w.max_height.is_some()
-        || w.heightmap.is_some();
-    if changed {
-        bail!("--gateways needs the scenario's own map: only --seed, --dynamic and --users may change the world");
-    }
     if args.gateways > myriad_zone::gateway::MAX_GATEWAYS {
         bail!("--gateways {}: at most {}", args.gateways, myriad_zone::gateway::MAX_GATEWAYS);
     }
-    Ok(["--cluster", cluster, "--zones", &zones.to_string(), "--nats", url, "--scenario", scenario]
+    Ok(["--cluster", cluster, "--zones", &zones.to_string(), "--nats", url, "--scenario", &scenario]
         .into_iter()
         .map(String::from)
         .chain(["--seed".to_string(), w.seed.to_string()])

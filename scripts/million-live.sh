@@ -33,7 +33,9 @@ for g in $(seq 0 $((G - 1))); do
   "$BIN" user seed --count $((G * P)) --data-dir "$DIR/gw/gateway-$g" >/dev/null
 done
 START=$(date +%s)
+# A checkpoint every 10 s: each zone's is tens of MB at this size, written on its tick.
 "$BIN" cluster --nats "$URL" --cluster "ml$$" --zones "$K" --gpus 1 --live --tick-hz 30 --ticks 10000000 \
+  --checkpoint-every 300 \
   --scenario custom "${MAP[@]}" --dynamic "$DYN" --seed 1 --backend "$BACKEND" --gateways "$G" --gateway-port "$PORT" \
   --gateway-data "$DIR/gw" --metrics-base-port "$MPORT" >"$DIR/cluster.out" 2>"$DIR/cluster.log" &
 pids+=($!)
@@ -49,14 +51,15 @@ m() {
   awk -v n="$2" '$1 == n || index($1, n "{") == 1 {s += $2} END {print s + 0}' <<<"$page"
 }
 # Ready: every gateway's login answers and has taken worlds from the zones.
-for _ in $(seq 1 600); do
+for _ in $(seq 1 240); do
   ready=1
   for g in $(seq 0 $((G - 1))); do
     (( $(m $((MPORT + 100 + g)) myriad_gateway_mirrors_total) > 30 )) || ready=0
   done
-  [ $ready = 1 ] && break
+  [ "$ready" = 1 ] && break
   sleep 1
 done
+if [ "$ready" = 0 ]; then echo "the gateways took no worlds in 240 s" >&2; tail -5 "$DIR/cluster.log" >&2; exit 1; fi
 echo "cluster ready after $(( $(date +%s) - START )) s"
 bots=()
 for g in $(seq 0 $((G - 1))); do

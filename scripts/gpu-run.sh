@@ -18,7 +18,8 @@
 # in a live cluster of 4 zone processes on the host's cores, fixed cuts against the
 # step-time policy, on cpu and on cuda (REBALANCE_BACKENDS, default "cpu cuda").
 # MODE=million runs a million-object live world with gateways and bots
-# (scripts/million-live.sh: 4 zones on the GPU, 2 gateways, 200 bots, MILLION_SECONDS).
+# (scripts/million-live.sh: 4 zones on the GPU, 2 gateways, 200 bots; MILLION_SECONDS,
+# MILLION_DYNAMIC).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -271,7 +272,8 @@ if [[ $mode == million ]]; then
         .carry/nats-server -a 127.0.0.1 -p 4222 -js -sd /tmp/myriad-nats >/dev/null 2>&1 &
         ml_nats=$!
         sleep 1
-        bash scripts/million-live.sh -b .carry/myriad -d "${MILLION_SECONDS:-60}" -o "$out/million" 2>&1 |
+        bash scripts/million-live.sh -b .carry/myriad -d "${MILLION_SECONDS:-60}" -n "${MILLION_DYNAMIC:-1000000}" \
+            -o "$out/million" 2>&1 |
             tee "$out/million.log"
         [[ ${PIPESTATUS[0]} == 0 ]] || fail "million-live failed"
         kill "$ml_nats"

@@ -173,7 +173,7 @@ pub struct ClusterArgs {
     #[arg(long, default_value = "myriad-cluster")]
     pub gateway_data: PathBuf,
     /// Move the cuts while the cluster runs, from the step times the zones report (a zone
-    /// over 80 % of the tick budget or 1.3 × the mean for 3 s gives up area; docs/zones.md,
+    /// over 80 % of the tick budget or 1.15 × the mean for 3 s gives up area; docs/zones.md,
     /// "Boundaries that follow the load").
     #[arg(long)]
     pub rebalance: bool,

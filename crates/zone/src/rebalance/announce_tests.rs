@@ -95,7 +95,7 @@ fn a_slow_zone_moves_the_cut_toward_it_from_its_step_times() {
     let old = cuts_digest(l.cuts().0, l.cuts().1);
     let opts = StepTimeOptions { sustain_s: 1.0, ..StepTimeOptions::default() };
     let mut a = Announcer::new(LiveOptions::new(30, LivePolicy::StepTime(opts)), l, 10_000).unwrap();
-    // Zone 0 takes 30 ms a tick, zone 1 10 ms: over 1.3 × the mean for a second.
+    // Zone 0 takes 30 ms a tick, zone 1 10 ms: over 1.15 × the mean for a second.
     assert_eq!(a.observe(0.0, &[beat(10, old, 0, 30_000), beat(10, old, 0, 10_000)]), vec![]);
     let out = a.observe(1.0, &[beat(40, old, 0, 30_000), beat(41, old, 0, 10_000)]);
     let [Announcement::Send { cut, first: true }] = &out[..] else { panic!("{out:?}") };

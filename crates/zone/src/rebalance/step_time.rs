@@ -3,8 +3,9 @@
 //!
 //! A zone is *over* when its step takes more than `budget_share` of the tick budget or
 //! more than `threshold` × the mean step of all zones. A zone over for `sustain` seconds
-//! moves the cuts around it inward, shrinking it by about its excess over the mean
-//! (assuming its load is spread evenly over its area), at most `max_move` per cut; a cut
+//! moves the cuts around it inward, shrinking it by one and a half times its excess
+//! over the mean (its load spread evenly over its area, part of its step a fixed cost),
+//! at most `max_move` per cut; a cut
 //! that moved rests `cooldown` seconds. One zone moves per decision, the slowest, so two
 //! moves never pull one cut two ways. A zone at or below the mean never moves: when
 //! every zone is over budget, moving cuts does not help.
@@ -34,7 +35,9 @@ impl Default for StepTimeOptions {
         StepTimeOptions {
             budget_ms: 1e3 / 30.0,
             budget_share: 0.8,
-            threshold: 1.3,
+            // Below the goal of 1.3 (docs/zones.md): a policy that acts only above 1.3
+            // holds the slowest zone near it, not under it (measured on the H200).
+            threshold: 1.15,
             sustain_s: 3.0,
             // Short enough to follow a crowd walking 4 units a second with moves of
             // 48 units (measured: with 10 s and 32 units, the live cuts lagged the
@@ -82,7 +85,10 @@ impl StepTimePolicy {
             .enumerate()
             .filter(|&(z, &s)| s > mean && self.over_since[z].is_some_and(|t| now - t >= o.sustain_s))
             .max_by(|a, b| a.1.total_cmp(b.1))?;
-        let excess = (1.0 - mean / s).clamp(0.0, 0.5);
+        // A step is partly fixed cost that no cut moves (measured: a zone with three
+        // times the mean's objects steps 1.5-1.8 times the mean), so the share of the
+        // load to give up is larger than the step's excess: half again, at most half.
+        let excess = (1.5 * (1.0 - mean / s)).clamp(0.0, 0.5);
         // Shrink each axis by √(1 − excess): the area then shrinks by the excess.
         let shrink = 1.0 - (1.0 - excess).sqrt();
         let (cols, _) = layout.shape();

@@ -254,7 +254,7 @@ function drawStages(canvas) {
     ctx.moveTo(left, y(v));
     ctx.lineTo(W - 4, y(v));
     ctx.stroke();
-    ctx.fillText(v.toPrecision(2), 2, y(v) + 4);
+    ctx.fillText(String(Number(v.toFixed(2))), 2, y(v) + 4);
   }
   ctx.fillText("−60 s", left, H - 4);
   ctx.fillText("now", W - 28, H - 4);
@@ -309,7 +309,7 @@ function renderStageLegend(names, last) {
 function renderPlayers(players) {
   const tbody = $("players").tBodies[0];
   const seen = new Set();
-  players.sort((a, b) => a.account.localeCompare(b.account));
+  players.sort((a, b) => a.account.localeCompare(b.account, undefined, { numeric: true }));
   for (const p of players) {
     seen.add(p.account);
     let tr = state.rows.get(p.account);
@@ -317,14 +317,14 @@ function renderPlayers(players) {
       tr = newRow(p.account);
       state.rows.set(p.account, tr);
     }
-    const cells = tr.cells;
-    cells[1].textContent = String(p.user_id);
-    cells[2].textContent = String(p.entity);
-    cells[3].textContent = p.addr;
-    cells[4].textContent = new Date(p.connected_since).toLocaleTimeString();
-    cells[4].title = p.connected_since;
-    cells[5].textContent = p.position.map((v) => v.toFixed(1)).join(", ");
-    cells[6].textContent = (p.bytes_per_s / 1000).toFixed(1);
+    const cells = tr.cells; // 0: account, 1: the buttons
+    cells[2].textContent = String(p.user_id);
+    cells[3].textContent = String(p.entity);
+    cells[4].textContent = p.addr;
+    cells[5].textContent = new Date(p.connected_since).toLocaleTimeString([], { hour12: false });
+    cells[5].title = p.connected_since;
+    cells[6].textContent = p.position.map((v) => v.toFixed(1)).join(", ");
+    cells[7].textContent = (p.bytes_per_s / 1000).toFixed(1);
     tbody.append(tr); // moves it into sorted order
   }
   for (const [account, tr] of state.rows) {
@@ -343,7 +343,7 @@ function newRow(account) {
   tr.cells[0].textContent = account;
   const kick = button("Kick", "kick", account, () => kickPlayer(account, kick));
   const ban = button("Ban…", "ban", account, () => openBan(account));
-  tr.cells[7].append(kick, ban);
+  tr.cells[1].append(kick, ban);
   return tr;
 }
 

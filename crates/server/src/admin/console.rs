@@ -25,15 +25,17 @@ const CSS: &str = "text/css; charset=utf-8";
 /// Every file under `console/`, by name.
 const FILES: [(&str, &str, &[u8]); 2] = [("console.js", JAVASCRIPT, CONSOLE_JS), ("console.css", CSS, CONSOLE_CSS)];
 
-/// The content type and bytes of the console's file at `path` (the request path, with or
-/// without its leading `/`): `/` or the empty path is the page, `/console/<file>` its
-/// script and style. Anything else is `None` (a 404).
+/// The content type and bytes of the console's file at `path`: the page for `/`, its
+/// script and style for `/console/console.js` and `/console/console.css`. `path` is the
+/// request path (with or without its leading `/`) or, as the admin router passes it,
+/// the file's name alone (`index.html` for `/`, `console.js` for `/console/console.js`).
+/// Anything else is `None` (a 404).
 pub fn asset(path: &str) -> Option<(&'static str, &'static [u8])> {
     let path = path.strip_prefix('/').unwrap_or(path);
-    if path.is_empty() {
+    let name = path.strip_prefix("console/").unwrap_or(path);
+    if name.is_empty() || name == "index.html" {
         return Some((HTML, INDEX_HTML));
     }
-    let name = path.strip_prefix("console/")?;
     FILES.iter().find(|(file, _, _)| *file == name).map(|&(_, kind, bytes)| (kind, bytes))
 }
 
@@ -43,25 +45,28 @@ mod tests {
 
     #[test]
     fn the_page_and_its_files_are_served_with_their_types() {
-        for path in ["/", ""] {
+        for path in ["/", "", "index.html"] {
             let (kind, bytes) = asset(path).unwrap();
             assert_eq!(kind, HTML);
             assert!(std::str::from_utf8(bytes).unwrap().starts_with("<!doctype html>"));
         }
         assert_eq!(asset("/console/console.js").unwrap().0, JAVASCRIPT);
         assert_eq!(asset("console/console.js").unwrap().0, JAVASCRIPT);
+        assert_eq!(asset("console.js").unwrap().0, JAVASCRIPT);
         assert_eq!(asset("/console/console.css").unwrap().0, CSS);
+        assert_eq!(asset("console.css").unwrap().0, CSS);
+        assert_eq!(asset("console.css").unwrap().1, CONSOLE_CSS);
     }
 
     #[test]
     fn nothing_outside_the_table_is_served() {
         for path in [
             "//",
-            "/index.html",
             "/console",
-            "/console/",
-            "/console/index.html",
+            "console.rs",
             "/console/../Cargo.toml",
+            "../console.rs",
+            "console/console/console.js",
             "/console/./console.js",
             "/console/console.js/",
             "/console/CONSOLE.JS",

@@ -48,9 +48,11 @@ function readToken() {
 
 // One API call; the token travels only in the Authorization header.
 async function api(method, path, body) {
-  const init = { method, cache: "no-store", headers: { Authorization: "Bearer " + state.token } };
+  // The audit names the console as the actor ("token:console").
+  const headers = { Authorization: "Bearer " + state.token, "X-Myriad-Actor": "console" };
+  const init = { method, cache: "no-store", headers };
   if (body !== undefined) {
-    init.headers["Content-Type"] = "application/json";
+    headers["Content-Type"] = "application/json";
     init.body = JSON.stringify(body);
   }
   let response;
@@ -192,6 +194,7 @@ function drawMap(canvas, map) {
   ctx.strokeStyle = COLORS.playerEdge;
   ctx.lineWidth = 1;
   for (const p of map.players) {
+    if (p.x == null || p.z == null) continue; // a player whose object is missing
     ctx.beginPath();
     ctx.arc(px(p.x), pz(p.z), 4, 0, 2 * Math.PI);
     ctx.fill();
@@ -214,6 +217,7 @@ function mapTooltip(event) {
   const ox = (canvas.width - w * scale) / 2, oy = (canvas.height - h * scale) / 2;
   let best = null, bestD = 64; // squared pixels
   for (const p of map.players) {
+    if (p.x == null || p.z == null) continue;
     const dx = ox + (p.x - b.min_x) * scale - mx, dz = oy + (b.max_z - p.z) * scale - my;
     const d = dx * dx + dz * dz;
     if (d < bestD) { best = p; bestD = d; }
@@ -225,7 +229,8 @@ function pushStages(st) {
   for (const name of Object.keys(st.stages_ms)) {
     if (!state.stageNames.includes(name)) state.stageNames.push(name);
   }
-  state.history.push({ stages: st.stages_ms, budget: st.tick_hz > 0 ? 1000 / st.tick_hz : 0 });
+  const rate = st.tick_rate || st.tick_hz; // the configured rate when the server gives it
+  state.history.push({ stages: st.stages_ms, budget: rate > 0 ? 1000 / rate : 0 });
   if (state.history.length > HISTORY) state.history.shift();
 }
 
@@ -320,10 +325,10 @@ function renderPlayers(players) {
     const cells = tr.cells; // 0: account, 1: the buttons
     cells[2].textContent = String(p.user_id);
     cells[3].textContent = String(p.entity);
-    cells[4].textContent = p.addr;
+    cells[4].textContent = p.addr || "–"; // null until the player's first datagram
     cells[5].textContent = new Date(p.connected_since).toLocaleTimeString([], { hour12: false });
     cells[5].title = p.connected_since;
-    cells[6].textContent = p.position.map((v) => v.toFixed(1)).join(", ");
+    cells[6].textContent = p.position.map((v) => (v == null ? "–" : v.toFixed(1))).join(", ");
     cells[7].textContent = (p.bytes_per_s / 1000).toFixed(1);
     tbody.append(tr); // moves it into sorted order
   }
@@ -395,8 +400,8 @@ async function submitBan(event) {
   }
   dialog.close();
   try {
-    await api("POST", `/api/accounts/${encodeURIComponent(account)}/ban`, { reason, until });
-    showNotice(`Banned ${account}` + (until ? ` until ${until}.` : "."));
+    const reply = await api("POST", `/api/accounts/${encodeURIComponent(account)}/ban`, { reason, until });
+    showNotice(`Banned ${account}` + (until ? ` until ${until}` : "") + (reply && reply.kicked ? " and kicked it." : "."));
   } catch (e) {
     if (e instanceof AuthError) askForToken("The server refused the token (401): enter the admin token.");
     else showError(`Ban ${account}: ${e.message}`);

@@ -129,6 +129,20 @@ fn page_text(tab: &Tab) -> String {
     eval(tab, "document.body.innerText.slice(0, 2000)")
 }
 
+/// Clicks the middle of the element `selector` with the mouse (input events, as a
+/// person's click).
+fn click(tab: &Tab, selector: &str) {
+    let at = eval(
+        tab,
+        &format!(
+            "(() => {{ const e = document.querySelector('{selector}'); e.scrollIntoView({{block: 'center'}}); \
+             const r = e.getBoundingClientRect(); return JSON.stringify([r.left + r.width / 2, r.top + r.height / 2]); }})()"
+        ),
+    );
+    let [x, y]: [f64; 2] = serde_json::from_str(&at).unwrap();
+    tab.click_point(headless_chrome::browser::tab::point::Point { x, y }).unwrap();
+}
+
 /// The accounts in the players table.
 fn table_accounts(tab: &Tab) -> Vec<String> {
     let json = eval(tab, "JSON.stringify([...document.querySelectorAll('#players tbody tr')].map(tr => tr.dataset.account))");
@@ -228,7 +242,7 @@ fn the_console_shows_the_world_and_kicks_a_player() {
     check_stage_chart(&tab);
 
     // Kick through the page: the player's session ends with Kicked; it logs in again.
-    tab.find_element(&format!("button.kick[data-account=\"{own_name}\"]")).unwrap().click().unwrap();
+    click(&tab, &format!("button.kick[data-account=\"{own_name}\"]"));
     match next(&own, Duration::from_secs(20)) {
         Own::Ended(SessionEnd::Disconnected(DisconnectReason::Kicked)) => {}
         other => panic!("after the click the session went on or ended otherwise: {other:?}"),

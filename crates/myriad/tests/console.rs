@@ -101,7 +101,11 @@ fn own_player(login: SocketAddr, cert: PathBuf, index: usize, stop: Arc<AtomicBo
 }
 
 fn next(rx: &mpsc::Receiver<Own>, limit: Duration) -> Own {
-    rx.recv_timeout(limit).unwrap_or_else(|e| panic!("the test's player said nothing in {limit:?}: {e}"))
+    match rx.recv_timeout(limit) {
+        Ok(Own::Failed(e)) => panic!("the test's player failed: {e}"),
+        Ok(said) => said,
+        Err(e) => panic!("the test's player said nothing in {limit:?}: {e}"),
+    }
 }
 
 /// Evaluates `expression` (which gives a string) in the page.

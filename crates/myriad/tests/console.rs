@@ -77,7 +77,8 @@ fn own_player(login: SocketAddr, cert: PathBuf, index: usize, stop: Arc<AtomicBo
         let result: Result<(), String> = rt.block_on(async {
             let trust = Trust::pin_file(&cert).map_err(|e| e.to_string())?;
             let config = ClientConfig::new(login, &trust).map_err(|e| e.to_string())?;
-            let mut conn = Connection::connect(config, Credentials::test_user(index)).await.map_err(|e| e.to_string())?;
+            let mut conn =
+                Connection::connect(config, Credentials::test_user(index)).await.map_err(|e| e.to_string())?;
             let _ = tx.send(Own::Playing(conn.entity_id()));
             let mut frame = 0u32;
             while !stop.load(Ordering::Relaxed) {
@@ -149,7 +150,8 @@ fn click(tab: &Tab, selector: &str) {
 
 /// The accounts in the players table.
 fn table_accounts(tab: &Tab) -> Vec<String> {
-    let json = eval(tab, "JSON.stringify([...document.querySelectorAll('#players tbody tr')].map(tr => tr.dataset.account))");
+    let json =
+        eval(tab, "JSON.stringify([...document.querySelectorAll('#players tbody tr')].map(tr => tr.dataset.account))");
     serde_json::from_str(&json).unwrap()
 }
 
@@ -251,15 +253,32 @@ fn the_console_shows_the_world_and_kicks_a_player() {
         Own::Ended(SessionEnd::Disconnected(DisconnectReason::Kicked)) => {}
         other => panic!("after the click the session went on or ended otherwise: {other:?}"),
     }
-    wait_until(&tab, "the notice", Duration::from_secs(10), &format!("document.getElementById('notice').textContent === 'Kicked {own_name}.'"));
-    let Own::Playing(again) = next(&own, Duration::from_secs(30)) else { panic!("the kicked player could not log in again") };
-    wait_until(&tab, "the player back in the table", Duration::from_secs(20),
-        &format!("document.querySelector('{own_row}') && document.querySelector('{own_row}').innerText.includes('{again}')"));
+    wait_until(
+        &tab,
+        "the notice",
+        Duration::from_secs(10),
+        &format!("document.getElementById('notice').textContent === 'Kicked {own_name}.'"),
+    );
+    let Own::Playing(again) = next(&own, Duration::from_secs(30)) else {
+        panic!("the kicked player could not log in again")
+    };
+    wait_until(
+        &tab,
+        "the player back in the table",
+        Duration::from_secs(20),
+        &format!(
+            "document.querySelector('{own_row}') && document.querySelector('{own_row}').innerText.includes('{again}')"
+        ),
+    );
     let audit: serde_json::Value =
-        serde_json::from_str(&eval(&tab, "(async () => JSON.stringify(await api('GET', '/api/audit?limit=20')))()")).unwrap();
+        serde_json::from_str(&eval(&tab, "(async () => JSON.stringify(await api('GET', '/api/audit?limit=20')))()"))
+            .unwrap();
     let kick = audit.as_array().unwrap().iter().find(|e| e["action"] == "kick" && e["target"] == own_name.as_str());
     assert!(kick.is_some_and(|e| e["ok"] == true), "the kick is in the audit: {audit}");
-    assert_eq!(eval(&tab, "document.getElementById('error').hidden ? '' : document.getElementById('error').textContent"), "");
+    assert_eq!(
+        eval(&tab, "document.getElementById('error').hidden ? '' : document.getElementById('error').textContent"),
+        ""
+    );
     stop.store(true, Ordering::Relaxed);
     eprintln!("console test: {:?}", started.elapsed());
 }
@@ -294,10 +313,15 @@ fn check_map(shot: &[u8], tab: &Tab, map: &serde_json::Value) {
     assert_eq!(players.len(), BOTS + 1, "the map shows every player: {players:?}");
     let is_player = |[r, g, b]: [u8; 3]| r > 200 && g > 170 && b < 120;
     for p in players {
-        let (cx, cy) =
-            (ox + (p["x"].as_f64().unwrap() - g("min_x")) * scale, oy + (g("max_z") - p["z"].as_f64().unwrap()) * scale);
+        let (cx, cy) = (
+            ox + (p["x"].as_f64().unwrap() - g("min_x")) * scale,
+            oy + (g("max_z") - p["z"].as_f64().unwrap()) * scale,
+        );
         let near = (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (dx as f64, dy as f64)));
-        assert!(near.clone().any(|(dx, dy)| is_player(pixel(cx + dx, cy + dy))), "no dot for {p} at ({cx:.0}, {cy:.0})");
+        assert!(
+            near.clone().any(|(dx, dy)| is_player(pixel(cx + dx, cy + dy))),
+            "no dot for {p} at ({cx:.0}, {cy:.0})"
+        );
     }
     let n = map["cells"].as_u64().unwrap() as usize;
     let density: Vec<u64> = map["npc_density"].as_array().unwrap().iter().map(|d| d.as_u64().unwrap()).collect();
@@ -346,7 +370,8 @@ fn check_stage_chart(tab: &Tab) {
          for (let i = 0; i < d.length; i += 4) if (Math.max(d[i], d[i + 1], d[i + 2]) - Math.min(d[i], d[i + 1], d[i + 2]) > 80) n++; \
          return String(n); })()",
     );
-    let legend = eval(tab, "JSON.stringify([...document.querySelectorAll('#stage-legend li')].map(li => li.dataset.stage))");
+    let legend =
+        eval(tab, "JSON.stringify([...document.querySelectorAll('#stage-legend li')].map(li => li.dataset.stage))");
     let legend: Vec<String> = serde_json::from_str(&legend).unwrap();
     assert!(coloured.parse::<u32>().unwrap() > 100, "the stage chart drew areas ({coloured} coloured pixels)");
     assert!(!legend.is_empty(), "the chart names its stages");

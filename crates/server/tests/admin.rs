@@ -181,6 +181,21 @@ fn refusals_are_refused_counted_and_audited() {
     assert!(kicks[0]["from"].as_str().unwrap().starts_with("127.0.0.1:"));
     // Newest first, in RFC 3339.
     assert!(audit[0]["at"].as_str().unwrap().ends_with('Z'));
+
+    // A flood of bad tokens is counted in full but audited at most 20 a second (so it
+    // cannot fill the database).
+    let before = server.admin_stats();
+    let mut sent = 0;
+    while server.admin_stats().audits_suppressed == before.audits_suppressed {
+        assert!(sent < 500, "500 refusals in a row were all audited");
+        assert_eq!(api.send("GET", "/api/audit", Some(&wrong), None).0, 401);
+        sent += 1;
+    }
+    let flood = server.admin_stats();
+    assert_eq!(flood.wrong_token - before.wrong_token, sent, "{flood:?}");
+    let suppressed = flood.audits_suppressed - before.audits_suppressed;
+    let audited = entries(&api.audit(), "refused", "/api/audit").len() as u64;
+    assert_eq!(audited + suppressed, sent, "each refusal audited or counted as not");
     server.shutdown().unwrap();
 }
 

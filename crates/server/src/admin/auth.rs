@@ -1,7 +1,6 @@
 //! The two gates of every request: the address (`admin_allow`, on every route) and the
-//! bearer token (on every `/api` route). Both refusals are counted and audited; the
-//! outer gate also counts every answer by outcome
-//! (`myriad_admin_requests_total{outcome}`).
+//! bearer token (on every `/api` path, known or not). Both refusals are counted and
+//! audited, and every answer is counted by outcome (`myriad_admin_requests_total{outcome}`).
 
 use std::net::SocketAddr;
 
@@ -32,45 +31,44 @@ impl Refusal {
     }
 }
 
-/// The outer gate: refuses addresses `admin_allow` does not list, then counts the
-/// answer by outcome.
+/// Both gates, on every request: refuses addresses `admin_allow` does not list, then
+/// `/api` requests without the token; counts the answer by outcome. (One layer on the
+/// whole router, so the refusals are audited with the path as the client sent it.)
 pub(crate) async fn guard(
     State(s): State<ApiState>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     request: Request,
     next: Next,
 ) -> Response {
-    let response = if s.allow.allows(peer.ip()) {
-        next.run(request).await
-    } else {
-        let path = request.uri().path().to_string();
+    let path = request.uri().path().to_string();
+    let response = if !s.allow.allows(peer.ip()) {
         tracing::warn!(%peer, path, "admin request from an address not allowed");
         s.audit.refusal(&path, Refusal::Forbidden.why(), peer).await;
         refused(Refusal::Forbidden, StatusCode::FORBIDDEN, "this address may not use the admin API")
+    } else if let Some(refusal) = token_refusal(&s, &path, request.headers()) {
+        tracing::warn!(%peer, path, why = refusal.why(), "admin request refused");
+        s.audit.refusal(&path, refusal.why(), peer).await;
+        let mut response = refused(refusal, StatusCode::UNAUTHORIZED, "a valid bearer token is required");
+        response.headers_mut().insert(header::WWW_AUTHENTICATE, header::HeaderValue::from_static("Bearer"));
+        response
+    } else {
+        next.run(request).await
     };
     count(&s, &response);
     response
 }
 
-/// The token gate of `/api`: `Authorization: Bearer <token>`, compared in constant time.
-pub(crate) async fn require_token(
-    State(s): State<ApiState>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
-    request: Request,
-    next: Next,
-) -> Response {
-    let refusal = match bearer(request.headers()) {
+/// Why an `/api` request may not pass (`Authorization: Bearer <token>`, compared in
+/// constant time); `None` when it may, or is not for `/api`.
+fn token_refusal(s: &ApiState, path: &str, headers: &HeaderMap) -> Option<Refusal> {
+    if path != "/api" && !path.starts_with("/api/") {
+        return None;
+    }
+    match bearer(headers) {
         None => Some(Refusal::NoToken),
         Some(presented) if !s.token.matches(presented) => Some(Refusal::WrongToken),
         Some(_) => None,
-    };
-    let Some(refusal) = refusal else { return next.run(request).await };
-    let path = request.uri().path().to_string();
-    tracing::warn!(%peer, path, why = refusal.why(), "admin request refused");
-    s.audit.refusal(&path, refusal.why(), peer).await;
-    let mut response = refused(refusal, StatusCode::UNAUTHORIZED, "a valid bearer token is required");
-    response.headers_mut().insert(header::WWW_AUTHENTICATE, header::HeaderValue::from_static("Bearer"));
-    response
+    }
 }
 
 /// The token of an `Authorization: Bearer …` header.

@@ -79,8 +79,8 @@ impl From<StoreError> for ApiError {
     }
 }
 
-/// The API's router: the console's files, `/api` behind the token, all behind the
-/// address check and the counting.
+/// The API's router: the console's files and `/api`, all behind `auth::guard` (the
+/// address check, the token on `/api`, the counting).
 pub(crate) fn router(state: ApiState) -> Router {
     let api = Router::new()
         .route("/state", get(server_state))
@@ -95,8 +95,7 @@ pub(crate) fn router(state: ApiState) -> Router {
         .route("/accounts/{account}/disable", post(accounts::disable))
         .route("/accounts/{account}/enable", post(accounts::enable))
         .route("/accounts/{account}/password", post(accounts::password))
-        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such route") })
-        .layer(from_fn_with_state(state.clone(), auth::require_token));
+        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such route") });
     Router::new()
         .route("/", get(|| async { console_file("index.html") }))
         .route("/console/{*file}", get(|Path(file): Path<String>| async move { console_file(&file) }))

@@ -77,7 +77,7 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
     let bots = if now.connected > 0 { now.connected } else { now.bots.max(1) } as f64;
     let r = now.totals.rates_since(&prev.totals, secs);
     format!(
-        "t={:.0}s bots {}/{} (failed {}) | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} | interval p50 {:.1} ms p99 {:.1} ms | loss {:.2}% | own seen {} moves ok {:.0}% | rejected {} decode errors {} reconnects {}",
+        "t={:.0}s bots {}/{} (failed {}) | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} | interval p50 {:.1} ms p99 {:.1} ms | loss {:.2}% | own seen {} moves ok {:.0}% | rejected {} decode errors {} reconnects {} kicked {} banned {}",
         now.elapsed_s,
         now.connected,
         now.bots,
@@ -93,6 +93,8 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
         now.totals.rejected,
         now.totals.decode_errors,
         now.totals.reconnects,
+        now.kicked,
+        now.banned,
     )
 }
 
@@ -152,6 +154,8 @@ pub fn stats_json(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> serde_json::Valu
         "rejected": now.totals.rejected,
         "decode_errors": now.totals.decode_errors,
         "reconnects": now.totals.reconnects,
+        "kicked": now.kicked,
+        "banned": now.banned,
         "first_error": now.first_error,
     })
 }

@@ -121,6 +121,9 @@ pub fn run(args: GatewayArgs) -> Result<()> {
         server.udp_addr(),
         server.certificate_path().display()
     );
+    if let (Some(addr), Some(token)) = (server.admin_addr(), server.admin_token_path()) {
+        eprintln!("myriad: admin API and console on http://{addr}/ (token in {})", token.display());
+    }
     wait_for_shutdown(args.duration.map(Duration::from_secs_f64))?;
     let report = server.shutdown()?;
     eprintln!("myriad: gateway stopped; every position saved ({} written in the last flush)", report.rows_written);

@@ -15,8 +15,10 @@
 //! - `gateway` ([`gateway`]): logins and sessions for a world run by zones.
 //! - `user` ([`users`]), `map` ([`admin`]): accounts and maps.
 //! - `db` ([`db`]): integrity check, online backup and restore of the store.
+//! - `admin` ([`admin_client`]): the client of a running server's admin API.
 
 mod admin;
+mod admin_client;
 mod bench;
 mod bots;
 mod cluster_nats;
@@ -85,6 +87,9 @@ enum Command {
     /// Check, back up or restore the database.
     #[command(subcommand)]
     Db(db::DbCommand),
+    /// Operate a running server through its admin API (players, kicks, bans, accounts, audit).
+    #[command(subcommand)]
+    Admin(admin_client::AdminCommand),
 }
 
 /// Large allocations at or above this size get their own mapping, returned to the system
@@ -141,5 +146,6 @@ fn main() -> Result<()> {
         Command::User(c) => users::user(c),
         Command::Db(c) => db::db(c),
         Command::Map(c) => admin::map(c),
+        Command::Admin(c) => admin_client::admin(c),
     }
 }

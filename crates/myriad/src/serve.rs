@@ -60,6 +60,9 @@ pub struct ConfigArgs {
     /// Milliseconds between position checkpoints.
     #[arg(long)]
     pub persist_ms: Option<u64>,
+    /// Serve the admin API and console on ADDR (default: 127.0.0.1 at the login port + 2).
+    #[arg(long, value_name = "ADDR", num_args = 0..=1)]
+    pub admin: Option<Option<SocketAddr>>,
     /// Any other key: `--set key=value` (repeatable; the value is TOML).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
@@ -98,6 +101,11 @@ impl ConfigArgs {
         for kv in &self.set {
             let (k, v) = kv.split_once('=').with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
             c.set(k.trim(), v.trim())?;
+        }
+        // After every other key: the default address follows the login port.
+        if let Some(addr) = self.admin {
+            let addr = addr.unwrap_or_else(|| SocketAddr::from(([127, 0, 0, 1], c.login_addr.port().wrapping_add(2))));
+            c.set("admin_addr", &q(&addr.to_string()))?;
         }
         Ok(c)
     }
@@ -158,6 +166,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
         server.udp_addr(),
         server.certificate_path().display()
     );
+    if let (Some(addr), Some(token)) = (server.admin_addr(), server.admin_token_path()) {
+        eprintln!("myriad: admin API and console on http://{addr}/ (token in {})", token.display());
+    }
     wait_for_shutdown(None)?;
     eprintln!("myriad: shutting down, writing every position");
     let report = server.shutdown()?;

@@ -8,7 +8,7 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use myriad_store::{HashCost, MapId, PlayerState, Store, StoreConfig, StoredShape};
+use myriad_store::{Account, HashCost, PlayerState, Store, StoreConfig, StoredShape, WorldBounds, now_ms};
 
 /// Cheap password hashes for the accounts the commands create (`--set` keys).
 const FAST_HASH: [&str; 6] = ["--set", "hash_memory_kib=64", "--set", "hash_passes=1", "--set", "hash_lanes=1"];
@@ -176,23 +176,49 @@ impl Drop for Demo {
     }
 }
 
+/// Bots playing while the backup is taken.
+const BACKUP_BOTS: usize = 100;
+
+/// Players' top walking speed (the server's default `player_speed`, which the demo
+/// keeps), in units per second.
+const PLAYER_SPEED: f32 = 5.0;
+
+/// Every account and the one saved position of each, from a stopped server's database.
+fn accounts_and_positions(dir: &Path) -> (Vec<Account>, Vec<WorldBounds>, Vec<PlayerState>) {
+    rt().block_on(async {
+        let store = Store::open(&store_config(dir)).await.unwrap();
+        let accounts = store.list_accounts(None, 10_000).await.unwrap();
+        let maps = store.list_maps().await.unwrap();
+        assert_eq!(maps.len(), 1, "the demo's map");
+        let states = store.list_player_states(maps[0].id).await.unwrap();
+        store.close().await;
+        (accounts, maps.iter().map(|m| m.bounds).collect(), states)
+    })
+}
+
 #[test]
 fn a_backup_taken_while_bots_play_restores_every_account_and_position() {
+    let started = Instant::now();
     let tmp = tempfile::tempdir().unwrap();
     let live = tmp.path().join("live");
-    let bots = 20;
-    let mut demo = Demo::start(&live, bots, 12);
-    demo.wait_for(&format!("bots {bots}/{bots}"), Duration::from_secs(60));
+    // A long cap: the test ends the demo with Ctrl-C once the backup is taken.
+    let mut demo = Demo::start(&live, BACKUP_BOTS, 300);
+    demo.wait_for(&format!("bots {BACKUP_BOTS}/{BACKUP_BOTS}"), Duration::from_secs(90));
+    let joined = started.elapsed();
     // Let a few checkpoints (every 100 ms) land, then back up while the bots move.
     std::thread::sleep(Duration::from_millis(500));
     let backup = tmp.path().join("live-backup.db");
+    let backup_started_ms = now_ms();
     let said = ok(&live, &["db", "backup", &backup.display().to_string()], "");
+    let backup_ended_ms = now_ms();
     assert!(said.contains("backed up to"), "{said}");
     // The server holds the database: a restore into it is refused while it runs.
     let refused = run(&live, &["db", "restore", &backup.display().to_string()], "", Duration::from_secs(60));
     assert!(!refused.status.success() && text(&refused).contains("in use"), "{}", text(&refused));
     let refused = run(&live, &["db", "backup", &backup.display().to_string()], "", Duration::from_secs(60));
     assert!(!refused.status.success() && text(&refused).contains("--force"), "{}", text(&refused));
+    // Ctrl-C: the bots say goodbye, the server saves every position and stops.
+    assert_eq!(unsafe { libc::kill(demo.child.id() as i32, libc::SIGINT) }, 0);
     let status = demo.child.wait().unwrap();
     assert!(status.success(), "the demo ended well");
 
@@ -202,28 +228,57 @@ fn a_backup_taken_while_bots_play_restores_every_account_and_position() {
     let said = ok(&fresh, &["db", "check", "--full"], "");
     assert!(said.contains("intact"), "{said}");
 
+    // Every account is there as the server left it (the bots' accounts were made before
+    // the server started; playing changes none of them).
+    let (live_accounts, _, live_states) = accounts_and_positions(&live);
+    let (accounts, bounds, states) = accounts_and_positions(&fresh);
+    assert_eq!(live_accounts.len(), BACKUP_BOTS);
+    assert_eq!(accounts, live_accounts, "the backup's accounts");
     rt().block_on(async {
-        let backup_store = Store::open(&store_config(&fresh)).await.unwrap();
-        let maps = backup_store.list_maps().await.unwrap();
-        assert_eq!(maps.len(), 1, "the demo's map");
-        let map: MapId = maps[0].id;
-        let states = backup_store.list_player_states(map).await.unwrap();
-        for i in 0..bots {
-            let user = backup_store
-                .check_credentials(&format!("user{i}"), &format!("password{i}"))
-                .await
-                .unwrap_or_else(|e| panic!("user{i} in the backup: {e}"));
-            let state = states.iter().find(|s| s.user_id == user.id);
-            let state = state.unwrap_or_else(|| panic!("user{i}'s position in the backup"));
-            let b = &maps[0].bounds;
-            assert!(
-                (0..3).all(|k| state.position[k] >= b.min[k] - 1.0 && state.position[k] <= b.max[k] + 1.0),
-                "user{i} at {:?}",
-                state.position
-            );
+        let restored = Store::open(&store_config(&fresh)).await.unwrap();
+        for i in 0..BACKUP_BOTS {
+            let name = format!("user{i}");
+            restored.check_credentials(&name, &format!("password{i}")).await.unwrap_or_else(|e| panic!("{name}: {e}"));
         }
-        backup_store.close().await;
+        restored.close().await;
     });
+
+    // Every bot's position is there, saved while it played: the server went on saving
+    // after the backup, so the live one is the same or later, and no farther from the
+    // backup's than a player walks in the time between the two (twice the top speed,
+    // for pushes from others, plus a unit for rounding and falls).
+    assert_eq!(live_states.len(), BACKUP_BOTS, "the live database has every bot's position");
+    assert_eq!(states.len(), BACKUP_BOTS, "the backup has every bot's position");
+    let b = &bounds[0];
+    let mut same = 0;
+    for (state, last) in states.iter().zip(&live_states) {
+        assert_eq!(state.user_id, last.user_id);
+        let account = accounts.iter().find(|a| a.id == state.user_id);
+        assert!(account.is_some(), "the position of user id {:?} has an account", state.user_id);
+        assert!(
+            (0..3).all(|k| state.position[k] >= b.min[k] - 1.0 && state.position[k] <= b.max[k] + 1.0),
+            "{state:?} is in the map"
+        );
+        assert!(state.updated_at_ms <= backup_ended_ms, "{state:?} was saved before the backup ended");
+        assert!(state.updated_at_ms <= last.updated_at_ms, "{state:?} is not later than the server's last {last:?}");
+        let walked = f32::hypot(last.position[0] - state.position[0], last.position[2] - state.position[2]);
+        let seconds = (last.updated_at_ms - state.updated_at_ms) as f32 / 1000.0;
+        assert!(
+            walked <= 2.0 * PLAYER_SPEED * seconds + 1.0,
+            "{:?} moved {walked} units in {seconds} s between the backup and the end",
+            state.user_id
+        );
+        same += usize::from(state.position == last.position && state.updated_at_ms == last.updated_at_ms);
+    }
+    // The backup is of the running server, not of its end: the bots moved on after it.
+    assert!(same < BACKUP_BOTS, "every position in the backup is the final one");
+    let newest = states.iter().map(|s| s.updated_at_ms).max().unwrap();
+    assert!(newest >= backup_started_ms - 2_000, "the backup holds the checkpoints of its time ({newest})");
+    eprintln!(
+        "{BACKUP_BOTS} bots joined in {joined:?}; the backup took {} ms; {same} positions unchanged since; test {:?}",
+        backup_ended_ms - backup_started_ms,
+        started.elapsed()
+    );
 }
 
 #[test]

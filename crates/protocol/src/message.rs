@@ -121,7 +121,8 @@ pub enum DisconnectReason {
     Shutdown = 0,
     /// The session sent nothing for too long.
     Timeout = 1,
-    /// An operator removed the player.
+    /// An operator removed the player (the admin API's kick, or its account was disabled
+    /// or deleted). The player may log in again, unless the account no longer allows it.
     Kicked = 2,
     /// The same account logged in again elsewhere; this session is replaced.
     Replaced = 3,
@@ -129,12 +130,22 @@ pub enum DisconnectReason {
     ServerFull = 4,
     /// The session broke the protocol (for example, too many malformed packets).
     ProtocolViolation = 5,
+    /// An operator banned the account: its logins are refused (login refusal `Banned`)
+    /// until the ban ends or is lifted.
+    Banned = 6,
 }
 
 impl DisconnectReason {
     /// Every reason, in code order.
-    pub const ALL: [DisconnectReason; 6] =
-        [Self::Shutdown, Self::Timeout, Self::Kicked, Self::Replaced, Self::ServerFull, Self::ProtocolViolation];
+    pub const ALL: [DisconnectReason; 7] = [
+        Self::Shutdown,
+        Self::Timeout,
+        Self::Kicked,
+        Self::Replaced,
+        Self::ServerFull,
+        Self::ProtocolViolation,
+        Self::Banned,
+    ];
 
     /// Parses a reason code.
     pub const fn from_code(code: u8) -> Option<Self> {
@@ -145,6 +156,7 @@ impl DisconnectReason {
             3 => Self::Replaced,
             4 => Self::ServerFull,
             5 => Self::ProtocolViolation,
+            6 => Self::Banned,
             _ => return None,
         })
     }
@@ -293,6 +305,28 @@ mod tests {
         assert_eq!(
             ServerMessage::decode_body(PacketKind::Ready, &[]),
             Err(DecodeError::WrongDirection(PacketKind::Ready))
+        );
+    }
+
+    #[test]
+    fn every_disconnect_reason_round_trips_and_the_next_code_is_malformed() {
+        for (code, reason) in DisconnectReason::ALL.iter().enumerate() {
+            assert_eq!(*reason as u8, code as u8, "ALL is in code order");
+            let mut body = Vec::new();
+            ServerMessage::Disconnect(*reason).encode_body(&mut body).unwrap();
+            assert_eq!(body, [code as u8]);
+            assert_eq!(
+                ServerMessage::decode_body(PacketKind::ServerDisconnect, &body),
+                Ok(ServerMessage::Disconnect(*reason))
+            );
+        }
+        assert_eq!(
+            ServerMessage::decode_body(PacketKind::ServerDisconnect, &[DisconnectReason::ALL.len() as u8]),
+            Err(DecodeError::BadDisconnectReason(DisconnectReason::ALL.len() as u8))
+        );
+        assert_eq!(
+            ServerMessage::decode_body(PacketKind::ServerDisconnect, &[6]),
+            Ok(ServerMessage::Disconnect(DisconnectReason::Banned))
         );
     }
 

@@ -165,6 +165,15 @@ pub struct ServerConfig {
     /// Backups kept in `<data_dir>/backups/`: the newest this many; older ones are
     /// deleted after each new backup.
     pub backup_keep: u32,
+    /// Address of the admin API and console ([`crate::admin`]); none (the default)
+    /// disables it. `myriad serve --admin` sets it to `127.0.0.1:<login port + 2>`.
+    pub admin_addr: Option<SocketAddr>,
+    /// Addresses and CIDR networks the admin API accepts connections from (default:
+    /// loopback only), whatever `admin_addr` binds to.
+    pub admin_allow: Vec<String>,
+    /// File holding the admin API's bearer token; empty generates (once) a random token
+    /// into `<data_dir>/admin.token`, mode 0600.
+    pub admin_token_file: PathBuf,
 }
 
 /// The highest `max_objects` accepted: the slot and entity indices are 32-bit and a
@@ -222,6 +231,9 @@ impl Default for ServerConfig {
             background_low_priority: true,
             backup_every_s: 0,
             backup_keep: 24,
+            admin_addr: None,
+            admin_allow: crate::admin::allow::default_allow(),
+            admin_token_file: PathBuf::new(),
         }
     }
 }
@@ -326,6 +338,9 @@ impl ServerConfig {
         }
         if !(1..=10_000).contains(&self.backup_keep) {
             return bad("backup_keep", format!("{} (1 to 10000)", self.backup_keep));
+        }
+        if let Err(reason) = crate::admin::allow::AllowList::parse(&self.admin_allow) {
+            return bad("admin_allow", reason);
         }
         self.validate_abuse_limits()?;
         self.validate_limits()?;
@@ -439,7 +454,7 @@ impl ServerConfig {
 }
 
 /// Keys whose default (none) does not appear in the TOML rendering.
-const OPTIONAL_KEYS: &[&str] = &["metrics_addr"];
+const OPTIONAL_KEYS: &[&str] = &["metrics_addr", "admin_addr"];
 
 #[cfg(test)]
 mod tests {
@@ -484,6 +499,18 @@ mod tests {
         std::fs::write(&path, "aoi_size = 64.0\nmap = \"island\"\n").unwrap();
         let ok = ServerConfig::load(&path).unwrap();
         assert_eq!((ok.aoi_size, ok.map.as_str()), (64.0, "island"));
+    }
+
+    #[test]
+    fn admin_keys_are_checked_and_named() {
+        let mut c = ServerConfig::default();
+        c.set("admin_addr", "\"127.0.0.1:7780\"").unwrap();
+        assert_eq!(c.admin_addr, Some("127.0.0.1:7780".parse().unwrap()));
+        c.set("admin_allow", "[\"10.0.0.0/8\", \"::1\"]").unwrap();
+        assert_eq!(c.admin_allow.len(), 2);
+        let err = c.set("admin_allow", "[\"10.0.0.0/40\"]").unwrap_err().to_string();
+        assert!(err.contains("admin_allow") && err.contains("10.0.0.0/40"), "{err}");
+        assert_eq!(ServerConfig::from_toml(&c.to_toml()).unwrap(), c);
     }
 
     #[test]

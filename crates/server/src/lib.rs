@@ -19,6 +19,7 @@
 //! - [`tls`]: certificates (self-signed for development).
 //! - [`status`]: what the tick loop reports each second.
 //! - [`tick_bench`]: the end-to-end tick benchmark (the real tick, bots on loopback).
+//! - [`admin`]: the admin API and web console on a listener of their own (issue 29).
 //!
 //! # Architecture
 //!
@@ -37,6 +38,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod admin;
 pub mod backups;
 pub mod config;
 pub mod dilation;
@@ -92,6 +94,8 @@ pub struct ServerHandle {
     /// handle drops, after the store closed), so that `myriad db restore` refuses to swap
     /// the file under it. `None` on MariaDB.
     _database_lock: Option<myriad_store::DatabaseLock>,
+    /// The admin API, when `admin_addr` is set.
+    admin: Option<admin::AdminRunning>,
 }
 
 impl std::fmt::Debug for ServerHandle {
@@ -224,6 +228,12 @@ impl ServerHandle {
             tracing::info!(dir = %dir.display(), ?every, keep = config.backup_keep, "periodic backups");
             runtime.spawn(backups::run(store_settings.database.clone(), dir, every, config.backup_keep as usize));
         }
+        // A server started with a registry serves a cluster's zones: a gateway.
+        let role = if registry.is_some() { admin::Role::Gateway } else { admin::Role::Server };
+        let (admin, tick_admin) = match admin::start(&config, &runtime, store.clone(), shared.clone(), role)? {
+            Some((running, tick_side)) => (Some(running), Some(tick_side)),
+            None => (None, None),
+        };
         let transport: Box<dyn transport::Transport> = if config.receive_thread {
             let threaded = receiver::ThreadedUdp::start(endpoints, config.receive_limits())
                 .map_err(|e| ServerError::io("starting the receive thread", e))?;
@@ -260,6 +270,7 @@ impl ServerHandle {
                     .device_interest(created.device_interest)
                     .persister(Box::new(persister_for_tick), map_id)
                     .commands(receiver)
+                    .admin(tick_admin)
                     .shared(tick_shared);
                 if let Some(registry) = registry {
                     builder = builder.registry(registry);
@@ -292,7 +303,24 @@ impl ServerHandle {
             certificate,
             shutdown_flush: Duration::from_secs_f32(config.shutdown_flush_s),
             _database_lock: database_lock,
+            admin,
         })
+    }
+
+    /// Address of the admin API and console, when `admin_addr` is set (with the real
+    /// port when 0 was configured).
+    pub fn admin_addr(&self) -> Option<SocketAddr> {
+        self.admin.as_ref().map(|a| a.addr)
+    }
+
+    /// The file holding the admin API's bearer token, when the API runs.
+    pub fn admin_token_path(&self) -> Option<&std::path::Path> {
+        self.admin.as_ref().map(|a| a.token_path.as_path())
+    }
+
+    /// What the admin API answered since start, by outcome (zero when it does not run).
+    pub fn admin_stats(&self) -> admin::AdminStats {
+        self.admin.as_ref().map(|a| a.shared.counters.snapshot()).unwrap_or_default()
     }
 
     /// Address of the TLS login service (with the real port when 0 was configured).

@@ -77,6 +77,14 @@ pub(crate) struct Player {
     last_frame: Option<u32>,
     /// The tick of the last action applied with the jump bit set.
     jump_tick: Option<u64>,
+    /// When the player logged in (wall clock, for operators; a replaced session keeps
+    /// it: the player never left).
+    pub connected_since: std::time::SystemTime,
+    /// Update bytes sealed for this player since it joined (counted as the next tick's
+    /// outbound starts, so the last tick's are in).
+    pub bytes_sent: u64,
+    /// `bytes_sent` and the time at the admin API's last snapshot (its bytes/s).
+    pub rate_mark: (u64, Instant),
 }
 
 impl Player {
@@ -216,6 +224,11 @@ impl Sessions {
     #[cfg(test)]
     pub fn iter(&self) -> impl Iterator<Item = &Player> {
         self.players.iter()
+    }
+
+    /// Every player, mutably, in table order.
+    pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut Player> {
+        self.players.iter_mut()
     }
 
     /// Every player, mutably, in table order, for rayon.
@@ -358,6 +371,9 @@ impl Sessions {
             reply_owed: None,
             last_frame: None,
             jump_tick: None,
+            connected_since: std::time::SystemTime::now(),
+            bytes_sent: 0,
+            rate_mark: (0, Instant::now()),
         });
         self.directory_stale = true;
         let idx = self.players.len() - 1;

@@ -6,7 +6,8 @@
 //!
 //! 1. joins from the login service are admitted (or refused: server full);
 //! 2. `receive`: queued datagrams are opened and applied ([`crate::inbound`]); silent
-//!    sessions expire ([`crate::session`]);
+//!    sessions expire ([`crate::session`]); sessions an operator ended through the admin
+//!    API leave ([`crate::admin`], a bounded channel drained without waiting);
 //! 3. the backend steps the world (stages `upload` … `forces`); the step alone
 //!    advances `world.tick`;
 //! 4. `packets`: the outbound builds and seals every active player's updates
@@ -47,6 +48,7 @@ use myriad_store::{MapId, Persister, PlayerState, UserId};
 #[path = "tick_tests.rs"]
 mod tests;
 
+use crate::admin::TickAdmin;
 use crate::config::ServerConfig;
 use crate::dilation::DilationController;
 use crate::gate::Gate;
@@ -114,9 +116,16 @@ pub(crate) struct TickLoopBuilder {
     shared: Option<Arc<ServerShared>>,
     registry: Option<Box<dyn SessionRegistry>>,
     device_interest: Option<DeviceInterest>,
+    admin: Option<TickAdmin>,
 }
 
 impl TickLoopBuilder {
+    /// The admin API's commands and snapshots ([`crate::admin`]).
+    pub fn admin(mut self, admin: Option<TickAdmin>) -> Self {
+        self.admin = admin;
+        self
+    }
+
     /// The backend's device interest (`myriad_cuda::CreatedBackend`), for the device
     /// outbound.
     pub fn device_interest(mut self, device_interest: Option<DeviceInterest>) -> Self {
@@ -173,6 +182,7 @@ impl TickLoopBuilder {
             commands,
             shared: self.shared.unwrap_or_default(),
             registry: self.registry,
+            admin: self.admin,
             window: StatusWindow::default(),
             config,
         }
@@ -201,6 +211,8 @@ pub(crate) struct TickLoop {
     receive_buffers: ReceiveBuffers,
     /// Sessions shared with other servers, if any.
     registry: Option<Box<dyn SessionRegistry>>,
+    /// The admin API's side of the tick, when it runs.
+    admin: Option<TickAdmin>,
 }
 
 impl TickLoop {
@@ -222,6 +234,7 @@ impl TickLoop {
             shared: None,
             registry: None,
             device_interest: None,
+            admin: None,
         }
     }
 
@@ -246,6 +259,9 @@ impl TickLoop {
     /// final positions to the persister (unless the stop is a simulated crash).
     pub fn run(mut self) {
         tracing::info!(backend = %self.backend.description(), outbound = %self.outbound.description(), "tick loop ready");
+        if let Some(admin) = &self.admin {
+            let _ = admin.shared().backend.set(self.backend.kind().to_string());
+        }
         let persist_every = Duration::from_millis(self.config.persist_interval_ms);
         // One clock for the checkpoints: due every `persist_every` on the tick's clock,
         // never drifting by the tick's length (see `StateSink::checkpoint`).
@@ -275,6 +291,9 @@ impl TickLoop {
                 self.announce_server_info();
             }
             self.publish(&work, elapsed);
+            if let Some(admin) = &mut self.admin {
+                admin.publish(&mut self.sessions, &self.world);
+            }
             if self.window.elapsed() >= Duration::from_secs(1) {
                 let status = self.window.finish(
                     self.world.tick,
@@ -334,6 +353,11 @@ impl TickLoop {
             .collect();
         let timeout = Duration::from_secs_f32(self.config.session_timeout_s);
         left.extend(self.sessions.expire(&mut self.world, now, timeout));
+        // Sessions an operator ended (kick, ban, disable, delete): their Disconnects go
+        // out with this tick's control replies.
+        if let Some(admin) = &mut self.admin {
+            admin.drain(&mut self.sessions, &mut self.world, &mut left);
+        }
         // Accounts that logged in at another server of the cluster since: their sessions
         // here are replaced, as a second login here would replace them.
         if let Some(registry) = &mut self.registry {
@@ -456,6 +480,8 @@ impl TickLoop {
                 if !p.active() {
                     return None;
                 }
+                // The last tick's updates, sent by now (the admin API's bytes/s).
+                p.bytes_sent += p.view.datagrams().total_bytes() as u64;
                 let Some(slot) = dynamics.slot(p.entity) else {
                     missing_entity(p);
                     return None;

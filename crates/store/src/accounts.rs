@@ -115,6 +115,16 @@ impl Store {
         rows.iter().map(account_from_row).collect()
     }
 
+    /// Up to `limit` accounts by id, skipping the first `offset` (the admin API's pages).
+    pub async fn accounts_page(&self, offset: u32, limit: u32) -> Result<Vec<Account>> {
+        let rows = sqlx::query(concat!("SELECT ", account_columns!(), " FROM users ORDER BY id LIMIT ? OFFSET ?"))
+            .bind(i64::from(limit))
+            .bind(i64::from(offset))
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(account_from_row).collect()
+    }
+
     /// One account by name (case-insensitively); `None` if there is none.
     pub async fn account(&self, username: &str) -> Result<Option<Account>> {
         let sql = concat!("SELECT ", account_columns!(), " FROM users WHERE username = ?");

@@ -88,7 +88,8 @@ pub struct BackupReport {
 }
 
 /// Myriad's tables, checked by `CHECK TABLE` on MariaDB.
-const MYRIAD_TABLES: [&str; 6] = ["users", "maps", "player_state", "static_objects", "store_probe", "_sqlx_migrations"];
+const MYRIAD_TABLES: [&str; 7] =
+    ["users", "maps", "player_state", "static_objects", "store_probe", "admin_audit", "_sqlx_migrations"];
 
 /// The SQLite file of `database`, or `None` for MySQL and in-memory databases.
 pub fn sqlite_file(database: &Database) -> Result<Option<PathBuf>> {

@@ -24,6 +24,7 @@
 //! ```
 
 mod accounts;
+mod audit;
 mod config;
 mod error;
 mod integrity;
@@ -37,6 +38,7 @@ mod store;
 mod users;
 
 pub use accounts::{Account, Ban, MAX_BAN_REASON_LEN, validate_ban_reason};
+pub use audit::{AuditEntry, MAX_AUDIT_LIST};
 pub use config::{Database, SQLITE_FILE_NAME, StoreConfig};
 pub use error::{Result, StoreError};
 pub use integrity::{

@@ -28,12 +28,14 @@ const SQLITE_PROBE: &str = include_str!("../migrations/sqlite/0002_probe.sql");
 const MYSQL_PROBE: &str = include_str!("../migrations/mysql/0002_probe.sql");
 const SQLITE_ACCOUNTS: &str = include_str!("../migrations/sqlite/0003_account_control.sql");
 const MYSQL_ACCOUNTS: &str = include_str!("../migrations/mysql/0003_account_control.sql");
+const SQLITE_AUDIT: &str = include_str!("../migrations/sqlite/0004_admin_audit.sql");
+const MYSQL_AUDIT: &str = include_str!("../migrations/mysql/0004_admin_audit.sql");
 
 /// The embedded migrations of one dialect.
 fn migrator(dialect: Dialect) -> Migrator {
-    let (init, probe, accounts) = match dialect {
-        Dialect::Sqlite => (SQLITE_INIT, SQLITE_PROBE, SQLITE_ACCOUNTS),
-        Dialect::MySql => (MYSQL_INIT, MYSQL_PROBE, MYSQL_ACCOUNTS),
+    let (init, probe, accounts, audit) = match dialect {
+        Dialect::Sqlite => (SQLITE_INIT, SQLITE_PROBE, SQLITE_ACCOUNTS, SQLITE_AUDIT),
+        Dialect::MySql => (MYSQL_INIT, MYSQL_PROBE, MYSQL_ACCOUNTS, MYSQL_AUDIT),
     };
     let migration = |version, name, sql: &'static str| {
         Migration::new(version, Cow::Borrowed(name), MigrationType::Simple, sql.into_sql_str(), false)
@@ -42,6 +44,7 @@ fn migrator(dialect: Dialect) -> Migrator {
         migration(1, "init", init),
         migration(2, "probe", probe),
         migration(3, "account_control", accounts),
+        migration(4, "admin_audit", audit),
     ])
 }
 

@@ -18,13 +18,13 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use myriad_protocol::login::{LoginAccepted, MapData};
-use myriad_protocol::{ActionMask, Direction, MAX_DATAGRAM, peek_header};
+use myriad_protocol::{ActionMask, Direction, DisconnectReason, MAX_DATAGRAM, peek_header};
 use tokio::net::UdpSocket;
 use tokio::sync::watch;
 use tokio::task::JoinSet;
 
 use super::{Behaviour, Ctx, FORGET_AFTER, HOLD, SHUTTLE_HOLDS};
-use crate::connection::{Connection, Credentials, Event, login, server_socket};
+use crate::connection::{Connection, Credentials, Event, SessionEnd, login, server_socket};
 use crate::error::ClientError;
 
 /// Receive buffer asked for a group's socket, per bot (two datagrams of a tick and
@@ -292,8 +292,15 @@ async fn on_tick(ctx: &Ctx, p: &mut Player, now: Instant) -> bool {
     if let Err(e) = conn.on_timer(now).await {
         tracing::debug!(bot = p.index, error = %e, "send failed");
     }
-    if conn.ended().is_some() {
-        ctx.state(p.index).connected = false;
+    if let Some(end) = conn.ended() {
+        let mut state = ctx.state(p.index);
+        state.connected = false;
+        match end {
+            SessionEnd::Disconnected(DisconnectReason::Kicked) => state.kicked += 1,
+            SessionEnd::Disconnected(DisconnectReason::Banned) => state.banned += 1,
+            _ => {}
+        }
+        drop(state);
         p.logging_in = true;
         return true;
     }

@@ -126,6 +126,10 @@ struct BotState {
     ticks_missed: u64,
     own_seen: bool,
     error: Option<String>,
+    /// Sessions the server ended with Kicked (an operator).
+    kicked: u64,
+    /// Sessions the server ended with Banned (an operator banned the account).
+    banned: u64,
 }
 
 #[derive(Debug)]
@@ -194,6 +198,10 @@ pub struct SwarmSnapshot {
     pub loss: f64,
     /// One failure message, if any bot failed.
     pub first_error: Option<String>,
+    /// Sessions an operator ended with a kick (the bot logs in again).
+    pub kicked: u64,
+    /// Sessions an operator ended with a ban (the bot's logins are then refused).
+    pub banned: u64,
 }
 
 /// A running swarm.
@@ -274,6 +282,8 @@ impl Swarm {
             s.moves_ok += b.moves_ok;
             s.moves_wrong += b.moves_wrong;
             s.ticks_missed += b.ticks_missed;
+            s.kicked += b.kicked;
+            s.banned += b.banned;
             if s.first_error.is_none() {
                 s.first_error.clone_from(&b.error);
             }

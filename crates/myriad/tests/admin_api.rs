@@ -156,6 +156,34 @@ fn serve_admin_kick_ban_and_audit_through_the_cli() {
     assert!(has("ban", "user1", " ok "), "{audit}");
     assert!(has("kick", "user1", "REFUSED"), "{audit}");
 
+    // The account commands.
+    let accounts = text(&admin(data, &addr, &["accounts"]));
+    assert!(accounts.lines().any(|l| l.contains("user1") && l.contains("banned (cli ban) without end")), "{accounts}");
+    let unban = admin(data, &addr, &["unban", "user1"]);
+    assert!(unban.status.success() && text(&unban).contains("unbanned user1"), "{}", text(&unban));
+    let disable = admin(data, &addr, &["disable", "user1"]);
+    assert!(disable.status.success() && text(&disable).contains("disabled user1"), "{}", text(&disable));
+    assert!(text(&admin(data, &addr, &["accounts", "--limit", "1", "--offset", "1"])).contains("disabled"));
+    let enable = admin(data, &addr, &["enable", "user1"]);
+    assert!(enable.status.success(), "{}", text(&enable));
+    let mut passwd = myriad()
+        .args(["admin", "passwd", "user1", "--data-dir", d, "--addr", &addr])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::io::Write::write_all(&mut passwd.stdin.take().unwrap(), b"another secret\n").unwrap();
+    let passwd = passwd.wait_with_output().unwrap();
+    assert!(passwd.status.success() && text(&passwd).contains("password of user1 changed"), "{}", text(&passwd));
+    let missing = admin(data, &addr, &["delete", "nobody"]);
+    assert!(!missing.status.success() && text(&missing).contains("404"), "{}", text(&missing));
+    let audit = text(&admin(data, &addr, &["audit", "--limit", "100"]));
+    for action in ["unban", "disable", "enable", "password"] {
+        assert!(audit.lines().any(|l| l.contains(&format!(" {action} ")) && l.contains("user1")), "{action}: {audit}");
+    }
+    assert!(!audit.contains("another secret"), "no password in the audit trail");
+
     // The console's address carries the token in its fragment.
     let url = admin(data, &addr, &["console-url"]);
     let token = std::fs::read_to_string(data.join("admin.token")).unwrap();

@@ -37,6 +37,19 @@ fn metric(port: u16, name: &str) -> f64 {
         .sum()
 }
 
+/// `GET path` on a gateway's admin API with its token (from its data directory).
+fn admin_get(g: &Gateway, path: &str) -> serde_json::Value {
+    use std::io::{Read, Write};
+    let token = std::fs::read_to_string(g.data.path().join("admin.token")).unwrap();
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", g.admin)).unwrap();
+    let request = format!("GET {path} HTTP/1.0\r\nHost: x\r\nAuthorization: Bearer {}\r\n\r\n", token.trim());
+    s.write_all(request.as_bytes()).unwrap();
+    let mut answer = String::new();
+    s.read_to_string(&mut answer).unwrap();
+    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    serde_json::from_str(body).unwrap_or_else(|e| panic!("{path}: {e}: {answer}"))
+}
+
 const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
 
 struct Gateway {
@@ -44,6 +57,7 @@ struct Gateway {
     data: tempfile::TempDir,
     login: u16,
     metrics: u16,
+    admin: u16,
 }
 
 fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
@@ -54,19 +68,19 @@ fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
     // cluster (a login at another gateway would replace it).
     let seeded = Command::new(bin).args(["user", "seed", "--count", "24", "--data-dir", d]).output().unwrap();
     assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
-    let (udp, login, metrics) = (free_ports(1), free_ports(1), free_ports(1));
+    let (udp, login, metrics, admin) = (free_ports(1), free_ports(1), free_ports(1), free_ports(1));
     let process = Command::new(bin)
         .args(["gateway", "--nats", url, "--cluster", cluster, "--zones", "2", "--gateway", &index.to_string()])
         .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--data-dir", d])
         .args(["--udp", &format!("127.0.0.1:{udp}"), "--login", &format!("127.0.0.1:{login}")])
-        .args(["--metrics", &format!("127.0.0.1:{metrics}")])
+        .args(["--metrics", &format!("127.0.0.1:{metrics}"), "--admin", &format!("127.0.0.1:{admin}")])
         .env("MYRIAD_CLUSTER_KEY", KEY)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    Gateway { process: Killed(process), data, login, metrics }
+    Gateway { process: Killed(process), data, login, metrics, admin }
 }
 
 fn bots(g: &Gateway, first: u32, seconds: u32) -> Child {
@@ -119,6 +133,11 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     let mut leaving = bots(&gateways[1], 12, 40);
     std::thread::sleep(Duration::from_secs(15));
     assert_eq!(zones("myriad_zone_player_joins_total"), 24.0, "the zones adopted every player's object once");
+    // The gateway's admin API (the server's code path): its role and its players.
+    let state = admin_get(&gateways[0], "/api/state");
+    assert_eq!((&state["role"], state["players"].as_u64()), (&serde_json::json!("gateway"), Some(12)), "{state}");
+    let players = admin_get(&gateways[0], "/api/players");
+    assert_eq!(players.as_array().map(Vec::len), Some(12), "{players}");
     assert_eq!(unsafe { libc::kill(victim, libc::SIGKILL) }, 0);
     std::thread::sleep(Duration::from_secs(15));
     let [g0, mut g1] = gateways;

@@ -162,8 +162,11 @@ fn refusals_are_refused_counted_and_audited() {
     let (status, body) = api.send("POST", "/api/players/user0/kick", Some(&api.token), Some("{not json"));
     assert_eq!(status, 400, "{body}");
     assert_eq!(api.post("/api/players/no%20spaces/kick", json!({})).0, 400);
+    // A name with an escape character: refused, and audited without it (the trail is
+    // printed on terminals).
+    assert_eq!(api.post("/api/players/a%1B%5B31mb/kick", json!({})).0, 400);
     let stats = server.admin_stats();
-    assert_eq!(stats.bad_request, 4, "{stats:?}");
+    assert_eq!(stats.bad_request, 5, "{stats:?}");
     assert_eq!(stats.not_found, 2, "{stats:?}");
 
     // Every refusal is in the audit table, with where it came from and why.
@@ -179,6 +182,7 @@ fn refusals_are_refused_counted_and_audited() {
     assert_eq!(kicks.len(), 1, "{audit:?}");
     assert_eq!((&kicks[0]["ok"], &kicks[0]["actor"]), (&json!(false), &json!("token:tester")));
     assert!(kicks[0]["from"].as_str().unwrap().starts_with("127.0.0.1:"));
+    assert_eq!(entries(&audit, "kick", "a\u{fffd}[31mb").len(), 1, "{audit:?}");
     // Newest first, in RFC 3339.
     assert!(audit[0]["at"].as_str().unwrap().ends_with('Z'));
 

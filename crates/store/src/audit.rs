@@ -39,16 +39,18 @@ pub struct AuditEntry {
     pub ok: bool,
 }
 
-/// `text` cut to at most `max` bytes at a character boundary.
-fn bounded(text: &str, max: usize) -> &str {
-    if text.len() <= max {
-        return text;
+/// `text` with control characters replaced by `�` (an entry is printed on operators'
+/// terminals, where escape sequences would be obeyed, and its target may be any name a
+/// client sent), cut to at most `max` bytes at a character boundary.
+fn bounded(text: &str, max: usize) -> String {
+    let mut out = String::with_capacity(text.len().min(max));
+    for c in text.chars().map(|c| if c.is_control() { char::REPLACEMENT_CHARACTER } else { c }) {
+        if out.len() + c.len_utf8() > max {
+            break;
+        }
+        out.push(c);
     }
-    let mut end = max;
-    while !text.is_char_boundary(end) {
-        end -= 1;
-    }
-    &text[..end]
+    out
 }
 
 impl Store {
@@ -98,10 +100,11 @@ mod tests {
     use super::bounded;
 
     #[test]
-    fn long_text_is_cut_at_a_character_boundary() {
+    fn long_text_is_cut_at_a_character_boundary_and_controls_replaced() {
         assert_eq!(bounded("abc", 3), "abc");
         assert_eq!(bounded("abcd", 3), "abc");
         // "é" is two bytes: a cut inside it backs off to before it.
         assert_eq!(bounded("aé", 2), "a");
+        assert_eq!(bounded("a\u{1b}[31mb\n", 64), "a\u{fffd}[31mb\u{fffd}");
     }
 }

@@ -142,6 +142,8 @@ pub(crate) struct AdminShared {
     wanted_until_ms: AtomicU64,
     /// Milliseconds after `started` when the tick last ended a session for the admin.
     last_change_ms: AtomicU64,
+    /// Microseconds the tick spent on its last snapshot.
+    snapshot_us: AtomicU64,
     pub counters: AdminCounters,
 }
 
@@ -154,6 +156,7 @@ impl AdminShared {
             snapshot: Mutex::new(None),
             wanted_until_ms: AtomicU64::new(0),
             last_change_ms: AtomicU64::new(0),
+            snapshot_us: AtomicU64::new(0),
             counters: AdminCounters::default(),
         }
     }

@@ -129,6 +129,7 @@ async fn server_state(State(s): State<ApiState>) -> Json<Value> {
         "stages_ms": stages,
         "tick_ms": status.tick_ms,
         "uptime_s": s.shared.started.elapsed().as_secs_f64(),
+        "snapshot_ms": s.shared.snapshot_us.load(Ordering::Relaxed) as f64 / 1000.0,
         "role": s.shared.role.name(),
     }))
 }

@@ -114,6 +114,11 @@ impl Publisher {
         let Ok(mut slot) = self.shared.snapshot.try_lock() else { return };
         *slot = Some(Arc::new(Snapshot::take(sessions, world, now)));
         drop(slot);
+        // What a snapshot costs the tick (outside its stages: it runs after the tick's
+        // work is timed, like the checkpoint's hand-over).
+        let took = now.elapsed();
+        self.shared.snapshot_us.store(took.as_micros() as u64, std::sync::atomic::Ordering::Relaxed);
+        metrics::histogram!("myriad_admin_snapshot_duration_seconds").record(took.as_secs_f64());
         self.next = now + SNAPSHOT_EVERY;
     }
 }

@@ -31,7 +31,6 @@ mod plots;
 mod reference;
 mod relay;
 mod replay;
-mod rfc3339;
 mod scenario_args;
 mod serve;
 mod sim;

@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use myriad_store::{Account, UserId, now_ms};
 
 use crate::admin::{StoreArgs, read_password, runtime};
-use crate::rfc3339;
+use myriad_server::admin::rfc3339;
 
 /// `myriad user`.
 #[derive(clap::Subcommand, Debug)]
@@ -157,7 +157,8 @@ pub fn user(cmd: UserCommand) -> Result<()> {
             println!("password of {name} changed");
         }
         UserCommand::Ban { name, reason, until, store } => {
-            let until_ms = until.as_deref().map(rfc3339::parse_ms).transpose().context("--until")?;
+            let until_ms =
+                until.as_deref().map(rfc3339::parse_ms).transpose().map_err(anyhow::Error::msg).context("--until")?;
             let store = store.open(&rt)?;
             rt.block_on(store.ban(&name, &reason, until_ms)).with_context(|| format!("banning {name}"))?;
             rt.block_on(store.close());

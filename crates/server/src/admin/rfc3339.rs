@@ -1,5 +1,6 @@
-//! RFC 3339 times of the admin API, to and from milliseconds since the Unix epoch (the
-//! store's unit), in UTC.
+//! RFC 3339 times of the admin API and of the account commands (`myriad user ban
+//! --until`, `user list`), to and from milliseconds since the Unix epoch (the store's
+//! unit), in UTC.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 

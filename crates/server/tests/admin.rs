@@ -231,6 +231,18 @@ fn refusal(result: Result<Connection, ClientError>) -> RefusalReason {
     }
 }
 
+/// A server with its admin API on loopback, four seeded accounts, a runtime for the
+/// test's clients and their configuration (pinned to the server's certificate).
+fn with_players(dir: &std::path::Path) -> (ServerHandle, Api, tokio::runtime::Runtime, ClientConfig) {
+    let (server, api) = start(dir, "127.0.0.1:0");
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    rt.block_on(server.store().seed_users(4)).unwrap();
+    let trust = Trust::pin_file(server.certificate_path()).unwrap();
+    let mut cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
+    cc.login_timeout = Duration::from_secs(20);
+    (server, api, rt, cc)
+}
+
 fn player<'a>(players: &'a Value, account: &str) -> Option<&'a Value> {
     players.as_array().unwrap().iter().find(|p| p["account"] == account)
 }
@@ -238,12 +250,7 @@ fn player<'a>(players: &'a Value, account: &str) -> Option<&'a Value> {
 #[test]
 fn kick_and_ban_end_sessions_in_play() {
     let dir = tempfile::tempdir().unwrap();
-    let (server, api) = start(dir.path(), "127.0.0.1:0");
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    rt.block_on(server.store().seed_users(4)).unwrap();
-    let trust = Trust::pin_file(server.certificate_path()).unwrap();
-    let mut cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
-    cc.login_timeout = Duration::from_secs(20);
+    let (server, api, rt, cc) = with_players(dir.path());
     rt.block_on(async {
         let mut c0 = in_play(&cc, 0).await;
         let mut c1 = in_play(&cc, 1).await;
@@ -345,12 +352,7 @@ fn kick_and_ban_end_sessions_in_play() {
 #[test]
 fn account_actions_take_effect_and_are_audited() {
     let dir = tempfile::tempdir().unwrap();
-    let (server, api) = start(dir.path(), "127.0.0.1:0");
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    rt.block_on(server.store().seed_users(4)).unwrap();
-    let trust = Trust::pin_file(server.certificate_path()).unwrap();
-    let mut cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
-    cc.login_timeout = Duration::from_secs(20);
+    let (server, api, rt, cc) = with_players(dir.path());
     rt.block_on(async {
         // Disable a player in play: its session ends, its logins are refused; enable.
         let mut c2 = in_play(&cc, 2).await;

@@ -15,9 +15,14 @@ use common::{collect_stderr, free_ports, replay_equal, sim_hash};
 
 const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
 
+/// The two tests run one after the other: each times cut moves against its zones'
+/// progress, and the crowd of the second would slow the first's zones on a small machine.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
     let Some(url) = myriad_testenv::nats_url() else { return };
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let name = format!("rb{}", std::process::id());
     let metrics = format!("127.0.0.1:{}", free_ports(1));
     let world = ["--zones", "2", "--scenario", "1", "--backend", "cpu", "--ticks", "360", "--checkpoint-every", "30"];
@@ -112,6 +117,7 @@ fn a_cut_moved_mid_run_survives_a_killed_zone_and_replays() {
 #[test]
 fn step_times_move_the_cut_toward_the_crowd() {
     let Some(url) = myriad_testenv::nats_url() else { return };
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let name = format!("rs{}", std::process::id());
     // A crowd of 16,000 (the default is 3,000) so that zone 0's step is well over 80 % of
     // the tick budget at 60 Hz while zone 1's is not, even on two cores shared with other

@@ -612,12 +612,12 @@ pub fn run_cluster(args: ClusterArgs) -> Result<()> {
             Event::Cuts { what: Announcement::Refused { decided_at, reason }, .. } => {
                 summary.cut_moves_refused.push(format!("tick {decided_at}: {reason}"))
             }
-            Event::Progress { epoch, tick, loads } => summary.load_samples.push(LoadSample {
+            Event::Progress { epoch, tick, beats } => summary.load_samples.push(LoadSample {
                 epoch: *epoch,
                 at_s: start.elapsed().as_secs_f64(),
                 tick: *tick,
-                step_ms: loads.iter().map(|l| l.map(|l| f64::from(l.step_us) / 1e3)).collect(),
-                owned: loads.iter().map(|l| l.map(|l| l.owned)).collect(),
+                step_ms: beats.iter().map(|b| b.map(|b| f64::from(b.load.step_us) / 1e3)).collect(),
+                owned: beats.iter().map(|b| b.map(|b| b.load.owned)).collect(),
             }),
             Event::Cuts { .. } | Event::Done { .. } => {}
         }

@@ -75,8 +75,9 @@ pub enum Event {
         epoch: u64,
         /// The lowest tick any zone reported.
         tick: u64,
-        /// Each zone's last heartbeat of this epoch, by zone (`None`: not heard in it).
-        loads: Vec<Option<ZoneLoad>>,
+        /// Each zone's last heartbeat of this epoch (its tick and load), by zone
+        /// (`None`: not heard in it).
+        beats: Vec<Option<ZoneBeat>>,
     },
     /// A cut move was announced, every zone applied one, or one was refused (a zone that
     /// steps on other cuts than announced is a [`Event::Fault`]).
@@ -92,19 +93,6 @@ pub enum Event {
         /// The reassembled world's state hash.
         state_hash: u64,
     },
-}
-
-/// A zone's load as its last heartbeat reported it ([`Event::Progress`]): what the
-/// cluster's summary records to show how even the zones are.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ZoneLoad {
-    /// The tick it had reached.
-    pub tick: u64,
-    /// Its step time (own work and physics, not the wait), averaged over about a second,
-    /// in microseconds.
-    pub step_us: u32,
-    /// Objects it owned.
-    pub owned: u32,
 }
 
 /// Reassembles the world at `tick` from every zone's checkpoint and hashes it; the zones'
@@ -289,13 +277,7 @@ pub fn supervise(
         if now - last_progress > Duration::from_millis(500) {
             last_progress = now;
             let tick = last.values().filter(|b| b.run == epoch).map(|b| b.tick).min().unwrap_or(0);
-            let loads = (0..cfg.zones)
-                .map(|z| {
-                    let b = last.get(&ZoneId(z as u16)).filter(|b| b.run == epoch)?;
-                    Some(ZoneLoad { tick: b.tick, step_us: b.load.step_us, owned: b.load.owned })
-                })
-                .collect();
-            on_event(&Event::Progress { epoch, tick, loads });
+            on_event(&Event::Progress { epoch, tick, beats: epoch_beats(cfg, &last, epoch) });
         }
         let done = (0..cfg.zones).all(|z| {
             last.get(&ZoneId(z as u16))
@@ -307,6 +289,17 @@ pub fn supervise(
             return Ok(state_hash);
         }
     }
+}
+
+/// Each zone's latest heartbeat of `epoch`, by zone (`None`: not heard in it): what the
+/// rebalancing looks at and the progress reports.
+fn epoch_beats(cfg: &SupervisorConfig, last: &BTreeMap<ZoneId, Heard>, epoch: u64) -> Vec<Option<ZoneBeat>> {
+    (0..cfg.zones)
+        .map(|z| {
+            let b = last.get(&ZoneId(z as u16)).filter(|b| b.run == epoch)?;
+            Some(ZoneBeat { tick: b.tick, state: b.state, load: b.load })
+        })
+        .collect()
 }
 
 /// One look of the rebalancing at the epoch's heartbeats: publishes what the announcer
@@ -321,15 +314,7 @@ fn rebalance(
     now: f64,
     on_event: &mut dyn FnMut(&Event),
 ) -> Result<Option<String>, ZoneError> {
-    let beats: Vec<Option<ZoneBeat>> = (0..cfg.zones)
-        .map(|z| {
-            last.get(&ZoneId(z as u16)).filter(|b| b.run == epoch).map(|b| ZoneBeat {
-                tick: b.tick,
-                state: b.state,
-                load: b.load,
-            })
-        })
-        .collect();
+    let beats = epoch_beats(cfg, last, epoch);
     let mut fault = None;
     for what in a.observe(now, &beats) {
         match what {

@@ -111,8 +111,10 @@ impl Publisher {
         if now < self.next || !self.shared.wanted() {
             return;
         }
+        // Taken before the lock, so a request reading the last one never waits for it.
+        let snapshot = Arc::new(Snapshot::take(sessions, world, now));
         let Ok(mut slot) = self.shared.snapshot.try_lock() else { return };
-        *slot = Some(Arc::new(Snapshot::take(sessions, world, now)));
+        *slot = Some(snapshot);
         drop(slot);
         // What a snapshot costs the tick (outside its stages: it runs after the tick's
         // work is timed, like the checkpoint's hand-over).

@@ -224,6 +224,29 @@ pub trait Backend: Send {
     /// For each query box, the dynamic objects whose boxes overlap it (touching counts),
     /// at the world's current positions.
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError>;
+
+    /// The cuts between the zones that step the world, for a backend whose step is
+    /// remote (a gateway of a zones cluster): what an operator's map draws. `None` (the
+    /// default): the world is stepped here, in one piece.
+    fn zone_cuts(&self) -> Option<ZoneCuts> {
+        None
+    }
+}
+
+/// How a zones cluster splits the world, as a gateway knows it ([`Backend::zone_cuts`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ZoneCuts {
+    /// Cuts along x, ascending, the world's edges included.
+    pub xs: Vec<f32>,
+    /// Cuts along z, ascending, the world's edges included.
+    pub zs: Vec<f32>,
+    /// The zones' run (epoch) of the world the gateway shows (0: none taken yet).
+    pub run: u64,
+    /// The zones' tick of that world (`None`: none taken yet).
+    pub zone_tick: Option<u64>,
+    /// The zones' tick the cuts took effect at: a cut move's `apply_at`, the tick the
+    /// run started from, or 0 for the layout every cluster starts with.
+    pub since_tick: u64,
 }
 
 /// Creates one of the CPU backends this crate implements (`cpu-naive`, `cpu`).

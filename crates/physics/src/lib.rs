@@ -26,6 +26,6 @@ pub mod narrow;
 mod par;
 pub mod response;
 
-pub use backend::{AoiResults, Backend, BackendKind, Stage, StepReport, create_cpu_backend};
+pub use backend::{AoiResults, Backend, BackendKind, Stage, StepReport, ZoneCuts, create_cpu_backend};
 pub use consts::TickConstants;
 pub use error::PhysicsError;

@@ -162,7 +162,14 @@ pub fn permissions(cluster: &str, role: Role) -> Permissions {
         },
         Role::Gateway => Permissions {
             publish: vec![intents_subject(cluster), sessions_subject(cluster), subscriptions_subject(cluster)],
-            subscribe: vec![states_subject(cluster), sessions_subject(cluster), views_subject(cluster)],
+            // Control and cuts read-only: the gateway's map of the cuts (never routed by).
+            subscribe: vec![
+                states_subject(cluster),
+                sessions_subject(cluster),
+                views_subject(cluster),
+                control_subject(cluster),
+                cuts_subject(cluster),
+            ],
         },
         Role::Supervisor => Permissions {
             publish: [control_subject(cluster), cuts_subject(cluster)]

@@ -71,9 +71,11 @@ fn each_role_hears_only_what_is_addressed_to_it() {
     let c = "c";
     let table: &[(&str, [bool; 4])] = &[
         ("myriad.c.zone.3", [true, true, false, false]),
-        ("myriad.c.control", [true, true, false, false]),
-        // Every zone hears the cut moves; gateways route nothing by the cuts.
-        ("myriad.c.cuts", [true, true, false, false]),
+        // Every zone hears the supervisor's orders and cut moves; gateways hear them
+        // too, for their operators' map of the cuts (they route nothing by them).
+        ("myriad.c.control", [true, true, true, false]),
+        ("myriad.c.cuts", [true, true, true, false]),
+        ("myriad.d.cuts", [false; 4]),
         ("myriad.c.intents", [true, true, false, false]),
         ("myriad.c.heartbeat.0", [false, false, false, true]),
         ("myriad.c.heartbeat.*", [false, false, false, true]),

@@ -36,10 +36,11 @@ use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 
 use myriad_core::{Aabb, EntityId, ObjectState, World};
-use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport, TickConstants};
+use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport, TickConstants, ZoneCuts};
 
 use crate::error::ZoneError;
 use crate::fabric::GatewayLink;
+use crate::gateway_cuts::CutsBook;
 use crate::gateway_view::{Part, ZoneViews};
 use crate::subscription::{Interest, InterestConfig};
 use crate::wire::{
@@ -135,6 +136,9 @@ pub struct GatewayStats {
     pub subscription_bytes_out: u64,
     /// Cells of the subscription after the last step.
     pub subscription_cells: usize,
+    /// New cut moves and starts heard from the supervisor (for the map of the cuts:
+    /// [`crate::gateway_cuts`]; repeats are not counted, refusals are in `rejected`).
+    pub cut_news: u64,
 }
 
 impl GatewayStats {
@@ -160,6 +164,7 @@ impl GatewayStats {
         metrics::counter!("myriad_gateway_subscriptions_total").absolute(self.subscriptions);
         metrics::counter!("myriad_gateway_subscription_bytes_out_total").absolute(self.subscription_bytes_out);
         metrics::gauge!("myriad_gateway_subscription_cells").set(self.subscription_cells as f64);
+        metrics::counter!("myriad_gateway_cut_news_total").absolute(self.cut_news);
     }
 }
 
@@ -227,6 +232,11 @@ pub struct ZonesBackend {
     views: ZoneViews,
     /// The AOI boxes the server queried last (the subscription covers them too).
     boxes: Vec<Aabb>,
+    /// The zones' cuts as the supervisor announced them (made at the first step, from
+    /// the world's bounds; `None` before it, or when the bounds make no layout).
+    cuts: Option<CutsBook>,
+    /// Whether the first step has made `cuts`.
+    cuts_made: bool,
 }
 
 impl ZonesBackend {
@@ -275,6 +285,8 @@ impl ZonesBackend {
             interest,
             views: ZoneViews::default(),
             boxes: Vec::new(),
+            cuts: None,
+            cuts_made: false,
         })
     }
 
@@ -412,6 +424,19 @@ impl ZonesBackend {
         *self.stats.rejected.entry(reason).or_default() += 1;
     }
 
+    /// Counts what the book of cuts made of a start or cut move (`None`: no book yet,
+    /// before the first step: nothing is heard then).
+    fn cut_news(&mut self, taken: Option<Result<bool, &'static str>>) {
+        match taken {
+            Some(Ok(true)) => self.stats.cut_news += 1,
+            Some(Ok(false)) | None => {}
+            Some(Err(reason)) => {
+                tracing::warn!("the supervisor's cuts do not fit the cluster's layout (refused)");
+                self.reject(reason);
+            }
+        }
+    }
+
     /// Files one message of states (mirror) or of a view (by interest); returns nothing,
     /// counts what it refuses.
     fn offer(&mut self, bytes: &[u8]) {
@@ -428,6 +453,16 @@ impl ZonesBackend {
                 let part = Part { base: v.base, objects: v.objects, moves: v.moves, gone: v.gone };
                 ((v.run, v.tick, v.zone, v.part, v.parts), part)
             }
+            // The supervisor's word to the zones, heard for the map of the cuts.
+            (Ok(Message::Start { run, tick, cuts }), _) => {
+                let taken = self.cuts.as_mut().map(|b| b.start(run, tick, cuts).map(|()| true));
+                return self.cut_news(taken);
+            }
+            (Ok(Message::CutMove { run, cut }), _) => {
+                let taken = self.cuts.as_mut().map(|b| b.cut_move(run, cut));
+                return self.cut_news(taken);
+            }
+            (Ok(Message::Halt { .. }), _) => return,
             // The mirror to a gateway that subscribes, or a view to one that does not.
             (Ok(Message::States(_) | Message::View(_)), _) => return self.reject("mode"),
             (Ok(_), _) => return self.reject("kind"),
@@ -622,6 +657,14 @@ impl Backend for ZonesBackend {
     /// it, and the tick still advances by one.
     fn step(&mut self, world: &mut World, _k: &TickConstants) -> Result<StepReport, PhysicsError> {
         let start = Instant::now();
+        if !self.cuts_made {
+            self.cuts_made = true;
+            // Only the operators' map needs it: a world whose bounds make no layout
+            // (the zones would refuse it too) leaves the map without cuts.
+            self.cuts = CutsBook::new(&world.bounds, self.cfg.zones)
+                .inspect_err(|e| tracing::warn!(error = %e, "no layout of the zone cuts for this world"))
+                .ok();
+        }
         let sent = self.send_intents(world).and_then(|()| self.send_subscription(world));
         let taken = self.next_world().and_then(|next| match next {
             Some((tick, objects)) => {
@@ -664,6 +707,12 @@ impl Backend for ZonesBackend {
             self.boxes.extend_from_slice(boxes);
         }
         self.aoi.query_aoi(world, boxes, out)
+    }
+
+    /// The cuts of the zones' world this gateway took last, as the supervisor announced
+    /// them ([`crate::gateway_cuts`]); `None` before the first step.
+    fn zone_cuts(&self) -> Option<ZoneCuts> {
+        Some(self.cuts.as_ref()?.in_force(self.run, self.taken))
     }
 }
 

@@ -29,6 +29,7 @@ pub mod error;
 pub mod fabric;
 pub mod fabric_auth;
 pub mod gateway;
+mod gateway_cuts;
 mod gateway_view;
 pub mod intents;
 pub mod layout;

@@ -2,11 +2,13 @@
 //!
 //! Subjects of cluster `c` (all documented in `docs/zones.md`):
 //! - `myriad.c.zone.<z>`: border states for zone `z`;
-//! - `myriad.c.control`: the supervisor's halt and start, to every zone;
+//! - `myriad.c.control`: the supervisor's halt and start, to every zone (and heard by
+//!   the gateways, for the cuts a run starts from);
 //! - `myriad.c.heartbeat.<z>`: zone `z`'s heartbeat, to the supervisor;
 //! - `myriad.c.states`: every zone's owned objects after each step, to the gateways;
 //! - `myriad.c.intents`: the gateways' players' joins, actions and leaves, to every zone;
-//! - `myriad.c.cuts`: the supervisor's cut moves, to every zone;
+//! - `myriad.c.cuts`: the supervisor's cut moves, to every zone (and heard by the
+//!   gateways, for their operators' map of the cuts);
 //! - `myriad.c.subscriptions`: the gateways' subscriptions (states by interest), to every
 //!   zone;
 //! - `myriad.c.view.<g>`: every zone's view for gateway `g` after each step.
@@ -363,7 +365,8 @@ impl Fabric for NatsFabric {
 }
 
 /// A gateway's endpoint: intents and subscriptions out to every zone, the zones' states
-/// and this gateway's views in.
+/// and this gateway's views in, and the supervisor's starts and cut moves (for the map
+/// of the cuts: `crate::gateway_cuts`).
 pub struct NatsGatewayLink {
     link: NatsLink,
     states: SelectAll<async_nats::Subscriber>,
@@ -372,13 +375,16 @@ pub struct NatsGatewayLink {
 
 impl NatsGatewayLink {
     /// Connects to `url` as gateway `gateway` of `cluster`, presenting `auth`, and
-    /// subscribes to the states subject and its view subject.
+    /// subscribes to the states subject, its view subject, the control and the cuts
+    /// subjects.
     pub fn connect(url: &str, cluster: &str, gateway: u16, auth: &NatsAuth) -> Result<NatsGatewayLink, ZoneError> {
         check_cluster_name(cluster)?;
         let link = NatsLink::connect(url, format!("myriad-{cluster}-gateway-{gateway}"), auth)?;
         let mirror = link.subscribe(states_subject(cluster))?;
         let views = link.subscribe(view_subject(cluster, gateway))?;
-        let states = futures_util::stream::select_all([mirror, views]);
+        let control = link.subscribe(control_subject(cluster))?;
+        let cuts = link.subscribe(cuts_subject(cluster))?;
+        let states = futures_util::stream::select_all([mirror, views, control, cuts]);
         Ok(NatsGatewayLink { link, states, cluster: cluster.to_string() })
     }
 

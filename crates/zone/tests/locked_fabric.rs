@@ -120,6 +120,10 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     let mut claims = other_gateway.subscribe("myriad.c.sessions".into()).unwrap();
     let mut subscriptions = other_zone.subscribe("myriad.c.subscriptions".into()).unwrap();
     let mut views = other_gateway.subscribe("myriad.c.view.3".into()).unwrap();
+    // A gateway hears the supervisor's starts and cut moves (its operators' map of the
+    // cuts), read-only.
+    let mut gateway_control = other_gateway.subscribe("myriad.c.control".into()).unwrap();
+    let mut gateway_cuts = other_gateway.subscribe("myriad.c.cuts".into()).unwrap();
     // A subscription is written to the socket when `subscribe` returns, not yet taken by
     // the server, and these links have no subject of their own to echo a probe on
     // (`NatsLink::echo`): a message published by another link at once could miss it.
@@ -142,8 +146,10 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     assert_eq!(heard(&other_gateway, &mut states), b"states");
     supervisor.publish("myriad.c.control".into(), b"halt".to_vec()).unwrap();
     assert_eq!(heard(&zone, &mut control), b"halt");
+    assert_eq!(heard(&other_gateway, &mut gateway_control), b"halt");
     supervisor.publish("myriad.c.cuts".into(), b"move".to_vec()).unwrap();
     assert_eq!(heard(&other_zone, &mut cuts), b"move");
+    assert_eq!(heard(&other_gateway, &mut gateway_cuts), b"move");
     gateway.publish("myriad.c.subscriptions".into(), b"cells".to_vec()).unwrap();
     assert_eq!(heard(&other_zone, &mut subscriptions), b"cells");
     zone.publish("myriad.c.view.3".into(), b"view".to_vec()).unwrap();
@@ -168,6 +174,8 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     silent(&zone, &mut borders, "a gateway's border state");
     silent(&zone, &mut control, "a gateway's halt");
     silent(&other_zone, &mut cuts, "a gateway's cut move");
+    silent(&other_gateway, &mut gateway_cuts, "a gateway's cut move, to another gateway");
+    silent(&other_gateway, &mut gateway_control, "a gateway's halt, to another gateway");
     silent(&supervisor, &mut beats, "a gateway's heartbeat");
     silent(&other_gateway, &mut states, "a gateway's states");
     silent(&other_gateway, &mut views, "a gateway's view for another gateway");
@@ -186,6 +194,7 @@ fn a_gateway_cannot_speak_for_zones_or_the_supervisor_and_a_zone_cannot_claim() 
     silent(&other_gateway, &mut claims, "a zone's claim");
     silent(&other_zone, &mut intents, "a zone's intents");
     silent(&other_zone, &mut cuts, "a zone's cut move");
+    silent(&other_gateway, &mut gateway_cuts, "a zone's cut move, to a gateway");
     silent(&other_zone, &mut subscriptions, "a zone's subscription");
     let errors = errors_after(&zone, 4);
     assert!(errors.iter().all(|e| e.contains("Permissions Violation for Publish")), "{errors:?}");

@@ -292,7 +292,7 @@ impl TickLoop {
             }
             self.publish(&work, elapsed);
             if let Some(admin) = &mut self.admin {
-                admin.publish(&mut self.sessions, &self.world);
+                admin.publish(&mut self.sessions, &self.world, self.backend.as_ref());
             }
             if self.window.elapsed() >= Duration::from_secs(1) {
                 let status = self.window.finish(

@@ -63,8 +63,9 @@ impl TickAdmin {
         }
     }
 
-    /// Publishes a snapshot if one is wanted and due (see [`Publisher`]).
-    pub(crate) fn publish(&mut self, sessions: &mut Sessions, world: &World) {
-        self.publisher.maybe_publish(sessions, world);
+    /// Publishes a snapshot if one is wanted and due (see [`Publisher`]); `backend`
+    /// gives the zone cuts on a gateway.
+    pub(crate) fn publish(&mut self, sessions: &mut Sessions, world: &World, backend: &dyn myriad_physics::Backend) {
+        self.publisher.maybe_publish(sessions, world, backend);
     }
 }

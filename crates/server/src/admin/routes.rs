@@ -195,7 +195,8 @@ pub(crate) fn query_param(
 }
 
 /// `GET /api/map?cells=N`: the fine grid summed into N×N cells (each fine cell goes
-/// whole to the coarse cell holding its index; exact when N divides 256).
+/// whole to the coarse cell holding its index; exact when N divides 256), and the zone
+/// cuts on a gateway (`null` elsewhere).
 async fn map(
     State(s): State<ApiState>,
     q: Result<Query<HashMap<String, String>>, QueryRejection>,
@@ -210,12 +211,16 @@ async fn map(
     let [min_x, min_z, max_x, max_z] = snap.bounds;
     let players: Vec<Value> =
         snap.players.iter().map(|p| json!({"account": p.account, "x": p.position[0], "z": p.position[2]})).collect();
+    let cuts = snap
+        .cuts
+        .as_ref()
+        .map(|c| json!({"xs": c.xs, "zs": c.zs, "run": c.run, "zone_tick": c.zone_tick, "since_tick": c.since_tick}));
     Ok(Json(json!({
         "bounds": {"min_x": min_x, "min_z": min_z, "max_x": max_x, "max_z": max_z},
         "cells": n,
         "npc_density": density,
         "players": players,
-        "cuts": Value::Null,
+        "cuts": cuts,
         "tick": snap.tick,
     })))
 }

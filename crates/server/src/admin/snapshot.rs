@@ -9,6 +9,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
 use myriad_core::{ObjectKind, World};
+use myriad_physics::{Backend, ZoneCuts};
 
 use super::AdminShared;
 use crate::session::Sessions;
@@ -47,6 +48,8 @@ pub(crate) struct Snapshot {
     /// NPCs per cell of a [`FINE_CELLS`]² grid over `bounds`, row-major (z rows, x
     /// columns).
     pub density: Vec<u32>,
+    /// The zone cuts, on a gateway ([`Backend::zone_cuts`]).
+    pub cuts: Option<ZoneCuts>,
 }
 
 /// The grid cell of coordinate `v` in `[min, max)` split into `cells` (edges clamp in).
@@ -56,9 +59,9 @@ pub(crate) fn cell_of(v: f32, min: f32, max: f32, cells: usize) -> usize {
 }
 
 impl Snapshot {
-    /// Takes a snapshot of `sessions` in `world`; each player's byte rate is over the
-    /// time since its last snapshot (or since it joined).
-    pub(crate) fn take(sessions: &mut Sessions, world: &World, now: Instant) -> Snapshot {
+    /// Takes a snapshot of `sessions` in `world` (split by `cuts`, on a gateway); each
+    /// player's byte rate is over the time since its last snapshot (or since it joined).
+    pub(crate) fn take(sessions: &mut Sessions, world: &World, cuts: Option<ZoneCuts>, now: Instant) -> Snapshot {
         let b = world.bounds;
         let bounds = [b.min.x, b.min.z, b.max.x, b.max.z];
         let mut density = vec![0u32; FINE_CELLS * FINE_CELLS];
@@ -89,7 +92,7 @@ impl Snapshot {
                 }
             })
             .collect();
-        Snapshot { taken: now, tick: world.tick, players, bounds, density }
+        Snapshot { taken: now, tick: world.tick, players, bounds, density, cuts }
     }
 }
 
@@ -106,13 +109,13 @@ impl Publisher {
     }
 
     /// Takes and publishes a snapshot if one is wanted and due; never blocks.
-    pub(crate) fn maybe_publish(&mut self, sessions: &mut Sessions, world: &World) {
+    pub(crate) fn maybe_publish(&mut self, sessions: &mut Sessions, world: &World, backend: &dyn Backend) {
         let now = Instant::now();
         if now < self.next || !self.shared.wanted() {
             return;
         }
         // Taken before the lock, so a request reading the last one never waits for it.
-        let snapshot = Arc::new(Snapshot::take(sessions, world, now));
+        let snapshot = Arc::new(Snapshot::take(sessions, world, backend.zone_cuts(), now));
         let Ok(mut slot) = self.shared.snapshot.try_lock() else { return };
         *slot = Some(snapshot);
         drop(slot);

@@ -5,6 +5,7 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use myriad_physics::{Backend, BackendKind, ZoneCuts, create_cpu_backend};
 use myriad_protocol::DisconnectReason;
 use myriad_store::{MapId, UserId};
 use tokio::sync::{mpsc, oneshot};
@@ -27,21 +28,69 @@ fn a_held_snapshot_lock_skips_the_snapshot_instead_of_waiting() {
     let mut w = world();
     let mut sessions = Sessions::new(4, MapId(1));
     sessions.join(&mut w, UserId(1), "u1".into(), None, CTX).unwrap();
+    let cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
     // Nobody asked: no snapshot is taken at all.
-    admin.publish(&mut sessions, &w);
+    admin.publish(&mut sessions, &w, cpu.as_ref());
     assert!(shared.snapshot.lock().unwrap().is_none());
     shared.want();
     let held = shared.snapshot.lock().unwrap();
     let t = Instant::now();
-    admin.publish(&mut sessions, &w);
+    admin.publish(&mut sessions, &w, cpu.as_ref());
     assert!(t.elapsed() < Duration::from_millis(50), "the tick did not wait for the lock");
     assert!(held.is_none(), "skipped while the lock was held");
     drop(held);
-    admin.publish(&mut sessions, &w);
+    admin.publish(&mut sessions, &w, cpu.as_ref());
     let snap = shared.snapshot.lock().unwrap().clone().expect("published once the lock was free");
     assert_eq!(snap.players.len(), 1);
     assert_eq!(snap.players[0].account, "u1");
     assert_eq!(snap.density.iter().sum::<u32>(), 10, "every NPC counted once");
+    assert_eq!(snap.cuts, None, "a world stepped here has no zone cuts");
+}
+
+/// A backend whose world is split into zones elsewhere (as a gateway's is).
+struct Zoned(Box<dyn Backend>, ZoneCuts);
+
+impl Backend for Zoned {
+    fn kind(&self) -> BackendKind {
+        BackendKind::Zones
+    }
+    fn description(&self) -> String {
+        "zoned".into()
+    }
+    fn step(
+        &mut self,
+        world: &mut myriad_core::World,
+        k: &myriad_physics::TickConstants,
+    ) -> Result<myriad_physics::StepReport, myriad_physics::PhysicsError> {
+        self.0.step(world, k)
+    }
+    fn query_aoi(
+        &mut self,
+        world: &myriad_core::World,
+        boxes: &[myriad_core::Aabb],
+        out: &mut myriad_physics::AoiResults,
+    ) -> Result<(), myriad_physics::PhysicsError> {
+        self.0.query_aoi(world, boxes, out)
+    }
+    fn zone_cuts(&self) -> Option<ZoneCuts> {
+        Some(self.1.clone())
+    }
+}
+
+#[test]
+fn a_snapshot_carries_the_zone_cuts_the_backend_knows() {
+    let shared = Arc::new(AdminShared::new(Role::Gateway));
+    let (_tx, rx) = mpsc::channel(COMMAND_QUEUE);
+    let mut admin = TickAdmin::new(rx, shared.clone());
+    let w = world();
+    let mut sessions = Sessions::new(4, MapId(1));
+    let cuts =
+        ZoneCuts { xs: vec![0.0, 20.0, 64.0], zs: vec![0.0, 64.0], run: 2, zone_tick: Some(140), since_tick: 120 };
+    let zoned = Zoned(create_cpu_backend(BackendKind::Cpu).unwrap(), cuts.clone());
+    shared.want();
+    admin.publish(&mut sessions, &w, &zoned);
+    let snap = shared.snapshot.lock().unwrap().clone().expect("published");
+    assert_eq!(snap.cuts, Some(cuts));
 }
 
 #[test]

@@ -184,8 +184,9 @@ function drawMap(canvas, map) {
     ctx.lineWidth = 2;
     ctx.setLineDash([6, 4]);
     ctx.beginPath();
-    for (const x of map.cuts.xs) { ctx.moveTo(px(x), oy); ctx.lineTo(px(x), oy + h * scale); }
-    for (const z of map.cuts.zs) { ctx.moveTo(ox, pz(z)); ctx.lineTo(ox + w * scale, pz(z)); }
+    // The inner cuts: the first and last of each list are the world's edges.
+    for (const x of map.cuts.xs.slice(1, -1)) { ctx.moveTo(px(x), oy); ctx.lineTo(px(x), oy + h * scale); }
+    for (const z of map.cuts.zs.slice(1, -1)) { ctx.moveTo(ox, pz(z)); ctx.lineTo(ox + w * scale, pz(z)); }
     ctx.stroke();
     ctx.setLineDash([]);
   }
@@ -202,7 +203,8 @@ function drawMap(canvas, map) {
   }
   $("map-caption").textContent =
     `x ${b.min_x.toFixed(0)}…${b.max_x.toFixed(0)}, z ${b.min_z.toFixed(0)}…${b.max_z.toFixed(0)}` +
-    ` · ${map.players.length} players` + (map.cuts ? " · zone cuts shown" : "");
+    ` · ${map.players.length} players` +
+    (map.cuts ? ` · zone cuts since the zones' tick ${map.cuts.since_tick}` : "");
 }
 
 // The player under the pointer, as the canvas's tooltip.

@@ -1,8 +1,11 @@
 //! Issue 29's web console in a real browser: headless Chromium loads the console that
 //! `myriad serve --admin` ships, against the server with bots playing; a screenshot of
 //! the map is checked against the map data the page drew, the players table lists the
-//! bots, and a click on a Kick button ends a player's session with `Kicked` (the test's
-//! own player, through the client library, which then logs in again).
+//! bots, a click on a Kick button ends a player's session with `Kicked` (the test's own
+//! player, through the client library, which then logs in again), and a ban through the
+//! Ban… dialog (a reason and an end time) ends a bot's session with `Banned`, its next
+//! login is refused as banned, and the audit shows the ban. The map draws a gateway's
+//! zone cuts where the API would give them.
 //!
 //! Chromium is Debian's package (`apt-get install chromium`, or `MYRIAD_CHROMIUM=path`);
 //! without it the test skips with a message, unless `MYRIAD_REQUIRE_CHROMIUM=1` (CI).
@@ -20,8 +23,9 @@ use std::time::{Duration, Instant};
 use common::{Killed, collect_stderr, free_ports};
 use headless_chrome::protocol::cdp::Page::CaptureScreenshotFormatOption;
 use headless_chrome::{Browser, LaunchOptions, Tab};
-use myriad_client::{ClientConfig, Connection, Credentials, SessionEnd, Trust};
+use myriad_client::{ClientConfig, ClientError, Connection, Credentials, SessionEnd, Trust};
 use myriad_protocol::DisconnectReason;
+use myriad_protocol::login::RefusalReason;
 
 /// Cheap password hashes for the accounts the commands create (`--set` keys).
 const FAST_HASH: [&str; 6] = ["--set", "hash_memory_kib=64", "--set", "hash_passes=1", "--set", "hash_lanes=1"];
@@ -64,12 +68,15 @@ enum Own {
     Playing(u64),
     /// The server ended the session.
     Ended(SessionEnd),
+    /// The server refused its login (the player stops).
+    Refused(RefusalReason),
     /// Logging in or playing failed.
     Failed(String),
 }
 
 /// The test's own player `user<index>` on a thread: plays (walks in a circle) until the
-/// server ends its session, says why, logs in again and plays on, until `stop`.
+/// server ends its session, says why, logs in again and plays on, until `stop` or until
+/// a login is refused.
 fn own_player(login: SocketAddr, cert: PathBuf, index: usize, stop: Arc<AtomicBool>) -> mpsc::Receiver<Own> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
@@ -84,8 +91,16 @@ fn own_player(login: SocketAddr, cert: PathBuf, index: usize, stop: Arc<AtomicBo
             while !stop.load(Ordering::Relaxed) {
                 if let Some(end) = conn.ended() {
                     let _ = tx.send(Own::Ended(end));
-                    conn.reconnect().await.map_err(|e| e.to_string())?;
-                    let _ = tx.send(Own::Playing(conn.entity_id()));
+                    match conn.reconnect().await {
+                        Ok(()) => {
+                            let _ = tx.send(Own::Playing(conn.entity_id()));
+                        }
+                        Err(ClientError::Refused { reason, .. }) => {
+                            let _ = tx.send(Own::Refused(reason));
+                            return Ok(());
+                        }
+                        Err(e) => return Err(e.to_string()),
+                    }
                 }
                 frame = frame.wrapping_add(1);
                 // Forward, then right, … : a small circle.
@@ -279,8 +294,98 @@ fn the_console_shows_the_world_and_kicks_a_player() {
         eval(&tab, "document.getElementById('error').hidden ? '' : document.getElementById('error').textContent"),
         ""
     );
+
+    ban_through_the_dialog(&tab, &own, &own_name);
+    check_cut_lines(&tab);
     stop.store(true, Ordering::Relaxed);
     eprintln!("console test: {:?}", started.elapsed());
+}
+
+/// Ban through the page: the Ban… button opens the dialog, which takes a reason and an
+/// end a day ahead (local time, as the picker shows it); the player's session ends with
+/// `Banned`, its next login is refused as banned, it leaves the table, and the audit
+/// shows the ban with its reason and end.
+fn ban_through_the_dialog(tab: &Tab, own: &mpsc::Receiver<Own>, account: &str) {
+    click(tab, &format!("button.ban[data-account=\"{account}\"]"));
+    wait_until(tab, "the ban dialog", Duration::from_secs(10), "document.getElementById('ban-dialog').open");
+    assert_eq!(eval(tab, "document.getElementById('ban-account').textContent"), account);
+    tab.find_element("#ban-reason").unwrap().type_into("griefing at spawn").unwrap();
+    // A day ahead in the picker's local time (`YYYY-MM-DDTHH:MM`), and the instant it
+    // names, as the page will send it.
+    let until = eval(
+        tab,
+        "(() => { const d = new Date(Date.now() + 86400000); d.setSeconds(0, 0); \
+         const p = (n) => String(n).padStart(2, '0'); \
+         document.getElementById('ban-until').value = `${d.getFullYear()}-${p(d.getMonth() + 1)}-${p(d.getDate())}T${p(d.getHours())}:${p(d.getMinutes())}`; \
+         return d.toISOString().replace(/\\.\\d{3}Z$/, 'Z'); })()",
+    );
+    click(tab, "#ban-confirm");
+    match next(own, Duration::from_secs(20)) {
+        Own::Ended(SessionEnd::Disconnected(DisconnectReason::Banned)) => {}
+        other => panic!("after the ban the session went on or ended otherwise: {other:?}"),
+    }
+    match next(own, Duration::from_secs(30)) {
+        Own::Refused(RefusalReason::Banned) => {}
+        other => panic!("the banned player's login was not refused as banned: {other:?}"),
+    }
+    wait_until(
+        tab,
+        "the ban's notice",
+        Duration::from_secs(10),
+        &format!("document.getElementById('notice').textContent === 'Banned {account} until {until} and kicked it.'"),
+    );
+    assert_eq!(eval(tab, "String(document.getElementById('ban-dialog').open)"), "false", "the dialog closed");
+    wait_until(
+        tab,
+        "the banned player out of the table",
+        Duration::from_secs(20),
+        &format!("!document.querySelector('#players tbody tr[data-account=\"{account}\"]')"),
+    );
+    let audit: serde_json::Value =
+        serde_json::from_str(&eval(tab, "(async () => JSON.stringify(await api('GET', '/api/audit?limit=20')))()"))
+            .unwrap();
+    let ban = audit.as_array().unwrap().iter().find(|e| e["action"] == "ban" && e["target"] == account);
+    let detail = format!("griefing at spawn (until {until})");
+    assert!(
+        ban.is_some_and(|e| e["ok"] == true && e["detail"] == detail.as_str() && e["actor"] == "token:console"),
+        "the ban is in the audit as {detail:?}: {audit}"
+    );
+    let accounts: serde_json::Value =
+        serde_json::from_str(&eval(tab, "(async () => JSON.stringify(await api('GET', '/api/accounts')))()")).unwrap();
+    let row = accounts.as_array().unwrap().iter().find(|a| a["account"] == account).unwrap();
+    assert_eq!((&row["banned"], &row["banned_until"]), (&serde_json::json!(true), &serde_json::json!(until)), "{row}");
+}
+
+/// The map draws zone cuts (as a gateway's `/api/map` gives them: edges included) as
+/// dashed red lines at the inner cuts, and none at the world's edges: drawn by the
+/// page's own `drawMap` on a canvas of the map's size, from the last map with cuts
+/// added. Each line is counted away from where the other crosses it.
+fn check_cut_lines(tab: &Tab) {
+    let columns: serde_json::Value = serde_json::from_str(&eval(
+        tab,
+        "(() => { const m = JSON.parse(JSON.stringify(state.map)); const b = m.bounds; \
+         const xCut = b.min_x + (b.max_x - b.min_x) * 0.3, zCut = b.min_z + (b.max_z - b.min_z) * 0.6; \
+         m.cuts = {xs: [b.min_x, xCut, b.max_x], zs: [b.min_z, zCut, b.max_z], run: 1, zone_tick: 90, since_tick: 60}; \
+         m.players = []; \
+         const c = document.createElement('canvas'); c.width = $('map').width; c.height = $('map').height; \
+         drawMap(c, m); \
+         const w = b.max_x - b.min_x, h = b.max_z - b.min_z; \
+         const scale = Math.min((c.width - 2) / w, (c.height - 2) / h); \
+         const ox = (c.width - w * scale) / 2, oy = (c.height - h * scale) / 2; \
+         const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \
+         const red = (x, y) => { const i = (Math.floor(y) * c.width + Math.floor(x)) * 4; return d[i] > 200 && d[i + 1] < 120 && d[i + 2] < 120; }; \
+         const px = ox + (xCut - b.min_x) * scale, pz = oy + (b.max_z - zCut) * scale; \
+         const column = (x) => { let n = 0; for (let y = oy + 1; y < oy + h * scale - 1; y++) if (Math.abs(y - pz) > 3 && red(x, y)) n++; return n; }; \
+         const row = (y) => { let n = 0; for (let x = ox + 1; x < ox + w * scale - 1; x++) if (Math.abs(x - px) > 3 && red(x, y)) n++; return n; }; \
+         return JSON.stringify({cut_x: column(px), beside_x: column(px + 12), cut_z: row(pz), beside_z: row(pz + 12), \
+           edge: column(ox + 0.5) + row(oy + 0.5), length: Math.min(w, h) * scale}); })()",
+    ))
+    .unwrap();
+    let n = |k: &str| columns[k].as_f64().unwrap();
+    // Dashes of 6 on, 4 off: well over a third of the line's pixels are wholly red (the
+    // ends of a dash may be blended).
+    assert!(n("cut_x") > n("length") * 0.35 && n("cut_z") > n("length") * 0.35, "the cuts are drawn: {columns}");
+    assert_eq!((n("beside_x"), n("beside_z"), n("edge")), (0.0, 0.0, 0.0), "nothing red off the cuts: {columns}");
 }
 
 /// The map canvas in the screenshot against the data it was drawn from: a player dot at

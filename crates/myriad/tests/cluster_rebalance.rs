@@ -4,16 +4,15 @@
 //! second move is announced again in the new epoch and applied, and the run ends in
 //! `myriad sim`'s hash; `myriad replay` of the epoch after the rollback applies the
 //! logged move at its tick and ends in the live hash.
-//! A second test lets the step-time policy move a cut toward the moving crowd.
+//! A second test lets the step-time policy move a cut toward the moving crowd. A third
+//! checks a gateway's admin API maps the cuts and follows a move.
 //! Needs `NATS_URL` (CI sets it); skips with a message without it.
 
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
-use common::{collect_stderr, free_ports, replay_equal, sim_hash};
-
-const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
+use common::{KEY, Killed, admin_get, collect_stderr, free_ports, gateway, replay_equal, sim_hash};
 
 /// The two tests run one after the other: each times cut moves against its zones'
 /// progress, and the crowd of the second would slow the first's zones on a small machine.
@@ -158,4 +157,55 @@ fn step_times_move_the_cut_toward_the_crowd() {
     assert!(sim.status.success(), "{}", String::from_utf8_lossy(&sim.stderr));
     let s: serde_json::Value = serde_json::from_slice(&sim.stdout).unwrap();
     assert_eq!(v["state_hash"], s["state_hash"], "the end is one process's state");
+}
+
+/// The zone cuts on a gateway's console map: `myriad gateway --admin` of a live cluster
+/// of two zones answers `/api/map` with the cuts every zone starts with (x at 512 on
+/// scenario 1's 1024-unit map), and, once the zones' world it shows is past the tick a
+/// forced move applies at (decided at 450, applied at 480), with the moved cut (530).
+#[test]
+fn a_gateway_maps_the_zone_cuts_and_follows_a_move() {
+    let Some(url) = myriad_testenv::nats_url() else { return };
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let name = format!("rm{}", std::process::id());
+    let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["cluster", "--nats", &url, "--cluster", &name, "--zones", "2", "--live"])
+        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--tick-hz", "30", "--ticks", "100000"])
+        .args(["--rebalance-force", "450:530/", "--rebalance-lead-ticks", "30"])
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = collect_stderr(&mut cluster);
+    let _cluster = Killed(cluster);
+    let g = gateway(&url, &name, 0);
+    // The cuts of the zones' world the gateway shows, once it has taken one.
+    let cuts_at = |limit: Duration, until: &dyn Fn(&serde_json::Value) -> bool| {
+        let start = Instant::now();
+        loop {
+            let map = std::net::TcpStream::connect(("127.0.0.1", g.admin)).ok().map(|_| admin_get(&g, "/api/map"));
+            if let Some(map) = map.filter(|m| m["cuts"]["zone_tick"].is_u64() && until(m)) {
+                return map;
+            }
+            let said: Vec<String> = log.try_iter().collect();
+            assert!(start.elapsed() < limit, "no such map in {limit:?}; the cluster said {said:#?}");
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    };
+    let first = cuts_at(Duration::from_secs(90), &|_| true);
+    let (cuts, b) = (&first["cuts"], &first["bounds"]);
+    let zone_tick = cuts["zone_tick"].as_u64().unwrap();
+    assert!(zone_tick < 480, "the gateway showed no world before the move's tick (a machine this slow?): {first}");
+    assert_eq!(cuts["xs"], serde_json::json!([b["min_x"], 512.0, b["max_x"]]), "{first}");
+    assert_eq!(cuts["zs"], serde_json::json!([b["min_z"], b["max_z"]]), "two zones: one row: {first}");
+    assert!(cuts["run"].as_u64() >= Some(1), "{first}");
+    assert_eq!(cuts["since_tick"].as_u64(), Some(0), "the layout every zone starts with: {first}");
+    let moved = cuts_at(Duration::from_secs(90), &|m| m["cuts"]["zone_tick"].as_u64() >= Some(481));
+    let cuts = &moved["cuts"];
+    assert_eq!(cuts["xs"], serde_json::json!([b["min_x"], 530.0, b["max_x"]]), "{moved}");
+    assert_eq!(cuts["zs"], first["cuts"]["zs"], "{moved}");
+    assert_eq!(cuts["since_tick"].as_u64(), Some(480), "{moved}");
+    eprintln!("the gateway's cuts: {} then {}", first["cuts"], moved["cuts"]);
 }

@@ -171,7 +171,7 @@ fn table_accounts(tab: &Tab) -> Vec<String> {
 }
 
 #[test]
-fn the_console_shows_the_world_and_kicks_a_player() {
+fn the_console_shows_the_world_kicks_and_bans_players() {
     let Some(chrome) = chromium() else { return };
     let started = Instant::now();
     let tmp = tempfile::tempdir().unwrap();

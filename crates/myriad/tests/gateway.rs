@@ -18,70 +18,9 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
-use common::{Killed, collect_stderr, free_ports, free_ports_at, replay_equal};
-
-/// The sum of a metric's samples (all label sets) on a Prometheus endpoint.
-fn metric(port: u16, name: &str) -> f64 {
-    let body = (|| -> std::io::Result<String> {
-        use std::io::{Read, Write};
-        let mut s = std::net::TcpStream::connect(("127.0.0.1", port))?;
-        s.write_all(b"GET /metrics HTTP/1.0\r\nHost: x\r\n\r\n")?;
-        let mut body = String::new();
-        s.read_to_string(&mut body)?;
-        Ok(body)
-    })()
-    .unwrap_or_default();
-    body.lines()
-        .filter(|l| l.starts_with(name) && l[name.len()..].starts_with([' ', '{']))
-        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
-        .sum()
-}
-
-/// `GET path` on a gateway's admin API with its token (from its data directory).
-fn admin_get(g: &Gateway, path: &str) -> serde_json::Value {
-    use std::io::{Read, Write};
-    let token = std::fs::read_to_string(g.data.path().join("admin.token")).unwrap();
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", g.admin)).unwrap();
-    let request = format!("GET {path} HTTP/1.0\r\nHost: x\r\nAuthorization: Bearer {}\r\n\r\n", token.trim());
-    s.write_all(request.as_bytes()).unwrap();
-    let mut answer = String::new();
-    s.read_to_string(&mut answer).unwrap();
-    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b);
-    serde_json::from_str(body).unwrap_or_else(|e| panic!("{path}: {e}: {answer}"))
-}
-
-const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
-
-struct Gateway {
-    process: Killed,
-    data: tempfile::TempDir,
-    login: u16,
-    metrics: u16,
-    admin: u16,
-}
-
-fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
-    let bin = env!("CARGO_BIN_EXE_myriad");
-    let data = tempfile::tempdir().unwrap();
-    let d = data.path().to_str().unwrap();
-    // Gateway g's bots are user(12g) .. user(12g + 11): one account, one session in the
-    // cluster (a login at another gateway would replace it).
-    let seeded = Command::new(bin).args(["user", "seed", "--count", "24", "--data-dir", d]).output().unwrap();
-    assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
-    let (udp, login, metrics, admin) = (free_ports(1), free_ports(1), free_ports(1), free_ports(1));
-    let process = Command::new(bin)
-        .args(["gateway", "--nats", url, "--cluster", cluster, "--zones", "2", "--gateway", &index.to_string()])
-        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--data-dir", d])
-        .args(["--udp", &format!("127.0.0.1:{udp}"), "--login", &format!("127.0.0.1:{login}")])
-        .args(["--metrics", &format!("127.0.0.1:{metrics}"), "--admin", &format!("127.0.0.1:{admin}")])
-        .env("MYRIAD_CLUSTER_KEY", KEY)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    Gateway { process: Killed(process), data, login, metrics, admin }
-}
+use common::{
+    Gateway, KEY, Killed, admin_get, collect_stderr, free_ports, free_ports_at, gateway, metric, replay_equal,
+};
 
 fn bots(g: &Gateway, first: u32, seconds: u32) -> Child {
     Command::new(env!("CARGO_BIN_EXE_myriad"))

@@ -1,9 +1,10 @@
 //! What the cluster tests share: children killed with the test, their standard error on
-//! a thread, free ports, one process's hash to compare with, and a replay checked equal.
+//! a thread, free ports, one process's hash to compare with, a replay checked equal, and
+//! gateways with their metrics and admin API.
 #![allow(dead_code)]
 
 use std::io::{BufRead, BufReader};
-use std::process::{Child, Command};
+use std::process::{Child, Command, Stdio};
 
 /// A child process killed (and reaped) when the test ends, however it ends.
 pub struct Killed(pub Child);
@@ -80,4 +81,71 @@ pub fn replay_equal(url: &str, name: &str, key: &str, args: &[&str]) -> serde_js
     eprintln!("replay: {r}");
     assert_eq!(r["equal"], true, "{r}");
     r
+}
+
+/// The sum of a metric's samples (all label sets) on a Prometheus endpoint.
+pub fn metric(port: u16, name: &str) -> f64 {
+    let body = (|| -> std::io::Result<String> {
+        use std::io::{Read, Write};
+        let mut s = std::net::TcpStream::connect(("127.0.0.1", port))?;
+        s.write_all(b"GET /metrics HTTP/1.0\r\nHost: x\r\n\r\n")?;
+        let mut body = String::new();
+        s.read_to_string(&mut body)?;
+        Ok(body)
+    })()
+    .unwrap_or_default();
+    body.lines()
+        .filter(|l| l.starts_with(name) && l[name.len()..].starts_with([' ', '{']))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
+}
+
+/// `GET path` on a gateway's admin API with its token (from its data directory).
+pub fn admin_get(g: &Gateway, path: &str) -> serde_json::Value {
+    use std::io::{Read, Write};
+    let token = std::fs::read_to_string(g.data.path().join("admin.token")).unwrap();
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", g.admin)).unwrap();
+    let request = format!("GET {path} HTTP/1.0\r\nHost: x\r\nAuthorization: Bearer {}\r\n\r\n", token.trim());
+    s.write_all(request.as_bytes()).unwrap();
+    let mut answer = String::new();
+    s.read_to_string(&mut answer).unwrap();
+    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    serde_json::from_str(body).unwrap_or_else(|e| panic!("{path}: {e}: {answer}"))
+}
+
+/// The cluster key of the cluster tests.
+pub const KEY: &str = "a-test-key-of-more-than-sixteen-bytes";
+
+/// A `myriad gateway` of the tests' clusters (two zones, scenario 1, seed 1), with its
+/// metrics and admin API, killed with the test.
+pub struct Gateway {
+    pub process: Killed,
+    pub data: tempfile::TempDir,
+    pub login: u16,
+    pub metrics: u16,
+    pub admin: u16,
+}
+
+/// Starts gateway `index` of `cluster` (24 accounts seeded in its data directory).
+pub fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
+    let bin = env!("CARGO_BIN_EXE_myriad");
+    let data = tempfile::tempdir().unwrap();
+    let d = data.path().to_str().unwrap();
+    // Gateway g's bots are user(12g) .. user(12g + 11): one account, one session in the
+    // cluster (a login at another gateway would replace it).
+    let seeded = Command::new(bin).args(["user", "seed", "--count", "24", "--data-dir", d]).output().unwrap();
+    assert!(seeded.status.success(), "{}", String::from_utf8_lossy(&seeded.stderr));
+    let (udp, login, metrics, admin) = (free_ports(1), free_ports(1), free_ports(1), free_ports(1));
+    let process = Command::new(bin)
+        .args(["gateway", "--nats", url, "--cluster", cluster, "--zones", "2", "--gateway", &index.to_string()])
+        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--data-dir", d])
+        .args(["--udp", &format!("127.0.0.1:{udp}"), "--login", &format!("127.0.0.1:{login}")])
+        .args(["--metrics", &format!("127.0.0.1:{metrics}"), "--admin", &format!("127.0.0.1:{admin}")])
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    Gateway { process: Killed(process), data, login, metrics, admin }
 }

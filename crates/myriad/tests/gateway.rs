@@ -19,7 +19,8 @@ use std::time::{Duration, Instant};
 
 mod common;
 use common::{
-    Gateway, KEY, Killed, admin_get, collect_stderr, free_ports, free_ports_at, gateway, metric, replay_equal,
+    Gateway, KEY, Killed, admin_get, collect_stderr, free_ports, free_ports_at, gateway, live_cluster, metric,
+    replay_equal,
 };
 
 fn bots(g: &Gateway, first: u32, seconds: u32) -> Child {
@@ -40,19 +41,18 @@ fn bots_walk_across_zones_through_gateways_that_outlive_a_rollback() {
     let cluster_name = format!("gw{}", std::process::id());
     let zone_metrics = free_ports(2);
     // The zone metrics are on zone_metrics + zone index.
-    let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
-        .args(["cluster", "--nats", &url, "--cluster", &cluster_name, "--zones", "2", "--live"])
-        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--tick-hz", "30", "--ticks", "6000"])
-        .args(["--checkpoint-every", "30", "--dead-ms", "1000", "--metrics-base-port", &zone_metrics.to_string()])
-        .args(["--keep-checkpoints", "400"])
-        .env("MYRIAD_CLUSTER_KEY", KEY)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let rx = collect_stderr(&mut cluster);
-    let cluster = Killed(cluster);
+    let metrics_port = zone_metrics.to_string();
+    let extra = [
+        "--checkpoint-every",
+        "30",
+        "--dead-ms",
+        "1000",
+        "--metrics-base-port",
+        &metrics_port,
+        "--keep-checkpoints",
+        "400",
+    ];
+    let (cluster, rx) = live_cluster(&url, &cluster_name, 6000, &extra);
     let gateways = [gateway(&url, &cluster_name, 0), gateway(&url, &cluster_name, 1)];
     // The gateways are up once they have taken worlds from the zones.
     let start = Instant::now();

@@ -126,6 +126,24 @@ pub struct Gateway {
     pub admin: u16,
 }
 
+/// Starts `myriad cluster --live` named `name` on `url`: two zones of scenario 1 (seed
+/// 1, cpu) at 30 Hz for `ticks` ticks, with `extra` arguments; killed with the test, its
+/// standard error on the receiver.
+pub fn live_cluster(url: &str, name: &str, ticks: u64, extra: &[&str]) -> (Killed, std::sync::mpsc::Receiver<String>) {
+    let mut cluster = Command::new(env!("CARGO_BIN_EXE_myriad"))
+        .args(["cluster", "--nats", url, "--cluster", name, "--zones", "2", "--live"])
+        .args(["--scenario", "1", "--seed", "1", "--backend", "cpu", "--tick-hz", "30", "--ticks", &ticks.to_string()])
+        .args(extra)
+        .env("MYRIAD_CLUSTER_KEY", KEY)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = collect_stderr(&mut cluster);
+    (Killed(cluster), log)
+}
+
 /// Starts gateway `index` of `cluster` (24 accounts seeded in its data directory).
 pub fn gateway(url: &str, cluster: &str, index: u16) -> Gateway {
     let bin = env!("CARGO_BIN_EXE_myriad");

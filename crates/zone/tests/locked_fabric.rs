@@ -3,7 +3,8 @@
 //! control, cut moves, states, views or checkpoints (the server refuses, nothing reaches
 //! the zones); a zone's cannot publish claims, intents, cut moves, subscriptions or
 //! another zone's heartbeat; the legitimate flows (zones over NATS, the checkpoint
-//! store, subscriptions and views by role) still work; a wrong password is refused;
+//! store, subscriptions and views by role, the supervisor's halt and cut move heard by a
+//! gateway too) still work; a wrong password is refused;
 //! `tls://` works with the
 //! cluster's authority. Needs the `nats-server` program; skips with a message without it,
 //! fails under `MYRIAD_REQUIRE_NATS=1`.

@@ -19,7 +19,7 @@
 # step-time policy, on cpu and on cuda (REBALANCE_BACKENDS, default "cpu cuda").
 # MODE=million runs a million-object live world with gateways and bots
 # (scripts/million-live.sh: 4 zones on the GPU, 2 gateways, 200 bots; MILLION_SECONDS,
-# MILLION_DYNAMIC).
+# MILLION_RUNS: "DYNAMIC:MAP ...", default "1000000:3", or MILLION_DYNAMIC on map 3).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -272,10 +272,13 @@ if [[ $mode == million ]]; then
         .carry/nats-server -a 127.0.0.1 -p 4222 -js -sd /tmp/myriad-nats >/dev/null 2>&1 &
         ml_nats=$!
         sleep 1
-        bash scripts/million-live.sh -b .carry/myriad -d "${MILLION_SECONDS:-60}" -n "${MILLION_DYNAMIC:-1000000}" \
-            -o "$out/million" 2>&1 |
-            tee "$out/million.log"
-        [[ ${PIPESTATUS[0]} == 0 ]] || fail "million-live failed"
+        # One run per "DYNAMIC:MAP" of MILLION_RUNS (MAP: the reference scenario whose
+        # map, statics and users the world has).
+        for run in ${MILLION_RUNS:-${MILLION_DYNAMIC:-1000000}:3}; do
+            echo "=== ${run%%:*} dynamic objects on scenario ${run##*:}'s map"
+            bash scripts/million-live.sh -b .carry/myriad -d "${MILLION_SECONDS:-60}" -n "${run%%:*}" -s "${run##*:}" \
+                -o "$out/million-${run%%:*}" 2>&1 || fail "million-live $run failed"
+        done | tee "$out/million.log"
         kill "$ml_nats"
     else
         fail "million: no .carry/nats-server"

@@ -74,7 +74,8 @@ snap() {
       echo "zone $z $n $(m $((MPORT + z)) "$n")"; done; done
   for g in $(seq 0 $((G - 1))); do
     for n in myriad_gateway_mirrors_total myriad_gateway_zone_bytes_in_total myriad_bytes_sent_total \
-      myriad_gateway_player_handoffs_total myriad_gateway_subscription_cells myriad_gateway_rollbacks_total; do
+      myriad_gateway_player_handoffs_total myriad_gateway_subscription_cells myriad_gateway_rollbacks_total \
+      myriad_gateway_zone_objects_in_total myriad_gateway_zone_nudges_in_total myriad_gateway_held_objects; do
       echo "gateway $g $n $(m $((MPORT + 100 + g)) "$n")"; done; done
 }
 sleep 10; snap >"$DIR/a"; T0=$(date +%s.%N)
@@ -112,7 +113,9 @@ for i in range(g):
     print(f"gateway {i}: {delta(k('myriad_gateway_mirrors_total')) / dt:.1f} worlds/s, in from zones {bin_ / dt / 1e6:.2f} MB/s,"
           f" out to players {bout / dt / 1e6:.2f} MB/s (in/out {bin_ / max(bout, 1):.2f}),"
           f" {delta(k('myriad_gateway_player_handoffs_total')):.0f} player hand-offs,"
-          f" {b[k('myriad_gateway_subscription_cells')]:.0f} cells, {b[k('myriad_gateway_rollbacks_total')]:.0f} rollbacks")
+          f" {b[k('myriad_gateway_subscription_cells')]:.0f} cells, {b[k('myriad_gateway_rollbacks_total')]:.0f} rollbacks,"
+          f" holds {b[k('myriad_gateway_held_objects')]:.0f} objects, records in {delta(k('myriad_gateway_zone_objects_in_total')) / dt:.0f}/s"
+          f" ({delta(k('myriad_gateway_zone_nudges_in_total')) / dt:.0f} nudges)")
 for i in range(g):
     final = [json.loads(l) for l in open(f"{d}/bots{i}.json") if '"final"' in l]
     print(f"bots on gateway {i}: {json.dumps(final[-1]) if final else 'no final line'}")

@@ -237,7 +237,9 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
 /// Measures a gateway's bytes in from the zones against its bytes out to its players,
 /// mirror and by interest, at scenario 2's density (55,000 dynamic objects a 1,024²
 /// map) over `MYRIAD_MEASURE_SCALE` (1) times its area, with `MYRIAD_MEASURE_PLAYERS`
-/// (100) players spread over the map, each walking one way and turning every two
+/// (100) players spread over the map (or over the square of side
+/// `MYRIAD_MEASURE_SPREAD` at its corner: the same players, at the same places, in a
+/// larger world), each walking one way and turning every two
 /// seconds, for `MYRIAD_MEASURE_TICKS` (120) ticks, the first 30 left out; cells of
 /// `MYRIAD_MEASURE_CELL` (the AOI size), a margin for `MYRIAD_MEASURE_LAG` (8) ticks of
 /// lag at the zones' max step (2). Prints one
@@ -258,6 +260,7 @@ fn measure_bytes_in_against_bytes_out() {
         .map_size(side, side as u32 + 1);
     let world = spec.build().unwrap();
     let aoi = ServerConfig::default().aoi_size;
+    let spread_side: f32 = env_or("MYRIAD_MEASURE_SPREAD", side);
     // Spread over the map (a fixed sequence, so both modes get the same players).
     let spread = move |_: &ZoneLayout| {
         let mut x = 0x9e37_79b9_u32;
@@ -267,7 +270,7 @@ fn measure_bytes_in_against_bytes_out() {
             x ^= x << 5;
             0.05 + 0.9 * (x as f32 / u32::MAX as f32)
         };
-        (0..count).map(|_| (next() * side, next() * side)).collect()
+        (0..count).map(|_| (next() * spread_side, next() * spread_side)).collect()
     };
     let walk = move |ids: &[myriad_core::EntityId]| {
         let ways = [Action::RIGHT, Action::FORWARD | Action::RIGHT, Action::FORWARD, Action::LEFT, Action::BACK];
@@ -298,11 +301,13 @@ fn measure_bytes_in_against_bytes_out() {
         let bytes_out = o.run.bytes_out[warm..].iter().sum::<u64>() as f64 / (o.run.bytes_out.len() - warm) as f64;
         println!(
             "scale {scale} ({side} units, {} objects), {count} players, cell {cell}, lag {lag}, {mode}: \
-             in {:.0} B/tick ({objects_in:.0} records), out {bytes_out:.0} B/tick, in/out {:.2}, cells {}, wall {:.0} s",
+             in {:.0} B/tick ({objects_in:.0} records), out {bytes_out:.0} B/tick, in/out {:.2}, cells {}, \
+             held {} objects, wall {:.0} s",
             world.dynamics.len(),
             bytes_in,
             bytes_in / bytes_out,
             b.subscription_cells,
+            b.held_objects,
             started.elapsed().as_secs_f64()
         );
         assert_eq!(o.run.updates_without_own, 0);

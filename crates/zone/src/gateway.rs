@@ -41,7 +41,7 @@ use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport,
 use crate::error::ZoneError;
 use crate::fabric::GatewayLink;
 use crate::gateway_cuts::CutsBook;
-use crate::gateway_view::{Part, ZoneViews};
+use crate::gateway_view::{Applicable, Part, ZoneViews};
 use crate::subscription::{Interest, InterestConfig};
 use crate::wire::{
     ClusterKey, IntentKind, Intents, Message, Subscription, decode, encode_intents, encode_subscription,
@@ -130,6 +130,8 @@ pub struct GatewayStats {
     pub zone_objects_in: u64,
     /// Ids of objects the zones' views said were gone (states by interest).
     pub zone_gone_in: u64,
+    /// Of the object records in, the nudges (positions as changes from a base tick).
+    pub zone_nudges_in: u64,
     /// Subscriptions sent (one a step, states by interest).
     pub subscriptions: u64,
     /// Their bytes.
@@ -139,6 +141,9 @@ pub struct GatewayStats {
     /// New cut moves and starts heard from the supervisor (for the map of the cuts:
     /// [`crate::gateway_cuts`]; repeats are not counted, refusals are in `rejected`).
     pub cut_news: u64,
+    /// Objects of the zones' world as last taken: what the gateway holds (by interest,
+    /// only those its players can see), the larger part of its memory.
+    pub held_objects: usize,
 }
 
 impl GatewayStats {
@@ -161,10 +166,12 @@ impl GatewayStats {
         metrics::counter!("myriad_gateway_zone_bytes_in_total").absolute(self.zone_bytes_in);
         metrics::counter!("myriad_gateway_zone_objects_in_total").absolute(self.zone_objects_in);
         metrics::counter!("myriad_gateway_zone_gone_in_total").absolute(self.zone_gone_in);
+        metrics::counter!("myriad_gateway_zone_nudges_in_total").absolute(self.zone_nudges_in);
         metrics::counter!("myriad_gateway_subscriptions_total").absolute(self.subscriptions);
         metrics::counter!("myriad_gateway_subscription_bytes_out_total").absolute(self.subscription_bytes_out);
         metrics::gauge!("myriad_gateway_subscription_cells").set(self.subscription_cells as f64);
         metrics::counter!("myriad_gateway_cut_news_total").absolute(self.cut_news);
+        metrics::gauge!("myriad_gateway_held_objects").set(self.held_objects as f64);
     }
 }
 
@@ -443,14 +450,14 @@ impl ZonesBackend {
         let (m, part) = match (decode(&self.cfg.key, bytes), self.interest.is_some()) {
             (Ok(Message::States(m)), false) => {
                 let objects = m.objects.iter().map(|r| r.state).collect();
-                let part = Part { base: None, objects, moves: Vec::new(), gone: Vec::new() };
+                let part = Part { base: None, objects, ..Part::default() };
                 ((m.run, m.tick, m.from, m.part, m.parts), part)
             }
             (Ok(Message::View(v)), true) => {
                 if v.gateway != self.cfg.gateway {
                     return self.reject("misrouted");
                 }
-                let part = Part { base: v.base, objects: v.objects, moves: v.moves, gone: v.gone };
+                let part = Part { base: v.base, objects: v.objects, moves: v.moves, nudges: v.nudges, gone: v.gone };
                 ((v.run, v.tick, v.zone, v.part, v.parts), part)
             }
             // The supervisor's word to the zones, heard for the map of the cuts.
@@ -503,8 +510,9 @@ impl ZonesBackend {
             return self.reject("replayed");
         }
         self.stats.zone_bytes_in += bytes.len() as u64;
-        self.stats.zone_objects_in += (part.objects.len() + part.moves.len()) as u64;
+        self.stats.zone_objects_in += (part.objects.len() + part.moves.len() + part.nudges.len()) as u64;
         self.stats.zone_gone_in += part.gone.len() as u64;
+        self.stats.zone_nudges_in += part.nudges.len() as u64;
         got.insert(part_no, part);
         while self.pending.len() > PENDING_TICKS {
             self.pending.pop_first();
@@ -522,7 +530,16 @@ impl ZonesBackend {
         let parts = self.pending.pop_first().expect("the complete tick").1;
         let zones: Vec<(u16, Vec<Part>)> =
             parts.zones.into_iter().map(|(z, (_, got))| (z, got.into_values().collect())).collect();
-        if !zones.iter().all(|(_, p)| ZoneViews::applicable(p, self.taken)) {
+        let verdicts: Vec<Applicable> = zones.iter().map(|(z, p)| self.views.applicable(*z, p, self.taken)).collect();
+        if verdicts.contains(&Applicable::Lost) {
+            // Nudges from positions this gateway no longer has: start again from whole
+            // views (the next subscription confirms nothing).
+            self.reject("nudge_base");
+            self.views.clear();
+            self.taken = None;
+            return None;
+        }
+        if verdicts.contains(&Applicable::Ahead) {
             // Changes since a tick this gateway does not hold: never sent to a gateway
             // that confirmed what it holds (a zone sends whole views until then).
             self.reject("base");
@@ -538,7 +555,9 @@ impl ZonesBackend {
         let before = all.len();
         all.dedup_by_key(|(o, _)| o.id);
         self.stats.duplicates += (before - all.len()) as u64;
+        self.stats.held_objects = all.len();
         self.taken = Some(tick);
+        self.views.remember(tick);
         Some((tick, all))
     }
 

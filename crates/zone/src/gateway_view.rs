@@ -1,10 +1,14 @@
 //! What a gateway holds of each zone: the objects of the zone's last view it took, which
 //! the next view changes (states by interest, [`crate::views`]), or replaces (a whole
-//! view, and every mirror's states message).
+//! view, and every mirror's states message); and the positions it held at the ticks it
+//! took in the last [`NUDGE_WINDOW`], the bases a view's nudges start from.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 
 use myriad_core::{EntityId, ObjectState, Vec3};
+
+use crate::views::{NUDGE_WINDOW, Positions, position_in};
+use crate::wire::Nudge;
 
 /// One part of a zone's message of one tick, as the gateway files it.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -16,34 +20,61 @@ pub(crate) struct Part {
     pub objects: Vec<ObjectState>,
     /// New positions of objects held.
     pub moves: Vec<(EntityId, Vec3)>,
+    /// New positions of objects held, from their positions at `base`.
+    pub nudges: Vec<Nudge>,
     /// Ids to drop.
     pub gone: Vec<EntityId>,
+}
+
+/// Whether a zone's parts of one tick can be applied.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Applicable {
+    /// Yes.
+    Yes,
+    /// Changes since a tick the gateway has not reached (never sent to a gateway that
+    /// confirmed what it holds).
+    Ahead,
+    /// Nudges from a tick whose positions the gateway no longer has (a zone nudges only
+    /// from bases within [`NUDGE_WINDOW`], which the gateway keeps): only whole views
+    /// can bring it back.
+    Lost,
 }
 
 /// Each zone's objects, as the gateway holds them.
 #[derive(Debug, Default)]
 pub(crate) struct ZoneViews {
     zones: BTreeMap<u16, BTreeMap<EntityId, ObjectState>>,
+    /// Per zone, the positions held after each tick taken in the window (oldest first).
+    history: BTreeMap<u16, VecDeque<(u64, Positions)>>,
 }
 
 impl ZoneViews {
     /// Forgets everything (a new run of the zones: only whole views apply now).
     pub fn clear(&mut self) {
         self.zones.clear();
+        self.history.clear();
     }
 
-    /// Whether a zone's parts of one tick can be applied on what the gateway holds, the
-    /// zones' tick `taken` (none: nothing of this run): a whole view always; changes
-    /// since a tick the gateway has reached.
-    pub fn applicable(parts: &[Part], taken: Option<u64>) -> bool {
-        parts.iter().all(|p| p.base.is_none_or(|c| taken.is_some_and(|t| c <= t)))
+    /// Whether zone `zone`'s parts of one tick can be applied on what the gateway holds,
+    /// the zones' tick `taken` (none: nothing of this run): a whole view always; changes
+    /// since a tick the gateway has reached, and nudges from one whose positions it kept.
+    pub fn applicable(&self, zone: u16, parts: &[Part], taken: Option<u64>) -> Applicable {
+        if !parts.iter().all(|p| p.base.is_none_or(|c| taken.is_some_and(|t| c <= t))) {
+            return Applicable::Ahead;
+        }
+        let kept = |c: u64| self.history.get(&zone).is_some_and(|h| h.iter().any(|(t, _)| *t == c));
+        match parts.iter().all(|p| p.nudges.is_empty() || p.base.is_some_and(kept)) {
+            true => Applicable::Yes,
+            false => Applicable::Lost,
+        }
     }
 
-    /// Applies zone `zone`'s parts of one tick (all of the same base); returns how many
-    /// moves named an object not held (ignored: never sent to a gateway that holds what
-    /// it confirmed).
+    /// Applies zone `zone`'s parts of one tick (all of the same base; checked with
+    /// [`ZoneViews::applicable`]); returns how many moves or nudges named an object not
+    /// held (ignored: never sent to a gateway that holds what it confirmed).
     pub fn apply(&mut self, zone: u16, parts: Vec<Part>) -> u64 {
         let held = self.zones.entry(zone).or_default();
+        let history = self.history.get(&zone);
         let mut parts = parts.into_iter().peekable();
         if parts.peek().is_some_and(|p| p.base.is_none()) {
             // Whole: built at once from the sorted records.
@@ -62,8 +93,32 @@ impl ZoneViews {
                     None => unknown += 1,
                 }
             }
+            let at_base = p.base.and_then(|c| history?.iter().find(|(t, _)| *t == c)).map(|(_, at)| &at[..]);
+            for n in p.nudges {
+                match (held.get_mut(&n.id), at_base.and_then(|at| position_in(at, n.id))) {
+                    (Some(o), Some(from)) => o.pos = n.apply(from),
+                    _ => unknown += 1,
+                }
+            }
         }
         unknown
+    }
+
+    /// After taking tick `tick`: keeps every zone's positions of it (the base of later
+    /// nudges) and drops those older than the window.
+    pub fn remember(&mut self, tick: u64) {
+        for (&zone, held) in &self.zones {
+            let h = self.history.entry(zone).or_default();
+            h.retain(|(t, _)| *t < tick && *t + NUDGE_WINDOW >= tick);
+            let mut now = match h.len() as u64 > NUDGE_WINDOW {
+                true => h.pop_front().map(|(_, p)| p).unwrap_or_default(),
+                false => Positions::new(),
+            };
+            now.clear();
+            now.extend(held.values().map(|o| (o.id, o.pos)));
+            h.push_back((tick, now));
+        }
+        self.history.retain(|zone, _| self.zones.contains_key(zone));
     }
 
     /// Every zone's objects with the zone that sent each, sorted by id (an object two

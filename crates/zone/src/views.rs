@@ -8,9 +8,12 @@
 //! having whole (`c`):
 //! - every object of V that entered V after c, whole (48 bytes), and the new position
 //!   of every other object of V that changed after c (its state differs bit for bit
-//!   from the tick before): a *move* of 16 bytes, since an object's id, kind, shape and
-//!   extents never change and nothing at a gateway reads another object's previous
-//!   position, action or flags (the gateway's own players always come whole);
+//!   from the tick before), since an object's id, kind, shape and extents never change
+//!   and nothing at a gateway reads another object's previous position, action or flags
+//!   (the gateway's own players always come whole): a *nudge*, the change of the
+//!   position's bits since its state at c (4 to 14 bytes, [`crate::wire::Nudge`]), when
+//!   the zone still has its positions of tick c ([`NUDGE_WINDOW`]) and the change is
+//!   small, else a *move* of 16 bytes;
 //! - the ids of objects that left V (moved out of the cells, cells unsubscribed, handed
 //!   to another zone, removed) after c: **gone**, until the gateway confirms past them;
 //! - with no confirmation (a new subscriber, a restarted gateway, a new run after a
@@ -30,7 +33,7 @@
 //! learns every subscription within a gateway tick. A subscriber not heard from for
 //! [`EXPIRE_TICKS`] is dropped.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 
 use myriad_core::{Aabb, EntityId, ObjectState, Vec3};
 
@@ -38,11 +41,28 @@ use crate::error::ZoneError;
 use crate::gateway::{MAX_GATEWAYS, player_ids};
 use crate::layout::ZoneId;
 use crate::subscription::{CellGrid, CellSet};
-use crate::wire::{ClusterKey, HEADER_LEN, MOVE_LEN, RECORD_LEN, Subscription, TAG_LEN, View, encode_view};
+use crate::wire::{
+    ClusterKey, HEADER_LEN, MOVE_LEN, NUDGE_MAX_LEN, Nudge, RECORD_LEN, Subscription, TAG_LEN, View, encode_view,
+};
 
 /// Ticks after which a silent subscriber is dropped (5 s at 30 Hz, as a silent
 /// gateway's players are: [`crate::intents`]).
 pub const EXPIRE_TICKS: u64 = 150;
+
+/// How far back a view's base may be for its moves to go as nudges: a zone keeps its
+/// objects' positions of the ticks `t - NUDGE_WINDOW ..= t`, and a gateway its own of
+/// the ticks it took in the same span before its newest ([`crate::gateway_view`]). A
+/// gateway confirms what it took, so a base the zone nudges from is always one the
+/// gateway still has.
+pub const NUDGE_WINDOW: u64 = 8;
+
+/// The owned objects' positions after one tick, ids ascending.
+pub(crate) type Positions = Vec<(EntityId, Vec3)>;
+
+/// The position of `id` in `at` (ids ascending).
+pub(crate) fn position_in(at: &[(EntityId, Vec3)], id: EntityId) -> Option<Vec3> {
+    at.binary_search_by_key(&id, |p| p.0).ok().map(|i| at[i].1)
+}
 
 /// Why a zone refused a subscription (counted by [`SubscriptionError::label`]).
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -187,6 +207,9 @@ pub struct Sent {
 pub struct Subscribers {
     gateways: BTreeMap<u16, Subscriber>,
     tracked: Vec<Tracked>,
+    /// The owned objects' positions after each of the last ticks (oldest first), the
+    /// bases nudges start from.
+    history: VecDeque<(u64, Positions)>,
     buckets: Vec<(CellGrid, Buckets)>,
 }
 
@@ -274,6 +297,7 @@ impl Subscribers {
         if self.gateways.is_empty() {
             // Nobody to compare with: a later subscriber starts with a whole view.
             self.tracked.clear();
+            self.history.clear();
             return Ok(Vec::new());
         }
         self.track(tick, owned);
@@ -289,10 +313,11 @@ impl Subscribers {
         let mut out = Vec::with_capacity(self.gateways.len());
         for (&g, s) in &mut self.gateways {
             let buckets = &self.buckets.iter().find(|(grid, _)| *grid == s.grid).expect("filled").1;
-            let (objects, moves, gone) = view_of(g, s, &self.tracked, buckets, tick);
+            let at_base = s.confirmed.and_then(|c| self.history.iter().find(|(t, _)| *t == c)).map(|(_, p)| &p[..]);
+            let (objects, moves, nudges, gone) = view_of(g, s, &self.tracked, buckets, tick, at_base);
             let base = s.confirmed;
-            let mut sent = Sent { objects: (objects.len() + moves.len()) as u64, ..Sent::default() };
-            for (part, parts, (records, moved, ids)) in parts(&objects, &moves, &gone, max_message)? {
+            let mut sent = Sent { objects: (objects.len() + moves.len() + nudges.len()) as u64, ..Sent::default() };
+            for (part, parts, (records, moved, nudged, ids)) in parts(&objects, &moves, &nudges, &gone, max_message)? {
                 let v = View {
                     run,
                     tick,
@@ -303,6 +328,7 @@ impl Subscribers {
                     base,
                     objects: records.to_vec(),
                     moves: moved.to_vec(),
+                    nudges: nudged.to_vec(),
                     gone: ids.to_vec(),
                 };
                 let bytes = encode_view(key, &v)?;
@@ -315,7 +341,8 @@ impl Subscribers {
         Ok(out)
     }
 
-    /// Keeps each owned object's last change: one merge by id with the last tick's.
+    /// Keeps each owned object's last change (one merge by id with the last tick's) and
+    /// the positions of the last [`NUDGE_WINDOW`] ticks.
     fn track(&mut self, tick: u64, owned: impl Iterator<Item = ObjectState>) {
         let old = std::mem::take(&mut self.tracked);
         let mut i = 0;
@@ -330,14 +357,31 @@ impl Subscribers {
             };
             self.tracked.push(Tracked { state, changed_at });
         }
+        // A rollback starts the ticks again: positions of a later tick are of no use.
+        self.history.retain(|(t, _)| *t < tick && *t + NUDGE_WINDOW >= tick);
+        let mut now = match self.history.len() as u64 >= NUDGE_WINDOW {
+            true => self.history.pop_front().map(|(_, p)| p).unwrap_or_default(),
+            false => Positions::new(),
+        };
+        now.clear();
+        now.extend(self.tracked.iter().map(|t| (t.state.id, t.state.pos)));
+        self.history.push_back((tick, now));
     }
 }
 
-/// What a view holds: whole records, moves, gone ids (each ids ascending).
-type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<EntityId>);
+/// What a view holds: whole records, moves, nudges, gone ids (each ids ascending).
+type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<Nudge>, Vec<EntityId>);
 
-/// Gateway `g`'s view at `tick`. Updates what it was sent.
-fn view_of(g: u16, s: &mut Subscriber, tracked: &[Tracked], buckets: &Buckets, tick: u64) -> ViewLists {
+/// Gateway `g`'s view at `tick`, nudging from `at_base` (the positions of the base
+/// tick, when the zone still has them). Updates what it was sent.
+fn view_of(
+    g: u16,
+    s: &mut Subscriber,
+    tracked: &[Tracked],
+    buckets: &Buckets,
+    tick: u64,
+    at_base: Option<&[(EntityId, Vec3)]>,
+) -> ViewLists {
     let base = s.confirmed;
     if base.is_none() {
         s.known.clear();
@@ -345,7 +389,7 @@ fn view_of(g: u16, s: &mut Subscriber, tracked: &[Tracked], buckets: &Buckets, t
     }
     let c = base.unwrap_or(0);
     let players = player_ids(g);
-    let (mut objects, mut moves) = (Vec::new(), Vec::new());
+    let (mut objects, mut moves, mut nudges) = (Vec::new(), Vec::new(), Vec::new());
     let mut visit = |t: &Tracked, s: &mut Subscriber| {
         let id = t.state.id;
         // Whole: new to the gateway since what it confirmed (it may lack the record), or
@@ -365,7 +409,12 @@ fn view_of(g: u16, s: &mut Subscriber, tracked: &[Tracked], buckets: &Buckets, t
         if whole {
             objects.push(t.state);
         } else if moved {
-            moves.push((id, t.state.pos));
+            // Known since c or before, so it was in V at c and the positions of c hold it.
+            let nudge = at_base.and_then(|p| position_in(p, id)).map(|from| Nudge::between(id, from, t.state.pos));
+            match nudge {
+                Some(n) if n.compact() => nudges.push(n),
+                _ => moves.push((id, t.state.pos)),
+            }
         }
     };
     let cells: Vec<u32> = s.cells.iter().collect();
@@ -391,31 +440,39 @@ fn view_of(g: u16, s: &mut Subscriber, tracked: &[Tracked], buckets: &Buckets, t
     let mut gone: Vec<EntityId> = if base.is_some() { s.gone.keys().copied().collect() } else { Vec::new() };
     objects.sort_unstable_by_key(|o| o.id);
     moves.sort_unstable_by_key(|m| m.0);
+    nudges.sort_unstable_by_key(|n| n.id);
     gone.sort_unstable();
-    (objects, moves, gone)
+    (objects, moves, nudges, gone)
 }
 
 /// One part's slices of a view's lists.
-type PartLists<'a> = (&'a [ObjectState], &'a [(EntityId, Vec3)], &'a [EntityId]);
+type PartLists<'a> = (&'a [ObjectState], &'a [(EntityId, Vec3)], &'a [Nudge], &'a [EntityId]);
 
-/// A view's records, moves and gone ids in parts that fit `max_message` bytes (at least
-/// one part, even when empty): (part, parts, its slices).
+/// A view's records, moves, nudges and gone ids in parts that fit `max_message` bytes
+/// (at least one part, even when empty): (part, parts, its slices).
 fn parts<'a>(
     objects: &'a [ObjectState],
     moves: &'a [(EntityId, Vec3)],
+    nudges: &'a [Nudge],
     gone: &'a [EntityId],
     max_message: usize,
 ) -> Result<Vec<(u16, u16, PartLists<'a>)>, ZoneError> {
-    // A third of a message for each list, so that a part with all three still fits.
-    let room = max_message.saturating_sub(HEADER_LEN + TAG_LEN + 16) / 3;
-    let per = [(room / RECORD_LEN).max(1), (room / MOVE_LEN).max(1), (room / 4).max(1)];
-    let n = objects.len().div_ceil(per[0]).max(moves.len().div_ceil(per[1])).max(gone.len().div_ceil(per[2])).max(1);
+    // A quarter of a message for each list, so that a part with all four still fits
+    // (nudges at their largest: every one the zone sends is compact).
+    let room = max_message.saturating_sub(HEADER_LEN + TAG_LEN + 24) / 4;
+    let per = [RECORD_LEN, MOVE_LEN, NUDGE_MAX_LEN, 4].map(|len| (room / len).max(1));
+    let lens = [objects.len(), moves.len(), nudges.len(), gone.len()];
+    let n = lens.iter().zip(per).map(|(len, per)| len.div_ceil(per)).max().unwrap_or(0).max(1);
     let parts = u16::try_from(n).map_err(|_| ZoneError::Fabric(format!("a view of {n} parts")))?;
     fn chunk<T>(all: &[T], per: usize, i: usize) -> &[T] {
         &all[(i * per).min(all.len())..((i + 1) * per).min(all.len())]
     }
     Ok((0..n)
-        .map(|i| (i as u16, parts, (chunk(objects, per[0], i), chunk(moves, per[1], i), chunk(gone, per[2], i))))
+        .map(|i| {
+            let lists =
+                (chunk(objects, per[0], i), chunk(moves, per[1], i), chunk(nudges, per[2], i), chunk(gone, per[3], i));
+            (i as u16, parts, lists)
+        })
         .collect())
 }
 

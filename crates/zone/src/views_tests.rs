@@ -51,7 +51,9 @@ fn publish(
         let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
         assert_eq!((v.run, v.tick, v.gateway, v.parts), (RUN, tick, g, 1));
         let ids = |v: &[EntityId]| v.iter().map(|id| id.0).collect::<Vec<_>>();
-        let moved: Vec<EntityId> = v.moves.iter().map(|m| m.0).collect();
+        // Moves and nudges alike: both carry a new position.
+        let mut moved: Vec<EntityId> = v.moves.iter().map(|m| m.0).chain(v.nudges.iter().map(|n| n.id)).collect();
+        moved.sort_unstable();
         out.push((g, v.base, v.objects.iter().map(|o| o.id.0).collect(), ids(&moved), ids(&v.gone)));
         Ok(())
     })
@@ -99,6 +101,81 @@ fn a_view_is_whole_then_only_what_changed_and_what_left_until_confirmed() {
     assert_eq!(publish(&mut subs, 8 + EXPIRE_TICKS, &world).len(), 1);
     assert!(publish(&mut subs, 9 + EXPIRE_TICKS, &world).is_empty());
     assert!(subs.is_empty());
+}
+
+/// Gateway `G`'s views of `tick`, decoded.
+fn views(subs: &mut Subscribers, tick: u64, owned: &[ObjectState]) -> Vec<View> {
+    let mut out = Vec::new();
+    subs.publish(&key(), (RUN, tick, ZoneId(0)), owned.iter().copied(), 1 << 20, |_, bytes| {
+        let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
+        out.push(v);
+        Ok(())
+    })
+    .unwrap();
+    out
+}
+
+fn part(v: View) -> crate::gateway_view::Part {
+    crate::gateway_view::Part { base: v.base, objects: v.objects, moves: v.moves, nudges: v.nudges, gone: v.gone }
+}
+
+#[test]
+fn small_moves_go_as_nudges_from_the_confirmed_tick_and_rebuild_exact_positions() {
+    use crate::gateway_view::{Applicable, ZoneViews};
+    let mut world: Vec<ObjectState> = (1..=20).map(|i| object(i, i as f32 + 0.37, 11.0 * i as f32 / 3.0)).collect();
+    let mut subs = Subscribers::default();
+    let mut gateway = ZoneViews::default();
+    subs.offer(subscription(10, 1, None), RUN, 1, &bounds()).unwrap();
+    let v = views(&mut subs, 2, &world).remove(0);
+    assert_eq!(v.base, None);
+    gateway.apply(0, vec![part(v)]);
+    gateway.remember(2);
+    subs.offer(subscription(10, 1, Some(2)), RUN, 2, &bounds()).unwrap();
+    // Walk every object a little each tick, and one far (a move, not a nudge); the
+    // gateway takes every other tick and confirms late, as a live one may.
+    let mut confirmed = 2;
+    for tick in 3..30u64 {
+        for (i, o) in world.iter_mut().enumerate() {
+            o.pos.x += 0.013 * (i as f32 - 9.5);
+            o.pos.y -= 0.001;
+        }
+        world[3].pos.z = 2.0 + 7.0 * tick as f32;
+        let v = views(&mut subs, tick, &world).remove(0);
+        assert_eq!(v.base, Some(confirmed));
+        assert!(v.moves.iter().any(|m| m.0 == EntityId(4)), "a jump goes as a move");
+        assert_eq!(v.nudges.len() + v.moves.len(), world.iter().filter(|o| o.pos.x < 30.0).count());
+        assert!(v.nudges.len() >= 15, "small steps go as nudges: {} of them", v.nudges.len());
+        if tick % 2 == 1 {
+            continue;
+        }
+        let parts = vec![part(v)];
+        assert_eq!(gateway.applicable(0, &parts, Some(confirmed)), Applicable::Yes);
+        assert_eq!(gateway.apply(0, parts), 0);
+        gateway.remember(tick);
+        let held = gateway.assemble();
+        let want: Vec<[u32; 3]> =
+            world.iter().filter(|o| o.pos.x < 30.0).map(|o| [o.pos.x, o.pos.y, o.pos.z].map(f32::to_bits)).collect();
+        let got: Vec<[u32; 3]> = held.iter().map(|(o, _)| [o.pos.x, o.pos.y, o.pos.z].map(f32::to_bits)).collect();
+        assert_eq!(got, want, "tick {tick}: the gateway holds the zone's positions bit for bit");
+        // The confirmation reaches the zone two ticks later.
+        if tick >= 6 {
+            confirmed = tick - 2;
+            subs.offer(subscription(10, 1, Some(confirmed)), RUN, tick, &bounds()).unwrap();
+        }
+    }
+    // A base older than the window: moves only, whatever the step.
+    let late = 29 + NUDGE_WINDOW;
+    for o in &mut world {
+        o.pos.y -= 0.001;
+    }
+    let v = views(&mut subs, late, &world).remove(0);
+    assert!(v.nudges.is_empty() && !v.moves.is_empty());
+    // Nudges from a base the gateway no longer keeps cannot be applied: only whole
+    // views bring it back.
+    let nudges = vec![Nudge { id: EntityId(1), bits: [1, 0, 0] }];
+    let forged = part(View { base: Some(3), nudges, moves: vec![], ..v });
+    assert_eq!(gateway.applicable(0, std::slice::from_ref(&forged), Some(28)), Applicable::Lost);
+    assert_eq!(gateway.applicable(0, &[forged], Some(2)), Applicable::Ahead);
 }
 
 #[test]

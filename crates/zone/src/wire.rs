@@ -31,12 +31,15 @@ mod interest;
 pub use interest::{
     KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, MOVE_LEN, Subscription, View, cell_bytes, encode_subscription, encode_view,
 };
+mod nudge;
+pub use nudge::{NUDGE_MAX_LEN, Nudge};
 
 /// First two bytes of every message.
 pub const MAGIC: [u8; 2] = *b"MZ";
 /// The format's version; a message of another version is refused. (2: heartbeats carry
-/// the zone's load, starts and checkpoints the cuts, and cut moves exist.)
-pub const VERSION: u8 = 2;
+/// the zone's load, starts and checkpoints the cuts, and cut moves exist; 3: views carry
+/// nudges.)
+pub const VERSION: u8 = 3;
 /// Bytes before the body.
 pub const HEADER_LEN: usize = 32;
 /// Bytes of one object record.

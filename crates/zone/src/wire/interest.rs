@@ -9,6 +9,7 @@
 
 use myriad_core::{EntityId, ObjectState, Vec3};
 
+use super::nudge::{Nudge, nudges, nudges_len, put_nudges};
 use super::{ALL, ClusterKey, Head, RECORD_LEN, WireError, header, plain, record, sign};
 use crate::layout::ZoneId;
 
@@ -20,8 +21,9 @@ pub const KIND_VIEW: u8 = 11;
 pub const MAX_CELLS: u64 = 1 << 18;
 /// Bytes of a subscription's body before its cells.
 const SUBSCRIPTION_FIXED: usize = 24;
-/// Bytes of a view's body before its records.
-const VIEW_FIXED: usize = 16;
+/// Bytes of a view's body before its records: base, counts of gone ids, moves and
+/// nudges, and the nudges' bytes.
+const VIEW_FIXED: usize = 24;
 /// Bytes of a move: id and position.
 pub const MOVE_LEN: usize = 16;
 /// A view's base when it is whole (the gateway drops what it had of the zone).
@@ -80,6 +82,10 @@ pub struct View {
     /// changes of an object a gateway shows, in a third of a whole record. None in a
     /// whole view.
     pub moves: Vec<(EntityId, Vec3)>,
+    /// New positions of objects the gateway already holds, as the change of their bits
+    /// since their state at `base` (ids ascending, none also among `moves`): the same as
+    /// a move, in 4 to [`crate::wire::NUDGE_MAX_LEN`] bytes. None in a whole view.
+    pub nudges: Vec<Nudge>,
     /// Objects of this zone the gateway must drop (they left its cells, or the zone),
     /// ids ascending; none in a whole view.
     pub gone: Vec<EntityId>,
@@ -133,7 +139,7 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     if v.parts == 0 || v.part >= v.parts {
         return Err(WireError::Part { part: v.part, parts: v.parts });
     }
-    let whole_with_changes = v.base.is_none() && !(v.gone.is_empty() && v.moves.is_empty());
+    let whole_with_changes = v.base.is_none() && !(v.gone.is_empty() && v.moves.is_empty() && v.nudges.is_empty());
     if v.gateway == ALL.0 || v.zone == ALL || whole_with_changes || v.base == Some(WHOLE) {
         return Err(WireError::Field("view"));
     }
@@ -144,6 +150,8 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     if !ascending(&mut v.objects.iter().map(|o| o.id))
         || !ascending(&mut v.moves.iter().map(|m| m.0))
         || !ascending(&mut v.gone.iter().copied())
+        || !ascending(&mut v.nudges.iter().map(|n| n.id))
+        || overlap(&v.moves, &v.nudges)
     {
         return Err(WireError::Field("view ids"));
     }
@@ -153,13 +161,18 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     let count = u32::try_from(v.objects.len()).map_err(|_| WireError::Field("view records"))?;
     let gone = u32::try_from(v.gone.len()).map_err(|_| WireError::Field("view gone"))?;
     let moves = u32::try_from(v.moves.len()).map_err(|_| WireError::Field("view moves"))?;
+    let nudges = u32::try_from(v.nudges.len()).map_err(|_| WireError::Field("view nudges"))?;
+    let nudge_bytes = nudges_len(&v.nudges);
+    let nudge_len = u32::try_from(nudge_bytes).map_err(|_| WireError::Field("view nudges"))?;
     let h =
         Head { kind: KIND_VIEW, run: v.run, tick: v.tick, from: v.zone, to: ZoneId(v.gateway), aux: [v.part, v.parts] };
-    let body = VIEW_FIXED + v.objects.len() * RECORD_LEN + v.moves.len() * MOVE_LEN + v.gone.len() * 4;
+    let body = VIEW_FIXED + v.objects.len() * RECORD_LEN + v.moves.len() * MOVE_LEN + v.gone.len() * 4 + nudge_bytes;
     let mut b = header(&h, count, body);
     b.extend_from_slice(&v.base.unwrap_or(WHOLE).to_le_bytes());
     b.extend_from_slice(&gone.to_le_bytes());
     b.extend_from_slice(&moves.to_le_bytes());
+    b.extend_from_slice(&nudges.to_le_bytes());
+    b.extend_from_slice(&nudge_len.to_le_bytes());
     for o in &v.objects {
         super::put_record(&mut b, super::BorderRecord::seen(*o));
     }
@@ -172,7 +185,21 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     for id in &v.gone {
         b.extend_from_slice(&id.0.to_le_bytes());
     }
+    put_nudges(&mut b, &v.nudges);
     Ok(sign(key, &b))
+}
+
+/// Whether an object is both moved and nudged (both lists ids ascending).
+fn overlap(moves: &[(EntityId, Vec3)], nudges: &[Nudge]) -> bool {
+    let (mut i, mut j) = (0, 0);
+    while i < moves.len() && j < nudges.len() {
+        match moves[i].0.cmp(&nudges[j].id) {
+            std::cmp::Ordering::Less => i += 1,
+            std::cmp::Ordering::Greater => j += 1,
+            std::cmp::Ordering::Equal => return true,
+        }
+    }
+    false
 }
 
 /// The header's fields, as [`super::decode`] reads them.
@@ -235,15 +262,17 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         return Err(WireError::Length { count: f.count, actual: body.len() });
     }
     let base = u64_at(body, 0);
-    let (gone, moves) = (u32_at(body, 8), u32_at(body, 12));
+    let (gone, moves, nudge_count, nudge_bytes) =
+        (u32_at(body, 8), u32_at(body, 12), u32_at(body, 16), u32_at(body, 20));
     let expected = VIEW_FIXED as u64
         + u64::from(f.count) * RECORD_LEN as u64
         + u64::from(moves) * MOVE_LEN as u64
-        + u64::from(gone) * 4;
+        + u64::from(gone) * 4
+        + u64::from(nudge_bytes);
     if body.len() as u64 != expected {
         return Err(WireError::Length { count: f.count, actual: body.len() });
     }
-    if base == WHOLE && (gone != 0 || moves != 0) {
+    if base == WHOLE && (gone != 0 || moves != 0 || nudge_count != 0) {
         return Err(WireError::Field("view body"));
     }
     let records_end = VIEW_FIXED + f.count as usize * RECORD_LEN;
@@ -254,11 +283,16 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         .chunks_exact(MOVE_LEN)
         .map(|m| (EntityId(u32_at(m, 0)), Vec3::new(f32_at(m, 4), f32_at(m, 8), f32_at(m, 12))))
         .collect();
-    let gone: Vec<EntityId> =
-        body[moves_end..].chunks_exact(4).map(|b| EntityId(u32::from_le_bytes(b.try_into().expect("4")))).collect();
+    let gone_end = moves_end + gone as usize * 4;
+    let gone: Vec<EntityId> = body[moves_end..gone_end]
+        .chunks_exact(4)
+        .map(|b| EntityId(u32::from_le_bytes(b.try_into().expect("4"))))
+        .collect();
+    let nudges = nudges(&body[gone_end..], nudge_count)?;
     if objects.windows(2).any(|w| w[0].id >= w[1].id)
         || moves.windows(2).any(|w| w[0].0 >= w[1].0)
         || gone.windows(2).any(|w| w[0] >= w[1])
+        || overlap(&moves, &nudges)
     {
         return Err(WireError::Field("view ids"));
     }
@@ -275,6 +309,7 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         base: (base != WHOLE).then_some(base),
         objects,
         moves,
+        nudges,
         gone,
     })
 }

@@ -112,6 +112,7 @@ fn view() -> View {
         base: Some(99),
         objects: vec![object(5, 1.0), object(9, -7.5)],
         moves: vec![(EntityId(2), Vec3::new(1.0, 2.0, 3.0)), (EntityId(6), Vec3::new(-4.0, 0.5, 9.0))],
+        nudges: vec![Nudge { id: EntityId(4), bits: [3277, -2, 0] }, Nudge { id: EntityId(700), bits: [0, 0, -64] }],
         gone: vec![EntityId(3), EntityId(1 << 30)],
     }
 }
@@ -127,9 +128,11 @@ fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
         Message::Subscription(none)
     );
     let v = encode_view(&key(), &view()).unwrap();
-    assert_eq!(v.len(), HEADER_LEN + 16 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + TAG_LEN);
+    // Nudges: id 4 (1 byte), 3277 (2), -2 (1), 0 (1); id 700 as 696 more (2), 0, 0, -64 (1).
+    let nudges = (1 + 2 + 1 + 1) + (2 + 1 + 1 + 1);
+    assert_eq!(v.len(), HEADER_LEN + 24 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + nudges + TAG_LEN);
     assert_eq!(decode(&key(), &v).unwrap(), Message::View(view()));
-    let whole = View { base: None, gone: vec![], moves: vec![], ..view() };
+    let whole = View { base: None, gone: vec![], moves: vec![], nudges: vec![], ..view() };
     assert_eq!(decode(&key(), &encode(&key(), &Message::View(whole.clone())).unwrap()).unwrap(), Message::View(whole));
     assert_eq!(decode(&ClusterKey::new(&[8; 32]).unwrap(), &s), Err(WireError::Tag));
 }
@@ -143,8 +146,12 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
     let tail = Subscription { cells: vec![0, 0b1000_0000], ..subscription() };
     assert!(encode_subscription(&key(), &tail).is_err(), "a cell past the grid");
     assert!(encode_subscription(&key(), &Subscription { cell: f32::NAN, ..subscription() }).is_err());
-    assert!(encode_view(&key(), &View { base: None, moves: vec![], ..view() }).is_err(), "gone ids in a whole view");
-    assert!(encode_view(&key(), &View { base: None, gone: vec![], ..view() }).is_err(), "moves in a whole view");
+    let whole = View { base: None, moves: vec![], gone: vec![], nudges: vec![], ..view() };
+    assert!(encode_view(&key(), &View { gone: view().gone, ..whole.clone() }).is_err(), "gone ids in a whole view");
+    assert!(encode_view(&key(), &View { moves: view().moves, ..whole.clone() }).is_err(), "moves in a whole view");
+    assert!(encode_view(&key(), &View { nudges: view().nudges, ..whole }).is_err(), "nudges in a whole view");
+    let both = vec![Nudge { id: EntityId(6), bits: [1, 1, 1] }];
+    assert!(encode_view(&key(), &View { nudges: both, ..view() }).is_err(), "one object moved and nudged");
     let nan = vec![(EntityId(2), Vec3::new(f32::NAN, 0.0, 0.0))];
     assert!(encode_view(&key(), &View { moves: nan, ..view() }).is_err(), "a move nowhere");
     let twice = vec![(EntityId(2), Vec3::ZERO), (EntityId(2), Vec3::ONE)];
@@ -168,8 +175,8 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
         Err(WireError::Field("view header"))
     );
     assert!(matches!(resigned(&v, &|r| r.extend_from_slice(&[0; 4])), Err(WireError::Length { .. })));
-    // Gone ids out of order (swap the two).
-    let n = v.len() - TAG_LEN;
+    // Gone ids out of order (swap the two; the view's 10 bytes of nudges follow them).
+    let n = v.len() - TAG_LEN - 10;
     assert_eq!(
         resigned(&v, &|r| {
             let (a, b) = (r[n - 8..n - 4].to_vec(), r[n - 4..n].to_vec());

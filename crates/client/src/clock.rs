@@ -80,9 +80,7 @@ impl ServerClock {
         let observed = tick as f64;
         let take = match self.tick_at(now) {
             None => true,
-            Some(estimate) => {
-                observed > estimate || estimate - observed > Self::RESYNC.as_secs_f64() * self.rate
-            }
+            Some(estimate) => observed > estimate || estimate - observed > Self::RESYNC.as_secs_f64() * self.rate,
         };
         // Otherwise the estimate stands (it is linear from its anchor): a late datagram
         // moves nothing.
@@ -144,9 +142,8 @@ mod tests {
         let t0 = Instant::now();
         let mut c = ServerClock::new(RATE);
         let mut rng = Stream::new(7, 1);
-        let mut arrivals: Vec<(f64, u64)> = (0..600u64)
-            .map(|tick| (tick as f64 / RATE + 0.020 + 0.040 * f64::from(rng.unit()), tick))
-            .collect();
+        let mut arrivals: Vec<(f64, u64)> =
+            (0..600u64).map(|tick| (tick as f64 / RATE + 0.020 + 0.040 * f64::from(rng.unit()), tick)).collect();
         arrivals.sort_by(|a, b| a.0.total_cmp(&b.0));
         let mut previous = f64::NEG_INFINITY;
         let (mut behind_sum, mut samples) = (0.0, 0.0);

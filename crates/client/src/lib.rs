@@ -32,10 +32,10 @@
 //! # Ok(()) }
 //! ```
 
+pub mod clock;
 pub mod connection;
 pub mod error;
 pub mod flood;
-pub mod clock;
 pub mod liveness;
 pub mod mirror;
 pub mod quality;
@@ -44,9 +44,9 @@ pub mod stats;
 pub mod swarm;
 pub mod tls;
 
+pub use clock::ServerClock;
 pub use connection::{ClientConfig, Connection, Credentials, Event, SessionEnd, login, server_socket};
 pub use error::ClientError;
-pub use clock::ServerClock;
 pub use mirror::{Interpolation, MirrorObject, RenderMode, Rendered, TickState, WorldMirror};
 pub use quality::{Percentiles, Quality, QualitySummary};
 pub use stats::{ClientStats, Rates};

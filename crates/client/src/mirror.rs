@@ -299,9 +299,7 @@ impl WorldMirror {
     pub fn rendered(&self, now: Instant) -> impl Iterator<Item = (u64, &MirrorObject, Rendered)> + '_ {
         let render_tick = self.render_tick(now);
         let cap = self.max_extrapolation_ticks();
-        self.objects
-            .iter()
-            .filter_map(move |(id, o)| render_tick.map(|r| (*id, o, o.sample(r, cap))))
+        self.objects.iter().filter_map(move |(id, o)| render_tick.map(|r| (*id, o, o.sample(r, cap))))
     }
 
     /// Marks objects without news for the stale time; returns how many are stale now.

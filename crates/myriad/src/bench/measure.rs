@@ -229,9 +229,8 @@ fn server_one(
         delivered: m(|s| s.delivered),
         rejected: samples.iter().map(|s| s.rejected).sum(),
         min_saw_own: samples.iter().map(|s| s.saw_own).min().unwrap_or(0),
-        quality: (probe.players() > 0).then(|| {
-            QualityRow::new(probe.players(), args.quality_every, args.render_delay_ticks, probe.summary())
-        }),
+        quality: (probe.players() > 0)
+            .then(|| QualityRow::new(probe.players(), args.quality_every, args.render_delay_ticks, probe.summary())),
     };
     if server.rejected > 0 {
         anyhow::bail!("{} datagrams the bots could not open: the server tick is broken", server.rejected);

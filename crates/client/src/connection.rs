@@ -17,7 +17,7 @@ use tokio::net::{TcpStream, UdpSocket};
 
 use crate::error::ClientError;
 use crate::liveness::{DISCONNECT_COPIES, Due, Liveness};
-use crate::mirror::WorldMirror;
+use crate::mirror::{Interpolation, WorldMirror};
 use crate::stats::{ClientStats, SequenceTracker};
 use crate::tls::Trust;
 
@@ -32,6 +32,8 @@ pub struct ClientConfig {
     pub tls: Arc<rustls::ClientConfig>,
     /// Objects without news for this long are marked stale in the mirror.
     pub stale_after: Duration,
+    /// The mirror's render delay and extrapolation cap ([`WorldMirror::render_tick`]).
+    pub interpolation: Interpolation,
     /// A keep-alive is sent when nothing was sent for this long ([`Connection::on_timer`];
     /// zero: no regular keep-alives, the caller sends its own with
     /// [`Connection::keepalive_if_due`]).
@@ -60,6 +62,7 @@ impl ClientConfig {
             server_name: "localhost".into(),
             tls: trust.client_config()?,
             stale_after: Duration::from_secs(1),
+            interpolation: Interpolation::default(),
             keepalive_every: Duration::from_secs(1),
             silence_timeout: Duration::from_secs(5),
             login_timeout: Duration::from_secs(30),
@@ -262,8 +265,10 @@ impl Connection {
     ) -> Result<Self, ClientError> {
         let session = ClientSession::new(&accepted.keys);
         let liveness = Liveness::start(Instant::now(), config.silence_timeout);
+        let mut mirror = WorldMirror::new(config.stale_after).with_interpolation(config.interpolation);
+        mirror.set_timing(accepted.tick_rate_hz, accepted.dilation_permille, Instant::now());
         let mut c = Connection {
-            mirror: WorldMirror::new(config.stale_after),
+            mirror,
             dilation_permille: accepted.dilation_permille,
             config,
             credentials,
@@ -315,6 +320,7 @@ impl Connection {
             self.map = map;
         }
         self.mirror.clear();
+        self.mirror.set_timing(self.accepted.tick_rate_hz, self.dilation_permille, Instant::now());
         self.sequences = SequenceTracker::default();
         self.disconnected = None;
         self.liveness = Liveness::start(Instant::now(), self.config.silence_timeout);
@@ -495,11 +501,13 @@ impl Connection {
                 self.stats.records += view.len() as u64;
                 self.stats.last_tick = self.stats.last_tick.max(header.tick);
                 self.dilation_permille = header.dilation_permille;
+                self.mirror.set_timing(self.mirror.tick_rate_hz(), header.dilation_permille, now);
                 self.mirror.apply(header.tick, view.records(), now);
                 Event::Update { tick: header.tick, records: view.len(), dilation_permille: header.dilation_permille }
             }
             Some(ServerMessage::ServerInfo(info)) => {
                 self.dilation_permille = info.dilation_permille;
+                self.mirror.set_timing(info.tick_rate_hz, info.dilation_permille, now);
                 Event::Info(info)
             }
             Some(ServerMessage::KeepAlive) => Event::KeepAlive,

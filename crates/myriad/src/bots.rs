@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use myriad_client::{
-    Behaviour, ClientConfig, ClientStats, Swarm, SwarmConfig, SwarmSnapshot, Trust, movement_ok_share,
+    Behaviour, ClientConfig, ClientStats, Percentiles, Swarm, SwarmConfig, SwarmSnapshot, Trust, movement_ok_share,
 };
 
 /// Arguments of `myriad bots`.
@@ -51,6 +51,10 @@ pub struct BotsArgs {
     /// server beside them.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=1024))]
     bots_per_socket: u16,
+    /// The server's AOI edge (its `aoi_size`): each bot measures the staleness of the
+    /// objects it holds within this cube around it.
+    #[arg(long, default_value_t = 100.0)]
+    aoi_size: f32,
 }
 
 fn resolve(server: &str) -> Result<(SocketAddr, String)> {
@@ -70,6 +74,26 @@ fn resolve(server: &str) -> Result<(SocketAddr, String)> {
     Ok((addr, host))
 }
 
+/// The staleness of what the bots hold (since the swarm started), near and over the AOI.
+fn staleness(s: &SwarmSnapshot) -> String {
+    let (n, a) = (&s.staleness_near_ms, &s.staleness_all_ms);
+    format!(
+        "staleness ≤{:.0} p50/p99/max {:.0}/{:.0}/{:.0} ms, AOI {:.0}/{:.0}/{:.0} ms",
+        myriad_client::quality::NEAR,
+        n.p50,
+        n.p99,
+        n.max,
+        a.p50,
+        a.p99,
+        a.max
+    )
+}
+
+/// Percentiles as a JSON object.
+fn percentiles_json(p: &Percentiles) -> serde_json::Value {
+    serde_json::json!({"samples": p.samples, "p50": p.p50, "p99": p.p99, "max": p.max})
+}
+
 /// One statistics line between two snapshots.
 pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
     let secs = (now.elapsed_s - prev.elapsed_s).max(1e-9);
@@ -77,7 +101,7 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
     let bots = if now.connected > 0 { now.connected } else { now.bots.max(1) } as f64;
     let r = now.totals.rates_since(&prev.totals, secs);
     format!(
-        "t={:.0}s bots {}/{} (failed {}) | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} | interval p50 {:.1} ms p99 {:.1} ms | loss {:.2}% | own seen {} moves ok {:.0}% | rejected {} decode errors {} reconnects {} kicked {} banned {}",
+        "t={:.0}s bots {}/{} (failed {}) | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} | interval p50 {:.1} ms p99 {:.1} ms | {} | loss {:.2}% | own seen {} moves ok {:.0}% | rejected {} decode errors {} reconnects {} kicked {} banned {}",
         now.elapsed_s,
         now.connected,
         now.bots,
@@ -87,6 +111,7 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
         now.mean_in_view,
         now.interval_p50_ms,
         now.interval_p99_ms,
+        staleness(now),
         now.loss * 100.0,
         now.own_object_seen,
         movement_ok_share(now) * 100.0,
@@ -108,7 +133,7 @@ pub fn run_line(last: &SwarmSnapshot) -> String {
     let bots = last.bots.max(1) as f64;
     let per_update = if t.updates > 0 { t.records as f64 / t.updates as f64 } else { 0.0 };
     format!(
-        "{} bots for {:.0} s: logins {} ok, {} failed, {} reconnects | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} per update | interval p50 {:.1} ms p99 {:.1} ms | loss {:.2}% | own seen {}/{} moves ok {:.0}% | rejected {} decode errors {}",
+        "{} bots for {:.0} s: logins {} ok, {} failed, {} reconnects | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} per update | interval p50 {:.1} ms p99 {:.1} ms | {} | loss {:.2}% | own seen {}/{} moves ok {:.0}% | rejected {} decode errors {}",
         last.bots,
         last.elapsed_s,
         last.logins_ok,
@@ -119,6 +144,7 @@ pub fn run_line(last: &SwarmSnapshot) -> String {
         per_update,
         last.interval_p50_ms,
         last.interval_p99_ms,
+        staleness(last),
         last.loss * 100.0,
         last.own_object_seen,
         last.bots,
@@ -147,6 +173,8 @@ pub fn stats_json(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> serde_json::Valu
         "interval_p99_ms": now.interval_p99_ms,
         "interval_max_ms": now.interval_max_ms,
         "ticks_missed": now.ticks_missed,
+        "staleness_near_ms": percentiles_json(&now.staleness_near_ms),
+        "staleness_all_ms": percentiles_json(&now.staleness_all_ms),
         "loss": now.loss,
         "own_object_seen": now.own_object_seen,
         "moves_ok": now.moves_ok,
@@ -191,6 +219,7 @@ pub fn run(args: BotsArgs) -> Result<()> {
             behaviour: args.behaviour,
             login_concurrency: args.login_concurrency,
             bots_per_socket: usize::from(args.bots_per_socket),
+            aoi_size: args.aoi_size,
             ..SwarmConfig::new(client, args.count)
         });
         let started = Instant::now();
@@ -278,5 +307,6 @@ mod tests {
         assert!(line.contains("per bot 30.0 upd/s 100.0 kB/s"), "{line}");
         assert!(line.contains("in view 40 per update"), "{line}");
         assert!(line.contains("own seen 4/4"), "{line}");
+        assert!(line.contains("staleness ≤30 p50/p99/max 0/0/0 ms"), "{line}");
     }
 }

@@ -35,7 +35,7 @@ use std::time::{Duration, Instant};
 use myriad_core::{ObjectKind, World};
 use myriad_cuda::CreatedBackend;
 use myriad_net::{Endpoint, EndpointConfig};
-use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage};
+use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateUpdate};
 use myriad_store::UserId;
 
 use crate::config::ServerConfig;
@@ -177,7 +177,7 @@ impl TickBench {
                 bench.send(i, &ClientMessage::Ready)?;
             }
             bench.run_tick();
-            bench.drain();
+            bench.drain(|_, _| {});
         }
         Ok(bench)
     }
@@ -195,6 +195,18 @@ impl TickBench {
     /// The bots whose turn it is send their actions (untimed), the server runs one tick
     /// (timed per stage), then every bot drains and opens what it received (untimed).
     pub fn tick(&mut self) -> Result<TickSample, ServerError> {
+        self.tick_with(|_, _| {})
+    }
+
+    /// The object bot `bot` plays (bots are numbered from 0, as in [`TickBench::tick_with`]).
+    pub fn bot_entity(&self, bot: usize) -> Option<u64> {
+        self.bots.get(bot).map(|b| b.entity)
+    }
+
+    /// [`TickBench::tick`], handing every state update a bot opened to `on_update`
+    /// (the bot's number, the update) as it drains, untimed: a caller mirrors what some
+    /// bots received (`myriad bench`'s staleness and error).
+    pub fn tick_with(&mut self, on_update: impl FnMut(usize, &StateUpdate)) -> Result<TickSample, ServerError> {
         let tick = self.tick.world().tick;
         let before = Instant::now();
         let mut actions_sent = 0;
@@ -212,7 +224,7 @@ impl TickBench {
         let bots_before = before.elapsed();
         let work = self.run_tick();
         let after = Instant::now();
-        let mut sample = self.drain();
+        let mut sample = self.drain(on_update);
         sample.bots_ms = (bots_before + after.elapsed()).as_secs_f64() * 1e3;
         sample.work = work;
         sample.actions_sent = actions_sent;
@@ -248,10 +260,11 @@ impl TickBench {
         }
     }
 
-    /// Every bot reads and opens everything queued on its socket.
-    fn drain(&mut self) -> TickSample {
+    /// Every bot reads and opens everything queued on its socket, handing each update to
+    /// `on_update`.
+    fn drain(&mut self, mut on_update: impl FnMut(usize, &StateUpdate)) -> TickSample {
         let mut s = TickSample::default();
-        for bot in &mut self.bots {
+        for (i, bot) in self.bots.iter_mut().enumerate() {
             let mut saw_own = false;
             // Until WouldBlock: drained. Any other error (an ICMP error queued on the
             // socket) is not the server's datagram either.
@@ -262,6 +275,7 @@ impl TickBench {
                         if let ServerMessage::StateUpdate(u) = opened.message {
                             s.records_delivered += u.records.len() as u64;
                             saw_own |= u.records.iter().any(|r| r.id == bot.entity);
+                            on_update(i, &u);
                         }
                     }
                     Err(_) => s.rejected += 1,

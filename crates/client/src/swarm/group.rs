@@ -38,6 +38,10 @@ fn recv_buffer(members: usize) -> usize {
     members.saturating_mul(RECV_BUFFER_PER_BOT).clamp(MIN_RECV_BUFFER, MAX_RECV_BUFFER)
 }
 
+/// How often a bot samples the staleness of the states it holds (every object of its
+/// AOI each time: a second keeps the swarm's cost small).
+const STALENESS_EVERY: Duration = Duration::from_secs(1);
+
 /// Datagrams read in one wake-up at most, so that the group's ticker is not starved.
 const MAX_READS: usize = 4096;
 
@@ -67,6 +71,10 @@ struct Player {
     ticks_missed: u64,
     own_seen: bool,
     in_view: usize,
+    /// Staleness samples since the last publish: (distance from the bot, age).
+    staleness: Vec<(f32, Duration)>,
+    /// When the bot last sampled the staleness of what it holds.
+    last_staleness: Instant,
 }
 
 impl Player {
@@ -90,6 +98,8 @@ impl Player {
             ticks_missed: 0,
             own_seen: false,
             in_view: 0,
+            staleness: Vec::new(),
+            last_staleness: now,
         }
     }
 }
@@ -314,6 +324,10 @@ async fn on_tick(ctx: &Ctx, p: &mut Player, now: Instant) -> bool {
         // A walking bot meets thousands of objects: keep only recent ones.
         mirror.forget_older_than(FORGET_AFTER, now);
         p.in_view = mirror.fresh();
+        if now.duration_since(p.last_staleness) >= STALENESS_EVERY {
+            p.last_staleness = now;
+            held_staleness(conn, ctx.config.aoi_size / 2.0, &mut p.staleness);
+        }
         publish(ctx, p);
     }
     false
@@ -346,6 +360,24 @@ fn on_datagram(ctx: &Ctx, players: &mut [Player], by_session: &foldhash::HashMap
     p.own_seen = p.own_seen || conn.own_position().is_some();
 }
 
+/// Appends the staleness of every fresh object `conn` holds within `half` (per axis) of
+/// its own object: the age of its newest state against the newest update (the own
+/// object's tick: it is in every update), at the server's tick rate.
+fn held_staleness(conn: &Connection, half: f32, out: &mut Vec<(f32, Duration)>) {
+    let mirror = conn.mirror();
+    let Some(own) = mirror.get(conn.entity_id()) else { return };
+    let rate = mirror.clock().rate();
+    for (id, o) in mirror.iter() {
+        let d: [f32; 3] = std::array::from_fn(|i| o.position[i] - own.position[i]);
+        if id == conn.entity_id() || o.stale || d.iter().any(|c| c.abs() > half) {
+            continue;
+        }
+        let ticks = own.tick.saturating_sub(o.tick);
+        let distance = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        out.push((distance, Duration::from_secs_f64(ticks as f64 / rate)));
+    }
+}
+
 /// A duration in µs within the swarm's histograms' bounds.
 fn micros(d: Duration) -> u64 {
     d.as_micros().clamp(1, 60_000_000) as u64
@@ -362,6 +394,14 @@ fn publish(ctx: &Ctx, p: &mut Player) {
         s.in_view = p.in_view;
         s.ticks_missed = p.ticks_missed;
         s.own_seen = p.own_seen;
+    }
+    if !p.staleness.is_empty() {
+        let mut quality = ctx.shared.quality.lock().unwrap_or_else(|e| e.into_inner());
+        for &(distance, age) in &p.staleness {
+            quality.record_staleness(distance, age);
+        }
+        drop(quality);
+        p.staleness.clear();
     }
     for (samples, hist) in
         [(&mut p.intervals, &ctx.shared.intervals), (&mut p.first_updates, &ctx.shared.first_updates)]

@@ -11,7 +11,9 @@
 //! consecutive ticks' updates in a histogram, and checks that its own object moves as
 //! commanded: a direction is held for [`HOLD`], and at the end of the hold the bot's
 //! horizontal displacement must point the commanded way (idle bots must stay put). A bot
-//! whose session ends (server restart, time-out, replaced) logs in again.
+//! whose session ends (server restart, time-out, replaced) logs in again. Every second
+//! each bot measures the staleness of the states it holds of the objects around it
+//! (near and over its AOI cube), against the newest update it got.
 
 mod group;
 
@@ -25,6 +27,7 @@ use tokio::sync::{Semaphore, watch};
 use tokio::task::JoinSet;
 
 use crate::connection::ClientConfig;
+use crate::quality::{Percentiles, Quality};
 use crate::stats::ClientStats;
 
 /// How long a bot holds one direction before checking its movement.
@@ -94,6 +97,10 @@ pub struct SwarmConfig {
     /// The bots' first logins are spread evenly over this long (zero: all at once,
     /// through the semaphore), as players arrive over time rather than in one burst.
     pub login_spread: Duration,
+    /// Edge of the server's area-of-interest cube (world units; the server's default is
+    /// 100): the objects a bot holds within it around its own object are the ones whose
+    /// staleness it measures ([`SwarmSnapshot::staleness_near_ms`]).
+    pub aoi_size: f32,
 }
 
 impl SwarmConfig {
@@ -110,6 +117,7 @@ impl SwarmConfig {
             silence_reconnect: Duration::from_secs(5),
             bots_per_socket: 1,
             login_spread: Duration::ZERO,
+            aoi_size: 100.0,
         }
     }
 }
@@ -148,6 +156,9 @@ struct Shared {
     /// Every session's time from its login's answer to its first state update, in µs
     /// (the handshake's cost: a lost Ready shows here).
     first_updates: Mutex<Histogram<u64>>,
+    /// Every bot's staleness samples (`group.rs`: `held_staleness`), added when it
+    /// publishes.
+    quality: Mutex<Quality>,
 }
 
 /// An empty histogram of intervals: 1 µs to 1 min, 2 significant digits.
@@ -191,6 +202,14 @@ pub struct SwarmSnapshot {
     pub first_update_p99_ms: f64,
     /// The longest such time, ms.
     pub first_update_max_ms: f64,
+    /// Age of the newest state a bot holds of each object within [`crate::quality::NEAR`]
+    /// of it, against the newest update it got (what a bot can know without the
+    /// server's truth; `myriad bench` measures against the truth), ms, sampled every
+    /// second over the run. Objects not heard of for the stale time (1 s) are left out.
+    pub staleness_near_ms: Percentiles,
+    /// The same over every object held within the AOI cube ([`SwarmConfig::aoi_size`])
+    /// around the bot (one that just left it counts until it is stale).
+    pub staleness_all_ms: Percentiles,
     /// Server ticks whose update a bot never got (a newer tick's came first), over all
     /// bots: a gap in the updates longer than one tick.
     pub ticks_missed: u64,
@@ -230,6 +249,7 @@ impl Swarm {
             stray_datagrams: AtomicU64::new(0),
             intervals: Mutex::new(interval_histogram()),
             first_updates: Mutex::new(interval_histogram()),
+            quality: Mutex::new(Quality::new()),
         });
         let (stop, stop_rx) = watch::channel(false);
         let logins = Arc::new(Semaphore::new(config.login_concurrency.max(1)));
@@ -303,6 +323,9 @@ impl Swarm {
             s.first_update_max_ms = hist.max() as f64 / 1000.0;
         }
         drop(hist);
+        let quality = self.shared.quality.lock().unwrap_or_else(|p| p.into_inner()).summary();
+        s.staleness_near_ms = quality.staleness_near_ms;
+        s.staleness_all_ms = quality.staleness_all_ms;
         s.totals.rejected += self.shared.stray_datagrams.load(Ordering::Relaxed);
         s.loss = s.totals.loss();
         s

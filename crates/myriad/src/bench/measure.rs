@@ -4,6 +4,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use myriad_client::Interpolation;
 use myriad_core::{ObjectKind, PhysicsConfig, ScenarioSpec, World};
 use myriad_cuda::create_backend;
 use myriad_physics::{BackendKind, Stage, StepReport, TickConstants};
@@ -11,7 +12,8 @@ use myriad_server::ServerConfig;
 use myriad_server::TickStage;
 use myriad_server::tick_bench::{TickBench, TickSample};
 
-use super::{BenchArgs, PHYSICS, Row, SERVER, ServerTick};
+use super::quality::{QualityConfig, QualityProbe};
+use super::{BenchArgs, PHYSICS, QualityRow, Row, SERVER, ServerTick};
 
 /// User + system CPU time of this process so far, in ms (0 where unsupported).
 fn process_cpu_ms() -> f64 {
@@ -165,20 +167,42 @@ fn server_one(
         outbound_chunk_players: args.outbound_chunk_players,
         ..ServerConfig::default()
     };
+    let tick_rate_hz = config.tick_rate.round() as u16;
     let mut bench = TickBench::new(config, world.clone(), backend).context("starting the server tick")?;
+    let interpolation = Interpolation {
+        delay_ticks: args.render_delay_ticks,
+        max_extrapolation: std::time::Duration::from_millis(args.max_extrapolation_ms),
+    };
+    let mut probe = QualityProbe::new(
+        &bench,
+        QualityConfig {
+            players: args.quality_players,
+            every: args.quality_every,
+            seed: args.world.seed,
+            aoi_size: aoi,
+            tick_rate_hz,
+            interpolation,
+        },
+    );
     for _ in 0..args.warmup {
-        bench.tick()?;
+        bench.tick_with(|bot, update| probe.on_update(bot, update))?;
         progress.tick();
     }
+    probe.start_measuring();
     let mut samples: Vec<TickSample> = Vec::with_capacity(args.ticks as usize);
+    let mut probe_ms = 0.0;
     let cpu_before = process_cpu_ms();
     for _ in 0..args.ticks {
-        samples.push(bench.tick()?);
+        samples.push(bench.tick_with(|bot, update| probe.on_update(bot, update))?);
+        let probe_cpu = process_cpu_ms();
+        probe.after_tick(bench.world());
+        probe_ms += process_cpu_ms() - probe_cpu;
         progress.tick();
     }
-    // The bots send and drain in this process too, on one thread: take their time out
-    // of the process's CPU time, as the reference's clients ran on other machines.
-    let bots_ms: f64 = samples.iter().map(|s| s.bots_ms).sum();
+    // The bots send and drain in this process too, on one thread, and the probe compares
+    // the sampled mirrors with the world (its CPU time, measured around it): take both
+    // out of the process's CPU time, as the reference's clients ran on other machines.
+    let bots_ms: f64 = samples.iter().map(|s| s.bots_ms).sum::<f64>() + probe_ms;
     row.cpu_ms = ((process_cpu_ms() - cpu_before - bots_ms) / args.ticks.max(1) as f64).max(0.0);
     let stage = |t: TickStage| median(samples.iter().map(|s| s.work.stages[t]).collect());
     set_physics_stages(&mut row, |st| stage(TickStage::Physics(st)));
@@ -205,6 +229,8 @@ fn server_one(
         delivered: m(|s| s.delivered),
         rejected: samples.iter().map(|s| s.rejected).sum(),
         min_saw_own: samples.iter().map(|s| s.saw_own).min().unwrap_or(0),
+        quality: (probe.players() > 0)
+            .then(|| QualityRow::new(probe.players(), args.quality_every, args.render_delay_ticks, probe.summary())),
     };
     if server.rejected > 0 {
         anyhow::bail!("{} datagrams the bots could not open: the server tick is broken", server.rejected);

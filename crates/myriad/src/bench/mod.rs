@@ -5,12 +5,14 @@
 //! run; [`report`] writes the rows as Markdown tables, JSON lines or CSV.
 
 mod measure;
+mod quality;
 mod report;
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
+use myriad_client::{Interpolation, Percentiles, QualitySummary};
 use myriad_physics::BackendKind;
 use myriad_server::ServerConfig;
 use myriad_server::outbound::OutboundKind;
@@ -84,6 +86,19 @@ pub struct BenchArgs {
     /// one chunk).
     #[arg(long, default_value_t = ServerConfig::default().outbound_chunk_players)]
     pub outbound_chunk_players: usize,
+    /// Players of the server tick whose client mirror is compared with the server's world
+    /// (staleness and error of Table 3's second part; a seeded sample, 0: none).
+    #[arg(long, default_value_t = 64)]
+    pub quality_players: usize,
+    /// Ticks between two comparisons of the sampled mirrors with the world.
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u64).range(1..))]
+    pub quality_every: u64,
+    /// The sampled clients' render delay, in ticks (the server sends every tick).
+    #[arg(long, default_value_t = Interpolation::default().delay_ticks)]
+    pub render_delay_ticks: f64,
+    /// The sampled clients' extrapolation cap, ms.
+    #[arg(long, default_value_t = Interpolation::default().max_extrapolation.as_millis() as u64)]
+    pub max_extrapolation_ms: u64,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -164,6 +179,63 @@ struct ServerTick {
     /// Smallest number over the measured ticks of players whose update held their own
     /// object.
     min_saw_own: usize,
+    /// What the sampled players' clients held and drew, over the run (`quality.rs`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    quality: Option<QualityRow>,
+}
+
+/// Percentiles of one measure in the JSON and CSV.
+#[derive(Clone, Copy, Debug, Serialize)]
+struct Spread {
+    samples: u64,
+    p50: f64,
+    p99: f64,
+    max: f64,
+}
+
+impl From<Percentiles> for Spread {
+    fn from(p: Percentiles) -> Self {
+        Spread { samples: p.samples, p50: p.p50, p99: p.p99, max: p.max }
+    }
+}
+
+/// The staleness and error of what sampled players got (`bench/quality.rs`).
+#[derive(Clone, Copy, Debug, Serialize)]
+struct QualityRow {
+    /// Players sampled.
+    players: usize,
+    /// Ticks between two samples.
+    every: u64,
+    /// The clients' render delay, ticks.
+    render_delay_ticks: f64,
+    /// Age of the newest state held of objects within 30 units, ms.
+    staleness_near_ms: Spread,
+    /// Age of the newest state held of every object of the AOI, ms.
+    staleness_all_ms: Spread,
+    /// Distance between the drawn and the true position, objects within 30 units.
+    error_near: Spread,
+    /// The same over the whole AOI.
+    error_all: Spread,
+    /// Objects within 30 units of which the client held nothing when sampled.
+    missing_near: u64,
+    /// Objects of the AOI of which the client held nothing when sampled.
+    missing_all: u64,
+}
+
+impl QualityRow {
+    fn new(players: usize, every: u64, render_delay_ticks: f64, s: QualitySummary) -> Self {
+        QualityRow {
+            players,
+            every,
+            render_delay_ticks,
+            staleness_near_ms: s.staleness_near_ms.into(),
+            staleness_all_ms: s.staleness_all_ms.into(),
+            error_near: s.error_near.into(),
+            error_all: s.error_all.into(),
+            missing_near: s.missing_near,
+            missing_all: s.missing_all,
+        }
+    }
 }
 
 impl Row {

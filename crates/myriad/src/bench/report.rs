@@ -121,6 +121,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
             ServerConfig::default().tick_rate,
             myriad_server::tick_bench::ACTION_EVERY
         );
+        quality_table(&mut s, &server_rows);
     }
     let _ = writeln!(s, "\n#### The reference ({})\n", reference::MACHINE);
     let _ = writeln!(
@@ -139,6 +140,55 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         let _ = writeln!(s, "| {name} | {} |", cells.join(" | "));
     }
     s
+}
+
+/// Table 3's second part: what the sampled players' clients held and drew.
+fn quality_table(s: &mut String, rows: &[&Row]) {
+    let with: Vec<(&Row, &super::ServerTick, &super::QualityRow)> =
+        rows.iter().filter_map(|r| r.server.as_ref().and_then(|t| t.quality.as_ref().map(|q| (*r, t, q)))).collect();
+    let Some((_, _, first)) = with.first() else { return };
+    let _ = writeln!(
+        s,
+        "\n#### Table 3, continued: what a player gets ({} sampled players a run, every {} ticks, render delay {} ticks)\n",
+        first.players, first.every, first.render_delay_ticks
+    );
+    let _ = writeln!(
+        s,
+        "| scenario | backend | AOI edge | kB/s per player | staleness ≤30 p50 / p99 / max (ms) | staleness AOI p50 / p99 / max (ms) | error ≤30 p50 / p99 | error AOI p50 / p99 | missing ≤30 / AOI |"
+    );
+    let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(7));
+    for (r, t, q) in &with {
+        let (sn, sa, en, ea) = (&q.staleness_near_ms, &q.staleness_all_ms, &q.error_near, &q.error_all);
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {:.1} | {:.0} / {:.0} / {:.0} | {:.0} / {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {} / {} |",
+            r.scenario,
+            r.backend,
+            t.aoi_size,
+            t.bytes_per_player_s / 1000.0,
+            sn.p50,
+            sn.p99,
+            sn.max,
+            sa.p50,
+            sa.p99,
+            sa.max,
+            en.p50,
+            en.p99,
+            ea.p50,
+            ea.p99,
+            q.missing_near,
+            q.missing_all
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\nStaleness: the age of the newest state a sampled client holds of each object whose centre is in its \
+         AOI cube (its own object left out), on the server's clock right after the tick's updates arrived (loopback: \
+         no network delay); ≤30: objects within 30 units. Error: the distance (units) between the client's \
+         position of the object at render tick T (interpolated with the render delay, extrapolated at most \
+         the cap, then held) and the server's true position at T. Missing: objects in the AOI of which the client \
+         held no state when sampled (not in the staleness or error percentiles)."
+    );
 }
 
 /// One JSON object per line.

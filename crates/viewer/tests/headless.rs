@@ -315,6 +315,17 @@ fn frame_times_with_many_objects() {
     server.shutdown().unwrap();
 }
 
+/// A server with `user0` placed by the NPCs, and the viewer's network thread (no window)
+/// logged in as `user0`.
+fn server_and_session(rt: &tokio::runtime::Runtime, dir: &Path) -> (ServerHandle, myriad_viewer::net::Session) {
+    let server = start_server(rt, dir);
+    place_player(rt, &server);
+    let trust = Trust::pin_file(server.certificate_path()).unwrap();
+    let cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
+    let session = myriad_viewer::net::Session::start(cc, Credentials::test_user(0)).unwrap();
+    (server, session)
+}
+
 /// The first snapshot of `session` for which `f` holds, waiting up to `secs` seconds.
 fn wait_for_snapshot(
     session: &myriad_viewer::net::Session,
@@ -338,14 +349,9 @@ fn wait_for_snapshot(
 #[test]
 fn session_sends_held_keys_and_publishes_snapshots() {
     use myriad_protocol::ActionMask;
-    use myriad_viewer::net::Session;
     let dir = tempfile::tempdir().unwrap();
     let rt = runtime();
-    let server = start_server(&rt, dir.path());
-    place_player(&rt, &server);
-    let trust = Trust::pin_file(server.certificate_path()).unwrap();
-    let cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
-    let mut session = Session::start(cc, Credentials::test_user(0)).unwrap();
+    let (server, mut session) = server_and_session(&rt, dir.path());
     let map = &session.login().map;
     assert_eq!(map.samples.len(), (map.terrain_width * map.terrain_depth) as usize);
     assert!(!map.statics.is_empty(), "the map came with the login");
@@ -377,15 +383,10 @@ fn session_sends_held_keys_and_publishes_snapshots() {
 /// again, and shows the new server's world with the status line back at "connected".
 #[test]
 fn the_viewer_comes_back_after_a_server_restart() {
-    use myriad_viewer::net::Session;
     let dir = tempfile::tempdir().unwrap();
     let rt = runtime();
-    let server = start_server(&rt, dir.path());
-    place_player(&rt, &server);
+    let (server, mut session) = server_and_session(&rt, dir.path());
     let (login_addr, udp_addr) = (server.login_addr(), server.udp_addr());
-    let trust = Trust::pin_file(server.certificate_path()).unwrap();
-    let cc = ClientConfig::new(login_addr, &trust).unwrap();
-    let mut session = Session::start(cc, Credentials::test_user(0)).unwrap();
     let first = wait_for_snapshot(&session, 10, "the world", &|s| s.link.is_connected() && s.objects.len() > 1);
     assert_eq!((first.login, session.login().number), (1, 1));
 

@@ -169,7 +169,8 @@ impl TickBench {
     /// object of `world` a player with a bot socket of its own, and runs one untimed
     /// tick in which the bots' `Ready` messages are received, so every player is active
     /// from the first measured tick. Only the tick-related keys of `config` matter
-    /// (tick rate, AOI size, datagrams per player, session timeout). `backend` is the
+    /// (tick rate, AOI size, datagrams per player, session timeout); `max_players` is
+    /// raised to the world's users if it is lower. `backend` is the
     /// factory's (with its device interest, if any) or any other physics backend.
     pub fn new(
         config: ServerConfig,
@@ -192,10 +193,6 @@ impl TickBench {
             )));
         }
         let backend = backend.into();
-        config.validate()?;
-        let loopback = EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)));
-        let endpoints = Endpoint::bind_group(loopback, config.udp_socket_count())?;
-        let server_addr = endpoints[0].local_addr();
         let users: Vec<_> = world
             .dynamics
             .ids()
@@ -204,6 +201,14 @@ impl TickBench {
             .filter(|(_, k)| **k == ObjectKind::User)
             .map(|(id, _)| *id)
             .collect();
+        // Every user object is a player: a world of more users than `max_players`
+        // (scenario 4's 50,000) raises the cap rather than refusing the surplus.
+        let mut config = config;
+        config.max_players = config.max_players.max(u32::try_from(users.len()).unwrap_or(u32::MAX));
+        config.validate()?;
+        let loopback = EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)));
+        let endpoints = Endpoint::bind_group(loopback, config.udp_socket_count())?;
+        let server_addr = endpoints[0].local_addr();
         // The transport `serve` uses: receiving on a thread of its own by default (the
         // tick's receive stage then times only what the tick itself does).
         let (transport, dealt_with): (Box<dyn Transport>, _) = if config.receive_thread {
@@ -453,13 +458,17 @@ mod tests {
 
     /// Bots in groups of 16 on a socket, each opening its datagrams every third tick:
     /// every datagram still reaches the bot it is for, a third of the bots open theirs
-    /// each tick (and find their own object), and what they open decodes.
+    /// each tick (and find their own object), and what they open decodes. More users
+    /// than `max_players` all play.
     #[test]
     fn grouped_bots_receive_everything_and_open_their_turns() {
         let world = ScenarioSpec::custom(8).counts(1_200, 60, 300).map_size(256.0, 129).build().unwrap();
         let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
         let options = BotOptions { bots_per_socket: 16, open_every: 3 };
-        let mut bench = TickBench::with_bots(ServerConfig::default(), world, backend, options).unwrap();
+        // Fewer player slots than users: the bench raises the cap (scenario 4's 50,000
+        // users against the default 10,000).
+        let config = ServerConfig { max_players: 10, ..ServerConfig::default() };
+        let mut bench = TickBench::with_bots(config, world, backend, options).unwrap();
         assert_eq!((bench.players(), bench.sockets.len()), (60, 4));
         let mut opened = 0;
         for _ in 0..6 {

@@ -7,7 +7,8 @@
 //!   static scenery made of primitives ([`Statics`]), the terrain and the world bounds.
 //! - [`terrain`]: the heightmap, generated from a seed or loaded from a file, with the
 //!   bilinear sampling every backend must reproduce bit for bit.
-//! - [`scenario`]: seeded generators for the reference's three scenarios and custom ones;
+//! - [`scenario`]: seeded generators for the reference's three scenarios, scenario 4
+//!   (scenario 3 scaled to 50,000 players) and custom ones;
 //!   [`crowd`]: a crowd walking across the map (its load moves from zone to zone).
 //! - [`rng`]: counter-based random numbers (a hash of seed, object and tick), the same on
 //!   every machine and reproducible on a GPU.
@@ -36,7 +37,7 @@ pub use config::PhysicsConfig;
 pub use crowd::MovingCrowd;
 pub use error::CoreError;
 pub use glam::Vec3;
-pub use scenario::{Placement, ScenarioSpec};
+pub use scenario::{NUMBERED_SCENARIOS, Placement, ScenarioSpec};
 pub use script::{ActionScript, ScriptError, ScriptedAction};
 pub use shape::{Shape, ShapeKind};
 pub use stamp::Stamp;

@@ -1,5 +1,5 @@
-//! Seeded world generation: the reference's three scenarios (docs/design.md, scenarios)
-//! and custom ones.
+//! Seeded world generation: the reference's three scenarios (docs/design.md, scenarios),
+//! scenario 4 (scenario 3 scaled to 50,000 players) and custom ones.
 //!
 //! A scenario fixes counts, world size, seed and placement; [`ScenarioSpec::build`] turns
 //! it into a [`World`]. Every draw comes from [`crate::rng::Stream`]s of the seed, one
@@ -71,18 +71,35 @@ mod streams {
     pub const HOTSPOT: u64 = 3;
 }
 
+/// The numbered scenarios [`ScenarioSpec::reference`] makes.
+pub const NUMBERED_SCENARIOS: std::ops::RangeInclusive<u8> = 1..=4;
+
+/// Scenario 4's map: scenario 3's 1,024 units grown by √5 (its five times the objects at
+/// scenario 3's density), rounded to a whole unit.
+pub const SCENARIO_4_WORLD_SIZE: f32 = 2_290.0;
+
+/// Scenario 4's heightmap samples per side: scenario 3's spacing of one unit.
+pub const SCENARIO_4_TERRAIN_SAMPLES: u32 = 2_291;
+
 impl ScenarioSpec {
-    /// The reference's scenario 1, 2 or 3 (docs/design.md, scenarios) on a 1024-unit map.
+    /// A numbered scenario ([`NUMBERED_SCENARIOS`]): the reference's scenario 1, 2 or 3
+    /// (docs/design.md, scenarios) on a 1024-unit map, or scenario 4, scenario 3 scaled to
+    /// 50,000 players: five times its counts (1,300,000 dynamic objects, 50,000 of them
+    /// users, and 500,000 static) on a map [`SCENARIO_4_WORLD_SIZE`] long, so the objects
+    /// per unit² stay scenario 3's, with [`SCENARIO_4_TERRAIN_SAMPLES`] heightmap samples
+    /// a side, so the samples keep scenario 3's one-unit spacing.
     pub fn reference(n: u8, seed: u64) -> Result<ScenarioSpec, CoreError> {
         let (static_objects, dynamic, users) = match n {
             1 => (3_000, 6_000, 1_000),
             2 => (15_000, 55_000, 5_000),
             3 => (99_999, 260_000, 10_000),
+            4 => (500_000, 1_300_000, 50_000),
             _ => {
-                return Err(CoreError::invalid("scenario", format!("{n}: the reference has scenarios 1, 2 and 3")));
+                return Err(CoreError::invalid("scenario", format!("{n}: the scenarios are 1, 2, 3 and 4")));
             }
         };
-        Ok(ScenarioSpec { name: n.to_string(), static_objects, dynamic, users, ..ScenarioSpec::custom(seed) })
+        let spec = ScenarioSpec { name: n.to_string(), static_objects, dynamic, users, ..ScenarioSpec::custom(seed) };
+        Ok(if n == 4 { spec.map_size(SCENARIO_4_WORLD_SIZE, SCENARIO_4_TERRAIN_SAMPLES) } else { spec })
     }
 
     /// A custom scenario with the defaults of scenario 1; change the fields as needed.
@@ -352,7 +369,8 @@ mod tests {
         assert_eq!(s3.dynamic_shapes(), [86_668, 86_666, 86_666]);
         assert_eq!(ScenarioSpec::reference(2, 1).unwrap().dynamic_shapes(), [18_334, 18_333, 18_333]);
         assert_eq!(s3.static_kinds(), [33_333, 33_333, 33_333]);
-        assert!(ScenarioSpec::reference(4, 1).is_err());
+        assert!(ScenarioSpec::reference(5, 1).is_err());
+        assert!(ScenarioSpec::reference(0, 1).is_err());
 
         let w = small(ScenarioSpec::reference(1, 9).unwrap()).build().unwrap();
         assert_eq!(w.statics.objects().len(), 3_000);
@@ -371,6 +389,30 @@ mod tests {
             .map(|s| w.dynamics.shapes()[s])
             .collect();
         assert_eq!(user_shapes.len(), 3);
+    }
+
+    /// Scenario 4 is scenario 3 five times over at its density; generating its 1.8 M
+    /// objects is left to release builds (`myriad sim --scenario 4`, docs/benchmarks.md).
+    #[test]
+    fn scenario_4_is_scenario_3_scaled_to_50_000_players() {
+        let (s3, s4) = (ScenarioSpec::reference(3, 1).unwrap(), ScenarioSpec::reference(4, 1).unwrap());
+        assert_eq!((s4.dynamic, s4.users, s4.static_objects), (1_300_000, 50_000, 500_000));
+        assert_eq!((s4.world_size, s4.terrain_samples), (2_290.0, 2_291));
+        assert_eq!(s4.dynamic_shapes(), [433_334, 433_333, 433_333]);
+        assert_eq!(s4.static_kinds(), [166_668, 166_666, 166_666]);
+        let density = |s: &ScenarioSpec, n: u32| f64::from(n) / f64::from(s.world_size).powi(2);
+        for (n3, n4) in [(s3.dynamic, s4.dynamic), (s3.static_objects, s4.static_objects), (s3.users, s4.users)] {
+            let ratio = density(&s4, n4) / density(&s3, n3);
+            assert!((ratio - 1.0).abs() < 1e-3, "density ratio {ratio} for {n3} → {n4}");
+        }
+        let spacing = |s: &ScenarioSpec| s.world_size / (s.terrain_samples - 1) as f32;
+        assert_eq!(spacing(&s4), spacing(&s3));
+        assert_eq!((s4.max_height, s4.origin, s4.placement), (s3.max_height, s3.origin, s3.placement));
+        assert_eq!(s4.name, "4");
+        assert_eq!(s4.seed, 1);
+        for n in NUMBERED_SCENARIOS {
+            assert!(ScenarioSpec::reference(n, 1).is_ok(), "{n}");
+        }
     }
 
     #[test]

@@ -18,6 +18,10 @@ pub enum ScenarioName {
     /// Reference scenario 3: 99,999 static, 260,000 dynamic (10,000 users).
     #[value(name = "3")]
     Three,
+    /// Scenario 3 scaled to 50,000 players at its density: 500,000 static, 1,300,000
+    /// dynamic (50,000 users) on a 2,290-unit map.
+    #[value(name = "4")]
+    Four,
     /// Counts and sizes from the flags (defaults: scenario 1's).
     Custom,
     /// Scenario 2's counts (or the flags') with most objects crowding eight hot spots.
@@ -77,11 +81,13 @@ impl WorldArgs {
             ScenarioName::One => ScenarioSpec::reference(1, self.seed)?,
             ScenarioName::Two => ScenarioSpec::reference(2, self.seed)?,
             ScenarioName::Three => ScenarioSpec::reference(3, self.seed)?,
+            ScenarioName::Four => ScenarioSpec::reference(4, self.seed)?,
             ScenarioName::Custom => ScenarioSpec::custom(self.seed),
             ScenarioName::Clustered => ScenarioSpec::clustered(self.seed),
             ScenarioName::MovingCrowd => MovingCrowd::new(self.seed).base,
         };
-        let reference = matches!(name, ScenarioName::One | ScenarioName::Two | ScenarioName::Three);
+        let reference =
+            matches!(name, ScenarioName::One | ScenarioName::Two | ScenarioName::Three | ScenarioName::Four);
         if reference && (self.dynamic.is_some() || self.static_objects.is_some() || self.users.is_some()) {
             bail!("--dynamic, --static and --users change the counts: use --scenario custom or clustered");
         }

@@ -39,7 +39,7 @@ pub struct ConfigArgs {
     /// Map imported with `myriad map import` (default: the generated scenario map).
     #[arg(long)]
     pub map: Option<String>,
-    /// Reference scenario (1, 2, 3) whose map is generated when no map is named.
+    /// Numbered scenario (1, 2, 3, 4) whose map is generated when no map is named.
     #[arg(long)]
     pub scenario: Option<u8>,
     /// Seed of the generated map and NPC placement.

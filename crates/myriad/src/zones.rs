@@ -357,11 +357,12 @@ fn gateway_args(args: &ClusterArgs, zones: usize, url: &str, cluster: &str) -> R
     // number and seed and takes every moving object from the zones: the zones' world may
     // have other moving objects (counts, users, placement) on one of those maps.
     let spec = c.world.spec(c.scenario)?;
-    let scenario = (1..=3u8)
+    let scenario = myriad_core::NUMBERED_SCENARIOS
+        .into_iter()
         .find(|&n| c.world.heightmap.is_none() && ScenarioSpec::reference(n, spec.seed).is_ok_and(|r| r.same_map(&spec)))
         .ok_or_else(|| {
             anyhow::anyhow!(
-                "--gateways serves the maps of the reference scenarios 1, 2 and 3 (a gateway builds its map from \
+                "--gateways serves the maps of the numbered scenarios 1 to 4 (a gateway builds its map from \
                  them): the world's statics, size, origin and terrain must be one of theirs; its moving objects may differ"
             )
         })?

@@ -207,6 +207,8 @@ fn bench_reports_every_stage_and_the_table_columns() {
     assert_eq!(server["server"]["min_saw_own"], 60);
     assert_eq!(server["server"]["rejected"], 0);
     assert!(server["server"]["delivered"].as_u64().unwrap() >= 60);
+    assert_eq!(server["server"]["opened"], server["server"]["delivered"], "every datagram opened by default");
+    assert_eq!(server["server"]["lost"], 0);
     for f in ["bench.md", "bench.json", "bench.csv"] {
         let text = std::fs::read_to_string(dir.join(f)).unwrap();
         assert!(text.contains("cpu-naive"), "{f}");

@@ -59,8 +59,8 @@ pub struct ServerConfig {
     /// Map to serve: the name of a map imported with `myriad map import`, or empty for
     /// the generated map of `scenario` and `seed`.
     pub map: String,
-    /// Reference scenario (1, 2 or 3) whose terrain and statics are generated when `map`
-    /// is empty.
+    /// Numbered scenario (1, 2, 3 or 4; [`myriad_core::ScenarioSpec::reference`]) whose
+    /// terrain and statics are generated when `map` is empty.
     pub scenario: u8,
     /// Seed of generated terrain, statics and NPC placement.
     pub seed: u64,
@@ -297,8 +297,8 @@ impl ServerConfig {
         if !(self.npc_spacing.is_finite() && self.npc_spacing >= 0.0) {
             return bad("npc_spacing", format!("{} (≥ 0)", self.npc_spacing));
         }
-        if self.map.is_empty() && !(1..=3).contains(&self.scenario) {
-            return bad("scenario", format!("{} (1, 2 or 3)", self.scenario));
+        if self.map.is_empty() && !myriad_core::NUMBERED_SCENARIOS.contains(&self.scenario) {
+            return bad("scenario", format!("{} (1, 2, 3 or 4)", self.scenario));
         }
         if !(self.aoi_size.is_finite() && self.aoi_size > 0.0) {
             return bad("aoi_size", format!("{} (> 0)", self.aoi_size));

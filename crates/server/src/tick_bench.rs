@@ -1,6 +1,7 @@
 //! The end-to-end tick benchmark: the server's real tick (receive, physics, AOI and
 //! interest management, sealing, `sendmmsg`) with every user object of a world played by
-//! a bot that has its own UDP socket on loopback.
+//! a bot on loopback, with a UDP socket of its own or one shared by a group of bots
+//! ([`BotOptions`]).
 //!
 //! It runs the same code as `myriad serve`, minus the TLS login (players are admitted
 //! directly with fresh session keys, as a login would) and minus pacing, persistence
@@ -10,8 +11,13 @@
 //! of them; the `receive` stage is then the tick's own share (the tag checks and
 //! applying), and the receiver's work shows in the process's CPU time. Between two
 //! timed ticks, untimed, the bots send their sealed actions and then drain their
-//! sockets, opening every datagram with their session key, so each sample also proves
-//! what was sent arrived and decoded.
+//! sockets: every datagram is handed to the bot its header's session id names (the
+//! server tells sessions apart by id, so many bots can share a socket, as
+//! `myriad bots --bots-per-socket` does), and that bot opens it with its session key
+//! (tag, replay window, decode) — every datagram by default, or, to spare the bots' time
+//! at 50,000 players, on every `open_every`-th tick in turn, the rest matched to their
+//! session by header only. Each sample so proves what was sent arrived and that (a
+//! sample of) it decoded as sealed by the player's key.
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -26,6 +32,7 @@
 //! # Ok(()) }
 //! ```
 
+use std::collections::HashMap;
 use std::io::ErrorKind;
 use std::net::{SocketAddr, UdpSocket};
 use std::sync::Arc;
@@ -35,7 +42,9 @@ use std::time::{Duration, Instant};
 use myriad_core::{ObjectKind, World};
 use myriad_cuda::CreatedBackend;
 use myriad_net::{Endpoint, EndpointConfig};
-use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateUpdate};
+use myriad_protocol::{
+    ActionMask, ClientMessage, ClientSession, Direction, PlayerInput, ServerMessage, StateUpdate, peek_header,
+};
 use myriad_store::UserId;
 
 use crate::config::ServerConfig;
@@ -58,6 +67,34 @@ pub const ACTION_EVERY: u64 = 3;
 /// Ticks a bot holds one direction before it turns.
 const TURN_EVERY: u64 = 30;
 
+/// Receive buffer asked for a bot socket, per bot sharing it: room for the datagrams of
+/// a tick at AOI 100 (a few of 1.2 kB, with the kernel's overhead) and slack. The kernel
+/// may grant less (`net.core.rmem_max`); datagrams it then drops show as
+/// `TickSample::lost`.
+const RECV_BUFFER_PER_BOT: usize = 16 << 10;
+
+/// The largest receive buffer asked for one bot socket.
+const MAX_RECV_BUFFER: usize = 64 << 20;
+
+/// How the bots of a [`TickBench`] share sockets and how many of their datagrams they
+/// open. The default is a socket per bot, every datagram opened.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BotOptions {
+    /// Bots sharing one UDP socket (1: a socket each). Many players' worth of sockets
+    /// need many file descriptors (`ulimit -n`); a group needs one.
+    pub bots_per_socket: usize,
+    /// Bot `i` opens its datagrams (tag, replay window, decode) on the ticks where
+    /// `(tick + i) % open_every == 0` and matches them to its session by header alone on
+    /// the others. 1: every datagram is opened.
+    pub open_every: u64,
+}
+
+impl Default for BotOptions {
+    fn default() -> Self {
+        BotOptions { bots_per_socket: 1, open_every: 1 }
+    }
+}
+
 /// One measured tick: the server's work and what the bots saw.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct TickSample {
@@ -65,13 +102,22 @@ pub struct TickSample {
     pub work: TickWork,
     /// Actions the bots sent before this tick.
     pub actions_sent: u64,
-    /// Datagrams the bots received and opened (session key, replay window, decode).
+    /// Datagrams that reached the bot their header names (opened or not).
     pub delivered: u64,
-    /// Datagrams a bot received but could not open: always 0 unless something is broken.
+    /// Of those, datagrams the bots opened (session key, replay window, decode); all of
+    /// them with [`BotOptions::open_every`] 1.
+    pub opened: u64,
+    /// Datagrams the server sent that no bot received (the kernel dropped them: a bot
+    /// socket's receive buffer was full).
+    pub lost: u64,
+    /// Datagrams a bot received but could not open, or whose header named no bot:
+    /// always 0 unless something is broken.
     pub rejected: u64,
     /// Records the bots decoded.
     pub records_delivered: u64,
-    /// Bots whose update this tick contained their own object.
+    /// Bots that opened their datagrams this tick (all of them with `open_every` 1).
+    pub opening_bots: usize,
+    /// Of those, bots whose update this tick contained their own object.
     pub saw_own: usize,
     /// Wall time of the bots' untimed work (sealing and sending actions, draining and
     /// opening), in ms: one thread, so also its CPU time, which a caller that measures
@@ -87,16 +133,24 @@ impl TickSample {
 }
 
 struct Bot {
-    socket: UdpSocket,
+    /// Index of the bot's socket in `TickBench::sockets`.
+    socket: usize,
     session: ClientSession,
     entity: u64,
     frame: u32,
+    /// The bot's update held its own object this tick.
+    saw_own: bool,
 }
 
 /// The server tick with one bot per user object; see the module docs.
 pub struct TickBench {
     tick: TickLoop,
     bots: Vec<Bot>,
+    /// The bots' sockets, each shared by up to `options.bots_per_socket` bots.
+    sockets: Vec<UdpSocket>,
+    /// Session id → index in `bots`: whom a datagram is for.
+    by_session: HashMap<u64, usize>,
+    options: BotOptions,
     server_addr: SocketAddr,
     buf: Vec<u8>,
     datagram: Vec<u8>,
@@ -117,18 +171,30 @@ impl TickBench {
     /// object of `world` a player with a bot socket of its own, and runs one untimed
     /// tick in which the bots' `Ready` messages are received, so every player is active
     /// from the first measured tick. Only the tick-related keys of `config` matter
-    /// (tick rate, AOI size, datagrams per player, session timeout). `backend` is the
+    /// (tick rate, AOI size, datagrams per player, session timeout); `max_players` is
+    /// raised to the world's users if it is lower. `backend` is the
     /// factory's (with its device interest, if any) or any other physics backend.
     pub fn new(
         config: ServerConfig,
         world: World,
         backend: impl Into<CreatedBackend>,
     ) -> Result<TickBench, ServerError> {
+        TickBench::with_bots(config, world, backend, BotOptions::default())
+    }
+
+    /// [`TickBench::new`] with the bots grouped on sockets and opening as `options` says.
+    pub fn with_bots(
+        config: ServerConfig,
+        world: World,
+        backend: impl Into<CreatedBackend>,
+        options: BotOptions,
+    ) -> Result<TickBench, ServerError> {
+        if options.bots_per_socket == 0 || options.open_every == 0 {
+            return Err(ServerError::Internal(format!(
+                "bench bots: {options:?} (bots per socket and open every must be at least 1)"
+            )));
+        }
         let backend = backend.into();
-        config.validate()?;
-        let loopback = EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)));
-        let endpoints = Endpoint::bind_group(loopback, config.udp_socket_count())?;
-        let server_addr = endpoints[0].local_addr();
         let users: Vec<_> = world
             .dynamics
             .ids()
@@ -137,6 +203,14 @@ impl TickBench {
             .filter(|(_, k)| **k == ObjectKind::User)
             .map(|(id, _)| *id)
             .collect();
+        // Every user object is a player: a world of more users than `max_players`
+        // (scenario 4's 50,000) raises the cap rather than refusing the surplus.
+        let mut config = config;
+        config.max_players = config.max_players.max(u32::try_from(users.len()).unwrap_or(u32::MAX));
+        config.validate()?;
+        let loopback = EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)));
+        let endpoints = Endpoint::bind_group(loopback, config.udp_socket_count())?;
+        let server_addr = endpoints[0].local_addr();
         // The transport `serve` uses: receiving on a thread of its own by default (the
         // tick's receive stage then times only what the tick itself does).
         let (transport, dealt_with): (Box<dyn Transport>, _) = if config.receive_thread {
@@ -151,19 +225,35 @@ impl TickBench {
             .device_interest(backend.device_interest)
             .build();
         let mut bots = Vec::with_capacity(users.len());
+        let mut sockets = Vec::new();
+        let mut by_session = HashMap::with_capacity(users.len());
+        let group = options.bots_per_socket;
         let adopted = tick.adopt_all(users.into_iter().enumerate().map(|(i, entity)| (UserId(i as i64 + 1), entity)));
+        let players = adopted.len();
         for (i, joined) in adopted.into_iter().enumerate() {
             let joined = joined.map_err(|r| ServerError::Internal(format!("admitting bench player {i}: {r:?}")))?;
-            let socket = UdpSocket::bind(SocketAddr::from(([127, 0, 0, 1], 0)))
-                .and_then(|s| s.set_nonblocking(true).map(|()| s))
-                .map_err(|e| {
-                    ServerError::io(format!("binding bot socket {} (raise `ulimit -n` for many players)", i + 1), e)
-                })?;
-            bots.push(Bot { socket, session: ClientSession::new(&joined.keys), entity: joined.entity, frame: 0 });
+            if i % group == 0 {
+                let members = group.min(players - i);
+                sockets.push(bot_socket(members).map_err(|e| {
+                    let n = sockets.len() + 1;
+                    ServerError::io(format!("binding bot socket {n} (raise `ulimit -n` or --bots-per-socket)"), e)
+                })?);
+            }
+            by_session.insert(joined.keys.session_id, bots.len());
+            bots.push(Bot {
+                socket: sockets.len() - 1,
+                session: ClientSession::new(&joined.keys),
+                entity: joined.entity,
+                frame: 0,
+                saw_own: false,
+            });
         }
         let mut bench = TickBench {
             tick,
             bots,
+            sockets,
+            by_session,
+            options,
             server_addr,
             buf: vec![0; 65_536],
             datagram: Vec::with_capacity(128),
@@ -177,9 +267,14 @@ impl TickBench {
                 bench.send(i, &ClientMessage::Ready)?;
             }
             bench.run_tick();
-            bench.drain(|_, _| {});
+            bench.drain(0, |_, _| {});
         }
         Ok(bench)
+    }
+
+    /// The bots' sockets and how they open their datagrams.
+    pub fn bot_options(&self) -> BotOptions {
+        self.options
     }
 
     /// Players (and bots).
@@ -224,7 +319,8 @@ impl TickBench {
         let bots_before = before.elapsed();
         let work = self.run_tick();
         let after = Instant::now();
-        let mut sample = self.drain(on_update);
+        let mut sample = self.drain(tick, on_update);
+        sample.lost = work.datagrams.saturating_sub(sample.delivered + sample.rejected);
         sample.bots_ms = (bots_before + after.elapsed()).as_secs_f64() * 1e3;
         sample.work = work;
         sample.actions_sent = actions_sent;
@@ -248,7 +344,7 @@ impl TickBench {
         self.datagram.clear();
         let bot = &mut self.bots[i];
         bot.session.seal(msg, &mut self.datagram).map_err(|e| ServerError::Internal(format!("sealing: {e}")))?;
-        match bot.socket.send_to(&self.datagram, self.server_addr) {
+        match self.sockets[bot.socket].send_to(&self.datagram, self.server_addr) {
             // A full loopback queue loses the datagram, as a network would: the server's
             // `received` count shows it.
             Ok(_) => {
@@ -260,31 +356,71 @@ impl TickBench {
         }
     }
 
-    /// Every bot reads and opens everything queued on its socket, handing each update to
-    /// `on_update`.
-    fn drain(&mut self, mut on_update: impl FnMut(usize, &StateUpdate)) -> TickSample {
+    /// Reads everything queued on every bot socket, hands each datagram to the bot its
+    /// header names, which opens it if it is its turn (`tick`) and hands each state update
+    /// it opened to `on_update`.
+    fn drain(&mut self, tick: u64, mut on_update: impl FnMut(usize, &StateUpdate)) -> TickSample {
         let mut s = TickSample::default();
-        for (i, bot) in self.bots.iter_mut().enumerate() {
-            let mut saw_own = false;
+        for bot in &mut self.bots {
+            bot.saw_own = false;
+        }
+        for socket in &self.sockets {
             // Until WouldBlock: drained. Any other error (an ICMP error queued on the
             // socket) is not the server's datagram either.
-            while let Ok(n) = bot.socket.recv(&mut self.buf) {
-                match bot.session.open(&mut self.buf[..n]) {
+            while let Ok(n) = socket.recv(&mut self.buf) {
+                let datagram = &mut self.buf[..n];
+                let Some(&i) = peek_header(datagram, Direction::ServerToClient)
+                    .ok()
+                    .and_then(|h| self.by_session.get(&h.session_id))
+                else {
+                    s.rejected += 1;
+                    continue;
+                };
+                if !opens(tick, i, self.options.open_every) {
+                    s.delivered += 1;
+                    continue;
+                }
+                let bot = &mut self.bots[i];
+                match bot.session.open(datagram) {
                     Ok(opened) => {
                         s.delivered += 1;
+                        s.opened += 1;
                         if let ServerMessage::StateUpdate(u) = opened.message {
                             s.records_delivered += u.records.len() as u64;
-                            saw_own |= u.records.iter().any(|r| r.id == bot.entity);
+                            bot.saw_own |= u.records.iter().any(|r| r.id == bot.entity);
                             on_update(i, &u);
                         }
                     }
                     Err(_) => s.rejected += 1,
                 }
             }
-            s.saw_own += usize::from(saw_own);
+        }
+        for i in 0..self.bots.len() {
+            if opens(tick, i, self.options.open_every) {
+                s.opening_bots += 1;
+                s.saw_own += usize::from(self.bots[i].saw_own);
+            }
         }
         s
     }
+}
+
+/// Whether bot `i` opens its datagrams on `tick` ([`BotOptions::open_every`]).
+fn opens(tick: u64, i: usize, open_every: u64) -> bool {
+    (tick + i as u64).is_multiple_of(open_every)
+}
+
+/// A nonblocking bot socket on loopback for `members` bots, its receive buffer asked to
+/// hold a tick of their datagrams.
+fn bot_socket(members: usize) -> std::io::Result<UdpSocket> {
+    let socket = UdpSocket::bind(SocketAddr::from(([127, 0, 0, 1], 0)))?;
+    socket.set_nonblocking(true)?;
+    if members > 1 {
+        // The kernel may grant less (net.core.rmem_max): what it drops shows as `lost`.
+        let _ =
+            socket2::SockRef::from(&socket).set_recv_buffer_size((members * RECV_BUFFER_PER_BOT).min(MAX_RECV_BUFFER));
+    }
+    Ok(socket)
 }
 
 #[cfg(test)]
@@ -313,8 +449,8 @@ mod tests {
             let w = &s.work;
             assert!(w.datagrams >= 60, "{s:?}");
             assert_eq!(s.delivered, w.datagrams, "{s:?}");
-            assert_eq!(s.rejected, 0);
-            assert_eq!(s.saw_own, 60);
+            assert_eq!((s.opened, s.lost, s.rejected), (s.delivered, 0, 0), "{s:?}");
+            assert_eq!((s.saw_own, s.opening_bots), (60, 60));
             assert!(s.records_delivered >= w.records as u64 && w.records > 0, "{s:?}");
             // The bots' actions arrive: a third of them each tick, and each is applied.
             assert_eq!(w.received, s.actions_sent, "{s:?}");
@@ -334,5 +470,37 @@ mod tests {
             })
             .count();
         assert!(moved >= 50, "only {moved} of 60 players walked");
+    }
+
+    /// Bots in groups of 16 on a socket, each opening its datagrams every third tick:
+    /// every datagram still reaches the bot it is for, a third of the bots open theirs
+    /// each tick (and find their own object), and what they open decodes. More users
+    /// than `max_players` all play.
+    #[test]
+    fn grouped_bots_receive_everything_and_open_their_turns() {
+        let world = ScenarioSpec::custom(8).counts(1_200, 60, 300).map_size(256.0, 129).build().unwrap();
+        let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
+        let options = BotOptions { bots_per_socket: 16, open_every: 3 };
+        // Fewer player slots than users: the bench raises the cap (scenario 4's 50,000
+        // users against the default 10,000).
+        let config = ServerConfig { max_players: 10, ..ServerConfig::default() };
+        let mut bench = TickBench::with_bots(config, world, backend, options).unwrap();
+        assert_eq!((bench.players(), bench.sockets.len()), (60, 4));
+        let mut opened = 0;
+        for _ in 0..6 {
+            let s = bench.tick().unwrap();
+            assert!(s.work.datagrams >= 60, "{s:?}");
+            assert_eq!((s.delivered, s.lost, s.rejected), (s.work.datagrams, 0, 0), "{s:?}");
+            assert_eq!((s.opening_bots, s.saw_own), (20, 20), "{s:?}");
+            assert!(s.opened >= 20 && s.opened < s.delivered, "{s:?}");
+            assert!(s.records_delivered > 0, "{s:?}");
+            assert_eq!(s.work.received, s.actions_sent, "the bots' actions arrive from shared sockets: {s:?}");
+            opened += s.opened;
+        }
+        assert!(opened > 0);
+        let none = BotOptions { bots_per_socket: 0, open_every: 1 };
+        let world = ScenarioSpec::custom(8).counts(100, 5, 10).map_size(64.0, 17).build().unwrap();
+        let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
+        assert!(TickBench::with_bots(ServerConfig::default(), world, backend, none).is_err());
     }
 }

@@ -15,7 +15,8 @@ use three_d::{
 use crate::args::{Args, resolve_server};
 use crate::camera::FollowCamera;
 use crate::hud::{FrameTimes, HudInfo, hud_line};
-use crate::net::{Session, Snapshot};
+use crate::net::{Login, Session, Snapshot};
+use crate::reconnect::Link;
 use crate::scene::{
     Batch, Batches, Part, ViewFilter, ViewObject, dynamic_batches, palette, static_batches, synthetic_objects,
     terrain_height, terrain_mesh, to_render, unit_cylinder,
@@ -48,21 +49,27 @@ pub fn run(args: Args) -> Result<()> {
     eprintln!("myriad-viewer: logging in as {} at {addr}", args.user);
     let session = Session::start(config, Credentials { username: args.user.clone(), password })
         .map_err(|e| login_error(e, addr))?;
-    let a = &session.accepted;
-    eprintln!(
-        "myriad-viewer: logged in: object {} at {:?}, map {:?} ({}×{} samples, {} static primitives), {} Hz",
-        a.entity_id,
-        a.position,
-        a.map.name,
-        session.map.terrain_width,
-        session.map.terrain_depth,
-        session.map.statics.len(),
-        a.tick_rate_hz
-    );
+    print_login(&session.login());
     let window = open_window(&args)?;
     let mut viewer = Viewer::new(window.gl(), session, args)?;
     window.render_loop(move |frame| viewer.frame(frame));
     Ok(())
+}
+
+/// One line about a login, for the first one and every one after a session ended.
+fn print_login(login: &Login) {
+    let a = &login.accepted;
+    let again = if login.number > 1 { " again" } else { "" };
+    eprintln!(
+        "myriad-viewer: logged in{again}: object {} at {:?}, map {:?} ({}×{} samples, {} static primitives), {} Hz",
+        a.entity_id,
+        a.position,
+        a.map.name,
+        login.map.terrain_width,
+        login.map.terrain_depth,
+        login.map.statics.len(),
+        a.tick_rate_hz
+    );
 }
 
 fn login_error(e: ClientError, addr: std::net::SocketAddr) -> anyhow::Error {
@@ -121,6 +128,21 @@ fn open_window(args: &Args) -> Result<Window> {
     }
 }
 
+/// The terrain and the static scenery of a login's map.
+fn map_meshes(
+    context: &Context,
+    material: &PhysicalMaterial,
+    login: &Login,
+    terrain_res: u32,
+) -> Result<(Gm<Mesh, PhysicalMaterial>, PartMeshes)> {
+    let mesh = terrain_mesh(&login.accepted.map, &login.map, terrain_res.max(2))
+        .context("the server's heightmap cannot be drawn")?;
+    let terrain = Gm::new(Mesh::new(context, &mesh), material.clone());
+    let mut statics = PartMeshes::new(material.clone());
+    statics.set(context, &static_batches(&login.map.statics));
+    Ok((terrain, statics))
+}
+
 /// One instanced mesh per [`Part`], created on first use (an instanced mesh cannot be
 /// empty) and hidden while it has no instances.
 struct PartMeshes {
@@ -172,6 +194,12 @@ impl PartMeshes {
 struct Viewer {
     context: Context,
     session: Session,
+    /// The login whose map is drawn and whose object is the player.
+    login: Arc<Login>,
+    /// The login whose player the camera was placed on.
+    placed_for: u64,
+    /// The link state last printed.
+    printed_link: Link,
     args: Args,
     camera: Camera,
     follow: FollowCamera,
@@ -202,11 +230,8 @@ impl Viewer {
             &context,
             &CpuMaterial { albedo: Srgba::WHITE, roughness: 0.85, metallic: 0.0, ..Default::default() },
         );
-        let mesh = terrain_mesh(&session.accepted.map, &session.map, args.terrain_res.max(2))
-            .context("the server's heightmap cannot be drawn")?;
-        let terrain = Gm::new(Mesh::new(&context, &mesh), material.clone());
-        let mut statics = PartMeshes::new(material.clone());
-        statics.set(&context, &static_batches(&session.map.statics));
+        let login = session.login();
+        let (terrain, statics) = map_meshes(&context, &material, &login, args.terrain_res)?;
         let (w, h) = args.size;
         let camera = Camera::new_perspective(
             three_d::Viewport::new_at_origo(w, h),
@@ -238,14 +263,43 @@ impl Viewer {
             times: FrameTimes::default(),
             last_frame: None,
             update_times: FrameTimes::default(),
+            placed_for: 0,
+            printed_link: Link::LoggingIn,
             context,
             session,
+            login,
             args,
         })
     }
 
     fn ground(&self) -> impl Fn(f32, f32) -> f32 + '_ {
-        |x, z| terrain_height(&self.session.accepted.map, &self.session.map, x, z)
+        |x, z| terrain_height(&self.login.accepted.map, &self.login.map, x, z)
+    }
+
+    /// Takes the newest login after a session ended and a new one began: the player's
+    /// object may have another id, and a restarted server may serve another map.
+    fn follow_login(&mut self) {
+        let login = self.session.login();
+        if login.number == self.login.number {
+            return;
+        }
+        print_login(&login);
+        if login.accepted.map != self.login.accepted.map || login.map != self.login.map {
+            let material = self.terrain.material.clone();
+            match map_meshes(&self.context, &material, &login, self.args.terrain_res) {
+                Ok((terrain, statics)) => (self.terrain, self.statics) = (terrain, statics),
+                Err(e) => self.exit(1, &format!("{e:#}")),
+            }
+        }
+        self.login = login;
+    }
+
+    /// Says on stderr what the status line says about the link, once per change.
+    fn print_link(&mut self, link: &Link) {
+        if *link != self.printed_link {
+            eprintln!("myriad-viewer: {}", link.status(Instant::now()));
+            self.printed_link = link.clone();
+        }
     }
 
     fn frame(&mut self, mut frame: FrameInput) -> FrameOutput {
@@ -265,8 +319,12 @@ impl Viewer {
             }
         }
         let snap = self.session.shared.snapshot();
-        let player = snap.own_position.unwrap_or(self.session.accepted.position);
-        let (desc, map) = (&self.session.accepted.map, &self.session.map);
+        if snap.login != self.login.number {
+            self.follow_login();
+        }
+        self.print_link(&snap.link);
+        let player = snap.own_position.unwrap_or(self.login.accepted.position);
+        let (desc, map) = (&self.login.accepted.map, &self.login.map);
         let dt = frame.elapsed_time as f32 / 1000.0;
         let (eye, target) = self.follow.update(player, dt, |x, z| terrain_height(desc, map, x, z));
         self.camera.set_viewport(frame.viewport);
@@ -276,10 +334,10 @@ impl Viewer {
             self.show(&snap, eye);
             self.update_times.record(t.elapsed().as_secs_f64() * 1000.0);
         }
-        if let Some(why) = &snap.ended
+        if let Link::Disconnected { reason } = &snap.link
             && self.first_update.is_none()
         {
-            self.exit(1, &format!("no world update before the session ended: {why}"));
+            self.exit(1, &format!("no world update before the session ended: {reason}"));
         }
 
         let line = hud_line(&HudInfo {
@@ -290,13 +348,12 @@ impl Viewer {
             dilation_permille: snap.dilation_permille,
             fps: self.times.fps(),
         });
-        let ended = snap.ended.clone();
+        let link = snap.link.status(now);
+        let link_colour = if snap.link.is_connected() { egui::Color32::LIGHT_GREEN } else { egui::Color32::LIGHT_RED };
         self.gui.update(&mut frame.events, frame.accumulated_time, frame.viewport, frame.device_pixel_ratio, |ui| {
             egui::Frame::new().fill(egui::Color32::from_black_alpha(170)).inner_margin(8).show(ui, |ui| {
                 ui.label(egui::RichText::new(&line).monospace().size(18.0).color(egui::Color32::WHITE));
-                if let Some(why) = &ended {
-                    ui.label(egui::RichText::new(why).monospace().size(16.0).color(egui::Color32::LIGHT_RED));
-                }
+                ui.label(egui::RichText::new(&link).monospace().size(16.0).color(link_colour));
             });
         });
 
@@ -344,17 +401,21 @@ impl Viewer {
     fn show(&mut self, snap: &Arc<Snapshot>, eye: [f32; 3]) {
         self.shown_generation = snap.generation;
         let Some(own) = snap.own_position else { return };
+        if self.placed_for != snap.login {
+            // The camera jumps to the player's real position once known, and again after
+            // a new login (the player may be elsewhere now).
+            self.follow = FollowCamera::default();
+            self.placed_for = snap.login;
+        }
         if self.first_update.is_none() {
             self.first_update = Some(Instant::now());
-            // The camera jumps to the player's real position once known.
-            self.follow = FollowCamera::default();
             if self.args.bench_objects > 0 {
                 self.synthetic = synthetic_objects(self.args.bench_objects, own, 1.5, self.ground());
             }
         }
         let filter = ViewFilter {
-            own_id: self.session.accepted.entity_id,
-            own_shape: self.session.accepted.shape,
+            own_id: self.login.accepted.entity_id,
+            own_shape: self.login.accepted.shape,
             eye,
             far: self.args.far,
         };

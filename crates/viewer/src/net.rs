@@ -3,18 +3,25 @@
 //! immutable [`Snapshot`] after each burst of datagrams. The render loop only ever swaps
 //! an `Arc` out of a mutex, so a slow network never stalls a frame and a slow frame never
 //! delays receiving.
+//!
+//! When a session ends (the server's Disconnect, silence through the client library's
+//! probes, an unreachable port after the server exited), the thread logs in again with
+//! the same credentials after the [`Backoff`] delays, publishing each step as the
+//! snapshot's [`Link`]; see [`crate::reconnect`] for which ends are not retried. The
+//! credentials stay inside the [`Connection`] for that purpose and are never printed.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, mpsc};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use myriad_client::{ClientConfig, ClientError, Connection, Credentials, Event};
+use myriad_client::{ClientConfig, ClientError, Connection, Credentials, Event, SessionEnd};
 use myriad_protocol::MAX_DATAGRAM;
 use myriad_protocol::login::{LoginAccepted, MapData};
 
 use crate::hud::{PingTracker, RateMeter};
 use crate::input::HeldKeys;
+use crate::reconnect::{Backoff, Link, end_reason, login_failure};
 use crate::scene::ViewObject;
 
 /// The world as the network thread last saw it.
@@ -22,7 +29,9 @@ use crate::scene::ViewObject;
 pub struct Snapshot {
     /// Increases with every publication.
     pub generation: u64,
-    /// Newest tick received.
+    /// The [`Login::number`] of the session this world came from.
+    pub login: u64,
+    /// Newest tick received in this session (a restarted server counts afresh).
     pub tick: u64,
     /// The player's object as last heard.
     pub own_position: Option<[f32; 3]>,
@@ -34,14 +43,36 @@ pub struct Snapshot {
     pub bytes_per_s: f64,
     /// Time dilation in thousandths.
     pub dilation_permille: u16,
-    /// Why the session ended, if it did.
-    pub ended: Option<String>,
+    /// The link to the server: connected, or why not and what happens next.
+    pub link: Link,
+}
+
+/// One successful login: the player's object, the map, and which login of the run it is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Login {
+    /// 1 for the first login of the run, one more for every login after a session ended.
+    pub number: u64,
+    /// The login's answer (player id, shape, tick rate, map description).
+    pub accepted: LoginAccepted,
+    /// Terrain and statics.
+    pub map: MapData,
+}
+
+impl Login {
+    fn of(conn: &Connection) -> Login {
+        Login {
+            number: conn.stats().reconnects + 1,
+            accepted: conn.accepted().clone(),
+            map: conn.map().cloned().unwrap_or_default(),
+        }
+    }
 }
 
 /// What the render thread and the network thread share.
 #[derive(Debug, Default)]
 pub struct Shared {
     snapshot: Mutex<Arc<Snapshot>>,
+    login: Mutex<Option<Arc<Login>>>,
     keys: Mutex<HeldKeys>,
     quit: AtomicBool,
 }
@@ -60,32 +91,52 @@ impl Shared {
     fn publish(&self, s: Snapshot) {
         *self.snapshot.lock().unwrap_or_else(|e| e.into_inner()) = Arc::new(s);
     }
+
+    /// Publishes the last snapshot again with another link state. Objects are marked
+    /// stale while the session is down: nothing refreshes them.
+    fn publish_link(&self, link: Link) {
+        let mut s = Snapshot::clone(&self.snapshot());
+        s.generation += 1;
+        if !link.is_connected() {
+            s.objects.iter_mut().for_each(|o| o.stale = true);
+        }
+        s.link = link;
+        self.publish(s);
+    }
+
+    fn set_login(&self, login: Arc<Login>) {
+        *self.login.lock().unwrap_or_else(|e| e.into_inner()) = Some(login);
+    }
+
+    fn quit_requested(&self) -> bool {
+        self.quit.load(Ordering::Relaxed)
+    }
 }
 
 /// A logged-in session running on its own thread.
 pub struct Session {
-    /// The login's answer (player id, shape, tick rate, map description).
-    pub accepted: LoginAccepted,
-    /// Terrain and statics.
-    pub map: MapData,
     /// Snapshots and keys.
     pub shared: Arc<Shared>,
+    first: Arc<Login>,
     thread: Option<JoinHandle<()>>,
 }
 
 impl std::fmt::Debug for Session {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Session").field("entity", &self.accepted.entity_id).finish_non_exhaustive()
+        f.debug_struct("Session").field("entity", &self.login().accepted.entity_id).finish_non_exhaustive()
     }
 }
 
 impl Session {
     /// Logs in (with the map) on a new thread and starts the session loop there; returns
-    /// once the login succeeded or failed.
+    /// once the login succeeded or failed. A failed first login is an error (a wrong
+    /// password or address should be said at once); after that, ended sessions are
+    /// followed by new logins (module docs).
     pub fn start(mut config: ClientConfig, credentials: Credentials) -> Result<Session, ClientError> {
         config.want_map = true;
         // Keep-alives are sent by the ping probe below, on its own schedule.
         config.keepalive_every = Duration::ZERO;
+        let silence_timeout = config.silence_timeout;
         let shared = Arc::new(Shared::default());
         let (tx, rx) = mpsc::channel();
         let thread_shared = shared.clone();
@@ -107,23 +158,30 @@ impl Session {
                             return;
                         }
                     };
-                    let map = conn.map().cloned().unwrap_or_default();
-                    if tx.send(Ok((conn.accepted().clone(), map))).is_err() {
+                    let login = Arc::new(Login::of(&conn));
+                    thread_shared.set_login(login.clone());
+                    if tx.send(Ok(login)).is_err() {
                         return;
                     }
-                    run(&mut conn, &thread_shared).await;
-                    let _ = conn.disconnect().await;
+                    if stay_connected(&mut conn, &thread_shared, silence_timeout).await {
+                        let _ = conn.disconnect().await;
+                    }
                 });
             })
             .map_err(|e| ClientError::Io { what: "starting the network thread", source: e })?;
         match rx.recv() {
-            Ok(Ok((accepted, map))) => Ok(Session { accepted, map, shared, thread: Some(thread) }),
+            Ok(Ok(first)) => Ok(Session { shared, first, thread: Some(thread) }),
             Ok(Err(e)) => {
                 let _ = thread.join();
                 Err(e)
             }
             Err(_) => Err(ClientError::Protocol("the network thread ended during the login".into())),
         }
+    }
+
+    /// The newest login: the first one until a session ended and a new login succeeded.
+    pub fn login(&self) -> Arc<Login> {
+        self.shared.login.lock().unwrap_or_else(|e| e.into_inner()).clone().unwrap_or_else(|| self.first.clone())
     }
 
     /// Asks the network thread to say goodbye to the server and waits up to `timeout`.
@@ -143,7 +201,85 @@ impl Session {
 /// Objects not heard of for this long are forgotten (they left the view long ago).
 const FORGET_AFTER: Duration = Duration::from_secs(10);
 
-async fn run(conn: &mut Connection, shared: &Shared) {
+/// How often a wait checks whether the viewer is quitting.
+const QUIT_POLL: Duration = Duration::from_millis(50);
+
+/// How a session loop ended.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum Outcome {
+    /// The viewer is quitting; the session is still up.
+    Quit,
+    /// The session is over.
+    Ended {
+        /// Why, in words.
+        reason: String,
+        /// Whether a new login may help.
+        retry: bool,
+    },
+}
+
+/// Runs sessions until the viewer quits, logging in again after each one that ended.
+/// Returns whether the last session is still up (and deserves a Disconnect).
+async fn stay_connected(conn: &mut Connection, shared: &Shared, silence_timeout: Duration) -> bool {
+    loop {
+        let (reason, retry) = match run(conn, shared, silence_timeout).await {
+            Outcome::Quit => return true,
+            Outcome::Ended { reason, retry } => (reason, retry),
+        };
+        if !retry || !log_in_again(conn, shared, reason.clone()).await {
+            if !retry {
+                shared.publish_link(Link::Disconnected { reason });
+            }
+            // Keep the last picture until the window closes.
+            wait_for_quit(shared).await;
+            return false;
+        }
+        shared.set_login(Arc::new(Login::of(conn)));
+    }
+}
+
+/// Logs in again after the [`Backoff`] delays until it works (true), a failure that
+/// another attempt cannot mend (published as [`Link::Disconnected`]), or the viewer quits
+/// (false for both).
+async fn log_in_again(conn: &mut Connection, shared: &Shared, mut reason: String) -> bool {
+    let mut backoff = Backoff::new(fastrand::u64(..));
+    let mut at_least = Duration::ZERO;
+    loop {
+        let at = Instant::now() + backoff.next_delay().max(at_least);
+        shared.publish_link(Link::Reconnecting { reason: reason.clone(), at });
+        tokio::select! {
+            () = tokio::time::sleep_until(at.into()) => {}
+            () = wait_for_quit(shared) => return false,
+        }
+        shared.publish_link(Link::LoggingIn);
+        let attempt = tokio::select! {
+            r = conn.reconnect() => r,
+            () = wait_for_quit(shared) => return false,
+        };
+        match attempt {
+            Ok(()) => return true,
+            Err(e) => {
+                let failure = login_failure(&e);
+                if !failure.retry {
+                    shared.publish_link(Link::Disconnected { reason: failure.reason });
+                    return false;
+                }
+                reason = failure.reason;
+                at_least = failure.at_least;
+            }
+        }
+    }
+}
+
+async fn wait_for_quit(shared: &Shared) {
+    while !shared.quit_requested() {
+        tokio::time::sleep(QUIT_POLL).await;
+    }
+}
+
+/// One session: receives, sends the keys every tick, publishes snapshots, until the
+/// viewer quits or the session ends.
+async fn run(conn: &mut Connection, shared: &Shared, silence_timeout: Duration) -> Outcome {
     let socket = conn.socket();
     let tick_rate = f64::from(conn.accepted().tick_rate_hz.max(1));
     let mut send_every = tokio::time::interval(Duration::from_secs_f64(1.0 / tick_rate));
@@ -151,10 +287,20 @@ async fn run(conn: &mut Connection, shared: &Shared) {
     let mut buf = vec![0u8; MAX_DATAGRAM + 64];
     let mut ping = PingTracker::new(Duration::from_secs(1), Duration::from_secs(3));
     let mut rate = RateMeter::new(Duration::from_secs(1));
-    let mut generation = 0u64;
-    let mut ended: Option<String> = None;
-    while !shared.quit.load(Ordering::Relaxed) {
-        let mut changed = false;
+    let mut generation = shared.snapshot().generation;
+    let mut tick = 0;
+    let ended = |end: SessionEnd| {
+        let (reason, retry) = end_reason(end, silence_timeout);
+        Outcome::Ended { reason, retry }
+    };
+    // The link is up from the first snapshot of the session on.
+    let mut changed = true;
+    while !shared.quit_requested() {
+        if changed {
+            generation += 1;
+            shared.publish(snapshot(conn, generation, tick, &ping, &rate));
+        }
+        changed = false;
         tokio::select! {
             r = socket.recv(&mut buf) => {
                 let mut next = r;
@@ -164,42 +310,39 @@ async fn run(conn: &mut Connection, shared: &Shared) {
                         Ok(n) => {
                             let now = Instant::now();
                             match conn.handle_datagram(&mut buf[..n], now) {
-                                Event::Update { .. } => changed = true,
+                                Event::Update { tick: t, .. } => {
+                                    tick = tick.max(t);
+                                    changed = true;
+                                }
                                 Event::KeepAlive => {
                                     changed |= ping.echoed(now).is_some();
                                 }
-                                Event::Disconnected(reason) => {
-                                    ended = Some(format!("the server ended the session: {reason:?}"));
-                                    changed = true;
-                                }
+                                Event::Disconnected(reason) => return ended(SessionEnd::Disconnected(reason)),
                                 _ => {}
                             }
                         }
                         Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
-                        Err(e) => {
-                            // ICMP port unreachable after a server exit shows up here.
-                            ended = Some(format!("receiving: {e}"));
-                            changed = true;
-                            break;
-                        }
+                        // ICMP port unreachable after a server exit shows up here.
+                        Err(e) => return Outcome::Ended { reason: format!("receiving: {e}"), retry: true },
                     }
                     next = socket.try_recv(&mut buf);
                 }
             }
             _ = send_every.tick() => {
                 let now = Instant::now();
-                if ended.is_none() {
-                    // Resends Ready until the session starts, probes a silent server.
-                    if let Err(e) = conn.on_timer(now).await {
-                        ended = Some(format!("sending: {e}"));
-                    }
-                    let mask = shared.with_keys(|k| k.take_mask());
-                    if let Err(e) = conn.send_action(mask).await {
-                        ended = Some(format!("sending: {e}"));
-                    }
-                    if ping.due(now) && conn.keepalive_if_due().await.is_ok() {
-                        ping.sent(now);
-                    }
+                // Resends Ready until the session starts, probes a silent server.
+                if let Err(e) = conn.on_timer(now).await {
+                    return Outcome::Ended { reason: format!("sending: {e}"), retry: true };
+                }
+                if let Some(end) = conn.ended() {
+                    return ended(end);
+                }
+                let mask = shared.with_keys(|k| k.take_mask());
+                if let Err(e) = conn.send_action(mask).await {
+                    return Outcome::Ended { reason: format!("sending: {e}"), retry: true };
+                }
+                if ping.due(now) && conn.keepalive_if_due().await.is_ok() {
+                    ping.sent(now);
                 }
                 let before = conn.mirror().fresh();
                 conn.mirror_mut().mark_stale(now);
@@ -208,24 +351,11 @@ async fn run(conn: &mut Connection, shared: &Shared) {
                 rate.update(conn.stats(), now);
             }
         }
-        if changed {
-            generation += 1;
-            shared.publish(snapshot(conn, generation, &ping, &rate, ended.clone()));
-        }
-        if ended.is_some() {
-            // Nothing more will come; keep the last picture and idle until asked to quit.
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
     }
+    Outcome::Quit
 }
 
-fn snapshot(
-    conn: &Connection,
-    generation: u64,
-    ping: &PingTracker,
-    rate: &RateMeter,
-    ended: Option<String>,
-) -> Snapshot {
+fn snapshot(conn: &Connection, generation: u64, tick: u64, ping: &PingTracker, rate: &RateMeter) -> Snapshot {
     let objects = conn
         .mirror()
         .iter()
@@ -233,12 +363,13 @@ fn snapshot(
         .collect();
     Snapshot {
         generation,
-        tick: conn.stats().last_tick,
+        login: conn.stats().reconnects + 1,
+        tick,
         own_position: conn.own_position(),
         objects,
         ping: ping.last(),
         bytes_per_s: rate.bytes_per_s(),
         dilation_permille: conn.dilation_permille(),
-        ended,
+        link: Link::Connected,
     }
 }

@@ -14,6 +14,8 @@ use std::time::{Duration, Instant};
 use myriad_client::{ClientConfig, Credentials, Trust};
 use myriad_server::{ServerConfig, ServerHandle};
 use myriad_store::{HashCost, MapId, PlayerState, Store, StoredShape};
+use myriad_viewer::net::Snapshot;
+use myriad_viewer::reconnect::Link;
 use myriad_viewer::scene::{palette, terrain_height};
 
 const VIEWER: &str = env!("CARGO_BIN_EXE_myriad-viewer");
@@ -313,32 +315,47 @@ fn frame_times_with_many_objects() {
     server.shutdown().unwrap();
 }
 
+/// A server with `user0` placed by the NPCs, and the viewer's network thread (no window)
+/// logged in as `user0`.
+fn server_and_session(rt: &tokio::runtime::Runtime, dir: &Path) -> (ServerHandle, myriad_viewer::net::Session) {
+    let server = start_server(rt, dir);
+    place_player(rt, &server);
+    let trust = Trust::pin_file(server.certificate_path()).unwrap();
+    let cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
+    let session = myriad_viewer::net::Session::start(cc, Credentials::test_user(0)).unwrap();
+    (server, session)
+}
+
+/// The first snapshot of `session` for which `f` holds, waiting up to `secs` seconds.
+fn wait_for_snapshot(
+    session: &myriad_viewer::net::Session,
+    secs: u64,
+    what: &str,
+    f: &dyn Fn(&Snapshot) -> bool,
+) -> std::sync::Arc<Snapshot> {
+    let end = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let s = session.shared.snapshot();
+        if f(&s) {
+            return s;
+        }
+        assert!(Instant::now() < end, "no snapshot with {what} within {secs} s: {s:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 /// The network thread without a window: held keys reach the server at the tick rate, a
 /// tapped jump is sent, and snapshots carry the world, the ping and the bandwidth.
 #[test]
 fn session_sends_held_keys_and_publishes_snapshots() {
     use myriad_protocol::ActionMask;
-    use myriad_viewer::net::Session;
     let dir = tempfile::tempdir().unwrap();
     let rt = runtime();
-    let server = start_server(&rt, dir.path());
-    place_player(&rt, &server);
-    let trust = Trust::pin_file(server.certificate_path()).unwrap();
-    let cc = ClientConfig::new(server.login_addr(), &trust).unwrap();
-    let mut session = Session::start(cc, Credentials::test_user(0)).unwrap();
-    assert_eq!(session.map.samples.len(), (session.map.terrain_width * session.map.terrain_depth) as usize);
-    assert!(!session.map.statics.is_empty(), "the map came with the login");
-    let wait_for = |what: &str, f: &dyn Fn(&myriad_viewer::net::Snapshot) -> bool| {
-        let end = Instant::now() + Duration::from_secs(10);
-        loop {
-            let s = session.shared.snapshot();
-            if f(&s) {
-                return s;
-            }
-            assert!(Instant::now() < end, "no snapshot with {what} within 10 s: {s:?}");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    };
+    let (server, mut session) = server_and_session(&rt, dir.path());
+    let map = &session.login().map;
+    assert_eq!(map.samples.len(), (map.terrain_width * map.terrain_depth) as usize);
+    assert!(!map.statics.is_empty(), "the map came with the login");
+    let wait_for = |what: &str, f: &dyn Fn(&Snapshot) -> bool| wait_for_snapshot(&session, 10, what, f);
     let first = wait_for("the own position", &|s| s.own_position.is_some() && s.objects.len() > 1);
     let start = first.own_position.unwrap();
     session.shared.with_keys(|k| k.handle(three_d::Key::ArrowUp, true));
@@ -357,6 +374,40 @@ fn session_sends_held_keys_and_publishes_snapshots() {
     let s = wait_for("a ping and a bandwidth", &|s| s.ping.is_some() && s.bytes_per_s > 0.0);
     assert!(s.ping.unwrap() < Duration::from_secs(1), "{:?}", s.ping);
     assert_eq!(ActionMask::JUMP, 1 << 4);
+    session.stop(Duration::from_secs(2));
+    server.shutdown().unwrap();
+}
+
+/// The server stops under the viewer and a new one starts on the same ports with the same
+/// database: the viewer says it is disconnected and when it will try again, logs in
+/// again, and shows the new server's world with the status line back at "connected".
+#[test]
+fn the_viewer_comes_back_after_a_server_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let rt = runtime();
+    let (server, mut session) = server_and_session(&rt, dir.path());
+    let (login_addr, udp_addr) = (server.login_addr(), server.udp_addr());
+    let first = wait_for_snapshot(&session, 10, "the world", &|s| s.link.is_connected() && s.objects.len() > 1);
+    assert_eq!((first.login, session.login().number), (1, 1));
+
+    server.shutdown().unwrap();
+    let down =
+        wait_for_snapshot(&session, 20, "the end of the session", &|s| matches!(s.link, Link::Reconnecting { .. }));
+    let status = down.link.status(Instant::now());
+    eprintln!("while the server is down: {status}");
+    assert!(status.starts_with("disconnected: ") && status.contains("reconnecting in"), "{status}");
+    assert!(down.objects.iter().all(|o| o.stale), "nothing is refreshed while the session is down");
+
+    let mut cfg = config(dir.path());
+    (cfg.login_addr, cfg.udp_addr) = (login_addr, udp_addr);
+    let server = ServerHandle::start(cfg).unwrap();
+    let back = wait_for_snapshot(&session, 90, "the new session's world", &|s| {
+        s.login == 2 && s.link.is_connected() && s.own_position.is_some() && s.objects.len() > 1
+    });
+    let later = wait_for_snapshot(&session, 10, "a newer tick", &|s| s.login == 2 && s.tick > back.tick);
+    assert_eq!(later.link.status(Instant::now()), "connected");
+    assert_eq!(session.login().number, 2, "the session's login is the new one");
+    assert!(later.objects.iter().any(|o| !o.stale), "updates arrive again");
     session.stop(Duration::from_secs(2));
     server.shutdown().unwrap();
 }

@@ -99,6 +99,15 @@ pub struct BenchArgs {
     /// The sampled clients' extrapolation cap, ms.
     #[arg(long, default_value_t = Interpolation::default().max_extrapolation.as_millis() as u64)]
     pub max_extrapolation_ms: u64,
+    /// Server tick: bots sharing one UDP socket (1: a socket each; 50,000 players need
+    /// groups, or as many file descriptors).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub bots_per_socket: u64,
+    /// Server tick: each bot opens (tag, replay window, decode) its datagrams every this
+    /// many ticks, in turn, and matches the others to its session by header only (1:
+    /// every datagram is opened).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub open_every: u64,
     #[command(flatten)]
     pub world: WorldArgs,
 }
@@ -150,8 +159,8 @@ pub struct Row {
     static_contacts: u64,
     dynamic_contacts: u64,
     state_hash: String,
-    /// Server tick only: players (one bot socket each), per-tick medians of what was
-    /// sent and what the bots received and opened.
+    /// Server tick only: players, per-tick medians of what was sent and what the bots
+    /// received and opened.
     #[serde(skip_serializing_if = "Option::is_none")]
     server: Option<ServerTick>,
     pub skipped: Option<String>,
@@ -174,11 +183,21 @@ struct ServerTick {
     actions_received: u64,
     /// Bytes sent per player and second at the nominal tick rate.
     bytes_per_player_s: f64,
+    /// Bots sharing a socket.
+    bots_per_socket: u64,
+    /// Ticks between two openings of a bot's datagrams.
+    open_every: u64,
+    /// Datagrams that reached the bot they were for.
     delivered: u64,
+    /// Of those, datagrams the bots opened.
+    opened: u64,
+    /// Datagrams no bot received, over all measured ticks.
+    lost: u64,
     rejected: u64,
-    /// Smallest number over the measured ticks of players whose update held their own
-    /// object.
+    /// Smallest number over the measured ticks of players opening their datagrams whose
+    /// update held their own object, and how many opened on that tick.
     min_saw_own: usize,
+    opening_bots: usize,
     /// What the sampled players' clients held and drew, over the run (`quality.rs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     quality: Option<QualityRow>,

@@ -75,20 +75,17 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
             "\n`packets` and `send` belong to the server tick and are 0 in a physics-only run. cpu threads: {threads}."
         );
     } else {
+        let _ = writeln!(s, "\n#### Table 3: the whole server tick (medians per tick; one bot per user on loopback)\n");
         let _ = writeln!(
             s,
-            "\n#### Table 3: the whole server tick (medians per tick; one bot socket per user on loopback)\n"
+            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which host AOI query | of which device wait | send | datagrams | KiB sent | kB/s per player | records | actions in | bots per socket | received by bots | lost | opened by bots | min. opening players seeing themselves |"
         );
-        let _ = writeln!(
-            s,
-            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which host AOI query | of which device wait | send | datagrams | KiB sent | kB/s per player | records | actions in | opened by bots | min. players seeing themselves |"
-        );
-        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(16));
+        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(19));
         for r in &server_rows {
             let Some(t) = &r.server else { continue };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} |",
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} | {} | {} | {} of {} |",
                 r.scenario,
                 r.backend,
                 t.aoi_size,
@@ -105,8 +102,12 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
                 t.bytes_per_player_s / 1000.0,
                 t.records,
                 t.actions_received,
+                t.bots_per_socket,
                 t.delivered,
-                t.min_saw_own
+                t.lost,
+                t.opened,
+                t.min_saw_own,
+                t.opening_bots
             );
         }
         let _ = writeln!(
@@ -117,9 +118,20 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
              the backend's AOI query on the host (0 with the device outbound); `of which device wait`: \
              the time the tick waited for the device's query, selection, packing and sealing (0 on the host). \
              `kB/s per player`: bytes sent per tick and player at the nominal tick rate ({} Hz). \
-             Each bot sends an action every {} ticks. cpu threads: {threads}.",
+             Each bot sends an action every {} ticks. `received by bots`: datagrams that reached the bot whose \
+             session their header names (`lost`: sent but received by none, over the whole run); `opened by bots`: \
+             of those, the ones opened with the bot's key (tag, replay window, decode), all of them unless the run \
+             had `--open-every N` (each bot then opens its own on every Nth tick, in turn: {}); the last column \
+             counts the players that found their own object among those that opened on that tick. \
+             cpu threads: {threads}.",
             ServerConfig::default().tick_rate,
-            myriad_server::tick_bench::ACTION_EVERY
+            myriad_server::tick_bench::ACTION_EVERY,
+            server_rows.iter().filter_map(|r| r.server.as_ref()).next().map_or_else(String::new, |t| {
+                match t.open_every {
+                    1 => "this run opened every datagram".to_string(),
+                    n => format!("this run had --open-every {n}"),
+                }
+            })
         );
         quality_table(&mut s, &server_rows);
     }

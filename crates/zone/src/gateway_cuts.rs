@@ -12,10 +12,11 @@
 //! those of the newest move of `r` applied at or before `t`, else those `r` started
 //! from, else the first layout.
 //!
-//! A gateway started after a move (and after the supervisor stopped sending it again,
-//! once every zone held it) shows the cuts of the run's start until the next move or
-//! start: the zones' heartbeats carry only a digest of their cuts, and the gateway may
-//! not hear heartbeats.
+//! A gateway started after a move learns it from the supervisor's reminder of the run's
+//! last applied move (every [`crate::rebalance::announce::REMIND_S`]). One started after
+//! a rollback with no move since shows the first layout until the next move: starts are
+//! not repeated, the zones' heartbeats carry only a digest of their cuts, and the gateway
+//! may not hear heartbeats.
 
 use std::collections::BTreeMap;
 

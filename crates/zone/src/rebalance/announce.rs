@@ -12,6 +12,10 @@
 //!   outstanding at a time: the next is decided only after every zone applied the last.
 //! - **Delivering.** NATS delivers at most once, so the move is sent again (every
 //!   `resend`) until every zone's heartbeat says it holds it or has applied it.
+//! - **Reminding.** After that, with nothing outstanding, the epoch's last applied move
+//!   is sent again every [`REMIND_S`]: zones recognise it as a repeat (their
+//!   [`crate::rebalance::live::CutBook`] keeps the last applied), and a gateway that
+//!   started after it was delivered learns the cuts in force (`gateway_cuts.rs`).
 //! - **Checking.** A zone's heartbeat of tick `t` must name the cuts announced for tick
 //!   `t - 1` (those it stepped with). One that does not missed a move (it came too late,
 //!   or was refused) or took one nobody announced: [`Announcement::Diverged`], and the
@@ -37,6 +41,9 @@ use crate::layout::{ZoneId, ZoneLayout};
 use crate::rebalance::live::cuts_digest;
 use crate::rebalance::{CutMove, Cuts, ForcedMove, StepTimeOptions, StepTimePolicy};
 use crate::wire::{Load, ZoneState};
+
+/// Seconds between reminders of the last applied move.
+pub const REMIND_S: f64 = 2.0;
 
 /// Who decides the moves of a live cluster.
 #[derive(Clone, Debug, PartialEq)]
@@ -136,6 +143,8 @@ pub struct Announcer {
     /// Forced moves not announced yet, by decision tick.
     forced: Vec<ForcedMove>,
     outstanding: Option<Outstanding>,
+    /// This epoch's last applied move and when it was last sent.
+    applied: Option<(CutMove, f64)>,
     counts: MoveCounts,
     /// The run's last tick: a move for it or later would never apply.
     end: u64,
@@ -154,7 +163,8 @@ impl Announcer {
         forced.sort_by_key(|f| f.at);
         let (xs, zs) = layout.cuts();
         let history = vec![(0, cuts_digest(xs, zs))];
-        Ok(Announcer { opts, layout, history, policy, forced, outstanding: None, counts: MoveCounts::default(), end })
+        let counts = MoveCounts::default();
+        Ok(Announcer { opts, layout, history, policy, forced, outstanding: None, applied: None, counts, end })
     }
 
     /// The counts so far.
@@ -174,6 +184,7 @@ impl Announcer {
     pub fn restart(&mut self, tick: u64, cuts: &Cuts) -> Result<(), ZoneError> {
         self.layout = Arc::new(self.layout.with_cuts(&cuts.0, &cuts.1)?);
         self.history = vec![(0, cuts_digest(&cuts.0, &cuts.1))];
+        self.applied = None;
         if let Some(o) = self.outstanding.take() {
             tracing::warn!(apply_at = o.cut.apply_at, tick, "a rollback dropped the cut move outstanding");
             if o.forced {
@@ -217,6 +228,7 @@ impl Announcer {
             if applied {
                 self.counts.applied += 1;
                 out.push(Announcement::Applied(o.cut.clone()));
+                self.applied = Some((o.cut.clone(), now));
                 self.outstanding = None;
             } else {
                 let held = beats.iter().all(|b| b.is_some_and(|b| b.load.pending == a || b.tick > a));
@@ -226,6 +238,12 @@ impl Announcer {
                 }
                 return out;
             }
+        }
+        if let Some((cut, sent_at)) = &mut self.applied
+            && now - *sent_at >= REMIND_S
+        {
+            *sent_at = now;
+            out.push(Announcement::Send { cut: cut.clone(), first: false });
         }
         // Decide only on a full view of zones that step.
         let Some(view) = beats.iter().map(|b| b.filter(stepping)).collect::<Option<Vec<ZoneBeat>>>() else {

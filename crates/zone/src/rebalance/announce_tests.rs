@@ -37,6 +37,17 @@ fn a_forced_move_is_sent_until_held_and_applied_by_every_zone() {
     assert!(matches!(&out[..], [Announcement::Applied(c)] if c.apply_at == 90), "{out:?}");
     assert_eq!(a.counts(), MoveCounts { announced: 1, applied: 1, refused: 0 });
     assert_eq!(a.cuts().0, vec![0.0, 230.0, 400.0]);
+    // Then a reminder of it every REMIND_S (for gateways that started after it), and
+    // none after a rollback, whose start carries the cuts.
+    let beats = [beat(120, new, 0, 1), beat(121, new, 0, 1)];
+    assert_eq!(a.observe(2.1 + REMIND_S - 0.1, &beats), vec![]);
+    // (A little past: 2.1 + 2.0 - 2.1 is under 2.0 in f64.)
+    let out = a.observe(2.1 + REMIND_S + 0.01, &beats);
+    assert!(matches!(&out[..], [Announcement::Send { cut, first: false }] if cut.apply_at == 90), "{out:?}");
+    assert_eq!(a.observe(2.1 + REMIND_S + 0.5, &beats), vec![]);
+    a.restart(100, &(vec![0.0, 230.0, 400.0], vec![0.0, 400.0])).unwrap();
+    assert_eq!(a.observe(2.1 + 3.0 * REMIND_S, &[beat(101, new, 0, 1), beat(101, new, 0, 1)]), vec![]);
+    assert_eq!(a.counts(), MoveCounts { announced: 1, applied: 1, refused: 0 });
 }
 
 #[test]

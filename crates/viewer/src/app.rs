@@ -46,6 +46,10 @@ pub fn run(args: Args) -> Result<()> {
     }
     let mut config = ClientConfig::new(addr, &trust)?;
     config.server_name = host;
+    config.interpolation = myriad_client::Interpolation {
+        delay_ticks: args.render_delay_ticks,
+        max_extrapolation: std::time::Duration::from_millis(args.max_extrapolation_ms),
+    };
     eprintln!("myriad-viewer: logging in as {} at {addr}", args.user);
     let session = Session::start(config, Credentials { username: args.user.clone(), password })
         .map_err(|e| login_error(e, addr))?;

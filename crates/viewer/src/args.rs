@@ -49,6 +49,21 @@ pub struct Args {
     /// Seconds to wait for the first world update with --frames before giving up.
     #[arg(long, default_value_t = 30.0)]
     pub wait: f64,
+    /// How far the drawn world trails the server, in ticks (objects are interpolated
+    /// between the states around that time; 0 draws the newest states).
+    #[arg(long, default_value_t = myriad_client::Interpolation::default().delay_ticks, value_parser = parse_delay)]
+    pub render_delay_ticks: f64,
+    /// How long an object is extrapolated past its newest state before it is held, ms.
+    #[arg(long, default_value_t = myriad_client::Interpolation::default().max_extrapolation.as_millis() as u64)]
+    pub max_extrapolation_ms: u64,
+}
+
+/// Parses a render delay in ticks: finite, 0 to 30.
+pub fn parse_delay(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(d) if (0.0..=30.0).contains(&d) => Ok(d),
+        _ => Err(format!("{s:?}: a number of ticks from 0 to 30")),
+    }
 }
 
 /// Parses `WIDTHxHEIGHT`.

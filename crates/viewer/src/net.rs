@@ -1,8 +1,14 @@
 //! The network side: one background thread with its own tokio runtime holds the
 //! [`Connection`], sends the held keys every tick, measures the ping, and publishes an
-//! immutable [`Snapshot`] after each burst of datagrams. The render loop only ever swaps
-//! an `Arc` out of a mutex, so a slow network never stalls a frame and a slow frame never
-//! delays receiving.
+//! immutable [`Snapshot`] after each burst of datagrams and [`REDRAW_HZ`] times a second
+//! while objects are in view. The render loop only ever swaps an `Arc` out of a mutex, so
+//! a slow network never stalls a frame and a slow frame never delays receiving.
+//!
+//! A snapshot holds the world as the client library's mirror renders it at the time it is
+//! taken ([`WorldMirror::rendered`]): interpolated between the states around a render
+//! time that trails the server by the configured delay, extrapolated a capped time when
+//! updates are late, then held. So the drawn world moves smoothly between the server's
+//! ticks instead of jumping at each update.
 //!
 //! When a session ends (the server's Disconnect, silence through the client library's
 //! probes, an unreachable port after the server exited), the thread logs in again with
@@ -15,7 +21,7 @@ use std::sync::{Arc, Mutex, mpsc};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use myriad_client::{ClientConfig, ClientError, Connection, Credentials, Event, SessionEnd};
+use myriad_client::{ClientConfig, ClientError, Connection, Credentials, Event, SessionEnd, WorldMirror};
 use myriad_protocol::MAX_DATAGRAM;
 use myriad_protocol::login::{LoginAccepted, MapData};
 
@@ -23,6 +29,10 @@ use crate::hud::{PingTracker, RateMeter};
 use crate::input::HeldKeys;
 use crate::reconnect::{Backoff, Link, end_reason, login_failure};
 use crate::scene::ViewObject;
+
+/// Snapshots published a second while objects are in view (each with the positions at
+/// its own render time), so interpolated motion is as smooth as a 60 Hz display.
+pub const REDRAW_HZ: f64 = 60.0;
 
 /// The world as the network thread last saw it.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -33,9 +43,10 @@ pub struct Snapshot {
     pub login: u64,
     /// Newest tick received in this session (a restarted server counts afresh).
     pub tick: u64,
-    /// The player's object as last heard.
+    /// The player's object where it is drawn (as last heard before the first update
+    /// of it can be rendered).
     pub own_position: Option<[f32; 3]>,
-    /// Every mirrored object (stale ones included, marked).
+    /// Every mirrored object (stale ones included, marked), where it is drawn.
     pub objects: Vec<ViewObject>,
     /// Last keep-alive round trip.
     pub ping: Option<Duration>,
@@ -284,6 +295,8 @@ async fn run(conn: &mut Connection, shared: &Shared, silence_timeout: Duration) 
     let tick_rate = f64::from(conn.accepted().tick_rate_hz.max(1));
     let mut send_every = tokio::time::interval(Duration::from_secs_f64(1.0 / tick_rate));
     send_every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut redraw_every = tokio::time::interval(Duration::from_secs_f64(1.0 / REDRAW_HZ));
+    redraw_every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut buf = vec![0u8; MAX_DATAGRAM + 64];
     let mut ping = PingTracker::new(Duration::from_secs(1), Duration::from_secs(3));
     let mut rate = RateMeter::new(Duration::from_secs(1));
@@ -298,7 +311,7 @@ async fn run(conn: &mut Connection, shared: &Shared, silence_timeout: Duration) 
     while !shared.quit_requested() {
         if changed {
             generation += 1;
-            shared.publish(snapshot(conn, generation, tick, &ping, &rate));
+            shared.publish(snapshot(conn, generation, tick, &ping, &rate, Instant::now()));
         }
         changed = false;
         tokio::select! {
@@ -328,6 +341,8 @@ async fn run(conn: &mut Connection, shared: &Shared, silence_timeout: Duration) 
                     next = socket.try_recv(&mut buf);
                 }
             }
+            // Between updates the drawn positions still move (interpolated): publish.
+            _ = redraw_every.tick() => changed = !conn.mirror().is_empty(),
             _ = send_every.tick() => {
                 let now = Instant::now();
                 // Resends Ready until the session starts, probes a silent server.
@@ -355,21 +370,67 @@ async fn run(conn: &mut Connection, shared: &Shared, silence_timeout: Duration) 
     Outcome::Quit
 }
 
-fn snapshot(conn: &Connection, generation: u64, tick: u64, ping: &PingTracker, rate: &RateMeter) -> Snapshot {
-    let objects = conn
-        .mirror()
-        .iter()
-        .map(|(id, o)| ViewObject { id, kind: o.kind, position: o.position, stale: o.stale })
-        .collect();
+fn snapshot(
+    conn: &Connection,
+    generation: u64,
+    tick: u64,
+    ping: &PingTracker,
+    rate: &RateMeter,
+    now: Instant,
+) -> Snapshot {
+    let objects = view_objects(conn.mirror(), now);
+    let own = conn.accepted().entity_id;
+    let own_position = objects.iter().find(|o| o.id == own).map(|o| o.position).or_else(|| conn.own_position());
     Snapshot {
         generation,
         login: conn.stats().reconnects + 1,
         tick,
-        own_position: conn.own_position(),
+        own_position,
         objects,
         ping: ping.last(),
         bytes_per_s: rate.bytes_per_s(),
         dilation_permille: conn.dilation_permille(),
         link: Link::Connected,
+    }
+}
+
+/// Every mirrored object where it is drawn at `now` (nothing before the first update).
+fn view_objects(mirror: &WorldMirror, now: Instant) -> Vec<ViewObject> {
+    mirror
+        .rendered(now)
+        .map(|(id, o, r)| ViewObject { id, kind: o.kind, position: r.position, stale: o.stale })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use myriad_protocol::{QuantPos, ShapeKind, StateRecord};
+
+    fn rec(id: u64, x: f32) -> StateRecord {
+        StateRecord { id, kind: ShapeKind::Sphere, pos: QuantPos::from_f32([x, 0.0, 0.0]) }
+    }
+
+    #[test]
+    fn snapshots_draw_the_world_interpolated_at_their_render_time() {
+        let mut m = WorldMirror::new(Duration::from_secs(1));
+        let t = Instant::now();
+        assert!(view_objects(&m, t).is_empty(), "nothing before the first update");
+        let tick = Duration::from_secs_f64(1.0 / 30.0);
+        m.apply(10, [rec(1, 0.0), rec(2, 7.0)], t);
+        m.apply(11, [rec(1, 1.0)], t + tick);
+        // 1.5 ticks after tick 11 arrived the server is at about 12.5, and the default
+        // two-tick delay draws about 10.5: halfway along object 1's step, not at its
+        // newest state; object 2, heard once, where it was heard.
+        let drawn = view_objects(&m, t + tick + tick.mul_f64(1.5));
+        let x = |id: u64| drawn.iter().find(|o| o.id == id).map(|o| o.position[0]);
+        let x1 = x(1).unwrap();
+        assert!((0.4..0.6).contains(&x1), "object 1 drawn at x {x1}, between its states 0 and 1");
+        assert_eq!(m.get(1).unwrap().position[0], 1.0, "the newest state is 1");
+        assert_eq!(x(2), Some(7.0));
+        // Later, past the newest state and the extrapolation cap: held, not run away.
+        let late = view_objects(&m, t + Duration::from_secs(2));
+        let x1 = late.iter().find(|o| o.id == 1).unwrap().position[0];
+        assert!((1.0..=4.5).contains(&x1), "held after at most 100 ms of extrapolation: {x1}");
     }
 }

@@ -20,6 +20,9 @@
 # MODE=million runs a million-object live world with gateways and bots
 # (scripts/million-live.sh: 4 zones on the GPU, 2 gateways, 200 bots; MILLION_SECONDS,
 # MILLION_RUNS: "DYNAMIC:MAP ...", default "1000000:3", or MILLION_DYNAMIC on map 3).
+# MODE=players times the whole server tick with bots on loopback, PLAYERS_RUNS times
+# (default 2): scenario 3 (10,000 players, AOI 14 and 100, with what a player gets:
+# bytes, staleness, error) and scenario 4 (50,000 players, bots grouped 20 a socket).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -283,6 +286,23 @@ if [[ $mode == million ]]; then
     else
         fail "million: no .carry/nats-server"
     fi
+fi
+
+if [[ $mode == players ]]; then
+    # 50,000 players at 20 a socket are 2,500 sockets, with a margin.
+    ulimit -n 65536 || true
+    for run in $(seq 1 "${PLAYERS_RUNS:-2}"); do
+        echo "=== scenario 3, run $run"
+        .carry/myriad bench --scenario 3 --backend cuda --ticks 90 --warmup 30 --aoi-size 14,100 \
+            --out "$out/bench/players-s3-$run" >"$out/players-s3-$run.md" 2>>"$out/players.log" ||
+            fail "bench scenario 3 run $run failed"
+        grep -E '^\| 3 \|' "$out/players-s3-$run.md"
+        echo "=== scenario 4, run $run"
+        .carry/myriad bench --scenario 4 --backend cuda --ticks 30 --warmup 3 --aoi-size 14,100 \
+            --bots-per-socket 20 --out "$out/bench/players-s4-$run" >"$out/players-s4-$run.md" \
+            2>>"$out/players.log" || fail "bench scenario 4 run $run failed"
+        grep -E '^\| 4 \|' "$out/players-s4-$run.md"
+    done 2>&1 | tee "$out/players.txt"
 fi
 
 if [[ $mode == flood ]]; then

@@ -49,7 +49,8 @@ pub struct GatewayArgs {
     /// or `mirror` (every object, every tick); as the zones were started with.
     #[arg(long, value_enum, default_value = "interest")]
     gateway_states: GatewayStates,
-    /// The side of a subscription's cells (default: the AOI size).
+    /// The side of a subscription's cells (default: a quarter of the AOI size, larger
+    /// where the map would need more than 262,144 cells).
     #[arg(long)]
     interest_cell: Option<f32>,
     /// Ticks between the positions a subscription is computed from and the zones'
@@ -93,7 +94,7 @@ pub fn run(args: GatewayArgs) -> Result<()> {
     let aoi = config.aoi_size;
     let interest = (args.gateway_states == GatewayStates::Interest).then_some(());
     let (cell, lag, linger, max_step) =
-        (args.interest_cell.unwrap_or(aoi), args.interest_lag_ticks, args.interest_linger_ticks, args.zone_max_step);
+        (args.interest_cell, args.interest_lag_ticks, args.interest_linger_ticks, args.zone_max_step);
     let factory: myriad_server::BackendFactory = Box::new(move |world| {
         // The largest object's half extent, from the world's own objects (before the
         // zones' replace them): the reach is twice it and a little more.
@@ -101,7 +102,7 @@ pub fn run(args: GatewayArgs) -> Result<()> {
         let half = (myriad_zone::pair_reach(world) / 2.0).max(player.x).max(player.z);
         cfg.interest = interest.map(|()| InterestConfig {
             aoi_half: aoi / 2.0,
-            cell,
+            cell: cell.unwrap_or_else(|| InterestConfig::default_cell(aoi, &world.bounds)),
             margin: InterestConfig::margin_for(lag, max_step, half),
             linger,
         });

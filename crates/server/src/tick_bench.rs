@@ -64,6 +64,9 @@ const RECEIVER_PATIENCE: Duration = Duration::from_millis(500);
 /// one burst of every player that could overflow the socket's receive buffer.
 pub const ACTION_EVERY: u64 = 3;
 
+/// Rounds of `Ready` sent again to bots that heard nothing before the bench gives up.
+const READY_ROUNDS: usize = 5;
+
 /// Ticks a bot holds one direction before it turns.
 const TURN_EVERY: u64 = 30;
 
@@ -140,6 +143,8 @@ struct Bot {
     frame: u32,
     /// The bot's update held its own object this tick.
     saw_own: bool,
+    /// A datagram for the bot arrived since the flag was last cleared.
+    heard: bool,
 }
 
 /// The server tick with one bot per user object; see the module docs.
@@ -158,6 +163,8 @@ pub struct TickBench {
     dealt_with: Option<Arc<AtomicU64>>,
     /// Datagrams the bots sent.
     sent: u64,
+    /// `Ready` messages sent again to players the first one did not make active.
+    ready_resent: u64,
 }
 
 impl std::fmt::Debug for TickBench {
@@ -184,6 +191,19 @@ impl TickBench {
 
     /// [`TickBench::new`] with the bots grouped on sockets and opening as `options` says.
     pub fn with_bots(
+        config: ServerConfig,
+        world: World,
+        backend: impl Into<CreatedBackend>,
+        options: BotOptions,
+    ) -> Result<TickBench, ServerError> {
+        let mut bench = TickBench::inactive(config, world, backend, options)?;
+        let all = (0..bench.bots.len()).collect();
+        bench.activate(all)?;
+        Ok(bench)
+    }
+
+    /// The server and its bots, no player active yet.
+    fn inactive(
         config: ServerConfig,
         world: World,
         backend: impl Into<CreatedBackend>,
@@ -246,9 +266,10 @@ impl TickBench {
                 entity: joined.entity,
                 frame: 0,
                 saw_own: false,
+                heard: false,
             });
         }
-        let mut bench = TickBench {
+        Ok(TickBench {
             tick,
             bots,
             sockets,
@@ -259,17 +280,50 @@ impl TickBench {
             datagram: Vec::with_capacity(128),
             dealt_with,
             sent: 0,
-        };
-        // Ready in waves small enough for the server's receive buffer, each received by a
-        // tick: every player is active (address known, ready) before measuring starts.
-        for wave in (0..bench.bots.len()).collect::<Vec<_>>().chunks(2_000) {
-            for &i in wave {
-                bench.send(i, &ClientMessage::Ready)?;
+            ready_resent: 0,
+        })
+    }
+
+    /// Makes every player active (address known, ready) before measuring starts: `Ready`
+    /// from the bots `first`, in waves small enough for the server's receive buffer, each
+    /// received by a tick; then again from every bot that heard nothing.
+    fn activate(&mut self, first: Vec<usize>) -> Result<(), ServerError> {
+        let bench = self;
+        let mut waiting = first;
+        for round in 0..=READY_ROUNDS {
+            for wave in waiting.chunks(2_000) {
+                for &i in wave {
+                    bench.send(i, &ClientMessage::Ready)?;
+                }
+                bench.run_tick();
+                bench.drain(0, |_, _| {});
             }
+            // An active player gets an update every tick. A Ready the kernel dropped (the
+            // server's receive buffer full at tens of thousands of players) leaves its
+            // player silent, and the run would measure fewer players than it says: send
+            // those Ready again, and refuse to start if some never come.
+            bench.bots.iter_mut().for_each(|b| b.heard = false);
             bench.run_tick();
             bench.drain(0, |_, _| {});
+            waiting = (0..bench.bots.len()).filter(|&i| !bench.bots[i].heard).collect();
+            if waiting.is_empty() {
+                return Ok(());
+            }
+            if round < READY_ROUNDS {
+                bench.ready_resent += waiting.len() as u64;
+            }
         }
-        Ok(bench)
+        Err(ServerError::Internal(format!(
+            "{} of {} bench players got no update after {READY_ROUNDS} rounds of Ready sent again",
+            waiting.len(),
+            bench.bots.len()
+        )))
+    }
+
+    /// `Ready` messages sent again while starting, to players the first one did not
+    /// make active (the server's receive buffer overflowed); 0 when every one arrived.
+    pub fn ready_resent(&self) -> u64 {
+        self.ready_resent
     }
 
     /// The bots' sockets and how they open their datagrams.
@@ -376,6 +430,7 @@ impl TickBench {
                     s.rejected += 1;
                     continue;
                 };
+                self.bots[i].heard = true;
                 if !opens(tick, i, self.options.open_every) {
                     s.delivered += 1;
                     continue;
@@ -502,5 +557,22 @@ mod tests {
         let world = ScenarioSpec::custom(8).counts(100, 5, 10).map_size(64.0, 17).build().unwrap();
         let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
         assert!(TickBench::with_bots(ServerConfig::default(), world, backend, none).is_err());
+    }
+
+    /// A player whose first Ready never arrived (as when the server's receive buffer
+    /// overflows at tens of thousands of players) is found silent and sent Ready again,
+    /// so every player is active when measuring starts.
+    #[test]
+    fn a_player_whose_ready_was_lost_is_made_active_before_measuring() {
+        let world = ScenarioSpec::custom(9).counts(600, 30, 100).map_size(128.0, 65).build().unwrap();
+        let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
+        let options = BotOptions { bots_per_socket: 8, open_every: 1 };
+        let mut bench = TickBench::inactive(ServerConfig::default(), world, backend, options).unwrap();
+        // Bots 4 and 17 "lose" their first Ready: it is never sent.
+        let first = (0..30).filter(|i| ![4, 17].contains(i)).collect();
+        bench.activate(first).unwrap();
+        assert_eq!(bench.ready_resent(), 2);
+        let s = bench.tick().unwrap();
+        assert_eq!((s.opening_bots, s.saw_own), (30, 30), "{s:?}");
     }
 }

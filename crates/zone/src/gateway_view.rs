@@ -7,7 +7,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 use myriad_core::{EntityId, ObjectState, Vec3};
 
-use crate::views::{NUDGE_WINDOW, Positions, position_in};
+use crate::views::{NUDGE_WINDOW, Positions};
 use crate::wire::Nudge;
 
 /// One part of a zone's message of one tick, as the gateway files it.
@@ -38,6 +38,39 @@ pub(crate) enum Applicable {
     /// from bases within [`NUDGE_WINDOW`], which the gateway keeps): only whole views
     /// can bring it back.
     Lost,
+}
+
+/// Applies `updates` (ids ascending, as every list of a view is) to the objects of
+/// `held` they name with `f`, which says whether it could; returns how many it could not
+/// or that named no object held. Many updates are merged with the held objects in one
+/// ordered pass (a million objects' nudges every tick); a few are looked up.
+fn update_sorted<T>(
+    held: &mut BTreeMap<EntityId, ObjectState>,
+    updates: Vec<T>,
+    id: impl Fn(&T) -> EntityId,
+    mut f: impl FnMut(&mut ObjectState, T) -> bool,
+) -> u64 {
+    let mut unknown = 0;
+    let Some(first) = updates.first().map(&id) else { return 0 };
+    if updates.len() * 16 < held.len() {
+        for u in updates {
+            match held.get_mut(&id(&u)) {
+                Some(o) => unknown += u64::from(!f(o, u)),
+                None => unknown += 1,
+            }
+        }
+        return unknown;
+    }
+    let mut objects = held.range_mut(first..).peekable();
+    for u in updates {
+        let want = id(&u);
+        while objects.next_if(|(k, _)| **k < want).is_some() {}
+        match objects.peek_mut() {
+            Some((k, o)) if **k == want => unknown += u64::from(!f(o, u)),
+            _ => unknown += 1,
+        }
+    }
+    unknown
 }
 
 /// Each zone's objects, as the gateway holds them.
@@ -87,19 +120,20 @@ impl ZoneViews {
                 held.remove(id);
             }
             held.extend(p.objects.into_iter().map(|o| (o.id, o)));
-            for (id, pos) in p.moves {
-                match held.get_mut(&id) {
-                    Some(o) => o.pos = pos,
-                    None => unknown += 1,
-                }
-            }
+            unknown += update_sorted(held, p.moves, |m| m.0, |o, (_, pos)| {
+                o.pos = pos;
+                true
+            });
             let at_base = p.base.and_then(|c| history?.iter().find(|(t, _)| *t == c)).map(|(_, at)| &at[..]);
-            for n in p.nudges {
-                match (held.get_mut(&n.id), at_base.and_then(|at| position_in(at, n.id))) {
-                    (Some(o), Some(from)) => o.pos = n.apply(from),
-                    _ => unknown += 1,
+            // Nudges come ids ascending, as the base's positions are: one merge.
+            let (at_base, mut b) = (at_base.unwrap_or_default(), 0);
+            unknown += update_sorted(held, p.nudges, |n| n.id, |o, n| {
+                while b < at_base.len() && at_base[b].0 < n.id {
+                    b += 1;
                 }
-            }
+                let from = at_base.get(b).filter(|p| p.0 == n.id);
+                from.map(|&(_, from)| o.pos = n.apply(from)).is_some()
+            });
         }
         unknown
     }

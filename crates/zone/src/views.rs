@@ -28,6 +28,10 @@
 //! change (a merge by id with the last tick's), one pass that buckets them by cell
 //! (shared by every gateway with that grid), and for each gateway only its subscribed
 //! cells' buckets and its known set: never a scan of every object for every gateway.
+//! A gateway's objects are marked in a bitmap over the owned objects (a bit each) and
+//! then taken in id order, so that what it knows and the base tick's positions are
+//! merged with them in one pass, without a look-up per object: at a million objects
+//! the views are most of a zone's host work.
 //! A zone sends a gateway nothing until the gateway subscribes; a gateway subscribes
 //! every tick (the message also carries its confirmation), so a zone that restarted
 //! learns every subscription within a gateway tick. A subscriber not heard from for
@@ -58,11 +62,6 @@ pub const NUDGE_WINDOW: u64 = 8;
 
 /// The owned objects' positions after one tick, ids ascending.
 pub(crate) type Positions = Vec<(EntityId, Vec3)>;
-
-/// The position of `id` in `at` (ids ascending).
-pub(crate) fn position_in(at: &[(EntityId, Vec3)], id: EntityId) -> Option<Vec3> {
-    at.binary_search_by_key(&id, |p| p.0).ok().map(|i| at[i].1)
-}
 
 /// Why a zone refused a subscription (counted by [`SubscriptionError::label`]).
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -108,14 +107,6 @@ impl SubscriptionError {
     }
 }
 
-/// An object of V the gateway was sent.
-#[derive(Clone, Copy, Debug)]
-struct Known {
-    /// The tick it entered the gateway's view.
-    since: u64,
-    /// The last tick it was in it.
-    seen: u64,
-}
 
 /// One gateway's subscription and what it was sent.
 #[derive(Debug)]
@@ -127,7 +118,9 @@ struct Subscriber {
     /// The last tick of this zone's run the gateway has whole.
     confirmed: Option<u64>,
     heard_at: u64,
-    known: HashMap<EntityId, Known>,
+    /// The objects of V the gateway was sent, each with the tick it entered V, ids
+    /// ascending.
+    known: Vec<(EntityId, u64)>,
     /// Objects that left its view, with the tick they left, until it confirms past it.
     gone: HashMap<EntityId, u64>,
 }
@@ -211,6 +204,8 @@ pub struct Subscribers {
     /// bases nudges start from.
     history: VecDeque<(u64, Positions)>,
     buckets: Vec<(CellGrid, Buckets)>,
+    /// Scratch: a bit per tracked object, the objects of the gateway at hand.
+    marks: Vec<u64>,
 }
 
 impl Subscribers {
@@ -272,7 +267,7 @@ impl Subscribers {
                     cells,
                     confirmed: None,
                     heard_at: tick,
-                    known: HashMap::new(),
+                    known: Vec::new(),
                     gone: HashMap::new(),
                 };
                 self.gateways.insert(s.gateway, fresh);
@@ -314,7 +309,7 @@ impl Subscribers {
         for (&g, s) in &mut self.gateways {
             let buckets = &self.buckets.iter().find(|(grid, _)| *grid == s.grid).expect("filled").1;
             let at_base = s.confirmed.and_then(|c| self.history.iter().find(|(t, _)| *t == c)).map(|(_, p)| &p[..]);
-            let (objects, moves, nudges, gone) = view_of(g, s, &self.tracked, buckets, tick, at_base);
+            let (objects, moves, nudges, gone) = view_of(g, s, &self.tracked, buckets, tick, at_base, &mut self.marks);
             let base = s.confirmed;
             let mut sent = Sent { objects: (objects.len() + moves.len() + nudges.len()) as u64, ..Sent::default() };
             for (part, parts, (records, moved, nudged, ids)) in parts(&objects, &moves, &nudges, &gone, max_message)? {
@@ -373,7 +368,7 @@ impl Subscribers {
 type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<Nudge>, Vec<EntityId>);
 
 /// Gateway `g`'s view at `tick`, nudging from `at_base` (the positions of the base
-/// tick, when the zone still has them). Updates what it was sent.
+/// tick, when the zone still has them). Updates what it was sent. `marks` is scratch.
 fn view_of(
     g: u16,
     s: &mut Subscriber,
@@ -381,6 +376,7 @@ fn view_of(
     buckets: &Buckets,
     tick: u64,
     at_base: Option<&[(EntityId, Vec3)]>,
+    marks: &mut Vec<u64>,
 ) -> ViewLists {
     let base = s.confirmed;
     if base.is_none() {
@@ -389,59 +385,73 @@ fn view_of(
     }
     let c = base.unwrap_or(0);
     let players = player_ids(g);
-    let (mut objects, mut moves, mut nudges) = (Vec::new(), Vec::new(), Vec::new());
-    let mut visit = |t: &Tracked, s: &mut Subscriber| {
-        let id = t.state.id;
-        // Whole: new to the gateway since what it confirmed (it may lack the record), or
-        // one of its own players; else a move when it changed.
-        let (whole, moved) = match s.known.get_mut(&id) {
-            Some(k) => {
-                k.seen = tick;
-                let whole = base.is_none() || k.since > c || (t.changed_at > c && players.contains(&id.0));
-                (whole, !whole && t.changed_at > c)
-            }
-            None => {
-                s.known.insert(id, Known { since: tick, seen: tick });
-                s.gone.remove(&id);
-                (true, false)
-            }
-        };
-        if whole {
-            objects.push(t.state);
-        } else if moved {
-            // Known since c or before, so it was in V at c and the positions of c hold it.
-            let nudge = at_base.and_then(|p| position_in(p, id)).map(|from| Nudge::between(id, from, t.state.pos));
-            match nudge {
-                Some(n) if n.compact() => nudges.push(n),
-                _ => moves.push((id, t.state.pos)),
-            }
-        }
-    };
-    let cells: Vec<u32> = s.cells.iter().collect();
-    for cell in cells {
-        for &i in buckets.of(cell) {
-            visit(&tracked[i as usize], s);
-        }
+    // V: the objects of the subscribed cells, and the gateway's own players wherever
+    // they are (players' ids come last), marked a bit each.
+    marks.clear();
+    marks.resize(tracked.len().div_ceil(64), 0);
+    let mut mark = |i: u32| marks[(i / 64) as usize] |= 1 << (i % 64);
+    for cell in s.cells.iter() {
+        buckets.of(cell).iter().for_each(|&i| mark(i));
     }
-    // The gateway's own players, wherever they are (players' ids come last).
     let from = tracked.partition_point(|t| t.state.id.0 < players.start);
     let to = tracked.partition_point(|t| t.state.id.0 < players.end);
-    for (i, t) in tracked.iter().enumerate().take(to).skip(from) {
-        if !s.cells.contains(buckets.cell[i]) {
-            visit(t, s);
+    (from..to).for_each(|i| mark(i as u32));
+    // Then in id order, merged with what the gateway knows and the base's positions.
+    let (mut objects, mut moves, mut nudges) = (Vec::new(), Vec::new(), Vec::new());
+    let old = std::mem::take(&mut s.known);
+    let mut known = Vec::with_capacity(old.len() + 64);
+    let (mut k, mut b) = (0, 0);
+    let at_base = at_base.unwrap_or_default();
+    for (w, &word) in marks.iter().enumerate() {
+        let mut bits = word;
+        while bits != 0 {
+            let i = w * 64 + bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let t = &tracked[i];
+            let id = t.state.id;
+            // What the gateway knew before this object and no longer sees: gone.
+            while k < old.len() && old[k].0 < id {
+                s.gone.insert(old[k].0, tick);
+                k += 1;
+            }
+            // Whole: new to the gateway since what it confirmed (it may lack the
+            // record), or one of its own players that changed; else a move when it
+            // changed.
+            let (whole, moved) = if k < old.len() && old[k].0 == id {
+                let since = old[k].1;
+                k += 1;
+                known.push((id, since));
+                let whole = base.is_none() || since > c || (t.changed_at > c && players.contains(&id.0));
+                (whole, !whole && t.changed_at > c)
+            } else {
+                known.push((id, tick));
+                s.gone.remove(&id);
+                (true, false)
+            };
+            if whole {
+                objects.push(t.state);
+            } else if moved {
+                // Known since c or before, so it was in V at c and the positions of c
+                // hold it (when the zone still has them).
+                while b < at_base.len() && at_base[b].0 < id {
+                    b += 1;
+                }
+                let from = at_base.get(b).filter(|p| p.0 == id).map(|p| p.1);
+                match from.map(|from| Nudge::between(id, from, t.state.pos)) {
+                    Some(n) if n.compact() => nudges.push(n),
+                    _ => moves.push((id, t.state.pos)),
+                }
+            }
         }
     }
-    let gone_now: Vec<EntityId> = s.known.iter().filter(|(_, k)| k.seen != tick).map(|(id, _)| *id).collect();
-    for id in gone_now {
-        s.known.remove(&id);
+    for &(id, _) in &old[k..] {
         s.gone.insert(id, tick);
     }
+    s.known = known;
     s.gone.retain(|_, left| *left > c);
     let mut gone: Vec<EntityId> = if base.is_some() { s.gone.keys().copied().collect() } else { Vec::new() };
-    objects.sort_unstable_by_key(|o| o.id);
-    moves.sort_unstable_by_key(|m| m.0);
-    nudges.sort_unstable_by_key(|n| n.id);
     gone.sort_unstable();
+    // Taken in id order: every list is ascending already.
     (objects, moves, nudges, gone)
 }
 

@@ -173,6 +173,9 @@ fn server_one(
         open_every: args.open_every,
     };
     let mut bench = TickBench::with_bots(config, world.clone(), backend, bots).context("starting the server tick")?;
+    if bench.ready_resent() > 0 {
+        eprintln!("note: {} Ready sent again before every player was active (a full receive buffer)", bench.ready_resent());
+    }
     let interpolation = Interpolation {
         delay_ticks: args.render_delay_ticks,
         max_extrapolation: std::time::Duration::from_millis(args.max_extrapolation_ms),
@@ -243,6 +246,7 @@ fn server_one(
         lost: samples.iter().map(|s| s.lost).sum(),
         rejected: samples.iter().map(|s| s.rejected).sum(),
         min_saw_own: samples.iter().map(|s| s.saw_own).min().unwrap_or(0),
+        ready_resent: bench.ready_resent(),
         opening_bots: samples.iter().min_by_key(|s| s.saw_own).map_or(0, |s| s.opening_bots),
         quality: (probe.players() > 0)
             .then(|| QualityRow::new(probe.players(), args.quality_every, args.render_delay_ticks, probe.summary())),

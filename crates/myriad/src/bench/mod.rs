@@ -198,6 +198,8 @@ struct ServerTick {
     /// update held their own object, and how many opened on that tick.
     min_saw_own: usize,
     opening_bots: usize,
+    /// `Ready` sent again at the start to players the first did not make active.
+    ready_resent: u64,
     /// What the sampled players' clients held and drew, over the run (`quality.rs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     quality: Option<QualityRow>,

@@ -120,20 +120,30 @@ impl ZoneViews {
                 held.remove(id);
             }
             held.extend(p.objects.into_iter().map(|o| (o.id, o)));
-            unknown += update_sorted(held, p.moves, |m| m.0, |o, (_, pos)| {
-                o.pos = pos;
-                true
-            });
+            unknown += update_sorted(
+                held,
+                p.moves,
+                |m| m.0,
+                |o, (_, pos)| {
+                    o.pos = pos;
+                    true
+                },
+            );
             let at_base = p.base.and_then(|c| history?.iter().find(|(t, _)| *t == c)).map(|(_, at)| &at[..]);
             // Nudges come ids ascending, as the base's positions are: one merge.
             let (at_base, mut b) = (at_base.unwrap_or_default(), 0);
-            unknown += update_sorted(held, p.nudges, |n| n.id, |o, n| {
-                while b < at_base.len() && at_base[b].0 < n.id {
-                    b += 1;
-                }
-                let from = at_base.get(b).filter(|p| p.0 == n.id);
-                from.map(|&(_, from)| o.pos = n.apply(from)).is_some()
-            });
+            unknown += update_sorted(
+                held,
+                p.nudges,
+                |n| n.id,
+                |o, n| {
+                    while b < at_base.len() && at_base[b].0 < n.id {
+                        b += 1;
+                    }
+                    let from = at_base.get(b).filter(|p| p.0 == n.id);
+                    from.map(|&(_, from)| o.pos = n.apply(from)).is_some()
+                },
+            );
         }
         unknown
     }

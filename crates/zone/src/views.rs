@@ -107,7 +107,6 @@ impl SubscriptionError {
     }
 }
 
-
 /// One gateway's subscription and what it was sent.
 #[derive(Debug)]
 struct Subscriber {

@@ -174,7 +174,10 @@ fn server_one(
     };
     let mut bench = TickBench::with_bots(config, world.clone(), backend, bots).context("starting the server tick")?;
     if bench.ready_resent() > 0 {
-        eprintln!("note: {} Ready sent again before every player was active (a full receive buffer)", bench.ready_resent());
+        eprintln!(
+            "note: {} Ready sent again before every player was active (a full receive buffer)",
+            bench.ready_resent()
+        );
     }
     let interpolation = Interpolation {
         delay_ticks: args.render_delay_ticks,

@@ -139,7 +139,7 @@ pub struct GatewayStats {
     /// Cells of the subscription after the last step.
     pub subscription_cells: usize,
     /// New cut moves and starts heard from the supervisor (for the map of the cuts:
-    /// [`crate::gateway_cuts`]; repeats are not counted, refusals are in `rejected`).
+    /// `gateway_cuts.rs`; repeats are not counted, refusals are in `rejected`).
     pub cut_news: u64,
     /// Objects of the zones' world as last taken: what the gateway holds (by interest,
     /// only those its players can see), the larger part of its memory.
@@ -729,7 +729,7 @@ impl Backend for ZonesBackend {
     }
 
     /// The cuts of the zones' world this gateway took last, as the supervisor announced
-    /// them ([`crate::gateway_cuts`]); `None` before the first step.
+    /// them (`gateway_cuts.rs`); `None` before the first step.
     fn zone_cuts(&self) -> Option<ZoneCuts> {
         Some(self.cuts.as_ref()?.in_force(self.run, self.taken))
     }

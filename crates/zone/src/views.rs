@@ -55,7 +55,7 @@ pub const EXPIRE_TICKS: u64 = 150;
 
 /// How far back a view's base may be for its moves to go as nudges: a zone keeps its
 /// objects' positions of the ticks `t - NUDGE_WINDOW ..= t`, and a gateway its own of
-/// the ticks it took in the same span before its newest ([`crate::gateway_view`]). A
+/// the ticks it took in the same span before its newest (`gateway_view.rs`). A
 /// gateway confirms what it took, so a base the zone nudges from is always one the
 /// gateway still has.
 pub const NUDGE_WINDOW: u64 = 8;

@@ -64,6 +64,13 @@ const RECEIVER_PATIENCE: Duration = Duration::from_millis(500);
 /// one burst of every player that could overflow the socket's receive buffer.
 pub const ACTION_EVERY: u64 = 3;
 
+/// The bench's session silence timeout, s. The wall time between two ticks is the
+/// bots' and the caller's (draining, opening, `myriad bench`'s staleness probe at 50,000
+/// players: seconds), not a network's, so a bot acting every [`ACTION_EVERY`] ticks
+/// could look silent for longer than a server's timeout, and its session would end
+/// mid-run: the players the bench says it measures would not all be served.
+pub const BENCH_SESSION_TIMEOUT_S: f32 = 86_400.0;
+
 /// Rounds of `Ready` sent again to bots that heard nothing before the bench gives up.
 const READY_ROUNDS: usize = 5;
 
@@ -178,7 +185,8 @@ impl TickBench {
     /// object of `world` a player with a bot socket of its own, and runs one untimed
     /// tick in which the bots' `Ready` messages are received, so every player is active
     /// from the first measured tick. Only the tick-related keys of `config` matter
-    /// (tick rate, AOI size, datagrams per player, session timeout); `max_players` is
+    /// (tick rate, AOI size, datagrams per player); `session_timeout_s` is raised to
+    /// [`BENCH_SESSION_TIMEOUT_S`] and `max_players` is
     /// raised to the world's users if it is lower. `backend` is the
     /// factory's (with its device interest, if any) or any other physics backend.
     pub fn new(
@@ -227,6 +235,7 @@ impl TickBench {
         // (scenario 4's 50,000) raises the cap rather than refusing the surplus.
         let mut config = config;
         config.max_players = config.max_players.max(u32::try_from(users.len()).unwrap_or(u32::MAX));
+        config.session_timeout_s = config.session_timeout_s.max(BENCH_SESSION_TIMEOUT_S);
         config.validate()?;
         let loopback = EndpointConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)));
         let endpoints = Endpoint::bind_group(loopback, config.udp_socket_count())?;
@@ -574,5 +583,20 @@ mod tests {
         assert_eq!(bench.ready_resent(), 2);
         let s = bench.tick().unwrap();
         assert_eq!((s.opening_bots, s.saw_own), (30, 30), "{s:?}");
+    }
+
+    /// Slow untimed work between ticks (longer than the server's silence timeout, with
+    /// bots that act every third tick) ends no session: every player is still served.
+    #[test]
+    fn slow_work_between_ticks_ends_no_session() {
+        let world = ScenarioSpec::custom(10).counts(300, 12, 50).map_size(96.0, 49).build().unwrap();
+        let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
+        let config = ServerConfig { session_timeout_s: 1.0, ..ServerConfig::default() };
+        let mut bench = TickBench::new(config, world, backend).unwrap();
+        for _ in 0..3 {
+            std::thread::sleep(Duration::from_millis(1_100));
+            let s = bench.tick().unwrap();
+            assert_eq!((s.opening_bots, s.saw_own), (12, 12), "{s:?}");
+        }
     }
 }

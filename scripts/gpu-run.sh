@@ -63,18 +63,19 @@ equal = len(rows) == 3 and len({r["state_hash"] for r in rows}) == 1
 print("sim hashes equal:", equal)
 sys.exit(0 if equal else 1)
 ' || fail "sim scenario 1: the backends hashes differ (or a run is missing)"
-    # Large worlds: CPU and GPU hashes after a few ticks (many sort tiles, deep trees).
-    for spec in "300000 150000 1100.0 30" "2000000 1000000 2840.2 5"; do
-        read -r dynamic static size ticks <<<"$spec"
+    # Large worlds: CPU and GPU hashes after a few ticks (many sort tiles, deep trees),
+    # and scenario 4's 1.3 million dynamic objects (issue 27).
+    for spec in "--scenario custom --dynamic 300000 --static 150000 --users 11538 --world-size 1100.0 --ticks 30" \
+        "--scenario custom --dynamic 2000000 --static 1000000 --users 76923 --world-size 2840.2 --ticks 5" \
+        "--scenario 4 --ticks 5"; do
+        read -r -a world <<<"$spec"
         for b in cpu cuda; do
-            .carry/myriad sim --scenario custom --dynamic "$dynamic" --static "$static" --users $((dynamic / 26)) \
-                --world-size "$size" --ticks "$ticks" --backend "$b" --json 2>/dev/null ||
-                fail "sim $dynamic dynamic --backend $b failed"
+            .carry/myriad sim "${world[@]}" --backend "$b" --json 2>/dev/null || fail "sim $spec --backend $b failed"
         done
     done | tee -a "$out/sim-hashes.jsonl" | python3 -c '
 import json, sys
 rows = [json.loads(l) for l in sys.stdin if l.strip()]
-ok = len(rows) == 4
+ok = len(rows) == 6
 for a, b in zip(rows[::2], rows[1::2]):
     equal = a["dynamic"] == b["dynamic"] and a["state_hash"] == b["state_hash"]
     ok = ok and equal

@@ -70,7 +70,8 @@ done
 snap() {
   for z in $(seq 0 $((K - 1))); do
     for n in myriad_zone_ticks_total myriad_zone_step_seconds_total myriad_zone_physics_seconds_total \
-      myriad_zone_wait_seconds_total myriad_zone_fabric_sent_bytes_total myriad_zone_owned_objects; do
+      myriad_zone_wait_seconds_total myriad_zone_publish_seconds_total myriad_zone_fabric_sent_bytes_total \
+      myriad_zone_owned_objects; do
       echo "zone $z $n $(m $((MPORT + z)) "$n")"; done; done
   for g in $(seq 0 $((G - 1))); do
     for n in myriad_gateway_mirrors_total myriad_gateway_zone_bytes_in_total myriad_bytes_sent_total \
@@ -104,7 +105,8 @@ for z in zones:
     t = delta(("zone", z, "myriad_zone_ticks_total")) or 1
     print(f"zone {z}: {t / dt:.1f} ticks/s, step {1e3 * delta(('zone', z, 'myriad_zone_step_seconds_total')) / t:.2f} ms"
           f" (physics {1e3 * delta(('zone', z, 'myriad_zone_physics_seconds_total')) / t:.2f}),"
-          f" wait {1e3 * delta(('zone', z, 'myriad_zone_wait_seconds_total')) / t:.2f} ms a tick,"
+          f" wait {1e3 * delta(('zone', z, 'myriad_zone_wait_seconds_total')) / t:.2f} ms,"
+          f" publish {1e3 * delta(('zone', z, 'myriad_zone_publish_seconds_total')) / t:.2f} ms a tick,"
           f" fabric out {delta(('zone', z, 'myriad_zone_fabric_sent_bytes_total')) / dt / 1e6:.2f} MB/s,"
           f" owns {b[('zone', z, 'myriad_zone_owned_objects')]:.0f}")
 for i in range(g):

@@ -43,6 +43,10 @@ pub struct ZoneStats {
     pub physics: Duration,
     /// Time spent choosing, encoding and sending border states.
     pub send: Duration,
+    /// Time spent after the step on what live gateways take (the states of the whole
+    /// mirror, or each subscriber's view: tracking changes, bucketing, encoding,
+    /// sending). At a million objects this was most of a zone's tick.
+    pub publish: Duration,
     /// Of `step`, the pass over the positions that finds the slots near the edges.
     pub scan: Duration,
     /// Of `step`, making the world the one to step ([`crate::resident::ResidentWorld::apply`],
@@ -118,6 +122,7 @@ impl ZoneStats {
         metrics::gauge!("myriad_zone_step_seconds_total", "zone" => z.clone()).set(self.step.as_secs_f64());
         metrics::gauge!("myriad_zone_physics_seconds_total", "zone" => z.clone()).set(self.physics.as_secs_f64());
         metrics::gauge!("myriad_zone_send_seconds_total", "zone" => z.clone()).set(self.send.as_secs_f64());
+        metrics::gauge!("myriad_zone_publish_seconds_total", "zone" => z.clone()).set(self.publish.as_secs_f64());
         for (reason, n) in &self.rejected {
             metrics::counter!("myriad_zone_rejected_total", "zone" => z.clone(), "reason" => *reason).absolute(*n);
         }

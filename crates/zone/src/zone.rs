@@ -312,10 +312,12 @@ impl Zone {
         self.stats.owned = self.resident.owned_count();
         self.stats.step += start.elapsed();
         if self.cfg.live {
+            let publish = Instant::now();
             if self.mirror {
                 self.publish_states()?;
             }
             self.publish_views()?;
+            self.stats.publish += publish.elapsed();
         }
         self.intents.expire(self.tick());
         self.stats.bytes = self.fabric.bytes();

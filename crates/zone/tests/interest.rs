@@ -262,5 +262,6 @@ fn a_gateway_holds_exactly_what_its_players_see_through_a_rollback_and_its_resta
             assert_eq!(z.rejected.get(reason), Some(&1), "zone refuses a {reason} subscription: {:?}", z.rejected);
         }
         assert!(z.views.contains_key(&GW), "{z:?}");
+        assert!(z.publish > Duration::ZERO, "the views' time is counted: {z:?}");
     }
 }

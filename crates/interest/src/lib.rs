@@ -53,9 +53,11 @@
 
 mod config;
 mod manager;
+pub mod replica;
 mod source;
 mod stale;
 
 pub use config::{InterestConfig, TickInfo};
 pub use manager::{InterestError, InterestManager, Packed, Subscriber, SubscriberReport, TickReport};
+pub use replica::{Replica, ReplicaReport, ReplicaScratch, ReplicationConfig};
 pub use source::{AoiLists, ObjectSource, SoaObjects};

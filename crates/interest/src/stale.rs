@@ -81,7 +81,6 @@ impl StaleTable {
     }
 
     /// The key of `id`.
-    #[cfg(test)]
     pub(crate) fn get(&self, id: u64) -> Option<u64> {
         if self.len == 0 {
             return None;

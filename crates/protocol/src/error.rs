@@ -52,7 +52,7 @@ pub enum DecodeError {
     #[error("unknown shape kind {0}")]
     BadShapeKind(u8),
     /// Reserved bits of an extended record are not zero.
-    #[error("reserved bits set in an extended record word 0x{0:08x}")]
+    #[error("reserved bits set in a record's word or form byte 0x{0:08x}")]
     ReservedBits(u32),
     /// An object id that overflows 64 bits once the packet's id base is added.
     #[error("object id overflows u64")]
@@ -62,6 +62,20 @@ pub enum DecodeError {
     RecordCount {
         /// The declared count.
         count: u16,
+    },
+    /// A delta record naming a baseline 0 or more than 63 ticks back.
+    #[error("delta record with baseline {0} ticks back (1 to 63 allowed)")]
+    BadBack(u8),
+    /// A varint longer than 10 bytes, above `u64::MAX`, or with a trailing zero group.
+    #[error("malformed varint")]
+    BadVarint,
+    /// An acknowledgement naming sequence numbers that cannot exist.
+    #[error("acknowledgement of newest {newest} with field 0x{bits:016x} names no datagram")]
+    BadAck {
+        /// The newest sequence number acknowledged.
+        newest: u64,
+        /// The field of the ones before it.
+        bits: u64,
     },
 }
 
@@ -168,4 +182,7 @@ pub enum EncodeError {
         /// Largest body length.
         max: usize,
     },
+    /// A delta update whose record ids are not strictly increasing.
+    #[error("delta update records must have strictly increasing ids")]
+    Unordered,
 }

@@ -26,8 +26,10 @@
 //! buffers back. The transport lives in `myriad-net`, the choice of what to send in
 //! `myriad-interest`.
 
+pub mod ack;
 mod aead;
 pub mod batch;
+pub mod delta;
 pub mod error;
 pub mod header;
 pub mod login;
@@ -39,7 +41,12 @@ pub mod update;
 
 mod wire;
 
+pub use ack::{ACK_LEN, AckField, AckTracker};
 pub use batch::DatagramBatch;
+pub use delta::{
+    Baseline, Baselines, DELTA_HEADER_LEN, DeltaRecord, DeltaUpdate, DeltaUpdateView, MAX_BACK, RecordState,
+    ResolveError, pack_deltas,
+};
 pub use error::{DecodeError, EncodeError, ErrorClass, OpenError, ReplayError, SealError};
 pub use header::{
     Direction, HEADER_LEN, Header, MAX_BODY, MAX_DATAGRAM, MIN_DATAGRAM, PROTOCOL_VERSION, PacketKind, TAG_LEN,

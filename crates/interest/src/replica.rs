@@ -1,0 +1,386 @@
+//! What one player's client holds, and what to send it next: the server half of
+//! delta replication (protocol version 2, `docs/protocol.md` section 5).
+//!
+//! Per player the server keeps, for each object in view, a [`Track`]: the newest state
+//! the client acknowledged (the *baseline* of the next record), the newest state sent,
+//! and a *priority* that grows every tick the client lacks the object's current state.
+//! Sent datagrams stay in flight, with the states they carried, until the client's
+//! acknowledgements ([`AckField`]) name them or they are too old to be baselines.
+//!
+//! Each tick ([`Replica::build`]):
+//! 1. acknowledgements that arrived turn in-flight states into baselines;
+//! 2. an object new in view is due at once; every other one whose current (quantized)
+//!    state the client neither holds nor was just sent gains `1 / bound(d)` priority, where `bound(d)` is the refresh bound
+//!    in ticks at its distance `d` from the player: `near_bound_ticks` within `near`
+//!    units, growing with distance up to `far_bound_ticks`; an object the client holds
+//!    unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
+//!    then, so a client can tell a still object from one that left its view);
+//! 3. the objects are taken highest priority first into this tick's byte budget
+//!    (`budget_bytes_per_tick`, with what earlier ticks left unspent, up to one tick's
+//!    worth more, datagram header and tag counted); an object overdue by
+//!    `starve_factor` times its bound goes even over the budget, so nothing starves;
+//! 4. they are written smallest form first against their baselines
+//!    ([`DeltaRecord::choose`]), ids increasing, the player's own object in every
+//!    datagram; what was sent restarts its priority at zero.
+
+use std::collections::VecDeque;
+
+use myriad_protocol::delta::MAX_RECORD_LEN;
+use myriad_protocol::{
+    AckField, Baseline, DELTA_HEADER_LEN, DatagramBatch, DeltaRecord, HEADER_LEN, MAX_BACK, MAX_BODY, QuantPos, Sealer,
+    ShapeKind, TAG_LEN, UpdateHeader, pack_deltas,
+};
+
+use crate::config::TickInfo;
+use crate::stale::StaleTable;
+
+/// Bytes a datagram costs before its records: the packet header, the tag and the delta
+/// update header.
+pub const DATAGRAM_OVERHEAD: usize = HEADER_LEN + TAG_LEN + DELTA_HEADER_LEN;
+
+/// How urgently objects are sent and how many bytes a player may get.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReplicationConfig {
+    /// Bytes a player may be sent per tick, datagram headers and tags included (from
+    /// `send_budget_kbps` and the tick rate). At least one datagram with the player's own
+    /// object is sent every tick whatever the budget.
+    pub budget_bytes_per_tick: f32,
+    /// Objects within this distance (world units) of the player are near.
+    pub near: f32,
+    /// Refresh bound of a changing near object, in ticks.
+    pub near_bound_ticks: f32,
+    /// Refresh bound of a changing object at the far end of the view, in ticks; the
+    /// bound grows with distance from `near_bound_ticks` at `near` up to this.
+    pub far_bound_ticks: f32,
+    /// An unchanged object the client holds is confirmed at least this often, in ticks.
+    pub refresh_ticks: f32,
+    /// A state sent but not acknowledged after this many ticks counts as lost and is
+    /// due again.
+    pub resend_ticks: u64,
+    /// An object this many times past its bound is sent even over the budget.
+    pub starve_factor: f32,
+}
+
+impl Default for ReplicationConfig {
+    fn default() -> Self {
+        Self {
+            budget_bytes_per_tick: 8_000.0 / 30.0,
+            near: 30.0,
+            near_bound_ticks: 3.0,
+            far_bound_ticks: 24.0,
+            refresh_ticks: 24.0,
+            resend_ticks: 6,
+            starve_factor: 2.0,
+        }
+    }
+}
+
+impl ReplicationConfig {
+    /// The refresh bound in ticks of a changing object `distance` units away.
+    pub fn bound_ticks(&self, distance: f32) -> f32 {
+        let near = self.near.max(f32::MIN_POSITIVE);
+        (self.near_bound_ticks * distance / near).clamp(self.near_bound_ticks.max(1.0), self.far_bound_ticks.max(1.0))
+    }
+}
+
+/// What the server knows of one object in a player's view.
+#[derive(Debug, Clone, Copy)]
+struct Track {
+    id: u64,
+    kind: ShapeKind,
+    /// The newest state the client acknowledged.
+    acked: Option<Baseline>,
+    /// The newest state sent (acknowledged or not).
+    sent: Option<Baseline>,
+    /// Its position this tick.
+    pos: QuantPos,
+    /// Grows while the client lacks the current state (see the module docs).
+    priority: f32,
+}
+
+/// One sent datagram awaiting acknowledgement.
+#[derive(Debug, Default)]
+struct Flight {
+    sequence: u64,
+    tick: u64,
+    /// `(id, position)` of each record it carried.
+    states: Vec<(u64, QuantPos)>,
+}
+
+/// One player's replication state; see the module docs.
+#[derive(Debug, Default)]
+pub struct Replica {
+    /// Objects in view last tick (and the player's own), in no order.
+    tracks: Vec<Track>,
+    flights: VecDeque<Flight>,
+    /// Emptied flights, to reuse their memory.
+    spare: Vec<Flight>,
+    /// Acknowledgements not applied yet.
+    acks: Option<AckField>,
+    /// Unspent budget carried to the next tick.
+    credit: f32,
+}
+
+/// An object in view this tick.
+#[derive(Debug, Clone, Copy)]
+pub struct Candidate {
+    /// The object's id.
+    pub id: u64,
+    /// Its shape.
+    pub kind: ShapeKind,
+    /// Its position, quantized.
+    pub pos: QuantPos,
+    /// Its distance from the player, world units.
+    pub distance: f32,
+}
+
+/// What one [`Replica::build`] did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReplicaReport {
+    /// Objects in view (own excluded, duplicates dropped).
+    pub in_view: usize,
+    /// Records of other objects sent.
+    pub packed: usize,
+    /// Objects that wanted sending but did not fit this tick.
+    pub deferred: usize,
+    /// Records sent relative to a baseline (`Delta` or `Same`), own included.
+    pub relative: usize,
+    /// Objects sent over the budget because they were starving.
+    pub starving: usize,
+}
+
+/// Per-thread working memory of [`Replica::build`].
+#[derive(Default)]
+pub struct ReplicaScratch {
+    index: StaleTable,
+    /// `(priority, track index, estimated bytes)` of the objects wanting sending.
+    wanted: Vec<(f32, u32, u16)>,
+    chosen: Vec<(DeltaRecord, u32)>,
+    records: Vec<DeltaRecord>,
+    next: Vec<Track>,
+    ends: Vec<usize>,
+}
+
+/// No track index yet (a new object).
+const NEW: u64 = u64::MAX;
+
+impl Replica {
+    /// Notes an acknowledgement from the client; applied at the next build.
+    pub fn acknowledge(&mut self, acks: AckField) {
+        self.acks = Some(self.acks.map_or(acks, |a| a.merge(acks)));
+    }
+
+    /// States sent and not yet acknowledged or expired (for tests and metrics).
+    pub fn in_flight(&self) -> usize {
+        self.flights.len()
+    }
+
+    /// Objects tracked.
+    pub fn tracked(&self) -> usize {
+        self.tracks.len()
+    }
+
+    /// Forgets everything the client was sent (its session restarted).
+    pub fn reset(&mut self) {
+        self.tracks.clear();
+        self.spare.extend(self.flights.drain(..));
+        self.acks = None;
+        self.credit = 0.0;
+    }
+
+    /// Builds and seals this tick's datagrams into `out`: `own` is the player's own
+    /// object (in every datagram), `candidates` the objects in view (own and duplicates
+    /// are skipped), `origin` the AOI centre. Returns what it did; `out` is empty if
+    /// sealing failed.
+    #[allow(clippy::too_many_arguments)]
+    pub fn build(
+        &mut self,
+        config: &ReplicationConfig,
+        tick: TickInfo,
+        origin: QuantPos,
+        own: Option<(u64, ShapeKind, QuantPos)>,
+        candidates: &[Candidate],
+        max_datagrams: usize,
+        sealer: &mut Sealer,
+        out: &mut DatagramBatch,
+        scratch: &mut ReplicaScratch,
+    ) -> Result<ReplicaReport, myriad_protocol::SealError> {
+        let ReplicaScratch { index, wanted, chosen, records, next, ends } = scratch;
+        let now = tick.tick;
+        index.reset(self.tracks.len() + candidates.len() + 1);
+        for (i, t) in self.tracks.iter().enumerate() {
+            index.insert(t.id, i as u64);
+        }
+        self.apply_acks(index, now);
+
+        // Own object first: it is in every datagram whatever the budget.
+        next.clear();
+        let mut report = ReplicaReport::default();
+        let own_record = own.and_then(|(id, kind, pos)| {
+            let i = self.take(index, id, kind, pos, next)?;
+            Some(DeltaRecord::choose(id, kind, pos, now, next[i].acked))
+        });
+        // Others: priorities, and what each would cost.
+        wanted.clear();
+        for c in candidates {
+            if own.is_some_and(|o| o.0 == c.id) {
+                continue;
+            }
+            let Some(i) = self.take(index, c.id, c.kind, c.pos, next) else { continue };
+            report.in_view += 1;
+            let t = &mut next[i];
+            let holds = t.acked.is_some_and(|b| b.pos == c.pos);
+            let sending = t.sent.is_some_and(|s| s.pos == c.pos && now.saturating_sub(s.tick) < config.resend_ticks);
+            t.priority += if holds {
+                1.0 / config.refresh_ticks.max(1.0)
+            } else if sending {
+                0.0
+            } else if t.acked.is_none() && t.sent.is_none() {
+                // New in view: the client has nothing of it, which is worse than old.
+                1.0
+            } else {
+                1.0 / config.bound_ticks(c.distance)
+            };
+            if t.priority >= 1.0 || (!holds && !sending) {
+                let cost = DeltaRecord::choose(c.id, c.kind, c.pos, now, t.acked).encoded_len(None, origin);
+                wanted.push((t.priority, i as u32, cost as u16));
+            }
+        }
+
+        // Most urgent first, within the budget and the datagrams.
+        wanted.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(next[a.1 as usize].id.cmp(&next[b.1 as usize].id)));
+        let own_len = own_record.map_or(0, |r| r.encoded_len(None, origin));
+        // Room for records in a datagram, less the most a datagram can waste when the
+        // next record does not fit (estimates are worst cases: ids written whole).
+        let room = MAX_BODY - DELTA_HEADER_LEN - own_len - MAX_RECORD_LEN;
+        let per_datagram = (DATAGRAM_OVERHEAD + own_len) as f32;
+        let mut budget = config.budget_bytes_per_tick + self.credit - per_datagram;
+        let (mut datagrams, mut in_datagram) = (1usize, 0usize);
+        chosen.clear();
+        for &(priority, i, cost) in wanted.iter() {
+            let cost = usize::from(cost);
+            let starving = priority >= config.starve_factor;
+            let mut fits = cost as f32 <= budget || starving;
+            if fits && in_datagram + cost > room {
+                // Another datagram, if allowed and paid for.
+                fits = datagrams < max_datagrams.max(1) && (cost as f32 + per_datagram <= budget || starving);
+                if fits {
+                    datagrams += 1;
+                    in_datagram = 0;
+                    budget -= per_datagram;
+                }
+            }
+            if !fits {
+                report.deferred += 1;
+                continue;
+            }
+            report.starving += usize::from(cost as f32 > budget);
+            budget -= cost as f32;
+            in_datagram += cost;
+            let t = &next[i as usize];
+            chosen.push((DeltaRecord::choose(t.id, t.kind, t.pos, now, t.acked), i));
+        }
+        self.credit = budget.clamp(0.0, config.budget_bytes_per_tick);
+
+        // Write, ids increasing, and remember what went in which datagram.
+        chosen.sort_unstable_by_key(|c| c.0.id);
+        records.clear();
+        records.extend(chosen.iter().map(|c| c.0));
+        let header = UpdateHeader { tick: now, dilation_permille: tick.dilation_permille, origin };
+        out.clear();
+        let packed = pack_deltas(&header, own_record.as_ref(), records, datagrams, out, ends);
+        let first = sealer.next_sequence();
+        if let Err(e) = sealer.seal_batch(out) {
+            out.clear();
+            std::mem::swap(&mut self.tracks, next);
+            return Err(e);
+        }
+        report.packed = packed;
+        report.deferred += chosen.len() - packed;
+        report.relative = usize::from(own_record.as_ref().is_some_and(relative))
+            + records[..packed].iter().filter(|r| relative(r)).count();
+        let mut start = 0;
+        for (d, &end) in ends.iter().enumerate() {
+            let mut f = self.spare.pop().unwrap_or_default();
+            f.sequence = first + d as u64;
+            f.tick = now;
+            f.states.clear();
+            f.states.extend(own.map(|(id, _, pos)| (id, pos)));
+            for &(_, i) in &chosen[start..end] {
+                let t = &mut next[i as usize];
+                t.sent = Some(Baseline { tick: now, pos: t.pos });
+                t.priority = 0.0;
+                f.states.push((t.id, t.pos));
+            }
+            start = end;
+            self.flights.push_back(f);
+        }
+        std::mem::swap(&mut self.tracks, next);
+        Ok(report)
+    }
+
+    /// Applies the acknowledgements that arrived: each state of an acknowledged flight
+    /// becomes its object's baseline if newer; flights acknowledged, or too old to be
+    /// baselines or to be acknowledged, are dropped.
+    fn apply_acks(&mut self, index: &StaleTable, now: u64) {
+        let acks = self.acks.take();
+        let floor = now.saturating_sub(MAX_BACK - 1);
+        let mut kept = VecDeque::with_capacity(0);
+        std::mem::swap(&mut kept, &mut self.flights);
+        for f in kept {
+            let acked = acks.is_some_and(|a| a.contains(f.sequence));
+            if acked {
+                for &(id, pos) in &f.states {
+                    if let Some(i) = index.get(id) {
+                        let t = &mut self.tracks[i as usize];
+                        if t.acked.is_none_or(|b| b.tick < f.tick) {
+                            t.acked = Some(Baseline { tick: f.tick, pos });
+                        }
+                    }
+                }
+            }
+            let unackable =
+                acks.is_some_and(|a| a.newest().saturating_sub(f.sequence) > myriad_protocol::ack::ACK_BITS);
+            if acked || unackable || f.tick < floor {
+                let mut f = f;
+                f.states.clear();
+                self.spare.push(f);
+            } else {
+                self.flights.push_back(f);
+            }
+        }
+        // A baseline the next record could not name any more is no baseline.
+        for t in &mut self.tracks {
+            if t.acked.is_some_and(|b| b.tick < floor) {
+                t.acked = None;
+            }
+        }
+    }
+
+    /// Moves object `id`'s track (or a new one) into `next`, returning its index there;
+    /// `None` if it was taken already this tick (a duplicate in the view).
+    fn take(
+        &self,
+        index: &mut StaleTable,
+        id: u64,
+        kind: ShapeKind,
+        pos: QuantPos,
+        next: &mut Vec<Track>,
+    ) -> Option<usize> {
+        let found = index.take(id, NEW)?;
+        let t = match found {
+            NEW => Track { id, kind, acked: None, sent: None, pos, priority: 0.0 },
+            i => Track { kind, pos, ..self.tracks[i as usize] },
+        };
+        next.push(t);
+        Some(next.len() - 1)
+    }
+}
+
+fn relative(r: &DeltaRecord) -> bool {
+    !matches!(r.state, myriad_protocol::RecordState::Absolute { .. })
+}
+
+#[cfg(test)]
+#[path = "replica_tests.rs"]
+mod tests;

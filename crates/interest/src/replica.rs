@@ -15,7 +15,8 @@
 //!    units, growing with distance up to `far_bound_ticks`; an object the client holds
 //!    unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
 //!    then, so a client can tell a still object from one that left its view);
-//! 3. the objects are taken highest priority first into this tick's byte budget
+//! 3. the objects due (priority at least 1) are taken highest priority first into this
+//!    tick's byte budget
 //!    (`budget_bytes_per_tick`, with what earlier ticks left unspent, up to one tick's
 //!    worth more, datagram header and tag counted); an object overdue by
 //!    `starve_factor` times its bound goes even over the budget, so nothing starves;
@@ -241,7 +242,9 @@ impl Replica {
             } else {
                 1.0 / config.bound_ticks(c.distance)
             };
-            if t.priority >= 1.0 || (!holds && !sending) {
+            // Sent when due: the bounds, not the budget, decide how often; the budget
+            // decides what waits when more is due than it holds.
+            if t.priority >= 1.0 {
                 let cost = DeltaRecord::choose(c.id, c.kind, c.pos, now, t.acked).encoded_len(None, origin);
                 wanted.push((t.priority, i as u32, cost as u16));
             }

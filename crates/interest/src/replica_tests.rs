@@ -216,7 +216,9 @@ fn the_budget_holds_on_average_and_nothing_starves() {
 
 #[test]
 fn records_are_the_smallest_form() {
-    let mut run = Run::new(ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() });
+    // Near objects due every tick: each goes as a one-tick delta once acknowledged.
+    let config = ReplicationConfig { budget_bytes_per_tick: 10_000.0, near_bound_ticks: 1.0, ..Default::default() };
+    let mut run = Run::new(config);
     run.tick(1, &world(1, 10, 10), |_, _| true, true);
     run.tick(2, &world(2, 10, 10), |_, _| true, true);
     let mut d = run.out.get(0).unwrap().to_vec();
@@ -225,6 +227,17 @@ fn records_are_the_smallest_form() {
     let update = opener.open_with(&mut d, |_, b| myriad_protocol::DeltaUpdate::decode_body(b)).unwrap().message;
     let deltas = update.records.iter().filter(|r| matches!(r.state, RecordState::Delta { back: 1, .. })).count();
     assert_eq!(deltas, 10, "{:?}", update.records);
+}
+
+#[test]
+fn changing_objects_go_at_their_bound_not_every_tick() {
+    let mut run = Run::new(ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() });
+    let mut sent = 0;
+    for t in 1..=31 {
+        sent += run.tick(t, &world(t, 10, 10), |_, _| true, true).packed;
+    }
+    // Ten near objects, new at tick 1, then every third tick.
+    assert_eq!(sent, 10 + 10 * 10, "{sent}");
 }
 
 #[test]

@@ -7,6 +7,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use myriad_client::Interpolation;
 use myriad_core::{ObjectKind, PhysicsConfig, ScenarioSpec, World};
 use myriad_cuda::create_backend;
+use myriad_interest::ReplicationConfig;
 use myriad_physics::{BackendKind, Stage, StepReport, TickConstants};
 use myriad_server::ServerConfig;
 use myriad_server::TickStage;
@@ -168,6 +169,7 @@ fn server_one(
         ..ServerConfig::default()
     };
     let tick_rate_hz = config.tick_rate.round() as u16;
+    let config_max_datagrams = config.max_datagrams_per_player;
     let bots = BotOptions {
         bots_per_socket: usize::try_from(args.bots_per_socket).context("--bots-per-socket")?,
         open_every: args.open_every,
@@ -198,6 +200,14 @@ fn server_one(
             aoi_size: aoi,
             tick_rate_hz,
             interpolation,
+            shadow: args.shadow_budget_kbps.map(|kbps| {
+                let config = ReplicationConfig {
+                    budget_bytes_per_tick: (kbps * 1000.0 / 8.0 / f64::from(tick_rate_hz.max(1))) as f32,
+                    near_bound_ticks: args.shadow_near_bound_ticks,
+                    ..ReplicationConfig::default()
+                };
+                (config, config_max_datagrams)
+            }),
         },
     );
     for _ in 0..args.warmup {
@@ -253,6 +263,7 @@ fn server_one(
         opening_bots: samples.iter().min_by_key(|s| s.saw_own).map_or(0, |s| s.opening_bots),
         quality: (probe.players() > 0)
             .then(|| QualityRow::new(probe.players(), args.quality_every, args.render_delay_ticks, probe.summary())),
+        shadow: probe.shadow_row(),
     };
     if server.rejected > 0 {
         anyhow::bail!("{} datagrams the bots could not open: the server tick is broken", server.rejected);

@@ -7,6 +7,7 @@
 mod measure;
 mod quality;
 mod report;
+mod shadow;
 
 use std::path::PathBuf;
 
@@ -96,6 +97,14 @@ pub struct BenchArgs {
     /// The sampled clients' render delay, in ticks (the server sends every tick).
     #[arg(long, default_value_t = Interpolation::default().delay_ticks)]
     pub render_delay_ticks: f64,
+    /// Also run protocol 2's replication (deltas, priorities, this byte budget in kbit/s
+    /// per player) beside the live protocol on the sampled players, and report both
+    /// (`bench/shadow.rs`; the probe then takes the truth every tick).
+    #[arg(long)]
+    pub shadow_budget_kbps: Option<f64>,
+    /// The shadow's refresh bound of a changing object within 30 units, in ticks.
+    #[arg(long, default_value_t = 3.0)]
+    pub shadow_near_bound_ticks: f32,
     /// The sampled clients' extrapolation cap, ms.
     #[arg(long, default_value_t = Interpolation::default().max_extrapolation.as_millis() as u64)]
     pub max_extrapolation_ms: u64,
@@ -203,6 +212,33 @@ struct ServerTick {
     /// What the sampled players' clients held and drew, over the run (`quality.rs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     quality: Option<QualityRow>,
+    /// Protocol 2 run beside the live protocol on the same players (`shadow.rs`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    shadow: Option<shadow::ShadowRow>,
+}
+
+/// Staleness and error percentiles of one protocol (`shadow.rs`).
+#[derive(Clone, Copy, Debug, Serialize)]
+struct QualityRowFigures {
+    staleness_near_ms: Spread,
+    staleness_all_ms: Spread,
+    error_near: Spread,
+    error_all: Spread,
+    missing_near: u64,
+    missing_all: u64,
+}
+
+impl From<QualitySummary> for QualityRowFigures {
+    fn from(s: QualitySummary) -> Self {
+        QualityRowFigures {
+            staleness_near_ms: s.staleness_near_ms.into(),
+            staleness_all_ms: s.staleness_all_ms.into(),
+            error_near: s.error_near.into(),
+            error_all: s.error_all.into(),
+            missing_near: s.missing_near,
+            missing_all: s.missing_all,
+        }
+    }
 }
 
 /// Percentiles of one measure in the JSON and CSV.

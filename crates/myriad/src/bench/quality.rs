@@ -30,9 +30,13 @@ use std::time::{Duration, Instant};
 use myriad_client::{Interpolation, Quality, QualitySummary, WorldMirror};
 use myriad_core::World;
 use myriad_core::rng::Stream;
-use myriad_protocol::StateUpdate;
+use myriad_interest::ReplicationConfig;
+use myriad_protocol::{ShapeKind, StateUpdate};
 use myriad_server::tick_bench::TickBench;
+use myriad_server::world::wire_kind;
 use rayon::prelude::*;
+
+use super::shadow::{InformationAge, Shadow, ShadowRow, ShadowTotals};
 
 /// What to sample.
 #[derive(Debug, Clone, Copy)]
@@ -49,6 +53,9 @@ pub struct QualityConfig {
     pub tick_rate_hz: u16,
     /// The mirrors' render delay and extrapolation cap.
     pub interpolation: Interpolation,
+    /// Also run protocol 2's replication beside the live one on the sampled players
+    /// (`shadow.rs`), with this configuration and datagram cap.
+    pub shadow: Option<(ReplicationConfig, usize)>,
 }
 
 /// A truth older than this many render delays without being compared (a mirror that
@@ -59,12 +66,15 @@ const TRUTH_PATIENCE_TICKS: u64 = 60;
 struct Watched {
     entity: u64,
     mirror: WorldMirror,
+    /// Protocol 2 beside the live one, and the information age of both mirrors.
+    shadow: Option<(Shadow, InformationAge, InformationAge)>,
 }
 
 /// One object of a player's AOI at a truth's tick.
 #[derive(Debug, Clone, Copy)]
 struct Seen {
     id: u64,
+    kind: ShapeKind,
     distance: f32,
     position: [f32; 3],
 }
@@ -86,6 +96,11 @@ pub struct QualityProbe {
     pending: VecDeque<Truth>,
     quality: Quality,
     measuring: bool,
+    /// With shadows: what they sent, protocol 2's figures, and the live protocol's
+    /// measured the same way (`shadow.rs`).
+    shadow_totals: ShadowTotals,
+    shadow_quality: Quality,
+    live_information: Quality,
 }
 
 impl QualityProbe {
@@ -109,9 +124,24 @@ impl QualityProbe {
             let mut mirror = WorldMirror::new(Duration::from_secs(1)).with_interpolation(config.interpolation);
             mirror.set_timing(config.tick_rate_hz, 1000, base);
             by_bot[bot] = Some(watched.len() as u32);
-            watched.push(Watched { entity, mirror });
+            let shadow = config
+                .shadow
+                .map(|_| Shadow::new(entity ^ 0x5eed, config.interpolation, config.tick_rate_hz, base))
+                .map(|s| (s, InformationAge::default(), InformationAge::default()));
+            watched.push(Watched { entity, mirror, shadow });
         }
-        Self { watched, by_bot, config, base, pending: VecDeque::new(), quality: Quality::new(), measuring: false }
+        Self {
+            watched,
+            by_bot,
+            config,
+            base,
+            pending: VecDeque::new(),
+            quality: Quality::new(),
+            measuring: false,
+            shadow_totals: ShadowTotals::default(),
+            shadow_quality: Quality::new(),
+            live_information: Quality::new(),
+        }
     }
 
     /// Players sampled.
@@ -139,13 +169,22 @@ impl QualityProbe {
     /// After the server's tick (the bots drained it): a truth every `every` ticks, with
     /// the staleness at once, and the errors of the truths the render time reached.
     pub fn after_tick(&mut self, world: &World) {
-        if !self.measuring || self.watched.is_empty() {
+        if self.watched.is_empty() {
             return;
         }
         let tick = world.tick;
         let now = self.instant(tick);
-        if tick.is_multiple_of(self.config.every.max(1)) {
+        let sample = self.measuring && tick.is_multiple_of(self.config.every.max(1));
+        let shadow_truth = self.config.shadow.map(|_| {
             let truth = self.truth(world);
+            self.tick_shadows(world, tick, now, &truth);
+            truth
+        });
+        if !self.measuring {
+            return;
+        }
+        if sample {
+            let truth = shadow_truth.unwrap_or_else(|| self.truth(world));
             self.record_staleness(tick, &truth);
             self.pending.push_back(Truth { tick, players: truth.into_iter().map(Some).collect() });
             for w in &mut self.watched {
@@ -157,9 +196,13 @@ impl QualityProbe {
                 if w.mirror.render_tick(now).is_some_and(|r| r >= truth.tick as f64) {
                     let Some(seen) = seen.take() else { continue };
                     for s in seen {
-                        let Some(drawn) = w.mirror.sample(s.id, truth.tick as f64) else { continue };
-                        let d: [f32; 3] = std::array::from_fn(|i| drawn.position[i] - s.position[i]);
-                        self.quality.record_error(s.distance, (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+                        if let Some(e) = error(&w.mirror, &s, truth.tick) {
+                            self.quality.record_error(s.distance, e);
+                            self.live_information.record_error(s.distance, e);
+                        }
+                        if let Some(e) = w.shadow.as_ref().and_then(|sh| error(sh.0.mirror(), &s, truth.tick)) {
+                            self.shadow_quality.record_error(s.distance, e);
+                        }
                     }
                 }
             }
@@ -182,14 +225,67 @@ impl QualityProbe {
                 d.ids()
                     .iter()
                     .zip(d.positions())
-                    .filter(|(id, p)| {
+                    .zip(d.shapes())
+                    .filter(|((id, p), _)| {
                         let o = **p - centre;
                         u64::from(id.0) != w.entity && o.x.abs() <= half && o.y.abs() <= half && o.z.abs() <= half
                     })
-                    .map(|(id, p)| Seen { id: u64::from(id.0), distance: p.distance(centre), position: p.to_array() })
+                    .map(|((id, p), shape)| Seen {
+                        id: u64::from(id.0),
+                        kind: wire_kind(*shape),
+                        distance: p.distance(centre),
+                        position: p.to_array(),
+                    })
                     .collect()
             })
             .collect()
+    }
+
+    /// Each shadow's tick on the world of `tick` (its player's AOI objects `truth`).
+    fn tick_shadows(&mut self, world: &World, tick: u64, now: Instant, truth: &[Vec<Seen>]) {
+        let Some((config, max_datagrams)) = self.config.shadow else { return };
+        let d = &world.dynamics;
+        let measuring = self.measuring;
+        let totals: Vec<ShadowTotals> = self
+            .watched
+            .par_iter_mut()
+            .zip(truth)
+            .filter_map(|(w, seen)| {
+                let (shadow, _, _) = w.shadow.as_mut()?;
+                let slot = u32::try_from(w.entity).ok().and_then(|id| d.slot(myriad_core::world::EntityId(id)))?;
+                let centre = d.positions()[slot].to_array();
+                let own = (w.entity, wire_kind(d.shapes()[slot]), centre);
+                let view = seen.iter().map(|s| (s.id, s.kind, s.position, s.distance));
+                let mut t = ShadowTotals::default();
+                shadow.tick(&config, max_datagrams, tick, centre, own, view, now, measuring.then_some(&mut t));
+                Some(t)
+            })
+            .collect();
+        for t in totals {
+            self.shadow_totals.add(&t);
+        }
+        // Both mirrors' information age, looked at every tick, recorded on sample ticks.
+        let record = measuring && tick.is_multiple_of(self.config.every.max(1));
+        let rate = f64::from(self.config.tick_rate_hz.max(1));
+        for (w, seen) in self.watched.iter_mut().zip(truth) {
+            let Some((shadow, v2_age, live_age)) = &mut w.shadow else { continue };
+            let objects = || seen.iter().map(|s| (s.id, s.distance, s.position));
+            v2_age.observe(shadow.mirror(), tick, rate, objects(), record.then_some(&mut self.shadow_quality));
+            live_age.observe(&w.mirror, tick, rate, objects(), record.then_some(&mut self.live_information));
+        }
+    }
+
+    /// Protocol 2 beside the live protocol, if shadows ran.
+    pub fn shadow_row(&self) -> Option<ShadowRow> {
+        let (config, _) = self.config.shadow?;
+        let rate = f64::from(self.config.tick_rate_hz.max(1));
+        Some(ShadowRow::new(
+            &config,
+            rate,
+            &self.shadow_totals,
+            self.shadow_quality.summary(),
+            self.live_information.summary(),
+        ))
     }
 
     /// The age of the newest state each mirror holds of its AOI's objects at `tick`.
@@ -212,6 +308,13 @@ impl QualityProbe {
     pub fn summary(&self) -> QualitySummary {
         self.quality.summary()
     }
+}
+
+/// The distance between what `mirror` draws of `s` at render tick `tick` and the truth.
+fn error(mirror: &WorldMirror, s: &Seen, tick: u64) -> Option<f32> {
+    let drawn = mirror.sample(s.id, tick as f64)?;
+    let d: [f32; 3] = std::array::from_fn(|i| drawn.position[i] - s.position[i]);
+    Some((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
 }
 
 #[cfg(test)]

@@ -1,6 +1,7 @@
 //! The probe on a small world in process: what its figures mean, not how fast.
 
 use myriad_core::ScenarioSpec;
+use myriad_interest::ReplicationConfig;
 use myriad_physics::BackendKind;
 use myriad_server::ServerConfig;
 
@@ -11,22 +12,37 @@ use super::*;
 const QUANTIZATION: f32 = 0.0136;
 
 fn run(aoi_size: f32, max_datagrams_per_player: usize, delay_ticks: f64) -> (QualitySummary, usize) {
+    let (probe, players, _) = run_probe(aoi_size, max_datagrams_per_player, delay_ticks, None);
+    (probe.summary(), players)
+}
+
+fn run_probe(
+    aoi_size: f32,
+    max_datagrams_per_player: usize,
+    delay_ticks: f64,
+    shadow: Option<(ReplicationConfig, usize)>,
+) -> (QualityProbe, usize, f64) {
     let world = ScenarioSpec::custom(11).counts(1_200, 40, 300).map_size(256.0, 129).build().unwrap();
     let backend = myriad_physics::create_cpu_backend(BackendKind::Cpu).unwrap();
     let config = ServerConfig { aoi_size, max_datagrams_per_player, ..ServerConfig::default() };
     let mut bench = TickBench::new(config, world, backend).unwrap();
     let interpolation = Interpolation { delay_ticks, ..Interpolation::default() };
-    let config = QualityConfig { players: 16, every: 2, seed: 3, aoi_size, tick_rate_hz: 30, interpolation };
+    let config = QualityConfig { players: 16, every: 2, seed: 3, aoi_size, tick_rate_hz: 30, interpolation, shadow };
     let mut probe = QualityProbe::new(&bench, config);
     for _ in 0..4 {
         bench.tick_with(|bot, u| probe.on_update(bot, u)).unwrap();
-    }
-    probe.start_measuring();
-    for _ in 0..24 {
-        bench.tick_with(|bot, u| probe.on_update(bot, u)).unwrap();
         probe.after_tick(bench.world());
     }
-    (probe.summary(), probe.players())
+    probe.start_measuring();
+    let mut bytes = 0;
+    for _ in 0..24 {
+        bytes += bench.tick_with(|bot, u| probe.on_update(bot, u)).unwrap().work.bytes;
+        probe.after_tick(bench.world());
+    }
+    let players = probe.players();
+    // Bytes per player and second, over all players, at 30 ticks a second.
+    let live = bytes as f64 / bench.players() as f64 / (24.0 / 30.0);
+    (probe, players, live)
 }
 
 #[test]
@@ -65,4 +81,21 @@ fn without_render_delay_the_newest_state_is_drawn_at_once() {
     // tick and still finds that tick's state.
     let (s, _) = run(40.0, 2, 0.0);
     assert!(s.error_all.samples > 100 && s.error_all.max <= f64::from(QUANTIZATION), "{s:?}");
+}
+
+#[test]
+fn protocol_2_beside_the_live_one_sends_less_and_keeps_near_objects_current() {
+    let budget = ReplicationConfig { budget_bytes_per_tick: 32_000.0 / 30.0, ..ReplicationConfig::default() };
+    let (probe, _, live_bytes) = run_probe(60.0, 2, 2.0, Some((budget, 2)));
+    let row = probe.shadow_row().expect("the shadows ran");
+    assert_eq!(row.unresolved, 0, "every record resolved against a state the client held");
+    assert!(row.relative_share > 0.3, "deltas were used: {row:?}");
+    let (v2, live) = (&row.v2, &row.live);
+    assert!(v2.staleness_near_ms.samples > 100 && v2.staleness_near_ms.samples == live.staleness_near_ms.samples);
+    assert_eq!(v2.missing_near, 0, "{row:?}");
+    // Near objects are sent at least every third tick: never more than two ticks old.
+    assert!(v2.staleness_near_ms.max <= 2.0 * 1000.0 / 30.0 + 0.5, "{row:?}");
+    // Interpolated between states at most three ticks apart, drawn within a unit.
+    assert!(v2.error_near.p99 < 1.0, "{row:?}");
+    assert!(row.bytes_per_player_s < live_bytes, "{} against {live_bytes}", row.bytes_per_player_s);
 }

@@ -134,6 +134,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
             })
         );
         quality_table(&mut s, &server_rows);
+        shadow_table(&mut s, &server_rows);
     }
     let _ = writeln!(s, "\n#### The reference ({})\n", reference::MACHINE);
     let _ = writeln!(
@@ -152,6 +153,65 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         let _ = writeln!(s, "| {name} | {} |", cells.join(" | "));
     }
     s
+}
+
+/// Protocol 2 beside the live protocol on the same sampled players (`bench/shadow.rs`).
+fn shadow_table(s: &mut String, rows: &[&Row]) {
+    let with: Vec<(&Row, &super::ServerTick, &super::shadow::ShadowRow)> =
+        rows.iter().filter_map(|r| r.server.as_ref().and_then(|t| t.shadow.as_ref().map(|q| (*r, t, q)))).collect();
+    if with.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        s,
+        "\n#### Protocol 2 (deltas, priorities, budget) beside the live protocol, same players and ticks\n"
+    );
+    let _ = writeln!(
+        s,
+        "| scenario | backend | AOI edge | protocol | budget kbit/s | near bound (ticks) | kB/s per player | information age ≤30 p50 / p99 / max (ms) | AOI p50 / p99 / max (ms) | error ≤30 p50 / p99 | error AOI p50 / p99 | missing ≤30 / AOI | relative records | unresolved |"
+    );
+    let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(12));
+    for (r, t, sh) in &with {
+        for (name, q, kbs, budget, bound, relative) in [
+            ("live (1)", &sh.live, t.bytes_per_player_s / 1000.0, "-".to_string(), "-".to_string(), "-".to_string()),
+            (
+                "2",
+                &sh.v2,
+                sh.bytes_per_player_s / 1000.0,
+                format!("{:.0}", sh.budget_kbps),
+                format!("{}", sh.near_bound_ticks),
+                format!("{:.0} %", sh.relative_share * 100.0),
+            ),
+        ] {
+            let (sn, sa, en, ea) = (&q.staleness_near_ms, &q.staleness_all_ms, &q.error_near, &q.error_all);
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {name} | {budget} | {bound} | {kbs:.1} | {:.0} / {:.0} / {:.0} | {:.0} / {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {} / {} | {relative} | {} |",
+                r.scenario,
+                r.backend,
+                t.aoi_size,
+                sn.p50,
+                sn.p99,
+                sn.max,
+                sa.p50,
+                sa.p99,
+                sa.max,
+                en.p50,
+                en.p99,
+                ea.p50,
+                ea.p99,
+                q.missing_near,
+                q.missing_all,
+                sh.unresolved,
+            );
+        }
+    }
+    let _ = writeln!(
+        s,
+        "\nInformation age: 0 when the state a client holds is the object's current quantized position, else the \
+         age of that state (protocol 2 sends an unchanged object only to confirm it now and then). The live row's \
+         kB/s is over all players, protocol 2's over the sampled ones (loopback, acknowledged before the next tick)."
+    );
 }
 
 /// Table 3's second part: what the sampled players' clients held and drew.

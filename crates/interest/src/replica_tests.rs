@@ -260,3 +260,29 @@ fn a_budget_too_small_for_anything_still_sends_the_starving() {
     // later, or the bound at their distance.
     assert!(first_seen.values().all(|&t| t <= 2 * 24 + 2), "{first_seen:?}");
 }
+
+#[test]
+fn a_crowded_view_within_a_budget_reaches_every_object() {
+    // About scenario 2 at AOI 100: 510 objects, the nearest within 30 units, all moving.
+    let config = ReplicationConfig { budget_bytes_per_tick: 32_000.0 / 30.0, ..Default::default() };
+    let mut run = Run::new(config);
+    let view = |t: u64| -> Vec<Candidate> {
+        (0..510u64)
+            .map(|i| {
+                let d = (i as f32 / 510.0).sqrt() * 86.0;
+                let x = d + t as f32 * 0.17;
+                Candidate {
+                    id: 1000 + i * 97,
+                    kind: ShapeKind::Box,
+                    pos: QuantPos::from_f32([x, 0.0, 0.0]),
+                    distance: d,
+                }
+            })
+            .collect()
+    };
+    let mut deferred = 0;
+    for t in 1..=40 {
+        deferred += run.tick(t, &view(t), |_, _| true, true).deferred;
+    }
+    assert_eq!(run.client.held.len(), 511, "deferred {deferred}");
+}

@@ -297,35 +297,34 @@ impl TickBench {
     /// from the bots `first`, in waves small enough for the server's receive buffer, each
     /// received by a tick; then again from every bot that heard nothing.
     fn activate(&mut self, first: Vec<usize>) -> Result<(), ServerError> {
-        let bench = self;
         let mut waiting = first;
         for round in 0..=READY_ROUNDS {
             for wave in waiting.chunks(2_000) {
                 for &i in wave {
-                    bench.send(i, &ClientMessage::Ready)?;
+                    self.send(i, &ClientMessage::Ready)?;
                 }
-                bench.run_tick();
-                bench.drain(0, |_, _| {});
+                self.run_tick();
+                self.drain(0, |_, _| {});
             }
             // An active player gets an update every tick. A Ready the kernel dropped (the
             // server's receive buffer full at tens of thousands of players) leaves its
             // player silent, and the run would measure fewer players than it says: send
             // those Ready again, and refuse to start if some never come.
-            bench.bots.iter_mut().for_each(|b| b.heard = false);
-            bench.run_tick();
-            bench.drain(0, |_, _| {});
-            waiting = (0..bench.bots.len()).filter(|&i| !bench.bots[i].heard).collect();
+            self.bots.iter_mut().for_each(|b| b.heard = false);
+            self.run_tick();
+            self.drain(0, |_, _| {});
+            waiting = (0..self.bots.len()).filter(|&i| !self.bots[i].heard).collect();
             if waiting.is_empty() {
                 return Ok(());
             }
             if round < READY_ROUNDS {
-                bench.ready_resent += waiting.len() as u64;
+                self.ready_resent += waiting.len() as u64;
             }
         }
         Err(ServerError::Internal(format!(
             "{} of {} bench players got no update after {READY_ROUNDS} rounds of Ready sent again",
             waiting.len(),
-            bench.bots.len()
+            self.bots.len()
         )))
     }
 

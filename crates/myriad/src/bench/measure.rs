@@ -212,6 +212,8 @@ fn server_one(
     );
     for _ in 0..args.warmup {
         bench.tick_with(|bot, update| probe.on_update(bot, update))?;
+        // Measures nothing yet; the shadows (if any) fill their clients as the bots do.
+        probe.after_tick(bench.world());
         progress.tick();
     }
     probe.start_measuring();

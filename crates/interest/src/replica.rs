@@ -1,7 +1,7 @@
 //! What one player's client holds, and what to send it next: the server half of
 //! delta replication (protocol version 2, `docs/protocol.md` section 5).
 //!
-//! Per player the server keeps, for each object in view, a [`Track`]: the newest state
+//! Per player the server keeps, for each object in view, a `Track`: the newest state
 //! the client acknowledged (the *baseline* of the next record), the newest state sent,
 //! and a *priority* that grows every tick the client lacks the object's current state.
 //! Sent datagrams stay in flight, with the states they carried, until the client's

@@ -14,6 +14,7 @@ use myriad_server::TickStage;
 use myriad_server::tick_bench::{BotOptions, TickBench, TickSample};
 
 use super::quality::{QualityConfig, QualityProbe};
+use super::shadow::Link;
 use super::{BenchArgs, PHYSICS, QualityRow, Row, SERVER, ServerTick};
 
 /// User + system CPU time of this process so far, in ms (0 where unsupported).
@@ -206,7 +207,9 @@ fn server_one(
                     near_bound_ticks: args.shadow_near_bound_ticks,
                     ..ReplicationConfig::default()
                 };
-                (config, config_max_datagrams)
+                let link =
+                    Link { loss: args.shadow_loss, delay_ms: args.shadow_delay_ms, jitter_ms: args.shadow_jitter_ms };
+                (config, config_max_datagrams, link)
             }),
         },
     );

@@ -105,6 +105,15 @@ pub struct BenchArgs {
     /// The shadow's refresh bound of a changing object within 30 units, in ticks.
     #[arg(long, default_value_t = 3.0)]
     pub shadow_near_bound_ticks: f32,
+    /// The shadow's simulated link: probability a datagram is lost, each way.
+    #[arg(long, default_value_t = 0.0)]
+    pub shadow_loss: f64,
+    /// The shadow's simulated link: one-way delay, ms.
+    #[arg(long, default_value_t = 0.0)]
+    pub shadow_delay_ms: f64,
+    /// The shadow's simulated link: spread of the delay either side, ms.
+    #[arg(long, default_value_t = 0.0)]
+    pub shadow_jitter_ms: f64,
     /// The sampled clients' extrapolation cap, ms.
     #[arg(long, default_value_t = Interpolation::default().max_extrapolation.as_millis() as u64)]
     pub max_extrapolation_ms: u64,

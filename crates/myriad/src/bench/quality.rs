@@ -36,7 +36,7 @@ use myriad_server::tick_bench::TickBench;
 use myriad_server::world::wire_kind;
 use rayon::prelude::*;
 
-use super::shadow::{InformationAge, Shadow, ShadowRow, ShadowTotals};
+use super::shadow::{InformationAge, Link, Shadow, ShadowRow, ShadowTotals};
 
 /// What to sample.
 #[derive(Debug, Clone, Copy)]
@@ -55,7 +55,7 @@ pub struct QualityConfig {
     pub interpolation: Interpolation,
     /// Also run protocol 2's replication beside the live one on the sampled players
     /// (`shadow.rs`), with this configuration and datagram cap.
-    pub shadow: Option<(ReplicationConfig, usize)>,
+    pub shadow: Option<(ReplicationConfig, usize, Link)>,
 }
 
 /// A truth older than this many render delays without being compared (a mirror that
@@ -126,7 +126,7 @@ impl QualityProbe {
             by_bot[bot] = Some(watched.len() as u32);
             let shadow = config
                 .shadow
-                .map(|_| Shadow::new(entity ^ 0x5eed, config.interpolation, config.tick_rate_hz, base))
+                .map(|(_, _, link)| Shadow::new(entity ^ 0x5eed, config.interpolation, config.tick_rate_hz, base, link))
                 .map(|s| (s, InformationAge::default(), InformationAge::default()));
             watched.push(Watched { entity, mirror, shadow });
         }
@@ -243,7 +243,7 @@ impl QualityProbe {
 
     /// Each shadow's tick on the world of `tick` (its player's AOI objects `truth`).
     fn tick_shadows(&mut self, world: &World, tick: u64, now: Instant, truth: &[Vec<Seen>]) {
-        let Some((config, max_datagrams)) = self.config.shadow else { return };
+        let Some((config, max_datagrams, _)) = self.config.shadow else { return };
         let d = &world.dynamics;
         let measuring = self.measuring;
         let totals: Vec<ShadowTotals> = self
@@ -277,10 +277,11 @@ impl QualityProbe {
 
     /// Protocol 2 beside the live protocol, if shadows ran.
     pub fn shadow_row(&self) -> Option<ShadowRow> {
-        let (config, _) = self.config.shadow?;
+        let (config, _, link) = self.config.shadow?;
         let rate = f64::from(self.config.tick_rate_hz.max(1));
         Some(ShadowRow::new(
             &config,
+            link,
             rate,
             &self.shadow_totals,
             self.shadow_quality.summary(),

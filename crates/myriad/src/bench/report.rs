@@ -173,9 +173,25 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
     let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(12));
     for (r, t, sh) in &with {
         for (name, q, kbs, budget, bound, relative) in [
-            ("live (1)", &sh.live, t.bytes_per_player_s / 1000.0, "-".to_string(), "-".to_string(), "-".to_string()),
             (
-                "2",
+                "live (1)".to_string(),
+                &sh.live,
+                t.bytes_per_player_s / 1000.0,
+                "-".to_string(),
+                "-".to_string(),
+                "-".to_string(),
+            ),
+            (
+                if sh.link == super::shadow::Link::default() {
+                    "2".to_string()
+                } else {
+                    format!(
+                        "2, {:.0} % loss, {:.0} ± {:.0} ms",
+                        sh.link.loss * 100.0,
+                        sh.link.delay_ms,
+                        sh.link.jitter_ms
+                    )
+                },
                 &sh.v2,
                 sh.bytes_per_player_s / 1000.0,
                 format!("{:.0}", sh.budget_kbps),

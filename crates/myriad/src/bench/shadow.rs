@@ -7,7 +7,9 @@
 //! its datagrams, resolves their records against the states it holds
 //! ([`Baselines`]), feeds a [`WorldMirror`] (the same interpolation as the live
 //! mirrors) and acknowledges every datagram whose records all applied, before the next
-//! tick (a loopback link: no loss, no delay). The candidates are the objects whose
+//! tick, or over a simulated [`Link`] that loses and delays datagrams both ways (whole
+//! ticks, seeded: the shadow's stand-in for the lossy relay until version 2 is on the
+//! wire). The candidates are the objects whose
 //! centre lies in the player's AOI cube, as the quality probe's truth; the AOI query of
 //! the server may also hold objects whose box only overlaps the cube.
 //!
@@ -21,10 +23,36 @@ use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use myriad_client::{Interpolation, Quality, QualitySummary, WorldMirror};
+use myriad_core::rng::Stream;
 use myriad_interest::{Replica, ReplicaScratch, ReplicationConfig, TickInfo, replica::Candidate};
 use myriad_protocol::{
-    AckTracker, Baselines, DatagramBatch, DeltaUpdate, Direction, Opener, QuantPos, Sealer, ShapeKind,
+    AckField, AckTracker, Baselines, DatagramBatch, DeltaUpdate, Direction, Opener, QuantPos, Sealer, ShapeKind,
 };
+
+/// A simulated network between a shadow's server and client: each datagram (and each
+/// acknowledgement the client sends, one a tick) is lost with probability `loss`, else
+/// arrives `delay_ms ± jitter_ms` later (uniform, rounded to whole ticks), so datagrams
+/// also overtake each other.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
+pub(super) struct Link {
+    /// Probability a datagram is lost, each way.
+    pub loss: f64,
+    /// One-way delay, ms.
+    pub delay_ms: f64,
+    /// Spread of the delay either side, ms.
+    pub jitter_ms: f64,
+}
+
+impl Link {
+    /// Ticks a datagram sent now takes, or `None` if it is lost.
+    fn travel(&self, rng: &mut Stream, tick_rate_hz: f64) -> Option<u64> {
+        if f64::from(rng.unit()) < self.loss {
+            return None;
+        }
+        let ms = self.delay_ms + self.jitter_ms * (2.0 * f64::from(rng.unit()) - 1.0);
+        Some((ms.max(0.0) * tick_rate_hz / 1000.0).round() as u64)
+    }
+}
 
 /// One sampled player's version 2 link.
 pub(super) struct Shadow {
@@ -37,6 +65,13 @@ pub(super) struct Shadow {
     out: DatagramBatch,
     scratch: ReplicaScratch,
     candidates: Vec<Candidate>,
+    link: Link,
+    rng: Stream,
+    tick_rate_hz: f64,
+    /// Datagrams on their way to the client: (arrival tick, bytes).
+    to_client: Vec<(u64, Vec<u8>)>,
+    /// Acknowledgements on their way to the server: (arrival tick, field).
+    to_server: Vec<(u64, AckField)>,
 }
 
 /// What the shadows did over the measured ticks.
@@ -70,7 +105,13 @@ impl ShadowTotals {
 
 impl Shadow {
     /// A link with fresh keys, its mirror on the probe's clock.
-    pub(super) fn new(key_seed: u64, interpolation: Interpolation, tick_rate_hz: u16, base: Instant) -> Self {
+    pub(super) fn new(
+        key_seed: u64,
+        interpolation: Interpolation,
+        tick_rate_hz: u16,
+        base: Instant,
+        link: Link,
+    ) -> Self {
         let mut key = [0u8; 32];
         for (i, b) in key.iter_mut().enumerate() {
             *b = (key_seed as u8).wrapping_add(i as u8).wrapping_mul(31);
@@ -87,6 +128,11 @@ impl Shadow {
             out: DatagramBatch::new(),
             scratch: ReplicaScratch::default(),
             candidates: Vec::new(),
+            link,
+            rng: Stream::new(key_seed, 0x6c69_6e6b),
+            tick_rate_hz: f64::from(tick_rate_hz.max(1)),
+            to_client: Vec::new(),
+            to_server: Vec::new(),
         }
     }
 
@@ -117,6 +163,12 @@ impl Shadow {
             pos: QuantPos::from_f32(p),
             distance,
         }));
+        // Acknowledgements that arrived by now, then this tick's build.
+        let arrived = self.to_server.iter().filter(|a| a.0 <= tick).map(|a| a.1).reduce(AckField::merge);
+        self.to_server.retain(|a| a.0 > tick);
+        if let Some(f) = arrived {
+            self.replica.acknowledge(f);
+        }
         let report = self.replica.build(
             config,
             TickInfo { tick, dilation_permille: 1000 },
@@ -129,9 +181,16 @@ impl Shadow {
             &mut self.scratch,
         );
         let Ok(report) = report else { return };
-        let mut unresolved = 0;
         for d in self.out.iter() {
-            let mut d = d.to_vec();
+            if let Some(ticks) = self.link.travel(&mut self.rng, self.tick_rate_hz) {
+                self.to_client.push((tick + ticks, d.to_vec()));
+            }
+        }
+        // What reaches the client by now, in order of arrival.
+        self.to_client.sort_by_key(|d| d.0);
+        let due = self.to_client.partition_point(|d| d.0 <= tick);
+        let mut unresolved = 0;
+        for (_, mut d) in self.to_client.drain(..due) {
             let Ok(opened) = self.opener.open_with(&mut d, |_, body| DeltaUpdate::decode_body(body)) else {
                 unresolved += 1;
                 continue;
@@ -149,8 +208,11 @@ impl Shadow {
             }
             self.mirror.apply(update.header.tick, states, now);
         }
-        if let Some(f) = self.acks.field() {
-            self.replica.acknowledge(f);
+        // The client's next datagram carries its acknowledgement.
+        if let Some(f) = self.acks.field()
+            && let Some(ticks) = self.link.travel(&mut self.rng, self.tick_rate_hz)
+        {
+            self.to_server.push((tick + ticks, f));
         }
         if let Some(t) = totals {
             t.bytes += self.out.total_bytes() as u64;
@@ -216,6 +278,8 @@ pub(super) struct ShadowRow {
     pub budget_kbps: f64,
     /// The near bound, ticks.
     pub near_bound_ticks: f32,
+    /// The simulated link.
+    pub link: Link,
     /// Bytes per sampled player and second, protocol 2.
     pub bytes_per_player_s: f64,
     /// Share of records relative to a baseline.
@@ -231,6 +295,7 @@ pub(super) struct ShadowRow {
 impl ShadowRow {
     pub(super) fn new(
         config: &ReplicationConfig,
+        link: Link,
         tick_rate_hz: f64,
         totals: &ShadowTotals,
         v2: QualitySummary,
@@ -240,6 +305,7 @@ impl ShadowRow {
         ShadowRow {
             budget_kbps: f64::from(config.budget_bytes_per_tick) * tick_rate_hz * 8.0 / 1000.0,
             near_bound_ticks: config.near_bound_ticks,
+            link,
             bytes_per_player_s: totals.bytes as f64 / players_s.max(f64::MIN_POSITIVE),
             relative_share: totals.relative as f64 / (totals.records + totals.datagrams).max(1) as f64,
             unresolved: totals.unresolved,

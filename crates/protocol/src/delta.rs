@@ -40,7 +40,7 @@ use crate::batch::DatagramBatch;
 use crate::error::DecodeError;
 use crate::header::{HEADER_LEN, MAX_BODY, MAX_DATAGRAM, PROTOCOL_VERSION, PacketKind, TAG_LEN};
 use crate::quant::QuantPos;
-use crate::update::{ShapeKind, StateRecord, UpdateHeader};
+use crate::update::{ShapeKind, StateRecord, UpdateHeader, read_header_fields, write_header_fields};
 use crate::wire::Reader;
 
 /// Length of a delta update's own header, at the start of its body.
@@ -221,11 +221,7 @@ fn write_varint(mut v: u64, out: &mut [u8]) -> usize {
 }
 
 fn write_delta_header(h: &UpdateHeader, count: u16, out: &mut [u8]) {
-    out[0..8].copy_from_slice(&h.tick.to_le_bytes());
-    out[8..10].copy_from_slice(&h.dilation_permille.to_le_bytes());
-    out[10..14].copy_from_slice(&h.origin.x.to_le_bytes());
-    out[14..18].copy_from_slice(&h.origin.y.to_le_bytes());
-    out[18..22].copy_from_slice(&h.origin.z.to_le_bytes());
+    write_header_fields(h, out);
     out[22..24].copy_from_slice(&count.to_le_bytes());
 }
 
@@ -287,11 +283,7 @@ impl<'a> DeltaUpdateView<'a> {
     /// whose [`records`](Self::records) cannot fail.
     pub fn parse(body: &'a [u8]) -> Result<Self, DecodeError> {
         let mut r = Reader::new(body);
-        let header = UpdateHeader {
-            tick: r.u64()?,
-            dilation_permille: r.u16()?,
-            origin: QuantPos::new(r.i32()?, r.i32()?, r.i32()?),
-        };
+        let header = read_header_fields(&mut r)?;
         let count = r.u16()?;
         // Cheap bound before the loop: every record takes at least two bytes.
         if usize::from(count) * 2 > r.remaining() {

@@ -141,12 +141,26 @@ fn write_record(rec: &StateRecord, id_base: u64, origin: QuantPos, out: &mut [u8
     }
 }
 
-fn write_update_header(h: &UpdateHeader, id_base: u64, count: u16, out: &mut [u8]) {
+/// Writes the 22 bytes both update forms start with: tick, dilation, origin.
+pub(crate) fn write_header_fields(h: &UpdateHeader, out: &mut [u8]) {
     out[0..8].copy_from_slice(&h.tick.to_le_bytes());
     out[8..10].copy_from_slice(&h.dilation_permille.to_le_bytes());
     out[10..14].copy_from_slice(&h.origin.x.to_le_bytes());
     out[14..18].copy_from_slice(&h.origin.y.to_le_bytes());
     out[18..22].copy_from_slice(&h.origin.z.to_le_bytes());
+}
+
+/// Reads what [`write_header_fields`] wrote.
+pub(crate) fn read_header_fields(r: &mut Reader<'_>) -> Result<UpdateHeader, DecodeError> {
+    Ok(UpdateHeader {
+        tick: r.u64()?,
+        dilation_permille: r.u16()?,
+        origin: QuantPos::new(r.i32()?, r.i32()?, r.i32()?),
+    })
+}
+
+fn write_update_header(h: &UpdateHeader, id_base: u64, count: u16, out: &mut [u8]) {
+    write_header_fields(h, out);
     out[22..30].copy_from_slice(&id_base.to_le_bytes());
     out[30..32].copy_from_slice(&count.to_le_bytes());
 }
@@ -223,11 +237,7 @@ impl<'a> StateUpdateView<'a> {
     /// whose [`records`](Self::records) cannot fail.
     pub fn parse(body: &'a [u8]) -> Result<Self, DecodeError> {
         let mut r = Reader::new(body);
-        let header = UpdateHeader {
-            tick: r.u64()?,
-            dilation_permille: r.u16()?,
-            origin: QuantPos::new(r.i32()?, r.i32()?, r.i32()?),
-        };
+        let header = read_header_fields(&mut r)?;
         let id_base = r.u64()?;
         let count = r.u16()?;
         // Cheap bound before the loop: every record takes at least the compact length.

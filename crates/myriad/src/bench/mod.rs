@@ -226,14 +226,21 @@ struct ServerTick {
     shadow: Option<shadow::ShadowRow>,
 }
 
-/// Staleness and error percentiles of one protocol (`shadow.rs`).
+/// Staleness and error percentiles of what sampled clients held and drew.
 #[derive(Clone, Copy, Debug, Serialize)]
 struct QualityRowFigures {
+    /// Age of the state held of objects within 30 units, ms (of the newest state in the
+    /// quality table; the information age in the shadow's, `shadow.rs`).
     staleness_near_ms: Spread,
+    /// The same over every object of the AOI.
     staleness_all_ms: Spread,
+    /// Distance between the drawn and the true position, objects within 30 units.
     error_near: Spread,
+    /// The same over the whole AOI.
     error_all: Spread,
+    /// Objects within 30 units of which the client held nothing when sampled.
     missing_near: u64,
+    /// Objects of the AOI of which the client held nothing when sampled.
     missing_all: u64,
 }
 
@@ -274,33 +281,14 @@ struct QualityRow {
     every: u64,
     /// The clients' render delay, ticks.
     render_delay_ticks: f64,
-    /// Age of the newest state held of objects within 30 units, ms.
-    staleness_near_ms: Spread,
-    /// Age of the newest state held of every object of the AOI, ms.
-    staleness_all_ms: Spread,
-    /// Distance between the drawn and the true position, objects within 30 units.
-    error_near: Spread,
-    /// The same over the whole AOI.
-    error_all: Spread,
-    /// Objects within 30 units of which the client held nothing when sampled.
-    missing_near: u64,
-    /// Objects of the AOI of which the client held nothing when sampled.
-    missing_all: u64,
+    /// The figures (the same JSON keys as before, flattened).
+    #[serde(flatten)]
+    figures: QualityRowFigures,
 }
 
 impl QualityRow {
     fn new(players: usize, every: u64, render_delay_ticks: f64, s: QualitySummary) -> Self {
-        QualityRow {
-            players,
-            every,
-            render_delay_ticks,
-            staleness_near_ms: s.staleness_near_ms.into(),
-            staleness_all_ms: s.staleness_all_ms.into(),
-            error_near: s.error_near.into(),
-            error_all: s.error_all.into(),
-            missing_near: s.missing_near,
-            missing_all: s.missing_all,
-        }
+        QualityRow { players, every, render_delay_ticks, figures: s.into() }
     }
 }
 

@@ -199,25 +199,13 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
                 format!("{:.0} %", sh.relative_share * 100.0),
             ),
         ] {
-            let (sn, sa, en, ea) = (&q.staleness_near_ms, &q.staleness_all_ms, &q.error_near, &q.error_all);
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {name} | {budget} | {bound} | {kbs:.1} | {:.0} / {:.0} / {:.0} | {:.0} / {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {} / {} | {relative} | {} |",
+                "| {} | {} | {} | {name} | {budget} | {bound} | {kbs:.1} | {} | {relative} | {} |",
                 r.scenario,
                 r.backend,
                 t.aoi_size,
-                sn.p50,
-                sn.p99,
-                sn.max,
-                sa.p50,
-                sa.p99,
-                sa.max,
-                en.p50,
-                en.p99,
-                ea.p50,
-                ea.p99,
-                q.missing_near,
-                q.missing_all,
+                figure_cells(q),
                 sh.unresolved,
             );
         }
@@ -228,6 +216,15 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
          age of that state (protocol 2 sends an unchanged object only to confirm it now and then). The live row's \
          kB/s is over all players, protocol 2's over the sampled ones (loopback, acknowledged before the next tick)."
     );
+}
+
+/// The staleness, error and missing cells of one row of the quality and shadow tables.
+fn figure_cells(q: &super::QualityRowFigures) -> String {
+    let (sn, sa, en, ea) = (&q.staleness_near_ms, &q.staleness_all_ms, &q.error_near, &q.error_all);
+    format!(
+        "{:.0} / {:.0} / {:.0} | {:.0} / {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {} / {}",
+        sn.p50, sn.p99, sn.max, sa.p50, sa.p99, sa.max, en.p50, en.p99, ea.p50, ea.p99, q.missing_near, q.missing_all
+    )
 }
 
 /// Table 3's second part: what the sampled players' clients held and drew.
@@ -246,26 +243,14 @@ fn quality_table(s: &mut String, rows: &[&Row]) {
     );
     let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(7));
     for (r, t, q) in &with {
-        let (sn, sa, en, ea) = (&q.staleness_near_ms, &q.staleness_all_ms, &q.error_near, &q.error_all);
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {:.1} | {:.0} / {:.0} / {:.0} | {:.0} / {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {} / {} |",
+            "| {} | {} | {} | {:.1} | {} |",
             r.scenario,
             r.backend,
             t.aoi_size,
             t.bytes_per_player_s / 1000.0,
-            sn.p50,
-            sn.p99,
-            sn.max,
-            sa.p50,
-            sa.p99,
-            sa.max,
-            en.p50,
-            en.p99,
-            ea.p50,
-            ea.p99,
-            q.missing_near,
-            q.missing_all
+            figure_cells(&q.figures)
         );
     }
     let _ = writeln!(

@@ -7,13 +7,21 @@
 //! that its expected occupancy is uniform in 50..=300. The AOI lists are computed once
 //! (with a grid) before timing, as the physics backend would hand them over.
 //!
+//! The `replica_tick` group runs protocol 2's per-player replica (`replica.rs`) on the same
+//! views instead, half the objects moving each tick, every datagram acknowledged.
+//!
 //! Run: `cargo bench -p myriad-interest --bench interest`
 
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use myriad_interest::{AoiLists, InterestConfig, InterestManager, SoaObjects, Subscriber, TickInfo};
-use myriad_protocol::{ServerSession, SessionKeys, ShapeKind};
+use myriad_interest::replica::Candidate;
+use myriad_interest::{
+    AoiLists, InterestConfig, InterestManager, Replica, ReplicaScratch, ReplicationConfig, SoaObjects, Subscriber,
+    TickInfo,
+};
+use myriad_protocol::{AckField, DatagramBatch, QuantPos, Sealer, ServerSession, SessionKeys, ShapeKind};
+use rayon::prelude::*;
 
 struct Rng(u64);
 impl Rng {
@@ -158,5 +166,119 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench);
+/// One player's protocol 2 state in the replica bench.
+struct Player {
+    replica: Replica,
+    sealer: Sealer,
+    out: DatagramBatch,
+}
+
+thread_local! {
+    /// Per-thread working memory, as the live interest manager keeps it: hot in cache
+    /// from one player to the next.
+    static SCRATCH: std::cell::RefCell<(ReplicaScratch, Vec<Candidate>)> = Default::default();
+}
+
+/// Protocol 2's per-player replica (`replica.rs`) on the same views, half the objects
+/// moving a little every tick, every datagram acknowledged before the next tick: the CPU
+/// a tick of it costs beside the live selection above.
+fn replica(c: &mut Criterion) {
+    let mut group = c.benchmark_group("replica_tick");
+    group.sample_size(10);
+    let config = ReplicationConfig { budget_bytes_per_tick: 32_000.0 / 30.0, ..ReplicationConfig::default() };
+    for (name, objects, players) in
+        [("scenario2_5k_players", 55_000, 5_000), ("scenario3_10k_players", 260_000, 10_000)]
+    {
+        let mut s = scenario(objects, players, 42);
+        let mut ps: Vec<Player> = s
+            .subscribers
+            .drain(..)
+            .map(|sub| Player { replica: Replica::default(), sealer: sub.sealer, out: DatagramBatch::new() })
+            .collect();
+        let mut tick = 0u64;
+        let run = |tick: u64, positions: &mut Vec<[f32; 3]>, ps: &mut Vec<Player>| -> usize {
+            for (i, p) in positions.iter_mut().enumerate().filter(|(i, _)| i % 2 == 0) {
+                p[0] += 0.17 * if (i / 2 + tick as usize).is_multiple_of(7) { -1.0 } else { 1.0 };
+            }
+            let (offsets, list, kinds, positions) = (&s.offsets, &s.objects, &s.kinds, &*positions);
+            ps.par_iter_mut()
+                .enumerate()
+                .map(|(i, p)| {
+                    SCRATCH.with_borrow_mut(|(scratch, candidates)| {
+                        let centre = positions[i];
+                        let own = (i as u64, kinds[i], QuantPos::from_f32(centre));
+                        candidates.clear();
+                        candidates.extend(list[offsets[i] as usize..offsets[i + 1] as usize].iter().map(|&o| {
+                            let q = positions[o as usize];
+                            let d = [q[0] - centre[0], q[1] - centre[1], q[2] - centre[2]];
+                            Candidate {
+                                id: u64::from(o),
+                                kind: kinds[o as usize],
+                                pos: QuantPos::from_f32(q),
+                                distance: (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+                            }
+                        }));
+                        let first = p.sealer.next_sequence();
+                        let r = p
+                            .replica
+                            .build(
+                                &config,
+                                TickInfo { tick, dilation_permille: 1000 },
+                                QuantPos::from_f32(centre),
+                                Some(own),
+                                candidates,
+                                2,
+                                &mut p.sealer,
+                                &mut p.out,
+                                scratch,
+                            )
+                            .expect("sequence numbers last");
+                        // The client got them all.
+                        let sent = p.sealer.next_sequence() - first;
+                        if let Some(newest) = p.sealer.next_sequence().checked_sub(1)
+                            && sent > 0
+                        {
+                            let bits = (1u64 << (sent - 1).min(63)) - 1;
+                            p.replica.acknowledge(AckField::new(newest, bits).expect("valid field"));
+                        }
+                        black_box(r.packed);
+                        p.out.total_bytes()
+                    })
+                })
+                .sum()
+        };
+        let mut positions = s.positions.clone();
+        // Warm up: everything new goes out over the first ticks.
+        let mut bytes = 0;
+        for _ in 0..40 {
+            tick += 1;
+            bytes = run(tick, &mut positions, &mut ps);
+        }
+        let before = process_cpu_seconds();
+        let wall = std::time::Instant::now();
+        let ticks = 20;
+        for _ in 0..ticks {
+            tick += 1;
+            bytes = run(tick, &mut positions, &mut ps);
+        }
+        if let (Some(before), Some(after)) = (before, process_cpu_seconds()) {
+            eprintln!(
+                "{name} (protocol 2): {:.1} ms of CPU per tick ({:.1} ms wall, {} rayon threads), {:.0} bytes a player a tick",
+                (after - before) * 1000.0 / ticks as f64,
+                wall.elapsed().as_secs_f64() * 1000.0 / ticks as f64,
+                rayon::current_num_threads(),
+                bytes as f64 / players as f64
+            );
+        }
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                tick += 1;
+                black_box(run(tick, &mut positions, &mut ps))
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench, replica);
 criterion_main!(benches);

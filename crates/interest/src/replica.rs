@@ -328,9 +328,9 @@ impl Replica {
     fn apply_acks(&mut self, index: &StaleTable, now: u64) {
         let acks = self.acks.take();
         let floor = now.saturating_sub(MAX_BACK - 1);
-        let mut kept = VecDeque::with_capacity(0);
-        std::mem::swap(&mut kept, &mut self.flights);
-        for f in kept {
+        // Each flight once, in order, back to the back if it stays: no allocation.
+        for _ in 0..self.flights.len() {
+            let Some(mut f) = self.flights.pop_front() else { break };
             let acked = acks.is_some_and(|a| a.contains(f.sequence));
             if acked {
                 for &(id, pos) in &f.states {
@@ -345,7 +345,6 @@ impl Replica {
             let unackable =
                 acks.is_some_and(|a| a.newest().saturating_sub(f.sequence) > myriad_protocol::ack::ACK_BITS);
             if acked || unackable || f.tick < floor {
-                let mut f = f;
                 f.states.clear();
                 self.spare.push(f);
             } else {

@@ -12,14 +12,14 @@
 //! 2. an object new in view is due at once; every other one whose current (quantized)
 //!    state the client neither holds nor was just sent gains `1 / bound(d)` priority, where `bound(d)` is the refresh bound
 //!    in ticks at its distance `d` from the player: `near_bound_ticks` within `near`
-//!    units, growing with distance up to `far_bound_ticks`; an object the client holds
+//!    units, growing linearly to `far_bound_ticks` at `far` units; an object the client holds
 //!    unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
 //!    then, so a client can tell a still object from one that left its view);
 //! 3. the objects due (priority at least 1) are taken highest priority first into this
 //!    tick's byte budget
 //!    (`budget_bytes_per_tick`, with what earlier ticks left unspent, up to one tick's
-//!    worth more, datagram header and tag counted); an object overdue by
-//!    `starve_factor` times its bound goes even over the budget, so nothing starves;
+//!    worth more, datagram header and tag counted); an object that has waited
+//!    `max_wait_ticks` goes even over the budget, so nothing starves;
 //! 4. they are written smallest form first against their baselines
 //!    ([`DeltaRecord::choose`]), ids increasing, the player's own object in every
 //!    datagram; what was sent restarts its priority at zero.
@@ -50,16 +50,19 @@ pub struct ReplicationConfig {
     pub near: f32,
     /// Refresh bound of a changing near object, in ticks.
     pub near_bound_ticks: f32,
-    /// Refresh bound of a changing object at the far end of the view, in ticks; the
-    /// bound grows with distance from `near_bound_ticks` at `near` up to this.
+    /// Refresh bound of a changing object `far` units away or more, in ticks; the bound
+    /// grows linearly from `near_bound_ticks` at `near` to this at `far`.
     pub far_bound_ticks: f32,
+    /// Distance (world units) from which the far bound applies.
+    pub far: f32,
     /// An unchanged object the client holds is confirmed at least this often, in ticks.
     pub refresh_ticks: f32,
     /// A state sent but not acknowledged after this many ticks counts as lost and is
     /// due again.
     pub resend_ticks: u64,
-    /// An object this many times past its bound is sent even over the budget.
-    pub starve_factor: f32,
+    /// An object that has wanted sending for this many ticks is sent even over the
+    /// budget (the starvation bound).
+    pub max_wait_ticks: f32,
 }
 
 impl Default for ReplicationConfig {
@@ -69,9 +72,10 @@ impl Default for ReplicationConfig {
             near: 30.0,
             near_bound_ticks: 3.0,
             far_bound_ticks: 24.0,
+            far: 60.0,
             refresh_ticks: 24.0,
             resend_ticks: 6,
-            starve_factor: 2.0,
+            max_wait_ticks: 30.0,
         }
     }
 }
@@ -79,8 +83,11 @@ impl Default for ReplicationConfig {
 impl ReplicationConfig {
     /// The refresh bound in ticks of a changing object `distance` units away.
     pub fn bound_ticks(&self, distance: f32) -> f32 {
-        let near = self.near.max(f32::MIN_POSITIVE);
-        (self.near_bound_ticks * distance / near).clamp(self.near_bound_ticks.max(1.0), self.far_bound_ticks.max(1.0))
+        let (near_bound, far_bound) = (self.near_bound_ticks.max(1.0), self.far_bound_ticks.max(1.0));
+        let span = (self.far - self.near).max(f32::MIN_POSITIVE);
+        let along = ((distance - self.near) / span).clamp(0.0, 1.0);
+        // NaN distances (never from a world) read as near: sent more, not less.
+        if along.is_nan() { near_bound } else { near_bound + (far_bound - near_bound).max(0.0) * along }
     }
 }
 
@@ -154,8 +161,8 @@ pub struct ReplicaReport {
 #[derive(Default)]
 pub struct ReplicaScratch {
     index: StaleTable,
-    /// `(priority, track index, estimated bytes)` of the objects wanting sending.
-    wanted: Vec<(f32, u32, u16)>,
+    /// `(priority, track index, estimated bytes, starving)` of the objects due.
+    wanted: Vec<(f32, u32, u16, bool)>,
     chosen: Vec<(DeltaRecord, u32)>,
     records: Vec<DeltaRecord>,
     next: Vec<Track>,
@@ -232,7 +239,7 @@ impl Replica {
             let t = &mut next[i];
             let holds = t.acked.is_some_and(|b| b.pos == c.pos);
             let sending = t.sent.is_some_and(|s| s.pos == c.pos && now.saturating_sub(s.tick) < config.resend_ticks);
-            t.priority += if holds {
+            let rate = if holds {
                 1.0 / config.refresh_ticks.max(1.0)
             } else if sending {
                 0.0
@@ -242,11 +249,14 @@ impl Replica {
             } else {
                 1.0 / config.bound_ticks(c.distance)
             };
+            t.priority += rate;
             // Sent when due: the bounds, not the budget, decide how often; the budget
             // decides what waits when more is due than it holds.
             if t.priority >= 1.0 {
                 let cost = DeltaRecord::choose(c.id, c.kind, c.pos, now, t.acked).encoded_len(None, origin);
-                wanted.push((t.priority, i as u32, cost as u16));
+                // Priority over this tick's rate: the ticks it has wanted sending.
+                let starving = rate > 0.0 && t.priority / rate >= config.max_wait_ticks;
+                wanted.push((t.priority, i as u32, cost as u16, starving));
             }
         }
 
@@ -260,9 +270,8 @@ impl Replica {
         let mut budget = config.budget_bytes_per_tick + self.credit - per_datagram;
         let (mut datagrams, mut in_datagram) = (1usize, 0usize);
         chosen.clear();
-        for &(priority, i, cost) in wanted.iter() {
+        for &(_, i, cost, starving) in wanted.iter() {
             let cost = usize::from(cost);
-            let starving = priority >= config.starve_factor;
             let mut fits = cost as f32 <= budget || starving;
             if fits && in_datagram + cost > room {
                 // Another datagram, if allowed and paid for.

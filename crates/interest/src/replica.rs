@@ -15,8 +15,8 @@
 //!    units, growing linearly to `far_bound_ticks` at `far` units; an object the client holds
 //!    unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
 //!    then, so a client can tell a still object from one that left its view);
-//! 3. the objects due (priority at least 1) are taken highest priority first into this
-//!    tick's byte budget
+//! 3. the objects due (priority at least 1) are taken into this tick's byte budget, near
+//!    ones and ones the client lacks first, then by priority
 //!    (`budget_bytes_per_tick`, with what earlier ticks left unspent, up to one tick's
 //!    worth more, datagram header and tag counted); an object that has waited
 //!    `max_wait_ticks` goes even over the budget, so nothing starves;
@@ -169,6 +169,11 @@ pub struct ReplicaScratch {
     ends: Vec<usize>,
 }
 
+/// Added to the sort key of near objects and objects the client lacks, so they go before
+/// the others once due (priorities stay far below it: they are reset when sent and
+/// starvation sends an object within `max_wait_ticks`).
+const NEAR_FIRST: f32 = 1.0e6;
+
 /// No track index yet (a new object).
 const NEW: u64 = u64::MAX;
 
@@ -256,7 +261,12 @@ impl Replica {
                 let cost = DeltaRecord::choose(c.id, c.kind, c.pos, now, t.acked).encoded_len(None, origin);
                 // Priority over this tick's rate: the ticks it has wanted sending.
                 let starving = rate > 0.0 && t.priority / rate >= config.max_wait_ticks;
-                wanted.push((t.priority, i as u32, cost as u16, starving));
+                // Near objects and objects the client lacks go first once due: their
+                // bound is the tightest, and a far object that waits its turn is drawn
+                // off by less. Nothing far starves: `max_wait_ticks` still holds.
+                let first = c.distance <= config.near || t.acked.is_none();
+                let key = if first { t.priority + NEAR_FIRST } else { t.priority };
+                wanted.push((key, i as u32, cost as u16, starving));
             }
         }
 

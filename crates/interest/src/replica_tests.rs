@@ -286,3 +286,43 @@ fn a_crowded_view_within_a_budget_reaches_every_object() {
     }
     assert_eq!(run.client.held.len(), 511, "deferred {deferred}");
 }
+
+#[test]
+fn near_objects_keep_their_bound_when_the_budget_is_short() {
+    // 60 near objects and 600 far ones, all moving: the budget holds the near ones every
+    // third tick, not the far ones every 24th.
+    let config = ReplicationConfig { budget_bytes_per_tick: 220.0, ..Default::default() };
+    let mut run = Run::new(config);
+    let view = |t: u64| -> Vec<Candidate> {
+        (0..660u64)
+            .map(|i| {
+                let d = if i < 60 { 5.0 + i as f32 * 0.4 } else { 70.0 + i as f32 * 0.05 };
+                let x = d + t as f32 * 0.17;
+                Candidate {
+                    id: 10 + i * 5,
+                    kind: ShapeKind::Sphere,
+                    pos: QuantPos::from_f32([x, 0.0, 0.0]),
+                    distance: d,
+                }
+            })
+            .collect()
+    };
+    let (mut near_worst, mut far_worst) = (0, 0);
+    for t in 1..=150 {
+        let v = view(t);
+        run.tick(t, &v, |_, _| true, true);
+        if t > 60 {
+            for c in &v {
+                let age = t - run.client.held.get(&c.id).map_or(0, |h| h.0);
+                if c.distance <= config.near {
+                    near_worst = near_worst.max(age)
+                } else {
+                    far_worst = far_worst.max(age)
+                }
+            }
+        }
+    }
+    // Sent every third tick, a near object's held state is at most two ticks old.
+    assert!(near_worst < config.near_bound_ticks as u64, "a near object's state got {near_worst} ticks old");
+    assert!(far_worst <= config.max_wait_ticks as u64 + 3, "a far object waited {far_worst} ticks");
+}

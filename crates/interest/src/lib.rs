@@ -7,6 +7,10 @@
 //! both into sealed `StateUpdate` datagrams, one batch per subscriber, in parallel over
 //! players with rayon.
 //!
+//! [`replica`] is protocol version 2's server half (deltas against acknowledged states,
+//! a priority accumulator, a byte budget), measured beside this one by `myriad bench
+//! --shadow-budget-kbps` and not yet what the server sends.
+//!
 //! # How it works
 //!
 //! For each subscriber, in parallel:

@@ -1,5 +1,6 @@
 //! What one player's client holds, and what to send it next: the server half of
-//! delta replication (protocol version 2, `docs/protocol.md` section 5).
+//! delta replication (protocol version 2's records, `myriad_protocol::delta`; not yet
+//! what the server sends).
 //!
 //! Per player the server keeps, for each object in view, a `Track`: the newest state
 //! the client acknowledged (the *baseline* of the next record), the newest state sent,
@@ -10,10 +11,10 @@
 //! Each tick ([`Replica::build`]):
 //! 1. acknowledgements that arrived turn in-flight states into baselines;
 //! 2. an object new in view is due at once; every other one whose current (quantized)
-//!    state the client neither holds nor was just sent gains `1 / bound(d)` priority, where `bound(d)` is the refresh bound
-//!    in ticks at its distance `d` from the player: `near_bound_ticks` within `near`
-//!    units, growing linearly to `far_bound_ticks` at `far` units; an object the client holds
-//!    unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
+//!    state the client neither holds nor was just sent gains `1 / bound(d)` priority,
+//!    where `bound(d)` is the refresh bound in ticks at its distance `d` from the
+//!    player: `near_bound_ticks` within `near` units, growing linearly to
+//!    `far_bound_ticks` at `far` units; an object the client holds unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
 //!    then, so a client can tell a still object from one that left its view);
 //! 3. the objects due (priority at least 1) are taken into this tick's byte budget, near
 //!    ones and ones the client lacks first, then by priority
@@ -26,6 +27,7 @@
 
 use std::collections::VecDeque;
 
+use myriad_protocol::ack::ACK_BITS;
 use myriad_protocol::delta::MAX_RECORD_LEN;
 use myriad_protocol::{
     AckField, Baseline, DELTA_HEADER_LEN, DatagramBatch, DeltaRecord, HEADER_LEN, MAX_BACK, MAX_BODY, QuantPos, Sealer,
@@ -42,8 +44,8 @@ pub const DATAGRAM_OVERHEAD: usize = HEADER_LEN + TAG_LEN + DELTA_HEADER_LEN;
 /// How urgently objects are sent and how many bytes a player may get.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ReplicationConfig {
-    /// Bytes a player may be sent per tick, datagram headers and tags included (from
-    /// `send_budget_kbps` and the tick rate). At least one datagram with the player's own
+    /// Bytes a player may be sent per tick, datagram headers and tags included (the
+    /// bench's `--shadow-budget-kbps` over the tick rate). At least one datagram with the player's own
     /// object is sent every tick whatever the budget.
     pub budget_bytes_per_tick: f32,
     /// Objects within this distance (world units) of the player are near.
@@ -95,7 +97,6 @@ impl ReplicationConfig {
 #[derive(Debug, Clone, Copy)]
 struct Track {
     id: u64,
-    kind: ShapeKind,
     /// The newest state the client acknowledged.
     acked: Option<Baseline>,
     /// The newest state sent (acknowledged or not).
@@ -161,8 +162,8 @@ pub struct ReplicaReport {
 #[derive(Default)]
 pub struct ReplicaScratch {
     index: StaleTable,
-    /// `(priority, track index, estimated bytes, starving)` of the objects due.
-    wanted: Vec<(f32, u32, u16, bool)>,
+    /// `(sort key, track index, record, starving)` of the objects due.
+    wanted: Vec<(f32, u32, DeltaRecord, bool)>,
     chosen: Vec<(DeltaRecord, u32)>,
     records: Vec<DeltaRecord>,
     next: Vec<Track>,
@@ -181,24 +182,6 @@ impl Replica {
     /// Notes an acknowledgement from the client; applied at the next build.
     pub fn acknowledge(&mut self, acks: AckField) {
         self.acks = Some(self.acks.map_or(acks, |a| a.merge(acks)));
-    }
-
-    /// States sent and not yet acknowledged or expired (for tests and metrics).
-    pub fn in_flight(&self) -> usize {
-        self.flights.len()
-    }
-
-    /// Objects tracked.
-    pub fn tracked(&self) -> usize {
-        self.tracks.len()
-    }
-
-    /// Forgets everything the client was sent (its session restarted).
-    pub fn reset(&mut self) {
-        self.tracks.clear();
-        self.spare.extend(self.flights.drain(..));
-        self.acks = None;
-        self.credit = 0.0;
     }
 
     /// Builds and seals this tick's datagrams into `out`: `own` is the player's own
@@ -230,7 +213,7 @@ impl Replica {
         next.clear();
         let mut report = ReplicaReport::default();
         let own_record = own.and_then(|(id, kind, pos)| {
-            let i = self.take(index, id, kind, pos, next)?;
+            let i = self.take(index, id, pos, next)?;
             Some(DeltaRecord::choose(id, kind, pos, now, next[i].acked))
         });
         // Others: priorities, and what each would cost.
@@ -239,7 +222,7 @@ impl Replica {
             if own.is_some_and(|o| o.0 == c.id) {
                 continue;
             }
-            let Some(i) = self.take(index, c.id, c.kind, c.pos, next) else { continue };
+            let Some(i) = self.take(index, c.id, c.pos, next) else { continue };
             report.in_view += 1;
             let t = &mut next[i];
             let holds = t.acked.is_some_and(|b| b.pos == c.pos);
@@ -258,7 +241,7 @@ impl Replica {
             // Sent when due: the bounds, not the budget, decide how often; the budget
             // decides what waits when more is due than it holds.
             if t.priority >= 1.0 {
-                let cost = DeltaRecord::choose(c.id, c.kind, c.pos, now, t.acked).encoded_len(None, origin);
+                let record = DeltaRecord::choose(c.id, c.kind, c.pos, now, t.acked);
                 // Priority over this tick's rate: the ticks it has wanted sending.
                 let starving = rate > 0.0 && t.priority / rate >= config.max_wait_ticks;
                 // Near objects and objects the client lacks go first once due: their
@@ -266,7 +249,7 @@ impl Replica {
                 // off by less. Nothing far starves: `max_wait_ticks` still holds.
                 let first = c.distance <= config.near || t.acked.is_none();
                 let key = if first { t.priority + NEAR_FIRST } else { t.priority };
-                wanted.push((key, i as u32, cost as u16, starving));
+                wanted.push((key, i as u32, record, starving));
             }
         }
 
@@ -280,8 +263,9 @@ impl Replica {
         let mut budget = config.budget_bytes_per_tick + self.credit - per_datagram;
         let (mut datagrams, mut in_datagram) = (1usize, 0usize);
         chosen.clear();
-        for &(_, i, cost, starving) in wanted.iter() {
-            let cost = usize::from(cost);
+        for &(_, i, record, starving) in wanted.iter() {
+            // A worst case: the id written whole, as if first in its datagram.
+            let cost = record.encoded_len(None, origin);
             let mut fits = cost as f32 <= budget || starving;
             if fits && in_datagram + cost > room {
                 // Another datagram, if allowed and paid for.
@@ -299,8 +283,7 @@ impl Replica {
             report.starving += usize::from(cost as f32 > budget);
             budget -= cost as f32;
             in_datagram += cost;
-            let t = &next[i as usize];
-            chosen.push((DeltaRecord::choose(t.id, t.kind, t.pos, now, t.acked), i));
+            chosen.push((record, i));
         }
         self.credit = budget.clamp(0.0, config.budget_bytes_per_tick);
 
@@ -361,8 +344,7 @@ impl Replica {
                     }
                 }
             }
-            let unackable =
-                acks.is_some_and(|a| a.newest().saturating_sub(f.sequence) > myriad_protocol::ack::ACK_BITS);
+            let unackable = acks.is_some_and(|a| a.newest().saturating_sub(f.sequence) > ACK_BITS);
             if acked || unackable || f.tick < floor {
                 f.states.clear();
                 self.spare.push(f);
@@ -380,18 +362,11 @@ impl Replica {
 
     /// Moves object `id`'s track (or a new one) into `next`, returning its index there;
     /// `None` if it was taken already this tick (a duplicate in the view).
-    fn take(
-        &self,
-        index: &mut StaleTable,
-        id: u64,
-        kind: ShapeKind,
-        pos: QuantPos,
-        next: &mut Vec<Track>,
-    ) -> Option<usize> {
+    fn take(&self, index: &mut StaleTable, id: u64, pos: QuantPos, next: &mut Vec<Track>) -> Option<usize> {
         let found = index.take(id, NEW)?;
         let t = match found {
-            NEW => Track { id, kind, acked: None, sent: None, pos, priority: 0.0 },
-            i => Track { kind, pos, ..self.tracks[i as usize] },
+            NEW => Track { id, acked: None, sent: None, pos, priority: 0.0 },
+            i => Track { pos, ..self.tracks[i as usize] },
         };
         next.push(t);
         Some(next.len() - 1)

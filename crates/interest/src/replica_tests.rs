@@ -41,22 +41,16 @@ impl Client {
             })
             .expect("a datagram the server sealed opens");
         let (sequence, update) = (opened.header.sequence, opened.message);
-        let mut all = true;
-        for r in &update.records {
-            match self.baselines.resolve(update.header.tick, r) {
-                Ok(s) => {
-                    let e = self.held.entry(s.id).or_insert((0, s.pos));
-                    if update.header.tick >= e.0 {
-                        *e = (update.header.tick, s.pos);
-                    }
-                }
-                Err(_) => {
-                    all = false;
-                    self.unresolved += 1;
-                }
+        let mut states = Vec::new();
+        let failed = self.baselines.resolve_update(&update, &mut states);
+        for s in states {
+            let e = self.held.entry(s.id).or_insert((0, s.pos));
+            if update.header.tick >= e.0 {
+                *e = (update.header.tick, s.pos);
             }
         }
-        if all {
+        self.unresolved += failed;
+        if failed == 0 {
             self.acks.record(sequence);
         }
     }
@@ -64,6 +58,18 @@ impl Client {
 
 fn keys() -> SessionKeys {
     SessionKeys { session_id: 9, client_to_server: [1; 32], server_to_client: [2; 32] }
+}
+
+/// Objects `n` walking along x at 0.17 units a tick from `distance(i)` units away, ids
+/// `id(i)`.
+fn walkers(tick: u64, n: u64, id: impl Fn(u64) -> u64, distance: impl Fn(u64) -> f32) -> Vec<Candidate> {
+    (0..n)
+        .map(|i| {
+            let d = distance(i);
+            let x = d + tick as f32 * 0.17;
+            Candidate { id: id(i), kind: ShapeKind::Sphere, pos: QuantPos::from_f32([x, 0.0, 0.0]), distance: d }
+        })
+        .collect()
 }
 
 /// Objects on a line along x, `moving` of them walking at 0.17 units a tick.
@@ -266,20 +272,7 @@ fn a_crowded_view_within_a_budget_reaches_every_object() {
     // About scenario 2 at AOI 100: 510 objects, the nearest within 30 units, all moving.
     let config = ReplicationConfig { budget_bytes_per_tick: 32_000.0 / 30.0, ..Default::default() };
     let mut run = Run::new(config);
-    let view = |t: u64| -> Vec<Candidate> {
-        (0..510u64)
-            .map(|i| {
-                let d = (i as f32 / 510.0).sqrt() * 86.0;
-                let x = d + t as f32 * 0.17;
-                Candidate {
-                    id: 1000 + i * 97,
-                    kind: ShapeKind::Box,
-                    pos: QuantPos::from_f32([x, 0.0, 0.0]),
-                    distance: d,
-                }
-            })
-            .collect()
-    };
+    let view = |t: u64| walkers(t, 510, |i| 1000 + i * 97, |i| (i as f32 / 510.0).sqrt() * 86.0);
     let mut deferred = 0;
     for t in 1..=40 {
         deferred += run.tick(t, &view(t), |_, _| true, true).deferred;
@@ -293,19 +286,8 @@ fn near_objects_keep_their_bound_when_the_budget_is_short() {
     // third tick, not the far ones every 24th.
     let config = ReplicationConfig { budget_bytes_per_tick: 220.0, ..Default::default() };
     let mut run = Run::new(config);
-    let view = |t: u64| -> Vec<Candidate> {
-        (0..660u64)
-            .map(|i| {
-                let d = if i < 60 { 5.0 + i as f32 * 0.4 } else { 70.0 + i as f32 * 0.05 };
-                let x = d + t as f32 * 0.17;
-                Candidate {
-                    id: 10 + i * 5,
-                    kind: ShapeKind::Sphere,
-                    pos: QuantPos::from_f32([x, 0.0, 0.0]),
-                    distance: d,
-                }
-            })
-            .collect()
+    let view = |t: u64| {
+        walkers(t, 660, |i| 10 + i * 5, |i| if i < 60 { 5.0 + i as f32 * 0.4 } else { 70.0 + i as f32 * 0.05 })
     };
     let (mut near_worst, mut far_worst) = (0, 0);
     for t in 1..=150 {

@@ -138,34 +138,32 @@ impl DeltaRecord {
     fn write(&self, previous: Option<u64>, origin: QuantPos, out: &mut [u8]) -> Option<usize> {
         let len = self.encoded_len(previous, origin);
         let out = out.get_mut(..len)?;
-        let (form, payload): (u8, [i32; 3]) = match self.state {
-            RecordState::Delta { back, d } => (DELTA | back << 2, d.map(i32::from)),
-            RecordState::Same { back } => (SAME | back << 2, [0; 3]),
-            RecordState::Absolute { kind, pos } => match pos.offset_from(origin) {
-                Some(o) => (NEAR | (kind as u8) << 2, o.map(i32::from)),
-                None => (FAR | (kind as u8) << 2, [pos.x, pos.y, pos.z]),
-            },
+        let form = match self.state {
+            RecordState::Delta { back, .. } => DELTA | back << 2,
+            RecordState::Same { back } => SAME | back << 2,
+            RecordState::Absolute { kind, pos } if pos.offset_from(origin).is_some() => NEAR | (kind as u8) << 2,
+            RecordState::Absolute { kind, .. } => FAR | (kind as u8) << 2,
         };
         out[0] = form;
-        let mut at = 1 + write_varint(gap(previous, self.id), &mut out[1..]);
-        for v in payload {
-            match self.state {
-                RecordState::Delta { .. } => {
-                    out[at] = v as i8 as u8;
-                    at += 1;
+        let at = 1 + write_varint(gap(previous, self.id), &mut out[1..]);
+        let payload = &mut out[at..];
+        match self.state {
+            RecordState::Delta { d, .. } => payload.copy_from_slice(&d.map(|v| v as u8)),
+            RecordState::Same { .. } => {}
+            RecordState::Absolute { pos, .. } => match pos.offset_from(origin) {
+                Some(o) => {
+                    for (chunk, v) in payload.chunks_exact_mut(2).zip(o) {
+                        chunk.copy_from_slice(&v.to_le_bytes());
+                    }
                 }
-                RecordState::Same { .. } => {}
-                RecordState::Absolute { .. } if form & 3 == NEAR => {
-                    out[at..at + 2].copy_from_slice(&(v as i16).to_le_bytes());
-                    at += 2;
+                None => {
+                    for (chunk, v) in payload.chunks_exact_mut(4).zip([pos.x, pos.y, pos.z]) {
+                        chunk.copy_from_slice(&v.to_le_bytes());
+                    }
                 }
-                RecordState::Absolute { .. } => {
-                    out[at..at + 4].copy_from_slice(&v.to_le_bytes());
-                    at += 4;
-                }
-            }
+            },
         }
-        Some(at)
+        Some(len)
     }
 
     fn read(r: &mut Reader<'_>, previous: Option<u64>, origin: QuantPos) -> Result<Self, DecodeError> {
@@ -201,7 +199,7 @@ fn gap(previous: Option<u64>, id: u64) -> u64 {
 }
 
 /// Bytes of the LEB128 encoding of `v`.
-pub fn varint_len(v: u64) -> usize {
+fn varint_len(v: u64) -> usize {
     (64 - (v | 1).leading_zeros() as usize).div_ceil(7)
 }
 
@@ -225,7 +223,7 @@ fn write_delta_header(h: &UpdateHeader, count: u16, out: &mut [u8]) {
     out[22..24].copy_from_slice(&count.to_le_bytes());
 }
 
-/// An owned delta update, as decoded by [`crate::ServerMessage::decode_body`].
+/// An owned delta update, as decoded by [`DeltaUpdate::decode_body`].
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Default)]
 pub struct DeltaUpdate {
     /// Tick, dilation and origin.
@@ -449,7 +447,16 @@ impl Baselines {
         Ok(StateRecord { id, kind, pos })
     }
 
-    /// Keeps `state` of tick `tick` (an update may also be resolved elsewhere).
+    /// Resolves every record of `update` into `out` (appended, in the update's order) and
+    /// returns how many could not be: a client acknowledges the datagram only when none
+    /// failed, so the server never takes a state the client lacks for a baseline.
+    pub fn resolve_update(&mut self, update: &DeltaUpdate, out: &mut Vec<StateRecord>) -> usize {
+        let before = out.len();
+        out.extend(update.records.iter().filter_map(|r| self.resolve(update.header.tick, r).ok()));
+        update.records.len() - (out.len() - before)
+    }
+
+    /// Keeps `state` of tick `tick`.
     fn remember(&mut self, tick: u64, state: StateRecord) {
         self.newest = self.newest.max(tick);
         let floor = self.newest.saturating_sub(MAX_BACK);
@@ -472,21 +479,6 @@ impl Baselines {
                 !h.states.is_empty()
             });
         }
-    }
-
-    /// Objects with states kept.
-    pub fn len(&self) -> usize {
-        self.objects.len()
-    }
-
-    /// Whether no state is kept.
-    pub fn is_empty(&self) -> bool {
-        self.objects.is_empty()
-    }
-
-    /// Forgets everything (a new session).
-    pub fn clear(&mut self) {
-        *self = Self::default();
     }
 }
 

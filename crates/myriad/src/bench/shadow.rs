@@ -81,7 +81,7 @@ pub(super) struct ShadowTotals {
     pub bytes: u64,
     /// Datagrams.
     pub datagrams: u64,
-    /// Records of other objects, and of those relative to a baseline.
+    /// Records of other objects sent.
     pub records: u64,
     /// Records relative to a baseline (own included).
     pub relative: u64,
@@ -197,13 +197,9 @@ impl Shadow {
             };
             let update = opened.message;
             let mut states = Vec::with_capacity(update.records.len());
-            for r in &update.records {
-                match self.baselines.resolve(update.header.tick, r) {
-                    Ok(s) => states.push(s),
-                    Err(_) => unresolved += 1,
-                }
-            }
-            if states.len() == update.records.len() {
+            let failed = self.baselines.resolve_update(&update, &mut states);
+            unresolved += failed as u64;
+            if failed == 0 {
                 self.acks.record(opened.header.sequence);
             }
             self.mirror.apply(update.header.tick, states, now);

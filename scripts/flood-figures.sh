@@ -45,7 +45,7 @@ for mode in $modes; do
   esac
   "$flood_bin" flood --mode "$mode" --server 127.0.0.1:$port_login --udp 127.0.0.1:$port_udp \
     --cert "$data/tls-cert.pem" --metrics 127.0.0.1:$port_metrics --duration "$duration" \
-    "${who[@]}" --login-version "${LOGIN_VERSION:-2}" --json >"$out/flood-$mode.json" 2>"$out/flood-$mode.err" || true
+    "${who[@]}" --login-version "${LOGIN_VERSION:-4}" --json >"$out/flood-$mode.json" 2>"$out/flood-$mode.err" || true
   wait $bots || true
   kill -INT $server 2>/dev/null || true
   wait $server || true

@@ -5,11 +5,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use myriad_protocol::login::{
-    FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, RefusalReason, frame_len,
+    FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, frame_len,
 };
 use myriad_protocol::{
-    ActionMask, ClientMessage, ClientSession, DisconnectReason, ErrorClass, MAX_DATAGRAM, OpenError, PlayerInput,
-    ServerInfo, ServerMessage, StateUpdateView,
+    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, DeltaUpdateView, DisconnectReason, ErrorClass,
+    MAX_DATAGRAM, OpenError, PlayerInput, ServerInfo, ServerMessage, StateRecord,
 };
 use rustls::pki_types::ServerName;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -48,9 +48,10 @@ pub struct ClientConfig {
     /// Local address to connect from (none: the system picks). Lets a test or the flood
     /// tool log in from `127.0.0.2` and so on, as another client would.
     pub local_ip: Option<std::net::IpAddr>,
-    /// Login request version to send first ([`myriad_protocol::login::LOGIN_VERSION`]).
-    /// A server older than this version answers the request "malformed"; the client
-    /// then repeats it once as version 1, which every server reads.
+    /// Login request version to send ([`myriad_protocol::login::LOGIN_VERSION`]). An
+    /// older version is for tests and the flood tool: a server refuses it as
+    /// [`myriad_protocol::login::RefusalReason::OutdatedClient`] (this client speaks
+    /// datagram protocol 2 only).
     pub login_version: u8,
 }
 
@@ -101,15 +102,9 @@ pub async fn login(
     credentials: &Credentials,
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
     tokio::time::timeout(config.login_timeout, async {
-        match login_inner(config, credentials, config.login_version).await {
-            // A server older than the request's version calls it malformed.
-            Err(ClientError::Refused { reason: RefusalReason::BadRequest, .. })
-                if config.login_version > myriad_protocol::login::MIN_LOGIN_VERSION =>
-            {
-                login_inner(config, credentials, myriad_protocol::login::MIN_LOGIN_VERSION).await
-            }
-            other => other,
-        }
+        // No fallback to an older login version: this client speaks datagram protocol 2
+        // only, which an older login would not promise the server.
+        login_inner(config, credentials, config.login_version).await
     })
     .await
     .map_err(|_| ClientError::Timeout("login"))?
@@ -173,7 +168,8 @@ pub enum Event {
     Update {
         /// Server tick.
         tick: u64,
-        /// Records in the datagram.
+        /// Records of the datagram applied to the mirror (those whose baseline the
+        /// client held; see [`ClientStats::unresolved`]).
         records: usize,
         /// Time dilation in thousandths.
         dilation_permille: u16,
@@ -210,6 +206,12 @@ pub struct Connection {
     accepted: LoginAccepted,
     map: Option<MapData>,
     mirror: WorldMirror,
+    /// Every object's states of the last 63 ticks, which delta records are relative to.
+    baselines: Baselines,
+    /// The server datagrams to acknowledge in the next action or keep-alive.
+    acks: AckTracker,
+    /// One update's records once resolved (reused).
+    resolved: Vec<StateRecord>,
     stats: ClientStats,
     sequences: SequenceTracker,
     frame: u32,
@@ -269,6 +271,9 @@ impl Connection {
         mirror.set_timing(accepted.tick_rate_hz, accepted.dilation_permille, Instant::now());
         let mut c = Connection {
             mirror,
+            baselines: Baselines::default(),
+            acks: AckTracker::default(),
+            resolved: Vec::new(),
             dilation_permille: accepted.dilation_permille,
             config,
             credentials,
@@ -321,6 +326,9 @@ impl Connection {
         }
         self.mirror.clear();
         self.mirror.set_timing(self.accepted.tick_rate_hz, self.dilation_permille, Instant::now());
+        // A new session numbers its datagrams afresh and knows nothing we hold.
+        self.baselines = Baselines::default();
+        self.acks = AckTracker::default();
         self.sequences = SequenceTracker::default();
         self.disconnected = None;
         self.liveness = Liveness::start(Instant::now(), self.config.silence_timeout);
@@ -396,13 +404,14 @@ impl Connection {
     pub async fn send_action(&mut self, mask: u8) -> Result<(), ClientError> {
         let mask = ActionMask::new(mask).ok_or_else(|| ClientError::Invalid(format!("action mask {mask:#x}")))?;
         self.frame = self.frame.wrapping_add(1);
-        self.send(ClientMessage::Action(PlayerInput { mask, client_frame: self.frame })).await
+        let input = PlayerInput { mask, client_frame: self.frame };
+        self.send(ClientMessage::Action { input, acks: self.acks.field() }).await
     }
 
     /// Sends a keep-alive if nothing was sent for the keep-alive interval.
     pub async fn keepalive_if_due(&mut self) -> Result<(), ClientError> {
         if self.last_sent.elapsed() >= self.config.keepalive_every {
-            self.send(ClientMessage::KeepAlive).await?;
+            self.send(ClientMessage::KeepAlive { acks: self.acks.field() }).await?;
         }
         Ok(())
     }
@@ -420,7 +429,7 @@ impl Connection {
             self.stats.resent += 1;
             match due {
                 Due::Ready => self.send(ClientMessage::Ready).await?,
-                Due::Probe => self.send(ClientMessage::KeepAlive).await?,
+                Due::Probe => self.send(ClientMessage::KeepAlive { acks: self.acks.field() }).await?,
             }
         }
         if !self.config.keepalive_every.is_zero() {
@@ -467,7 +476,7 @@ impl Connection {
             // State updates are applied straight from the zero-copy view below; decode
             // everything else fully.
             if kind == myriad_protocol::PacketKind::StateUpdate {
-                StateUpdateView::parse(body).map(|_| None)
+                DeltaUpdateView::parse(body).map(|_| None)
             } else {
                 ServerMessage::decode_body(kind, body).map(Some)
             }
@@ -489,21 +498,41 @@ impl Connection {
         self.stats.lost += self.sequences.record(opened.header.sequence);
         let started = matches!(opened.message, None | Some(ServerMessage::ServerInfo(_)));
         self.liveness.heard(now, started);
+        let sequence = opened.header.sequence;
         match opened.message {
             None => {
                 let body = &datagram[myriad_protocol::HEADER_LEN..datagram.len() - myriad_protocol::TAG_LEN];
-                let Ok(view) = StateUpdateView::parse(body) else {
+                let Ok(view) = DeltaUpdateView::parse(body) else {
                     self.stats.decode_errors += 1;
                     return Event::Rejected;
                 };
                 let header = view.header();
+                self.resolved.clear();
+                let mut unresolved = 0u64;
+                for record in view.records() {
+                    match self.baselines.resolve(header.tick, &record) {
+                        Ok(state) => self.resolved.push(state),
+                        Err(_) => unresolved += 1,
+                    }
+                }
+                // Acknowledged only when every record resolved: the server takes an
+                // acknowledged datagram's states as held, and sends the next records
+                // relative to them (docs/protocol.md, "Acknowledgements").
+                if unresolved == 0 {
+                    self.acks.record(sequence);
+                }
                 self.stats.updates += 1;
-                self.stats.records += view.len() as u64;
+                self.stats.records += self.resolved.len() as u64;
+                self.stats.unresolved += unresolved;
                 self.stats.last_tick = self.stats.last_tick.max(header.tick);
                 self.dilation_permille = header.dilation_permille;
                 self.mirror.set_timing(self.mirror.tick_rate_hz(), header.dilation_permille, now);
-                self.mirror.apply(header.tick, view.records(), now);
-                Event::Update { tick: header.tick, records: view.len(), dilation_permille: header.dilation_permille }
+                self.mirror.apply(header.tick, self.resolved.iter().copied(), now);
+                Event::Update {
+                    tick: header.tick,
+                    records: self.resolved.len(),
+                    dilation_permille: header.dilation_permille,
+                }
             }
             Some(ServerMessage::ServerInfo(info)) => {
                 self.dilation_permille = info.dilation_permille;

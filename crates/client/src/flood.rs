@@ -251,7 +251,7 @@ async fn keepalive_answered(
 ) -> Result<bool, ClientError> {
     let mut buf = [0u8; 2048];
     let end = Instant::now() + Duration::from_secs(2);
-    for msg in [ClientMessage::KeepAlive, ClientMessage::Ready] {
+    for msg in [ClientMessage::KeepAlive { acks: None }, ClientMessage::Ready] {
         let mut d = Vec::new();
         session.seal(&msg, &mut d).map_err(|e| ClientError::Protocol(e.to_string()))?;
         socket.send_to(&d, to).await.map_err(ClientError::io("sending"))?;

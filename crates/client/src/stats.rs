@@ -9,8 +9,12 @@ pub struct ClientStats {
     pub bytes: u64,
     /// State-update datagrams among them.
     pub updates: u64,
-    /// State records received.
+    /// State records received and resolved (applied to the mirror).
     pub records: u64,
+    /// Delta records skipped because the client did not hold their baseline (the object
+    /// is only delayed: the datagram is not acknowledged, so the server sends it again
+    /// relative to a state the client holds).
+    pub unresolved: u64,
     /// Datagrams dropped: not authentic, replayed or malformed.
     pub rejected: u64,
     /// State updates whose body did not decode (after authentication: a server bug).

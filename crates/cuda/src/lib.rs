@@ -2,7 +2,9 @@
 //! simplest GPU baseline) and `cuda` (device-resident state, LBVH broad phase), both bit for
 //! bit identical to the CPU backends; [`create_backend`], which also resolves `auto`; and
 //! [`DeviceInterest`], interest selection, packing and sealing on a CUDA backend's device,
-//! which the factory hands out beside the backend.
+//! which the factory hands out beside the backend. `DeviceInterest` packs datagram
+//! protocol version 1, which the server no longer sends: it is not used by the server and
+//! awaits its port to version 2's deltas, priorities and budget (issue 26).
 //!
 //! Module map:
 //! - [`compile`]: the embedded kernel sources, NVRTC compilation to a CUBIN and its cache;

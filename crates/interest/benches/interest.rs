@@ -1,14 +1,20 @@
-//! Interest management at the reference's scenario sizes: selection, packing and
-//! sealing of every player's updates for one tick.
+//! Interest management at the reference's scenario sizes: one tick of every player's
+//! update, protocol 2 (delta records against acknowledged states), built and sealed.
 //!
 //! Scenario 2: 55,000 dynamic objects, 5,000 players. Scenario 3: 260,000 objects,
 //! 10,000 players. Objects are spread uniformly over a square map whose size gives an
 //! average of 175 objects per 100 × 100 AOI; each player's AOI half-size is drawn so
 //! that its expected occupancy is uniform in 50..=300. The AOI lists are computed once
-//! (with a grid) before timing, as the physics backend would hand them over.
+//! (with a grid) before timing, as the physics backend would hand them over. Every tick
+//! half the objects move a little, and every client acknowledges all it received before
+//! the next tick; 40 ticks warm up first (everything is new to the clients at first).
 //!
-//! The `replica_tick` group runs protocol 2's per-player replica (`replica.rs`) on the same
-//! views instead, half the objects moving each tick, every datagram acknowledged.
+//! * `interest_tick`: `InterestManager::build`, the live path: gather each view through
+//!   `ObjectSource`, run the player's replica, seal; with the server's default budget
+//!   (`InterestConfig::default()`: two datagrams, 64 kbit/s at 30 Hz).
+//! * `replica_tick`: the per-player `Replica` alone, same views, budget and
+//!   acknowledgements, on candidates the bench gathers itself: the difference to
+//!   `interest_tick` is the manager's share (its gather, prefetching and reports).
 //!
 //! Run: `cargo bench -p myriad-interest --bench interest`
 
@@ -17,8 +23,7 @@ use std::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use myriad_interest::replica::Candidate;
 use myriad_interest::{
-    AoiLists, InterestConfig, InterestManager, Replica, ReplicaScratch, ReplicationConfig, SoaObjects, Subscriber,
-    TickInfo,
+    AoiLists, InterestConfig, InterestManager, Replica, ReplicaScratch, SoaObjects, Subscriber, TickInfo, TickReport,
 };
 use myriad_protocol::{AckField, DatagramBatch, QuantPos, Sealer, ServerSession, SessionKeys, ShapeKind};
 use rayon::prelude::*;
@@ -107,40 +112,78 @@ fn process_cpu_seconds() -> Option<f64> {
     Some((utime + stime) / 100.0)
 }
 
+/// Moves half the objects 0.17 units along x (back, one tick in seven), as a tick of the
+/// physics would.
+fn step(tick: u64, positions: &mut [[f32; 3]]) {
+    for (i, p) in positions.iter_mut().enumerate().filter(|(i, _)| i % 2 == 0) {
+        p[0] += 0.17 * if (i / 2 + tick as usize).is_multiple_of(7) { -1.0 } else { 1.0 };
+    }
+}
+
+/// What a client that received all `sent` datagrams numbered up to `next - 1`
+/// acknowledges.
+fn all_received(sent: u64, next: u64) -> Option<AckField> {
+    let bits = (1u64 << sent.saturating_sub(1).min(63)) - 1;
+    (sent > 0).then(|| AckField::new(next - 1, bits).expect("valid field"))
+}
+
+/// The live path: `InterestManager::build` for every player (gather, replica, sealing),
+/// half the objects moving each tick, every client acknowledging all it got before the
+/// next tick, as the server hands acknowledgements over from the clients' actions.
 fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group("interest_tick");
-    group.sample_size(20);
+    group.sample_size(10);
+    let config = InterestConfig::default();
     for (name, objects, players) in
         [("scenario2_5k_players", 55_000, 5_000), ("scenario3_10k_players", 260_000, 10_000)]
     {
         let mut s = scenario(objects, players, 42);
-        let manager = InterestManager::new(InterestConfig::default());
-        let soa = SoaObjects { ids: &s.ids, kinds: &s.kinds, positions: &s.positions };
-        let aoi = AoiLists { offsets: &s.offsets, objects: &s.objects };
+        let manager = InterestManager::new(config);
+        let mut positions = s.positions.clone();
+        let (ids, kinds, offsets, list) = (&s.ids, &s.kinds, &s.offsets, &s.objects);
+        let subscribers = &mut s.subscribers;
         let mut tick = 0u64;
-        // Warm up buffers and report the traffic once.
-        let report = manager
-            .build(TickInfo { tick, dilation_permille: 1000 }, &soa, aoi, &mut s.subscribers)
-            .expect("lists match subscribers");
+        let mut run = |tick: u64, positions: &mut Vec<[f32; 3]>| -> TickReport {
+            step(tick, positions);
+            let soa = SoaObjects { ids, kinds, positions };
+            let aoi = AoiLists { offsets, objects: list };
+            for (sub, p) in subscribers.iter_mut().zip(positions.iter()) {
+                sub.centre = *p;
+            }
+            let report = manager
+                .build(TickInfo { tick, dilation_permille: 1000 }, &soa, aoi, subscribers)
+                .expect("lists match subscribers");
+            subscribers.par_iter_mut().for_each(|sub| {
+                if let Some(acks) = all_received(sub.datagrams().len() as u64, sub.sealer.next_sequence()) {
+                    sub.acknowledge(acks);
+                }
+            });
+            report
+        };
+        // Warm up: everything is new to the clients over the first ticks.
+        let mut report = TickReport::default();
+        for _ in 0..40 {
+            tick += 1;
+            report = run(tick, &mut positions);
+        }
         eprintln!(
-            "{name}: {} AOI entries ({:.0} per player), {} records, {} datagrams, {} bytes, {} players over budget per tick",
-            s.objects.len(),
-            s.objects.len() as f64 / players as f64,
+            "{name}: {} AOI entries ({:.0} per player); a warm tick: {} records ({} relative), {} datagrams, \
+             {:.0} bytes a player, {} deferred, {} starving",
+            list.len(),
+            list.len() as f64 / players as f64,
             report.records,
+            report.relative,
             report.datagrams,
-            report.bytes,
-            report.over_budget
+            report.bytes as f64 / players as f64,
+            report.deferred,
+            report.starving
         );
         if let Some(before) = process_cpu_seconds() {
             let ticks = 20;
             let wall = std::time::Instant::now();
             for _ in 0..ticks {
                 tick += 1;
-                black_box(
-                    manager
-                        .build(TickInfo { tick, dilation_permille: 1000 }, &soa, aoi, &mut s.subscribers)
-                        .expect("lists match subscribers"),
-                );
+                black_box(run(tick, &mut positions));
             }
             let wall = wall.elapsed().as_secs_f64();
             if let Some(after) = process_cpu_seconds() {
@@ -155,11 +198,7 @@ fn bench(c: &mut Criterion) {
         group.bench_function(name, |b| {
             b.iter(|| {
                 tick += 1;
-                black_box(
-                    manager
-                        .build(TickInfo { tick, dilation_permille: 1000 }, &soa, aoi, &mut s.subscribers)
-                        .expect("lists match subscribers"),
-                )
+                black_box(run(tick, &mut positions))
             })
         });
     }
@@ -179,13 +218,13 @@ thread_local! {
     static SCRATCH: std::cell::RefCell<(ReplicaScratch, Vec<Candidate>)> = Default::default();
 }
 
-/// Protocol 2's per-player replica (`replica.rs`) on the same views, half the objects
-/// moving a little every tick, every datagram acknowledged before the next tick: the CPU
-/// a tick of it costs beside the live selection above.
+/// The per-player replica (`replica.rs`) alone on the same views, moves and
+/// acknowledgements as `interest_tick`, candidates gathered here: the CPU a tick of it
+/// costs without the manager around it.
 fn replica(c: &mut Criterion) {
     let mut group = c.benchmark_group("replica_tick");
     group.sample_size(10);
-    let config = ReplicationConfig { budget_bytes_per_tick: 32_000.0 / 30.0, ..ReplicationConfig::default() };
+    let InterestConfig { max_datagrams, replication: config } = InterestConfig::default();
     for (name, objects, players) in
         [("scenario2_5k_players", 55_000, 5_000), ("scenario3_10k_players", 260_000, 10_000)]
     {
@@ -197,9 +236,7 @@ fn replica(c: &mut Criterion) {
             .collect();
         let mut tick = 0u64;
         let run = |tick: u64, positions: &mut Vec<[f32; 3]>, ps: &mut Vec<Player>| -> usize {
-            for (i, p) in positions.iter_mut().enumerate().filter(|(i, _)| i % 2 == 0) {
-                p[0] += 0.17 * if (i / 2 + tick as usize).is_multiple_of(7) { -1.0 } else { 1.0 };
-            }
+            step(tick, positions);
             let (offsets, list, kinds, positions) = (&s.offsets, &s.objects, &s.kinds, &*positions);
             ps.par_iter_mut()
                 .enumerate()
@@ -227,19 +264,16 @@ fn replica(c: &mut Criterion) {
                                 QuantPos::from_f32(centre),
                                 Some(own),
                                 candidates,
-                                2,
+                                max_datagrams,
                                 &mut p.sealer,
                                 &mut p.out,
                                 scratch,
                             )
                             .expect("sequence numbers last");
                         // The client got them all.
-                        let sent = p.sealer.next_sequence() - first;
-                        if let Some(newest) = p.sealer.next_sequence().checked_sub(1)
-                            && sent > 0
-                        {
-                            let bits = (1u64 << (sent - 1).min(63)) - 1;
-                            p.replica.acknowledge(AckField::new(newest, bits).expect("valid field"));
+                        let next = p.sealer.next_sequence();
+                        if let Some(acks) = all_received(next - first, next) {
+                            p.replica.acknowledge(acks);
                         }
                         black_box(r.packed);
                         p.out.total_bytes()
@@ -263,7 +297,7 @@ fn replica(c: &mut Criterion) {
         }
         if let (Some(before), Some(after)) = (before, process_cpu_seconds()) {
             eprintln!(
-                "{name} (protocol 2): {:.1} ms of CPU per tick ({:.1} ms wall, {} rayon threads), {:.0} bytes a player a tick",
+                "{name} (replica alone): {:.1} ms of CPU per tick ({:.1} ms wall, {} rayon threads), {:.0} bytes a player a tick",
                 (after - before) * 1000.0 / ticks as f64,
                 wall.elapsed().as_secs_f64() * 1000.0 / ticks as f64,
                 rayon::current_num_threads(),

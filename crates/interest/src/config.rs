@@ -1,50 +1,33 @@
 //! Configuration and per-tick inputs.
 
-use myriad_protocol::MAX_COMPACT_RECORDS;
+use crate::replica::ReplicationConfig;
 
-/// How much each player may receive per tick, and how it is shared.
+/// How much each player may receive per tick, and how urgently each object is sent.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct InterestConfig {
-    /// Most `StateUpdate` datagrams per player per tick (at least 1; 0 is read as 1).
-    /// Each holds up to 113 compact records, so 2 datagrams at 20 Hz are about
-    /// 48 kB/s per player.
+    /// Most `StateUpdate` datagrams per player per tick (at least 1; 0 is read as 1):
+    /// the ceiling even objects sent over the byte budget (starving ones) stay under.
     pub max_datagrams: usize,
-    /// Share of an over-budget update given to the nearest objects, the rest going to
-    /// the stalest ones. Clamped so that at least one record rotates; NaN is read as 0.5.
-    pub near_share: f32,
+    /// The byte budget and the refresh bounds ([`ReplicationConfig`]).
+    pub replication: ReplicationConfig,
 }
 
 impl Default for InterestConfig {
     fn default() -> Self {
-        Self { max_datagrams: 2, near_share: 0.5 }
+        Self { max_datagrams: 2, replication: ReplicationConfig::default() }
     }
 }
 
 impl InterestConfig {
-    /// Compact records of other objects one player can receive per tick: every datagram
-    /// carries the player's own object first, then up to `MAX_COMPACT_RECORDS - 1`
-    /// others.
-    pub fn capacity(&self) -> usize {
-        self.max_datagrams.max(1) * (MAX_COMPACT_RECORDS - 1)
-    }
-
-    /// `K`: records given to the nearest objects when over budget (own object excluded).
-    pub fn near_slots(&self) -> usize {
-        let share = if self.near_share.is_nan() { 0.5 } else { self.near_share.clamp(0.0, 1.0) };
-        let available = self.capacity();
-        ((available as f32 * share) as usize).min(available - 1)
-    }
-
-    /// `R`: records given to the stalest objects when over budget.
-    pub fn rotation_slots(&self) -> usize {
-        self.capacity() - self.near_slots()
-    }
-
-    /// The refresh bound in ticks for a view of `objects_in_view` objects (own object
-    /// excluded): every object that stays in view is sent at least once in every this
-    /// many consecutive ticks. 1 when everything fits. Assumes compact records.
-    pub fn refresh_bound(&self, objects_in_view: usize) -> u64 {
-        if objects_in_view <= self.capacity() { 1 } else { objects_in_view.div_ceil(self.rotation_slots()) as u64 }
+    /// At most `max_datagrams` datagrams a tick, `send_budget_kbps` kilobits per second
+    /// at `tick_rate_hz` ticks per second, the other bounds at their defaults.
+    /// (a rate below 1 is read as 1).
+    pub fn with_budget(max_datagrams: usize, send_budget_kbps: f64, tick_rate_hz: f64) -> Self {
+        let replication = ReplicationConfig {
+            budget_bytes_per_tick: (send_budget_kbps * 1000.0 / 8.0 / tick_rate_hz.max(1.0)) as f32,
+            ..ReplicationConfig::default()
+        };
+        Self { max_datagrams, replication }
     }
 }
 
@@ -62,17 +45,12 @@ mod tests {
     use super::*;
 
     #[test]
-    fn slots_and_bound() {
-        let c = InterestConfig::default();
-        assert_eq!(c.capacity(), 224);
-        assert_eq!(c.near_slots(), 112);
-        assert_eq!(c.rotation_slots(), 112);
-        assert_eq!(c.refresh_bound(224), 1);
-        assert_eq!(c.refresh_bound(300), 3);
-        let greedy = InterestConfig { max_datagrams: 0, near_share: 7.0 };
-        assert_eq!(greedy.capacity(), 112);
-        assert_eq!(greedy.rotation_slots(), 1);
-        let nan = InterestConfig { max_datagrams: 1, near_share: f32::NAN };
-        assert_eq!(nan.near_slots(), 56);
+    fn budget_in_kilobits_per_second_becomes_bytes_per_tick() {
+        let c = InterestConfig::with_budget(3, 64.0, 30.0);
+        assert_eq!(c.max_datagrams, 3);
+        assert!((c.replication.budget_bytes_per_tick - 8000.0 / 30.0).abs() < 1e-3);
+        // A tick rate of 0 (or NaN) is read as 1 rather than dividing by it.
+        assert_eq!(InterestConfig::with_budget(1, 8.0, 0.0).replication.budget_bytes_per_tick, 1000.0);
+        assert_eq!(InterestConfig::with_budget(1, 8.0, f64::NAN).replication.budget_bytes_per_tick, 1000.0);
     }
 }

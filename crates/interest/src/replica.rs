@@ -1,6 +1,5 @@
 //! What one player's client holds, and what to send it next: the server half of
-//! delta replication (protocol version 2's records, `myriad_protocol::delta`; not yet
-//! what the server sends).
+//! delta replication (protocol version 2's records, `myriad_protocol::delta`).
 //!
 //! Per player the server keeps, for each object in view, a `Track`: the newest state
 //! the client acknowledged (the *baseline* of the next record), the newest state sent,
@@ -45,7 +44,7 @@ pub const DATAGRAM_OVERHEAD: usize = HEADER_LEN + TAG_LEN + DELTA_HEADER_LEN;
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ReplicationConfig {
     /// Bytes a player may be sent per tick, datagram headers and tags included (the
-    /// bench's `--shadow-budget-kbps` over the tick rate). At least one datagram with the player's own
+    /// server's `send_budget_kbps` over the tick rate). At least one datagram with the player's own
     /// object is sent every tick whatever the budget.
     pub budget_bytes_per_tick: f32,
     /// Objects within this distance (world units) of the player are near.
@@ -162,18 +161,45 @@ pub struct ReplicaReport {
 #[derive(Default)]
 pub struct ReplicaScratch {
     index: StaleTable,
-    /// `(sort key, track index, record, starving)` of the objects due.
-    wanted: Vec<(f32, u32, DeltaRecord, bool)>,
+    /// The objects due.
+    wanted: Vec<Due>,
     chosen: Vec<(DeltaRecord, u32)>,
     records: Vec<DeltaRecord>,
     next: Vec<Track>,
     ends: Vec<usize>,
 }
 
-/// Added to the sort key of near objects and objects the client lacks, so they go before
-/// the others once due (priorities stay far below it: they are reset when sent and
-/// starvation sends an object within `max_wait_ticks`).
-const NEAR_FIRST: f32 = 1.0e6;
+/// An object due this tick, and how it ranks.
+#[derive(Debug, Clone, Copy)]
+struct Due {
+    /// A near object or one the client lacks: goes before the others.
+    first: bool,
+    priority: f32,
+    distance: f32,
+    /// Index of its track in this tick's tracks.
+    track: u32,
+    record: DeltaRecord,
+    /// It waited `max_wait_ticks`: sent even over the budget.
+    starving: bool,
+}
+
+impl Due {
+    /// Most urgent first: near objects and ones the client lacks, then by priority,
+    /// then the nearer (so a player who just joined gets its surroundings first), then
+    /// by id (a total order: the choice is a function of the inputs alone).
+    fn urgency(a: &Self, b: &Self) -> std::cmp::Ordering {
+        b.first
+            .cmp(&a.first)
+            .then(b.priority.total_cmp(&a.priority))
+            .then(a.distance.total_cmp(&b.distance))
+            .then(a.record.id.cmp(&b.record.id))
+    }
+}
+
+/// Slack on the starvation test: a priority is a running sum of one rate, and thirty
+/// additions of 1/3 in `f32` fall short of 30 × 1/3 by a few ulps; the test counts
+/// whole ticks, so a thousandth of one is far below anything that matters.
+const WAIT_SLACK: f32 = 1.0e-3;
 
 /// No track index yet (a new object).
 const NEW: u64 = u64::MAX;
@@ -243,27 +269,30 @@ impl Replica {
             if t.priority >= 1.0 {
                 let record = DeltaRecord::choose(c.id, c.kind, c.pos, now, t.acked);
                 // Priority over this tick's rate: the ticks it has wanted sending.
-                let starving = rate > 0.0 && t.priority / rate >= config.max_wait_ticks;
+                let starving = rate > 0.0 && t.priority / rate + WAIT_SLACK >= config.max_wait_ticks;
                 // Near objects and objects the client lacks go first once due: their
                 // bound is the tightest, and a far object that waits its turn is drawn
                 // off by less. Nothing far starves: `max_wait_ticks` still holds.
                 let first = c.distance <= config.near || t.acked.is_none();
-                let key = if first { t.priority + NEAR_FIRST } else { t.priority };
-                wanted.push((key, i as u32, record, starving));
+                let (priority, distance, track) = (t.priority, c.distance, i as u32);
+                wanted.push(Due { first, priority, distance, track, record, starving });
             }
         }
 
         // Most urgent first, within the budget and the datagrams.
-        wanted.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(next[a.1 as usize].id.cmp(&next[b.1 as usize].id)));
+        wanted.sort_unstable_by(Due::urgency);
         let own_len = own_record.map_or(0, |r| r.encoded_len(None, origin));
         // Room for records in a datagram, less the most a datagram can waste when the
         // next record does not fit (estimates are worst cases: ids written whole).
         let room = MAX_BODY - DELTA_HEADER_LEN - own_len - MAX_RECORD_LEN;
         let per_datagram = (DATAGRAM_OVERHEAD + own_len) as f32;
-        let mut budget = config.budget_bytes_per_tick + self.credit - per_datagram;
+        // A negative or NaN budget is none: only what starves (and the own object) is
+        // sent. An infinite one holds everything the datagrams do.
+        let per_tick = if config.budget_bytes_per_tick.is_nan() { 0.0 } else { config.budget_bytes_per_tick.max(0.0) };
+        let mut budget = per_tick + self.credit - per_datagram;
         let (mut datagrams, mut in_datagram) = (1usize, 0usize);
         chosen.clear();
-        for &(_, i, record, starving) in wanted.iter() {
+        for &Due { track: i, record, starving, .. } in wanted.iter() {
             // A worst case: the id written whole, as if first in its datagram.
             let cost = record.encoded_len(None, origin);
             let mut fits = cost as f32 <= budget || starving;
@@ -285,7 +314,7 @@ impl Replica {
             in_datagram += cost;
             chosen.push((record, i));
         }
-        self.credit = budget.clamp(0.0, config.budget_bytes_per_tick);
+        self.credit = budget.clamp(0.0, per_tick);
 
         // Write, ids increasing, and remember what went in which datagram.
         chosen.sort_unstable_by_key(|c| c.0.id);

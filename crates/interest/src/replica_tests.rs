@@ -308,3 +308,39 @@ fn near_objects_keep_their_bound_when_the_budget_is_short() {
     assert!(near_worst < config.near_bound_ticks as u64, "a near object's state got {near_worst} ticks old");
     assert!(far_worst <= config.max_wait_ticks as u64 + 3, "a far object waited {far_worst} ticks");
 }
+
+#[test]
+fn a_player_who_just_joined_gets_its_surroundings_first() {
+    // 400 objects the client lacks, ids rising as the distance falls: what a small budget
+    // holds on the first tick is the nearest, not the lowest ids.
+    let config = ReplicationConfig { budget_bytes_per_tick: 4_000.0 / 30.0, ..Default::default() };
+    let mut run = Run::new(config);
+    let view = walkers(1, 400, |i| 10 + i, |i| 200.0 - i as f32 * 0.5);
+    let r = run.tick(1, &view, |_, _| true, true);
+    assert!(r.packed > 0 && r.deferred > 300, "{r:?}");
+    let mut sent: Vec<&Candidate> = view.iter().filter(|c| run.client.held.contains_key(&c.id)).collect();
+    sent.sort_by(|a, b| a.distance.total_cmp(&b.distance));
+    let nearest_unsent = view.iter().filter(|c| !run.client.held.contains_key(&c.id)).map(|c| c.distance);
+    let farthest_sent = sent.last().map_or(0.0, |c| c.distance);
+    assert!(nearest_unsent.into_iter().all(|d| d >= farthest_sent), "a nearer object waited for a farther one");
+}
+
+#[test]
+fn a_budget_that_is_not_a_positive_number_sends_only_the_own_object_and_the_starving() {
+    let mut unlimited = Run::new(ReplicationConfig { budget_bytes_per_tick: f32::INFINITY, ..Default::default() });
+    assert_eq!(unlimited.tick(1, &world(1, 10, 10), |_, _| true, true).packed, 10, "an infinite budget holds all");
+    for budget in [-5.0, f32::NAN, f32::NEG_INFINITY] {
+        let mut run = Run::new(ReplicationConfig { budget_bytes_per_tick: budget, ..Default::default() });
+        let mut first = None;
+        for t in 1..=40 {
+            let r = run.tick(t, &world(t, 10, 10), |_, _| true, true);
+            if r.packed > 0 && first.is_none() {
+                first = Some((t, r.starving));
+            }
+        }
+        // Nothing fits a budget of nothing; the objects go once they starve, on the
+        // tick `max_wait_ticks` allows, and the own object every tick.
+        assert_eq!(first, Some((30, 10)), "budget {budget}");
+        assert!(run.client.held.contains_key(&OWN));
+    }
+}

@@ -109,9 +109,8 @@ pub struct FloodArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
-    /// Login request version the attack and the probe send (1 for a server that
-    /// predates version 2; the client falls back to 1 by itself, at the cost of one more
-    /// connection per login).
+    /// Login request version the attack and the probe send (an older one than the
+    /// server serves is refused as an outdated client before any credential check).
     #[arg(long, default_value_t = myriad_protocol::login::LOGIN_VERSION)]
     login_version: u8,
 }

@@ -36,10 +36,10 @@ fn sealed_traffic_both_ways() {
     let mut wire = Vec::new();
     for frame in 0..100u32 {
         let mut d = Vec::new();
-        let msg = ClientMessage::Action(PlayerInput {
-            mask: ActionMask::new((frame % 32) as u8).unwrap(),
-            client_frame: frame,
-        });
+        let msg = ClientMessage::Action {
+            input: PlayerInput { mask: ActionMask::new((frame % 32) as u8).unwrap(), client_frame: frame },
+            acks: None,
+        };
         client.seal(&msg, &mut d).unwrap();
         wire.push(d);
     }
@@ -65,7 +65,7 @@ fn sealed_traffic_both_ways() {
             let (from, bytes) = batch.get_mut(i).unwrap();
             assert_eq!(from, client_ep.local_addr());
             match server.open(bytes) {
-                Ok(Opened { message: ClientMessage::Action(a), .. }) => frames.push(a.client_frame),
+                Ok(Opened { message: ClientMessage::Action { input: a, .. }, .. }) => frames.push(a.client_frame),
                 Ok(other) => panic!("unexpected {other:?}"),
                 Err(e) => rejected.push(e.class()),
             }
@@ -79,15 +79,21 @@ fn sealed_traffic_both_ways() {
     let records: Vec<StateRecord> = (0..200u64)
         .map(|i| StateRecord { id: i, kind: ShapeKind::Sphere, pos: QuantPos::new(i as i32, 0, 0) })
         .collect();
+    // Absolute records (the client holds nothing yet): 200 `Near` records of 8 bytes
+    // need two datagrams.
+    let deltas: Vec<DeltaRecord> = records.iter().map(|r| DeltaRecord::choose(r.id, r.kind, r.pos, 0, None)).collect();
     let mut out = DatagramBatch::new();
-    assert_eq!(pack_updates(&UpdateHeader::default(), &records, 2, &mut out), 200);
+    let mut ends = Vec::new();
+    assert_eq!(pack_deltas(&UpdateHeader::default(), None, &deltas, 2, &mut out, &mut ends), 200);
+    assert_eq!(out.len(), 2);
     server.sealer.seal_batch(&mut out).unwrap();
     let to_client: Vec<(SocketAddr, &[u8])> = out.iter().map(|d| (client_ep.local_addr(), d)).collect();
     assert_eq!(server_ep.send_batch(&to_client).unwrap(), 2);
     let mut got = Vec::new();
+    let mut baselines = Baselines::default();
     for (_, mut d) in receive_at_least(&mut client_ep, &mut batch, 2) {
         match client.open(&mut d).unwrap().message {
-            ServerMessage::StateUpdate(u) => got.extend(u.records),
+            ServerMessage::StateUpdate(u) => assert_eq!(baselines.resolve_update(&u, &mut got), 0),
             other => panic!("unexpected {other:?}"),
         }
     }

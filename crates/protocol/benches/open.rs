@@ -9,21 +9,23 @@
 use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
-use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerSession, SessionKeys};
+use myriad_protocol::{AckField, ActionMask, ClientMessage, ClientSession, PlayerInput, ServerSession, SessionKeys};
 use rayon::prelude::*;
 
 /// What the server's `inbound::OPEN_CHUNK` is: datagrams per rayon task.
 const CHUNK: usize = 16;
 
-/// `n` sessions, each with one sealed action datagram.
+/// `n` sessions, each with one sealed action datagram (55 bytes: 21 of body).
 fn sessions(n: usize) -> (Vec<ServerSession>, Vec<Vec<u8>>) {
     (0..n as u64)
         .map(|i| {
             let keys = SessionKeys { session_id: i + 1, client_to_server: [i as u8; 32], server_to_client: [2; 32] };
             let mut client = ClientSession::new(&keys);
             let input = PlayerInput { mask: ActionMask::new(ActionMask::FORWARD).unwrap(), client_frame: 1 };
+            // A client in play acknowledges what it received: a full field, as most are.
+            let acks = AckField::new(1_000 + i, u64::MAX);
             let mut d = Vec::new();
-            client.seal(&ClientMessage::Action(input), &mut d).expect("seal");
+            client.seal(&ClientMessage::Action { input, acks }, &mut d).expect("seal");
             (ServerSession::new(&keys), d)
         })
         .unzip()

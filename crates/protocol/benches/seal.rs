@@ -1,5 +1,9 @@
-//! Per-core throughput of the protocol: packing state updates, sealing and opening
+//! Per-core throughput of the protocol: packing delta state updates, sealing and opening
 //! full-size datagrams. Single-threaded, so the figures are per core.
+//!
+//! The update is what a busy player's tick looks like in protocol version 2: mostly
+//! small moves (`Delta`) and still objects (`Same`) against acknowledged baselines, and
+//! some objects sent absolute (`Near`), enough records to fill two datagrams.
 //!
 //! Run: `cargo bench -p myriad-protocol --bench seal`
 
@@ -7,20 +11,30 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use myriad_protocol::{
-    ClientSession, DatagramBatch, MAX_COMPACT_RECORDS, QuantPos, ServerSession, SessionKeys, ShapeKind, StateRecord,
-    UpdateHeader, pack_updates,
+    ClientSession, DatagramBatch, DeltaRecord, QuantPos, RecordState, ServerSession, SessionKeys, ShapeKind,
+    UpdateHeader, pack_deltas,
 };
 
 fn keys() -> SessionKeys {
     SessionKeys { session_id: 1, client_to_server: [1; 32], server_to_client: [2; 32] }
 }
 
-fn records(n: usize) -> Vec<StateRecord> {
+/// `n` records, ids 7 apart: in every ten, five `Delta`, three `Same` and two `Near`.
+fn records(n: usize) -> Vec<DeltaRecord> {
     (0..n as u64)
-        .map(|i| StateRecord {
-            id: 1000 + i * 7,
-            kind: ShapeKind::Capsule,
-            pos: QuantPos::new((i as i32 * 37) % 6000, 300, -(i as i32 * 91) % 6000),
+        .map(|i| {
+            let v = i as i32;
+            let state = match i % 10 {
+                0..5 => {
+                    RecordState::Delta { back: 1 + (i % 3) as u8, d: [(v % 41 - 20) as i8, 0, (v % 23 - 11) as i8] }
+                }
+                5..8 => RecordState::Same { back: 1 + (i % 5) as u8 },
+                _ => RecordState::Absolute {
+                    kind: ShapeKind::Capsule,
+                    pos: QuantPos::new((v * 37) % 6000, 300, -(v * 91) % 6000),
+                },
+            };
+            DeltaRecord { id: 1000 + i * 7, state }
         })
         .collect()
 }
@@ -54,43 +68,51 @@ fn cpu_cost(name: &str, n: u32, bytes_per_call: usize, mut f: impl FnMut()) {
 }
 
 fn bench(c: &mut Criterion) {
-    let header = UpdateHeader { tick: 1, dilation_permille: 1000, origin: QuantPos::default() };
-    let recs = records(MAX_COMPACT_RECORDS * 2);
+    let header = UpdateHeader { tick: 100, dilation_permille: 1000, origin: QuantPos::default() };
+    // The player's own object (in every datagram, at its place in id order), and as many
+    // other records as two datagrams then hold, so both are full.
+    let own = DeltaRecord { id: 1703, state: RecordState::Delta { back: 1, d: [3, 0, -5] } };
     let mut batch = DatagramBatch::new();
-    pack_updates(&header, &recs, 2, &mut batch);
+    let mut ends = Vec::new();
+    let all = records(2_000);
+    let recs = all[..pack_deltas(&header, Some(&own), &all, 2, &mut batch, &mut ends)].to_vec();
     let datagram_bytes = batch.total_bytes() as u64;
+    let n = recs.len();
+    eprintln!("{n} records and the own one in {} datagrams of {datagram_bytes} bytes in all", batch.len());
 
     let mut g = c.benchmark_group("protocol");
     g.throughput(Throughput::Bytes(datagram_bytes));
-    g.bench_function("pack_226_records", |b| {
+    g.bench_function("pack_deltas_2_datagrams", |b| {
         b.iter(|| {
             batch.clear();
-            black_box(pack_updates(&header, black_box(&recs), 2, &mut batch))
+            black_box(pack_deltas(&header, Some(&own), black_box(&recs), 2, &mut batch, &mut ends))
         })
     });
     let mut server = ServerSession::new(&keys());
-    g.bench_function("pack_and_seal_226_records", |b| {
+    g.bench_function("pack_and_seal_deltas_2_datagrams", |b| {
         b.iter(|| {
             batch.clear();
-            pack_updates(&header, black_box(&recs), 2, &mut batch);
+            pack_deltas(&header, Some(&own), black_box(&recs), 2, &mut batch, &mut ends);
             server.sealer.seal_batch(&mut batch).expect("seal");
             black_box(batch.total_bytes())
         })
     });
-    // Opening: reseal a fresh copy each time so the replay window accepts it.
+    // Sealing and opening one full datagram: reseal a fresh copy each time so the replay
+    // window accepts it.
     let mut client = ClientSession::new(&keys());
-    let mut plain = DatagramBatch::new();
-    pack_updates(&header, &recs[..MAX_COMPACT_RECORDS], 1, &mut plain);
-    let one = plain.get(0).expect("one datagram").to_vec();
+    batch.clear();
+    pack_deltas(&header, Some(&own), &recs, 1, &mut batch, &mut ends);
+    let one = batch.get(0).expect("one datagram").to_vec();
+    eprintln!("a full datagram: {} bytes", one.len());
     g.throughput(Throughput::Bytes(one.len() as u64));
     let mut buf = one.clone();
-    g.bench_function("seal_1196_bytes", |b| {
+    g.bench_function("seal_full_datagram", |b| {
         b.iter(|| {
             buf.copy_from_slice(&one);
             black_box(server.sealer.seal_in_place(&mut buf).expect("seal"))
         })
     });
-    g.bench_function("seal_and_open_1196_bytes", |b| {
+    g.bench_function("seal_and_open_full_datagram", |b| {
         b.iter(|| {
             buf.copy_from_slice(&one);
             server.sealer.seal_in_place(&mut buf).expect("seal");
@@ -102,20 +124,20 @@ fn bench(c: &mut Criterion) {
     // The same operations timed by CPU time rather than wall time.
     let mut server = ServerSession::new(&keys());
     let mut client = ClientSession::new(&keys());
-    cpu_cost("pack_226_records", 200_000, datagram_bytes as usize, || {
+    cpu_cost("pack_deltas_2_datagrams", 200_000, datagram_bytes as usize, || {
         batch.clear();
-        black_box(pack_updates(&header, black_box(&recs), 2, &mut batch));
+        black_box(pack_deltas(&header, Some(&own), black_box(&recs), 2, &mut batch, &mut ends));
     });
-    cpu_cost("pack_and_seal_226_records", 50_000, datagram_bytes as usize, || {
+    cpu_cost("pack_and_seal_deltas_2_datagrams", 50_000, datagram_bytes as usize, || {
         batch.clear();
-        pack_updates(&header, black_box(&recs), 2, &mut batch);
+        pack_deltas(&header, Some(&own), black_box(&recs), 2, &mut batch, &mut ends);
         server.sealer.seal_batch(&mut batch).expect("seal");
     });
-    cpu_cost("seal_1196_bytes", 100_000, one.len(), || {
+    cpu_cost("seal_full_datagram", 100_000, one.len(), || {
         buf.copy_from_slice(&one);
         black_box(server.sealer.seal_in_place(&mut buf).expect("seal"));
     });
-    cpu_cost("seal_and_open_1196_bytes", 50_000, one.len(), || {
+    cpu_cost("seal_and_open_full_datagram", 50_000, one.len(), || {
         buf.copy_from_slice(&one);
         server.sealer.seal_in_place(&mut buf).expect("seal");
         black_box(client.opener.open_with(&mut buf, |_, body| Ok(body.len())).expect("open"));

@@ -402,7 +402,7 @@ pub enum ResolveError {
     MissingBaseline {
         /// The object.
         id: u64,
-        /// The baseline's tick.
+        /// The baseline's tick (0 for a record naming a tick before 0).
         tick: u64,
     },
 }
@@ -431,12 +431,16 @@ impl Baselines {
         let (kind, pos) = match record.state {
             RecordState::Absolute { kind, pos } => (kind, pos),
             RecordState::Delta { back, .. } | RecordState::Same { back } => {
-                let at = tick.saturating_sub(u64::from(back));
-                let base = self.objects.get(&id).and_then(|h| {
+                // A record naming a tick before 0 has no baseline: it must not fall back
+                // on tick 0's state (only a broken server sends one).
+                let at = tick.checked_sub(u64::from(back));
+                let base = at.zip(self.objects.get(&id)).and_then(|(at, h)| {
                     let i = h.states.binary_search_by_key(&at, |s| s.0).ok()?;
                     Some((h.kind, h.states[i].1))
                 });
-                let Some((kind, base)) = base else { return Err(ResolveError::MissingBaseline { id, tick: at }) };
+                let Some((kind, base)) = base else {
+                    return Err(ResolveError::MissingBaseline { id, tick: at.unwrap_or(0) });
+                };
                 match record.state {
                     RecordState::Delta { d, .. } => (kind, add(base, d)),
                     _ => (kind, base),
@@ -469,8 +473,9 @@ impl Baselines {
         while h.states.front().is_some_and(|s| s.0 < floor) {
             h.states.pop_front();
         }
-        // Now and then, forget objects with nothing left in the window.
-        if self.newest >= self.pruned_at + MAX_BACK {
+        // Now and then, forget objects with nothing left in the window. (Saturating: a
+        // tick near `u64::MAX`, which only a broken server sends, must not overflow.)
+        if self.newest >= self.pruned_at.saturating_add(MAX_BACK) {
             self.pruned_at = self.newest;
             self.objects.retain(|_, h| {
                 while h.states.front().is_some_and(|s| s.0 < floor) {

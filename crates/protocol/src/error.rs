@@ -174,7 +174,7 @@ pub enum SealError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
 pub enum EncodeError {
     /// The body would exceed [`crate::MAX_BODY`]; state updates this large must go
-    /// through [`crate::pack_updates`], which splits them.
+    /// through [`crate::pack_deltas`], which splits them.
     #[error("body of {len} bytes exceeds the {max}-byte limit")]
     TooLarge {
         /// Body length the message needs.

@@ -17,7 +17,7 @@ use crate::error::DecodeError;
 use crate::wire::Reader;
 
 /// Version byte of this format. A packet with any other value is dropped.
-pub const PROTOCOL_VERSION: u8 = 1;
+pub const PROTOCOL_VERSION: u8 = 2;
 /// Length of the clear-text header.
 pub const HEADER_LEN: usize = 18;
 /// Length of the Poly1305 authentication tag that ends every datagram.
@@ -190,8 +190,11 @@ mod tests {
             peek_header(&[1u8; MAX_DATAGRAM + 1], Direction::ClientToServer),
             Err(DecodeError::TooLong { .. })
         ));
-        d[0] = 2;
-        assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::BadVersion(2)));
+        // Version 1 (a client from before acknowledgements and deltas) and the next one.
+        for version in [1, PROTOCOL_VERSION + 1] {
+            d[0] = version;
+            assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::BadVersion(version)));
+        }
         d[0] = PROTOCOL_VERSION;
         d[1] = 0x7f;
         assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::UnknownKind(0x7f)));

@@ -15,10 +15,16 @@
 //!   session id, replay window), then the tag, then decodes the body, and only then
 //!   marks the sequence number as seen in its [`ReplayWindow`]: a packet that fails any
 //!   check changes no state.
-//! * Bodies are plain little-endian structures ([`message`]); state updates use
-//!   10-byte records relative to a per-packet origin, with a 24-byte escape record for
-//!   anything that does not fit ([`update`]). [`pack_updates`] fills as few datagrams
-//!   as possible without allocating per record.
+//! * Bodies are plain little-endian structures ([`message`]). The client acknowledges
+//!   the server datagrams it opened in every action and keep-alive ([`ack`]); state
+//!   updates carry each object relative to a state the client acknowledged, in 2 to 5
+//!   bytes when it moved little, or absolute when there is none ([`delta`]).
+//!   [`pack_deltas`] fills as few datagrams as possible without allocating per record,
+//!   and a client's [`Baselines`] resolves what it receives, skipping (never
+//!   misapplying) a record whose baseline it lacks.
+//!
+//! This is version 2 of the datagram protocol ([`PROTOCOL_VERSION`]); a version 1
+//! client is refused at login ([`login::RefusalReason::OutdatedClient`]).
 //!
 //! # API boundary
 //!
@@ -58,7 +64,4 @@ pub use message::{
 pub use quant::{POS_SCALE, QuantPos};
 pub use replay::{REPLAY_WINDOW, ReplayWindow};
 pub use session::{ClientSession, Opened, Opener, SealLease, Sealer, ServerSession, SessionKeys, Verified};
-pub use update::{
-    COMPACT_RECORD_LEN, EXTENDED_RECORD_LEN, ID_WINDOW, MAX_COMPACT_RECORDS, ShapeKind, StateRecord, StateUpdate,
-    StateUpdateView, UPDATE_HEADER_LEN, UpdateHeader, pack_updates, pack_updates_pinned,
-};
+pub use update::{ShapeKind, StateRecord, UpdateHeader};

@@ -16,13 +16,19 @@ use crate::session::SessionKeys;
 use crate::update::ShapeKind;
 use crate::wire::Reader;
 
-/// Version byte at the start of every login request this crate sends. Versions 2 and 3
+/// Version byte at the start of every login request this crate sends. Versions 2 to 4
 /// add nothing to the request; they tell the server which refusal reasons the client
-/// understands: [`RefusalReason::Busy`] from version 2, [`RefusalReason::Disabled`] and
-/// [`RefusalReason::Banned`] from version 3.
-pub const LOGIN_VERSION: u8 = 3;
-/// Oldest login request version a server accepts (version 1: no `Busy` refusal; a
-/// server answers such a client `Unavailable` with a retry hint instead).
+/// understands ([`RefusalReason::Busy`] from version 2, [`RefusalReason::Disabled`] and
+/// [`RefusalReason::Banned`] from version 3, [`RefusalReason::OutdatedClient`] from
+/// version 4) and, from version 4, that the client speaks datagram protocol 2
+/// ([`crate::PROTOCOL_VERSION`]: acknowledgements and delta updates).
+pub const LOGIN_VERSION: u8 = 4;
+/// Oldest login request version a server admits: older clients speak datagram protocol
+/// 1, which this server no longer sends, and are refused
+/// [`RefusalReason::OutdatedClient`] (which they read as [`RefusalReason::BadRequest`]).
+pub const MIN_SERVED_LOGIN_VERSION: u8 = 4;
+/// Oldest login request version that decodes (version 1: no `Busy` refusal), so that a
+/// server can tell an outdated client why it is refused.
 pub const MIN_LOGIN_VERSION: u8 = 1;
 /// Bytes of the length prefix of a frame.
 pub const FRAME_PREFIX_LEN: usize = 4;
@@ -364,6 +370,10 @@ pub enum RefusalReason {
     /// timed ban in milliseconds (saturated at `u32::MAX`), 0 for a ban without end.
     /// Told only after a correct password.
     Banned = 9,
+    /// The client speaks an older datagram protocol than the server (login version 4;
+    /// an older client is told [`RefusalReason::BadRequest`], the nearest reason it
+    /// knows). Told before the credentials are checked.
+    OutdatedClient = 10,
 }
 
 impl RefusalReason {
@@ -378,6 +388,7 @@ impl RefusalReason {
             7 => Self::Busy,
             8 => Self::Disabled,
             9 => Self::Banned,
+            10 => Self::OutdatedClient,
             _ => return None,
         })
     }
@@ -386,11 +397,14 @@ impl RefusalReason {
     /// client does not know [`RefusalReason::Busy`] and gets
     /// [`RefusalReason::Unavailable`] (which it already retries) instead; a client before
     /// version 3 does not know [`RefusalReason::Disabled`] or [`RefusalReason::Banned`]
-    /// and gets [`RefusalReason::WrongCredentials`], the refusal it does not retry.
+    /// and gets [`RefusalReason::WrongCredentials`], the refusal it does not retry; a
+    /// client before version 4 does not know [`RefusalReason::OutdatedClient`] and gets
+    /// [`RefusalReason::BadRequest`].
     pub fn understood_by(self, version: u8) -> RefusalReason {
         match self {
             Self::Busy if version < 2 => Self::Unavailable,
             Self::Disabled | Self::Banned if version < 3 => Self::WrongCredentials,
+            Self::OutdatedClient if version < 4 => Self::BadRequest,
             other => other,
         }
     }
@@ -408,6 +422,7 @@ impl std::fmt::Display for RefusalReason {
             Self::Busy => "the server is busy checking other logins, retry later",
             Self::Disabled => "the account is disabled",
             Self::Banned => "the account is banned",
+            Self::OutdatedClient => "the client is too old for this server (datagram protocol 1); update it",
         })
     }
 }
@@ -628,6 +643,10 @@ mod tests {
         }
         assert_eq!(RefusalReason::Banned.understood_by(3), RefusalReason::Banned);
         assert_eq!(RefusalReason::Disabled.understood_by(3), RefusalReason::Disabled);
+        for old in 1..MIN_SERVED_LOGIN_VERSION {
+            assert_eq!(RefusalReason::OutdatedClient.understood_by(old), RefusalReason::BadRequest);
+        }
+        assert_eq!(RefusalReason::OutdatedClient.understood_by(LOGIN_VERSION), RefusalReason::OutdatedClient);
         // Busy has its own code, 7, with the retry hint.
         let mut out = Vec::new();
         LoginRefused { reason: RefusalReason::Busy, retry_after_ms: 250 }.encode(&mut out);

@@ -1,20 +1,25 @@
 //! Message bodies for both directions, and their framing into unsealed datagrams.
 //!
 //! Every body is a fixed little-endian structure whose length is implied by the packet
-//! kind, except the state update, whose length follows from its record count. Decoding
+//! kind, except the state update, whose length follows from its records. Decoding
 //! rejects trailing bytes, so each message has exactly one valid length.
 //!
 //! | kind | body |
 //! | --- | --- |
-//! | `Action` (0x01) | `u8` mask (bits 0..=4 only), `u32` client frame |
-//! | `Ready` (0x02), `ClientKeepAlive` (0x03), `ClientDisconnect` (0x04), `ServerKeepAlive` (0x82) | empty |
+//! | `Action` (0x01) | `u8` mask (bits 0..=4 only), `u32` client frame, 16-byte acknowledgement |
+//! | `ClientKeepAlive` (0x03) | 16-byte acknowledgement |
+//! | `Ready` (0x02), `ClientDisconnect` (0x04), `ServerKeepAlive` (0x82) | empty |
 //! | `ServerDisconnect` (0x83) | `u8` reason |
 //! | `ServerInfo` (0x84) | `u16` tick rate in Hz, `u16` time dilation in 1/1000 |
-//! | `StateUpdate` (0x81) | see [`crate::update`] |
+//! | `StateUpdate` (0x81) | a delta update, see [`crate::delta`] |
+//!
+//! The acknowledgement ([`AckField`], [`crate::ack`]) names the server datagrams the
+//! client opened, so the server can send objects relative to states the client holds.
 
+use crate::ack::AckField;
+use crate::delta::DeltaUpdate;
 use crate::error::{DecodeError, EncodeError};
 use crate::header::{HEADER_LEN, MAX_BODY, PROTOCOL_VERSION, PacketKind, TAG_LEN};
-use crate::update::StateUpdate;
 use crate::wire::Reader;
 
 /// The five input bits of an action: which movement keys are held this frame.
@@ -65,12 +70,22 @@ pub struct PlayerInput {
 /// Messages a client sends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum ClientMessage {
-    /// Input for one frame.
-    Action(PlayerInput),
+    /// Input for one frame, with the client's acknowledgement of the server datagrams
+    /// it opened (`None`: none yet).
+    Action {
+        /// The keys held and the frame.
+        input: PlayerInput,
+        /// Which server datagrams the client opened.
+        acks: Option<AckField>,
+    },
     /// The client has loaded the world and wants state updates.
     Ready,
-    /// Keeps the session alive while the client has nothing else to send.
-    KeepAlive,
+    /// Keeps the session alive while the client has nothing else to send, and
+    /// acknowledges as an action does.
+    KeepAlive {
+        /// Which server datagrams the client opened.
+        acks: Option<AckField>,
+    },
     /// The client leaves; the server frees the session.
     Disconnect,
 }
@@ -79,18 +94,31 @@ impl ClientMessage {
     /// The packet kind this message travels as.
     pub const fn kind(&self) -> PacketKind {
         match self {
-            Self::Action(_) => PacketKind::Action,
+            Self::Action { .. } => PacketKind::Action,
             Self::Ready => PacketKind::Ready,
-            Self::KeepAlive => PacketKind::ClientKeepAlive,
+            Self::KeepAlive { .. } => PacketKind::ClientKeepAlive,
             Self::Disconnect => PacketKind::ClientDisconnect,
         }
     }
 
     /// Appends the body (not the header) to `out`.
     pub fn encode_body(&self, out: &mut Vec<u8>) {
-        if let Self::Action(a) = self {
-            out.push(a.mask.bits());
-            out.extend_from_slice(&a.client_frame.to_le_bytes());
+        match self {
+            Self::Action { input, acks } => {
+                out.push(input.mask.bits());
+                out.extend_from_slice(&input.client_frame.to_le_bytes());
+                AckField::encode(*acks, out);
+            }
+            Self::KeepAlive { acks } => AckField::encode(*acks, out),
+            Self::Ready | Self::Disconnect => {}
+        }
+    }
+
+    /// The acknowledgement this message carries, if it carries one.
+    pub fn acks(&self) -> Option<AckField> {
+        match self {
+            Self::Action { acks, .. } | Self::KeepAlive { acks } => *acks,
+            Self::Ready | Self::Disconnect => None,
         }
     }
 
@@ -101,10 +129,11 @@ impl ClientMessage {
             PacketKind::Action => {
                 let bits = r.u8()?;
                 let mask = ActionMask::new(bits).ok_or(DecodeError::BadActionMask(bits))?;
-                Self::Action(PlayerInput { mask, client_frame: r.u32()? })
+                let input = PlayerInput { mask, client_frame: r.u32()? };
+                Self::Action { input, acks: AckField::read(&mut r)? }
             }
             PacketKind::Ready => Self::Ready,
-            PacketKind::ClientKeepAlive => Self::KeepAlive,
+            PacketKind::ClientKeepAlive => Self::KeepAlive { acks: AckField::read(&mut r)? },
             PacketKind::ClientDisconnect => Self::Disconnect,
             other => return Err(DecodeError::WrongDirection(other)),
         };
@@ -175,8 +204,9 @@ pub struct ServerInfo {
 /// Messages the server sends.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
 pub enum ServerMessage {
-    /// Positions of objects in the player's area of interest.
-    StateUpdate(StateUpdate),
+    /// Positions of objects in the player's area of interest, relative to states the
+    /// client acknowledged where it can.
+    StateUpdate(DeltaUpdate),
     /// Keeps the session alive while the server has nothing else to send.
     KeepAlive,
     /// The server ends the session.
@@ -216,7 +246,7 @@ impl ServerMessage {
         let mut r = Reader::new(body);
         let msg = match kind {
             PacketKind::StateUpdate => {
-                return StateUpdate::decode_body(body).map(Self::StateUpdate);
+                return DeltaUpdate::decode_body(body).map(Self::StateUpdate);
             }
             PacketKind::ServerKeepAlive => Self::KeepAlive,
             PacketKind::ServerDisconnect => {
@@ -260,7 +290,7 @@ fn frame(
 
 /// Appends `msg` as an unsealed datagram frame (see [`crate::Sealer::seal_in_place`]).
 pub fn encode_client(msg: &ClientMessage, out: &mut Vec<u8>) {
-    // Client bodies are at most 5 bytes, so framing cannot fail.
+    // Client bodies are at most 21 bytes, so framing cannot fail.
     let _ = frame(msg.kind(), out, |o| {
         msg.encode_body(o);
         Ok(())
@@ -283,7 +313,7 @@ mod tests {
         for bits in 0x20..=0xffu8 {
             assert!(ActionMask::new(bits).is_none());
             assert_eq!(
-                ClientMessage::decode_body(PacketKind::Action, &[bits, 0, 0, 0, 0]),
+                ClientMessage::decode_body(PacketKind::Action, &[bits; 21]),
                 Err(DecodeError::BadActionMask(bits))
             );
         }
@@ -306,6 +336,34 @@ mod tests {
             ServerMessage::decode_body(PacketKind::Ready, &[]),
             Err(DecodeError::WrongDirection(PacketKind::Ready))
         );
+    }
+
+    #[test]
+    fn actions_and_keep_alives_carry_acknowledgements() {
+        let acks = AckField::new(70, 0b101);
+        let input = PlayerInput { mask: ActionMask::new(ActionMask::LEFT).unwrap(), client_frame: 7 };
+        for msg in [
+            ClientMessage::Action { input, acks },
+            ClientMessage::Action { input, acks: None },
+            ClientMessage::KeepAlive { acks },
+            ClientMessage::KeepAlive { acks: None },
+        ] {
+            let mut body = Vec::new();
+            msg.encode_body(&mut body);
+            assert_eq!(ClientMessage::decode_body(msg.kind(), &body), Ok(msg));
+            assert_eq!(msg.acks(), ClientMessage::decode_body(msg.kind(), &body).unwrap().acks());
+            // One byte short or long is malformed: every body has one length.
+            assert!(ClientMessage::decode_body(msg.kind(), &body[..body.len() - 1]).is_err());
+            body.push(0);
+            assert_eq!(ClientMessage::decode_body(msg.kind(), &body), Err(DecodeError::TrailingBytes { extra: 1 }));
+        }
+        // An acknowledgement naming sequence numbers below 0 is refused.
+        let mut body = 2u64.to_le_bytes().to_vec();
+        body.extend_from_slice(&0b100u64.to_le_bytes());
+        assert!(matches!(
+            ClientMessage::decode_body(PacketKind::ClientKeepAlive, &body),
+            Err(DecodeError::BadAck { newest: 2, bits: 0b100 })
+        ));
     }
 
     #[test]
@@ -333,8 +391,8 @@ mod tests {
     #[test]
     fn frame_layout() {
         let mut out = vec![0xee];
-        encode_client(&ClientMessage::KeepAlive, &mut out);
-        assert_eq!(out.len(), 1 + HEADER_LEN + TAG_LEN);
+        encode_client(&ClientMessage::KeepAlive { acks: None }, &mut out);
+        assert_eq!(out.len(), 1 + HEADER_LEN + crate::ACK_LEN + TAG_LEN);
         assert_eq!(&out[1..3], &[PROTOCOL_VERSION, PacketKind::ClientKeepAlive as u8]);
     }
 }

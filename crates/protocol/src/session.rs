@@ -215,7 +215,7 @@ impl Sealer {
 
     /// Seals an unsealed frame in place: `datagram` is [`HEADER_LEN`] bytes whose
     /// second byte is the packet kind (as written by [`encode_client`],
-    /// [`encode_server`] or [`crate::pack_updates`]), the plaintext body, and
+    /// [`encode_server`] or [`crate::pack_deltas`]), the plaintext body, and
     /// [`TAG_LEN`](crate::TAG_LEN) bytes of tag space. Fills in the header, encrypts the body and writes
     /// the tag. Returns the sequence number used.
     pub fn seal_in_place(&mut self, datagram: &mut [u8]) -> Result<u64, SealError> {
@@ -552,7 +552,7 @@ impl ServerSession {
     }
 
     /// Appends `msg` to `out` as one sealed datagram. Fails for a state update too
-    /// large for one datagram (use [`crate::pack_updates`] and [`Sealer::seal_batch`]).
+    /// large for one datagram (use [`crate::pack_deltas`] and [`Sealer::seal_batch`]).
     pub fn seal(&mut self, msg: &ServerMessage, out: &mut Vec<u8>) -> Result<u64, SealError> {
         self.sealer.seal_server_message(msg, out)
     }

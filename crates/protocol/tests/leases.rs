@@ -129,14 +129,18 @@ fn a_leased_sealer_refuses_to_go_past_its_lease() {
     let mut server = ServerSession::new(&keys);
     for want in 1..4 {
         out.clear();
-        assert_eq!(leased.seal_client_message(&ClientMessage::KeepAlive, &mut out), Ok(want));
+        assert_eq!(leased.seal_client_message(&ClientMessage::KeepAlive { acks: None }, &mut out), Ok(want));
         assert_eq!(server.open(&mut out).unwrap().header.sequence, want);
     }
     out.clear();
-    assert_eq!(leased.seal_client_message(&ClientMessage::KeepAlive, &mut out), Err(SealError::LeaseExhausted));
+    assert_eq!(
+        leased.seal_client_message(&ClientMessage::KeepAlive { acks: None }, &mut out),
+        Err(SealError::LeaseExhausted)
+    );
     assert!(out.is_empty(), "nothing appended on error");
     let mut frame = vec![0u8; HEADER_LEN];
     frame[1] = PacketKind::ClientKeepAlive as u8;
+    AckField::encode(None, &mut frame);
     frame.extend_from_slice(&[0; TAG_LEN]);
     assert_eq!(leased.seal_in_place(&mut frame), Err(SealError::LeaseExhausted));
     assert_eq!(leased.next_sequence(), 4, "a refused seal uses no number");
@@ -150,7 +154,7 @@ fn a_leased_sealer_refuses_to_go_past_its_lease() {
 
     // The parent goes on after the leases, and its datagrams still open.
     out.clear();
-    assert_eq!(parent.seal_client_message(&ClientMessage::KeepAlive, &mut out), Ok(9));
+    assert_eq!(parent.seal_client_message(&ClientMessage::KeepAlive { acks: None }, &mut out), Ok(9));
     assert_eq!(server.open(&mut out).unwrap().header.sequence, 9);
 }
 

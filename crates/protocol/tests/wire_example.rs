@@ -1,6 +1,7 @@
-//! The worked example of `docs/protocol.md`. The page quotes these exact bytes; this
-//! test rebuilds them and checks that the page still contains them, so the page cannot
-//! drift from the code.
+//! The worked example of `docs/protocol.md` (section 8). The page quotes these exact
+//! bytes; this test rebuilds them with the library, checks that the page still contains
+//! every block, and checks that a client reading them gets the states the page says, so
+//! the page cannot drift from the code.
 
 use myriad_protocol::*;
 
@@ -25,73 +26,188 @@ fn hex(bytes: &[u8]) -> String {
         .join("\n")
 }
 
-/// The client's first packet: an Action (forward + jump) for frame 42, sequence 0.
-fn action_packet() -> Vec<u8> {
-    let mut client = ClientSession::new(&example_keys());
-    let mut out = Vec::new();
-    let msg = ClientMessage::Action(PlayerInput {
-        mask: ActionMask::new(ActionMask::FORWARD | ActionMask::JUMP).expect("valid mask"),
-        client_frame: 42,
-    });
-    client.seal(&msg, &mut out).expect("seal");
-    out
+/// The body of an unsealed frame or the ciphertext of a sealed one.
+fn body(datagram: &[u8]) -> &[u8] {
+    &datagram[HEADER_LEN..datagram.len() - TAG_LEN]
 }
 
-/// The server's first packet: tick 1000, real time, origin (100, 20, -50) units, one
-/// compact record (id 7, sphere at (101, 20.5, -50)) and one extended record (id 2^40,
-/// capsule at (1000, 0, 0): 900 units away, beyond the i16 offset range).
-fn update_packet() -> (Vec<u8>, Vec<u8>) {
-    let header = UpdateHeader { tick: 1000, dilation_permille: 1000, origin: QuantPos::from_f32([100.0, 20.0, -50.0]) };
-    let records = [
-        StateRecord { id: 7, kind: ShapeKind::Sphere, pos: QuantPos::from_f32([101.0, 20.5, -50.0]) },
-        StateRecord { id: 1 << 40, kind: ShapeKind::Capsule, pos: QuantPos::from_f32([1000.0, 0.0, 0.0]) },
-    ];
-    let mut batch = DatagramBatch::new();
-    assert_eq!(pack_updates(&header, &records, 1, &mut batch), 2);
+fn pos(x: f32, y: f32, z: f32) -> QuantPos {
+    QuantPos::from_f32([x, y, z])
+}
+
+/// The player's own object: id 7, a sphere.
+const OWN: u64 = 7;
+/// Another object: id 2^40, a capsule.
+const OTHER: u64 = 1 << 40;
+
+/// Every datagram of the example in the order they are sent, sealed, and the two
+/// updates also as the packer left them (before sealing).
+struct Example {
+    action: Vec<u8>,
+    update1_plain: Vec<u8>,
+    update1: Vec<u8>,
+    keep_alive: Vec<u8>,
+    update2_plain: Vec<u8>,
+    update2: Vec<u8>,
+}
+
+/// Packs one tick's update for the player (`own` pinned, `others` after) and returns it
+/// unsealed and sealed with the server's next sequence number.
+fn update(server: &mut ServerSession, header: UpdateHeader, own: DeltaRecord, others: &[DeltaRecord]) -> [Vec<u8>; 2] {
+    let (mut batch, mut ends) = (DatagramBatch::new(), Vec::new());
+    assert_eq!(pack_deltas(&header, Some(&own), others, 1, &mut batch, &mut ends), others.len());
+    assert_eq!(batch.len(), 1, "the example's updates fit one datagram");
     let plain = batch.get(0).expect("one datagram").to_vec();
-    let mut server = ServerSession::new(&example_keys());
     server.sealer.seal_batch(&mut batch).expect("seal");
-    let sealed = batch.get(0).expect("one datagram").to_vec();
-    // And the client decodes it back.
-    let mut client = ClientSession::new(&example_keys());
-    let mut d = sealed.clone();
-    let ServerMessage::StateUpdate(u) = client.open(&mut d).expect("open").message else {
-        panic!("not a state update");
-    };
-    assert_eq!(u.records, records);
-    (plain, sealed)
+    [plain, batch.get(0).expect("one datagram").to_vec()]
 }
 
-const ACTION_SEALED: &str = "\
-01 01 08 07 06 05 04 03 02 01 00 00 00 00 00 00\n\
-00 00 09 92 42 31 ad b0 3e 93 38 e1 86 3e 25 db\n\
-86 72 79 b9 76 e0 98";
-const UPDATE_PLAIN: &str = "\
-01 81 00 00 00 00 00 00 00 00 00 00 00 00 00 00\n\
-00 00 e8 03 00 00 00 00 00 00 e8 03 00 19 00 00\n\
-00 05 00 00 80 f3 ff ff 07 00 00 00 00 00 00 00\n\
-02 00 00 00 00 00 40 00 20 00 00 00 0b 00 00 00\n\
-00 00 00 00 00 01 00 00 00 fa 00 00 00 00 00 00\n\
-00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00\n\
-00 00 00 00";
-const UPDATE_SEALED: &str = "\
-01 81 08 07 06 05 04 03 02 01 00 00 00 00 00 00\n\
-00 00 69 ac 3f 97 66 a7 1a 00 97 15 fd 7c e3 32\n\
-dc c1 b7 87 7a ae 5e a2 6e 79 44 41 3c be b0 b6\n\
-23 e3 01 2b 3a ab a9 3d cb b2 09 10 d4 cf 7c 77\n\
-b8 67 fb dc 5f d8 62 f5 65 1d fc da b0 a9 9b 4b\n\
-4c 2d 19 81 f4 c2 73 b2 05 62 fd 1c 4e be cc 39\n\
-9c 44 d5 ec";
+/// Builds the example with the library, as a server and a client would.
+fn example() -> Example {
+    let keys = example_keys();
+    let mut client = ClientSession::new(&keys);
+    let mut server = ServerSession::new(&keys);
+
+    // 8.1: the client's first Action (forward + jump, frame 42, sequence 0): it has
+    // opened nothing yet, so its acknowledgement is "none".
+    let mut action = Vec::new();
+    let input =
+        PlayerInput { mask: ActionMask::new(ActionMask::FORWARD | ActionMask::JUMP).unwrap(), client_frame: 42 };
+    assert_eq!(client.seal(&ClientMessage::Action { input, acks: None }, &mut action), Ok(0));
+
+    // 8.2: tick 1000, origin (100, 20, -50) units. The client holds nothing, so both
+    // records are absolute: the own sphere at (101, 20.5, -50) is 64 steps away (Near),
+    // the capsule at (1000, 0, 0) is 900 units away, beyond the i16 offset (Far).
+    let origin = pos(100.0, 20.0, -50.0);
+    let h1 = UpdateHeader { tick: 1000, dilation_permille: 1000, origin };
+    let own1 = DeltaRecord::choose(OWN, ShapeKind::Sphere, pos(101.0, 20.5, -50.0), 1000, None);
+    let other1 = DeltaRecord::choose(OTHER, ShapeKind::Capsule, pos(1000.0, 0.0, 0.0), 1000, None);
+    let [update1_plain, update1] = update(&mut server, h1, own1, &[other1]);
+
+    // 8.3: the client opened the update (server sequence 0) and every record resolved:
+    // its next datagram, a KeepAlive (sequence 1), acknowledges it.
+    let mut acks = AckTracker::default();
+    acks.record(0);
+    let mut keep_alive = Vec::new();
+    assert_eq!(client.seal(&ClientMessage::KeepAlive { acks: acks.field() }, &mut keep_alive), Ok(1));
+
+    // 8.4: tick 1003. The server holds the acknowledgement, so tick 1000's states are
+    // baselines 3 ticks back: the sphere moved (+0.25, 0, -0.5) units (Delta), the
+    // capsule did not (Same).
+    let h2 = UpdateHeader { tick: 1003, ..h1 };
+    let base = |r: &DeltaRecord| match r.state {
+        RecordState::Absolute { pos, .. } => Some(Baseline { tick: 1000, pos }),
+        _ => None,
+    };
+    let own2 = DeltaRecord::choose(OWN, ShapeKind::Sphere, pos(101.25, 20.5, -50.5), 1003, base(&own1));
+    let other2 = DeltaRecord::choose(OTHER, ShapeKind::Capsule, pos(1000.0, 0.0, 0.0), 1003, base(&other1));
+    assert_eq!(own2.state, RecordState::Delta { back: 3, d: [16, 0, -32] });
+    assert_eq!(other2.state, RecordState::Same { back: 3 });
+    let [update2_plain, update2] = update(&mut server, h2, own2, &[other2]);
+
+    Example { action, update1_plain, update1, keep_alive, update2_plain, update2 }
+}
+
+/// The Action's body in clear: mask, frame 42, acknowledgement "none".
+fn action_body() -> Vec<u8> {
+    let mut b = vec![0x11, 42, 0, 0, 0];
+    AckField::encode(None, &mut b);
+    b
+}
+
+/// The KeepAlive's body in clear: an acknowledgement of server sequence 0 alone.
+fn keep_alive_body() -> Vec<u8> {
+    let mut b = Vec::new();
+    AckField::encode(AckField::new(0, 0), &mut b);
+    b
+}
+
+/// What the page quotes, in page order: (what, exact bytes).
+fn blocks(e: &Example) -> Vec<(&'static str, String)> {
+    vec![
+        ("8.1 action body", hex(&action_body())),
+        ("8.1 sealed action", hex(&e.action)),
+        ("8.2 update 1 before sealing", hex(&e.update1_plain)),
+        ("8.2 sealed update 1", hex(&e.update1)),
+        ("8.3 keep-alive body", hex(&keep_alive_body())),
+        ("8.3 sealed keep-alive", hex(&e.keep_alive)),
+        ("8.4 update 2 before sealing", hex(&e.update2_plain)),
+        ("8.4 sealed update 2", hex(&e.update2)),
+    ]
+}
 
 #[test]
 fn documented_bytes_match() {
-    let action = hex(&action_packet());
-    let (plain, sealed) = update_packet();
-    let (plain, sealed) = (hex(&plain), hex(&sealed));
-    assert_eq!(action, ACTION_SEALED);
-    assert_eq!(plain, UPDATE_PLAIN);
-    assert_eq!(sealed, UPDATE_SEALED);
-    for block in [ACTION_SEALED, UPDATE_PLAIN, UPDATE_SEALED] {
-        assert!(DOC.contains(block), "docs/protocol.md lacks:\n{block}");
+    let e = example();
+    for (what, block) in blocks(&e) {
+        assert!(DOC.contains(&format!("```text\n{block}\n```")), "docs/protocol.md lacks {what}:\n{block}");
     }
+    // The header lines the page annotates: version 2 in every datagram.
+    for d in [&e.action, &e.update1, &e.keep_alive, &e.update2] {
+        assert_eq!(d[0], 2);
+    }
+    // The sizes the page states.
+    assert_eq!(
+        [e.action.len(), e.update1.len(), e.keep_alive.len(), e.update2.len()],
+        [55, 18 + 24 + 8 + 19 + 16, 50, 18 + 24 + 5 + 7 + 16]
+    );
+}
+
+/// The bodies the page quotes decode to what it says, and the sealed datagrams open to
+/// them: the page's prose and the bytes agree.
+#[test]
+fn the_example_reads_as_the_page_says() {
+    let e = example();
+    let keys = example_keys();
+    let mut server = ServerSession::new(&keys);
+    let mut client = ClientSession::new(&keys);
+
+    let mut d = e.action.clone();
+    let opened = server.open(&mut d).expect("the action opens");
+    assert_eq!(opened.header.sequence, 0);
+    assert_eq!(opened.message.acks(), None);
+    let ClientMessage::Action { input, .. } = opened.message else { panic!("not an action") };
+    assert_eq!((input.client_frame, input.mask.bits()), (42, 0x11));
+    // Opening decrypts in place: the body is the one the page shows in clear.
+    assert_eq!(body(&d), action_body());
+    assert_eq!(action_body()[5..], [0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0, 0, 0, 0, 0, 0, 0, 0]);
+
+    let mut d = e.keep_alive.clone();
+    let opened = server.open(&mut d).expect("the keep-alive opens");
+    assert_eq!(opened.header.sequence, 1);
+    let acks = opened.message.acks().expect("an acknowledgement");
+    assert_eq!((acks.newest(), acks.bits()), (0, 0));
+    assert!(acks.contains(0) && !acks.contains(1));
+    assert_eq!(body(&d), keep_alive_body());
+    assert_eq!(keep_alive_body(), [0; 16]);
+
+    // The client resolves both updates against what it holds.
+    let mut baselines = Baselines::default();
+    let mut states = Vec::new();
+    for (sealed, plain, seq) in [(&e.update1, &e.update1_plain, 0), (&e.update2, &e.update2_plain, 1)] {
+        let mut d = sealed.clone();
+        let opened = client.open(&mut d).expect("the update opens");
+        assert_eq!(opened.header.sequence, seq);
+        let ServerMessage::StateUpdate(u) = opened.message else { panic!("not a state update") };
+        assert_eq!(DeltaUpdate::decode_body(body(plain)).as_ref(), Ok(&u), "the plain body is what was sealed");
+        assert_eq!(baselines.resolve_update(&u, &mut states), 0, "every record resolves");
+    }
+    let rec = |id, kind, p| StateRecord { id, kind, pos: p };
+    assert_eq!(
+        states,
+        [
+            rec(OWN, ShapeKind::Sphere, QuantPos::new(6464, 1312, -3200)),
+            rec(OTHER, ShapeKind::Capsule, QuantPos::new(64_000, 0, 0)),
+            rec(OWN, ShapeKind::Sphere, QuantPos::new(6480, 1312, -3232)),
+            rec(OTHER, ShapeKind::Capsule, QuantPos::new(64_000, 0, 0)),
+        ]
+    );
+
+    // A client that missed the first update cannot resolve the second: it skips both
+    // records and does not acknowledge the datagram.
+    let mut fresh = Baselines::default();
+    let u = DeltaUpdate::decode_body(body(&e.update2_plain)).unwrap();
+    let mut none = Vec::new();
+    assert_eq!(fresh.resolve_update(&u, &mut none), 2);
+    assert!(none.is_empty());
 }

@@ -20,18 +20,9 @@ use crate::error::ConfigError;
 /// The most UDP sockets a server opens on its port.
 const MAX_UDP_SOCKETS: usize = 64;
 
-/// Which outbound builds the players' updates (config key `outbound`; the
-/// implementations are in [`crate::outbound`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum OutboundKind {
-    /// The device outbound when the backend has a device interest (a CUDA backend), the
-    /// host one otherwise.
-    #[default]
-    Auto,
-    /// The host outbound whatever the backend.
-    Host,
-}
+/// The default per-player send budget, kilobits per second: 8 kB/s, which meets issue
+/// 26's goals on scenario 3 at AOI 14 (measured in `docs/benchmarks.md`, "Protocol 2").
+pub const DEFAULT_SEND_BUDGET_KBPS: f64 = 64.0;
 
 /// Everything `myriad serve` can be told. See `docs/server.md` for each key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -66,16 +57,13 @@ pub struct ServerConfig {
     pub seed: u64,
     /// Edge length of the area-of-interest box centred on each player.
     pub aoi_size: f32,
-    /// Most update datagrams a player receives per tick (113 objects each).
+    /// Most update datagrams a player receives per tick: the ceiling that even objects
+    /// sent over the byte budget (starving ones) stay under.
     pub max_datagrams_per_player: usize,
-    /// Where each player's records are selected: `auto` (on the device with a CUDA
-    /// backend, else on the host) or `host`.
-    pub outbound: OutboundKind,
-    /// Players in each chunk the device outbound sends while the device builds the next
-    /// (0: up to 8 chunks, each a whole number of the device's waves of selection, 1,056
-    /// players on an H200; a value at least the number of players: one chunk, no
-    /// overlap).
-    pub outbound_chunk_players: usize,
+    /// Each player's send budget in kilobits per second, datagram headers and tags
+    /// included: what its updates spend on average (protocol version 2's priority
+    /// accumulator decides what fits; an object that waited too long goes over it).
+    pub send_budget_kbps: f64,
     /// Data directory: the SQLite database and the development TLS certificate.
     pub data_dir: PathBuf,
     /// Database URL (`mysql://user:pass@host/db`); empty uses SQLite in `data_dir`.
@@ -197,8 +185,7 @@ impl Default for ServerConfig {
             seed: 1,
             aoi_size: 100.0,
             max_datagrams_per_player: 2,
-            outbound: OutboundKind::Auto,
-            outbound_chunk_players: 0,
+            send_budget_kbps: DEFAULT_SEND_BUDGET_KBPS,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),
             backend: BackendKind::Auto,
@@ -308,6 +295,9 @@ impl ServerConfig {
         }
         if !(1..=64).contains(&self.max_datagrams_per_player) {
             return bad("max_datagrams_per_player", format!("{} (1 to 64)", self.max_datagrams_per_player));
+        }
+        if !(self.send_budget_kbps.is_finite() && (1.0..=100_000.0).contains(&self.send_budget_kbps)) {
+            return bad("send_budget_kbps", format!("{} (1 to 100000)", self.send_budget_kbps));
         }
         if self.persist_interval_ms == 0 || self.persist_interval_ms > 60_000 {
             return bad("persist_interval_ms", format!("{} (1 to 60000)", self.persist_interval_ms));
@@ -445,6 +435,16 @@ impl ServerConfig {
     /// The Argon2id cost of new password hashes.
     pub fn hash_cost(&self) -> HashCost {
         HashCost { m_kib: self.hash_memory_kib, t: self.hash_passes, p: self.hash_lanes }
+    }
+
+    /// What each player is sent: at most `max_datagrams_per_player` datagrams a tick
+    /// and `send_budget_kbps` on average at `tick_rate`.
+    pub fn interest(&self) -> myriad_interest::InterestConfig {
+        myriad_interest::InterestConfig::with_budget(
+            self.max_datagrams_per_player,
+            self.send_budget_kbps,
+            f64::from(self.tick_rate),
+        )
     }
 
     /// The physics parameters (the defaults with this tick rate and player speed).

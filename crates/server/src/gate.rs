@@ -207,7 +207,7 @@ mod tests {
             myriad_protocol::SessionKeys { session_id: session, client_to_server: [7; 32], server_to_client: [8; 32] };
         let mut client = myriad_protocol::ClientSession::new(&keys);
         let mut out = Vec::new();
-        client.sealer.seal_client_message(&myriad_protocol::ClientMessage::KeepAlive, &mut out).unwrap();
+        client.sealer.seal_client_message(&myriad_protocol::ClientMessage::KeepAlive { acks: None }, &mut out).unwrap();
         out
     }
 

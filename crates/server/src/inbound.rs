@@ -369,8 +369,14 @@ fn apply(
         }
     };
     p.last_heard = ctx.now;
+    // Authenticated, so the acknowledgement is the client's: the next updates are sent
+    // relative to the states it names. Idempotent, in any order (a replayed datagram
+    // never gets here).
+    if let Some(acks) = opened.message.acks() {
+        p.view.acknowledge(acks);
+    }
     let reply = match opened.message {
-        ClientMessage::Action(input) => {
+        ClientMessage::Action { input, .. } => {
             if p.accept_frame(input.client_frame) {
                 let action = p.action_for(input.mask.bits(), ctx.tick);
                 if world.dynamics.set_action(p.entity, action) {
@@ -387,7 +393,7 @@ fn apply(
             p.ready = true;
             Some(ServerMessage::ServerInfo(ctx.info))
         }
-        ClientMessage::KeepAlive => Some(ServerMessage::KeepAlive),
+        ClientMessage::KeepAlive { .. } => Some(ServerMessage::KeepAlive),
         ClientMessage::Disconnect => {
             report.leaving.push(a.session_id);
             None

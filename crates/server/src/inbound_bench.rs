@@ -42,7 +42,7 @@ fn receive_timing() {
         for (i, c) in clients.iter_mut().enumerate() {
             let input = PlayerInput { mask: ActionMask::new(ActionMask::FORWARD).unwrap(), client_frame: frame };
             let mut d = Vec::new();
-            c.seal(&ClientMessage::Action(input), &mut d).unwrap();
+            c.seal(&ClientMessage::Action { input, acks: None }, &mut d).unwrap();
             net.push(SocketAddr::from(([10, 0, (i >> 8) as u8, i as u8], 5000)), d);
         }
         world.tick += 1;

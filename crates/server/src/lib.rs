@@ -267,7 +267,6 @@ impl ServerHandle {
                     }
                 };
                 let mut builder = tick::TickLoop::builder(tick_config, world, created.backend, transport)
-                    .device_interest(created.device_interest)
                     .persister(Box::new(persister_for_tick), map_id)
                     .commands(receiver)
                     .admin(tick_admin)

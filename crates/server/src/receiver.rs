@@ -310,7 +310,7 @@ mod tests {
         let mut out = Vec::new();
         myriad_protocol::ClientSession::new(&keys)
             .sealer
-            .seal_client_message(&myriad_protocol::ClientMessage::KeepAlive, &mut out)
+            .seal_client_message(&myriad_protocol::ClientMessage::KeepAlive { acks: None }, &mut out)
             .unwrap();
         out
     }

@@ -48,7 +48,8 @@ use std::net::SocketAddr;
 use myriad_core::{ActionScript, World};
 use myriad_physics::Backend;
 use myriad_protocol::{
-    ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateRecord, UpdateHeader,
+    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateRecord,
+    UpdateHeader,
 };
 use myriad_store::UserId;
 
@@ -70,10 +71,13 @@ pub struct ScriptedRun {
     pub rejected: u64,
     /// State updates that lacked the receiving player's own object (always 0).
     pub updates_without_own: u64,
-    /// A hash of every state record every client received: per tick, each player's
-    /// records (with their update's header: tick, dilation, origin) sorted by id, players in entity
-    /// order. Two runs whose clients saw the same thing have the same hash, however the
-    /// server ordered its datagrams.
+    /// Delta records a client could not resolve (always 0: a client acknowledges only
+    /// datagrams it resolved whole, with its next action).
+    pub unresolved: u64,
+    /// A hash of every state every client received: per tick, each player's records
+    /// resolved against its baselines (with their update's header: tick, dilation,
+    /// origin) sorted by id, players in entity order. Two runs whose clients saw the same
+    /// thing have the same hash, however the server ordered its datagrams.
     pub records_hash: u64,
     /// Bytes of the datagrams sent to the clients, per tick.
     pub bytes_out: Vec<u64>,
@@ -83,6 +87,8 @@ struct Client {
     session: ClientSession,
     entity: u64,
     frame: u32,
+    baselines: Baselines,
+    acks: AckTracker,
 }
 
 /// Runs `ticks` server ticks on `world` with the script's actions; see the module docs.
@@ -107,12 +113,19 @@ pub fn run(
         let joined =
             joined.map_err(|r| ServerError::Internal(format!("admitting the player of entity {}: {r:?}", entity.0)))?;
         let addr = SocketAddr::from(([127, 0, 0, 1], 20_000 + i as u16));
-        let mut client = Client { session: ClientSession::new(&joined.keys), entity: joined.entity, frame: 0 };
+        let mut client = Client {
+            session: ClientSession::new(&joined.keys),
+            entity: joined.entity,
+            frame: 0,
+            baselines: Baselines::default(),
+            acks: AckTracker::default(),
+        };
         push(&transport, addr, &mut client, &ClientMessage::Ready)?;
         clients.insert(addr, client);
         by_entity.insert(entity.0, addr);
     }
     let (mut actions_applied, mut datagrams_opened, mut rejected, mut updates_without_own) = (0, 0, 0, 0);
+    let (mut unresolved, mut resolved) = (0, Vec::new());
     let (mut records_hash, mut bytes_out) = (std::hash::DefaultHasher::new(), Vec::new());
     for _ in 0..ticks {
         for a in script.at(tick.world().tick) {
@@ -121,7 +134,8 @@ pub fn run(
             client.frame = client.frame.wrapping_add(1);
             let input =
                 PlayerInput { mask: ActionMask::new(a.action.bits()).unwrap_or_default(), client_frame: client.frame };
-            push(&transport, addr, client, &ClientMessage::Action(input))?;
+            let acks = client.acks.field();
+            push(&transport, addr, client, &ClientMessage::Action { input, acks })?;
         }
         actions_applied += tick.tick_once().actions;
         let mut seen: std::collections::BTreeMap<u64, Vec<(UpdateHeader, StateRecord)>> = Default::default();
@@ -133,11 +147,17 @@ pub fn run(
                 Ok(opened) => {
                     datagrams_opened += 1;
                     if let ServerMessage::StateUpdate(u) = opened.message {
+                        resolved.clear();
+                        let missing = client.baselines.resolve_update(&u, &mut resolved);
+                        if missing == 0 {
+                            client.acks.record(opened.header.sequence);
+                        }
+                        unresolved += missing as u64;
                         if !u.records.iter().any(|r| r.id == client.entity) {
                             updates_without_own += 1;
                         }
                         let mine = seen.entry(client.entity).or_default();
-                        mine.extend(u.records.iter().map(|r| (u.header, *r)));
+                        mine.extend(resolved.iter().map(|r| (u.header, *r)));
                     }
                 }
                 Err(_) => rejected += 1,
@@ -154,6 +174,7 @@ pub fn run(
         datagrams_opened,
         rejected,
         updates_without_own,
+        unresolved,
         records_hash: std::hash::Hasher::finish(&records_hash),
         bytes_out,
     })

@@ -133,18 +133,17 @@ impl AddAssign<&StageTimes> for StageTimes {
 pub struct TickWork {
     /// Milliseconds per stage.
     pub stages: StageTimes,
-    /// The part of `packets` spent in the backend's AOI query on the host, in ms (0 with
-    /// the device outbound: see [`crate::outbound::OutboundReport::aoi_ms`]).
+    /// The part of `packets` spent in the backend's AOI query, in ms
+    /// ([`crate::outbound::OutboundReport::aoi_ms`]).
     pub aoi_ms: f64,
-    /// The part of `packets` spent waiting for the device's interest work, in ms (0 with
-    /// the host outbound: see [`crate::outbound::OutboundReport::device_wait_ms`]).
-    pub device_wait_ms: f64,
     /// Bytes sent (control replies and updates).
     pub bytes: u64,
     /// Datagrams sent.
     pub datagrams: u64,
     /// State records packed.
     pub records: usize,
+    /// Of those, records relative to a state the player acknowledged (`Delta`, `Same`).
+    pub relative: usize,
     /// Datagrams received from clients (before authentication).
     pub received: u64,
     /// Actions applied to the world.

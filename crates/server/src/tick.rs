@@ -38,7 +38,6 @@ use std::time::{Duration, Instant};
 use rayon::prelude::*;
 
 use myriad_core::World;
-use myriad_cuda::DeviceInterest;
 use myriad_interest::TickInfo;
 use myriad_physics::{Backend, TickConstants};
 use myriad_protocol::{DisconnectReason, ServerInfo, ServerMessage};
@@ -102,9 +101,8 @@ impl StateSink for Persister {
 }
 
 /// Builds a [`TickLoop`]: the world, the backend and the transport are required; the
-/// rest has defaults (no persister, map 0, no login service, fresh shared state, no
-/// device interest). The outbound is the config's `outbound` kind
-/// ([`crate::outbound::create`]), on the backend's device interest if it has one.
+/// rest has defaults (no persister, map 0, no login service, fresh shared state). The
+/// outbound is [`crate::outbound::create`]'s for the config.
 pub(crate) struct TickLoopBuilder {
     config: ServerConfig,
     world: World,
@@ -115,7 +113,6 @@ pub(crate) struct TickLoopBuilder {
     commands: Option<Receiver<Command>>,
     shared: Option<Arc<ServerShared>>,
     registry: Option<Box<dyn SessionRegistry>>,
-    device_interest: Option<DeviceInterest>,
     admin: Option<TickAdmin>,
 }
 
@@ -123,13 +120,6 @@ impl TickLoopBuilder {
     /// The admin API's commands and snapshots ([`crate::admin`]).
     pub fn admin(mut self, admin: Option<TickAdmin>) -> Self {
         self.admin = admin;
-        self
-    }
-
-    /// The backend's device interest (`myriad_cuda::CreatedBackend`), for the device
-    /// outbound.
-    pub fn device_interest(mut self, device_interest: Option<DeviceInterest>) -> Self {
-        self.device_interest = device_interest;
         self
     }
 
@@ -162,7 +152,7 @@ impl TickLoopBuilder {
     pub fn build(self) -> TickLoop {
         let config = self.config;
         let nominal = Duration::from_secs_f64(1.0 / f64::from(config.tick_rate));
-        let outbound = crate::outbound::create(&config, self.device_interest);
+        let outbound = crate::outbound::create(&config);
         // Without a login service nothing joins: a receiver whose sender is gone reads
         // as empty.
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
@@ -233,7 +223,6 @@ impl TickLoop {
             commands: None,
             shared: None,
             registry: None,
-            device_interest: None,
             admin: None,
         }
     }
@@ -504,8 +493,8 @@ impl TickLoop {
         let report =
             rayon::scope(|_| outbound.build(&mut Job { backend, world, tick, ready: &sender }, &mut recipients));
         work.records = report.records;
+        work.relative = report.relative;
         work.aoi_ms = report.aoi_ms;
-        work.device_wait_ms = report.device_wait_ms;
         sender.finish()
     }
 

@@ -43,7 +43,8 @@ use myriad_core::{ObjectKind, World};
 use myriad_cuda::CreatedBackend;
 use myriad_net::{Endpoint, EndpointConfig};
 use myriad_protocol::{
-    ActionMask, ClientMessage, ClientSession, Direction, PlayerInput, ServerMessage, StateUpdate, peek_header,
+    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, Direction, PlayerInput, ServerMessage,
+    StateRecord, peek_header,
 };
 use myriad_store::UserId;
 
@@ -123,8 +124,11 @@ pub struct TickSample {
     /// Datagrams a bot received but could not open, or whose header named no bot:
     /// always 0 unless something is broken.
     pub rejected: u64,
-    /// Records the bots decoded.
+    /// Records the bots decoded and resolved.
     pub records_delivered: u64,
+    /// Delta records the bots could not resolve (baseline missing): 0 unless something
+    /// is broken, since a bot acknowledges only what it resolved.
+    pub unresolved: u64,
     /// Bots that opened their datagrams this tick (all of them with `open_every` 1).
     pub opening_bots: usize,
     /// Of those, bots whose update this tick contained their own object.
@@ -148,6 +152,12 @@ struct Bot {
     session: ClientSession,
     entity: u64,
     frame: u32,
+    /// The states its delta records are relative to.
+    baselines: Baselines,
+    /// The datagrams it acknowledges with its next action: the updates it opened and
+    /// resolved whole. A bot that does not open (not its turn, `open_every`) does not
+    /// acknowledge either, as a client that lost them: the server sends it more.
+    acks: AckTracker,
     /// The bot's update held its own object this tick.
     saw_own: bool,
     /// A datagram for the bot arrived since the flag was last cleared.
@@ -250,9 +260,7 @@ impl TickBench {
         } else {
             (Box::new(UdpTransport::group(endpoints)), None)
         };
-        let mut tick = TickLoop::builder(config, world, backend.backend, transport)
-            .device_interest(backend.device_interest)
-            .build();
+        let mut tick = TickLoop::builder(config, world, backend.backend, transport).build();
         let mut bots = Vec::with_capacity(users.len());
         let mut sockets = Vec::new();
         let mut by_session = HashMap::with_capacity(users.len());
@@ -274,6 +282,8 @@ impl TickBench {
                 session: ClientSession::new(&joined.keys),
                 entity: joined.entity,
                 frame: 0,
+                baselines: Baselines::default(),
+                acks: AckTracker::default(),
                 saw_own: false,
                 heard: false,
             });
@@ -304,7 +314,7 @@ impl TickBench {
                     self.send(i, &ClientMessage::Ready)?;
                 }
                 self.run_tick();
-                self.drain(0, |_, _| {});
+                self.drain(0, |_, _, _| {});
             }
             // An active player gets an update every tick. A Ready the kernel dropped (the
             // server's receive buffer full at tens of thousands of players) leaves its
@@ -312,7 +322,7 @@ impl TickBench {
             // those Ready again, and refuse to start if some never come.
             self.bots.iter_mut().for_each(|b| b.heard = false);
             self.run_tick();
-            self.drain(0, |_, _| {});
+            self.drain(0, |_, _, _| {});
             waiting = (0..self.bots.len()).filter(|&i| !self.bots[i].heard).collect();
             if waiting.is_empty() {
                 return Ok(());
@@ -352,7 +362,7 @@ impl TickBench {
     /// The bots whose turn it is send their actions (untimed), the server runs one tick
     /// (timed per stage), then every bot drains and opens what it received (untimed).
     pub fn tick(&mut self) -> Result<TickSample, ServerError> {
-        self.tick_with(|_, _| {})
+        self.tick_with(|_, _, _| {})
     }
 
     /// The object bot `bot` plays (bots are numbered from 0, as in [`TickBench::tick_with`]).
@@ -361,9 +371,10 @@ impl TickBench {
     }
 
     /// [`TickBench::tick`], handing every state update a bot opened to `on_update`
-    /// (the bot's number, the update) as it drains, untimed: a caller mirrors what some
-    /// bots received (`myriad bench`'s staleness and error).
-    pub fn tick_with(&mut self, on_update: impl FnMut(usize, &StateUpdate)) -> Result<TickSample, ServerError> {
+    /// (the bot's number, the update's tick, its records resolved against the bot's
+    /// baselines) as it drains, untimed: a caller mirrors what some bots received
+    /// (`myriad bench`'s staleness and error).
+    pub fn tick_with(&mut self, on_update: impl FnMut(usize, u64, &[StateRecord])) -> Result<TickSample, ServerError> {
         let tick = self.tick.world().tick;
         let before = Instant::now();
         let mut actions_sent = 0;
@@ -373,8 +384,9 @@ impl TickBench {
                     [((tick / TURN_EVERY + i as u64) % 4) as usize];
                 let frame = self.bots[i].frame.wrapping_add(1);
                 self.bots[i].frame = frame;
-                let action = PlayerInput { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
-                self.send(i, &ClientMessage::Action(action))?;
+                let input = PlayerInput { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
+                let acks = self.bots[i].acks.field();
+                self.send(i, &ClientMessage::Action { input, acks })?;
                 actions_sent += 1;
             }
         }
@@ -421,8 +433,9 @@ impl TickBench {
     /// Reads everything queued on every bot socket, hands each datagram to the bot its
     /// header names, which opens it if it is its turn (`tick`) and hands each state update
     /// it opened to `on_update`.
-    fn drain(&mut self, tick: u64, mut on_update: impl FnMut(usize, &StateUpdate)) -> TickSample {
+    fn drain(&mut self, tick: u64, mut on_update: impl FnMut(usize, u64, &[StateRecord])) -> TickSample {
         let mut s = TickSample::default();
+        let mut resolved = Vec::new();
         for bot in &mut self.bots {
             bot.saw_own = false;
         }
@@ -449,9 +462,15 @@ impl TickBench {
                         s.delivered += 1;
                         s.opened += 1;
                         if let ServerMessage::StateUpdate(u) = opened.message {
-                            s.records_delivered += u.records.len() as u64;
-                            bot.saw_own |= u.records.iter().any(|r| r.id == bot.entity);
-                            on_update(i, &u);
+                            resolved.clear();
+                            let unresolved = bot.baselines.resolve_update(&u, &mut resolved);
+                            if unresolved == 0 {
+                                bot.acks.record(opened.header.sequence);
+                            }
+                            s.unresolved += unresolved as u64;
+                            s.records_delivered += resolved.len() as u64;
+                            bot.saw_own |= resolved.iter().any(|r| r.id == bot.entity);
+                            on_update(i, u.header.tick, &resolved);
                         }
                     }
                     Err(_) => s.rejected += 1,
@@ -515,6 +534,8 @@ mod tests {
             assert_eq!((s.opened, s.lost, s.rejected), (s.delivered, 0, 0), "{s:?}");
             assert_eq!((s.saw_own, s.opening_bots), (60, 60));
             assert!(s.records_delivered >= w.records as u64 && w.records > 0, "{s:?}");
+            // Every delta record resolved: the bots acknowledge only what they hold.
+            assert_eq!(s.unresolved, 0, "{s:?}");
             // The bots' actions arrive: a third of them each tick, and each is applied.
             assert_eq!(w.received, s.actions_sent, "{s:?}");
             assert_eq!(w.actions, s.actions_sent, "{s:?}");
@@ -533,6 +554,12 @@ mod tests {
             })
             .count();
         assert!(moved >= 50, "only {moved} of 60 players walked");
+        // With the bots' acknowledgements, most of what the server sent by the end was
+        // relative to a state the bot held.
+        let late = &samples[8..];
+        let (relative, records): (usize, usize) =
+            late.iter().map(|s| (s.work.relative, s.work.records)).fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+        assert!(relative * 2 > records, "{relative} of {records} records relative to an acknowledged state");
     }
 
     /// Bots in groups of 16 on a socket, each opening its datagrams every third tick:

@@ -7,7 +7,10 @@ use std::time::Duration;
 
 use myriad_core::{Action, ScenarioSpec};
 use myriad_physics::{BackendKind, create_cpu_backend};
-use myriad_protocol::{ActionMask, ClientMessage, ClientSession, DisconnectReason, Opened, PlayerInput, ServerMessage};
+use myriad_protocol::{
+    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, DisconnectReason, Opened, PlayerInput,
+    RecordState, ServerMessage, StateRecord,
+};
 use myriad_store::{PlayerState, UserId};
 
 use super::{Command, StateSink, TickLoop};
@@ -87,7 +90,7 @@ impl Rig {
     fn action(&self, c: &mut Client, mask: u8) -> Vec<u8> {
         c.frame += 1;
         let input = PlayerInput { mask: ActionMask::new(mask).unwrap(), client_frame: c.frame };
-        self.send(c, &ClientMessage::Action(input))
+        self.send(c, &ClientMessage::Action { input, acks: None })
     }
 
     fn action_of(&self, c: &Client) -> Action {
@@ -179,7 +182,10 @@ fn replayed_and_forged_datagrams_change_nothing() {
     // A forged one: the live session id and a fresh sequence, but a wrong tag.
     let mut forged = Rig::seal(
         &mut c,
-        &ClientMessage::Action(PlayerInput { mask: ActionMask::new(ActionMask::BACK).unwrap(), client_frame: 99 }),
+        &ClientMessage::Action {
+            input: PlayerInput { mask: ActionMask::new(ActionMask::BACK).unwrap(), client_frame: 99 },
+            acks: None,
+        },
     );
     let n = forged.len();
     forged[n - 1] ^= 1;
@@ -244,8 +250,13 @@ fn a_silent_session_expires_and_its_player_is_saved() {
 
 #[test]
 fn every_update_datagram_of_a_player_contains_its_own_object() {
-    // A small budget and a big view: several datagrams a tick, over budget.
-    let config = ServerConfig { aoi_size: 400.0, max_datagrams_per_player: 2, ..ServerConfig::default() };
+    // A big view and a budget larger than two datagrams: the view spans both.
+    let config = ServerConfig {
+        aoi_size: 400.0,
+        max_datagrams_per_player: 2,
+        send_budget_kbps: 2000.0,
+        ..ServerConfig::default()
+    };
     let mut r = rig(config);
     let mut clients: Vec<Client> = (0..4).map(|i| r.join(i + 1, 40_001 + i as u16)).collect();
     let mut updates = 0;
@@ -269,10 +280,65 @@ fn every_update_datagram_of_a_player_contains_its_own_object() {
     assert!(updates > 40 && multi > 0, "the view spans several datagrams: {updates} updates, {multi} multi");
 }
 
+/// Opens what `sent` holds for `c` and resolves its updates against `baselines`,
+/// recording in `acks` the datagrams whose every record resolved; returns the resolved
+/// records, how many records were relative (`Delta` or `Same`) and how many could not
+/// be resolved.
+fn resolve(
+    r: &Rig,
+    sent: &[(SocketAddr, Vec<u8>)],
+    c: &mut Client,
+    baselines: &mut Baselines,
+    acks: &mut AckTracker,
+) -> (Vec<StateRecord>, usize, usize) {
+    let (mut records, mut relative, mut unresolved) = (Vec::new(), 0, 0);
+    for o in r.received(sent, c) {
+        if let ServerMessage::StateUpdate(u) = o.message {
+            relative += u.records.iter().filter(|x| !matches!(x.state, RecordState::Absolute { .. })).count();
+            let missing = baselines.resolve_update(&u, &mut records);
+            if missing == 0 {
+                acks.record(o.header.sequence);
+            }
+            unresolved += missing;
+        }
+    }
+    (records, relative, unresolved)
+}
+
+#[test]
+fn acknowledged_states_make_the_next_updates_relative() {
+    let mut r = rig(ServerConfig { aoi_size: 400.0, send_budget_kbps: 2000.0, ..ServerConfig::default() });
+    let mut acking = r.join(1, 40_001);
+    let mut silent = r.join(2, 40_002);
+    let (mut baselines, mut acks) = (Baselines::default(), AckTracker::default());
+    let (mut relative_acking, mut relative_silent, mut absolute_silent) = (0, 0, 0);
+    for t in 0..40 {
+        r.tick.tick_once();
+        let sent = r.net.take_sent();
+        let (records, relative, unresolved) = resolve(&r, &sent, &mut acking, &mut baselines, &mut acks);
+        assert_eq!(unresolved, 0, "tick {t}: a client that acknowledges only what it resolved resolves everything");
+        assert!(records.iter().any(|x| x.id == acking.entity), "tick {t}: the own object");
+        if t >= 20 {
+            relative_acking += relative;
+        }
+        // The other client receives but never acknowledges (its keep-alives say so).
+        let (records, relative, _) =
+            resolve(&r, &sent, &mut silent, &mut Baselines::default(), &mut AckTracker::default());
+        relative_silent += relative;
+        absolute_silent += records.len();
+        let keep_alive = ClientMessage::KeepAlive { acks: acks.field() };
+        r.send(&mut acking, &keep_alive);
+        r.send(&mut silent, &ClientMessage::KeepAlive { acks: None });
+    }
+    assert!(relative_acking > 100, "deltas against acknowledged states: {relative_acking}");
+    assert_eq!(relative_silent, 0, "nothing is relative to a state never acknowledged");
+    assert!(absolute_silent > 100, "the silent client still gets absolute states: {absolute_silent}");
+}
+
 /// A datagram with `c`'s live session id and a fresh sequence number but a wrong tag:
 /// what anyone who knows (or sniffed) a session id can send.
 fn forged(c: &mut Client) -> Vec<u8> {
-    let mut d = Rig::seal(c, &ClientMessage::KeepAlive);
+    let mut d = Rig::seal(c, &ClientMessage::KeepAlive { acks: None });
     let n = d.len();
     d[n - 1] ^= 1;
     d
@@ -391,18 +457,21 @@ fn a_parallel_batch_accepts_a_datagram_twice_in_it_once_and_a_forged_one_never()
     let mut c = r.join(1, 40_001);
     r.net.take_sent();
     for _ in 0..PARALLEL {
-        r.send(&mut c, &ClientMessage::KeepAlive);
+        r.send(&mut c, &ClientMessage::KeepAlive { acks: None });
     }
     // Both copies verify before either is committed: the commit must refuse the second.
     // (The action's copy would be ignored as an old frame anyway; a keep-alive's would
     // be answered twice.)
     let action = r.action(&mut c, ActionMask::LEFT);
     r.net.push(c.addr, action);
-    let keep_alive = r.send(&mut c, &ClientMessage::KeepAlive);
+    let keep_alive = r.send(&mut c, &ClientMessage::KeepAlive { acks: None });
     r.net.push(c.addr, keep_alive);
     let mut forged = Rig::seal(
         &mut c,
-        &ClientMessage::Action(PlayerInput { mask: ActionMask::new(ActionMask::BACK).unwrap(), client_frame: 99 }),
+        &ClientMessage::Action {
+            input: PlayerInput { mask: ActionMask::new(ActionMask::BACK).unwrap(), client_frame: 99 },
+            acks: None,
+        },
     );
     let n = forged.len();
     forged[n - 1] ^= 1;
@@ -427,12 +496,12 @@ fn a_parallel_batch_follows_an_address_that_moves_in_it() {
     let mut c = r.join(1, 40_001);
     r.net.take_sent();
     for _ in 0..PARALLEL {
-        r.send(&mut c, &ClientMessage::KeepAlive);
+        r.send(&mut c, &ClientMessage::KeepAlive { acks: None });
     }
     // The player's NAT mapping changes: the rest comes from a new port.
     c.addr = SocketAddr::from(([127, 0, 0, 1], 40_101));
     for _ in 0..5 {
-        r.send(&mut c, &ClientMessage::KeepAlive);
+        r.send(&mut c, &ClientMessage::KeepAlive { acks: None });
     }
     let work = r.tick.tick_once();
     assert_eq!(work.over_budget, 0, "once the first from the new address is in, it is the player's own");

@@ -1,7 +1,8 @@
-//! Interest selection, packing and sealing on the device (`kernels/interest.cu`): the
-//! AOI lists stay on the device, a kernel picks each player's records by the host
-//! interest manager's rule, another packs them into state update bodies byte for byte as
-//! the host's `pack_updates_pinned` would, and a third frames and seals each datagram with
+//! Interest selection, packing and sealing on the device (`kernels/interest.cu`), in
+//! datagram protocol version 1, which the server no longer sends (it awaits its port to
+//! version 2; the server does not use it): the AOI lists stay on the device, a kernel
+//! picks each player's records by version 1's rule (the K nearest, then the stalest),
+//! another packs them into version 1's state update bodies, and a third frames and seals each datagram with
 //! ChaCha20-Poly1305 (`kernels/aead.cuh`) under sequence numbers leased from the player's
 //! sealer, as the host's `Sealer` would. The host receives only finished datagrams.
 //!

@@ -164,9 +164,8 @@ fn server_one(
     row.warmup = args.warmup;
     let config = ServerConfig {
         aoi_size: aoi,
-        outbound: args.outbound,
         udp_sockets: args.udp_sockets,
-        outbound_chunk_players: args.outbound_chunk_players,
+        send_budget_kbps: args.send_budget_kbps,
         ..ServerConfig::default()
     };
     let tick_rate_hz = config.tick_rate.round() as u16;
@@ -214,7 +213,7 @@ fn server_one(
         },
     );
     for _ in 0..args.warmup {
-        bench.tick_with(|bot, update| probe.on_update(bot, update))?;
+        bench.tick_with(|bot, tick, records| probe.on_update(bot, tick, records))?;
         // Measures nothing yet; the shadows (if any) fill their clients as the bots do.
         probe.after_tick(bench.world());
         progress.tick();
@@ -224,7 +223,7 @@ fn server_one(
     let mut probe_ms = 0.0;
     let cpu_before = process_cpu_ms();
     for _ in 0..args.ticks {
-        samples.push(bench.tick_with(|bot, update| probe.on_update(bot, update))?);
+        samples.push(bench.tick_with(|bot, tick, records| probe.on_update(bot, tick, records))?);
         let probe_cpu = process_cpu_ms();
         probe.after_tick(bench.world());
         probe_ms += process_cpu_ms() - probe_cpu;
@@ -251,7 +250,6 @@ fn server_one(
         players: bench.players(),
         aoi_size: aoi,
         aoi_query: median(samples.iter().map(|s| s.work.aoi_ms).collect()),
-        device_wait: median(samples.iter().map(|s| s.work.device_wait_ms).collect()),
         datagrams: m(|s| s.work.datagrams),
         bytes,
         records: m(|s| s.work.records as u64),
@@ -263,15 +261,19 @@ fn server_one(
         opened: m(|s| s.opened),
         lost: samples.iter().map(|s| s.lost).sum(),
         rejected: samples.iter().map(|s| s.rejected).sum(),
+        unresolved: samples.iter().map(|s| s.unresolved).sum(),
         min_saw_own: samples.iter().map(|s| s.saw_own).min().unwrap_or(0),
         ready_resent: bench.ready_resent(),
         opening_bots: samples.iter().min_by_key(|s| s.saw_own).map_or(0, |s| s.opening_bots),
         quality: (probe.players() > 0)
-            .then(|| QualityRow::new(probe.players(), args.quality_every, args.render_delay_ticks, probe.summary())),
+            .then(|| QualityRow::new(probe.players(), args.quality_every, args.render_delay_ticks, &probe)),
         shadow: probe.shadow_row(),
     };
     if server.rejected > 0 {
         anyhow::bail!("{} datagrams the bots could not open: the server tick is broken", server.rejected);
+    }
+    if server.unresolved > 0 {
+        anyhow::bail!("{} records the bots could not resolve: the server's deltas are broken", server.unresolved);
     }
     if server.lost > 0 {
         // Not the server's fault, but the figure then counts traffic nobody received.

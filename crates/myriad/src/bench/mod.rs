@@ -16,7 +16,6 @@ use clap::{Args, ValueEnum};
 use myriad_client::{Interpolation, Percentiles, QualitySummary};
 use myriad_physics::BackendKind;
 use myriad_server::ServerConfig;
-use myriad_server::outbound::OutboundKind;
 use serde::Serialize;
 
 use crate::scenario_args::{ScenarioName, WorldArgs};
@@ -74,19 +73,13 @@ pub struct BenchArgs {
     /// one server-tick row per size, e.g. `14,100`).
     #[arg(long, value_delimiter = ',', default_values_t = [ServerConfig::default().aoi_size])]
     pub aoi_size: Vec<f32>,
-    /// Where the server tick selects each player's records: `auto` (on the device with a
-    /// CUDA backend) or `host` (the host interest manager, for comparison).
-    #[arg(long, default_value = "auto", value_parser = parse_outbound)]
-    pub outbound: OutboundKind,
+    /// The server tick's per-player send budget, kbit/s (config `send_budget_kbps`).
+    #[arg(long, default_value_t = ServerConfig::default().send_budget_kbps)]
+    pub send_budget_kbps: f64,
     /// UDP sockets the server tick sends on (config `udp_sockets`: 0 is one per core, at
     /// most 64).
     #[arg(long, default_value_t = ServerConfig::default().udp_sockets)]
     pub udp_sockets: usize,
-    /// Players in each chunk the device outbound sends while the device builds the next
-    /// (config `outbound_chunk_players`: 0 by the device's waves; at least the players:
-    /// one chunk).
-    #[arg(long, default_value_t = ServerConfig::default().outbound_chunk_players)]
-    pub outbound_chunk_players: usize,
     /// Players of the server tick whose client mirror is compared with the server's world
     /// (staleness and error of Table 3's second part; a seeded sample, 0: none).
     #[arg(long, default_value_t = 64)]
@@ -97,9 +90,9 @@ pub struct BenchArgs {
     /// The sampled clients' render delay, in ticks (the server sends every tick).
     #[arg(long, default_value_t = Interpolation::default().delay_ticks)]
     pub render_delay_ticks: f64,
-    /// Also run protocol 2's replication (deltas, priorities, this byte budget in kbit/s
-    /// per player) beside the live protocol on the sampled players, and report both
-    /// (`bench/shadow.rs`; the probe then takes the truth every tick).
+    /// Also run a second configuration of protocol 2's replication (this byte budget in
+    /// kbit/s per player, the near bound and simulated link below) beside the live server
+    /// on the sampled players, and report both (`bench/shadow.rs`).
     #[arg(long)]
     pub shadow_budget_kbps: Option<f64>,
     /// The shadow's refresh bound of a changing object within 30 units, in ticks.
@@ -128,14 +121,6 @@ pub struct BenchArgs {
     pub open_every: u64,
     #[command(flatten)]
     pub world: WorldArgs,
-}
-
-fn parse_outbound(s: &str) -> Result<OutboundKind, String> {
-    match s {
-        "auto" => Ok(OutboundKind::Auto),
-        "host" => Ok(OutboundKind::Host),
-        other => Err(format!("unknown outbound `{other}` (auto or host)")),
-    }
 }
 
 /// One line of results: a scenario on a backend.
@@ -189,12 +174,8 @@ pub struct Row {
 struct ServerTick {
     players: usize,
     aoi_size: f32,
-    /// The part of `packets` spent in the backend's AOI query on the host (ms; 0 with the
-    /// device outbound).
+    /// The part of `packets` spent in the backend's AOI query (ms).
     aoi_query: f64,
-    /// The part of `packets` spent waiting for the device's interest work (ms; 0 with the
-    /// host outbound).
-    device_wait: f64,
     datagrams: u64,
     bytes: u64,
     records: u64,
@@ -212,6 +193,8 @@ struct ServerTick {
     /// Datagrams no bot received, over all measured ticks.
     lost: u64,
     rejected: u64,
+    /// Delta records the bots could not resolve (0 unless the deltas are broken).
+    unresolved: u64,
     /// Smallest number over the measured ticks of players opening their datagrams whose
     /// update held their own object, and how many opened on that tick.
     min_saw_own: usize,
@@ -221,7 +204,8 @@ struct ServerTick {
     /// What the sampled players' clients held and drew, over the run (`quality.rs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     quality: Option<QualityRow>,
-    /// Protocol 2 run beside the live protocol on the same players (`shadow.rs`).
+    /// A second configuration of protocol 2 beside the live server, on the same players
+    /// (`shadow.rs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     shadow: Option<shadow::ShadowRow>,
 }
@@ -284,11 +268,14 @@ struct QualityRow {
     /// The figures (the same JSON keys as before, flattened).
     #[serde(flatten)]
     figures: QualityRowFigures,
+    /// The information age (as `staleness_*`) and the error again, sampled alike.
+    information: QualityRowFigures,
 }
 
 impl QualityRow {
-    fn new(players: usize, every: u64, render_delay_ticks: f64, s: QualitySummary) -> Self {
-        QualityRow { players, every, render_delay_ticks, figures: s.into() }
+    fn new(players: usize, every: u64, render_delay_ticks: f64, probe: &quality::QualityProbe) -> Self {
+        let (figures, information) = (probe.summary().into(), probe.information_summary().into());
+        QualityRow { players, every, render_delay_ticks, figures, information }
     }
 }
 

@@ -23,6 +23,12 @@
 //! [`NEAR`](myriad_client::quality::NEAR) units of the player
 //! and the whole AOI. Memory is bounded: the sample's mirrors and at most a few ticks'
 //! truths.
+//!
+//! Protocol version 2 sends an unchanged object only to confirm it now and then, so the
+//! age of the newest state says little of how current a client is; the probe also
+//! records each object's *information age* (`shadow.rs`'s [`InformationAge`]: 0 while the
+//! client holds the object's current quantized position, else the time since the object
+//! moved away from it), looked at every tick.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -31,7 +37,7 @@ use myriad_client::{Interpolation, Quality, QualitySummary, WorldMirror};
 use myriad_core::World;
 use myriad_core::rng::Stream;
 use myriad_interest::ReplicationConfig;
-use myriad_protocol::{ShapeKind, StateUpdate};
+use myriad_protocol::{ShapeKind, StateRecord};
 use myriad_server::tick_bench::TickBench;
 use myriad_server::world::wire_kind;
 use rayon::prelude::*;
@@ -53,8 +59,9 @@ pub struct QualityConfig {
     pub tick_rate_hz: u16,
     /// The mirrors' render delay and extrapolation cap.
     pub interpolation: Interpolation,
-    /// Also run protocol 2's replication beside the live one on the sampled players
-    /// (`shadow.rs`), with this configuration and datagram cap.
+    /// Also run a second configuration of protocol 2's replication beside the live one
+    /// on the sampled players (`shadow.rs`), with this configuration, datagram cap and
+    /// simulated link.
     pub shadow: Option<(ReplicationConfig, usize, Link)>,
 }
 
@@ -66,8 +73,10 @@ const TRUTH_PATIENCE_TICKS: u64 = 60;
 struct Watched {
     entity: u64,
     mirror: WorldMirror,
-    /// Protocol 2 beside the live one, and the information age of both mirrors.
-    shadow: Option<(Shadow, InformationAge, InformationAge)>,
+    /// The information age of the live mirror.
+    live_age: InformationAge,
+    /// A second configuration beside the live one, and its mirror's information age.
+    shadow: Option<(Shadow, InformationAge)>,
 }
 
 /// One object of a player's AOI at a truth's tick.
@@ -96,10 +105,10 @@ pub struct QualityProbe {
     pending: VecDeque<Truth>,
     quality: Quality,
     measuring: bool,
-    /// With shadows: what they sent, protocol 2's figures, and the live protocol's
-    /// measured the same way (`shadow.rs`).
+    /// With shadows: what they sent and their figures (`shadow.rs`).
     shadow_totals: ShadowTotals,
     shadow_quality: Quality,
+    /// The live mirrors' information age (and error, again, beside it).
     live_information: Quality,
 }
 
@@ -127,8 +136,8 @@ impl QualityProbe {
             let shadow = config
                 .shadow
                 .map(|(_, _, link)| Shadow::new(entity ^ 0x5eed, config.interpolation, config.tick_rate_hz, base, link))
-                .map(|s| (s, InformationAge::default(), InformationAge::default()));
-            watched.push(Watched { entity, mirror, shadow });
+                .map(|s| (s, InformationAge::default()));
+            watched.push(Watched { entity, mirror, live_age: InformationAge::default(), shadow });
         }
         Self {
             watched,
@@ -159,11 +168,12 @@ impl QualityProbe {
         self.base + Duration::from_secs_f64(tick as f64 / f64::from(self.config.tick_rate_hz.max(1)))
     }
 
-    /// Bot `bot` opened `update`: its mirror takes it, if it is sampled.
-    pub fn on_update(&mut self, bot: usize, update: &StateUpdate) {
+    /// Bot `bot` opened the update of `tick` and resolved `records`: its mirror takes
+    /// them, if it is sampled.
+    pub fn on_update(&mut self, bot: usize, tick: u64, records: &[StateRecord]) {
         let Some(&Some(at)) = self.by_bot.get(bot) else { return };
-        let now = self.instant(update.header.tick);
-        self.watched[at as usize].mirror.apply(update.header.tick, update.records.iter().copied(), now);
+        let now = self.instant(tick);
+        self.watched[at as usize].mirror.apply(tick, records.iter().copied(), now);
     }
 
     /// After the server's tick (the bots drained it): a truth every `every` ticks, with
@@ -175,16 +185,14 @@ impl QualityProbe {
         let tick = world.tick;
         let now = self.instant(tick);
         let sample = self.measuring && tick.is_multiple_of(self.config.every.max(1));
-        let shadow_truth = self.config.shadow.map(|_| {
-            let truth = self.truth(world);
-            self.tick_shadows(world, tick, now, &truth);
-            truth
-        });
+        // Every tick: the information age needs to see each change.
+        let truth = self.truth(world);
+        self.tick_shadows(world, tick, now, &truth);
+        self.observe_information(tick, &truth);
         if !self.measuring {
             return;
         }
         if sample {
-            let truth = shadow_truth.unwrap_or_else(|| self.truth(world));
             self.record_staleness(tick, &truth);
             self.pending.push_back(Truth { tick, players: truth.into_iter().map(Some).collect() });
             for w in &mut self.watched {
@@ -251,7 +259,7 @@ impl QualityProbe {
             .par_iter_mut()
             .zip(truth)
             .filter_map(|(w, seen)| {
-                let (shadow, _, _) = w.shadow.as_mut()?;
+                let (shadow, _) = w.shadow.as_mut()?;
                 let slot = u32::try_from(w.entity).ok().and_then(|id| d.slot(myriad_core::world::EntityId(id)))?;
                 let centre = d.positions()[slot].to_array();
                 let own = (w.entity, wire_kind(d.shapes()[slot]), centre);
@@ -264,18 +272,22 @@ impl QualityProbe {
         for t in totals {
             self.shadow_totals.add(&t);
         }
-        // Both mirrors' information age, looked at every tick, recorded on sample ticks.
-        let record = measuring && tick.is_multiple_of(self.config.every.max(1));
+    }
+
+    /// Every mirror's information age, looked at every tick, recorded on sample ticks.
+    fn observe_information(&mut self, tick: u64, truth: &[Vec<Seen>]) {
+        let record = self.measuring && tick.is_multiple_of(self.config.every.max(1));
         let rate = f64::from(self.config.tick_rate_hz.max(1));
         for (w, seen) in self.watched.iter_mut().zip(truth) {
-            let Some((shadow, v2_age, live_age)) = &mut w.shadow else { continue };
             let objects = || seen.iter().map(|s| (s.id, s.distance, s.position));
-            v2_age.observe(shadow.mirror(), tick, rate, objects(), record.then_some(&mut self.shadow_quality));
-            live_age.observe(&w.mirror, tick, rate, objects(), record.then_some(&mut self.live_information));
+            w.live_age.observe(&w.mirror, tick, rate, objects(), record.then_some(&mut self.live_information));
+            if let Some((shadow, age)) = &mut w.shadow {
+                age.observe(shadow.mirror(), tick, rate, objects(), record.then_some(&mut self.shadow_quality));
+            }
         }
     }
 
-    /// Protocol 2 beside the live protocol, if shadows ran.
+    /// The second configuration beside the live one, if shadows ran.
     pub fn shadow_row(&self) -> Option<ShadowRow> {
         let (config, _, link) = self.config.shadow?;
         let rate = f64::from(self.config.tick_rate_hz.max(1));
@@ -308,6 +320,11 @@ impl QualityProbe {
     /// Percentiles of what was recorded.
     pub fn summary(&self) -> QualitySummary {
         self.quality.summary()
+    }
+
+    /// Percentiles of the live mirrors' information age (as staleness) and error.
+    pub fn information_summary(&self) -> QualitySummary {
+        self.live_information.summary()
     }
 }
 

@@ -78,14 +78,14 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         let _ = writeln!(s, "\n#### Table 3: the whole server tick (medians per tick; one bot per user on loopback)\n");
         let _ = writeln!(
             s,
-            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which host AOI query | of which device wait | send | datagrams | KiB sent | kB/s per player | records | actions in | bots per socket | received by bots | lost | opened by bots | min. opening players seeing themselves |"
+            "| scenario | backend | AOI edge | players | tick | server CPU | receive | packets | of which AOI query | send | datagrams | KiB sent | kB/s per player | records | actions in | bots per socket | received by bots | lost | opened by bots | min. opening players seeing themselves |"
         );
-        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(19));
+        let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(18));
         for r in &server_rows {
             let Some(t) = &r.server else { continue };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} | {} | {} | {} of {} |",
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.1} | {} | {} | {} | {} | {} | {} | {} of {} |",
                 r.scenario,
                 r.backend,
                 t.aoi_size,
@@ -95,7 +95,6 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
                 fmt_ms(r.receive),
                 fmt_ms(r.packets),
                 fmt_ms(t.aoi_query),
-                fmt_ms(t.device_wait),
                 fmt_ms(r.send),
                 t.datagrams,
                 t.bytes as f64 / 1024.0,
@@ -113,10 +112,9 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
         let _ = writeln!(
             s,
             "\n`tick` is the sum of the stages (receive included); `server CPU` is the process's CPU time less the bots'. \
-             `send` is the mean socket's time sending (the sockets send at once, and with the device outbound \
-             beside the device's work), `packets` the rest of building and sending; `of which host AOI query`: \
-             the backend's AOI query on the host (0 with the device outbound); `of which device wait`: \
-             the time the tick waited for the device's query, selection, packing and sealing (0 on the host). \
+             `send` is the mean socket's time sending (the sockets send at once), `packets` the rest of building \
+             and sending; `of which AOI query`: the backend's AOI query (on the device with `cuda`, the lists \
+             copied back included). \
              `kB/s per player`: bytes sent per tick and player at the nominal tick rate ({} Hz). \
              Each bot sends an action every {} ticks. `received by bots`: datagrams that reached the bot whose \
              session their header names (`lost`: sent but received by none, over the whole run); `opened by bots`: \
@@ -162,10 +160,7 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
     if with.is_empty() {
         return;
     }
-    let _ = writeln!(
-        s,
-        "\n#### Protocol 2 (deltas, priorities, budget) beside the live protocol, same players and ticks\n"
-    );
+    let _ = writeln!(s, "\n#### Another configuration of protocol 2 beside the live server, same players and ticks\n");
     let _ = writeln!(
         s,
         "| scenario | backend | AOI edge | protocol | budget kbit/s | near bound (ticks) | kB/s per player | information age ≤30 p50 / p99 / max (ms) | AOI p50 / p99 / max (ms) | error ≤30 p50 / p99 | error AOI p50 / p99 | missing ≤30 / AOI | relative records | unresolved |"
@@ -174,7 +169,7 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
     for (r, t, sh) in &with {
         for (name, q, kbs, budget, bound, relative) in [
             (
-                "live (1)".to_string(),
+                "live".to_string(),
                 &sh.live,
                 t.bytes_per_player_s / 1000.0,
                 "-".to_string(),
@@ -183,10 +178,10 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
             ),
             (
                 if sh.link == super::shadow::Link::default() {
-                    "2".to_string()
+                    "shadow".to_string()
                 } else {
                     format!(
-                        "2, {:.0} % loss, {:.0} ± {:.0} ms",
+                        "shadow, {:.0} % loss, {:.0} ± {:.0} ms",
                         sh.link.loss * 100.0,
                         sh.link.delay_ms,
                         sh.link.jitter_ms
@@ -214,7 +209,8 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
         s,
         "\nInformation age: 0 when the state a client holds is the object's current quantized position, else the \
          age of that state (protocol 2 sends an unchanged object only to confirm it now and then). The live row's \
-         kB/s is over all players, protocol 2's over the sampled ones (loopback, acknowledged before the next tick)."
+         kB/s is over all players, the shadow's over the sampled ones (acknowledged before the next tick unless \
+         its simulated link delays or loses them)."
     );
 }
 
@@ -239,18 +235,25 @@ fn quality_table(s: &mut String, rows: &[&Row]) {
     );
     let _ = writeln!(
         s,
-        "| scenario | backend | AOI edge | kB/s per player | staleness ≤30 p50 / p99 / max (ms) | staleness AOI p50 / p99 / max (ms) | error ≤30 p50 / p99 | error AOI p50 / p99 | missing ≤30 / AOI |"
+        "| scenario | backend | AOI edge | kB/s per player | staleness ≤30 p50 / p99 / max (ms) | staleness AOI p50 / p99 / max (ms) | error ≤30 p50 / p99 | error AOI p50 / p99 | missing ≤30 / AOI | information age ≤30 p50 / p99 / max (ms) | information age AOI p50 / p99 / max (ms) |"
     );
-    let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(7));
+    let _ = writeln!(s, "| --- | --- |{}", " ---: |".repeat(9));
     for (r, t, q) in &with {
+        let (inear, iall) = (&q.information.staleness_near_ms, &q.information.staleness_all_ms);
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {:.1} | {} |",
+            "| {} | {} | {} | {:.1} | {} | {:.0} / {:.0} / {:.0} | {:.0} / {:.0} / {:.0} |",
             r.scenario,
             r.backend,
             t.aoi_size,
             t.bytes_per_player_s / 1000.0,
-            figure_cells(&q.figures)
+            figure_cells(&q.figures),
+            inear.p50,
+            inear.p99,
+            inear.max,
+            iall.p50,
+            iall.p99,
+            iall.max,
         );
     }
     let _ = writeln!(
@@ -260,7 +263,10 @@ fn quality_table(s: &mut String, rows: &[&Row]) {
          no network delay); ≤30: objects within 30 units. Error: the distance (units) between the client's \
          position of the object at render tick T (interpolated with the render delay, extrapolated at most \
          the cap, then held) and the server's true position at T. Missing: objects in the AOI of which the client \
-         held no state when sampled (not in the staleness or error percentiles)."
+         held no state when sampled (not in the staleness or error percentiles). Information age: 0 while the \
+         state the client holds is the object's current quantized position, else the time since the object moved \
+         away from it (protocol 2 sends an unchanged object only to confirm it now and then, so its newest state \
+         can be old and still current)."
     );
 }
 

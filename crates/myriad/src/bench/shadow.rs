@@ -1,15 +1,16 @@
-//! Protocol version 2's replication (deltas against acknowledged states, the priority
-//! accumulator and a byte budget: `myriad_interest::replica`) run beside the live
-//! protocol on the sampled players of the quality probe, on the same world and ticks,
-//! so both can be compared before the server switches (issue 26).
+//! A second configuration of protocol version 2's replication (deltas against
+//! acknowledged states, the priority accumulator and a byte budget:
+//! `myriad_interest::replica`) run beside the live server on the sampled players of the
+//! quality probe, on the same world and ticks: another budget or near bound, or a
+//! simulated lossy link, compared with what the live players got.
 //!
 //! Each sampled player gets a [`Replica`] on the server side and a client that opens
 //! its datagrams, resolves their records against the states it holds
 //! ([`Baselines`]), feeds a [`WorldMirror`] (the same interpolation as the live
 //! mirrors) and acknowledges every datagram whose records all applied, before the next
 //! tick, or over a simulated [`Link`] that loses and delays datagrams both ways (whole
-//! ticks, seeded: the shadow's stand-in for the lossy relay until version 2 is on the
-//! wire). The candidates are the objects whose
+//! ticks, seeded; `myriad relay` does the same to real datagrams between bots and a
+//! server). The candidates are the objects whose
 //! centre lies in the player's AOI cube, as the quality probe's truth; the AOI query of
 //! the server may also hold objects whose box only overlaps the cube.
 //!
@@ -267,7 +268,7 @@ impl InformationAge {
     }
 }
 
-/// The shadow's row of the report: protocol 2 beside the live protocol.
+/// The shadow's row of the report: its configuration beside the live server's.
 #[derive(Debug, Clone, Copy, serde::Serialize)]
 pub(super) struct ShadowRow {
     /// The budget, kbit/s.

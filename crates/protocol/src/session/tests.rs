@@ -1,4 +1,5 @@
 use super::*;
+use crate::ack::AckField;
 use crate::error::ErrorClass;
 
 fn keys() -> SessionKeys {
@@ -30,7 +31,7 @@ fn sequence_u64_max_is_rejected_before_cryptography_and_leaves_the_window() {
 
     // The session goes on: the client's next datagram is still accepted.
     let mut next = Vec::new();
-    client.seal(&ClientMessage::KeepAlive, &mut next).unwrap();
+    client.seal(&ClientMessage::KeepAlive { acks: None }, &mut next).unwrap();
     assert_eq!(server.open(&mut next).unwrap().header.sequence, 1);
     // The hand sealing is right: one short of the top opens.
     let mut below = forge_sealed(&keys, PacketKind::Ready, u64::MAX - 1);
@@ -50,7 +51,10 @@ fn an_opener_can_verify_on_several_threads() {
     let keys = keys();
     let mut server = ServerSession::new(&keys);
     let mut client = ClientSession::new(&keys);
-    let mut datagrams: Vec<Vec<u8>> = (0..64).map(|_| sealed(&mut client, &ClientMessage::KeepAlive)).collect();
+    // Each keep-alive acknowledges a different sequence, so a commit handing back another
+    // datagram's message would show.
+    let keep_alive = |i: u64| ClientMessage::KeepAlive { acks: AckField::new(i * 3, i) };
+    let mut datagrams: Vec<Vec<u8>> = (0..64).map(|i| sealed(&mut client, &keep_alive(i))).collect();
     for d in datagrams.iter_mut().skip(1).step_by(3) {
         *d.last_mut().unwrap() ^= 1;
     }
@@ -75,7 +79,7 @@ fn an_opener_can_verify_on_several_threads() {
             Ok(v) => {
                 assert!(i % 3 != 1, "datagram {i}: a broken tag verified");
                 let opened = server.opener.commit(v).unwrap();
-                assert_eq!((opened.header.sequence, opened.message), (i as u64, ClientMessage::KeepAlive));
+                assert_eq!((opened.header.sequence, opened.message), (i as u64, keep_alive(i as u64)));
             }
         }
     }
@@ -87,12 +91,13 @@ fn verify_does_not_move_the_window() {
     let keys = keys();
     let mut server = ServerSession::new(&keys);
     let mut client = ClientSession::new(&keys);
-    let mut d = sealed(&mut client, &ClientMessage::KeepAlive);
+    let msg = ClientMessage::KeepAlive { acks: AckField::new(5, 0b11) };
+    let mut d = sealed(&mut client, &msg);
     let verified = server.opener.verify(&mut d, ClientMessage::decode_body).unwrap();
     assert_eq!(verified.sequence(), 0);
     assert_eq!(server.opener.window().newest(), None, "verifying records nothing");
     let opened = server.opener.commit(verified).unwrap();
-    assert_eq!((opened.header.sequence, opened.message), (0, ClientMessage::KeepAlive));
+    assert_eq!((opened.header.sequence, opened.message), (0, msg));
     assert_eq!(server.opener.window().newest(), Some(0));
 }
 
@@ -123,7 +128,7 @@ fn a_forged_tag_never_commits() {
     let keys = keys();
     let mut server = ServerSession::new(&keys);
     let mut client = ClientSession::new(&keys);
-    let mut forged = sealed(&mut client, &ClientMessage::KeepAlive);
+    let mut forged = sealed(&mut client, &ClientMessage::KeepAlive { acks: None });
     let n = forged.len();
     forged[n - 1] ^= 1;
     let err = server.opener.verify(&mut forged, ClientMessage::decode_body).unwrap_err();
@@ -132,7 +137,7 @@ fn a_forged_tag_never_commits() {
     // Nor can what another opener verified: its tag was checked under another key.
     let other = SessionKeys { session_id: keys.session_id + 1, ..keys.clone() };
     let mut other_client = ClientSession::new(&other);
-    let mut d = sealed(&mut other_client, &ClientMessage::KeepAlive);
+    let mut d = sealed(&mut other_client, &ClientMessage::KeepAlive { acks: None });
     let verified = ServerSession::new(&other).opener.verify(&mut d, ClientMessage::decode_body).unwrap();
     assert!(matches!(server.opener.commit(verified), Err(OpenError::WrongSession { .. })));
     // A server datagram verified by the client's opener of the same session.
@@ -142,7 +147,7 @@ fn a_forged_tag_never_commits() {
     assert!(matches!(server.opener.commit(verified), Err(OpenError::Malformed(DecodeError::WrongDirection(_)))));
     assert_eq!(server.opener.window().newest(), None);
     // The genuine datagram still opens.
-    let mut genuine = sealed(&mut client, &ClientMessage::KeepAlive);
+    let mut genuine = sealed(&mut client, &ClientMessage::KeepAlive { acks: None });
     assert_eq!(server.open(&mut genuine).unwrap().header.sequence, 1);
 }
 

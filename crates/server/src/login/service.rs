@@ -8,8 +8,8 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use myriad_protocol::login::{
-    FRAME_PREFIX_LEN, LoginAccepted, LoginRefused, LoginRequest, LoginResponse, MAX_REQUEST_FRAME, MapDescription,
-    RefusalReason, frame_len,
+    FRAME_PREFIX_LEN, LoginAccepted, LoginRefused, LoginRequest, LoginResponse, MAX_REQUEST_FRAME,
+    MIN_SERVED_LOGIN_VERSION, MapDescription, RefusalReason, frame_len,
 };
 use myriad_store::{MapId, Store, StoreError};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -203,6 +203,12 @@ impl LoginService {
         if self.shared.stop.load(Ordering::Acquire) {
             return refuse(RefusalReason::ShuttingDown, 0);
         }
+        // Before the limiter and the store: an outdated client costs nothing, and its
+        // credentials are not judged (it could not play even if they were right).
+        if req.version < MIN_SERVED_LOGIN_VERSION {
+            tracing::info!(%peer, version = req.version, "login refused: outdated client (datagram protocol 1)");
+            return refuse(RefusalReason::OutdatedClient, 0);
+        }
         if let Some(wait) = self.limiter.check(peer.ip(), &req.username, Instant::now()) {
             tracing::info!(%peer, user = %req.username, "login rate-limited");
             return refuse(RefusalReason::RateLimited, millis(wait));
@@ -319,6 +325,7 @@ fn count_login(shared: &ServerShared, result: Result<(), RefusalReason>) {
             }
             RefusalReason::Disabled => "disabled",
             RefusalReason::Banned => "banned",
+            RefusalReason::OutdatedClient => "outdated_client",
         },
     };
     metrics::counter!("myriad_logins_total", "result" => label).increment(1);

@@ -1,6 +1,6 @@
 //! The host implementation of [`Outbound`]: the backend answers the AOI boxes, then the
-//! [`InterestManager`] selects, packs and seals in parallel over players; every recipient
-//! is ready at the end.
+//! [`InterestManager`] builds and seals each player's delta updates in parallel over
+//! players; every recipient is ready at the end.
 
 use std::time::Instant;
 
@@ -33,21 +33,20 @@ fn clear_all(recipients: &mut [Recipient<'_>]) {
 /// The host implementation: backend AOI query, then [`InterestManager`].
 #[derive(Debug)]
 pub struct HostOutbound {
-    /// The interest manager of every player (the device outbound's too: it adopts the
-    /// device's datagrams through it).
-    pub(super) interest: InterestManager,
+    /// The interest manager of every player.
+    interest: InterestManager,
     /// Half extents of each player's AOI box.
-    pub(super) half: Vec3,
+    half: Vec3,
     boxes: Vec<Aabb>,
     aoi: AoiResults,
 }
 
 impl HostOutbound {
-    /// AOI boxes of edge `aoi_size` centred on each player, at most `max_datagrams`
-    /// update datagrams per player and tick.
-    pub fn new(aoi_size: f32, max_datagrams: usize) -> Self {
+    /// AOI boxes of edge `aoi_size` centred on each player, each player sent what
+    /// `config` allows.
+    pub fn new(aoi_size: f32, config: InterestConfig) -> Self {
         HostOutbound {
-            interest: InterestManager::new(InterestConfig { max_datagrams, ..Default::default() }),
+            interest: InterestManager::new(config),
             half: Vec3::splat(aoi_size / 2.0),
             boxes: Vec::new(),
             aoi: AoiResults::default(),
@@ -68,7 +67,11 @@ impl ObjectSource for WorldObjects<'_> {
 
 impl Outbound for HostOutbound {
     fn description(&self) -> String {
-        format!("host interest management ({} datagrams a player at most)", self.interest.config().max_datagrams)
+        let c = self.interest.config();
+        format!(
+            "host interest management, protocol 2 ({:.0} bytes a player a tick, {} datagrams at most)",
+            c.replication.budget_bytes_per_tick, c.max_datagrams
+        )
     }
 
     fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {

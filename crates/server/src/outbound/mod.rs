@@ -8,20 +8,14 @@
 //! (sockets) at once, so an implementation that builds in chunks overlaps the sending of
 //! one chunk with the building of the next.
 //!
-//! Two implementations:
-//! - [`HostOutbound`] (`host.rs`): the backend answers the AOI boxes, the
-//!   [`InterestManager`](myriad_interest::InterestManager) selects, packs and seals in
-//!   parallel over players, and every recipient is ready at the end;
-//! - [`DeviceOutbound`] (`device.rs`): a CUDA backend's
-//!   [`DeviceInterest`] (a capability the backend factory hands out beside the backend)
-//!   does all of it on the device, in chunks. Each recipient also brings its sealer, from
-//!   which it leases a key and a range of sequence numbers to seal on the device without
-//!   ever reusing a nonce.
-//!
-//! [`create`] picks one for the config's [`OutboundKind`]: `auto` (the default) is the
-//! device outbound when the backend came with a device interest, the host one otherwise.
+//! One implementation today, [`HostOutbound`] (`host.rs`): the backend answers the AOI
+//! boxes (on the device for `cuda`), the
+//! [`InterestManager`](myriad_interest::InterestManager) builds protocol version 2's
+//! delta updates through each player's replica and seals them in parallel over players,
+//! and every recipient is ready at the end. The device outbound of protocol version 1
+//! (selection, packing and sealing on a CUDA device, up to commit `2f895d5`) awaits its
+//! port to version 2 (issue 26); `myriad_cuda::DeviceInterest` is its base.
 
-mod device;
 mod host;
 
 use std::borrow::{Borrow, BorrowMut};
@@ -29,34 +23,18 @@ use std::net::SocketAddr;
 use std::ops::AddAssign;
 
 use myriad_core::{Vec3, World};
-use myriad_cuda::DeviceInterest;
 use myriad_interest::{Subscriber, TickInfo, TickReport};
 use myriad_physics::Backend;
 use rayon::prelude::*;
 
-/// The config's choice of outbound, owned by [`crate::config`]; here too for callers
-/// that pick one.
-pub use crate::config::OutboundKind;
 use crate::config::ServerConfig;
 use crate::transport::lane_share;
-pub use device::{DeviceOutbound, MAX_CHUNKS};
 pub use host::HostOutbound;
 
-/// The outbound for the config's `outbound` kind, AOI size, datagram budget and (on the
-/// device) chunk size: the device outbound with `device` (the backend's device interest,
-/// if it has one) under `auto`, else the host one.
-pub fn create(config: &ServerConfig, device: Option<DeviceInterest>) -> Box<dyn Outbound> {
-    let (aoi, max_datagrams) = (config.aoi_size, config.max_datagrams_per_player);
-    match (config.outbound, device) {
-        (OutboundKind::Auto, Some(device)) => {
-            let device = DeviceOutbound::new(device, aoi, max_datagrams);
-            Box::new(match config.outbound_chunk_players {
-                0 => device,
-                players => device.with_chunk(players),
-            })
-        }
-        _ => Box::new(HostOutbound::new(aoi, max_datagrams)),
-    }
+/// The outbound for the config's AOI size and what each player is sent
+/// ([`ServerConfig::interest`]).
+pub fn create(config: &ServerConfig) -> Box<dyn Outbound> {
+    Box::new(HostOutbound::new(config.aoi_size, config.interest()))
 }
 
 /// One active player as the outbound sees it.
@@ -91,14 +69,11 @@ impl BorrowMut<Subscriber> for Recipient<'_> {
 pub struct OutboundReport {
     /// State records packed, over all recipients.
     pub records: usize,
-    /// Time of the host's AOI query in ms (part of the `packets` stage); 0 for the device
-    /// outbound, whose query runs on the device inside [`Self::device_wait_ms`] (unless
-    /// it serves players on the host after a device error).
+    /// Of those, records relative to a state the player acknowledged.
+    pub relative: usize,
+    /// Time of the backend's AOI query in ms (part of the `packets` stage), lists copied
+    /// back to the host included.
     pub aoi_ms: f64,
-    /// Time the tick waited for the device in ms (part of the `packets` stage): queueing
-    /// the work, with the AOI query's count, then the first pool thread's waits for
-    /// chunks. 0 for the host outbound.
-    pub device_wait_ms: f64,
     /// Recipients whose sealing failed (nothing is sent to them this tick).
     pub seal_failures: usize,
 }
@@ -107,8 +82,8 @@ pub struct OutboundReport {
 impl AddAssign for OutboundReport {
     fn add_assign(&mut self, other: OutboundReport) {
         self.records += other.records;
+        self.relative += other.relative;
         self.aoi_ms += other.aoi_ms;
-        self.device_wait_ms += other.device_wait_ms;
         self.seal_failures += other.seal_failures;
     }
 }
@@ -119,7 +94,12 @@ impl OutboundReport {
         if r.seal_failures > 0 {
             metrics::counter!("myriad_seal_failures_total").increment(r.seal_failures as u64);
         }
+        // What the players' budgets held back, and what went over them to keep the
+        // staleness bound: an operator's signal that `send_budget_kbps` is too small.
+        metrics::counter!("myriad_records_deferred_total").increment(r.deferred as u64);
+        metrics::counter!("myriad_records_over_budget_total").increment(r.starving as u64);
         self.records = r.records;
+        self.relative = r.relative;
         self.seal_failures = r.seal_failures;
     }
 }

@@ -23,6 +23,11 @@
 # MODE=players times the whole server tick with bots on loopback, PLAYERS_RUNS times
 # (default 2): scenario 3 (10,000 players, AOI 14 and 100, with what a player gets:
 # bytes, staleness, error) and scenario 4 (50,000 players, bots grouped 20 a socket).
+# MODE=replication measures what a player gets (issue 26) at 10,000 players: scenario 3
+# on cuda, AOI 14 and 100, with the build in .carry/before/ first when there is one
+# (scripts/gpu-build.sh with PARTS=host BEFORE=path), then this build, then this build
+# with a shadow of the same budget through a simulated lossy link (5 % loss,
+# 100 ± 20 ms; REPLICATION_LOSSY=0 leaves that run out).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -304,6 +309,27 @@ if [[ $mode == players ]]; then
             2>>"$out/players.log" || fail "bench scenario 4 run $run failed"
         grep -E '^\| 4 \|' "$out/players-s4-$run.md"
     done 2>&1 | tee "$out/players.txt"
+fi
+
+if [[ $mode == replication ]]; then
+    nproc
+    for bin in .carry/before/myriad .carry/myriad; do
+        [[ -x $bin ]] || continue
+        tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
+        echo "=== $tag"
+        $bin bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 \
+            --out "$out/bench/replication-$tag" >"$out/replication-$tag.md" 2>>"$out/replication.log" ||
+            fail "bench scenario 3 ($tag) failed"
+        grep -E '^\| 3 \|' "$out/replication-$tag.md"
+    done 2>&1 | tee "$out/replication.txt"
+    if [[ ${REPLICATION_LOSSY:-1} == 1 ]]; then
+        echo "=== after, shadow through 5 % loss, 100 ± 20 ms" | tee -a "$out/replication.txt"
+        .carry/myriad bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 \
+            --shadow-budget-kbps 64 --shadow-loss 0.05 --shadow-delay-ms 100 --shadow-jitter-ms 20 \
+            --out "$out/bench/replication-lossy" >"$out/replication-lossy.md" 2>>"$out/replication.log" ||
+            fail "bench scenario 3 (lossy shadow) failed"
+        grep -E '^\| 3 \|' "$out/replication-lossy.md" | tee -a "$out/replication.txt"
+    fi
 fi
 
 if [[ $mode == flood ]]; then

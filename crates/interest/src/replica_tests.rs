@@ -344,3 +344,15 @@ fn a_budget_that_is_not_a_positive_number_sends_only_the_own_object_and_the_star
         assert!(run.client.held.contains_key(&OWN));
     }
 }
+
+#[test]
+fn the_rank_orders_as_its_fields() {
+    let r = Due::rank;
+    // First before not, then higher priority, then nearer, then the smaller id.
+    assert!(r(true, 0.5, 90.0, 9) < r(false, 40.0, 1.0, 1));
+    assert!(r(true, 2.0, 90.0, 9) < r(true, 1.5, 1.0, 1));
+    assert!(r(true, 2.0, 1.0, 9) < r(true, 2.0, 1.5, 1));
+    assert!(r(true, 2.0, 1.0, 1) < r(true, 2.0, 1.0, 2));
+    assert!(r(false, 1.0, f32::MAX, 1) < r(false, 1.0, f32::NAN, 0), "a NaN distance goes last");
+    assert!(r(false, 1.0e9, 0.0, u64::MAX) < r(false, 1.0, 0.0, 0));
+}

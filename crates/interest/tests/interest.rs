@@ -179,6 +179,19 @@ fn deliver_all(players: &mut [Player]) -> Vec<Vec<(UpdateHeader, Vec<DeltaRecord
         .collect()
 }
 
+/// One player's build of `tick` on `world` with AOI list `list`.
+fn build_for(manager: &InterestManager, tick: u64, world: &World, list: &[u32], p: &mut Player) -> TickReport {
+    let offsets = [0, list.len() as u32];
+    manager
+        .build(
+            TickInfo { tick, dilation_permille: 1000 },
+            &world.soa(),
+            AoiLists { offsets: &offsets, objects: list },
+            std::slice::from_mut(&mut p.sub),
+        )
+        .unwrap()
+}
+
 /// Distance from `centre` as the manager computes it.
 fn distance(p: [f32; 3], c: [f32; 3]) -> f32 {
     let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
@@ -192,19 +205,9 @@ fn small_views_reach_the_client_whole_on_the_first_tick() {
     let mut p = player(1, 10, world.positions[10]);
     // The own object also appears in its own AOI list, as a physics query returns it.
     let list: Vec<u32> = (0..150).collect();
-    let offsets = [0, list.len() as u32];
     // A budget far above what 150 objects cost: nothing waits.
     let manager = InterestManager::new(InterestConfig::with_budget(2, 10_000.0, 30.0));
-    let build = |tick: u64, p: &mut Player| {
-        manager
-            .build(
-                TickInfo { tick, dilation_permille: 1000 },
-                &world.soa(),
-                AoiLists { offsets: &offsets, objects: &list },
-                std::slice::from_mut(&mut p.sub),
-            )
-            .unwrap()
-    };
+    let build = |tick: u64, p: &mut Player| build_for(&manager, tick, &world, &list, p);
     let report = build(5, &mut p);
     let got = deliver_all(std::slice::from_mut(&mut p)).remove(0);
     let own = world.ids[10];
@@ -272,7 +275,6 @@ fn over_budget_near_objects_go_first_and_the_budget_holds_on_average() {
     world.positions[999] = centre;
     let mut p = player(2, 999, centre);
     let list: Vec<u32> = (0..400).chain([999]).collect();
-    let offsets = [0, list.len() as u32];
     let config = InterestConfig::with_budget(1, 44.0, 30.0);
     let r = config.replication;
     let budget = r.budget_bytes_per_tick;
@@ -287,14 +289,7 @@ fn over_budget_near_objects_go_first_and_the_budget_holds_on_average() {
     let own = world.ids[999];
     let (mut bytes, mut overdraft, mut starving) = (0usize, 0usize, 0usize);
     let mut build = |tick: u64, world: &World, p: &mut Player| {
-        manager
-            .build(
-                TickInfo { tick, dilation_permille: 1000 },
-                &world.soa(),
-                AoiLists { offsets: &offsets, objects: &list },
-                std::slice::from_mut(&mut p.sub),
-            )
-            .unwrap();
+        build_for(&manager, tick, world, &list, p);
         let s = p.sub.report();
         bytes += s.bytes;
         starving += s.starving;

@@ -41,29 +41,16 @@ fn replication() -> impl Strategy<Value = ReplicationConfig> {
         0u64..10,
         prop_oneof![Just(f32::NAN), -2.0f32..40.0],
     )
-        .prop_map(
-            |(
-                budget_bytes_per_tick,
-                near,
-                near_bound_ticks,
-                far_bound_ticks,
-                far,
-                refresh_ticks,
-                resend_ticks,
-                max_wait_ticks,
-            )| {
-                ReplicationConfig {
-                    budget_bytes_per_tick,
-                    near,
-                    near_bound_ticks,
-                    far_bound_ticks,
-                    far,
-                    refresh_ticks,
-                    resend_ticks,
-                    max_wait_ticks,
-                }
-            },
-        )
+        .prop_map(|c| ReplicationConfig {
+            budget_bytes_per_tick: c.0,
+            near: c.1,
+            near_bound_ticks: c.2,
+            far_bound_ticks: c.3,
+            far: c.4,
+            refresh_ticks: c.5,
+            resend_ticks: c.6,
+            max_wait_ticks: c.7,
+        })
 }
 
 proptest! {

@@ -101,7 +101,7 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
     let bots = if now.connected > 0 { now.connected } else { now.bots.max(1) } as f64;
     let r = now.totals.rates_since(&prev.totals, secs);
     format!(
-        "t={:.0}s bots {}/{} (failed {}) | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} | interval p50 {:.1} ms p99 {:.1} ms | {} | loss {:.2}% | own seen {} moves ok {:.0}% | rejected {} decode errors {} reconnects {} kicked {} banned {}",
+        "t={:.0}s bots {}/{} (failed {}) | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} | interval p50 {:.1} ms p99 {:.1} ms | {} | loss {:.2}% | own seen {} moves ok {:.0}% | rejected {} decode errors {} unresolved {} reconnects {} kicked {} banned {}",
         now.elapsed_s,
         now.connected,
         now.bots,
@@ -117,6 +117,7 @@ pub fn stats_line(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> String {
         movement_ok_share(now) * 100.0,
         now.totals.rejected,
         now.totals.decode_errors,
+        now.totals.unresolved,
         now.totals.reconnects,
         now.kicked,
         now.banned,
@@ -133,7 +134,7 @@ pub fn run_line(last: &SwarmSnapshot) -> String {
     let bots = last.bots.max(1) as f64;
     let per_update = if t.updates > 0 { t.records as f64 / t.updates as f64 } else { 0.0 };
     format!(
-        "{} bots for {:.0} s: logins {} ok, {} failed, {} reconnects | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} per update | interval p50 {:.1} ms p99 {:.1} ms | {} | loss {:.2}% | own seen {}/{} moves ok {:.0}% | rejected {} decode errors {}",
+        "{} bots for {:.0} s: logins {} ok, {} failed, {} reconnects | per bot {:.1} upd/s {:.1} kB/s | in view {:.0} per update | interval p50 {:.1} ms p99 {:.1} ms | {} | loss {:.2}% | own seen {}/{} moves ok {:.0}% | rejected {} decode errors {} unresolved {}",
         last.bots,
         last.elapsed_s,
         last.logins_ok,
@@ -151,6 +152,7 @@ pub fn run_line(last: &SwarmSnapshot) -> String {
         movement_ok_share(last) * 100.0,
         t.rejected,
         t.decode_errors,
+        t.unresolved,
     )
 }
 
@@ -181,6 +183,7 @@ pub fn stats_json(prev: &SwarmSnapshot, now: &SwarmSnapshot) -> serde_json::Valu
         "moves_wrong": now.moves_wrong,
         "rejected": now.totals.rejected,
         "decode_errors": now.totals.decode_errors,
+        "unresolved": now.totals.unresolved,
         "reconnects": now.totals.reconnects,
         "kicked": now.kicked,
         "banned": now.banned,

@@ -190,6 +190,7 @@ fn every_client_receives_the_same_records_by_interest_as_with_the_mirror() {
     for o in [&mirror, &interest] {
         assert_eq!(o.run.rejected, 0);
         assert_eq!(o.run.updates_without_own, 0, "every update holds the player's own object");
+        assert_eq!(o.run.unresolved, 0, "every delta record met the state it names");
         assert!(o.run.datagrams_opened >= (TICKS - 5) * 8, "every player got updates: {}", o.run.datagrams_opened);
         assert_eq!(o.gateway.duplicates, 0);
         assert_eq!(o.gateway.rejected.values().sum::<u64>(), 0, "{:?}", o.gateway.rejected);
@@ -311,6 +312,7 @@ fn measure_bytes_in_against_bytes_out() {
             started.elapsed().as_secs_f64()
         );
         assert_eq!(o.run.updates_without_own, 0);
+        assert_eq!(o.run.unresolved, 0);
         assert_eq!(b.duplicates, 0);
     }
 }

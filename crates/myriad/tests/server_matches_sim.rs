@@ -36,6 +36,7 @@ fn server_hash(world: World, ticks: u64, script: &ActionScript) -> String {
     assert_eq!(run.actions_applied as usize, script.entries().len(), "the server applied every action");
     assert_eq!(run.rejected, 0);
     assert_eq!(run.updates_without_own, 0);
+    assert_eq!(run.unresolved, 0, "every delta record met the state it names");
     assert!(run.datagrams_opened >= ticks * script.entities().len() as u64, "every player got updates");
     format!("{:016x}", run.world.state_hash())
 }

@@ -289,6 +289,7 @@ impl Swarm {
             t.records += c.records;
             t.rejected += c.rejected;
             t.decode_errors += c.decode_errors;
+            t.unresolved += c.unresolved;
             t.last_tick = t.last_tick.max(c.last_tick);
             t.lost += c.lost;
             t.sent += c.sent;

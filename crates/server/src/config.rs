@@ -20,9 +20,12 @@ use crate::error::ConfigError;
 /// The most UDP sockets a server opens on its port.
 const MAX_UDP_SOCKETS: usize = 64;
 
-/// The default per-player send budget, kilobits per second: 8 kB/s, which meets issue
-/// 26's goals on scenario 3 at AOI 14 (measured in `docs/benchmarks.md`, "Protocol 2").
-pub const DEFAULT_SEND_BUDGET_KBPS: f64 = 64.0;
+/// The default per-player send budget, kilobits per second: 32 kB/s. At AOI 14 a player's
+/// view asks for much less (about 5 kB/s on scenario 3) and the budget does not bind; at
+/// AOI 100 (about 2,600 objects in view on scenario 3) it keeps objects within 30 units
+/// within 100 ms where 8 kB/s left them a second behind (`docs/benchmarks.md`, "Protocol
+/// 2 on the wire").
+pub const DEFAULT_SEND_BUDGET_KBPS: f64 = 256.0;
 
 /// Everything `myriad serve` can be told. See `docs/server.md` for each key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

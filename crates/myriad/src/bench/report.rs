@@ -153,7 +153,8 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
     s
 }
 
-/// Protocol 2 beside the live protocol on the same sampled players (`bench/shadow.rs`).
+/// A second configuration of protocol 2 beside the live server, on the same sampled
+/// players (`bench/shadow.rs`).
 fn shadow_table(s: &mut String, rows: &[&Row]) {
     let with: Vec<(&Row, &super::ServerTick, &super::shadow::ShadowRow)> =
         rows.iter().filter_map(|r| r.server.as_ref().and_then(|t| t.shadow.as_ref().map(|q| (*r, t, q)))).collect();

@@ -508,13 +508,7 @@ impl Connection {
                 };
                 let header = view.header();
                 self.resolved.clear();
-                let mut unresolved = 0u64;
-                for record in view.records() {
-                    match self.baselines.resolve(header.tick, &record) {
-                        Ok(state) => self.resolved.push(state),
-                        Err(_) => unresolved += 1,
-                    }
-                }
+                let unresolved = self.baselines.resolve_records(header.tick, view.records(), &mut self.resolved);
                 // Acknowledged only when every record resolved: the server takes an
                 // acknowledged datagram's states as held, and sends the next records
                 // relative to them (docs/protocol.md, "Acknowledgements").
@@ -523,7 +517,7 @@ impl Connection {
                 }
                 self.stats.updates += 1;
                 self.stats.records += self.resolved.len() as u64;
-                self.stats.unresolved += unresolved;
+                self.stats.unresolved += unresolved as u64;
                 self.stats.last_tick = self.stats.last_tick.max(header.tick);
                 self.dilation_permille = header.dilation_permille;
                 self.mirror.set_timing(self.mirror.tick_rate_hz(), header.dilation_permille, now);

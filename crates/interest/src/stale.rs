@@ -1,10 +1,10 @@
-//! An open-addressing hash table from object id to staleness key (the tick the object
-//! was last sent, or entered the view), used as per-thread scratch.
+//! An open-addressing hash table from object id to a `u64` key (a replica's track index),
+//! used as per-thread scratch.
 //!
-//! Why: matching this tick's AOI list against last tick's keys by sorting cost 15% of a
-//! tick. Each subscriber keeps its keys as a plain list (read and written
-//! sequentially, which the hardware prefetcher handles); the thread loads that list
-//! into this table, which stays hot in cache from one subscriber to the next, and looks
+//! Why: matching this tick's AOI list against last tick's tracks by sorting would cost
+//! more than the rest of a player's update. Each replica keeps its track ids as a plain
+//! list (read sequentially, which the hardware prefetcher handles); the thread loads that
+//! list into this table, which stays hot in cache from one player to the next, and looks
 //! every candidate up in it. A stamp per slot marks occupancy, so clearing is O(1).
 
 #[derive(Debug, Clone, Copy, Default)]

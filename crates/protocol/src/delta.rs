@@ -455,9 +455,25 @@ impl Baselines {
     /// returns how many could not be: a client acknowledges the datagram only when none
     /// failed, so the server never takes a state the client lacks for a baseline.
     pub fn resolve_update(&mut self, update: &DeltaUpdate, out: &mut Vec<StateRecord>) -> usize {
-        let before = out.len();
-        out.extend(update.records.iter().filter_map(|r| self.resolve(update.header.tick, r).ok()));
-        update.records.len() - (out.len() - before)
+        self.resolve_records(update.header.tick, update.records.iter().copied(), out)
+    }
+
+    /// [`Self::resolve_update`] for the records of the update of tick `tick` as they come
+    /// (a [`DeltaUpdateView`]'s, without collecting them first).
+    pub fn resolve_records(
+        &mut self,
+        tick: u64,
+        records: impl IntoIterator<Item = DeltaRecord>,
+        out: &mut Vec<StateRecord>,
+    ) -> usize {
+        let mut unresolved = 0;
+        for r in records {
+            match self.resolve(tick, &r) {
+                Ok(state) => out.push(state),
+                Err(_) => unresolved += 1,
+            }
+        }
+        unresolved
     }
 
     /// Keeps `state` of tick `tick`.

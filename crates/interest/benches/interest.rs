@@ -249,6 +249,7 @@ fn replica(c: &mut Criterion) {
                             let q = positions[o as usize];
                             let d = [q[0] - centre[0], q[1] - centre[1], q[2] - centre[2]];
                             Candidate {
+                                slot: o,
                                 id: u64::from(o),
                                 kind: kinds[o as usize],
                                 pos: QuantPos::from_f32(q),

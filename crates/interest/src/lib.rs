@@ -43,7 +43,6 @@ mod config;
 mod manager;
 pub mod replica;
 mod source;
-mod stale;
 
 pub use config::{InterestConfig, TickInfo};
 pub use manager::{InterestError, InterestManager, Subscriber, SubscriberReport, TickReport};

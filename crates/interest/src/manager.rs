@@ -171,6 +171,8 @@ pub struct InterestManager {
 struct Scratch {
     /// Candidates (own excluded), in list order.
     cands: Vec<Candidate>,
+    /// A list put in ascending order, when it came otherwise.
+    sorted: Vec<u32>,
     replica: ReplicaScratch,
 }
 
@@ -233,12 +235,21 @@ fn build_one<O: ObjectSource>(
     sub: &mut Subscriber,
     scratch: &mut Scratch,
 ) {
-    let Scratch { cands, replica } = scratch;
+    let Scratch { cands, sorted, replica } = scratch;
     cands.clear();
     let mut report = SubscriberReport { skipped: usize::from(list.is_none()), ..SubscriberReport::default() };
     let own = objects.get(sub.object).map(|(id, kind, p)| (id, kind, QuantPos::from_f32(p)));
     let c = sub.centre;
-    let list = list.unwrap_or(&[]);
+    let mut list = list.unwrap_or(&[]);
+    // The replica follows a view by ascending slot (the physics backends' AOI lists
+    // are); any other list is put in that order here, duplicates dropped.
+    if !list.is_sorted_by(|a, b| a < b) {
+        sorted.clear();
+        sorted.extend_from_slice(list);
+        sorted.sort_unstable();
+        sorted.dedup();
+        list = sorted;
+    }
     for &slot in list.iter().take(AHEAD) {
         objects.prefetch(slot);
     }
@@ -250,7 +261,7 @@ fn build_one<O: ObjectSource>(
             Some((id, kind, p)) if own.is_none_or(|o| o.0 != id) => {
                 let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
                 let distance = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                cands.push(Candidate { id, kind, pos: QuantPos::from_f32(p), distance });
+                cands.push(Candidate { slot, id, kind, pos: QuantPos::from_f32(p), distance });
             }
             Some(_) => {}
             None => report.skipped += 1,

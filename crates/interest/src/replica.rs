@@ -8,7 +8,9 @@
 //! acknowledgements ([`AckField`]) name them or they are too old to be baselines.
 //!
 //! Each tick ([`Replica::build`]):
-//! 1. acknowledgements that arrived turn in-flight states into baselines;
+//! 1. the view (by ascending slot) is merged with last tick's tracks: objects that left
+//!    it are dropped, new ones start with nothing held; acknowledgements that arrived
+//!    turn in-flight states into baselines (also of an object back in view since);
 //! 2. an object new in view is due at once; every other one whose current (quantized)
 //!    state the client neither holds nor was just sent gains `1 / bound(d)` priority,
 //!    where `bound(d)` is the refresh bound in ticks at its distance `d` from the
@@ -34,7 +36,6 @@ use myriad_protocol::{
 };
 
 use crate::config::TickInfo;
-use crate::stale::StaleTable;
 
 /// Bytes a datagram costs before its records: the packet header, the tag and the delta
 /// update header.
@@ -94,29 +95,33 @@ impl ReplicationConfig {
 
 /// What the server knows of one object in a player's view.
 ///
-/// 56 bytes, kept in place from tick to tick (its id apart, in [`Replica::ids`]): a view
-/// of thousands of objects is read and written once a tick, so this is memory traffic.
+/// 56 bytes, kept in the order of the view (ascending slot) from tick to tick: a view of
+/// thousands of objects is read and written once a tick, so this is memory traffic, and
+/// in the view's order it streams through the caches where a lookup by id missed them
+/// at every object.
 #[derive(Debug, Clone, Copy)]
 struct Track {
+    /// The object's id.
+    id: u64,
     /// The newest state the client acknowledged (its tick [`NONE`] if there is none).
-    acked_pos: QuantPos,
     acked_tick: u64,
     /// The newest state sent, acknowledged or not (its tick [`NONE`] if none).
-    sent_pos: QuantPos,
     sent_tick: u64,
+    acked_pos: QuantPos,
+    sent_pos: QuantPos,
     /// Grows while the client lacks the current state (see the module docs).
     priority: f32,
-    /// The tick it was last in view: a track not in view this tick is dropped.
-    seen: u64,
+    /// The object's slot when last in view.
+    slot: u32,
 }
 
 /// The tick of a baseline that does not exist.
 const NONE: u64 = u64::MAX;
 
 impl Track {
-    fn new(now: u64) -> Self {
+    fn new(id: u64, slot: u32) -> Self {
         let zero = QuantPos::new(0, 0, 0);
-        Track { acked_pos: zero, acked_tick: NONE, sent_pos: zero, sent_tick: NONE, priority: 0.0, seen: now }
+        Track { id, acked_tick: NONE, sent_tick: NONE, acked_pos: zero, sent_pos: zero, priority: 0.0, slot }
     }
 
     /// The acknowledged state, if the next record can still name it (not older than
@@ -129,6 +134,14 @@ impl Track {
     fn sent(&self) -> Option<Baseline> {
         (self.sent_tick != NONE).then_some(Baseline { tick: self.sent_tick, pos: self.sent_pos })
     }
+
+    /// Takes `pos`, carried by a datagram of `tick` the client acknowledged, as the
+    /// baseline if it is newer than the one held.
+    fn acknowledge(&mut self, tick: u64, pos: QuantPos) {
+        if self.acked_tick == NONE || self.acked_tick < tick {
+            (self.acked_tick, self.acked_pos) = (tick, pos);
+        }
+    }
 }
 
 /// One sent datagram awaiting acknowledgement.
@@ -136,17 +149,17 @@ impl Track {
 struct Flight {
     sequence: u64,
     tick: u64,
-    /// `(id, position)` of each record it carried.
-    states: Vec<(u64, QuantPos)>,
+    /// `(slot, id, position)` of each record it carried.
+    states: Vec<(u32, u64, QuantPos)>,
 }
 
 /// One player's replication state; see the module docs.
 #[derive(Debug, Default)]
 pub struct Replica {
-    /// The ids of the objects in view last tick (and the player's own), in no order.
-    ids: Vec<u64>,
-    /// Their tracks, `tracks[i]` for `ids[i]`.
+    /// The objects in view last tick, ascending by slot.
     tracks: Vec<Track>,
+    /// The player's own object.
+    own: Option<Track>,
     flights: VecDeque<Flight>,
     /// Emptied flights, to reuse their memory.
     spare: Vec<Flight>,
@@ -159,6 +172,9 @@ pub struct Replica {
 /// An object in view this tick.
 #[derive(Debug, Clone, Copy)]
 pub struct Candidate {
+    /// The object's slot: what orders a view. It increases along the candidates and
+    /// stays with the object from tick to tick (the AOI lists' dynamic slots).
+    pub slot: u32,
     /// The object's id.
     pub id: u64,
     /// Its shape.
@@ -174,6 +190,9 @@ pub struct Candidate {
 pub struct ReplicaReport {
     /// Objects in view (own excluded, duplicates dropped).
     pub in_view: usize,
+    /// Candidates dropped because their slot did not increase along the view (a
+    /// duplicate, or a list out of order).
+    pub out_of_order: usize,
     /// Records of other objects sent.
     pub packed: usize,
     /// Objects that wanted sending but did not fit this tick.
@@ -187,7 +206,17 @@ pub struct ReplicaReport {
 /// Per-thread working memory of [`Replica::build`].
 #[derive(Default)]
 pub struct ReplicaScratch {
-    index: StaleTable,
+    /// This tick's tracks, in the view's order (swapped with the replica's at the end,
+    /// so the memory passes from player to player).
+    next: Vec<Track>,
+    /// The candidate of each of `next`.
+    candidate_of: Vec<u32>,
+    /// Indices into `next` of tracks new this tick by slot, and into the old tracks of
+    /// ones no candidate took by slot: matched by id (an object whose slot changed).
+    unmatched: Vec<u32>,
+    orphans: Vec<u32>,
+    /// `(old slot, id, new slot)` of the objects matched by id.
+    moved: Vec<(u32, u64, u32)>,
     /// The objects due.
     wanted: Vec<Due>,
     /// `(record, track index, candidate index)` of what this tick sends.
@@ -281,9 +310,6 @@ const ORDER_SLICE: usize = 64;
 /// whole ticks, so a thousandth of one is far below anything that matters.
 const WAIT_SLACK: f32 = 1.0e-3;
 
-/// No track index yet (a new object).
-const NEW: u64 = u64::MAX;
-
 impl Replica {
     /// Notes an acknowledgement from the client; applied at the next build.
     pub fn acknowledge(&mut self, acks: AckField) {
@@ -291,8 +317,9 @@ impl Replica {
     }
 
     /// Builds and seals this tick's datagrams into `out`: `own` is the player's own
-    /// object (in every datagram), `candidates` the objects in view (own and duplicates
-    /// are skipped), `origin` the AOI centre. Returns what it did; `out` is empty if
+    /// object (in every datagram), `candidates` the objects in view by ascending slot
+    /// (the own object is skipped, and so is a candidate whose slot does not exceed the
+    /// one before it), `origin` the AOI centre. Returns what it did; `out` is empty if
     /// sealing failed.
     #[allow(clippy::too_many_arguments)]
     pub fn build(
@@ -307,31 +334,39 @@ impl Replica {
         out: &mut DatagramBatch,
         scratch: &mut ReplicaScratch,
     ) -> Result<ReplicaReport, myriad_protocol::SealError> {
-        let ReplicaScratch { index, wanted, chosen, records, ends } = scratch;
         let now = tick.tick;
         // Baselines older than this cannot be named by a record of this tick.
         let floor = now.saturating_sub(MAX_BACK - 1);
-        index.reset(self.ids.len() + candidates.len() + 1);
-        for (i, &id) in self.ids.iter().enumerate() {
-            index.insert(id, i as u64);
+        let mut report = ReplicaReport::default();
+        if let Some((id, _, _)) = own
+            && self.own.is_none_or(|t| t.id != id)
+        {
+            self.own = Some(Track::new(id, u32::MAX));
         }
-        self.apply_acks(index, now);
+        report.out_of_order = self.match_view(own.map(|o| o.0), candidates, scratch);
+        let ReplicaScratch { next, candidate_of, moved, wanted, chosen, records, ends, .. } = scratch;
+        if !moved.is_empty() {
+            // States in flight name objects by slot: the moved ones' follow them (rare,
+            // so a pass over the flights costs nothing that matters).
+            for s in self.flights.iter_mut().flat_map(|f| f.states.iter_mut()) {
+                if let Some(m) = moved.iter().find(|m| (m.0, m.1) == (s.0, s.1)) {
+                    s.0 = m.2;
+                }
+            }
+        }
+        // On this tick's tracks, which the match just wrote (a search in last tick's,
+        // cold in memory, missed the cache at every step).
+        self.apply_acks(now, next);
 
         // Own object first: it is in every datagram whatever the budget.
-        let mut report = ReplicaReport::default();
-        let own_record = own.and_then(|(id, kind, pos)| {
-            let i = self.take(index, id, now)?;
-            Some(DeltaRecord::choose(id, kind, pos, now, self.tracks[i].acked(floor)))
-        });
-        // Others: priorities.
+        let own_record =
+            own.zip(self.own).map(|((id, kind, pos), t)| DeltaRecord::choose(id, kind, pos, now, t.acked(floor)));
+        report.in_view = next.len();
+
+        // Priorities, in the view's order: both arrays stream.
         wanted.clear();
-        for (j, c) in candidates.iter().enumerate() {
-            if own.is_some_and(|o| o.0 == c.id) {
-                continue;
-            }
-            let Some(i) = self.take(index, c.id, now) else { continue };
-            report.in_view += 1;
-            let t = &mut self.tracks[i];
+        for (k, (t, &j)) in next.iter_mut().zip(candidate_of.iter()).enumerate() {
+            let c = &candidates[j as usize];
             let (acked, sent) = (t.acked(floor), t.sent());
             let holds = acked.is_some_and(|b| b.pos == c.pos);
             let sending = sent.is_some_and(|s| s.pos == c.pos && now.saturating_sub(s.tick) < config.resend_ticks);
@@ -356,7 +391,7 @@ impl Replica {
                 // off by less. Nothing far starves: `max_wait_ticks` still holds.
                 let first = c.distance <= config.near || acked.is_none();
                 let rank = Due::rank(first, t.priority, c.distance, c.id);
-                wanted.push(Due { rank, track: i as u32, candidate: j as u32, starving });
+                wanted.push(Due { rank, track: k as u32, candidate: j, starving });
             }
         }
 
@@ -408,7 +443,7 @@ impl Replica {
             rest[..take].sort_unstable_by(Due::urgency);
             for d in &rest[..take] {
                 let c = &candidates[d.candidate as usize];
-                let acked = self.tracks[d.track as usize].acked(floor);
+                let acked = next[d.track as usize].acked(floor);
                 let record = DeltaRecord::choose(c.id, c.kind, c.pos, now, acked);
                 // A worst case: the id written whole, as if first in its datagram.
                 match fill.offer(record.encoded_len(None, origin), d.starving) {
@@ -423,47 +458,120 @@ impl Replica {
         }
         self.credit = fill.budget.clamp(0.0, per_tick);
 
-        // Write, ids increasing, and remember what went in which datagram.
+        // Write, ids increasing, and remember what went in which datagram. Distinct
+        // slots should hold distinct ids; a source where they do not must not make a
+        // datagram whose ids fail to increase, so a repeated id goes once.
         chosen.sort_unstable_by_key(|c| c.0.id);
+        let before = chosen.len();
+        chosen.dedup_by_key(|c| c.0.id);
+        report.deferred += before - chosen.len();
         records.clear();
         records.extend(chosen.iter().map(|c| c.0));
         let header = UpdateHeader { tick: now, dilation_permille: tick.dilation_permille, origin };
         out.clear();
         let packed = pack_deltas(&header, own_record.as_ref(), records, fill.datagrams, out, ends);
         let first = sealer.next_sequence();
-        if let Err(e) = sealer.seal_batch(out) {
-            out.clear();
-            self.drop_unseen(now);
-            return Err(e);
-        }
-        report.packed = packed;
-        report.deferred += chosen.len() - packed;
-        report.relative = usize::from(own_record.as_ref().is_some_and(relative))
-            + records[..packed].iter().filter(|r| relative(r)).count();
-        let mut start = 0;
-        for (d, &end) in ends.iter().enumerate() {
-            let mut f = self.spare.pop().unwrap_or_default();
-            f.sequence = first + d as u64;
-            f.tick = now;
-            f.states.clear();
-            f.states.extend(own.map(|(id, _, pos)| (id, pos)));
-            for &(_, i, j) in &chosen[start..end] {
-                let c = &candidates[j as usize];
-                let t = &mut self.tracks[i as usize];
-                (t.sent_tick, t.sent_pos, t.priority) = (now, c.pos, 0.0);
-                f.states.push((c.id, c.pos));
+        let sealed = sealer.seal_batch(out);
+        if sealed.is_ok() {
+            report.packed = packed;
+            report.deferred += chosen.len() - packed;
+            report.relative = usize::from(own_record.as_ref().is_some_and(relative))
+                + records[..packed].iter().filter(|r| relative(r)).count();
+            let mut start = 0;
+            for (d, &end) in ends.iter().enumerate() {
+                let mut f = self.spare.pop().unwrap_or_default();
+                f.sequence = first + d as u64;
+                f.tick = now;
+                f.states.clear();
+                f.states.extend(own.map(|(id, _, pos)| (u32::MAX, id, pos)));
+                for &(_, i, j) in &chosen[start..end] {
+                    let c = &candidates[j as usize];
+                    let t = &mut next[i as usize];
+                    (t.sent_tick, t.sent_pos, t.priority) = (now, c.pos, 0.0);
+                    f.states.push((c.slot, c.id, c.pos));
+                }
+                start = end;
+                self.flights.push_back(f);
             }
-            start = end;
-            self.flights.push_back(f);
+        } else {
+            out.clear();
         }
-        self.drop_unseen(now);
-        Ok(report)
+        // This tick's tracks become the replica's; the old ones are scratch now.
+        std::mem::swap(&mut self.tracks, next);
+        sealed.map(|()| report)
     }
 
-    /// Applies the acknowledgements that arrived: each state of an acknowledged flight
-    /// becomes its object's baseline if newer; flights acknowledged, or too old to be
-    /// baselines or to be acknowledged, are dropped.
-    fn apply_acks(&mut self, index: &StaleTable, now: u64) {
+    /// Matches this tick's view against last tick's tracks into `scratch.next` (one
+    /// track per candidate taken, in the view's order, with its candidate in
+    /// `scratch.candidate_of`); returns the candidates dropped as out of order.
+    ///
+    /// Both are in ascending slot order, so this is a merge; an object is the same if
+    /// slot and id agree. Objects whose slot changed (a removal moved them) are matched
+    /// by id among what the merge left over: few, so sorting them costs little.
+    fn match_view(&self, own: Option<u64>, candidates: &[Candidate], scratch: &mut ReplicaScratch) -> usize {
+        let ReplicaScratch { next, candidate_of, unmatched, orphans, moved, .. } = scratch;
+        let old = &self.tracks;
+        next.clear();
+        candidate_of.clear();
+        unmatched.clear();
+        orphans.clear();
+        moved.clear();
+        let (mut i, mut last, mut out_of_order) = (0, None, 0);
+        for (j, c) in candidates.iter().enumerate() {
+            if own == Some(c.id) {
+                continue;
+            }
+            if last.is_some_and(|s| c.slot <= s) {
+                out_of_order += 1;
+                continue;
+            }
+            last = Some(c.slot);
+            while i < old.len() && old[i].slot < c.slot {
+                orphans.push(i as u32);
+                i += 1;
+            }
+            candidate_of.push(j as u32);
+            if i < old.len() && old[i].slot == c.slot {
+                i += 1;
+                if old[i - 1].id == c.id {
+                    next.push(old[i - 1]);
+                    continue;
+                }
+                orphans.push(i as u32 - 1);
+            }
+            unmatched.push(next.len() as u32);
+            next.push(Track::new(c.id, c.slot));
+        }
+        if unmatched.is_empty() {
+            return out_of_order;
+        }
+        orphans.extend(i as u32..old.len() as u32);
+        if orphans.is_empty() {
+            return out_of_order;
+        }
+        unmatched.sort_unstable_by_key(|&k| next[k as usize].id);
+        orphans.sort_unstable_by_key(|&k| old[k as usize].id);
+        let mut o = orphans.iter().peekable();
+        for &k in unmatched.iter() {
+            let id = next[k as usize].id;
+            while o.next_if(|&&x| old[x as usize].id < id).is_some() {}
+            if let Some(&&x) = o.peek()
+                && old[x as usize].id == id
+            {
+                let slot = next[k as usize].slot;
+                moved.push((old[x as usize].slot, id, slot));
+                next[k as usize] = Track { slot, ..old[x as usize] };
+                o.next();
+            }
+        }
+        out_of_order
+    }
+
+    /// Applies the acknowledgements that arrived to `tracks` (this tick's, by ascending
+    /// slot) and the own object's: each state of an acknowledged flight becomes its
+    /// object's baseline if newer; flights acknowledged, or too old to be baselines or
+    /// to be acknowledged, are dropped.
+    fn apply_acks(&mut self, now: u64, tracks: &mut [Track]) {
         let acks = self.acks.take();
         let floor = now.saturating_sub(MAX_BACK - 1);
         // Each flight once, in order, back to the back if it stays: no allocation.
@@ -471,12 +579,14 @@ impl Replica {
             let Some(mut f) = self.flights.pop_front() else { break };
             let acked = acks.is_some_and(|a| a.contains(f.sequence));
             if acked {
-                for &(id, pos) in &f.states {
-                    if let Some(i) = index.get(id) {
-                        let t = &mut self.tracks[i as usize];
-                        if t.acked_tick == NONE || t.acked_tick < f.tick {
-                            (t.acked_tick, t.acked_pos) = (f.tick, pos);
-                        }
+                for &(slot, id, pos) in &f.states {
+                    let track = match &mut self.own {
+                        Some(t) if t.id == id => Some(t),
+                        _ => tracks.binary_search_by_key(&slot, |t| t.slot).ok().map(|k| &mut tracks[k]),
+                    };
+                    // Not found: an object that left the view.
+                    if let Some(t) = track.filter(|t| t.id == id) {
+                        t.acknowledge(f.tick, pos);
                     }
                 }
             }
@@ -490,35 +600,6 @@ impl Replica {
         }
         // A baseline the next record could not name any more is no baseline: `acked`
         // reads such a track's as none (and the next acknowledgement replaces it).
-    }
-
-    /// The index of object `id`'s track, marked in view this tick (a new track for an
-    /// object new in view); `None` if it was taken already this tick (a duplicate in
-    /// the view).
-    fn take(&mut self, index: &mut StaleTable, id: u64, now: u64) -> Option<usize> {
-        let i = match index.take(id, NEW)? {
-            NEW => {
-                self.ids.push(id);
-                self.tracks.push(Track::new(now));
-                self.tracks.len() - 1
-            }
-            i => i as usize,
-        };
-        self.tracks[i].seen = now;
-        Some(i)
-    }
-
-    /// Drops the tracks of objects not in view this tick (indices change).
-    fn drop_unseen(&mut self, now: u64) {
-        let mut i = 0;
-        while i < self.tracks.len() {
-            if self.tracks[i].seen == now {
-                i += 1;
-            } else {
-                self.tracks.swap_remove(i);
-                self.ids.swap_remove(i);
-            }
-        }
     }
 }
 

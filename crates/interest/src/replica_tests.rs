@@ -67,7 +67,13 @@ fn walkers(tick: u64, n: u64, id: impl Fn(u64) -> u64, distance: impl Fn(u64) ->
         .map(|i| {
             let d = distance(i);
             let x = d + tick as f32 * 0.17;
-            Candidate { id: id(i), kind: ShapeKind::Sphere, pos: QuantPos::from_f32([x, 0.0, 0.0]), distance: d }
+            Candidate {
+                slot: i as u32,
+                id: id(i),
+                kind: ShapeKind::Sphere,
+                pos: QuantPos::from_f32([x, 0.0, 0.0]),
+                distance: d,
+            }
         })
         .collect()
 }
@@ -77,7 +83,13 @@ fn world(tick: u64, n: u64, moving: u64) -> Vec<Candidate> {
     (0..n)
         .map(|i| {
             let x = i as f32 * 1.5 + if i < moving { tick as f32 * 0.17 } else { 0.0 };
-            Candidate { id: 100 + i * 7, kind: ShapeKind::Sphere, pos: QuantPos::from_f32([x, 0.0, 0.0]), distance: x }
+            Candidate {
+                slot: i as u32,
+                id: 100 + i * 7,
+                kind: ShapeKind::Sphere,
+                pos: QuantPos::from_f32([x, 0.0, 0.0]),
+                distance: x,
+            }
         })
         .collect()
 }
@@ -355,4 +367,69 @@ fn the_rank_orders_as_its_fields() {
     assert!(r(true, 2.0, 1.0, 1) < r(true, 2.0, 1.0, 2));
     assert!(r(false, 1.0, f32::MAX, 1) < r(false, 1.0, f32::NAN, 0), "a NaN distance goes last");
     assert!(r(false, 1.0e9, 0.0, u64::MAX) < r(false, 1.0, 0.0, 0));
+}
+
+#[test]
+fn an_object_whose_slot_changed_keeps_its_baseline() {
+    // Every moving object due every tick; from tick 5 the first one sits in a later
+    // slot (a removal elsewhere moved it), so the merge by slot misses it.
+    let config = ReplicationConfig { budget_bytes_per_tick: 10_000.0, near_bound_ticks: 1.0, ..Default::default() };
+    let mut run = Run::new(config);
+    let view = |t: u64| {
+        let mut v = world(t, 10, 10);
+        if t >= 5 {
+            v[0].slot = 50;
+            v.rotate_left(1);
+        }
+        v
+    };
+    for t in 1..=4 {
+        run.tick(t, &view(t), |_, _| true, true);
+    }
+    for t in 5..=7 {
+        let r = run.tick(t, &view(t), |_, _| true, true);
+        assert_eq!((r.packed, r.out_of_order), (10, 0));
+        assert_eq!(r.relative, 11, "tick {t}: every record relative to an acknowledged state, the moved one's too");
+    }
+    assert_eq!(run.client.unresolved, 0);
+}
+
+#[test]
+fn candidates_out_of_slot_order_are_dropped_and_counted() {
+    let mut run = Run::new(ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() });
+    let mut view = world(1, 10, 0);
+    // Slots 0, 1, 2, 4, 3, …: the 3 after the 4 is out of order; slot 0 again at the end.
+    view.swap(3, 4);
+    view.push(view[0]);
+    let r = run.tick(1, &view, |_, _| true, true);
+    assert_eq!((r.in_view, r.out_of_order, r.packed), (9, 2, 9));
+    assert_eq!(run.client.unresolved, 0);
+}
+
+#[test]
+fn one_id_in_two_slots_goes_once() {
+    // A broken source: two slots claim one id. The datagram's ids must still increase
+    // (the client would refuse it whole otherwise: `Client::receive` expects it opens).
+    let mut run = Run::new(ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() });
+    let mut view = world(1, 10, 0);
+    view[5].id = view[4].id;
+    let r = run.tick(1, &view, |_, _| true, true);
+    assert_eq!((r.in_view, r.packed), (10, 9));
+    assert_eq!(run.client.held.len(), 10, "nine objects and the own one");
+}
+
+#[test]
+fn an_object_back_in_view_is_relative_to_what_the_client_acknowledged() {
+    // Ten still objects go at tick 1; object 3 leaves the view at tick 2 and is back at
+    // tick 3, when the acknowledgement of tick 1 arrives: the client holds its state,
+    // so it is not sent again (it would go absolute if the track had started afresh).
+    let mut run = Run::new(ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() });
+    let all = world(1, 10, 0);
+    let without: Vec<Candidate> = all.iter().filter(|c| c.slot != 3).copied().collect();
+    assert_eq!(run.tick(1, &all, |_, _| true, false).packed, 10);
+    assert_eq!(run.tick(2, &without, |_, _| true, true).packed, 0);
+    let back = run.tick(3, &all, |_, _| true, true);
+    assert_eq!((back.in_view, back.packed), (10, 0));
+    assert_eq!(run.client.held.len(), 11);
+    assert_eq!(run.client.unresolved, 0);
 }

@@ -82,6 +82,8 @@ struct Watched {
 /// One object of a player's AOI at a truth's tick.
 #[derive(Debug, Clone, Copy)]
 struct Seen {
+    /// Its slot in the world (what orders a view).
+    slot: u32,
     id: u64,
     kind: ShapeKind,
     distance: f32,
@@ -234,11 +236,13 @@ impl QualityProbe {
                     .iter()
                     .zip(d.positions())
                     .zip(d.shapes())
-                    .filter(|((id, p), _)| {
+                    .enumerate()
+                    .filter(|(_, ((id, p), _))| {
                         let o = **p - centre;
                         u64::from(id.0) != w.entity && o.x.abs() <= half && o.y.abs() <= half && o.z.abs() <= half
                     })
-                    .map(|((id, p), shape)| Seen {
+                    .map(|(slot, ((id, p), shape))| Seen {
+                        slot: slot as u32,
                         id: u64::from(id.0),
                         kind: wire_kind(*shape),
                         distance: p.distance(centre),
@@ -263,7 +267,7 @@ impl QualityProbe {
                 let slot = u32::try_from(w.entity).ok().and_then(|id| d.slot(myriad_core::world::EntityId(id)))?;
                 let centre = d.positions()[slot].to_array();
                 let own = (w.entity, wire_kind(d.shapes()[slot]), centre);
-                let view = seen.iter().map(|s| (s.id, s.kind, s.position, s.distance));
+                let view = seen.iter().map(|s| (s.slot, s.id, s.kind, s.position, s.distance));
                 let mut t = ShadowTotals::default();
                 shadow.tick(&config, max_datagrams, tick, centre, own, view, now, measuring.then_some(&mut t));
                 Some(t)

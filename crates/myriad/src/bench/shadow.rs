@@ -143,7 +143,7 @@ impl Shadow {
     }
 
     /// One tick: the server builds this player's datagrams from `own` and `view`
-    /// (`(id, kind, position, distance)`), the client takes them at `now` and
+    /// (`(slot, id, kind, position, distance)`, by ascending slot), the client takes them at `now` and
     /// acknowledges. Adds to `totals` when `measuring`.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn tick(
@@ -153,12 +153,13 @@ impl Shadow {
         tick: u64,
         centre: [f32; 3],
         own: (u64, ShapeKind, [f32; 3]),
-        view: impl Iterator<Item = (u64, ShapeKind, [f32; 3], f32)>,
+        view: impl Iterator<Item = (u32, u64, ShapeKind, [f32; 3], f32)>,
         now: Instant,
         totals: Option<&mut ShadowTotals>,
     ) {
         self.candidates.clear();
-        self.candidates.extend(view.map(|(id, kind, p, distance)| Candidate {
+        self.candidates.extend(view.map(|(slot, id, kind, p, distance)| Candidate {
+            slot,
             id,
             kind,
             pos: QuantPos::from_f32(p),

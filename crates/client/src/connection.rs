@@ -8,8 +8,8 @@ use myriad_protocol::login::{
     FRAME_PREFIX_LEN, LoginAccepted, LoginRequest, LoginResponse, MAX_RESPONSE_FRAME, MapData, frame_len,
 };
 use myriad_protocol::{
-    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, DeltaUpdateView, DisconnectReason, ErrorClass,
-    MAX_DATAGRAM, OpenError, PlayerInput, ServerInfo, ServerMessage, StateRecord,
+    ActionMask, ClientMessage, ClientSession, DeltaUpdateView, DisconnectReason, ErrorClass, MAX_DATAGRAM, OpenError,
+    PlayerInput, ServerInfo, ServerMessage, StateRecord, UpdateReceiver,
 };
 use rustls::pki_types::ServerName;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -206,10 +206,9 @@ pub struct Connection {
     accepted: LoginAccepted,
     map: Option<MapData>,
     mirror: WorldMirror,
-    /// Every object's states of the last 63 ticks, which delta records are relative to.
-    baselines: Baselines,
-    /// The server datagrams to acknowledge in the next action or keep-alive.
-    acks: AckTracker,
+    /// Every object's states of the last 63 ticks, which delta records are relative to,
+    /// and the server datagrams to acknowledge in the next action or keep-alive.
+    receiver: UpdateReceiver,
     /// One update's records once resolved (reused).
     resolved: Vec<StateRecord>,
     stats: ClientStats,
@@ -271,8 +270,7 @@ impl Connection {
         mirror.set_timing(accepted.tick_rate_hz, accepted.dilation_permille, Instant::now());
         let mut c = Connection {
             mirror,
-            baselines: Baselines::default(),
-            acks: AckTracker::default(),
+            receiver: UpdateReceiver::default(),
             resolved: Vec::new(),
             dilation_permille: accepted.dilation_permille,
             config,
@@ -327,8 +325,7 @@ impl Connection {
         self.mirror.clear();
         self.mirror.set_timing(self.accepted.tick_rate_hz, self.dilation_permille, Instant::now());
         // A new session numbers its datagrams afresh and knows nothing we hold.
-        self.baselines = Baselines::default();
-        self.acks = AckTracker::default();
+        self.receiver = UpdateReceiver::default();
         self.sequences = SequenceTracker::default();
         self.disconnected = None;
         self.liveness = Liveness::start(Instant::now(), self.config.silence_timeout);
@@ -405,13 +402,13 @@ impl Connection {
         let mask = ActionMask::new(mask).ok_or_else(|| ClientError::Invalid(format!("action mask {mask:#x}")))?;
         self.frame = self.frame.wrapping_add(1);
         let input = PlayerInput { mask, client_frame: self.frame };
-        self.send(ClientMessage::Action { input, acks: self.acks.field() }).await
+        self.send(ClientMessage::Action { input, acks: self.receiver.acks() }).await
     }
 
     /// Sends a keep-alive if nothing was sent for the keep-alive interval.
     pub async fn keepalive_if_due(&mut self) -> Result<(), ClientError> {
         if self.last_sent.elapsed() >= self.config.keepalive_every {
-            self.send(ClientMessage::KeepAlive { acks: self.acks.field() }).await?;
+            self.send(ClientMessage::KeepAlive { acks: self.receiver.acks() }).await?;
         }
         Ok(())
     }
@@ -429,7 +426,7 @@ impl Connection {
             self.stats.resent += 1;
             match due {
                 Due::Ready => self.send(ClientMessage::Ready).await?,
-                Due::Probe => self.send(ClientMessage::KeepAlive { acks: self.acks.field() }).await?,
+                Due::Probe => self.send(ClientMessage::KeepAlive { acks: self.receiver.acks() }).await?,
             }
         }
         if !self.config.keepalive_every.is_zero() {
@@ -508,13 +505,8 @@ impl Connection {
                 };
                 let header = view.header();
                 self.resolved.clear();
-                let unresolved = self.baselines.resolve_records(header.tick, view.records(), &mut self.resolved);
-                // Acknowledged only when every record resolved: the server takes an
-                // acknowledged datagram's states as held, and sends the next records
-                // relative to them (docs/protocol.md, "Acknowledgements").
-                if unresolved == 0 {
-                    self.acks.record(sequence);
-                }
+                // Acknowledged only when every record resolved (`UpdateReceiver`).
+                let unresolved = self.receiver.receive(sequence, header.tick, view.records(), &mut self.resolved);
                 self.stats.updates += 1;
                 self.stats.records += self.resolved.len() as u64;
                 self.stats.unresolved += unresolved as u64;

@@ -1,6 +1,6 @@
 use std::collections::HashMap;
 
-use myriad_protocol::{AckTracker, Baselines, Direction, Opener, PacketKind, RecordState, SessionKeys};
+use myriad_protocol::{Direction, Opener, PacketKind, RecordState, SessionKeys, UpdateReceiver};
 
 use super::*;
 
@@ -10,8 +10,7 @@ const OWN: u64 = 1;
 /// what it holds, and acknowledges a datagram only when every record applied.
 struct Client {
     opener: Opener,
-    baselines: Baselines,
-    acks: AckTracker,
+    receiver: UpdateReceiver,
     /// Newest state per object: (tick, position).
     held: HashMap<u64, (u64, QuantPos)>,
     unresolved: usize,
@@ -22,8 +21,7 @@ impl Client {
     fn new(keys: &SessionKeys) -> Self {
         Self {
             opener: Opener::new(keys.session_id, Direction::ServerToClient, &keys.server_to_client),
-            baselines: Baselines::default(),
-            acks: AckTracker::default(),
+            receiver: UpdateReceiver::default(),
             held: HashMap::new(),
             unresolved: 0,
             bytes: 0,
@@ -42,7 +40,7 @@ impl Client {
             .expect("a datagram the server sealed opens");
         let (sequence, update) = (opened.header.sequence, opened.message);
         let mut states = Vec::new();
-        let failed = self.baselines.resolve_update(&update, &mut states);
+        let failed = self.receiver.receive_update(sequence, &update, &mut states);
         for s in states {
             let e = self.held.entry(s.id).or_insert((0, s.pos));
             if update.header.tick >= e.0 {
@@ -50,9 +48,6 @@ impl Client {
             }
         }
         self.unresolved += failed;
-        if failed == 0 {
-            self.acks.record(sequence);
-        }
     }
 }
 
@@ -145,7 +140,7 @@ impl Run {
                 self.client.receive(d);
             }
         }
-        if ack && let Some(f) = self.client.acks.field() {
+        if ack && let Some(f) = self.client.receiver.acks() {
             self.replica.acknowledge(f);
         }
         report

@@ -12,8 +12,8 @@ use myriad_interest::replica::DATAGRAM_OVERHEAD;
 use myriad_interest::*;
 use myriad_protocol::delta::MAX_RECORD_LEN;
 use myriad_protocol::{
-    AckTracker, Baselines, ClientSession, DELTA_HEADER_LEN, DeltaRecord, MAX_BODY, MAX_DATAGRAM, QuantPos, RecordState,
-    ServerMessage, ServerSession, SessionKeys, ShapeKind, UpdateHeader,
+    ClientSession, DELTA_HEADER_LEN, DeltaRecord, MAX_BODY, MAX_DATAGRAM, QuantPos, RecordState, ServerMessage,
+    ServerSession, SessionKeys, ShapeKind, UpdateHeader, UpdateReceiver,
 };
 
 /// A tiny deterministic generator (xorshift64*), so failures reproduce.
@@ -85,8 +85,7 @@ struct Held {
 /// record of it resolved.
 struct Client {
     session: ClientSession,
-    baselines: Baselines,
-    acks: AckTracker,
+    receiver: UpdateReceiver,
     held: HashMap<u64, Held>,
     /// Records whose baseline the client did not hold (never, if the server is right).
     unresolved: usize,
@@ -96,8 +95,7 @@ impl Client {
     fn new(keys: &SessionKeys) -> Self {
         Self {
             session: ClientSession::new(keys),
-            baselines: Baselines::default(),
-            acks: AckTracker::default(),
+            receiver: UpdateReceiver::default(),
             held: HashMap::new(),
             unresolved: 0,
         }
@@ -110,7 +108,7 @@ impl Client {
         let opened = self.session.open(&mut d).expect("a sealed datagram opens");
         let ServerMessage::StateUpdate(update) = opened.message else { panic!("expected a state update") };
         let mut states = Vec::new();
-        let failed = self.baselines.resolve_update(&update, &mut states);
+        let failed = self.receiver.receive_update(opened.header.sequence, &update, &mut states);
         for s in states {
             let held = Held { tick: update.header.tick, kind: s.kind, pos: s.pos };
             let e = self.held.entry(s.id).or_insert(held);
@@ -119,9 +117,6 @@ impl Client {
             }
         }
         self.unresolved += failed;
-        if failed == 0 {
-            self.acks.record(opened.header.sequence);
-        }
         (update.header, update.records)
     }
 
@@ -136,7 +131,7 @@ impl Client {
 
     /// What the client's next action or keep-alive carries, handed to the server.
     fn acknowledge(&self, sub: &mut Subscriber) {
-        if let Some(field) = self.acks.field() {
+        if let Some(field) = self.receiver.acks() {
             sub.acknowledge(field);
         }
     }

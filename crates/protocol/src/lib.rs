@@ -41,6 +41,7 @@ pub mod header;
 pub mod login;
 pub mod message;
 pub mod quant;
+mod receiver;
 pub mod replay;
 pub mod session;
 pub mod update;
@@ -62,6 +63,7 @@ pub use message::{
     ActionMask, ClientMessage, DisconnectReason, PlayerInput, ServerInfo, ServerMessage, encode_client, encode_server,
 };
 pub use quant::{POS_SCALE, QuantPos};
+pub use receiver::UpdateReceiver;
 pub use replay::{REPLAY_WINDOW, ReplayWindow};
 pub use session::{ClientSession, Opened, Opener, SealLease, Sealer, ServerSession, SessionKeys, Verified};
 pub use update::{ShapeKind, StateRecord, UpdateHeader};

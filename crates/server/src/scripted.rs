@@ -48,8 +48,7 @@ use std::net::SocketAddr;
 use myriad_core::{ActionScript, World};
 use myriad_physics::Backend;
 use myriad_protocol::{
-    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateRecord,
-    UpdateHeader,
+    ActionMask, ClientMessage, ClientSession, PlayerInput, ServerMessage, StateRecord, UpdateHeader, UpdateReceiver,
 };
 use myriad_store::UserId;
 
@@ -87,8 +86,8 @@ struct Client {
     session: ClientSession,
     entity: u64,
     frame: u32,
-    baselines: Baselines,
-    acks: AckTracker,
+    /// Its baselines and acknowledgements.
+    receiver: UpdateReceiver,
 }
 
 /// Runs `ticks` server ticks on `world` with the script's actions; see the module docs.
@@ -117,8 +116,7 @@ pub fn run(
             session: ClientSession::new(&joined.keys),
             entity: joined.entity,
             frame: 0,
-            baselines: Baselines::default(),
-            acks: AckTracker::default(),
+            receiver: UpdateReceiver::default(),
         };
         push(&transport, addr, &mut client, &ClientMessage::Ready)?;
         clients.insert(addr, client);
@@ -134,7 +132,7 @@ pub fn run(
             client.frame = client.frame.wrapping_add(1);
             let input =
                 PlayerInput { mask: ActionMask::new(a.action.bits()).unwrap_or_default(), client_frame: client.frame };
-            let acks = client.acks.field();
+            let acks = client.receiver.acks();
             push(&transport, addr, client, &ClientMessage::Action { input, acks })?;
         }
         actions_applied += tick.tick_once().actions;
@@ -148,10 +146,7 @@ pub fn run(
                     datagrams_opened += 1;
                     if let ServerMessage::StateUpdate(u) = opened.message {
                         resolved.clear();
-                        let missing = client.baselines.resolve_update(&u, &mut resolved);
-                        if missing == 0 {
-                            client.acks.record(opened.header.sequence);
-                        }
+                        let missing = client.receiver.receive_update(opened.header.sequence, &u, &mut resolved);
                         unresolved += missing as u64;
                         if !u.records.iter().any(|r| r.id == client.entity) {
                             updates_without_own += 1;

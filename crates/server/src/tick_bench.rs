@@ -43,8 +43,8 @@ use myriad_core::{ObjectKind, World};
 use myriad_cuda::CreatedBackend;
 use myriad_net::{Endpoint, EndpointConfig};
 use myriad_protocol::{
-    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, Direction, PlayerInput, ServerMessage,
-    StateRecord, peek_header,
+    ActionMask, ClientMessage, ClientSession, Direction, PlayerInput, ServerMessage, StateRecord, UpdateReceiver,
+    peek_header,
 };
 use myriad_store::UserId;
 
@@ -152,12 +152,11 @@ struct Bot {
     session: ClientSession,
     entity: u64,
     frame: u32,
-    /// The states its delta records are relative to.
-    baselines: Baselines,
-    /// The datagrams it acknowledges with its next action: the updates it opened and
-    /// resolved whole. A bot that does not open (not its turn, `open_every`) does not
-    /// acknowledge either, as a client that lost them: the server sends it more.
-    acks: AckTracker,
+    /// The states its delta records are relative to, and the datagrams it acknowledges
+    /// with its next action: the updates it opened and resolved whole. A bot that does
+    /// not open (not its turn, `open_every`) does not acknowledge either, as a client
+    /// that lost them: the server sends it more.
+    receiver: UpdateReceiver,
     /// The bot's update held its own object this tick.
     saw_own: bool,
     /// A datagram for the bot arrived since the flag was last cleared.
@@ -282,8 +281,7 @@ impl TickBench {
                 session: ClientSession::new(&joined.keys),
                 entity: joined.entity,
                 frame: 0,
-                baselines: Baselines::default(),
-                acks: AckTracker::default(),
+                receiver: UpdateReceiver::default(),
                 saw_own: false,
                 heard: false,
             });
@@ -385,7 +383,7 @@ impl TickBench {
                 let frame = self.bots[i].frame.wrapping_add(1);
                 self.bots[i].frame = frame;
                 let input = PlayerInput { mask: ActionMask::new(mask).unwrap_or_default(), client_frame: frame };
-                let acks = self.bots[i].acks.field();
+                let acks = self.bots[i].receiver.acks();
                 self.send(i, &ClientMessage::Action { input, acks })?;
                 actions_sent += 1;
             }
@@ -463,10 +461,7 @@ impl TickBench {
                         s.opened += 1;
                         if let ServerMessage::StateUpdate(u) = opened.message {
                             resolved.clear();
-                            let unresolved = bot.baselines.resolve_update(&u, &mut resolved);
-                            if unresolved == 0 {
-                                bot.acks.record(opened.header.sequence);
-                            }
+                            let unresolved = bot.receiver.receive_update(opened.header.sequence, &u, &mut resolved);
                             s.unresolved += unresolved as u64;
                             s.records_delivered += resolved.len() as u64;
                             bot.saw_own |= resolved.iter().any(|r| r.id == bot.entity);

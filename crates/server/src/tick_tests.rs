@@ -8,8 +8,8 @@ use std::time::Duration;
 use myriad_core::{Action, ScenarioSpec};
 use myriad_physics::{BackendKind, create_cpu_backend};
 use myriad_protocol::{
-    AckTracker, ActionMask, Baselines, ClientMessage, ClientSession, DisconnectReason, Opened, PlayerInput,
-    RecordState, ServerMessage, StateRecord,
+    ActionMask, ClientMessage, ClientSession, DisconnectReason, Opened, PlayerInput, RecordState, ServerMessage,
+    StateRecord, UpdateReceiver,
 };
 use myriad_store::{PlayerState, UserId};
 
@@ -288,18 +288,13 @@ fn resolve(
     r: &Rig,
     sent: &[(SocketAddr, Vec<u8>)],
     c: &mut Client,
-    baselines: &mut Baselines,
-    acks: &mut AckTracker,
+    receiver: &mut UpdateReceiver,
 ) -> (Vec<StateRecord>, usize, usize) {
     let (mut records, mut relative, mut unresolved) = (Vec::new(), 0, 0);
     for o in r.received(sent, c) {
         if let ServerMessage::StateUpdate(u) = o.message {
             relative += u.records.iter().filter(|x| !matches!(x.state, RecordState::Absolute { .. })).count();
-            let missing = baselines.resolve_update(&u, &mut records);
-            if missing == 0 {
-                acks.record(o.header.sequence);
-            }
-            unresolved += missing;
+            unresolved += receiver.receive_update(o.header.sequence, &u, &mut records);
         }
     }
     (records, relative, unresolved)
@@ -310,23 +305,22 @@ fn acknowledged_states_make_the_next_updates_relative() {
     let mut r = rig(ServerConfig { aoi_size: 400.0, send_budget_kbps: 2000.0, ..ServerConfig::default() });
     let mut acking = r.join(1, 40_001);
     let mut silent = r.join(2, 40_002);
-    let (mut baselines, mut acks) = (Baselines::default(), AckTracker::default());
+    let mut receiver = UpdateReceiver::default();
     let (mut relative_acking, mut relative_silent, mut absolute_silent) = (0, 0, 0);
     for t in 0..40 {
         r.tick.tick_once();
         let sent = r.net.take_sent();
-        let (records, relative, unresolved) = resolve(&r, &sent, &mut acking, &mut baselines, &mut acks);
+        let (records, relative, unresolved) = resolve(&r, &sent, &mut acking, &mut receiver);
         assert_eq!(unresolved, 0, "tick {t}: a client that acknowledges only what it resolved resolves everything");
         assert!(records.iter().any(|x| x.id == acking.entity), "tick {t}: the own object");
         if t >= 20 {
             relative_acking += relative;
         }
         // The other client receives but never acknowledges (its keep-alives say so).
-        let (records, relative, _) =
-            resolve(&r, &sent, &mut silent, &mut Baselines::default(), &mut AckTracker::default());
+        let (records, relative, _) = resolve(&r, &sent, &mut silent, &mut UpdateReceiver::default());
         relative_silent += relative;
         absolute_silent += records.len();
-        let keep_alive = ClientMessage::KeepAlive { acks: acks.field() };
+        let keep_alive = ClientMessage::KeepAlive { acks: receiver.acks() };
         r.send(&mut acking, &keep_alive);
         r.send(&mut silent, &ClientMessage::KeepAlive { acks: None });
     }

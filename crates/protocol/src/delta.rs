@@ -34,7 +34,7 @@
 //! `Same` (1 byte and the id), `Delta` for moves up to ±127/64 units per axis (4 bytes and
 //! the id), `Near` (7) within ±512 units of the origin, `Far` (13) anywhere.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
 
 use crate::batch::DatagramBatch;
 use crate::error::DecodeError;
@@ -411,7 +411,7 @@ pub enum ResolveError {
 /// in the last [`MAX_BACK`] ticks before the newest tick it saw.
 #[derive(Debug, Clone, Default)]
 pub struct Baselines {
-    objects: HashMap<u64, History>,
+    objects: foldhash::HashMap<u64, History>,
     newest: u64,
     pruned_at: u64,
 }
@@ -421,6 +421,14 @@ struct History {
     kind: ShapeKind,
     /// `(tick, position)`, ticks increasing.
     states: VecDeque<(u64, QuantPos)>,
+}
+
+impl History {
+    /// The state of `tick`. Searched from the newest: a record's baseline is the newest
+    /// state the client acknowledged, nearly always one of the last few kept.
+    fn at(&self, tick: u64) -> Option<QuantPos> {
+        self.states.iter().rev().take_while(|s| s.0 >= tick).find(|s| s.0 == tick).map(|s| s.1)
+    }
 }
 
 impl Baselines {
@@ -434,10 +442,7 @@ impl Baselines {
                 // A record naming a tick before 0 has no baseline: it must not fall back
                 // on tick 0's state (only a broken server sends one).
                 let at = tick.checked_sub(u64::from(back));
-                let base = at.zip(self.objects.get(&id)).and_then(|(at, h)| {
-                    let i = h.states.binary_search_by_key(&at, |s| s.0).ok()?;
-                    Some((h.kind, h.states[i].1))
-                });
+                let base = at.zip(self.objects.get(&id)).and_then(|(at, h)| Some((h.kind, h.at(at)?)));
                 let Some((kind, base)) = base else {
                     return Err(ResolveError::MissingBaseline { id, tick: at.unwrap_or(0) });
                 };
@@ -482,9 +487,11 @@ impl Baselines {
         let floor = self.newest.saturating_sub(MAX_BACK);
         let h = self.objects.entry(state.id).or_insert_with(|| History { kind: state.kind, states: VecDeque::new() });
         h.kind = state.kind;
-        match h.states.binary_search_by_key(&tick, |s| s.0) {
-            Ok(i) => h.states[i].1 = state.pos,
-            Err(i) => h.states.insert(i, (tick, state.pos)),
+        // Where it goes, from the newest: updates mostly come in order.
+        match h.states.iter().rposition(|s| s.0 <= tick) {
+            Some(i) if h.states[i].0 == tick => h.states[i].1 = state.pos,
+            Some(i) => h.states.insert(i + 1, (tick, state.pos)),
+            None => h.states.push_front((tick, state.pos)),
         }
         while h.states.front().is_some_and(|s| s.0 < floor) {
             h.states.pop_front();

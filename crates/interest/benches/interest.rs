@@ -5,9 +5,10 @@
 //! 10,000 players. Objects are spread uniformly over a square map whose size gives an
 //! average of 175 objects per 100 × 100 AOI; each player's AOI half-size is drawn so
 //! that its expected occupancy is uniform in 50..=300. The AOI lists are computed once
-//! (with a grid) before timing, as the physics backend would hand them over. Every tick
-//! half the objects move a little, and every client acknowledges all it received before
-//! the next tick; 40 ticks warm up first (everything is new to the clients at first).
+//! (with a grid) before timing, by ascending slot as the physics backend would hand them
+//! over. Every tick half the objects move a little, and every client acknowledges all it
+//! received before the next tick; 40 ticks warm up first (everything is new to the
+//! clients at first).
 //!
 //! * `interest_tick`: `InterestManager::build`, the live path: gather each view through
 //!   `ObjectSource`, run the player's replica, seal; with the server's default budget
@@ -74,6 +75,7 @@ fn scenario(objects: usize, players: usize, seed: u64) -> Scenario {
         let half = 50.0 * (want / 175.0).sqrt();
         let (x0, x1) = (cell_of((c[0] - half).max(0.0)), cell_of(c[0] + half));
         let (z0, z1) = (cell_of((c[2] - half).max(0.0)), cell_of(c[2] + half));
+        let start = list.len();
         for cz in z0..=z1 {
             for cx in x0..=x1 {
                 for &o in &grid[cz * cells + cx] {
@@ -84,6 +86,9 @@ fn scenario(objects: usize, players: usize, seed: u64) -> Scenario {
                 }
             }
         }
+        // By ascending slot, as the physics backends answer (a replica follows a view
+        // in that order).
+        list[start..].sort_unstable();
         offsets.push(list.len() as u32);
         let keys = SessionKeys { session_id: p as u64, client_to_server: [1; 32], server_to_client: [2; 32] };
         subscribers.push(Subscriber::new(p as u32, c, ServerSession::new(&keys).sealer));

@@ -36,8 +36,8 @@
 //!
 //! Scratch buffers live in a thread-local per rayon worker and the output batches and
 //! replicas in the subscribers, so a warm tick allocates nothing. Each object in view
-//! costs a hash-table lookup (its track) and a priority update; only the objects due are
-//! sorted.
+//! costs a step of a merge (its track, in the view's slot order) and a priority update;
+//! only the objects due are ranked, a slice of the order at a time.
 
 mod config;
 mod manager;

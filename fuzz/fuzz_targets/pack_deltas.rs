@@ -1,5 +1,6 @@
 //! The delta packer on arbitrary records, each chosen against an arbitrary history of
-//! its object (`DeltaRecord::choose`), with or without the player's own object: every
+//! its object (`DeltaRecord::choose`, with a prior state before the baseline now and
+//! then, so that records are also predicted), with or without the player's own object: every
 //! datagram fits the size limit and decodes; its ids strictly increase; the own record
 //! is in every datagram exactly once; together the datagrams give back exactly the
 //! packed prefix, split where `ends` says; and a client's `Baselines` fed the same
@@ -21,7 +22,9 @@ const OBJECT: usize = 20;
 
 /// One object from `OBJECT` input bytes: its id (after `previous`, or whole), its
 /// shape, its state now, and its baseline (the state the client holds) if it has one.
-fn object(c: &[u8], previous: Option<u64>, tick: u64, origin: QuantPos) -> Option<(StateRecord, Option<Baseline>)> {
+type Object = (StateRecord, Option<Baseline>, Option<Baseline>);
+
+fn object(c: &[u8], previous: Option<u64>, tick: u64, origin: QuantPos) -> Option<Object> {
     // Gaps of every size: 32 bits shifted by up to 39.
     let gap = u64::from(u32::from_le_bytes([c[0], c[1], c[2], c[3]])).checked_shl(u32::from(c[4] % 40))?;
     let id = match previous {
@@ -52,7 +55,14 @@ fn object(c: &[u8], previous: Option<u64>, tick: u64, origin: QuantPos) -> Optio
     let back = 1 + u64::from(c[7] % 70);
     let has_baseline = c[6] & 3 != 0 && c[6] & 8 == 0;
     let baseline = if has_baseline { tick.checked_sub(back).map(|t| Baseline { tick: t, pos: base }) } else { None };
-    Some((StateRecord { id, kind, pos }, baseline))
+    // A prior 1 to 16 ticks before the baseline, where the object was before moving
+    // about as it did since (a steady move, predicted well), or none.
+    let prior = baseline.filter(|_| c[5] & 0x80 != 0).and_then(|b| {
+        let tick = b.tick.checked_sub(1 + u64::from(c[5] >> 3 & 15))?;
+        let step = |p: i32, b: i32| b.saturating_sub(p.saturating_sub(b) / 2);
+        Some(Baseline { tick, pos: QuantPos::new(step(pos.x, b.pos.x), step(pos.y, b.pos.y), step(pos.z, b.pos.z)) })
+    });
+    Some((StateRecord { id, kind, pos }, baseline, prior))
 }
 
 fuzz_target!(|data: &[u8]| {
@@ -74,7 +84,7 @@ fuzz_target!(|data: &[u8]| {
             objects.push(o);
         }
     }
-    let choose = |(s, b): &(StateRecord, Option<Baseline>)| DeltaRecord::choose(s.id, s.kind, s.pos, tick, *b);
+    let choose = |(s, b, p): &Object| DeltaRecord::choose(s.id, s.kind, s.pos, tick, *b, *p);
     let own_record = own.as_ref().map(choose);
     let records: Vec<DeltaRecord> = objects.iter().map(choose).collect();
 
@@ -96,8 +106,8 @@ fuzz_target!(|data: &[u8]| {
     // The client holds every baseline: the states of the history, each received in the
     // update of its tick.
     let mut client = Baselines::default();
-    for (state, baseline) in own.iter().chain(&objects) {
-        if let Some(b) = baseline {
+    for (state, baseline, prior) in own.iter().chain(&objects) {
+        for b in prior.iter().chain(baseline) {
             let past = DeltaRecord { id: state.id, state: RecordState::Absolute { kind: state.kind, pos: b.pos } };
             client.resolve(b.tick, &past).expect("an absolute record always resolves");
         }

@@ -2,14 +2,22 @@
 //! prefixed by its `u16` length; any tick, any record): resolving never panics, every
 //! record either resolves or is counted as skipped, and what resolves is what a model
 //! that keeps every state forever says: an absolute record its own state, a relative
-//! one its baseline's position (moved by the delta) at exactly `tick - back`; a record
-//! whose baseline the model lacks is skipped, never applied to another state.
+//! one its baseline's position (moved by the delta) at exactly `tick - back`, a
+//! predicted one its baseline moved along its move since the prior at `tick - back -
+//! prior` (`predict`), then by the delta; a record whose baseline (or prior) the model
+//! lacks is skipped, never applied to another state.
 #![no_main]
 
 use std::collections::HashMap;
 
 use libfuzzer_sys::fuzz_target;
-use myriad_protocol::{Baselines, DeltaUpdate, QuantPos, RecordState};
+use myriad_protocol::{Baselines, DeltaUpdate, QuantPos, RecordState, predict};
+
+/// `from + d`, saturated at the `i32` range.
+fn moved(from: [i64; 3], d: [i16; 3]) -> QuantPos {
+    let at = |a: i64, d: i16| (a + i64::from(d)).clamp(i32::MIN.into(), i32::MAX.into()) as i32;
+    QuantPos::new(at(from[0], d[0]), at(from[1], d[1]), at(from[2], d[2]))
+}
 
 fuzz_target!(|data: &[u8]| {
     let mut client = Baselines::default();
@@ -33,11 +41,12 @@ fuzz_target!(|data: &[u8]| {
                 RecordState::Absolute { pos, .. } => Some(pos),
                 RecordState::Delta { back, d } => tick.checked_sub(u64::from(back)).and_then(|at| {
                     let b = model.get(&(record.id, at))?;
-                    Some(QuantPos::new(
-                        b.x.saturating_add(i32::from(d[0])),
-                        b.y.saturating_add(i32::from(d[1])),
-                        b.z.saturating_add(i32::from(d[2])),
-                    ))
+                    Some(moved([b.x, b.y, b.z].map(i64::from), d))
+                }),
+                RecordState::Predicted { back, prior, d } => tick.checked_sub(u64::from(back)).and_then(|at| {
+                    let b = model.get(&(record.id, at))?;
+                    let p = model.get(&(record.id, at.checked_sub(u64::from(prior))?))?;
+                    Some(moved(predict(*b, *p, back, prior), d))
                 }),
                 RecordState::Same { back } => {
                     tick.checked_sub(u64::from(back)).and_then(|at| model.get(&(record.id, at)).copied())

@@ -1,5 +1,5 @@
 //! Interest management at the reference's scenario sizes: one tick of every player's
-//! update, protocol 2 (delta records against acknowledged states), built and sealed.
+//! update, protocol 3 (delta records against acknowledged states), built and sealed.
 //!
 //! Scenario 2: 55,000 dynamic objects, 5,000 players. Scenario 3: 260,000 objects,
 //! 10,000 players. Objects are spread uniformly over a square map whose size gives an
@@ -210,7 +210,7 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-/// One player's protocol 2 state in the replica bench.
+/// One player's protocol 3 state in the replica bench.
 struct Player {
     replica: Replica,
     sealer: Sealer,

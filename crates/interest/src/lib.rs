@@ -4,7 +4,7 @@
 //! query per player as a CSR list ([`AoiLists`]: `offsets` and `objects`, slot indices
 //! into the world's arrays); the server owns one [`Subscriber`] per player (its own
 //! object, AOI centre, sealer and [`Replica`]); [`InterestManager::build`] turns both
-//! into sealed `StateUpdate` datagrams of protocol version 2, one batch per subscriber,
+//! into sealed `StateUpdate` datagrams of protocol version 3, one batch per subscriber,
 //! in parallel over players with rayon.
 //!
 //! # How it works

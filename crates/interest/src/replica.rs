@@ -1,8 +1,10 @@
 //! What one player's client holds, and what to send it next: the server half of
-//! delta replication (protocol version 2's records, `myriad_protocol::delta`).
+//! delta replication (protocol version 3's records, `myriad_protocol::delta`).
 //!
 //! Per player the server keeps, for each object in view, a `Track`: the newest state
-//! the client acknowledged (the *baseline* of the next record), the newest state sent,
+//! the client acknowledged (the *baseline* of the next record) and the one it
+//! acknowledged before (the *prior* a record may predict the baseline's move from), the
+//! newest state sent,
 //! and a *priority* that grows every tick the client lacks the object's current state.
 //! Sent datagrams stay in flight, with the states they carried, until the client's
 //! acknowledgements ([`AckField`]) name them or they are too old to be baselines.
@@ -24,12 +26,14 @@
 //!    `max_wait_ticks` goes even over the budget, so nothing starves;
 //! 4. they are written smallest form first against their baselines
 //!    ([`DeltaRecord::choose`]), ids increasing, the player's own object in every
-//!    datagram; what was sent restarts its priority at zero.
+//!    datagram; what was sent restarts its priority at zero. Records are weighed against
+//!    the budget at a conservative estimate of their bits ([`charge_bits`]); what the
+//!    datagrams really took is what the tick spent, and the rest carries over.
 
 use std::collections::VecDeque;
 
 use myriad_protocol::ack::ACK_BITS;
-use myriad_protocol::delta::MAX_RECORD_LEN;
+use myriad_protocol::delta::{MAX_RECORD_LEN, STREAM_PARAMS_BITS};
 use myriad_protocol::{
     AckField, Baseline, DELTA_HEADER_LEN, DatagramBatch, DeltaRecord, HEADER_LEN, MAX_BACK, MAX_BODY, QuantPos, Sealer,
     ShapeKind, TAG_LEN, UpdateHeader, pack_deltas,
@@ -95,7 +99,7 @@ impl ReplicationConfig {
 
 /// What the server knows of one object in a player's view.
 ///
-/// 56 bytes, kept in the order of the view (ascending slot) from tick to tick: a view of
+/// 64 bytes, kept in the order of the view (ascending slot) from tick to tick: a view of
 /// thousands of objects is read and written once a tick, so this is memory traffic, and
 /// in the view's order it streams through the caches where a lookup by id missed them
 /// at every object.
@@ -113,6 +117,10 @@ struct Track {
     priority: f32,
     /// The object's slot when last in view.
     slot: u32,
+    /// The state acknowledged before the newest, as ticks before it (0: none) and its
+    /// position less the newest's: small, so the track stays one cache line.
+    prior_back: u8,
+    prior_offset: [i16; 3],
 }
 
 /// The tick of a baseline that does not exist.
@@ -121,7 +129,17 @@ const NONE: u64 = u64::MAX;
 impl Track {
     fn new(id: u64, slot: u32) -> Self {
         let zero = QuantPos::new(0, 0, 0);
-        Track { id, acked_tick: NONE, sent_tick: NONE, acked_pos: zero, sent_pos: zero, priority: 0.0, slot }
+        Track {
+            id,
+            acked_tick: NONE,
+            sent_tick: NONE,
+            acked_pos: zero,
+            sent_pos: zero,
+            priority: 0.0,
+            slot,
+            prior_back: 0,
+            prior_offset: [0; 3],
+        }
     }
 
     /// The acknowledged state, if the next record can still name it (not older than
@@ -129,6 +147,17 @@ impl Track {
     fn acked(&self, floor: u64) -> Option<Baseline> {
         (self.acked_tick != NONE && self.acked_tick >= floor)
             .then_some(Baseline { tick: self.acked_tick, pos: self.acked_pos })
+    }
+
+    /// The state acknowledged before the baseline `acked`, if there is one.
+    fn prior(&self, acked: Option<Baseline>) -> Option<Baseline> {
+        let o = self.prior_offset.map(i32::from);
+        let pos = QuantPos::new(
+            self.acked_pos.x.wrapping_add(o[0]),
+            self.acked_pos.y.wrapping_add(o[1]),
+            self.acked_pos.z.wrapping_add(o[2]),
+        );
+        acked.filter(|_| self.prior_back > 0).map(|a| Baseline { tick: a.tick - u64::from(self.prior_back), pos })
     }
 
     fn sent(&self) -> Option<Baseline> {
@@ -139,6 +168,19 @@ impl Track {
     /// baseline if it is newer than the one held.
     fn acknowledge(&mut self, tick: u64, pos: QuantPos) {
         if self.acked_tick == NONE || self.acked_tick < tick {
+            // The baseline it replaces becomes the prior, if a record can still name
+            // it together with a baseline and the offset fits.
+            let offset = [
+                i64::from(self.acked_pos.x) - i64::from(pos.x),
+                i64::from(self.acked_pos.y) - i64::from(pos.y),
+                i64::from(self.acked_pos.z) - i64::from(pos.z),
+            ]
+            .map(|d| i16::try_from(d).ok());
+            let back = tick.checked_sub(self.acked_tick).filter(|&b| self.acked_tick != NONE && b < MAX_BACK);
+            (self.prior_back, self.prior_offset) = match (back, offset) {
+                (Some(b), [Some(x), Some(y), Some(z)]) => (b as u8, [x, y, z]),
+                _ => (0, [0; 3]),
+            };
             (self.acked_tick, self.acked_pos) = (tick, pos);
         }
     }
@@ -264,23 +306,24 @@ struct Filling {
     /// Datagrams opened.
     datagrams: usize,
     max_datagrams: usize,
-    /// Bytes of records in the open datagram.
+    /// Bits of records in the open datagram.
     in_datagram: usize,
-    /// Bytes of records a datagram holds for sure.
+    /// Bits of records a datagram holds for sure.
     room: usize,
     /// What opening a datagram costs: its overhead and the own object's record.
     per_datagram: f32,
 }
 
 impl Filling {
-    /// Takes a record of `cost` bytes if the budget pays for it (opening a datagram if
-    /// needed and allowed), or over the budget if it is `starving`; `Some(over budget)`
-    /// when taken.
-    fn offer(&mut self, cost: usize, starving: bool) -> Option<bool> {
-        let mut fits = cost as f32 <= self.budget || starving;
-        if fits && self.in_datagram + cost > self.room {
+    /// Takes a record of `bits` if the budget pays for it (opening a datagram if needed
+    /// and allowed), or over the budget if it is `starving`; `Some(over budget)` when
+    /// taken.
+    fn offer(&mut self, bits: usize, starving: bool) -> Option<bool> {
+        let cost = bits as f32 / 8.0;
+        let mut fits = cost <= self.budget || starving;
+        if fits && self.in_datagram + bits > self.room {
             // Another datagram, if allowed and paid for.
-            fits = self.datagrams < self.max_datagrams && (cost as f32 + self.per_datagram <= self.budget || starving);
+            fits = self.datagrams < self.max_datagrams && (cost + self.per_datagram <= self.budget || starving);
             if fits {
                 self.datagrams += 1;
                 self.in_datagram = 0;
@@ -290,16 +333,28 @@ impl Filling {
         if !fits {
             return None;
         }
-        let over_budget = cost as f32 > self.budget;
-        self.budget -= cost as f32;
-        self.in_datagram += cost;
+        let over_budget = cost > self.budget;
+        self.budget -= cost;
+        self.in_datagram += bits;
         Some(over_budget)
     }
 }
 
-/// The smallest a record can cost (a `Same` record: its form byte and a one-byte id):
-/// below it, no budget pays for anything.
-const MIN_COST: f32 = 2.0;
+/// Bits an id code is charged when a record is weighed against the budget: its real
+/// size depends on its neighbours in id order, known only once the tick's records are
+/// chosen. Views of thousands of objects in worlds of hundreds of thousands leave gaps
+/// near 2^10, which the code order `pack_deltas` picks writes in 11 to 13 bits.
+const ID_CHARGE_BITS: u32 = 16;
+
+/// What a record is charged in bits: its own with the back written out, and
+/// [`ID_CHARGE_BITS`] for its id.
+fn charge_bits(record: &DeltaRecord, origin: QuantPos) -> usize {
+    record.bits(origin, 0).map_or(MAX_RECORD_LEN * 8, |b| (b + ID_CHARGE_BITS) as usize)
+}
+
+/// The smallest a record can be charged (a `Same` record): below it, no budget pays for
+/// anything.
+const MIN_COST: f32 = (3 + 7 + ID_CHARGE_BITS) as f32 / 8.0;
 
 /// Objects due taken from the order at a time: more than a usual budget holds, so that
 /// one slice mostly suffices.
@@ -359,8 +414,10 @@ impl Replica {
         self.apply_acks(now, next);
 
         // Own object first: it is in every datagram whatever the budget.
-        let own_record =
-            own.zip(self.own).map(|((id, kind, pos), t)| DeltaRecord::choose(id, kind, pos, now, t.acked(floor)));
+        let own_record = own.zip(self.own).map(|((id, kind, pos), t)| {
+            let acked = t.acked(floor);
+            DeltaRecord::choose(id, kind, pos, now, acked, t.prior(acked))
+        });
         report.in_view = next.len();
 
         // Priorities, in the view's order: both arrays stream.
@@ -396,11 +453,11 @@ impl Replica {
         }
 
         // Most urgent first, within the budget and the datagrams.
-        let own_len = own_record.map_or(0, |r| r.encoded_len(None, origin));
-        // Room for records in a datagram, less the most a datagram can waste when the
-        // next record does not fit (estimates are worst cases: ids written whole).
-        let room = MAX_BODY - DELTA_HEADER_LEN - own_len - MAX_RECORD_LEN;
-        let per_datagram = (DATAGRAM_OVERHEAD + own_len) as f32;
+        let own_bits = own_record.map_or(0, |r| charge_bits(&r, origin));
+        // Room for records in a datagram (bits), less the most a datagram can waste when
+        // the next record does not fit.
+        let room = (MAX_BODY - DELTA_HEADER_LEN - MAX_RECORD_LEN) * 8 - STREAM_PARAMS_BITS as usize - own_bits;
+        let per_datagram = DATAGRAM_OVERHEAD as f32 + own_bits as f32 / 8.0;
         // A negative or NaN budget is none: only what starves (and the own object) is
         // sent. An infinite one holds everything the datagrams do.
         let per_tick = if config.budget_bytes_per_tick.is_nan() { 0.0 } else { config.budget_bytes_per_tick.max(0.0) };
@@ -443,10 +500,10 @@ impl Replica {
             rest[..take].sort_unstable_by(Due::urgency);
             for d in &rest[..take] {
                 let c = &candidates[d.candidate as usize];
-                let acked = next[d.track as usize].acked(floor);
-                let record = DeltaRecord::choose(c.id, c.kind, c.pos, now, acked);
-                // A worst case: the id written whole, as if first in its datagram.
-                match fill.offer(record.encoded_len(None, origin), d.starving) {
+                let t = &next[d.track as usize];
+                let acked = t.acked(floor);
+                let record = DeltaRecord::choose(c.id, c.kind, c.pos, now, acked, t.prior(acked));
+                match fill.offer(charge_bits(&record, origin), d.starving) {
                     Some(over_budget) => {
                         report.starving += usize::from(over_budget);
                         chosen.push((record, d.track, d.candidate));
@@ -456,7 +513,6 @@ impl Replica {
             }
             start = if exhausted { wanted.len() } else { start + take };
         }
-        self.credit = fill.budget.clamp(0.0, per_tick);
 
         // Write, ids increasing, and remember what went in which datagram. Distinct
         // slots should hold distinct ids; a source where they do not must not make a
@@ -472,6 +528,11 @@ impl Replica {
         let packed = pack_deltas(&header, own_record.as_ref(), records, fill.datagrams, out, ends);
         let first = sealer.next_sequence();
         let sealed = sealer.seal_batch(out);
+        // What the datagrams took, not what the records were charged, is what this tick
+        // spent; what is left (never more than a tick's worth) carries over, and an
+        // overdraft is forgiven.
+        let spent = if sealed.is_ok() { out.total_bytes() as f32 } else { 0.0 };
+        self.credit = (per_tick + self.credit - spent).clamp(0.0, per_tick);
         if sealed.is_ok() {
             report.packed = packed;
             report.deferred += chosen.len() - packed;

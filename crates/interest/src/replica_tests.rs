@@ -162,8 +162,10 @@ fn a_still_world_costs_only_refreshes_once_acknowledged() {
     }
     let quiet = &sizes[..20];
     assert!(quiet.iter().all(|&(p, _)| p == 0), "{sizes:?}");
-    // Own object relative to its acknowledged state: 2 bytes of record.
-    assert!(quiet.iter().all(|&(_, b)| b == DATAGRAM_OVERHEAD + 2), "{sizes:?}");
+    // Own object relative to its acknowledged state: the stream's 12 bits of parameters,
+    // the own id's code (id 1 at order 1: 2 bits) and a `Same` record with the usual
+    // back (4 bits): 3 bytes.
+    assert!(quiet.iter().all(|&(_, b)| b == DATAGRAM_OVERHEAD + 3), "{sizes:?}");
     // Then a `Same` record confirms each object, about 3 bytes apiece.
     let refreshed: usize = sizes.iter().map(|s| s.0).sum();
     assert_eq!(refreshed, 50, "{sizes:?}");
@@ -240,6 +242,16 @@ fn records_are_the_smallest_form() {
     let update = opener.open_with(&mut d, |_, b| myriad_protocol::DeltaUpdate::decode_body(b)).unwrap().message;
     let deltas = update.records.iter().filter(|r| matches!(r.state, RecordState::Delta { back: 1, .. })).count();
     assert_eq!(deltas, 10, "{:?}", update.records);
+    // With two acknowledged states, a steady move is predicted: a step or so off.
+    run.tick(3, &world(3, 10, 10), |_, _| true, true);
+    let mut d = run.out.get(0).unwrap().to_vec();
+    let update = opener.open_with(&mut d, |_, b| myriad_protocol::DeltaUpdate::decode_body(b)).unwrap().message;
+    let predicted = update.records.iter().filter(|r| match r.state {
+        RecordState::Predicted { back: 1, prior: 1, d } => d.iter().all(|v| v.abs() <= 1),
+        _ => false,
+    });
+    assert_eq!(predicted.count(), 10, "{:?}", update.records);
+    assert_eq!(run.client.unresolved, 0);
 }
 
 #[test]

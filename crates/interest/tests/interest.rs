@@ -1,4 +1,4 @@
-//! End-to-end tests of protocol 2: the manager builds and seals every player's
+//! End-to-end tests of protocol 3: the manager builds and seals every player's
 //! datagrams; each player's client opens them with its session (`ClientSession::open`),
 //! resolves their records against the states it holds (`Baselines::resolve_update`),
 //! acknowledges the datagrams whose every record resolved (`AckTracker`), and the server
@@ -80,7 +80,7 @@ struct Held {
     pos: QuantPos,
 }
 
-/// A player's client as protocol 2 asks: opens each datagram with its session, resolves
+/// A player's client as protocol 3 asks: opens each datagram with its session, resolves
 /// the records against the states it holds, and acknowledges a datagram only when every
 /// record of it resolved.
 struct Client {
@@ -199,14 +199,14 @@ fn small_views_reach_the_client_whole_on_the_first_tick() {
     let world = World::new(500, &mut rng, 1 << 40);
     let mut p = player(1, 10, world.positions[10]);
     // The own object also appears in its own AOI list, as a physics query returns it.
-    let list: Vec<u32> = (0..150).collect();
-    // A budget far above what 150 objects cost: nothing waits.
+    let list: Vec<u32> = (0..220).collect();
+    // A budget far above what 220 objects cost: nothing waits.
     let manager = InterestManager::new(InterestConfig::with_budget(2, 10_000.0, 30.0));
     let build = |tick: u64, p: &mut Player| build_for(&manager, tick, &world, &list, p);
     let report = build(5, &mut p);
     let got = deliver_all(std::slice::from_mut(&mut p)).remove(0);
     let own = world.ids[10];
-    // 149 absolute records do not fit one datagram: the own object is in each.
+    // 219 absolute records do not fit one datagram: the own object is in each.
     assert!(got.len() >= 2, "{} datagrams", got.len());
     for (header, records) in &got {
         assert_eq!(header.tick, 5);
@@ -217,9 +217,9 @@ fn small_views_reach_the_client_whole_on_the_first_tick() {
         );
     }
     let s = p.sub.report();
-    assert_eq!((s.in_view, s.packed, s.deferred, s.starving, s.relative, s.skipped), (149, 149, 0, 0, 0, 0));
+    assert_eq!((s.in_view, s.packed, s.deferred, s.starving, s.relative, s.skipped), (219, 219, 0, 0, 0, 0));
     assert_eq!(report.datagrams, got.len());
-    assert_eq!(report.records, 149 + got.len());
+    assert_eq!(report.records, 219 + got.len());
     assert_eq!(report.records, got.iter().map(|g| g.1.len()).sum::<usize>());
     assert_eq!(report.bytes, p.sub.datagrams().total_bytes());
     // Every object in view, at its position to 1/64 unit, with its shape.
@@ -270,7 +270,7 @@ fn over_budget_near_objects_go_first_and_the_budget_holds_on_average() {
     world.positions[999] = centre;
     let mut p = player(2, 999, centre);
     let list: Vec<u32> = (0..400).chain([999]).collect();
-    let config = InterestConfig::with_budget(1, 44.0, 30.0);
+    let config = InterestConfig::with_budget(1, 36.0, 30.0);
     let r = config.replication;
     let budget = r.budget_bytes_per_tick;
     // A datagram with the own object always fits the budget, so only starving objects
@@ -639,7 +639,7 @@ fn far_objects_and_huge_ids_are_delivered_exactly() {
                 let form = match r.state {
                     RecordState::Absolute { pos, .. } if pos.offset_from(header.origin).is_some() => "near",
                     RecordState::Absolute { .. } => "far",
-                    RecordState::Delta { .. } => "delta",
+                    RecordState::Delta { .. } | RecordState::Predicted { .. } => "delta",
                     RecordState::Same { .. } => "same",
                 };
                 forms.insert((form, r.id));
@@ -673,7 +673,7 @@ fn fnv(hash: &mut u64, bytes: &[u8]) {
 /// client acknowledges what it resolved, but datagrams are lost and acknowledgements
 /// with them on a fixed pattern, so the records are relative to older baselines too.
 ///
-/// The hash pins protocol 2's choice of records: which objects each player's replica
+/// The hash pins protocol 3's choice of records: which objects each player's replica
 /// sends each tick (priorities, bounds, budget, near objects first), in which form
 /// against which acknowledged baseline, and how they are split into datagrams. A change
 /// here is a change of what goes on the wire, never an optimisation; update the hash
@@ -699,7 +699,7 @@ fn the_datagrams_of_a_churning_world_are_pinned() {
     let mut views: Vec<Vec<u32>> = sizes.iter().map(|&n| (0..n).map(|_| rng.below(2900) as u32).collect()).collect();
     let mut hash = 0xcbf2_9ce4_8422_2325u64;
     let (mut skipped, mut relative, mut deferred, mut lost) = (0, 0, 0, 0);
-    let mut forms = [0usize; 4];
+    let mut forms = [0usize; 5];
     let mut backs = HashSet::new();
     for tick in 1..=60u64 {
         // Two objects in three move; the others are still, and confirmed now and then.
@@ -754,7 +754,18 @@ fn the_datagrams_of_a_churning_world_are_pinned() {
                         RecordState::Delta { back, d } => {
                             forms[0] += 1;
                             backs.insert(back);
-                            fnv(&mut hash, &[0, back, d[0] as u8, d[1] as u8, d[2] as u8]);
+                            fnv(&mut hash, &[0, back]);
+                            for v in d {
+                                fnv(&mut hash, &v.to_le_bytes());
+                            }
+                        }
+                        RecordState::Predicted { back, prior, d } => {
+                            forms[4] += 1;
+                            backs.insert(back);
+                            fnv(&mut hash, &[4, back, prior]);
+                            for v in d {
+                                fnv(&mut hash, &v.to_le_bytes());
+                            }
                         }
                         RecordState::Same { back } => {
                             forms[1] += 1;
@@ -784,8 +795,11 @@ fn the_datagrams_of_a_churning_world_are_pinned() {
     }
     // Everything that makes the rule is exercised.
     assert!(skipped >= 60 && deferred > 0 && lost > 0, "{skipped} {deferred} {lost}");
-    assert!(forms.iter().all(|&n| n > 0) && relative > 0, "records by form (delta, same, near, far): {forms:?}");
+    assert!(
+        forms.iter().all(|&n| n > 0) && relative > 0,
+        "records by form (delta, same, near, far, predicted): {forms:?}"
+    );
     assert!(backs.iter().any(|&b| b > 1), "baselines older than a tick: {backs:?}");
     assert!(ps.iter().all(|p| p.client.unresolved == 0));
-    assert_eq!(hash, 0x551e_a1b3_4781_3423, "datagrams hash {hash:#018x}");
+    assert_eq!(hash, 0x2623_906e_fea0_0cdd, "datagrams hash {hash:#018x}");
 }

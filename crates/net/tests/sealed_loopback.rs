@@ -81,7 +81,8 @@ fn sealed_traffic_both_ways() {
         .collect();
     // Absolute records (the client holds nothing yet): 200 `Near` records of 8 bytes
     // need two datagrams.
-    let deltas: Vec<DeltaRecord> = records.iter().map(|r| DeltaRecord::choose(r.id, r.kind, r.pos, 0, None)).collect();
+    let deltas: Vec<DeltaRecord> =
+        records.iter().map(|r| DeltaRecord::choose(r.id, r.kind, r.pos, 0, None, None)).collect();
     let mut out = DatagramBatch::new();
     let mut ends = Vec::new();
     assert_eq!(pack_deltas(&UpdateHeader::default(), None, &deltas, 2, &mut out, &mut ends), 200);

@@ -1,7 +1,7 @@
 //! Per-core throughput of the protocol: packing delta state updates, sealing and opening
 //! full-size datagrams. Single-threaded, so the figures are per core.
 //!
-//! The update is what a busy player's tick looks like in protocol version 2: mostly
+//! The update is what a busy player's tick looks like in protocol version 3: mostly
 //! small moves (`Delta`) and still objects (`Same`) against acknowledged baselines, and
 //! some objects sent absolute (`Near`), enough records to fill two datagrams.
 //!
@@ -26,7 +26,7 @@ fn records(n: usize) -> Vec<DeltaRecord> {
             let v = i as i32;
             let state = match i % 10 {
                 0..5 => {
-                    RecordState::Delta { back: 1 + (i % 3) as u8, d: [(v % 41 - 20) as i8, 0, (v % 23 - 11) as i8] }
+                    RecordState::Delta { back: 1 + (i % 3) as u8, d: [(v % 41 - 20) as i16, 0, (v % 23 - 11) as i16] }
                 }
                 5..8 => RecordState::Same { back: 1 + (i % 5) as u8 },
                 _ => RecordState::Absolute {

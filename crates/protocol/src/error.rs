@@ -66,9 +66,18 @@ pub enum DecodeError {
     /// A delta record naming a baseline 0 or more than 63 ticks back.
     #[error("delta record with baseline {0} ticks back (1 to 63 allowed)")]
     BadBack(u8),
-    /// A varint longer than 10 bytes, above `u64::MAX`, or with a trailing zero group.
-    #[error("malformed varint")]
-    BadVarint,
+    /// An id code (exp-Golomb) whose value exceeds `u64::MAX`.
+    #[error("malformed id code")]
+    BadIdCode,
+    /// A predicted delta record whose prior state is 0 ticks before its baseline, or
+    /// more than 63 ticks before its update together with its back.
+    #[error("predicted record with back {back} and prior {prior} (prior ≥ 1, back + prior ≤ 63)")]
+    BadPrior {
+        /// Ticks from the baseline to the update.
+        back: u8,
+        /// Ticks from the prior state to the baseline.
+        prior: u8,
+    },
     /// An acknowledgement naming sequence numbers that cannot exist.
     #[error("acknowledgement of newest {newest} with field 0x{bits:016x} names no datagram")]
     BadAck {
@@ -185,4 +194,8 @@ pub enum EncodeError {
     /// A delta update whose record ids are not strictly increasing.
     #[error("delta update records must have strictly increasing ids")]
     Unordered,
+    /// A delta record no datagram can carry: a back or prior out of range, or a delta
+    /// wider than the widest class (`DeltaRecord::choose` makes none).
+    #[error("a delta record's back, prior or delta is out of range")]
+    OutOfRange,
 }

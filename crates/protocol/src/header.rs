@@ -17,7 +17,7 @@ use crate::error::DecodeError;
 use crate::wire::Reader;
 
 /// Version byte of this format. A packet with any other value is dropped.
-pub const PROTOCOL_VERSION: u8 = 2;
+pub const PROTOCOL_VERSION: u8 = 3;
 /// Length of the clear-text header.
 pub const HEADER_LEN: usize = 18;
 /// Length of the Poly1305 authentication tag that ends every datagram.
@@ -191,7 +191,7 @@ mod tests {
             Err(DecodeError::TooLong { .. })
         ));
         // Version 1 (a client from before acknowledgements and deltas) and the next one.
-        for version in [1, PROTOCOL_VERSION + 1] {
+        for version in [1, 2, PROTOCOL_VERSION + 1] {
             d[0] = version;
             assert_eq!(peek_header(&d, Direction::ClientToServer), Err(DecodeError::BadVersion(version)));
         }

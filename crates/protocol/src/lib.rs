@@ -17,14 +17,15 @@
 //!   check changes no state.
 //! * Bodies are plain little-endian structures ([`message`]). The client acknowledges
 //!   the server datagrams it opened in every action and keep-alive ([`ack`]); state
-//!   updates carry each object relative to a state the client acknowledged, in 2 to 5
-//!   bytes when it moved little, or absolute when there is none ([`delta`]).
+//!   updates carry each object relative to a state the client acknowledged (or
+//!   predicted along its move since the one before), bit-packed, in 2 to 6 bytes when
+//!   it moved little, or absolute when there is none ([`delta`], [`bits`]).
 //!   [`pack_deltas`] fills as few datagrams as possible without allocating per record,
 //!   and a client's [`Baselines`] resolves what it receives, skipping (never
 //!   misapplying) a record whose baseline it lacks.
 //!
-//! This is version 2 of the datagram protocol ([`PROTOCOL_VERSION`]); a version 1
-//! client is refused at login ([`login::RefusalReason::OutdatedClient`]).
+//! This is version 3 of the datagram protocol ([`PROTOCOL_VERSION`]); clients of
+//! versions 1 and 2 are refused at login ([`login::RefusalReason::OutdatedClient`]).
 //!
 //! # API boundary
 //!
@@ -34,7 +35,9 @@
 
 pub mod ack;
 mod aead;
+mod baselines;
 pub mod batch;
+mod bits;
 pub mod delta;
 pub mod error;
 pub mod header;
@@ -52,7 +55,7 @@ pub use ack::{ACK_LEN, AckField, AckTracker};
 pub use batch::DatagramBatch;
 pub use delta::{
     Baseline, Baselines, DELTA_HEADER_LEN, DeltaRecord, DeltaUpdate, DeltaUpdateView, MAX_BACK, RecordState,
-    ResolveError, pack_deltas,
+    ResolveError, pack_deltas, predict,
 };
 pub use error::{DecodeError, EncodeError, ErrorClass, OpenError, ReplayError, SealError};
 pub use header::{

@@ -16,17 +16,19 @@ use crate::session::SessionKeys;
 use crate::update::ShapeKind;
 use crate::wire::Reader;
 
-/// Version byte at the start of every login request this crate sends. Versions 2 to 4
+/// Version byte at the start of every login request this crate sends. Versions 2 to 5
 /// add nothing to the request; they tell the server which refusal reasons the client
 /// understands ([`RefusalReason::Busy`] from version 2, [`RefusalReason::Disabled`] and
 /// [`RefusalReason::Banned`] from version 3, [`RefusalReason::OutdatedClient`] from
-/// version 4) and, from version 4, that the client speaks datagram protocol 2
-/// ([`crate::PROTOCOL_VERSION`]: acknowledgements and delta updates).
-pub const LOGIN_VERSION: u8 = 4;
+/// version 4) and which datagram protocol it speaks: 2 (acknowledgements and delta
+/// updates) from version 4, 3 (bit-packed and predicted records,
+/// [`crate::PROTOCOL_VERSION`]) from version 5.
+pub const LOGIN_VERSION: u8 = 5;
 /// Oldest login request version a server admits: older clients speak datagram protocol
-/// 1, which this server no longer sends, and are refused
-/// [`RefusalReason::OutdatedClient`] (which they read as [`RefusalReason::BadRequest`]).
-pub const MIN_SERVED_LOGIN_VERSION: u8 = 4;
+/// 1 or 2, which this server no longer sends, and are refused
+/// [`RefusalReason::OutdatedClient`] (which clients before version 4 read as
+/// [`RefusalReason::BadRequest`]).
+pub const MIN_SERVED_LOGIN_VERSION: u8 = 5;
 /// Oldest login request version that decodes (version 1: no `Busy` refusal), so that a
 /// server can tell an outdated client why it is refused.
 pub const MIN_LOGIN_VERSION: u8 = 1;
@@ -370,7 +372,7 @@ pub enum RefusalReason {
     /// timed ban in milliseconds (saturated at `u32::MAX`), 0 for a ban without end.
     /// Told only after a correct password.
     Banned = 9,
-    /// The client speaks an older datagram protocol than the server (login version 4;
+    /// The client speaks an older datagram protocol than the server (login version 5;
     /// an older client is told [`RefusalReason::BadRequest`], the nearest reason it
     /// knows). Told before the credentials are checked.
     OutdatedClient = 10,
@@ -422,7 +424,7 @@ impl std::fmt::Display for RefusalReason {
             Self::Busy => "the server is busy checking other logins, retry later",
             Self::Disabled => "the account is disabled",
             Self::Banned => "the account is banned",
-            Self::OutdatedClient => "the client is too old for this server (datagram protocol 1); update it",
+            Self::OutdatedClient => "the client is too old for this server (an older datagram protocol); update it",
         })
     }
 }
@@ -643,9 +645,12 @@ mod tests {
         }
         assert_eq!(RefusalReason::Banned.understood_by(3), RefusalReason::Banned);
         assert_eq!(RefusalReason::Disabled.understood_by(3), RefusalReason::Disabled);
-        for old in 1..MIN_SERVED_LOGIN_VERSION {
+        for old in 1..4 {
             assert_eq!(RefusalReason::OutdatedClient.understood_by(old), RefusalReason::BadRequest);
         }
+        // A client of login version 4 (datagram protocol 2) knows the reason it is told.
+        assert!(4 < MIN_SERVED_LOGIN_VERSION);
+        assert_eq!(RefusalReason::OutdatedClient.understood_by(4), RefusalReason::OutdatedClient);
         assert_eq!(RefusalReason::OutdatedClient.understood_by(LOGIN_VERSION), RefusalReason::OutdatedClient);
         // Busy has its own code, 7, with the retry hint.
         let mut out = Vec::new();

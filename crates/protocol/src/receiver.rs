@@ -1,4 +1,4 @@
-//! The client half of protocol version 2's replication: resolving each opened update
+//! The client half of protocol version 3's replication: resolving each opened update
 //! and acknowledging it.
 
 use crate::ack::{AckField, AckTracker};

@@ -39,30 +39,8 @@ impl<'a> Reader<'a> {
     pub(crate) fn u64(&mut self) -> Result<u64, DecodeError> {
         Ok(u64::from_le_bytes(self.take()?))
     }
-    pub(crate) fn i16(&mut self) -> Result<i16, DecodeError> {
-        Ok(i16::from_le_bytes(self.take()?))
-    }
     pub(crate) fn i32(&mut self) -> Result<i32, DecodeError> {
         Ok(i32::from_le_bytes(self.take()?))
-    }
-
-    /// An unsigned LEB128 varint of at most 10 bytes, in its one shortest encoding.
-    pub(crate) fn varint(&mut self) -> Result<u64, DecodeError> {
-        let mut v = 0u64;
-        for i in 0..10 {
-            let byte = self.u8()?;
-            let bits = u64::from(byte & 0x7f);
-            // The tenth group holds bit 63 only.
-            if i == 9 && bits > 1 {
-                return Err(DecodeError::BadVarint);
-            }
-            v |= bits << (7 * i);
-            if byte & 0x80 == 0 {
-                // A last group of zero after others would be a longer second encoding.
-                return if i > 0 && byte == 0 { Err(DecodeError::BadVarint) } else { Ok(v) };
-            }
-        }
-        Err(DecodeError::BadVarint)
     }
 
     /// Bytes not read yet.

@@ -29,7 +29,14 @@ fn arb_id() -> impl Strategy<Value = u64> {
 
 fn arb_state() -> impl Strategy<Value = RecordState> {
     prop_oneof![
-        (1u8..=MAX_BACK as u8, any::<[i8; 3]>()).prop_map(|(back, d)| RecordState::Delta { back, d }),
+        (1u8..=MAX_BACK as u8, prop::array::uniform3(-512i16..512))
+            .prop_map(|(back, d)| RecordState::Delta { back, d }),
+        (1u8..=62, 1u8..=62, prop::array::uniform3(-512i16..512)).prop_filter_map(
+            "back + prior <= 63",
+            |(back, prior, d)| {
+                (u16::from(back) + u16::from(prior) <= 63).then_some(RecordState::Predicted { back, prior, d })
+            }
+        ),
         (1u8..=MAX_BACK as u8).prop_map(|back| RecordState::Same { back }),
         (arb_kind(), arb_pos()).prop_map(|(kind, pos)| RecordState::Absolute { kind, pos }),
     ]
@@ -208,23 +215,29 @@ proptest! {
         prop_assert_eq!(&got[..], &records[..packed]);
     }
 
-    // Records of consecutive ids cost a one-byte id each after the first, so the first
-    // datagram holds 1142 / 5 = 228 small deltas (version 1: 113 records) or 1142 / 2 =
-    // 571 `Same` records; and the packer fills every datagram before starting the next:
-    // none but the last could have taken the record that follows it.
+    // Records of consecutive ids cost a one-bit id code each after the first (order 0),
+    // so the first datagram holds (9,124 - first) / 5 `Same` records with the usual back
+    // (version 2: 571) or / 15 small deltas (version 2: 228); and the packer fills every
+    // datagram before starting the next: none but the last could have taken the record
+    // that follows it.
     #[test]
-    fn small_records_use_the_fewest_datagrams(n in 1usize..2000, base in 0u64..128, same in any::<bool>()) {
+    fn small_records_use_the_fewest_datagrams(n in 1usize..4000, base in 0u64..128, same in any::<bool>()) {
         let state = if same { RecordState::Same { back: 1 } } else { RecordState::Delta { back: 1, d: [1, -1, 0] } };
         let records: Vec<_> = (0..n as u64).map(|i| DeltaRecord { id: base + i, state }).collect();
         let header = UpdateHeader::default();
         let mut batch = DatagramBatch::new();
         let mut ends = Vec::new();
         prop_assert_eq!(pack_deltas(&header, None, &records, usize::MAX, &mut batch, &mut ends), n);
-        prop_assert_eq!(ends[0], n.min(if same { 571 } else { 228 }));
+        let payload = if same { 4 } else { 14 };
+        // The first id whole: an order-0 code of `base`.
+        let first = 2 * (64 - (base + 1).leading_zeros() as usize - 1) + 1 + payload;
+        let room = (MAX_BODY - DELTA_HEADER_LEN) * 8 - 12;
+        let expected = n.min(1 + (room - first) / (1 + payload));
+        prop_assert_eq!(ends[0], expected);
         for (d, &end) in batch.iter().zip(&ends) {
             let body_len = d.len() - HEADER_LEN - TAG_LEN;
-            if let Some(next) = records.get(end) {
-                prop_assert!(body_len + next.encoded_len(Some(records[end - 1].id), header.origin) > MAX_BODY);
+            if records.get(end).is_some() {
+                prop_assert!((body_len - DELTA_HEADER_LEN) * 8 + 1 + payload > room);
             }
         }
     }
@@ -233,13 +246,9 @@ proptest! {
     // nothing; otherwise its body is as long as its records say.
     #[test]
     fn a_too_large_update_is_refused(header in arb_header(), records in arb_records(300)) {
-        let mut previous = None;
-        let mut len = DELTA_HEADER_LEN;
-        for r in &records {
-            len += r.encoded_len(previous, header.origin);
-            previous = Some(r.id);
-        }
-        let msg = ServerMessage::StateUpdate(DeltaUpdate { header, records });
+        let update = DeltaUpdate { header, records };
+        let len = update.body_len().expect("every generated record can be carried");
+        let msg = ServerMessage::StateUpdate(update);
         let mut out = vec![0xaa];
         let result = encode_server(&msg, &mut out);
         if len > MAX_BODY {
@@ -388,8 +397,9 @@ fn resolution_is_sound(
     let mut client = ClientSession::new(&keys());
     // Server side: the newest acknowledged and the newest sent state of each object, and
     // what each sent datagram carried.
-    let mut acked: HashMap<u64, Baseline> = HashMap::new();
-    let mut sent: HashMap<u64, Baseline> = HashMap::new();
+    // The newest state acknowledged (or sent) of each object, and the one before it.
+    let mut acked: HashMap<u64, (Baseline, Option<Baseline>)> = HashMap::new();
+    let mut sent: HashMap<u64, (Baseline, Option<Baseline>)> = HashMap::new();
     let mut flights: Vec<Flight> = Vec::new();
     // Every object's true state at every tick.
     let mut truth: HashMap<(u64, u64), StateRecord> = HashMap::new();
@@ -412,8 +422,9 @@ fn resolution_is_sound(
             for (sequence, sent_tick, carried) in &flights {
                 if acks.is_some_and(|a| a.contains(*sequence)) {
                     for &(id, pos) in carried {
-                        if acked.get(&id).is_none_or(|b| b.tick < *sent_tick) {
-                            acked.insert(id, Baseline { tick: *sent_tick, pos });
+                        if acked.get(&id).is_none_or(|b| b.0.tick < *sent_tick) {
+                            let before = acked.get(&id).map(|b| b.0);
+                            acked.insert(id, (Baseline { tick: *sent_tick, pos }, before));
                         }
                     }
                 }
@@ -434,7 +445,10 @@ fn resolution_is_sound(
         // The own object and the others due this tick (some every tick, some every
         // second or third), each against its newest acknowledged (or sent) state.
         let base = if optimistic { &sent } else { &acked };
-        let record = |i: usize| DeltaRecord::choose(IDS[i], kinds[i], pos[i], tick, base.get(&IDS[i]).copied());
+        let record = |i: usize| {
+            let (newest, before) = base.get(&IDS[i]).copied().unzip();
+            DeltaRecord::choose(IDS[i], kinds[i], pos[i], tick, newest, before.flatten())
+        };
         let own = record(OWN);
         let others: Vec<_> =
             (0..6).filter(|&i| i != OWN && (step as usize + i).is_multiple_of(1 + i % 3)).map(record).collect();
@@ -445,7 +459,8 @@ fn resolution_is_sound(
         server.sealer.seal_batch(&mut batch).unwrap();
         let carried: Vec<_> = std::iter::once(&own).chain(&others).map(|r| (r.id, truth[&(tick, r.id)].pos)).collect();
         for &(id, pos) in &carried {
-            sent.insert(id, Baseline { tick, pos });
+            let before = sent.get(&id).map(|b| b.0);
+            sent.insert(id, (Baseline { tick, pos }, before));
         }
         flights.push((sequence, tick, carried));
         let (code, delay) = link[step as usize % link.len()];
@@ -606,7 +621,9 @@ fn sealer_rejects_wrong_kind_and_length() {
     encode_client(&ClientMessage::Ready, &mut d);
     assert_eq!(sealer.seal_in_place(&mut d), Err(SealError::BadKind(PacketKind::Ready as u8)));
     assert_eq!(sealer.seal_in_place(&mut [0u8; 10]), Err(SealError::BadLength(10)));
-    // 100 absolute records far from the origin: 100 × 14 bytes, more than a datagram.
+    // 100 absolute records far from the origin: 12 bits of stream parameters, then 102
+    // bits each (a one-bit id code, the form, kind and 96 bits of position), more than
+    // a datagram.
     let far = RecordState::Absolute { kind: ShapeKind::Box, pos: QuantPos::new(i32::MAX, 0, 0) };
     let big = ServerMessage::StateUpdate(DeltaUpdate {
         header: UpdateHeader::default(),
@@ -616,7 +633,10 @@ fn sealer_rejects_wrong_kind_and_length() {
     let mut out = Vec::new();
     assert_eq!(
         server.seal(&big, &mut out),
-        Err(SealError::Encode(EncodeError::TooLarge { len: DELTA_HEADER_LEN + 100 * 14, max: MAX_BODY }))
+        Err(SealError::Encode(EncodeError::TooLarge {
+            len: DELTA_HEADER_LEN + (12 + 100 * 102usize).div_ceil(8),
+            max: MAX_BODY
+        }))
     );
     // Ids that do not increase are refused too.
     let unordered = ServerMessage::StateUpdate(DeltaUpdate {

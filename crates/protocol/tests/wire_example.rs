@@ -49,6 +49,9 @@ struct Example {
     keep_alive: Vec<u8>,
     update2_plain: Vec<u8>,
     update2: Vec<u8>,
+    keep_alive2: Vec<u8>,
+    update3_plain: Vec<u8>,
+    update3: Vec<u8>,
 }
 
 /// Packs one tick's update for the player (`own` pinned, `others` after) and returns it
@@ -80,8 +83,8 @@ fn example() -> Example {
     // the capsule at (1000, 0, 0) is 900 units away, beyond the i16 offset (Far).
     let origin = pos(100.0, 20.0, -50.0);
     let h1 = UpdateHeader { tick: 1000, dilation_permille: 1000, origin };
-    let own1 = DeltaRecord::choose(OWN, ShapeKind::Sphere, pos(101.0, 20.5, -50.0), 1000, None);
-    let other1 = DeltaRecord::choose(OTHER, ShapeKind::Capsule, pos(1000.0, 0.0, 0.0), 1000, None);
+    let own1 = DeltaRecord::choose(OWN, ShapeKind::Sphere, pos(101.0, 20.5, -50.0), 1000, None, None);
+    let other1 = DeltaRecord::choose(OTHER, ShapeKind::Capsule, pos(1000.0, 0.0, 0.0), 1000, None, None);
     let [update1_plain, update1] = update(&mut server, h1, own1, &[other1]);
 
     // 8.3: the client opened the update (server sequence 0) and every record resolved:
@@ -99,13 +102,44 @@ fn example() -> Example {
         RecordState::Absolute { pos, .. } => Some(Baseline { tick: 1000, pos }),
         _ => None,
     };
-    let own2 = DeltaRecord::choose(OWN, ShapeKind::Sphere, pos(101.25, 20.5, -50.5), 1003, base(&own1));
-    let other2 = DeltaRecord::choose(OTHER, ShapeKind::Capsule, pos(1000.0, 0.0, 0.0), 1003, base(&other1));
+    let own2 = DeltaRecord::choose(OWN, ShapeKind::Sphere, pos(101.25, 20.5, -50.5), 1003, base(&own1), None);
+    let other2 = DeltaRecord::choose(OTHER, ShapeKind::Capsule, pos(1000.0, 0.0, 0.0), 1003, base(&other1), None);
     assert_eq!(own2.state, RecordState::Delta { back: 3, d: [16, 0, -32] });
     assert_eq!(other2.state, RecordState::Same { back: 3 });
     let [update2_plain, update2] = update(&mut server, h2, own2, &[other2]);
 
-    Example { action, update1_plain, update1, keep_alive, update2_plain, update2 }
+    // 8.5: the client acknowledges both updates (server sequences 0 and 1) in its next
+    // KeepAlive (sequence 2).
+    acks.record(1);
+    let mut keep_alive2 = Vec::new();
+    assert_eq!(client.seal(&ClientMessage::KeepAlive { acks: acks.field() }, &mut keep_alive2), Ok(2));
+
+    // 8.6: tick 1006. The sphere kept going: its state of tick 1003 moved on by its move
+    // since tick 1000 is (6496, 1312, -3264); it is one step further on x (Predicted,
+    // back 3, prior 3). The capsule is still where it was at tick 1003 (Same).
+    let h3 = UpdateHeader { tick: 1006, ..h1 };
+    let acked = |tick, pos| Some(Baseline { tick, pos });
+    let own3 = DeltaRecord::choose(
+        OWN,
+        ShapeKind::Sphere,
+        QuantPos::new(6497, 1312, -3264),
+        1006,
+        acked(1003, QuantPos::new(6480, 1312, -3232)),
+        acked(1000, QuantPos::new(6464, 1312, -3200)),
+    );
+    let other3 = DeltaRecord::choose(
+        OTHER,
+        ShapeKind::Capsule,
+        pos(1000.0, 0.0, 0.0),
+        1006,
+        acked(1003, pos(1000.0, 0.0, 0.0)),
+        None,
+    );
+    assert_eq!(own3.state, RecordState::Predicted { back: 3, prior: 3, d: [1, 0, 0] });
+    assert_eq!(other3.state, RecordState::Same { back: 3 });
+    let [update3_plain, update3] = update(&mut server, h3, own3, &[other3]);
+
+    Example { action, update1_plain, update1, keep_alive, update2_plain, update2, keep_alive2, update3_plain, update3 }
 }
 
 /// The Action's body in clear: mask, frame 42, acknowledgement "none".
@@ -122,6 +156,13 @@ fn keep_alive_body() -> Vec<u8> {
     b
 }
 
+/// The second KeepAlive's body in clear: server sequences 1 and 0.
+fn keep_alive2_body() -> Vec<u8> {
+    let mut b = Vec::new();
+    AckField::encode(AckField::new(1, 1), &mut b);
+    b
+}
+
 /// What the page quotes, in page order: (what, exact bytes).
 fn blocks(e: &Example) -> Vec<(&'static str, String)> {
     vec![
@@ -133,23 +174,32 @@ fn blocks(e: &Example) -> Vec<(&'static str, String)> {
         ("8.3 sealed keep-alive", hex(&e.keep_alive)),
         ("8.4 update 2 before sealing", hex(&e.update2_plain)),
         ("8.4 sealed update 2", hex(&e.update2)),
+        ("8.5 keep-alive body", hex(&keep_alive2_body())),
+        ("8.5 sealed keep-alive", hex(&e.keep_alive2)),
+        ("8.6 update 3 before sealing", hex(&e.update3_plain)),
+        ("8.6 sealed update 3", hex(&e.update3)),
     ]
 }
 
 #[test]
 fn documented_bytes_match() {
     let e = example();
+    if std::env::var_os("PRINT_EXAMPLE").is_some() {
+        for (what, block) in blocks(&e) {
+            println!("{what}:\n{block}\n");
+        }
+    }
     for (what, block) in blocks(&e) {
         assert!(DOC.contains(&format!("```text\n{block}\n```")), "docs/protocol.md lacks {what}:\n{block}");
     }
-    // The header lines the page annotates: version 2 in every datagram.
-    for d in [&e.action, &e.update1, &e.keep_alive, &e.update2] {
-        assert_eq!(d[0], 2);
+    // The header lines the page annotates: version 3 in every datagram.
+    for d in [&e.action, &e.update1, &e.keep_alive, &e.update2, &e.keep_alive2, &e.update3] {
+        assert_eq!(d[0], 3);
     }
     // The sizes the page states.
     assert_eq!(
-        [e.action.len(), e.update1.len(), e.keep_alive.len(), e.update2.len()],
-        [55, 18 + 24 + 8 + 19 + 16, 50, 18 + 24 + 5 + 7 + 16]
+        [e.action.len(), e.update1.len(), e.keep_alive.len(), e.update2.len(), e.update3.len()],
+        [55, 18 + 24 + 29 + 16, 50, 18 + 24 + 16 + 16, 18 + 24 + 15 + 16]
     );
 }
 
@@ -184,7 +234,9 @@ fn the_example_reads_as_the_page_says() {
     // The client resolves both updates against what it holds.
     let mut baselines = Baselines::default();
     let mut states = Vec::new();
-    for (sealed, plain, seq) in [(&e.update1, &e.update1_plain, 0), (&e.update2, &e.update2_plain, 1)] {
+    let updates =
+        [(&e.update1, &e.update1_plain, 0), (&e.update2, &e.update2_plain, 1), (&e.update3, &e.update3_plain, 2)];
+    for (sealed, plain, seq) in updates {
         let mut d = sealed.clone();
         let opened = client.open(&mut d).expect("the update opens");
         assert_eq!(opened.header.sequence, seq);
@@ -200,6 +252,8 @@ fn the_example_reads_as_the_page_says() {
             rec(OTHER, ShapeKind::Capsule, QuantPos::new(64_000, 0, 0)),
             rec(OWN, ShapeKind::Sphere, QuantPos::new(6480, 1312, -3232)),
             rec(OTHER, ShapeKind::Capsule, QuantPos::new(64_000, 0, 0)),
+            rec(OWN, ShapeKind::Sphere, QuantPos::new(6497, 1312, -3264)),
+            rec(OTHER, ShapeKind::Capsule, QuantPos::new(64_000, 0, 0)),
         ]
     );
 
@@ -210,4 +264,17 @@ fn the_example_reads_as_the_page_says() {
     let mut none = Vec::new();
     assert_eq!(fresh.resolve_update(&u, &mut none), 2);
     assert!(none.is_empty());
+    // One that holds the sphere's state of tick 1003 but not its prior of tick 1000
+    // skips the Predicted record (and resolves the capsule's Same).
+    let mut partial = Baselines::default();
+    let sphere = |pos| DeltaRecord { id: OWN, state: RecordState::Absolute { kind: ShapeKind::Sphere, pos } };
+    let capsule = DeltaRecord {
+        id: OTHER,
+        state: RecordState::Absolute { kind: ShapeKind::Capsule, pos: QuantPos::new(64_000, 0, 0) },
+    };
+    partial.resolve(1003, &sphere(QuantPos::new(6480, 1312, -3232))).unwrap();
+    partial.resolve(1003, &capsule).unwrap();
+    let u = DeltaUpdate::decode_body(body(&e.update3_plain)).unwrap();
+    assert_eq!(partial.resolve_update(&u, &mut none), 1);
+    assert_eq!(none, [rec(OTHER, ShapeKind::Capsule, QuantPos::new(64_000, 0, 0))]);
 }

@@ -64,7 +64,7 @@ pub struct ServerConfig {
     /// sent over the byte budget (starving ones) stay under.
     pub max_datagrams_per_player: usize,
     /// Each player's send budget in kilobits per second, datagram headers and tags
-    /// included: what its updates spend on average (protocol version 2's priority
+    /// included: what its updates spend on average (protocol version 3's priority
     /// accumulator decides what fits; an object that waited too long goes over it).
     pub send_budget_kbps: f64,
     /// Data directory: the SQLite database and the development TLS certificate.

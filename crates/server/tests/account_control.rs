@@ -56,14 +56,16 @@ fn disabled_and_banned_accounts_are_refused_with_their_reasons() {
         // A wrong password on a banned account is a wrong password: nothing is revealed.
         let guess = Credentials { username: "user2".into(), password: "guess".into() };
         assert_eq!(refusal(Connection::connect(cc.clone(), guess).await).0, RefusalReason::WrongCredentials);
-        // A client before login version 4 speaks datagram protocol 1: it is refused
-        // before its credentials are judged (right ones included), with the nearest
-        // reason it knows.
-        for version in [2, 3] {
+        // A client before login version 5 speaks an older datagram protocol: it is
+        // refused before its credentials are judged (right ones included), with the
+        // nearest reason it knows.
+        for (version, told) in
+            [(2, RefusalReason::BadRequest), (3, RefusalReason::BadRequest), (4, RefusalReason::OutdatedClient)]
+        {
             let old = ClientConfig { login_version: version, ..cc.clone() };
             assert_eq!(
                 refusal(Connection::connect(old.clone(), Credentials::test_user(0)).await).0,
-                RefusalReason::BadRequest,
+                told,
                 "login version {version}"
             );
         }

@@ -90,7 +90,7 @@ pub struct BenchArgs {
     /// The sampled clients' render delay, in ticks (the server sends every tick).
     #[arg(long, default_value_t = Interpolation::default().delay_ticks)]
     pub render_delay_ticks: f64,
-    /// Also run a second configuration of protocol 2's replication (this byte budget in
+    /// Also run a second configuration of protocol 3's replication (this byte budget in
     /// kbit/s per player, the near bound and simulated link below) beside the live server
     /// on the sampled players, and report both (`bench/shadow.rs`).
     #[arg(long)]
@@ -204,7 +204,7 @@ struct ServerTick {
     /// What the sampled players' clients held and drew, over the run (`quality.rs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     quality: Option<QualityRow>,
-    /// A second configuration of protocol 2 beside the live server, on the same players
+    /// A second configuration of protocol 3 beside the live server, on the same players
     /// (`shadow.rs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     shadow: Option<shadow::ShadowRow>,

@@ -59,7 +59,7 @@ pub struct QualityConfig {
     pub tick_rate_hz: u16,
     /// The mirrors' render delay and extrapolation cap.
     pub interpolation: Interpolation,
-    /// Also run a second configuration of protocol 2's replication beside the live one
+    /// Also run a second configuration of protocol 3's replication beside the live one
     /// on the sampled players (`shadow.rs`), with this configuration, datagram cap and
     /// simulated link.
     pub shadow: Option<(ReplicationConfig, usize, Link)>,

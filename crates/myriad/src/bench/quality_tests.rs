@@ -80,7 +80,7 @@ fn a_small_budget_makes_far_objects_wait_and_drawn_off() {
 
 #[test]
 fn an_unchanged_object_ages_while_the_information_stays_current() {
-    // Most of the world's objects settle and stop: protocol 2 confirms them only now and
+    // Most of the world's objects settle and stop: protocol 3 confirms them only now and
     // then, so the newest state a client holds grows old while it is still the current
     // one. The information age tells the two apart; the newest state's age does not.
     let probe = run(60.0, 4_000.0, 2.0);

@@ -153,7 +153,7 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
     s
 }
 
-/// A second configuration of protocol 2 beside the live server, on the same sampled
+/// A second configuration of protocol 3 beside the live server, on the same sampled
 /// players (`bench/shadow.rs`).
 fn shadow_table(s: &mut String, rows: &[&Row]) {
     let with: Vec<(&Row, &super::ServerTick, &super::shadow::ShadowRow)> =
@@ -161,7 +161,7 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
     if with.is_empty() {
         return;
     }
-    let _ = writeln!(s, "\n#### Another configuration of protocol 2 beside the live server, same players and ticks\n");
+    let _ = writeln!(s, "\n#### Another configuration of protocol 3 beside the live server, same players and ticks\n");
     let _ = writeln!(
         s,
         "| scenario | backend | AOI edge | protocol | budget kbit/s | near bound (ticks) | kB/s per player | information age ≤30 p50 / p99 / max (ms) | AOI p50 / p99 / max (ms) | error ≤30 p50 / p99 | error AOI p50 / p99 | missing ≤30 / AOI | relative records | unresolved |"
@@ -209,7 +209,7 @@ fn shadow_table(s: &mut String, rows: &[&Row]) {
     let _ = writeln!(
         s,
         "\nInformation age: 0 when the state a client holds is the object's current quantized position, else the \
-         age of that state (protocol 2 sends an unchanged object only to confirm it now and then). The live row's \
+         age of that state (protocol 3 sends an unchanged object only to confirm it now and then). The live row's \
          kB/s is over all players, the shadow's over the sampled ones (acknowledged before the next tick unless \
          its simulated link delays or loses them)."
     );
@@ -266,7 +266,7 @@ fn quality_table(s: &mut String, rows: &[&Row]) {
          the cap, then held) and the server's true position at T. Missing: objects in the AOI of which the client \
          held no state when sampled (not in the staleness or error percentiles). Information age: 0 while the \
          state the client holds is the object's current quantized position, else the time since the object moved \
-         away from it (protocol 2 sends an unchanged object only to confirm it now and then, so its newest state \
+         away from it (protocol 3 sends an unchanged object only to confirm it now and then, so its newest state \
          can be old and still current)."
     );
 }

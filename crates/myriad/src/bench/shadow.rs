@@ -1,4 +1,4 @@
-//! A second configuration of protocol version 2's replication (deltas against
+//! A second configuration of protocol version 3's replication (deltas against
 //! acknowledged states, the priority accumulator and a byte budget:
 //! `myriad_interest::replica`) run beside the live server on the sampled players of the
 //! quality probe, on the same world and ticks: another budget or near bound, or a
@@ -278,7 +278,7 @@ pub(super) struct ShadowRow {
     pub near_bound_ticks: f32,
     /// The simulated link.
     pub link: Link,
-    /// Bytes per sampled player and second, protocol 2.
+    /// Bytes per sampled player and second, protocol 3.
     pub bytes_per_player_s: f64,
     /// Share of records relative to a baseline.
     pub relative_share: f64,

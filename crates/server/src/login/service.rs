@@ -206,7 +206,7 @@ impl LoginService {
         // Before the limiter and the store: an outdated client costs nothing, and its
         // credentials are not judged (it could not play even if they were right).
         if req.version < MIN_SERVED_LOGIN_VERSION {
-            tracing::info!(%peer, version = req.version, "login refused: outdated client (datagram protocol 1)");
+            tracing::info!(%peer, version = req.version, "login refused: outdated client (an older datagram protocol)");
             return refuse(RefusalReason::OutdatedClient, 0);
         }
         if let Some(wait) = self.limiter.check(peer.ip(), &req.username, Instant::now()) {

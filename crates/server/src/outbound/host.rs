@@ -69,7 +69,7 @@ impl Outbound for HostOutbound {
     fn description(&self) -> String {
         let c = self.interest.config();
         format!(
-            "host interest management, protocol 2 ({:.0} bytes a player a tick, {} datagrams at most)",
+            "host interest management, protocol 3 ({:.0} bytes a player a tick, {} datagrams at most)",
             c.replication.budget_bytes_per_tick, c.max_datagrams
         )
     }

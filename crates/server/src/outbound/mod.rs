@@ -10,11 +10,11 @@
 //!
 //! One implementation today, [`HostOutbound`] (`host.rs`): the backend answers the AOI
 //! boxes (on the device for `cuda`), the
-//! [`InterestManager`](myriad_interest::InterestManager) builds protocol version 2's
+//! [`InterestManager`](myriad_interest::InterestManager) builds protocol version 3's
 //! delta updates through each player's replica and seals them in parallel over players,
 //! and every recipient is ready at the end. The device outbound of protocol version 1
 //! (selection, packing and sealing on a CUDA device, up to commit `2f895d5`) awaits its
-//! port to version 2 (issue 26); `myriad_cuda::DeviceInterest` is its base.
+//! port to version 3 (issue 26); `myriad_cuda::DeviceInterest` is its base.
 
 mod host;
 

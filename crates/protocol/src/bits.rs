@@ -1,0 +1,221 @@
+//! Bit-level writing and reading for the records of a state update (`docs/protocol.md`,
+//! section 5.3): bits fill each byte from its least significant bit up, and a field of
+//! `n` bits goes least significant bit first, so a field is its value's low `n` bits
+//! wherever it starts. Exp-Golomb codes carry the ids.
+
+use crate::error::DecodeError;
+
+/// Appends bits to a byte slice.
+pub(crate) struct BitWriter<'a> {
+    out: &'a mut [u8],
+    /// Bits written so far.
+    at: usize,
+}
+
+impl<'a> BitWriter<'a> {
+    /// A writer at the start of `out`, which must be zeroed (bits are or-ed in).
+    pub(crate) fn new(out: &'a mut [u8]) -> Self {
+        Self { out, at: 0 }
+    }
+
+    /// Writes the low `n` bits of `v` (`n` ≤ 64). The caller sized the slice: writing
+    /// past its end panics, which `pack_deltas` rules out by measuring first.
+    pub(crate) fn put(&mut self, v: u64, n: u32) {
+        let mut left = n;
+        let mut v = if n < 64 { v & ((1u64 << n) - 1) } else { v };
+        while left > 0 {
+            let (byte, bit) = (self.at / 8, (self.at % 8) as u32);
+            let take = (8 - bit).min(left);
+            self.out[byte] |= ((v & ((1u64 << take) - 1)) as u8) << bit;
+            v = v.checked_shr(take).unwrap_or(0);
+            left -= take;
+            self.at += take as usize;
+        }
+    }
+
+    /// Writes `v` in `n` bits, two's complement (the caller checked it fits).
+    pub(crate) fn put_signed(&mut self, v: i64, n: u32) {
+        self.put(v as u64, n);
+    }
+
+    /// Writes `v` as an exp-Golomb code of order `k` ([`exp_golomb_bits`]).
+    pub(crate) fn put_exp_golomb(&mut self, v: u64, k: u32) {
+        let w = u128::from(v) + (1u128 << k);
+        let n = 127 - w.leading_zeros();
+        // `n - k` zeros, a one, then the `n` bits of `w` below its top bit.
+        self.put(0, n - k);
+        self.put(1, 1);
+        let low = w - (1u128 << n);
+        self.put(low as u64, n.min(64));
+        if n > 64 {
+            self.put((low >> 64) as u64, n - 64);
+        }
+    }
+
+    /// Bytes the bits written so far take (the last one padded with zeros).
+    pub(crate) fn bytes(&self) -> usize {
+        self.at.div_ceil(8)
+    }
+}
+
+/// Reads bits from a byte slice; every read checks the length first.
+pub(crate) struct BitReader<'a> {
+    bytes: &'a [u8],
+    /// Bits read so far.
+    at: usize,
+}
+
+impl<'a> BitReader<'a> {
+    pub(crate) fn new(bytes: &'a [u8]) -> Self {
+        Self { bytes, at: 0 }
+    }
+
+    fn truncated(&self, bits: u32) -> DecodeError {
+        DecodeError::Truncated { needed: (self.at + bits as usize).div_ceil(8), got: self.bytes.len() }
+    }
+
+    /// Reads `n` bits (`n` ≤ 64) as an unsigned value.
+    pub(crate) fn get(&mut self, n: u32) -> Result<u64, DecodeError> {
+        if self.at + n as usize > self.bytes.len() * 8 {
+            return Err(self.truncated(n));
+        }
+        let (mut v, mut got) = (0u64, 0u32);
+        while got < n {
+            let (byte, bit) = (self.at / 8, (self.at % 8) as u32);
+            let take = (8 - bit).min(n - got);
+            let part = u64::from(self.bytes[byte] >> bit) & ((1u64 << take) - 1);
+            v |= part << got;
+            got += take;
+            self.at += take as usize;
+        }
+        Ok(v)
+    }
+
+    /// Reads `n` bits (1 ≤ `n` ≤ 32) as a two's complement value.
+    pub(crate) fn get_signed(&mut self, n: u32) -> Result<i32, DecodeError> {
+        let v = self.get(n)? as u32;
+        let shift = 32 - n;
+        Ok(((v << shift) as i32) >> shift)
+    }
+
+    /// Reads one bit.
+    pub(crate) fn bit(&mut self) -> Result<bool, DecodeError> {
+        Ok(self.get(1)? == 1)
+    }
+
+    /// Reads an exp-Golomb code of order `k`; a value past `u64::MAX` is malformed
+    /// (every value has one code, so there is nothing else to check).
+    pub(crate) fn get_exp_golomb(&mut self, k: u32) -> Result<u64, DecodeError> {
+        let mut zeros = 0u32;
+        while !self.bit()? {
+            zeros += 1;
+            // `w` below 2^65: no code of a u64 has more zeros than this.
+            if zeros + k > 64 {
+                return Err(DecodeError::BadIdCode);
+            }
+        }
+        let n = zeros + k;
+        let mut low = u128::from(self.get(n.min(64))?);
+        if n > 64 {
+            low |= u128::from(self.get(n - 64)?) << 64;
+        }
+        let v = (1u128 << n) + low - (1u128 << k);
+        u64::try_from(v).map_err(|_| DecodeError::BadIdCode)
+    }
+
+    /// Checks that what is left is the zero padding of the last byte.
+    pub(crate) fn finish(self) -> Result<(), DecodeError> {
+        let used = self.at.div_ceil(8);
+        if used < self.bytes.len() {
+            return Err(DecodeError::TrailingBytes { extra: self.bytes.len() - used });
+        }
+        let pad = (8 - self.at % 8) % 8;
+        match self.bytes.last() {
+            Some(&last) if pad > 0 && last >> (8 - pad) != 0 => Err(DecodeError::ReservedBits(u32::from(last))),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// Bits of the exp-Golomb code of order `k` of `v`: `n - k` zeros, a one and the `n`
+/// bits below the top bit of `w = v + 2^k`, where `2^n ≤ w < 2^(n+1)`; so `2n - k + 1`.
+pub(crate) fn exp_golomb_bits(v: u64, k: u32) -> u32 {
+    let w = u128::from(v) + (1u128 << k);
+    let n = 127 - w.leading_zeros();
+    2 * n - k + 1
+}
+
+/// Bits a two's complement field needs to hold `v`.
+pub(crate) fn signed_bits(v: i64) -> u32 {
+    let magnitude = if v < 0 { !v } else { v };
+    65 - magnitude.leading_zeros()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fields_and_codes_read_back_as_written() {
+        let mut buf = [0u8; 256];
+        let values = [0u64, 1, 2, 3, 7, 8, 511, 512, 1 << 40, u64::MAX - 1, u64::MAX];
+        let mut w = BitWriter::new(&mut buf);
+        for (i, &v) in values.iter().enumerate() {
+            w.put(i as u64 % 8, 3);
+            w.put_exp_golomb(v, (i as u32 * 7) % 64);
+            w.put_signed(-(i as i64), 6);
+        }
+        let len = w.bytes();
+        let mut r = BitReader::new(&buf[..len]);
+        for (i, &v) in values.iter().enumerate() {
+            assert_eq!(r.get(3).unwrap(), i as u64 % 8);
+            assert_eq!(r.get_exp_golomb((i as u32 * 7) % 64).unwrap(), v, "value {v}");
+            assert_eq!(r.get_signed(6).unwrap(), -(i as i32));
+        }
+        r.finish().unwrap();
+    }
+
+    #[test]
+    fn code_lengths_match_what_is_written() {
+        for k in [0, 1, 5, 9, 33, 63] {
+            for v in [0u64, 1, 2, 100, 1 << 20, u64::MAX] {
+                let mut buf = [0u8; 32];
+                let mut w = BitWriter::new(&mut buf);
+                w.put_exp_golomb(v, k);
+                assert_eq!(w.at as u32, exp_golomb_bits(v, k), "v {v} k {k}");
+            }
+        }
+        assert_eq!(exp_golomb_bits(0, 0), 1);
+        assert_eq!(exp_golomb_bits(1, 0), 3);
+        assert_eq!(exp_golomb_bits(0, 9), 10);
+        assert_eq!(signed_bits(0), 1);
+        assert_eq!(signed_bits(-1), 1);
+        assert_eq!(signed_bits(1), 2);
+        assert_eq!(signed_bits(-2), 2);
+        assert_eq!(signed_bits(511), 10);
+        assert_eq!(signed_bits(-512), 10);
+        assert_eq!(signed_bits(512), 11);
+    }
+
+    #[test]
+    fn a_code_past_u64_max_and_bad_padding_are_malformed() {
+        // 65 zeros after order 0: beyond any u64.
+        let buf = [0u8; 16];
+        assert_eq!(BitReader::new(&buf).get_exp_golomb(0), Err(DecodeError::BadIdCode));
+        // Order 0 with 64 zeros, a one and 64 ones: 2^65 - 2, past u64::MAX.
+        let mut buf = [0u8; 24];
+        let mut w = BitWriter::new(&mut buf);
+        w.put(0, 64);
+        w.put(1, 1);
+        w.put(u64::MAX, 64);
+        assert_eq!(BitReader::new(&buf).get_exp_golomb(0), Err(DecodeError::BadIdCode));
+        // A set padding bit.
+        let mut r = BitReader::new(&[0b1000_0001]);
+        assert!(r.bit().unwrap());
+        assert_eq!(r.finish(), Err(DecodeError::ReservedBits(0x81)));
+        let mut r = BitReader::new(&[0b0000_0001, 0]);
+        assert!(r.bit().unwrap());
+        assert_eq!(r.finish(), Err(DecodeError::TrailingBytes { extra: 1 }));
+        assert!(matches!(BitReader::new(&[1]).get(9), Err(DecodeError::Truncated { needed: 2, got: 1 })));
+    }
+}

@@ -137,6 +137,10 @@ pub fn run_zone_process(
         let mut step_ms = StepAverage::default();
         load = step_ms.load(&zone);
         heartbeat.set(Beat { run: epoch, tick, state, load });
+        // The gauges describe the checkpoint from now on, not the abandoned epoch's last
+        // tick, which a neighbour's first step of this epoch may reach: one tick's
+        // gauges never come from two epochs.
+        zone.stats().export(cfg.zone);
         let outcome = loop {
             let t = zone.tick();
             let every = cfg.checkpoint_every.max(1);

@@ -10,6 +10,12 @@ use crate::layout::ZoneId;
 pub struct ZoneStats {
     /// Ticks stepped.
     pub ticks: u64,
+    /// The world's tick the gauges describe: the tick the last step reached, or the one
+    /// the zone started (or resumed) at. Zones' gauges add up only at one tick: a
+    /// hand-off leaves its old owner's count at tick t and joins its new owner's in
+    /// that zone's own step of t, so two zones read a tick apart count an object in
+    /// flight twice or not at all.
+    pub tick: u64,
     /// Objects owned after the last tick.
     pub owned: usize,
     /// Ghosts stepped in the last tick (objects of neighbours, and objects just handed
@@ -126,5 +132,8 @@ impl ZoneStats {
         for (reason, n) in &self.rejected {
             metrics::counter!("myriad_zone_rejected_total", "zone" => z.clone(), "reason" => *reason).absolute(*n);
         }
+        // Last: a scrape that catches this export half done shows the tick before with
+        // some newer values, and a reader that scrapes twice sees the tick move on.
+        metrics::gauge!("myriad_zone_tick", "zone" => z).set(self.tick as f64);
     }
 }

@@ -145,7 +145,7 @@ impl Zone {
             return Err(ZoneError::Layout(format!("zone {} of a layout of {}", cfg.id.0, layout.len())));
         }
         let resident = ResidentWorld::new(world, &layout, cfg.id, owned)?;
-        let stats = ZoneStats { owned: resident.owned_count(), ..ZoneStats::default() };
+        let stats = ZoneStats { owned: resident.owned_count(), tick: world.tick, ..ZoneStats::default() };
         Ok(Zone {
             stepped_with: layout.clone(),
             layout,
@@ -310,6 +310,7 @@ impl Zone {
         self.stats.copies += Duration::from_secs_f64(report.stage_ms[Stage::Upload as usize].max(0.0) / 1e3);
         self.stats.ticks += 1;
         self.stats.owned = self.resident.owned_count();
+        self.stats.tick = self.tick();
         self.stats.step += start.elapsed();
         if self.cfg.live {
             let publish = Instant::now();

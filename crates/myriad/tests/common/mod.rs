@@ -85,7 +85,12 @@ pub fn replay_equal(url: &str, name: &str, key: &str, args: &[&str]) -> serde_js
 
 /// The sum of a metric's samples (all label sets) on a Prometheus endpoint.
 pub fn metric(port: u16, name: &str) -> f64 {
-    let body = (|| -> std::io::Result<String> {
+    sample(&scrape(port), name).unwrap_or(0.0)
+}
+
+/// A Prometheus endpoint's page (empty when it does not answer).
+fn scrape(port: u16) -> String {
+    (|| -> std::io::Result<String> {
         use std::io::{Read, Write};
         let mut s = std::net::TcpStream::connect(("127.0.0.1", port))?;
         s.write_all(b"GET /metrics HTTP/1.0\r\nHost: x\r\n\r\n")?;
@@ -93,11 +98,32 @@ pub fn metric(port: u16, name: &str) -> f64 {
         s.read_to_string(&mut body)?;
         Ok(body)
     })()
-    .unwrap_or_default();
-    body.lines()
+    .unwrap_or_default()
+}
+
+/// The sum of a metric's samples on a page, `None` when it has none.
+fn sample(page: &str, name: &str) -> Option<f64> {
+    page.lines()
         .filter(|l| l.starts_with(name) && l[name.len()..].starts_with([' ', '{']))
         .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
-        .sum()
+        .reduce(|a, b| a + b)
+}
+
+/// The tick every zone's gauges describe (`myriad_zone_tick`) and the sum of the zones'
+/// gauge `name` at it, the zones' metrics on `base .. base + zones`; `None` when the
+/// zones are at different ticks. Zones step apart: summed across one zone's step, a
+/// count misses or doubles what that step handed over. Each page is read twice and must
+/// say the same: one scraped while its zone exported may pair the values of one tick
+/// with the next's or the one before.
+pub fn zones_at_one_tick(base: u16, zones: u16, name: &str) -> Option<(u64, f64)> {
+    let read = |z: u16| {
+        let page = scrape(base + z);
+        Some((sample(&page, "myriad_zone_tick")?, sample(&page, name)?))
+    };
+    let first: Vec<_> = (0..zones).map(read).collect::<Option<_>>()?;
+    let again: Vec<_> = (0..zones).map(read).collect::<Option<_>>()?;
+    let tick = first[0].0;
+    (first == again && first.iter().all(|(t, _)| *t == tick)).then(|| (tick as u64, first.iter().map(|(_, v)| v).sum()))
 }
 
 /// `GET path` on a gateway's admin API with its token (from its data directory).

@@ -51,7 +51,7 @@ pub struct ClientConfig {
     /// Login request version to send ([`myriad_protocol::login::LOGIN_VERSION`]). An
     /// older version is for tests and the flood tool: a server refuses it as
     /// [`myriad_protocol::login::RefusalReason::OutdatedClient`] (this client speaks
-    /// datagram protocol 2 only).
+    /// datagram protocol 3 only).
     pub login_version: u8,
 }
 
@@ -102,7 +102,7 @@ pub async fn login(
     credentials: &Credentials,
 ) -> Result<(LoginAccepted, Option<MapData>), ClientError> {
     tokio::time::timeout(config.login_timeout, async {
-        // No fallback to an older login version: this client speaks datagram protocol 2
+        // No fallback to an older login version: this client speaks datagram protocol 3
         // only, which an older login would not promise the server.
         login_inner(config, credentials, config.login_version).await
     })

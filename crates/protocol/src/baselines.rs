@@ -22,6 +22,15 @@ pub fn predict(base: QuantPos, prior: QuantPos, back: u8, prior_ticks: u8) -> [i
     [axis(base.x, prior.x), axis(base.y, prior.y), axis(base.z, prior.z)]
 }
 
+/// The object's kind and its state `back` ticks before `tick`, from its history. A
+/// record naming a tick before 0 has no baseline: it must not fall back on tick 0's
+/// state (only a broken server sends one).
+fn state_at(history: Option<&History>, id: u64, tick: u64, back: u64) -> Result<(ShapeKind, QuantPos), ResolveError> {
+    let at = tick.checked_sub(back);
+    let state = at.zip(history).and_then(|(at, h)| Some((h.kind, h.at(at)?)));
+    state.ok_or(ResolveError::MissingBaseline { id, tick: at.unwrap_or(0) })
+}
+
 /// `from + d`, saturated at the `i32` range.
 fn moved(from: [i64; 3], d: [i16; 3]) -> QuantPos {
     let at = |a: i64, d: i16| (a + i64::from(d)).clamp(i32::MIN.into(), i32::MAX.into()) as i32;
@@ -74,11 +83,13 @@ impl Baselines {
         let (kind, pos) = match record.state {
             RecordState::Absolute { kind, pos } => (kind, pos),
             RecordState::Delta { back, .. } | RecordState::Same { back } | RecordState::Predicted { back, .. } => {
-                let (kind, base) = self.state_at(id, tick, u64::from(back))?;
+                // One lookup of the object's history for both states a prediction needs.
+                let history = self.objects.get(&id);
+                let (kind, base) = state_at(history, id, tick, u64::from(back))?;
                 match record.state {
                     RecordState::Delta { d, .. } => (kind, moved([base.x, base.y, base.z].map(i64::from), d)),
                     RecordState::Predicted { back, prior, d } => {
-                        let (_, before) = self.state_at(id, tick, u64::from(back) + u64::from(prior))?;
+                        let (_, before) = state_at(history, id, tick, u64::from(back) + u64::from(prior))?;
                         (kind, moved(predict(base, before, back, prior), d))
                     }
                     _ => (kind, base),
@@ -87,15 +98,6 @@ impl Baselines {
         };
         self.remember(tick, StateRecord { id, kind, pos });
         Ok(StateRecord { id, kind, pos })
-    }
-
-    /// The object's kind and its state `back` ticks before `tick`. A record naming a
-    /// tick before 0 has no baseline: it must not fall back on tick 0's state (only a
-    /// broken server sends one).
-    fn state_at(&self, id: u64, tick: u64, back: u64) -> Result<(ShapeKind, QuantPos), ResolveError> {
-        let at = tick.checked_sub(back);
-        let state = at.zip(self.objects.get(&id)).and_then(|(at, h)| Some((h.kind, h.at(at)?)));
-        state.ok_or(ResolveError::MissingBaseline { id, tick: at.unwrap_or(0) })
     }
 
     /// Resolves every record of `update` into `out` (appended, in the update's order) and

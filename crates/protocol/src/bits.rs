@@ -21,6 +21,16 @@ impl<'a> BitWriter<'a> {
     /// Writes the low `n` bits of `v` (`n` ≤ 64). The caller sized the slice: writing
     /// past its end panics, which `pack_deltas` rules out by measuring first.
     pub(crate) fn put(&mut self, v: u64, n: u32) {
+        let (byte, bit) = (self.at / 8, (self.at % 8) as u32);
+        // Fast path: a field of up to 56 bits and 8 bytes of room, or-ed in as one
+        // little-endian word (the bits above the field are zero, as is the slice).
+        if n <= 56 && byte + 8 <= self.out.len() {
+            let word = u64::from_le_bytes(self.out[byte..byte + 8].try_into().expect("8 bytes"));
+            let field = if n == 0 { 0 } else { v & (u64::MAX >> (64 - n)) };
+            self.out[byte..byte + 8].copy_from_slice(&(word | field << bit).to_le_bytes());
+            self.at += n as usize;
+            return;
+        }
         let mut left = n;
         let mut v = if n < 64 { v & ((1u64 << n) - 1) } else { v };
         while left > 0 {
@@ -74,10 +84,24 @@ impl<'a> BitReader<'a> {
         DecodeError::Truncated { needed: (self.at + bits as usize).div_ceil(8), got: self.bytes.len() }
     }
 
+    /// The next 57 to 64 bits as one word (bit 0 the next), if 8 bytes are left from
+    /// the current one.
+    fn window(&self) -> Option<u64> {
+        let byte = self.at / 8;
+        let word = self.bytes.get(byte..byte + 8)?;
+        Some(u64::from_le_bytes(word.try_into().ok()?) >> (self.at % 8))
+    }
+
     /// Reads `n` bits (`n` ≤ 64) as an unsigned value.
     pub(crate) fn get(&mut self, n: u32) -> Result<u64, DecodeError> {
         if self.at + n as usize > self.bytes.len() * 8 {
             return Err(self.truncated(n));
+        }
+        if n <= 56
+            && let Some(w) = self.window()
+        {
+            self.at += n as usize;
+            return Ok(if n == 0 { 0 } else { w & (u64::MAX >> (64 - n)) });
         }
         let (mut v, mut got) = (0u64, 0u32);
         while got < n {
@@ -107,12 +131,17 @@ impl<'a> BitReader<'a> {
     /// (every value has one code, so there is nothing else to check).
     pub(crate) fn get_exp_golomb(&mut self, k: u32) -> Result<u64, DecodeError> {
         let mut zeros = 0u32;
-        while !self.bit()? {
-            zeros += 1;
-            // `w` below 2^65: no code of a u64 has more zeros than this.
+        // Fast path: the zeros and their one within the next 56 bits.
+        if let Some(w) = self.window().map(|w| w & (u64::MAX >> 8))
+            && w != 0
+        {
+            zeros = w.trailing_zeros();
             if zeros + k > 64 {
                 return Err(DecodeError::BadIdCode);
             }
+            self.at += zeros as usize + 1;
+        } else {
+            zeros = self.count_zeros(k)?;
         }
         let n = zeros + k;
         let mut low = u128::from(self.get(n.min(64))?);
@@ -121,6 +150,19 @@ impl<'a> BitReader<'a> {
         }
         let v = (1u128 << n) + low - (1u128 << k);
         u64::try_from(v).map_err(|_| DecodeError::BadIdCode)
+    }
+
+    /// Counts the zeros of an exp-Golomb code of order `k` bit by bit, and reads its one.
+    fn count_zeros(&mut self, k: u32) -> Result<u32, DecodeError> {
+        let mut zeros = 0u32;
+        while !self.bit()? {
+            zeros += 1;
+            // `w` below 2^65: no code of a u64 has more zeros than this.
+            if zeros + k > 64 {
+                return Err(DecodeError::BadIdCode);
+            }
+        }
+        Ok(zeros)
     }
 
     /// Checks that what is left is the zero padding of the last byte.

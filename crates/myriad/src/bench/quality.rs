@@ -24,7 +24,7 @@
 //! and the whole AOI. Memory is bounded: the sample's mirrors and at most a few ticks'
 //! truths.
 //!
-//! Protocol version 2 sends an unchanged object only to confirm it now and then, so the
+//! Protocol version 3 sends an unchanged object only to confirm it now and then, so the
 //! age of the newest state says little of how current a client is; the probe also
 //! records each object's *information age* (`shadow.rs`'s [`InformationAge`]: 0 while the
 //! client holds the object's current quantized position, else the time since the object

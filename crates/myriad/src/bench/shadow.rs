@@ -55,7 +55,7 @@ impl Link {
     }
 }
 
-/// One sampled player's version 2 link.
+/// One sampled player's version 3 link.
 pub(super) struct Shadow {
     replica: Replica,
     sealer: Sealer,

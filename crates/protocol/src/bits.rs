@@ -130,19 +130,18 @@ impl<'a> BitReader<'a> {
     /// Reads an exp-Golomb code of order `k`; a value past `u64::MAX` is malformed
     /// (every value has one code, so there is nothing else to check).
     pub(crate) fn get_exp_golomb(&mut self, k: u32) -> Result<u64, DecodeError> {
-        let mut zeros = 0u32;
         // Fast path: the zeros and their one within the next 56 bits.
-        if let Some(w) = self.window().map(|w| w & (u64::MAX >> 8))
-            && w != 0
-        {
-            zeros = w.trailing_zeros();
-            if zeros + k > 64 {
-                return Err(DecodeError::BadIdCode);
+        let zeros = match self.window().map(|w| w & (u64::MAX >> 8)) {
+            Some(w) if w != 0 => {
+                let zeros = w.trailing_zeros();
+                if zeros + k > 64 {
+                    return Err(DecodeError::BadIdCode);
+                }
+                self.at += zeros as usize + 1;
+                zeros
             }
-            self.at += zeros as usize + 1;
-        } else {
-            zeros = self.count_zeros(k)?;
-        }
+            _ => self.count_zeros(k)?,
+        };
         let n = zeros + k;
         let mut low = u128::from(self.get(n.min(64))?);
         if n > 64 {

@@ -649,7 +649,7 @@ mod tests {
             assert_eq!(RefusalReason::OutdatedClient.understood_by(old), RefusalReason::BadRequest);
         }
         // A client of login version 4 (datagram protocol 2) knows the reason it is told.
-        assert!(4 < MIN_SERVED_LOGIN_VERSION);
+        const { assert!(4 < MIN_SERVED_LOGIN_VERSION) };
         assert_eq!(RefusalReason::OutdatedClient.understood_by(4), RefusalReason::OutdatedClient);
         assert_eq!(RefusalReason::OutdatedClient.understood_by(LOGIN_VERSION), RefusalReason::OutdatedClient);
         // Busy has its own code, 7, with the retry hint.

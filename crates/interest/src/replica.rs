@@ -27,7 +27,7 @@
 //! 4. they are written smallest form first against their baselines
 //!    ([`DeltaRecord::choose`]), ids increasing, the player's own object in every
 //!    datagram; what was sent restarts its priority at zero. Records are weighed against
-//!    the budget at a conservative estimate of their bits ([`charge_bits`]); what the
+//!    the budget at a conservative estimate of their bits (`charge_bits`); what the
 //!    datagrams really took is what the tick spent, and the rest carries over.
 
 use std::collections::VecDeque;

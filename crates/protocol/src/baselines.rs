@@ -108,7 +108,7 @@ impl Baselines {
     }
 
     /// [`Self::resolve_update`] for the records of the update of tick `tick` as they come
-    /// (a [`DeltaUpdateView`]'s, without collecting them first).
+    /// (a [`DeltaUpdateView`](crate::DeltaUpdateView)'s, without collecting them first).
     pub fn resolve_records(
         &mut self,
         tick: u64,

@@ -19,7 +19,7 @@
 //!   the server datagrams it opened in every action and keep-alive ([`ack`]); state
 //!   updates carry each object relative to a state the client acknowledged (or
 //!   predicted along its move since the one before), bit-packed, in 2 to 6 bytes when
-//!   it moved little, or absolute when there is none ([`delta`], [`bits`]).
+//!   it moved little, or absolute when there is none ([`delta`]).
 //!   [`pack_deltas`] fills as few datagrams as possible without allocating per record,
 //!   and a client's [`Baselines`] resolves what it receives, skipping (never
 //!   misapplying) a record whose baseline it lacks.

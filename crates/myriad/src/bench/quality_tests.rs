@@ -71,10 +71,11 @@ fn a_small_budget_makes_far_objects_wait_and_drawn_off() {
     let (s, info) = (probe.summary(), probe.information_summary());
     assert!(info.staleness_all_ms.p99 > info.staleness_near_ms.p99, "far objects wait longer: {info:?}");
     assert!(s.error_all.p99 > f64::from(QUANTIZATION), "waiting objects are drawn off: {s:?}");
-    // Both ages are whole numbers of ticks (on the server's clock, no network delay).
+    // Both ages are whole numbers of ticks (on the server's clock, no network delay), to
+    // the histograms' precision (3 significant digits: a bucket of 0.36 ms at 733 ms).
     for v in [s.staleness_all_ms.p50, s.staleness_all_ms.p99, info.staleness_all_ms.p99, info.staleness_all_ms.max] {
-        let ticks = v / TICK_MS;
-        assert!((ticks - ticks.round()).abs() < 0.01, "{v} ms is not whole ticks: {s:?} {info:?}");
+        let off = (v - (v / TICK_MS).round() * TICK_MS).abs();
+        assert!(off < 0.01 * TICK_MS + v / 1024.0, "{v} ms is not whole ticks: {s:?} {info:?}");
     }
 }
 
@@ -110,7 +111,7 @@ fn a_shadow_with_a_smaller_budget_sends_less_than_the_live_server() {
 }
 
 #[test]
-fn protocol_2_through_loss_and_delay_only_waits() {
+fn protocol_3_through_loss_and_delay_only_waits() {
     let budget = ReplicationConfig { budget_bytes_per_tick: 32_000.0 / 30.0, ..ReplicationConfig::default() };
     let lossy = Link { loss: 0.05, delay_ms: 100.0, jitter_ms: 20.0 };
     let (clean, _, _) = run_probe(60.0, 64.0, 2.0, Some((budget, 2, Link::default())));

@@ -76,16 +76,17 @@ fn sealed_traffic_both_ways() {
     assert_eq!(rejected, vec![ErrorClass::Authentication, ErrorClass::Replayed]);
 
     // The server answers with a two-datagram update.
-    let records: Vec<StateRecord> = (0..200u64)
+    let records: Vec<StateRecord> = (0..400u64)
         .map(|i| StateRecord { id: i, kind: ShapeKind::Sphere, pos: QuantPos::new(i as i32, 0, 0) })
         .collect();
-    // Absolute records (the client holds nothing yet): 200 `Near` records of 8 bytes
-    // need two datagrams.
+    // Absolute records (the client holds nothing yet): 400 `Near` records of 37 bits
+    // (a one-bit id code, the form, kind and class, 3 × 10 bits of offset) need two
+    // datagrams.
     let deltas: Vec<DeltaRecord> =
         records.iter().map(|r| DeltaRecord::choose(r.id, r.kind, r.pos, 0, None, None)).collect();
     let mut out = DatagramBatch::new();
     let mut ends = Vec::new();
-    assert_eq!(pack_deltas(&UpdateHeader::default(), None, &deltas, 2, &mut out, &mut ends), 200);
+    assert_eq!(pack_deltas(&UpdateHeader::default(), None, &deltas, 2, &mut out, &mut ends), 400);
     assert_eq!(out.len(), 2);
     server.sealer.seal_batch(&mut out).unwrap();
     let to_client: Vec<(SocketAddr, &[u8])> = out.iter().map(|d| (client_ep.local_addr(), d)).collect();

@@ -35,7 +35,7 @@ fn the_smallest_form_is_chosen() {
 }
 
 #[test]
-fn a_steady_move_is_predicted_and_a_turn_is_not() {
+fn a_steady_move_is_predicted_and_a_stop_is_not() {
     // Moving +40 steps a tick on x: sent at 4, 7, now 10.
     let prior = Some(Baseline { tick: 4, pos: q(0, 0, 0) });
     let base = Some(Baseline { tick: 7, pos: q(120, 0, 0) });

@@ -16,10 +16,11 @@ mkdir -p "$carry/tests"
 jobs=${JOBS:-1}
 parts=${PARTS:-all}
 
-# Test binaries of myriad-cuda; cargo's JSON messages name each executable. (The
-# server's device outbound test returns with the device outbound's port to protocol 2.)
+# Test binaries of myriad-cuda and the server's device outbound test; cargo's JSON
+# messages name each executable.
 [[ $parts == host ]] || {
     nice -n 10 cargo test --release -j "$jobs" -p myriad-cuda --no-run --message-format=json
+    nice -n 10 cargo test --release -j "$jobs" -p myriad-server --test device_outbound --no-run --message-format=json
 } 2>"$carry/build.log" |
     python3 -c '
 import json, sys

@@ -17,26 +17,28 @@ use std::path::PathBuf;
 use cudarc::nvrtc::sys as nvrtc;
 
 /// The kernel sources, in the order they are concatenated into one program.
-pub const SOURCES: [(&str, &str); 6] = [
+pub const SOURCES: [(&str, &str); 7] = [
     ("scan.cu", include_str!("../kernels/scan.cu")),
     ("lbvh.cu", include_str!("../kernels/lbvh.cu")),
     ("broad.cu", include_str!("../kernels/broad.cu")),
     ("physics.cu", include_str!("../kernels/physics.cu")),
     ("interest.cu", include_str!("../kernels/interest.cu")),
     ("patch.cu", include_str!("../kernels/patch.cu")),
+    ("replica.cu", include_str!("../kernels/replica.cu")),
 ];
 
 /// Headers the sources include, handed to NVRTC by name.
-pub const HEADERS: [(&str, &str); 3] = [
+pub const HEADERS: [(&str, &str); 4] = [
     ("common.cuh", include_str!("../kernels/common.cuh")),
     ("narrow.cuh", include_str!("../kernels/narrow.cuh")),
     ("aead.cuh", include_str!("../kernels/aead.cuh")),
+    ("replica.cuh", include_str!("../kernels/replica.cuh")),
 ];
 
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 23] = [
+pub const KERNELS: [(&str, usize); 26] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -60,6 +62,9 @@ pub const KERNELS: [(&str, usize); 23] = [
     ("k_interest_seal", 8),
     ("k_patch_gather", 21),
     ("k_patch_scatter", 12),
+    ("k_replica_select", 25),
+    ("k_replica_commit", 13),
+    ("k_replica_carry", 5),
 ];
 
 /// The parameter count of each `extern "C" __global__` function in the sources, read

@@ -389,6 +389,29 @@ impl<T> DevBuf<T> {
         Ok(true)
     }
 
+    /// Makes room for `bytes` bytes like [`ensure`](Self::ensure), but keeps the first
+    /// `keep` bytes of the contents when it reallocates (copied on the device; waits for
+    /// the stream, so it is for growth that happens rarely).
+    pub fn grow_keeping(&mut self, gpu: &Gpu, bytes: usize, headroom: f64, keep: usize) -> Result<(), PhysicsError> {
+        if bytes <= self.bytes && self.ptr.raw() != 0 {
+            return Ok(());
+        }
+        let mut grown = DevBuf::<T>::empty();
+        grown.ensure(gpu, bytes, headroom)?;
+        let keep = keep.min(self.bytes);
+        if keep > 0 {
+            // SAFETY: both buffers hold at least `keep` bytes; the stream is waited for
+            // before the old buffer is freed (on replacement below).
+            unsafe {
+                result::memcpy_dtod_async(grown.ptr.raw(), self.ptr.raw(), keep, gpu.stream)
+                    .map_err(dev_err("copy"))?;
+            }
+            gpu.sync()?;
+        }
+        *self = grown;
+        Ok(())
+    }
+
     fn free(&mut self) {
         if self.ptr.raw() != 0
             && let Some(ctx) = &self.ctx

@@ -26,6 +26,9 @@ use myriad_physics::PhysicsError;
 
 use crate::device::{Arg, Gpu};
 use crate::params::DeviceParams;
+use crate::replica::{
+    RCand, RChosen, RCommit, RConfig, RDue, RFlight, RHome, RInfo, RKey, RMoved, RPlayer, RRecord, RState, RTrack,
+};
 
 /// A device address of items of type `T` (no ownership: the buffer it came from owns the
 /// memory). The null pointer stands for an absent optional array (e.g. no query order).
@@ -100,6 +103,20 @@ device_items!(
     u16 => "unsigned short",
     Node => "Node",
     DeviceParams => "Params",
+    RTrack => "RTrack",
+    RConfig => "RConfig",
+    RRecord => "RRecord",
+    RCand => "RCand",
+    RFlight => "RFlight",
+    RState => "RState",
+    RMoved => "RMoved",
+    RDue => "RDue",
+    RChosen => "RChosen",
+    RHome => "RHome",
+    RPlayer => "RPlayer",
+    RInfo => "RInfo",
+    RCommit => "RCommit",
+    RKey => "RKey",
 );
 
 /// A value that can be passed as one kernel parameter.
@@ -202,6 +219,61 @@ macro_rules! kernels {
 }
 
 kernels! {
+    /// `k_replica_select` (`kernels/replica.cu`): one thread per player chooses its
+    /// records (`replica.cuh`'s `r_select`) into mapped host memory.
+    KReplicaSelect = "k_replica_select" {
+        nq: u32,
+        cfg: DevPtr<RConfig>,
+        tick: u64,
+        offsets: DevPtr<u32>,
+        objects: DevPtr<u32>,
+        n: u32,
+        pos: DevPtr<f32>,
+        ids: DevPtr<u32>,
+        shapes: DevPtr<u8>,
+        players: DevPtr<RPlayer>,
+        homes: DevPtr<RHome>,
+        old_tracks: DevPtr<RTrack>,
+        next_tracks: DevPtr<RTrack>,
+        cands: DevPtr<RCand>,
+        cand_of: DevPtr<u32>,
+        un: DevPtr<RKey>,
+        orph: DevPtr<RKey>,
+        moved: DevPtr<RMoved>,
+        wanted: DevPtr<RDue>,
+        chosen: DevPtr<RChosen>,
+        flights: DevPtr<RFlight>,
+        states: DevPtr<RState>,
+        info: DevPtr<RInfo>,
+        out: DevPtr<RRecord>,
+        out_cap: u32,
+    }
+    /// `k_replica_commit`: one thread per player takes what its datagrams took
+    /// (`r_commit`).
+    KReplicaCommit = "k_replica_commit" {
+        nq: u32,
+        cfg: DevPtr<RConfig>,
+        tick: u64,
+        offsets: DevPtr<u32>,
+        players: DevPtr<RPlayer>,
+        homes: DevPtr<RHome>,
+        commits: DevPtr<RCommit>,
+        ends: DevPtr<u32>,
+        chosen: DevPtr<RChosen>,
+        cands: DevPtr<RCand>,
+        next_tracks: DevPtr<RTrack>,
+        flights: DevPtr<RFlight>,
+        states: DevPtr<RState>,
+    }
+    /// `k_replica_carry`: the tracks of players left out of a build, into its buffer.
+    KReplicaCarry = "k_replica_carry" {
+        count: u32,
+        carry: DevPtr<u32>,
+        old_tracks: DevPtr<RTrack>,
+        next_tracks: DevPtr<RTrack>,
+        homes: DevPtr<RHome>,
+    }
+
     /// `k_scan_blocks` (`kernels/scan.cu`): scans each block of `data` in place and
     /// writes each block's total to `block_sums`.
     KScanBlocks = "k_scan_blocks" { data: DevPtr<u32>, len: u32, block_sums: DevPtr<u32> }

@@ -23,6 +23,7 @@ pub mod device;
 pub mod interest;
 pub(crate) mod launch;
 pub mod params;
+pub mod replica;
 
 pub use backend::CudaBackend;
 pub use interest::DeviceInterest;
@@ -37,6 +38,8 @@ pub struct CreatedBackend {
     /// Interest selection, packing and sealing on the backend's device, sharing its
     /// state there (`Some` for the CUDA kinds).
     pub device_interest: Option<DeviceInterest>,
+    /// Every player's replica on the backend's device (`Some` for the CUDA kinds).
+    pub device_replicas: Option<replica::DeviceReplicas>,
 }
 
 impl std::fmt::Debug for CreatedBackend {
@@ -44,6 +47,7 @@ impl std::fmt::Debug for CreatedBackend {
         f.debug_struct("CreatedBackend")
             .field("backend", &self.backend.description())
             .field("device_interest", &self.device_interest.is_some())
+            .field("device_replicas", &self.device_replicas.is_some())
             .finish()
     }
 }
@@ -51,14 +55,15 @@ impl std::fmt::Debug for CreatedBackend {
 /// A backend made elsewhere (a CPU kind, a zones gateway's): physics only.
 impl From<Box<dyn Backend>> for CreatedBackend {
     fn from(backend: Box<dyn Backend>) -> CreatedBackend {
-        CreatedBackend { backend, device_interest: None }
+        CreatedBackend { backend, device_interest: None, device_replicas: None }
     }
 }
 
 impl From<CudaBackend> for CreatedBackend {
     fn from(cuda: CudaBackend) -> CreatedBackend {
         let device_interest = Some(cuda.device_interest());
-        CreatedBackend { backend: Box::new(cuda), device_interest }
+        let device_replicas = Some(cuda.device_replicas());
+        CreatedBackend { backend: Box::new(cuda), device_interest, device_replicas }
     }
 }
 

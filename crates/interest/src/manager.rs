@@ -4,12 +4,12 @@
 use std::borrow::BorrowMut;
 use std::cell::RefCell;
 
-use myriad_protocol::{AckField, DatagramBatch, QuantPos, Sealer};
+use myriad_protocol::{AckField, DatagramBatch, DeltaRecord, QuantPos, Sealer, UpdateHeader};
 use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::config::{InterestConfig, TickInfo};
-use crate::replica::{Candidate, Replica, ReplicaScratch};
+use crate::replica::{Candidate, Replica, ReplicaReport, ReplicaScratch, Sealed, is_relative, pack_and_seal};
 use crate::source::{AoiLists, ObjectSource};
 
 /// Errors of [`InterestManager::build`]. Bad data inside a list (slots out of range,
@@ -74,6 +74,61 @@ impl Subscriber {
         self.report
     }
 
+    /// Takes the acknowledgements that arrived since the last build, for a replica kept
+    /// elsewhere (the device's): this subscriber's own replica then never sees them.
+    pub fn take_acks(&mut self) -> Option<AckField> {
+        self.replica.take_acks()
+    }
+
+    /// Finishes a build whose choices a replica kept elsewhere made (the device's, which
+    /// follows [`Replica`]'s rules): packs and seals `own` and `records` (ids increasing)
+    /// into at most `datagrams` datagrams under `header`, and takes the report of it
+    /// (`chose`: what the choosing counted). Returns what packing and sealing did, for
+    /// that replica to commit; `ends` receives where each datagram's records end.
+    pub fn seal_chosen(
+        &mut self,
+        header: &UpdateHeader,
+        own: Option<&DeltaRecord>,
+        records: &[DeltaRecord],
+        datagrams: usize,
+        chose: ReplicaReport,
+        ends: &mut Vec<usize>,
+    ) -> Sealed {
+        let done = pack_and_seal(header, own, records, datagrams, &mut self.sealer, &mut self.datagrams, ends);
+        let mut report = chose;
+        if done.sealed.is_ok() {
+            report.packed = done.packed;
+            report.deferred += records.len() - done.packed;
+            report.relative = usize::from(own.is_some_and(is_relative))
+                + records[..done.packed].iter().filter(|r| is_relative(r)).count();
+        }
+        self.take_report(own.is_some(), done.sealed.as_ref().map(|_| report).map_err(|_| ()), 0);
+        done
+    }
+
+    /// Records the report of a build (`own`: whether the player's own object was in
+    /// every datagram; `skipped`: slots of its list skipped).
+    fn take_report(&mut self, own: bool, built: Result<ReplicaReport, ()>, skipped: usize) {
+        let mut report = SubscriberReport { skipped, ..SubscriberReport::default() };
+        match built {
+            Ok(r) => {
+                report.in_view = r.in_view;
+                report.packed = r.packed;
+                report.deferred = r.deferred;
+                report.starving = r.starving;
+                report.relative = r.relative;
+                report.records = r.packed + usize::from(own) * self.datagrams.len();
+            }
+            Err(()) => {
+                self.datagrams.clear();
+                report.seal_failed = true;
+            }
+        }
+        report.datagrams = self.datagrams.len();
+        report.bytes = self.datagrams.total_bytes();
+        self.report = report;
+    }
+
     /// Drops the datagrams of the last build: a tick that could not serve this player
     /// sends it nothing rather than the last tick's datagrams again. What those
     /// datagrams carried stays in flight in the replica, so nothing is taken as received.
@@ -132,7 +187,8 @@ pub struct TickReport {
 }
 
 impl TickReport {
-    fn add(mut self, s: &SubscriberReport) -> Self {
+    /// This report with one more subscriber's counts.
+    pub fn add(mut self, s: &SubscriberReport) -> Self {
         self.subscribers += 1;
         self.records += s.records;
         self.relative += s.relative;
@@ -279,21 +335,5 @@ fn build_one<O: ObjectSource>(
         &mut sub.datagrams,
         replica,
     );
-    match built {
-        Ok(r) => {
-            report.in_view = r.in_view;
-            report.packed = r.packed;
-            report.deferred = r.deferred;
-            report.starving = r.starving;
-            report.relative = r.relative;
-            report.records = r.packed + usize::from(own.is_some()) * sub.datagrams.len();
-        }
-        Err(_) => {
-            sub.datagrams.clear();
-            report.seal_failed = true;
-        }
-    }
-    report.datagrams = sub.datagrams.len();
-    report.bytes = sub.datagrams.total_bytes();
-    sub.report = report;
+    sub.take_report(own.is_some(), built.map_err(|_| ()), report.skipped);
 }

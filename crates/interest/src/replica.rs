@@ -186,6 +186,47 @@ impl Track {
     }
 }
 
+/// Most datagrams a replica keeps in flight: a client that stops acknowledging costs
+/// the server this much and no more (the oldest flight goes first).
+pub const MAX_FLIGHTS: usize = 64;
+
+/// Most states a replica's flights hold together (the oldest flight goes first).
+pub const MAX_FLIGHT_STATES: usize = 4096;
+
+/// What packing and sealing one build's records did.
+#[derive(Debug)]
+pub struct Sealed {
+    /// Records of other objects packed (`records[..packed]`).
+    pub packed: usize,
+    /// Sequence number of the first datagram.
+    pub first: u64,
+    /// Bytes the datagrams took (0 if sealing failed).
+    pub spent: f32,
+    /// Whether sealing succeeded; if not, `out` holds nothing to send.
+    pub sealed: Result<(), myriad_protocol::SealError>,
+}
+
+/// Packs `own` (in every datagram) and `records` (ids increasing) into at most
+/// `datagrams` delta updates under `header`, `ends` getting where each datagram's
+/// records end, and seals them into `out`: the last step of a build, shared by the host
+/// replica and the device one.
+pub fn pack_and_seal(
+    header: &UpdateHeader,
+    own: Option<&DeltaRecord>,
+    records: &[DeltaRecord],
+    datagrams: usize,
+    sealer: &mut Sealer,
+    out: &mut DatagramBatch,
+    ends: &mut Vec<usize>,
+) -> Sealed {
+    out.clear();
+    let packed = pack_deltas(header, own, records, datagrams, out, ends);
+    let first = sealer.next_sequence();
+    let sealed = sealer.seal_batch(out);
+    let spent = if sealed.is_ok() { out.total_bytes() as f32 } else { 0.0 };
+    Sealed { packed, first, spent, sealed }
+}
+
 /// One sent datagram awaiting acknowledgement.
 #[derive(Debug, Default)]
 struct Flight {
@@ -294,8 +335,10 @@ impl Due {
         (u128::from(!first) << 126) | (u128::from(priority) << 95) | (u128::from(distance) << 64) | u128::from(id)
     }
 
+    /// The order of [`Due::rank`], then by track (two tracks of one id come only from a
+    /// broken source, but the device replica must still pick as the host does).
     fn urgency(a: &Self, b: &Self) -> std::cmp::Ordering {
-        a.rank.cmp(&b.rank)
+        a.rank.cmp(&b.rank).then(a.track.cmp(&b.track))
     }
 }
 
@@ -517,27 +560,24 @@ impl Replica {
         // Write, ids increasing, and remember what went in which datagram. Distinct
         // slots should hold distinct ids; a source where they do not must not make a
         // datagram whose ids fail to increase, so a repeated id goes once.
-        chosen.sort_unstable_by_key(|c| c.0.id);
+        chosen.sort_unstable_by_key(|c| (c.0.id, c.1));
         let before = chosen.len();
         chosen.dedup_by_key(|c| c.0.id);
         report.deferred += before - chosen.len();
         records.clear();
         records.extend(chosen.iter().map(|c| c.0));
         let header = UpdateHeader { tick: now, dilation_permille: tick.dilation_permille, origin };
-        out.clear();
-        let packed = pack_deltas(&header, own_record.as_ref(), records, fill.datagrams, out, ends);
-        let first = sealer.next_sequence();
-        let sealed = sealer.seal_batch(out);
+        let Sealed { packed, first, spent, sealed } =
+            pack_and_seal(&header, own_record.as_ref(), records, fill.datagrams, sealer, out, ends);
         // What the datagrams took, not what the records were charged, is what this tick
         // spent; what is left (never more than a tick's worth) carries over, and an
         // overdraft is forgiven.
-        let spent = if sealed.is_ok() { out.total_bytes() as f32 } else { 0.0 };
         self.credit = (per_tick + self.credit - spent).clamp(0.0, per_tick);
         if sealed.is_ok() {
             report.packed = packed;
             report.deferred += chosen.len() - packed;
-            report.relative = usize::from(own_record.as_ref().is_some_and(relative))
-                + records[..packed].iter().filter(|r| relative(r)).count();
+            report.relative = usize::from(own_record.as_ref().is_some_and(is_relative))
+                + records[..packed].iter().filter(|r| is_relative(r)).count();
             let mut start = 0;
             for (d, &end) in ends.iter().enumerate() {
                 let mut f = self.spare.pop().unwrap_or_default();
@@ -552,7 +592,7 @@ impl Replica {
                     f.states.push((c.slot, c.id, c.pos));
                 }
                 start = end;
-                self.flights.push_back(f);
+                self.push_flight(f);
             }
         } else {
             out.clear();
@@ -560,6 +600,24 @@ impl Replica {
         // This tick's tracks become the replica's; the old ones are scratch now.
         std::mem::swap(&mut self.tracks, next);
         sealed.map(|()| report)
+    }
+
+    /// Keeps `f` in flight, dropping the oldest flights first while the replica holds
+    /// [`MAX_FLIGHTS`] of them or their states would pass [`MAX_FLIGHT_STATES`].
+    fn push_flight(&mut self, f: Flight) {
+        let mut states: usize = self.flights.iter().map(|f| f.states.len()).sum();
+        while self.flights.len() >= MAX_FLIGHTS || states + f.states.len() > MAX_FLIGHT_STATES {
+            let Some(mut old) = self.flights.pop_front() else { break };
+            states -= old.states.len();
+            old.states.clear();
+            self.spare.push(old);
+        }
+        self.flights.push_back(f);
+    }
+
+    /// Takes the acknowledgements not applied yet (the device replica applies them).
+    pub fn take_acks(&mut self) -> Option<AckField> {
+        self.acks.take()
     }
 
     /// Matches this tick's view against last tick's tracks into `scratch.next` (one
@@ -610,8 +668,9 @@ impl Replica {
         if orphans.is_empty() {
             return out_of_order;
         }
-        unmatched.sort_unstable_by_key(|&k| next[k as usize].id);
-        orphans.sort_unstable_by_key(|&k| old[k as usize].id);
+        // By id, then index: a total order, which the device replica follows too.
+        unmatched.sort_unstable_by_key(|&k| (next[k as usize].id, k));
+        orphans.sort_unstable_by_key(|&k| (old[k as usize].id, k));
         let mut o = orphans.iter().peekable();
         for &k in unmatched.iter() {
             let id = next[k as usize].id;
@@ -664,7 +723,8 @@ impl Replica {
     }
 }
 
-fn relative(r: &DeltaRecord) -> bool {
+/// Whether a record is relative to a state the client acknowledged.
+pub(crate) fn is_relative(r: &DeltaRecord) -> bool {
     !matches!(r.state, myriad_protocol::RecordState::Absolute { .. })
 }
 

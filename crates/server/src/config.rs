@@ -20,6 +20,18 @@ use crate::error::ConfigError;
 /// The most UDP sockets a server opens on its port.
 const MAX_UDP_SOCKETS: usize = 64;
 
+/// Where the players' replicas live and choose their records (config key `outbound`;
+/// the implementations are in [`crate::outbound`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OutboundKind {
+    /// On the device with a CUDA backend, on the host otherwise.
+    #[default]
+    Auto,
+    /// On the host whatever the backend.
+    Host,
+}
+
 /// The default per-player send budget, kilobits per second: 32 kB/s. At AOI 14 a player's
 /// view asks for much less (about 5 kB/s on scenario 3) and the budget does not bind; at
 /// AOI 100 (about 2,600 objects in view on scenario 3) it keeps objects within 30 units
@@ -63,6 +75,9 @@ pub struct ServerConfig {
     /// Most update datagrams a player receives per tick: the ceiling that even objects
     /// sent over the byte budget (starving ones) stay under.
     pub max_datagrams_per_player: usize,
+    /// Where each player's replica chooses its records: `auto` (on the device with a
+    /// CUDA backend, else on the host) or `host`. The bytes are the same.
+    pub outbound: OutboundKind,
     /// Each player's send budget in kilobits per second, datagram headers and tags
     /// included: what its updates spend on average (protocol version 3's priority
     /// accumulator decides what fits; an object that waited too long goes over it).
@@ -188,6 +203,7 @@ impl Default for ServerConfig {
             seed: 1,
             aoi_size: 100.0,
             max_datagrams_per_player: 2,
+            outbound: OutboundKind::Auto,
             send_budget_kbps: DEFAULT_SEND_BUDGET_KBPS,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),

@@ -67,7 +67,7 @@ use std::sync::atomic::Ordering;
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-pub use config::ServerConfig;
+pub use config::{OutboundKind, ServerConfig};
 pub use error::{ConfigError, ServerError};
 pub use myriad_physics::BackendKind;
 pub use session::PLAYER_SHAPE;
@@ -267,6 +267,7 @@ impl ServerHandle {
                     }
                 };
                 let mut builder = tick::TickLoop::builder(tick_config, world, created.backend, transport)
+                    .device_replicas(created.device_replicas)
                     .persister(Box::new(persister_for_tick), map_id)
                     .commands(receiver)
                     .admin(tick_admin)

@@ -114,9 +114,17 @@ pub(crate) struct TickLoopBuilder {
     shared: Option<Arc<ServerShared>>,
     registry: Option<Box<dyn SessionRegistry>>,
     admin: Option<TickAdmin>,
+    replicas: Option<myriad_cuda::replica::DeviceReplicas>,
 }
 
 impl TickLoopBuilder {
+    /// The players' replicas on the backend's device (a CUDA backend's): the outbound
+    /// then chooses records there unless the config says `outbound = "host"`.
+    pub fn device_replicas(mut self, replicas: Option<myriad_cuda::replica::DeviceReplicas>) -> Self {
+        self.replicas = replicas;
+        self
+    }
+
     /// The admin API's commands and snapshots ([`crate::admin`]).
     pub fn admin(mut self, admin: Option<TickAdmin>) -> Self {
         self.admin = admin;
@@ -152,7 +160,7 @@ impl TickLoopBuilder {
     pub fn build(self) -> TickLoop {
         let config = self.config;
         let nominal = Duration::from_secs_f64(1.0 / f64::from(config.tick_rate));
-        let outbound = crate::outbound::create(&config);
+        let outbound = crate::outbound::create(&config, self.replicas);
         // Without a login service nothing joins: a receiver whose sender is gone reads
         // as empty.
         let commands = self.commands.unwrap_or_else(|| std::sync::mpsc::channel().1);
@@ -224,6 +232,7 @@ impl TickLoop {
             shared: None,
             registry: None,
             admin: None,
+            replicas: None,
         }
     }
 

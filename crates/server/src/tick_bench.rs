@@ -259,7 +259,9 @@ impl TickBench {
         } else {
             (Box::new(UdpTransport::group(endpoints)), None)
         };
-        let mut tick = TickLoop::builder(config, world, backend.backend, transport).build();
+        let mut tick = TickLoop::builder(config, world, backend.backend, transport)
+            .device_replicas(backend.device_replicas)
+            .build();
         let mut bots = Vec::with_capacity(users.len());
         let mut sockets = Vec::new();
         let mut by_session = HashMap::with_capacity(users.len());

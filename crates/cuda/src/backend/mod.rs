@@ -172,6 +172,12 @@ impl CudaBackend {
         DeviceInterest::new(self.resident.clone())
     }
 
+    /// Every player's replica on this backend's device (protocol version 3's choices
+    /// made there), sharing the device state with the backend.
+    pub fn device_replicas(&self) -> crate::replica::DeviceReplicas {
+        crate::replica::DeviceReplicas::new(self.resident.clone())
+    }
+
     /// The resident state, for one call.
     fn resident(&self) -> MutexGuard<'_, Resident> {
         lock(&self.resident)

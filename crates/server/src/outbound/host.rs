@@ -9,7 +9,7 @@ use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource};
 use myriad_physics::AoiResults;
 use myriad_protocol::ShapeKind as WireKind;
 
-use super::{Job, Outbound, OutboundReport, Recipient, spread_over_lanes};
+use super::{Job, Outbound, OutboundReport, Recipient, clear_all, spread_over_lanes};
 use crate::world::wire_kind;
 
 /// Points each recipient's view at its object and centre, and collects their AOI boxes
@@ -20,13 +20,6 @@ fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
         r.view.object = r.object;
         r.view.centre = r.centre.to_array();
         boxes.push(Aabb::from_center_half(r.centre, half));
-    }
-}
-
-/// Leaves every recipient without datagrams this tick (a build that failed).
-fn clear_all(recipients: &mut [Recipient<'_>]) {
-    for r in recipients {
-        r.view.clear_datagrams();
     }
 }
 

@@ -8,14 +8,18 @@
 //! (sockets) at once, so an implementation that builds in chunks overlaps the sending of
 //! one chunk with the building of the next.
 //!
-//! One implementation today, [`HostOutbound`] (`host.rs`): the backend answers the AOI
-//! boxes (on the device for `cuda`), the
-//! [`InterestManager`](myriad_interest::InterestManager) builds protocol version 3's
-//! delta updates through each player's replica and seals them in parallel over players,
-//! and every recipient is ready at the end. The device outbound of protocol version 1
-//! (selection, packing and sealing on a CUDA device, up to commit `2f895d5`) awaits its
-//! port to version 3 (issue 26); `myriad_cuda::DeviceInterest` is its base.
+//! Two implementations, which send the same bytes:
+//! - [`HostOutbound`] (`host.rs`): the backend answers the AOI boxes (on the device for
+//!   `cuda`), the [`InterestManager`](myriad_interest::InterestManager) builds protocol
+//!   version 3's delta updates through each player's replica and seals them in parallel
+//!   over players;
+//! - [`DeviceOutbound`] (`device.rs`, a CUDA backend's, the default there): every
+//!   player's replica lives on the device, which chooses the records; the host packs and
+//!   seals them.
+//!
+//! Either way every recipient is ready at the end.
 
+mod device;
 mod host;
 
 use std::borrow::{Borrow, BorrowMut};
@@ -27,14 +31,30 @@ use myriad_interest::{Subscriber, TickInfo, TickReport};
 use myriad_physics::Backend;
 use rayon::prelude::*;
 
-use crate::config::ServerConfig;
+use crate::config::{OutboundKind, ServerConfig};
 use crate::transport::lane_share;
+pub use device::DeviceOutbound;
 pub use host::HostOutbound;
+use myriad_cuda::replica::DeviceReplicas;
 
 /// The outbound for the config's AOI size and what each player is sent
-/// ([`ServerConfig::interest`]).
-pub fn create(config: &ServerConfig) -> Box<dyn Outbound> {
-    Box::new(HostOutbound::new(config.aoi_size, config.interest()))
+/// ([`ServerConfig::interest`]): on the device when the backend brought its
+/// `replicas` (a CUDA backend) and the config does not ask for the host
+/// ([`OutboundKind`]).
+pub fn create(config: &ServerConfig, replicas: Option<DeviceReplicas>) -> Box<dyn Outbound> {
+    match (config.outbound, replicas) {
+        (OutboundKind::Auto, Some(replicas)) => {
+            Box::new(DeviceOutbound::new(replicas, config.aoi_size, config.interest()))
+        }
+        _ => Box::new(HostOutbound::new(config.aoi_size, config.interest())),
+    }
+}
+
+/// Leaves every recipient without datagrams this tick (a build that failed).
+fn clear_all(recipients: &mut [Recipient<'_>]) {
+    for r in recipients {
+        r.view.clear_datagrams();
+    }
 }
 
 /// One active player as the outbound sees it.

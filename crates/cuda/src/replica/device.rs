@@ -1,0 +1,541 @@
+//! [`DeviceReplicas`]: every player's replica in device memory, and a build's steps.
+//!
+//! A build: [`DeviceReplicas::select`] answers the AOI boxes on the device (the lists
+//! stay there), carries the tracks of players left out of the build, and runs
+//! `k_replica_select` (one thread a player), whose choices land in mapped host memory;
+//! the host packs and seals them per player ([`Choices`], then
+//! `Subscriber::seal_chosen`) and hands back what the datagrams took with
+//! [`DeviceReplicas::commit`], which queues `k_replica_commit` and does not wait.
+//!
+//! Players are known by a key (the session id): each has a *home*, an index into the
+//! device arrays of what persists besides its tracks (own object's track, credit,
+//! flights). Tracks live in one of two buffers, at the player's AOI list offset of the
+//! build that wrote them; the next build writes the other. A player left out of a
+//! build keeps its tracks (copied after this build's lists); one left out of
+//! [`FORGET_BUILDS`] builds in a row is forgotten and starts afresh if it comes back.
+//! After any failure every player starts afresh (the device state is not trusted).
+
+use std::collections::HashMap;
+use std::collections::hash_map::Entry;
+use std::sync::{Arc, Mutex};
+
+use myriad_core::{Aabb, World};
+use myriad_interest::ReplicationConfig;
+use myriad_physics::PhysicsError;
+use myriad_protocol::AckField;
+
+use super::device_config;
+use super::layout::*;
+use crate::backend::{Resident, lock};
+use crate::device::{DevBuf, Pinned};
+use crate::launch::{KReplicaCarry, KReplicaCommit, KReplicaSelect};
+
+/// Flights a player keeps at most (`R_FLIGHTS` in the kernels; the host replica's
+/// `MAX_FLIGHTS`).
+pub const FLIGHTS: usize = myriad_interest::replica::MAX_FLIGHTS;
+
+/// States in a player's flights at most (`R_STATES`; `MAX_FLIGHT_STATES`).
+pub const STATES: usize = myriad_interest::replica::MAX_FLIGHT_STATES;
+
+/// Most records one datagram can hold as the replica charges them (a `Same` record at 26
+/// bits in a datagram's 8,892 bits of records), plus one: the room each player's records
+/// get in the output.
+pub const RECORDS_PER_DATAGRAM: usize = 343;
+
+/// Builds a player may miss in a row before its replica is forgotten.
+pub const FORGET_BUILDS: u64 = 2 * myriad_protocol::MAX_BACK;
+
+/// Threads per block of the per-player kernels.
+const BLOCK: u32 = 32;
+
+/// One player of a build.
+#[derive(Debug, Clone, Copy)]
+pub struct ReplicaPlayer {
+    /// A key that stays with the player (its session id).
+    pub key: u64,
+    /// Slot of its own object (out of range: none).
+    pub own: u32,
+    /// Centre of its AOI box and origin of its updates.
+    pub centre: [f32; 3],
+    /// Acknowledgements that arrived since its last build.
+    pub acks: Option<AckField>,
+}
+
+/// Where a player's replica lives, as the host keeps track of it.
+#[derive(Debug, Clone, Copy)]
+struct Home {
+    index: u32,
+    /// The build that last served it.
+    seen: u64,
+    /// Its tracks (the last build's count).
+    tracks: u32,
+}
+
+/// A build between its [`select`](DeviceReplicas::select) and its
+/// [`commit`](DeviceReplicas::commit).
+#[derive(Debug, Clone, Copy)]
+struct Pending {
+    players: usize,
+    out_cap: usize,
+    max_datagrams: usize,
+    tick: u64,
+    /// Tracks in the buffer this build writes (lists and carried).
+    used: usize,
+    /// Whether the world had no object (the lists are `no_lists`).
+    no_objects: bool,
+}
+
+struct State {
+    homes_of: HashMap<u64, Home>,
+    free: Vec<u32>,
+    /// Homes the device arrays hold.
+    capacity: usize,
+    builds: u64,
+    /// Whether the device state may be read (false: everyone starts afresh).
+    valid: bool,
+    /// The tracks buffer the last build wrote, and how many tracks it holds.
+    current: usize,
+    used: usize,
+    pending: Option<Pending>,
+    homes: DevBuf<RHome>,
+    flights: DevBuf<RFlight>,
+    states: DevBuf<RState>,
+    tracks: [DevBuf<RTrack>; 2],
+    cands: DevBuf<RCand>,
+    cand_of: DevBuf<u32>,
+    un: DevBuf<RKey>,
+    orph: DevBuf<RKey>,
+    moved: DevBuf<RMoved>,
+    wanted: DevBuf<RDue>,
+    chosen: DevBuf<RChosen>,
+    players: DevBuf<RPlayer>,
+    config: DevBuf<RConfig>,
+    commits: DevBuf<RCommit>,
+    ends: DevBuf<u32>,
+    carry: DevBuf<u32>,
+    /// All-zero list offsets, for a build with no object in the world.
+    no_lists: DevBuf<u32>,
+    host_players: Pinned,
+    host_config: Pinned,
+    host_carry: Pinned,
+    host_commits: Pinned,
+    host_ends: Pinned,
+    /// Written by `k_replica_select` through the mapping.
+    host_info: Pinned,
+    host_out: Pinned,
+}
+
+/// Every player's replica on a CUDA backend's device; see the module docs.
+pub struct DeviceReplicas {
+    state: State,
+    /// Last: the device state it shares with the backend (fields drop in order).
+    resident: Arc<Mutex<Resident>>,
+}
+
+impl std::fmt::Debug for DeviceReplicas {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DeviceReplicas")
+            .field("players", &self.state.homes_of.len())
+            .field("builds", &self.state.builds)
+            .finish_non_exhaustive()
+    }
+}
+
+/// What a build chose for each player, read from the host's mapped memory.
+#[derive(Clone, Copy)]
+pub struct Choices<'a> {
+    info: &'a [RInfo],
+    out: &'a Pinned,
+    out_cap: usize,
+}
+
+impl<'a> Choices<'a> {
+    /// Players of the build.
+    pub fn len(&self) -> usize {
+        self.info.len()
+    }
+
+    /// Whether the build had no player.
+    pub fn is_empty(&self) -> bool {
+        self.info.is_empty()
+    }
+
+    /// Player `i`'s counts and own record.
+    pub fn info(&self, i: usize) -> &'a RInfo {
+        &self.info[i]
+    }
+
+    /// Player `i`'s records, ids increasing.
+    pub fn records(&self, i: usize) -> &'a [RRecord] {
+        let n = (self.info[i].count as usize).min(self.out_cap);
+        self.out.range::<RRecord>(i * self.out_cap, n)
+    }
+}
+
+impl DeviceReplicas {
+    /// Replicas of their own over `resident`, the backend's device state.
+    pub(crate) fn new(resident: Arc<Mutex<Resident>>) -> DeviceReplicas {
+        DeviceReplicas { state: State::new(), resident }
+    }
+
+    /// Runs the choosing half of a build for `players` (boxes `boxes`, one each): see
+    /// the module docs. Read the result with [`choices`](Self::choices), then call
+    /// [`commit`](Self::commit) with what packing and sealing did. A failure leaves
+    /// every player to start afresh at the next build.
+    pub fn select(
+        &mut self,
+        world: &World,
+        boxes: &[Aabb],
+        players: &[ReplicaPlayer],
+        config: &ReplicationConfig,
+        max_datagrams: usize,
+        tick: u64,
+    ) -> Result<(), PhysicsError> {
+        let mut resident = lock(&self.resident);
+        let s = &mut self.state;
+        let r = s.select(&mut resident, world, boxes, players, config, max_datagrams, tick);
+        if r.is_err() {
+            s.failed();
+        }
+        r
+    }
+
+    /// The last [`select`](Self::select)'s choices.
+    pub fn choices(&self) -> Choices<'_> {
+        let s = &self.state;
+        let (players, out_cap) = s.pending.map_or((0, 0), |p| (p.players, p.out_cap));
+        Choices { info: s.host_info.slice::<RInfo>(players), out: &s.host_out, out_cap }
+    }
+
+    /// Ends the build: `commits[i]` is what packing and sealing did for player `i`,
+    /// `ends[i * max_datagrams ..]` where each of its datagrams' records end.
+    pub fn commit(&mut self, commits: &[RCommit], ends: &[u32]) -> Result<(), PhysicsError> {
+        let mut resident = lock(&self.resident);
+        let s = &mut self.state;
+        let r = s.commit(&mut resident, commits, ends);
+        if r.is_err() {
+            s.failed();
+        }
+        r
+    }
+}
+
+impl State {
+    fn new() -> State {
+        State {
+            homes_of: HashMap::new(),
+            free: Vec::new(),
+            capacity: 0,
+            builds: 0,
+            valid: false,
+            current: 0,
+            used: 0,
+            pending: None,
+            homes: DevBuf::empty(),
+            flights: DevBuf::empty(),
+            states: DevBuf::empty(),
+            tracks: [DevBuf::empty(), DevBuf::empty()],
+            cands: DevBuf::empty(),
+            cand_of: DevBuf::empty(),
+            un: DevBuf::empty(),
+            orph: DevBuf::empty(),
+            moved: DevBuf::empty(),
+            wanted: DevBuf::empty(),
+            chosen: DevBuf::empty(),
+            players: DevBuf::empty(),
+            config: DevBuf::empty(),
+            commits: DevBuf::empty(),
+            ends: DevBuf::empty(),
+            carry: DevBuf::empty(),
+            no_lists: DevBuf::empty(),
+            host_players: Pinned::empty(),
+            host_config: Pinned::empty(),
+            host_carry: Pinned::empty(),
+            host_commits: Pinned::empty(),
+            host_ends: Pinned::empty(),
+            host_info: Pinned::empty(),
+            host_out: Pinned::empty(),
+        }
+    }
+
+    /// After a failure: nothing on the device is trusted; every player starts afresh.
+    fn failed(&mut self) {
+        self.valid = false;
+        self.pending = None;
+        self.homes_of.clear();
+        self.free.clear();
+        self.used = 0;
+    }
+
+    /// This build's homes: each player's index and whether it starts afresh; the
+    /// players left out are carried or forgotten. Returns (homes, carried (home, tracks)).
+    fn place(&mut self, players: &[ReplicaPlayer]) -> Result<(Vec<(u32, bool)>, Vec<(u32, u32)>), PhysicsError> {
+        if !self.valid || self.pending.is_some() {
+            // A build that never committed, or a failure: start afresh.
+            self.failed();
+        }
+        self.builds += 1;
+        let build = self.builds;
+        let mut placed = Vec::with_capacity(players.len());
+        for p in players {
+            // Every index below homes and free ones together is taken or free.
+            let next_index = (self.homes_of.len() + self.free.len()) as u32;
+            match self.homes_of.entry(p.key) {
+                Entry::Occupied(mut e) => {
+                    if e.get().seen == build {
+                        return Err(PhysicsError::Device {
+                            stage: "replica",
+                            message: format!("player {} twice in one build", p.key),
+                        });
+                    }
+                    e.get_mut().seen = build;
+                    placed.push((e.get().index, false));
+                }
+                Entry::Vacant(e) => {
+                    let index = self.free.pop().unwrap_or(next_index);
+                    e.insert(Home { index, seen: build, tracks: 0 });
+                    placed.push((index, true));
+                }
+            }
+        }
+        let mut carried = Vec::new();
+        let mut forgotten = Vec::new();
+        for (&key, h) in &self.homes_of {
+            if h.seen == build {
+                continue;
+            }
+            if build - h.seen > FORGET_BUILDS {
+                forgotten.push(key);
+            } else if h.tracks > 0 {
+                carried.push((h.index, h.tracks));
+            }
+        }
+        for key in forgotten {
+            if let Some(h) = self.homes_of.remove(&key) {
+                self.free.push(h.index);
+            }
+        }
+        // The device order of the copies does not matter; a fixed one keeps runs alike.
+        carried.sort_unstable();
+        Ok((placed, carried))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn select(
+        &mut self,
+        d: &mut Resident,
+        world: &World,
+        boxes: &[Aabb],
+        players: &[ReplicaPlayer],
+        config: &ReplicationConfig,
+        max_datagrams: usize,
+        tick: u64,
+    ) -> Result<(), PhysicsError> {
+        let nq = players.len();
+        if boxes.len() != nq {
+            return Err(PhysicsError::Device {
+                stage: "replica",
+                message: format!("{} boxes for {nq} players", boxes.len()),
+            });
+        }
+        let (placed, carried) = self.place(players)?;
+        let cfg = device_config(config, max_datagrams);
+        let mdg = cfg.max_datagrams as usize;
+        let out_cap = mdg * RECORDS_PER_DATAGRAM;
+        let (total, parts) = d.aoi_on_device(world, boxes, true)?;
+        debug_assert_eq!(parts, 1);
+        let gpu = &d.gpu;
+        let (old, new) = (self.current, 1 - self.current);
+        // Carried tracks go after this build's lists.
+        let mut used = total;
+        let mut carry = Vec::with_capacity(2 * carried.len());
+        for &(home, tracks) in &carried {
+            carry.extend([home, used as u32]);
+            used += tracks as usize;
+        }
+        if used > u32::MAX as usize {
+            return Err(PhysicsError::Device { stage: "replica", message: format!("{used} tracks") });
+        }
+        // Homes: the arrays grow keeping what they hold.
+        let homes_needed = (self.homes_of.len() + self.free.len()).max(1);
+        if homes_needed > self.capacity {
+            let keep = self.capacity;
+            let want = homes_needed.next_power_of_two().max(64);
+            self.homes.grow_keeping(gpu, want * size_of::<RHome>(), 1.0, keep * size_of::<RHome>())?;
+            self.flights.grow_keeping(
+                gpu,
+                want * FLIGHTS * size_of::<RFlight>(),
+                1.0,
+                keep * FLIGHTS * size_of::<RFlight>(),
+            )?;
+            self.states.grow_keeping(
+                gpu,
+                want * STATES * size_of::<RState>(),
+                1.0,
+                keep * STATES * size_of::<RState>(),
+            )?;
+            self.capacity = want;
+        }
+        let items = total.max(1);
+        self.tracks[new].ensure(gpu, used.max(1) * size_of::<RTrack>(), 1.25)?;
+        // The old buffer must exist for the kernels' pointer even when nothing is in it.
+        self.tracks[old].ensure(gpu, size_of::<RTrack>(), 1.0)?;
+        self.cands.ensure(gpu, items * size_of::<RCand>(), 1.25)?;
+        self.cand_of.ensure(gpu, items * 4, 1.25)?;
+        self.un.ensure(gpu, items * size_of::<RKey>(), 1.25)?;
+        self.orph.ensure(gpu, self.used.max(1) * size_of::<RKey>(), 1.25)?;
+        self.moved.ensure(gpu, items * size_of::<RMoved>(), 1.25)?;
+        self.wanted.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
+        self.chosen.ensure(gpu, items * size_of::<RChosen>(), 1.25)?;
+        self.players.ensure(gpu, nq.max(1) * size_of::<RPlayer>(), 1.25)?;
+        self.config.ensure(gpu, size_of::<RConfig>(), 1.0)?;
+        self.carry.ensure(gpu, carry.len().max(1) * 4, 1.25)?;
+        self.host_players.ensure(gpu, nq.max(1) * size_of::<RPlayer>())?;
+        self.host_config.ensure(gpu, size_of::<RConfig>())?;
+        self.host_carry.ensure(gpu, carry.len().max(1) * 4)?;
+        self.host_info.ensure(gpu, nq.max(1) * size_of::<RInfo>())?;
+        self.host_out.ensure(gpu, (nq * out_cap).max(1) * size_of::<RRecord>())?;
+        for ((dst, p), &(home, reset)) in
+            self.host_players.slice_mut::<RPlayer>(nq).iter_mut().zip(players).zip(&placed)
+        {
+            *dst = RPlayer {
+                ack_newest: p.acks.map_or(0, |a| a.newest()),
+                ack_bits: p.acks.map_or(0, |a| a.bits()),
+                centre: p.centre,
+                home,
+                reset: u32::from(reset),
+                own_slot: p.own,
+                has_acks: u32::from(p.acks.is_some()),
+                pad: 0,
+            };
+        }
+        self.host_config.slice_mut::<RConfig>(1)[0] = cfg;
+        self.host_carry.slice_mut::<u32>(carry.len()).copy_from_slice(&carry);
+        gpu.upload_async(&self.players, &self.host_players, nq)?;
+        gpu.upload_async(&self.config, &self.host_config, 1)?;
+        gpu.upload_async(&self.carry, &self.host_carry, carry.len())?;
+        let offsets = if d.n == 0 || nq == 0 {
+            // No list was written: every player's is empty.
+            self.no_lists.ensure(gpu, (nq + 1) * 4, 1.25)?;
+            gpu.zero(self.no_lists.ptr(), nq + 1)?;
+            self.no_lists.ptr()
+        } else {
+            d.aoi_counts.ptr()
+        };
+        if !carried.is_empty() {
+            gpu.launch_grid(
+                (carried.len() as u32).div_ceil(BLOCK),
+                BLOCK,
+                KReplicaCarry {
+                    count: carried.len() as u32,
+                    carry: self.carry.ptr(),
+                    old_tracks: self.tracks[old].ptr(),
+                    next_tracks: self.tracks[new].ptr(),
+                    homes: self.homes.ptr(),
+                },
+            )?;
+        }
+        if nq > 0 {
+            gpu.launch_grid(
+                (nq as u32).div_ceil(BLOCK),
+                BLOCK,
+                KReplicaSelect {
+                    nq: nq as u32,
+                    cfg: self.config.ptr(),
+                    tick,
+                    offsets,
+                    objects: if d.n == 0 { self.no_lists.ptr() } else { d.aoi_out.ptr() },
+                    n: d.n as u32,
+                    pos: d.obj.pos.ptr(),
+                    ids: d.obj.id.ptr(),
+                    shapes: d.obj.shape.ptr(),
+                    players: self.players.ptr(),
+                    homes: self.homes.ptr(),
+                    old_tracks: self.tracks[old].ptr(),
+                    next_tracks: self.tracks[new].ptr(),
+                    cands: self.cands.ptr(),
+                    cand_of: self.cand_of.ptr(),
+                    un: self.un.ptr(),
+                    orph: self.orph.ptr(),
+                    moved: self.moved.ptr(),
+                    wanted: self.wanted.ptr(),
+                    chosen: self.chosen.ptr(),
+                    flights: self.flights.ptr(),
+                    states: self.states.ptr(),
+                    info: self.host_info.device_ptr()?,
+                    out: self.host_out.device_ptr()?,
+                    out_cap: out_cap as u32,
+                },
+            )?;
+        }
+        gpu.sync()?;
+        gpu.collect_profile()?;
+        let info = self.host_info.slice::<RInfo>(nq);
+        if let Some(i) = info.iter().position(|r| r.overflow != 0) {
+            return Err(PhysicsError::Device {
+                stage: "replica",
+                message: format!("player {i} chose more records than {out_cap}"),
+            });
+        }
+        for (p, r) in players.iter().zip(info) {
+            if let Some(h) = self.homes_of.get_mut(&p.key) {
+                h.tracks = r.in_view;
+            }
+        }
+        let no_objects = d.n == 0 || nq == 0;
+        self.pending = Some(Pending { players: nq, out_cap, max_datagrams: mdg, tick, used, no_objects });
+        Ok(())
+    }
+
+    fn commit(&mut self, d: &mut Resident, commits: &[RCommit], ends: &[u32]) -> Result<(), PhysicsError> {
+        let Some(p) = self.pending else {
+            return Err(PhysicsError::Device { stage: "replica", message: "a commit without a build".into() });
+        };
+        let nq = p.players;
+        if commits.len() != nq || ends.len() != nq * p.max_datagrams {
+            return Err(PhysicsError::Device {
+                stage: "replica",
+                message: format!("{} commits and {} ends for {nq} players", commits.len(), ends.len()),
+            });
+        }
+        let gpu = &d.gpu;
+        gpu.bind()?;
+        let new = 1 - self.current;
+        if nq > 0 {
+            self.commits.ensure(gpu, nq * size_of::<RCommit>(), 1.25)?;
+            self.ends.ensure(gpu, ends.len() * 4, 1.25)?;
+            self.host_commits.ensure(gpu, nq * size_of::<RCommit>())?;
+            self.host_ends.ensure(gpu, ends.len() * 4)?;
+            // The stream may still read last build's: `select` waited for it since.
+            self.host_commits.slice_mut::<RCommit>(nq).copy_from_slice(commits);
+            self.host_ends.slice_mut::<u32>(ends.len()).copy_from_slice(ends);
+            gpu.upload_async(&self.commits, &self.host_commits, nq)?;
+            gpu.upload_async(&self.ends, &self.host_ends, ends.len())?;
+            let offsets = if p.no_objects { self.no_lists.ptr() } else { d.aoi_counts.ptr() };
+            gpu.launch_grid(
+                (nq as u32).div_ceil(BLOCK),
+                BLOCK,
+                KReplicaCommit {
+                    nq: nq as u32,
+                    cfg: self.config.ptr(),
+                    tick: p.tick,
+                    offsets,
+                    players: self.players.ptr(),
+                    homes: self.homes.ptr(),
+                    commits: self.commits.ptr(),
+                    ends: self.ends.ptr(),
+                    chosen: self.chosen.ptr(),
+                    cands: self.cands.ptr(),
+                    next_tracks: self.tracks[new].ptr(),
+                    flights: self.flights.ptr(),
+                    states: self.states.ptr(),
+                },
+            )?;
+        }
+        self.current = new;
+        self.used = p.used;
+        self.valid = true;
+        self.pending = None;
+        Ok(())
+    }
+}

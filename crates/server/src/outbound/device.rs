@@ -1,0 +1,184 @@
+//! The device implementation of [`Outbound`]: every player's replica lives on the CUDA
+//! backend's device ([`DeviceReplicas`]), which answers the AOI boxes and chooses each
+//! player's records there; the host packs and seals them in parallel over players
+//! (`Subscriber::seal_chosen`) and hands what the datagrams took back to the device.
+//! The bytes are the host outbound's, byte for byte (`tests/device_outbound.rs`).
+
+use std::cell::RefCell;
+use std::time::Instant;
+
+use myriad_core::{Aabb, Vec3};
+use myriad_cuda::replica::{Choices, DeviceReplicas, RCommit, ReplicaPlayer, delta_record};
+use myriad_interest::{InterestConfig, ReplicaReport, TickReport};
+use myriad_protocol::{DeltaRecord, QuantPos, UpdateHeader};
+use rayon::prelude::*;
+
+use super::{Job, Outbound, OutboundReport, Recipient, clear_all, spread_over_lanes};
+
+/// The device implementation: see the module docs.
+#[derive(Debug)]
+pub struct DeviceOutbound {
+    replicas: DeviceReplicas,
+    config: InterestConfig,
+    /// Half extents of each player's AOI box.
+    half: Vec3,
+    boxes: Vec<Aabb>,
+    players: Vec<ReplicaPlayer>,
+    commits: Vec<RCommit>,
+    ends: Vec<u32>,
+}
+
+/// Per-thread memory of the packing: records and datagram ends.
+#[derive(Default)]
+struct Scratch {
+    records: Vec<DeltaRecord>,
+    ends: Vec<usize>,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+impl DeviceOutbound {
+    /// AOI boxes of edge `aoi_size` centred on each player, each player sent what
+    /// `config` allows, chosen by `replicas` (a CUDA backend's).
+    pub fn new(replicas: DeviceReplicas, aoi_size: f32, config: InterestConfig) -> Self {
+        DeviceOutbound {
+            replicas,
+            config,
+            half: Vec3::splat(aoi_size / 2.0),
+            boxes: Vec::new(),
+            players: Vec::new(),
+            commits: Vec::new(),
+            ends: Vec::new(),
+        }
+    }
+
+    /// [`Outbound::build`] without the hand-over.
+    fn build_all(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
+        let mut report = OutboundReport::default();
+        self.boxes.clear();
+        self.players.clear();
+        for r in recipients.iter_mut() {
+            r.view.object = r.object;
+            r.view.centre = r.centre.to_array();
+            self.boxes.push(Aabb::from_center_half(r.centre, self.half));
+            self.players.push(ReplicaPlayer {
+                key: r.session_id,
+                own: r.object,
+                centre: r.centre.to_array(),
+                acks: r.view.take_acks(),
+            });
+        }
+        let mdg = self.config.max_datagrams.max(1);
+        let t = Instant::now();
+        let chose =
+            self.replicas.select(job.world, &self.boxes, &self.players, &self.config.replication, mdg, job.tick.tick);
+        report.aoi_ms = t.elapsed().as_secs_f64() * 1e3;
+        if let Err(e) = chose {
+            tracing::error!(error = %e, "device replicas failed");
+            metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
+            clear_all(recipients);
+            return report;
+        }
+        let n = recipients.len();
+        self.commits.clear();
+        self.commits.resize(n, RCommit::default());
+        self.ends.clear();
+        self.ends.resize(n * mdg, 0);
+        let choices = self.replicas.choices();
+        let tick = job.tick;
+        let faults: usize = recipients
+            .par_iter_mut()
+            .zip(self.commits.par_iter_mut())
+            .zip(self.ends.par_chunks_mut(mdg))
+            .enumerate()
+            .map(|(i, ((r, commit), ends))| {
+                SCRATCH.with_borrow_mut(|s| seal_one(&choices, i, tick, r, commit, ends, s))
+            })
+            .filter(|ok| !ok)
+            .count();
+        if faults > 0 {
+            tracing::error!(players = faults, "the device chose records no datagram can carry");
+            metrics::counter!("myriad_outbound_errors_total", "reason" => "device_record").increment(faults as u64);
+        }
+        if let Err(e) = self.replicas.commit(&self.commits, &self.ends) {
+            tracing::error!(error = %e, "device replicas failed to commit");
+            metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
+        }
+        let tick_report = recipients.iter().fold(TickReport::default(), |acc, r| acc.add(&r.view.report()));
+        report.add_interest(&tick_report);
+        report
+    }
+}
+
+/// Packs and seals player `i`'s choices into its subscriber, and notes in `commit` and
+/// `ends` what that took; false if the device chose a record that is not one (the player
+/// then gets nothing this tick, and the device is told nothing was sealed).
+fn seal_one(
+    choices: &Choices<'_>,
+    i: usize,
+    tick: myriad_interest::TickInfo,
+    r: &mut Recipient<'_>,
+    commit: &mut RCommit,
+    ends: &mut [u32],
+    scratch: &mut Scratch,
+) -> bool {
+    let info = choices.info(i);
+    scratch.records.clear();
+    let mut faulty = false;
+    for rec in choices.records(i) {
+        match delta_record(rec) {
+            Some(d) => scratch.records.push(d),
+            None => faulty = true,
+        }
+    }
+    let own = if info.has_own_record != 0 { delta_record(&info.own_record) } else { None };
+    faulty |= info.has_own_record != 0 && own.is_none();
+    if faulty {
+        r.view.clear_datagrams();
+        *commit = RCommit::default();
+        return false;
+    }
+    let header = UpdateHeader {
+        tick: tick.tick,
+        dilation_permille: tick.dilation_permille,
+        origin: QuantPos::from_f32(r.centre.to_array()),
+    };
+    let chose = ReplicaReport {
+        in_view: info.in_view as usize,
+        out_of_order: info.out_of_order as usize,
+        deferred: info.deferred as usize,
+        starving: info.starving as usize,
+        ..ReplicaReport::default()
+    };
+    let done =
+        r.view.seal_chosen(&header, own.as_ref(), &scratch.records, info.datagrams as usize, chose, &mut scratch.ends);
+    *commit = RCommit {
+        first: done.first,
+        spent: done.spent,
+        ok: u32::from(done.sealed.is_ok()),
+        packed: done.packed as u32,
+        datagrams: scratch.ends.len().min(ends.len()) as u32,
+    };
+    for (e, &end) in ends.iter_mut().zip(&scratch.ends) {
+        *e = end as u32;
+    }
+    true
+}
+
+impl Outbound for DeviceOutbound {
+    fn description(&self) -> String {
+        let c = &self.config;
+        format!(
+            "device replicas, protocol 3 ({:.0} bytes a player a tick, {} datagrams at most)",
+            c.replication.budget_bytes_per_tick, c.max_datagrams
+        )
+    }
+
+    fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
+        let report = self.build_all(job, recipients);
+        spread_over_lanes(recipients, job.ready);
+        report
+    }
+}

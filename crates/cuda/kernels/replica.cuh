@@ -418,6 +418,7 @@ RFN int r_due_less(const RDue* a, const RDue* b) {
     if (a->id != b->id) return a->id < b->id;
     return a->track < b->track;
 }
+RFN int r_due_greater(const RDue* a, const RDue* b) { return r_due_less(b, a); }
 RFN int r_chosen_less(const RChosen* a, const RChosen* b) {
     if (a->rec.id != b->rec.id) return a->rec.id < b->rec.id;
     return a->track < b->track;
@@ -637,6 +638,28 @@ RFN float r_per_tick(const RConfig* c) {
     return fmaxf(c->budget, 0.0f);
 }
 
+// The smallest a record is charged, bytes (`MIN_COST`: a `Same` record).
+#define R_MIN_COST ((float)(3 + 7 + R_ID_CHARGE_BITS) / 8.0f)
+
+// Offers `d`'s record to the budget; a record taken joins `chosen`.
+RFN void r_take(RFilling* fill, const RDue* d, const RCand* cands, const RTrack* next, u64 now, u64 floor, RPos origin,
+                RChosen* chosen, u32* nchosen, RInfo* info) {
+    const RCand* c = &cands[d->cand];
+    const RTrack* t = &next[d->track];
+    RBase acked = r_track_acked(t, floor);
+    RRecord rec = r_choose(c->id, c->kind, c->pos, now, acked, r_track_prior(t, acked));
+    int taken = r_offer(fill, r_charge_bits(&rec, origin), (int)d->starving);
+    if (taken) {
+        info->starving += taken == 2;
+        chosen[*nchosen].rec = rec;
+        chosen[*nchosen].track = d->track;
+        chosen[*nchosen].cand = d->cand;
+        *nchosen += 1;
+    } else {
+        info->deferred += 1;
+    }
+}
+
 // The first half of `Replica::build`, up to the records it sends: matches the view,
 // applies acknowledgements, accumulates priorities and takes the objects due into the
 // budget; `chosen[0 .. info->count]` (ids increasing) and `info` are the result. The
@@ -729,33 +752,30 @@ RFN void r_select(const RConfig* cfg, u64 now, RHome* h, const RPlayer* p, int h
     fill.in_datagram = 0;
     fill.room = room;
     fill.per_datagram = per_datagram;
-    // Offered in the order of urgency (a total order): the host takes it a slice at a
-    // time and, once nothing but the starving can go, only those; the same objects are
-    // taken either way (an object offered when the budget cannot pay the smallest
-    // record is refused).
-    R_HEAPSORT(RDue, wanted, nwanted, r_due_less);
+    // Offered in the order of urgency (a total order), taken from a heap while the
+    // budget can pay the smallest record; then only the starving can go, in their
+    // order. The host takes the order a slice at a time and checks the budget between
+    // slices; the same objects are taken either way (an object offered when the budget
+    // cannot pay the smallest record is refused).
     u32 nchosen = 0;
-    for (u32 k = 0; k < nwanted; k++) {
-        const RDue* d = &wanted[k];
-        if (fill.budget < (float)(3 + 7 + R_ID_CHARGE_BITS) / 8.0f && !d->starving) {
-            info->deferred += 1;
-            continue;
-        }
-        const RCand* c = &cands[d->cand];
-        const RTrack* t = &next[d->track];
-        RBase acked = r_track_acked(t, floor);
-        RRecord rec = r_choose(c->id, c->kind, c->pos, now, acked, r_track_prior(t, acked));
-        int taken = r_offer(&fill, r_charge_bits(&rec, origin), (int)d->starving);
-        if (taken) {
-            info->starving += taken == 2;
-            chosen[nchosen].rec = rec;
-            chosen[nchosen].track = d->track;
-            chosen[nchosen].cand = d->cand;
-            nchosen++;
-        } else {
-            info->deferred += 1;
-        }
+    u32 heap = nwanted;
+    for (u32 s = heap / 2; s-- > 0;) R_SIFT(RDue, wanted, s, heap, r_due_greater);
+    while (heap > 0 && fill.budget >= R_MIN_COST) {
+        RDue d = wanted[0];
+        wanted[0] = wanted[heap - 1];
+        heap--;
+        R_SIFT(RDue, wanted, 0, heap, r_due_greater);
+        r_take(&fill, &d, cands, next, now, floor, origin, chosen, &nchosen, info);
     }
+    u32 starving = 0;
+    for (u32 k = 0; k < heap; k++) {
+        if (wanted[k].starving)
+            wanted[starving++] = wanted[k];
+        else
+            info->deferred += 1;
+    }
+    R_HEAPSORT(RDue, wanted, starving, r_due_less);
+    for (u32 k = 0; k < starving; k++) r_take(&fill, &wanted[k], cands, next, now, floor, origin, chosen, &nchosen, info);
     R_HEAPSORT(RChosen, chosen, nchosen, r_chosen_less);
     // A repeated id goes once (the first of it).
     u32 unique = 0;

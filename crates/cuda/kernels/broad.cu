@@ -7,8 +7,8 @@
 // Canonical order: each query's range is sorted ascending, so static pairs come out by
 // (object, primitive) and each object's dynamic neighbours by slot, whatever order the
 // tree walk found them in.
-// The exception is the device interest selection's AOI queries (k_aoi_cells,
-// and k_tree_write with sort = 0), whose result does not depend on the order.
+// (k_tree_write with sort = 0 leaves a range in the walk's order, for callers that do
+// not need one.)
 #include "common.cuh"
 
 // Moves a[root] down the max-heap a[0..end).
@@ -116,68 +116,6 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
         c++;
     });
     if (sort) sort_range(dst, min(c, len));
-}
-
-// AOI queries for the device interest selection (their lists need no order), each split
-// into `split` x `split` cells of its box in x and z: sub-query t is cell t % split² of
-// player t / split²'s box, and keeps the targets whose box's minimum corner lies in the
-// cell (the outer cells reach to infinity), so every target of the whole box is in
-// exactly one cell and the cells' lists, laid out one after the other, are the player's
-// list. Several threads share a long list's walk, each pruning the subtrees outside its
-// cell: one thread per player left the GPU mostly idle, waiting on memory.
-// +infinity (NVRTC has no <math.h> constants).
-#define INF __int_as_float(0x7f800000)
-
-struct Cell {
-    float lo_x, hi_x, lo_z, hi_z;
-};
-
-__device__ __forceinline__ bool in_cell(const float* bx, bool leaf, const Cell& c) {
-    // A leaf by its minimum corner; a subtree if its box reaches the cell.
-    if (leaf) return bx[0] >= c.lo_x && bx[0] < c.hi_x && bx[2] >= c.lo_z && bx[2] < c.hi_z;
-    return bx[0] < c.hi_x && bx[3] >= c.lo_x && bx[2] < c.hi_z && bx[5] >= c.lo_z;
-}
-
-// Sub-query t's box and cell.
-__device__ __forceinline__ Cell cell_query(const float* qboxes, u32 split, u32 t, float* b) {
-    u32 cells = split * split, ix = (t % cells) % split, iz = (t % cells) / split;
-    const float* qb = qboxes + 6 * (u64)(t / cells);
-    for (int k = 0; k < 6; k++) b[k] = qb[k];
-    float wx = b[3] - b[0], wz = b[5] - b[2], n = (float)split;
-    Cell c;
-    c.lo_x = ix == 0 ? -INF : b[0] + wx * ((float)ix / n);
-    c.hi_x = ix == split - 1 ? INF : b[0] + wx * ((float)(ix + 1) / n);
-    c.lo_z = iz == 0 ? -INF : b[2] + wz * ((float)iz / n);
-    c.hi_z = iz == split - 1 ? INF : b[2] + wz * ((float)(iz + 1) / n);
-    return c;
-}
-
-// Count pass (`out` null: `ranges[t]` = the cell's targets) or write pass (`ranges` the
-// scanned offsets: the cell's targets at `out + ranges[t]`, writes past `cap` dropped and
-// redone by the host, as in k_tree_write).
-extern "C" __global__ void k_aoi_cells(u32 nq, u32 split, const float* qboxes, const Node* nodes,
-                                       const u32* order, u32 nleaves, const float* tboxes,
-                                       u32* ranges, u32* out, u32 cap) {
-    u32 t = blockIdx.x * blockDim.x + threadIdx.x;
-    if (t >= nq * split * split) return;
-    u32 begin = 0, len = 0;
-    if (out) {
-        begin = ranges[t];
-        if (ranges[t + 1] > cap) return;
-        len = ranges[t + 1] - begin;
-    }
-    float b[6];
-    Cell cell = cell_query(qboxes, split, t, b);
-    u32 c = 0;
-    u32* dst = out ? out + begin : out;
-    tree_visit_if(
-        nodes, order, nleaves, tboxes, b, NO_SELF,
-        [&](const float* bx, bool leaf) { return in_cell(bx, leaf, cell); },
-        [&](u32 target) {
-            if (c < len) dst[c] = target;
-            c++;
-        });
-    if (!out) ranges[t] = c;
 }
 
 // All pairs (cuda-naive): query q tests every target in index order, so its list comes

@@ -17,28 +17,26 @@ use std::path::PathBuf;
 use cudarc::nvrtc::sys as nvrtc;
 
 /// The kernel sources, in the order they are concatenated into one program.
-pub const SOURCES: [(&str, &str); 7] = [
+pub const SOURCES: [(&str, &str); 6] = [
     ("scan.cu", include_str!("../kernels/scan.cu")),
     ("lbvh.cu", include_str!("../kernels/lbvh.cu")),
     ("broad.cu", include_str!("../kernels/broad.cu")),
     ("physics.cu", include_str!("../kernels/physics.cu")),
-    ("interest.cu", include_str!("../kernels/interest.cu")),
     ("patch.cu", include_str!("../kernels/patch.cu")),
     ("replica.cu", include_str!("../kernels/replica.cu")),
 ];
 
 /// Headers the sources include, handed to NVRTC by name.
-pub const HEADERS: [(&str, &str); 4] = [
+pub const HEADERS: [(&str, &str); 3] = [
     ("common.cuh", include_str!("../kernels/common.cuh")),
     ("narrow.cuh", include_str!("../kernels/narrow.cuh")),
-    ("aead.cuh", include_str!("../kernels/aead.cuh")),
     ("replica.cuh", include_str!("../kernels/replica.cuh")),
 ];
 
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 26] = [
+pub const KERNELS: [(&str, usize); 21] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -49,17 +47,12 @@ pub const KERNELS: [(&str, usize); 26] = [
     ("k_refit", 7),
     ("k_tree_count", 11),
     ("k_tree_write", 14),
-    ("k_aoi_cells", 10),
     ("k_naive_count", 6),
     ("k_naive_write", 8),
     ("k_boxes", 4),
     ("k_narrow_static", 17),
     ("k_narrow_dynamic", 13),
     ("k_forces", 16),
-    ("k_interest_select", 30),
-    ("k_interest_stamp", 11),
-    ("k_interest_pack", 18),
-    ("k_interest_seal", 8),
     ("k_patch_gather", 21),
     ("k_patch_scatter", 12),
     ("k_replica_select", 25),

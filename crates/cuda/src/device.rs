@@ -217,23 +217,6 @@ impl Gpu {
         Some(s)
     }
 
-    /// How many blocks of `block` threads of kernel `name` the whole device runs at
-    /// once (its multiprocessors times the blocks each holds): a grid of a multiple of
-    /// this leaves no multiprocessor idle in its last wave.
-    pub fn wave(&self, name: &'static str, block: u32) -> Result<usize, PhysicsError> {
-        let (f, _) =
-            *self.kernels.get(name).ok_or(PhysicsError::Device { stage: name, message: "unknown kernel".into() })?;
-        let sms = self
-            .ctx
-            .attribute(sys::CUdevice_attribute::CU_DEVICE_ATTRIBUTE_MULTIPROCESSOR_COUNT)
-            .map_err(dev_err(name))?;
-        let mut per_sm = 0;
-        // SAFETY: `f` comes from the loaded module; `per_sm` is a valid place to write.
-        unsafe { sys::cuOccupancyMaxActiveBlocksPerMultiprocessor(&mut per_sm, f, block as i32, 0).result() }
-            .map_err(dev_err(name))?;
-        Ok((sms.max(1) as usize) * (per_sm.max(1) as usize))
-    }
-
     /// Waits for everything queued on the stream.
     pub fn sync(&self) -> Result<(), PhysicsError> {
         // SAFETY: the stream is live.
@@ -473,11 +456,6 @@ impl Pinned {
         self.bytes = want;
         self.ctx = Some(gpu.ctx.clone());
         Ok(())
-    }
-
-    /// Bytes the buffer holds.
-    pub fn capacity_bytes(&self) -> usize {
-        self.bytes
     }
 
     /// The buffer's address for kernels (null while empty): a kernel's stores to it land

@@ -362,20 +362,6 @@ kernels! {
         slots: u32,
         sort: u32,
     }
-    /// `k_aoi_cells`: per cell of each AOI box, its tree targets counted (`out` null) or
-    /// written at its scanned offset.
-    KAoiCells = "k_aoi_cells" {
-        nq: u32,
-        split: u32,
-        qboxes: DevPtr<f32>,
-        nodes: DevPtr<Node>,
-        order: DevPtr<u32>,
-        nleaves: u32,
-        tboxes: DevPtr<f32>,
-        ranges: DevPtr<u32>,
-        out: DevPtr<u32>,
-        cap: u32,
-    }
     /// `k_naive_count`: per query, the targets its box overlaps, testing all `nt`.
     KNaiveCount = "k_naive_count" {
         nq: u32,
@@ -497,90 +483,6 @@ kernels! {
         flags: DevPtr<u8>,
     }
 
-    /// `k_interest_select` (`kernels/interest.cu`): one block per player picks its
-    /// records from its AOI list and writes its new staleness table (players
-    /// `first..nq`).
-    KInterestSelect = "k_interest_select" {
-        first: u32,
-        nq: u32,
-        offsets: DevPtr<u32>,
-        parts: u32,
-        objects: DevPtr<u32>,
-        n: u32,
-        pos: DevPtr<f32>,
-        ids: DevPtr<u32>,
-        own: DevPtr<u32>,
-        centres: DevPtr<f32>,
-        prev_index: DevPtr<u32>,
-        prev_toff: DevPtr<u32>,
-        prev_tid: DevPtr<u64>,
-        prev_tkey: DevPtr<u64>,
-        prev_rot: DevPtr<u8>,
-        next_toff: DevPtr<u32>,
-        next_tid: DevPtr<u64>,
-        next_tkey: DevPtr<u64>,
-        next_rot: DevPtr<u8>,
-        cdist: DevPtr<u32>,
-        cid: DevPtr<u32>,
-        cflag: DevPtr<u8>,
-        ckey: DevPtr<u64>,
-        tick: u64,
-        max_datagrams: u32,
-        near_slots: u32,
-        rotation_slots: u32,
-        cap: u32,
-        meta: DevPtr<u32>,
-        sel: DevPtr<u32>,
-    }
-    /// `k_interest_pack`: one warp per player packs its selection into update bodies
-    /// (players `first..nq`).
-    KInterestPack = "k_interest_pack" {
-        first: u32,
-        nq: u32,
-        meta: DevPtr<u32>,
-        sel: DevPtr<u32>,
-        cap: u32,
-        n: u32,
-        pos: DevPtr<f32>,
-        ids: DevPtr<u32>,
-        shapes: DevPtr<u8>,
-        own: DevPtr<u32>,
-        centres: DevPtr<f32>,
-        tick: u64,
-        dilation: u32,
-        max_datagrams: u32,
-        bodies: DevPtr<u8>,
-        lens: DevPtr<u32>,
-        info: DevPtr<u32>,
-        packed: DevPtr<u32>,
-    }
-    /// `k_interest_seal`: players `first..nq`'s datagrams framed, sealed and stored into
-    /// mapped host memory (the download).
-    KInterestSeal = "k_interest_seal" {
-        first: u32,
-        nq: u32,
-        max_datagrams: u32,
-        bodies: DevPtr<u8>,
-        lens: DevPtr<u32>,
-        info: DevPtr<u32>,
-        leases: DevPtr<u32>,
-        out: DevPtr<u8>,
-    }
-    /// `k_interest_stamp`: marks the records packed as sent this tick (players
-    /// `first..nq`).
-    KInterestStamp = "k_interest_stamp" {
-        first: u32,
-        nq: u32,
-        meta: DevPtr<u32>,
-        sel: DevPtr<u32>,
-        cap: u32,
-        packed: DevPtr<u32>,
-        ids: DevPtr<u32>,
-        toff: DevPtr<u32>,
-        tid: DevPtr<u64>,
-        tkey: DevPtr<u64>,
-        tick: u64,
-    }
 }
 
 #[cfg(test)]

@@ -1,17 +1,18 @@
 //! CUDA physics backends of Myriad: `cuda-naive` (every pair tested on the GPU, the
 //! simplest GPU baseline) and `cuda` (device-resident state, LBVH broad phase), both bit for
 //! bit identical to the CPU backends; [`create_backend`], which also resolves `auto`; and
-//! [`DeviceInterest`], interest selection, packing and sealing on a CUDA backend's device,
-//! which the factory hands out beside the backend. `DeviceInterest` packs datagram
-//! protocol version 1, which the server no longer sends: it is not used by the server and
-//! awaits its port to version 2's deltas, priorities and budget (issue 26).
+//! [`DeviceReplicas`](replica::DeviceReplicas), every player's replica (protocol version
+//! 3's choices) on a CUDA backend's device, which the factory hands out beside the
+//! backend.
 //!
 //! Module map:
 //! - [`compile`]: the embedded kernel sources, NVRTC compilation to a CUBIN and its cache;
 //! - [`device`]: availability probe, context, stream, kernels, device and pinned memory;
 //! - `launch`: typed device pointers and one argument struct per kernel;
 //! - [`backend`]: [`CudaBackend`], the pipeline of both backends, one file per stage;
-//! - [`interest`]: [`DeviceInterest`], which shares the backend's device state;
+//! - [`replica`]: [`DeviceReplicas`](replica::DeviceReplicas), which shares the
+//!   backend's device state, and the C it runs (`kernels/replica.cuh`) held to the host
+//!   replica;
 //! - [`params`]: the parameter block the kernels read.
 //!
 //! Without a CUDA driver, NVRTC or a device nothing here panics: the CUDA kinds return
@@ -20,13 +21,11 @@
 pub mod backend;
 pub mod compile;
 pub mod device;
-pub mod interest;
 pub(crate) mod launch;
 pub mod params;
 pub mod replica;
 
 pub use backend::CudaBackend;
-pub use interest::DeviceInterest;
 
 use myriad_physics::{Backend, BackendKind, PhysicsError};
 
@@ -35,9 +34,6 @@ use myriad_physics::{Backend, BackendKind, PhysicsError};
 pub struct CreatedBackend {
     /// The physics backend.
     pub backend: Box<dyn Backend>,
-    /// Interest selection, packing and sealing on the backend's device, sharing its
-    /// state there (`Some` for the CUDA kinds).
-    pub device_interest: Option<DeviceInterest>,
     /// Every player's replica on the backend's device (`Some` for the CUDA kinds).
     pub device_replicas: Option<replica::DeviceReplicas>,
 }
@@ -46,7 +42,6 @@ impl std::fmt::Debug for CreatedBackend {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("CreatedBackend")
             .field("backend", &self.backend.description())
-            .field("device_interest", &self.device_interest.is_some())
             .field("device_replicas", &self.device_replicas.is_some())
             .finish()
     }
@@ -55,22 +50,21 @@ impl std::fmt::Debug for CreatedBackend {
 /// A backend made elsewhere (a CPU kind, a zones gateway's): physics only.
 impl From<Box<dyn Backend>> for CreatedBackend {
     fn from(backend: Box<dyn Backend>) -> CreatedBackend {
-        CreatedBackend { backend, device_interest: None, device_replicas: None }
+        CreatedBackend { backend, device_replicas: None }
     }
 }
 
 impl From<CudaBackend> for CreatedBackend {
     fn from(cuda: CudaBackend) -> CreatedBackend {
-        let device_interest = Some(cuda.device_interest());
         let device_replicas = Some(cuda.device_replicas());
-        CreatedBackend { backend: Box::new(cuda), device_interest, device_replicas }
+        CreatedBackend { backend: Box::new(cuda), device_replicas }
     }
 }
 
 /// Creates a backend of any kind: the CPU ones through `myriad_physics`, the CUDA ones
 /// here, and `auto`: `cuda` when a driver, NVRTC and a device are present and the kernels
 /// load, else `cpu`. The choice and its reason are logged. A CUDA backend comes with its
-/// [`DeviceInterest`].
+/// [`DeviceReplicas`](replica::DeviceReplicas).
 pub fn create_backend(kind: BackendKind) -> Result<CreatedBackend, PhysicsError> {
     create_backend_on(kind, 0)
 }

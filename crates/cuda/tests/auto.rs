@@ -10,8 +10,8 @@ fn auto_picks_cuda_when_usable_and_cpu_otherwise() {
     let b = &created.backend;
     let want = if usable { BackendKind::Cuda } else { BackendKind::Cpu };
     assert_eq!(b.kind(), want, "{}", b.description());
-    // The device interest comes with a CUDA backend, and only with one.
-    assert_eq!(created.device_interest.is_some(), usable);
+    // The device replicas comes with a CUDA backend, and only with one.
+    assert_eq!(created.device_replicas.is_some(), usable);
     if std::env::var("MYRIAD_REQUIRE_CUDA").is_ok_and(|v| v == "1") {
         assert!(usable, "MYRIAD_REQUIRE_CUDA=1 but cuda is unavailable");
     }
@@ -23,7 +23,7 @@ fn cuda_kinds_fail_cleanly_without_a_device() {
         match create_backend(kind) {
             Ok(b) => {
                 assert_eq!(b.backend.kind(), kind);
-                assert!(b.device_interest.is_some(), "{kind} without its device interest");
+                assert!(b.device_replicas.is_some(), "{kind} without its device replicas");
             }
             Err(PhysicsError::Unavailable { backend, reason }) => {
                 assert_eq!(backend, kind.name());
@@ -36,7 +36,7 @@ fn cuda_kinds_fail_cleanly_without_a_device() {
     // The CPU kinds go through unchanged, and the names parse.
     let cpu = create_backend(BackendKind::Cpu).unwrap();
     assert_eq!(cpu.backend.kind(), BackendKind::Cpu);
-    assert!(cpu.device_interest.is_none());
+    assert!(cpu.device_replicas.is_none());
     for name in ["cuda", "cuda-naive", "auto"] {
         assert_eq!(name.parse::<BackendKind>().unwrap().name(), name);
     }

@@ -188,7 +188,7 @@ pub struct TickReport {
 
 impl TickReport {
     /// This report with one more subscriber's counts.
-    pub fn add(mut self, s: &SubscriberReport) -> Self {
+    pub fn with(mut self, s: &SubscriberReport) -> Self {
         self.subscribers += 1;
         self.records += s.records;
         self.relative += s.relative;
@@ -273,7 +273,7 @@ impl InterestManager {
                 SCRATCH.with_borrow_mut(|scratch| {
                     build_one(&config, tick, objects, aoi.get(i), s, scratch);
                 });
-                acc.add(&s.report)
+                acc.with(&s.report)
             })
             .reduce(TickReport::default, TickReport::merge))
     }

@@ -57,7 +57,7 @@ impl Player {
         for sequence in next - sent..next {
             let h =
                 (self.session_id ^ sequence.wrapping_mul(0x9e37_79b9_7f4a_7c15)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            if (h >> 32) % 10 != 0 {
+            if !(h >> 32).is_multiple_of(10) {
                 self.on_the_way.push((tick + 1 + (h >> 40) % 2, sequence));
             }
         }

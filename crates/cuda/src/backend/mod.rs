@@ -33,8 +33,8 @@
 //!
 //! # Code map
 //! [`CudaBackend`] is a handle on the device-resident state (`Resident`), which it shares
-//! with the device interest updates ([`crate::interest::DeviceInterest`], from
-//! [`CudaBackend::device_interest`]): the two run one after the other on the tick's
+//! with the device replicas ([`crate::replica::DeviceReplicas`], from
+//! [`CudaBackend::device_replicas`]): the two run one after the other on the tick's
 //! thread, so the lock between them is never contended. One file per stage, each adding
 //! methods to `Resident` or holding the stage's device state:
 //! - `sync`: the device copies of the world and their uploads, the pinned download
@@ -46,7 +46,7 @@
 //! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];
 //! - `narrow`, `forces`: the narrow-phase launches, the force and integration launch;
 //! - `step`: one tick in order, the download of the new state and the stage times;
-//! - `aoi`: area-of-interest queries (the device interest updates start from its lists,
+//! - `aoi`: area-of-interest queries (the device replicas start from its lists,
 //!   which stay on the device).
 //!
 //! Every launch goes through the typed argument structs of the crate's `launch` module.
@@ -72,7 +72,6 @@ use myriad_core::{Aabb, World};
 use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport, TickConstants};
 
 use crate::device::{DevBuf, Event, Gpu, Pinned};
-use crate::interest::DeviceInterest;
 use crate::params::DeviceParams;
 use patch::Patch;
 use scan::Scan;
@@ -110,7 +109,7 @@ impl Synced {
 }
 
 /// A CUDA backend: `cuda` (LBVH) or `cuda-naive` (all pairs): a handle on the device
-/// and the world's copy there, which the device interest updates share.
+/// and the world's copy there, which the device replicas share.
 pub struct CudaBackend {
     resident: Arc<Mutex<Resident>>,
 }
@@ -163,13 +162,6 @@ impl CudaBackend {
     /// [`CudaBackend::new`] on device `ordinal` (zones of one process, one per GPU).
     pub fn on_device(kind: BackendKind, ordinal: usize) -> Result<CudaBackend, PhysicsError> {
         Ok(CudaBackend { resident: Arc::new(Mutex::new(Resident::on_device(kind, ordinal)?)) })
-    }
-
-    /// The interest selection, packing and sealing on this backend's device, over the
-    /// AOI lists and world copy this backend keeps there. Each call makes a handle with
-    /// interest state of its own (staleness tables, buffers).
-    pub fn device_interest(&self) -> DeviceInterest {
-        DeviceInterest::new(self.resident.clone())
     }
 
     /// Every player's replica on this backend's device (protocol version 3's choices

@@ -85,6 +85,14 @@ struct Pending {
     no_objects: bool,
 }
 
+/// A build's players' homes and the homes it carries.
+struct Placed {
+    /// Each player's home, and whether it starts afresh.
+    homes: Vec<(u32, bool)>,
+    /// (home, tracks) of each player left out whose tracks move to this build's buffer.
+    carried: Vec<(u32, u32)>,
+}
+
 struct State {
     homes_of: HashMap<u64, Home>,
     free: Vec<u32>,
@@ -267,9 +275,9 @@ impl State {
         self.used = 0;
     }
 
-    /// This build's homes: each player's index and whether it starts afresh; the
-    /// players left out are carried or forgotten. Returns (homes, carried (home, tracks)).
-    fn place(&mut self, players: &[ReplicaPlayer]) -> Result<(Vec<(u32, bool)>, Vec<(u32, u32)>), PhysicsError> {
+    /// This build's homes: each player's and whether it starts afresh; the players left
+    /// out are carried or forgotten.
+    fn place(&mut self, players: &[ReplicaPlayer]) -> Result<Placed, PhysicsError> {
         if !self.valid || self.pending.is_some() {
             // A build that never committed, or a failure: start afresh.
             self.failed();
@@ -317,7 +325,7 @@ impl State {
         }
         // The device order of the copies does not matter; a fixed one keeps runs alike.
         carried.sort_unstable();
-        Ok((placed, carried))
+        Ok(Placed { homes: placed, carried })
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -338,12 +346,11 @@ impl State {
                 message: format!("{} boxes for {nq} players", boxes.len()),
             });
         }
-        let (placed, carried) = self.place(players)?;
+        let Placed { homes: placed, carried } = self.place(players)?;
         let cfg = device_config(config, max_datagrams);
         let mdg = cfg.max_datagrams as usize;
         let out_cap = mdg * RECORDS_PER_DATAGRAM;
-        let (total, parts) = d.aoi_on_device(world, boxes, true)?;
-        debug_assert_eq!(parts, 1);
+        let total = d.aoi_on_device(world, boxes)?;
         let gpu = &d.gpu;
         let (old, new) = (self.current, 1 - self.current);
         // Carried tracks go after this build's lists.

@@ -253,7 +253,7 @@ fn run(seed: u64, n: usize, players: usize, ticks: u64, config: InterestConfig, 
                 }
             }
         }
-        if t % 17 == 0 {
+        if t.is_multiple_of(17) {
             // An object changes slot (a removal moved another into it).
             let (a, b) = (rng.below(n as u64) as usize, rng.below(n as u64) as usize);
             ids.swap(a, b);
@@ -262,7 +262,7 @@ fn run(seed: u64, n: usize, players: usize, ticks: u64, config: InterestConfig, 
         }
         let objects = SoaObjects { ids: &ids, kinds: &kinds, positions: &positions };
         // Who is served: now and then a player misses a tick.
-        let served: Vec<usize> = (0..players).filter(|&p| (t + p as u64) % 11 != 0).collect();
+        let served: Vec<usize> = (0..players).filter(|&p| !(t + p as u64).is_multiple_of(11)).collect();
         let mut offsets = vec![0u32];
         let mut objects_in = Vec::new();
         for &p in &served {
@@ -310,7 +310,7 @@ fn run(seed: u64, n: usize, players: usize, ticks: u64, config: InterestConfig, 
                 }
                 at > t
             });
-            if let Some(field) = tracker.field().filter(|f| Some(*f) != before || t % 5 == 0) {
+            if let Some(field) = tracker.field().filter(|f| Some(*f) != before || t.is_multiple_of(5)) {
                 host[p].acknowledge(field);
                 device[p].acknowledge(field);
             }

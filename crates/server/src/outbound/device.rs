@@ -106,7 +106,7 @@ impl DeviceOutbound {
             tracing::error!(error = %e, "device replicas failed to commit");
             metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
         }
-        let tick_report = recipients.iter().fold(TickReport::default(), |acc, r| acc.add(&r.view.report()));
+        let tick_report = recipients.iter().fold(TickReport::default(), |acc, r| acc.with(&r.view.report()));
         report.add_interest(&tick_report);
         report
     }

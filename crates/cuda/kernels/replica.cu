@@ -1,15 +1,40 @@
 // The replica on the device (crates/cuda/src/replica): each player's tracks, flights and
-// credit live in device memory, and one thread per player runs the decisions of
+// credit live in device memory, and one warp per player makes the decisions of
 // replica.cuh, which the host replica (crates/interest/src/replica.rs) makes the same
 // way. A build is k_replica_carry (players left out keep their tracks), k_replica_select
 // (the records chosen, stored into mapped host memory), the host's packing and sealing,
 // then k_replica_commit (what the datagrams took, flights, tracks marked sent).
+//
+// What is per object (candidates, the merge with last build's tracks, acknowledgements
+// within a datagram, priorities, marking what was sent) runs on the warp's 32 lanes;
+// what is in order (the objects due taken into the budget, the flights) on lane 0, with
+// replica.cuh's functions, so the two halves cannot drift apart. Lists compacted across
+// lanes keep their order (a ballot and a population count), and every step reads only
+// what the step before wrote after a __syncwarp.
 //
 // Layout: this build's per-candidate arrays (candidates, tracks, scratch) are at each
 // player's AOI list offset; `orph` is at its old tracks' offset; flights and their
 // states at its home times R_FLIGHTS and R_STATES.
 #include "common.cuh"
 #include "replica.cuh"
+
+#define FULL_WARP 0xffffffffu
+
+// Lanes below this one set in `mask`: where this lane's item goes in a compacted list.
+__device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(mask & ((1u << lane) - 1u)); }
+
+// Index of the candidate of `slot` in `cands` (ascending by slot), or R_NO_SLOT.
+__device__ __forceinline__ u32 find_cand(const RCand* cands, u32 n, u32 slot) {
+    u32 lo = 0, hi = n;
+    while (lo < hi) {
+        u32 mid = lo + (hi - lo) / 2;
+        if (cands[mid].slot < slot)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    return lo < n && cands[lo].slot == slot ? lo : R_NO_SLOT;
+}
 
 extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets,
                                             const u32* objects, u32 n, const float* pos, const u32* ids,
@@ -18,14 +43,17 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
                                             u32* cand_of, RKey* un, RKey* orph, RMoved* moved, RDue* wanted,
                                             RChosen* chosen, RFlight* flights, RState* states, RInfo* info,
                                             RRecord* out, u32 out_cap) {
-    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
+    u32 lane = threadIdx.x & 31u;
+    u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (i >= nq) return;
     const RPlayer* p = &players[i];
     RHome* h = &homes[p->home];
-    if (p->reset) {
+    if (p->reset && lane == 0) {
         RHome zero = {};
         *h = zero;
     }
+    __syncwarp();
+    u64 floor = tick > R_MAX_BACK - 1 ? tick - (R_MAX_BACK - 1) : 0;
     u32 o = offsets[i], len = offsets[i + 1] - o;
     int has_own = p->own_slot < n;
     u64 own_id = 0;
@@ -35,44 +63,212 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
         u32 s = p->own_slot;
         own_id = ids[s];
         own_kind = shapes[s];
-        own_pos.x = r_quant(pos[3 * s]);
-        own_pos.y = r_quant(pos[3 * s + 1]);
-        own_pos.z = r_quant(pos[3 * s + 2]);
+        own_pos.x = r_quant(pos[3 * (u64)s]);
+        own_pos.y = r_quant(pos[3 * (u64)s + 1]);
+        own_pos.z = r_quant(pos[3 * (u64)s + 2]);
     }
+    // Last build's tracks, read before lane 0 points the home at this build's.
+    const RTrack* old = old_tracks + h->track_off;
+    u32 nold = h->track_len;
+    RKey* orph_p = orph + h->track_off;
+    RFlight* fl_p = flights + (u64)p->home * R_FLIGHTS;
+    RState* st_p = states + (u64)p->home * R_STATES;
+    RCand* cs = cands + o;
+    RTrack* nx = next_tracks + o;
+    RKey* un_p = un + o;
+    RMoved* mv = moved + o;
+    RDue* wd = wanted + o;
+    RChosen* ch = chosen + o;
+    __syncwarp();
+    if (lane == 0) {
+        if (has_own && (!h->has_own || h->own.id != own_id)) {
+            h->own = r_track_new(own_id, R_NO_SLOT);
+            h->has_own = 1;
+        }
+        h->has_own_now = (u32)has_own;
+        h->own_now_id = own_id;
+        h->own_now = own_pos;
+    }
+
+    // Candidates: the list less the own object, in its order.
     u32 nc = 0;
-    for (u32 j = 0; j < len; j++) {
-        u32 s = objects[o + j];
-        if (s >= n) continue;
-        u64 id = ids[s];
-        if (has_own && id == own_id) continue;
-        cands[o + nc++] = r_candidate(s, id, shapes[s], pos + 3 * (u64)s, p->centre);
+    for (u32 base = 0; base < len; base += 32) {
+        u32 j = base + lane;
+        int valid = 0;
+        RCand c;
+        if (j < len) {
+            u32 s = objects[o + j];
+            if (s < n) {
+                u64 id = ids[s];
+                if (!(has_own && id == own_id)) {
+                    valid = 1;
+                    c = r_candidate(s, id, shapes[s], pos + 3 * (u64)s, p->centre);
+                }
+            }
+        }
+        u32 mask = __ballot_sync(FULL_WARP, valid);
+        if (valid) cs[nc + lanes_before(mask, lane)] = c;
+        nc += __popc(mask);
     }
-    RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
-    u32 old_off = h->track_off, nold = h->track_len;
-    RInfo mine;
-    r_select(cfg, tick, h, p, has_own, own_id, own_kind, own_pos, origin, cands + o, nc, old_tracks + old_off, nold,
-             flights + (u64)p->home * R_FLIGHTS, states + (u64)p->home * R_STATES, next_tracks + o, cand_of + o,
-             un + o, orph + old_off, moved + o, wanted + o, chosen + o, &mine);
-    h->track_off = o;
-    h->track_len = mine.in_view;
-    if (mine.count > out_cap) {
-        mine.overflow = 1;
-        mine.count = out_cap;
+    __syncwarp();
+    // The device's lists are sorted with no slot twice, so every candidate takes a track
+    // (the host replica's out-of-order drops never happen); a list that is not is a
+    // fault the host is told of, not a choice.
+    int disorder = 0;
+    for (u32 k = 1 + lane; k < nc; k += 32) disorder |= cs[k].slot <= cs[k - 1].slot;
+    if (__any_sync(FULL_WARP, disorder)) {
+        if (lane == 0) {
+            RInfo bad = {};
+            bad.overflow = 2;
+            info[i] = bad;
+        }
+        return;
     }
+
+    // The merge with last build's tracks: a candidate keeps the track of its slot and
+    // id; the rest start afresh (`un`), and old tracks nobody took (`orph`) may be theirs
+    // by id (an object whose slot changed).
+    u32 nun = 0;
+    for (u32 base = 0; base < nc; base += 32) {
+        u32 k = base + lane;
+        int fresh = 0;
+        if (k < nc) {
+            const RCand* c = &cs[k];
+            u32 at = r_find_slot(old, nold, c->slot);
+            if (at != R_NO_SLOT && old[at].id == c->id) {
+                nx[k] = old[at];
+            } else {
+                nx[k] = r_track_new(c->id, c->slot);
+                fresh = 1;
+            }
+            cand_of[o + k] = k;
+        }
+        u32 mask = __ballot_sync(FULL_WARP, fresh);
+        if (fresh) un_p[nun + lanes_before(mask, lane)].index = k;
+        nun += __popc(mask);
+    }
+    u32 norph = 0;
+    if (nun > 0) {
+        for (u32 base = 0; base < nold; base += 32) {
+            u32 k = base + lane;
+            int orphan = 0;
+            if (k < nold) {
+                u32 at = find_cand(cs, nc, old[k].slot);
+                orphan = !(at != R_NO_SLOT && cs[at].id == old[k].id);
+            }
+            u32 mask = __ballot_sync(FULL_WARP, orphan);
+            if (orphan) orph_p[norph + lanes_before(mask, lane)].index = k;
+            norph += __popc(mask);
+        }
+    }
+    __syncwarp();
+    u32 nmoved = 0;
+    if (lane == 0) nmoved = r_match_moved(old, nx, un_p, nun, orph_p, norph, mv);
+    nmoved = __shfl_sync(FULL_WARP, nmoved, 0);
+    __syncwarp();
+    u32 nfl = h->nflights;
+    if (nmoved > 0) {
+        // States in flight name objects by slot: the moved ones' follow them.
+        for (u32 f = 0; f < nfl; f++) {
+            RFlight fl = fl_p[f];
+            for (u32 s = lane; s < fl.len; s += 32) {
+                RState* st = &st_p[fl.start + s];
+                for (u32 m = 0; m < nmoved; m++) {
+                    if (mv[m].from == st->slot && mv[m].id == st->id) {
+                        st->slot = mv[m].to;
+                        break;
+                    }
+                }
+            }
+        }
+        __syncwarp();
+    }
+
+    // Acknowledgements: flights in order, one flight's states (distinct objects) at once.
+    u32 kept = 0;
+    for (u32 f = 0; f < nfl; f++) {
+        RFlight fl = fl_p[f];
+        int acked;
+        int keep = r_flight_kept(p, &fl, floor, &acked);
+        if (acked) {
+            for (u32 s = lane; s < fl.len; s += 32) r_ack_state(h, nx, nc, &st_p[fl.start + s], fl.tick);
+        }
+        __syncwarp();
+        if (keep) {
+            if (lane == 0) fl_p[kept] = fl;
+            kept++;
+        }
+        __syncwarp();
+    }
+    if (lane == 0) h->nflights = kept;
+
+    // Priorities; the objects due, compacted.
+    u32 nw = 0;
+    for (u32 base = 0; base < nc; base += 32) {
+        u32 k = base + lane;
+        RDue d;
+        int due = k < nc && r_priority(cfg, tick, floor, &nx[k], &cs[k], k, k, &d);
+        u32 mask = __ballot_sync(FULL_WARP, due);
+        if (due) wd[nw + lanes_before(mask, lane)] = d;
+        nw += __popc(mask);
+    }
+    __syncwarp();
+
+    // In order, on lane 0: the own record, then the objects due into the budget.
+    u32 count = 0;
+    RInfo mine = {};
+    if (lane == 0) {
+        mine.in_view = nc;
+        mine.has_own_record = (u32)(has_own && h->has_own);
+        if (mine.has_own_record) {
+            RBase acked = r_track_acked(&h->own, floor);
+            mine.own_record = r_choose(own_id, own_kind, own_pos, tick, acked, r_track_prior(&h->own, acked));
+        }
+        RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
+        r_take_due(cfg, tick, floor, h, origin, cs, nx, wd, nw, ch, &mine);
+        h->track_off = o;
+        h->track_len = nc;
+        if (mine.count > out_cap) {
+            mine.overflow = 1;
+            mine.count = out_cap;
+        }
+        count = mine.count;
+    }
+    count = __shfl_sync(FULL_WARP, count, 0);
+    __syncwarp();
     RRecord* dst = out + (u64)i * out_cap;
-    for (u32 k = 0; k < mine.count; k++) dst[k] = chosen[o + k].rec;
-    info[i] = mine;
+    for (u32 k = lane; k < count; k += 32) dst[k] = ch[k].rec;
+    if (lane == 0) info[i] = mine;
 }
 
 extern "C" __global__ void k_replica_commit(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets,
                                             const RPlayer* players, RHome* homes, const RCommit* commits,
                                             const u32* ends, const RChosen* chosen, const RCand* cands,
                                             RTrack* next_tracks, RFlight* flights, RState* states) {
-    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
+    u32 lane = threadIdx.x & 31u;
+    u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (i >= nq) return;
     u32 home = players[i].home, o = offsets[i];
-    r_commit(cfg, tick, &homes[home], &commits[i], ends + (u64)i * cfg->max_datagrams, chosen + o, cands + o,
-             next_tracks + o, flights + (u64)home * R_FLIGHTS, states + (u64)home * R_STATES);
+    RHome* h = &homes[home];
+    const RCommit* done = &commits[i];
+    if (lane == 0) r_commit_credit(cfg, h, done);
+    if (!done->ok) return;
+    RFlight* fl_p = flights + (u64)home * R_FLIGHTS;
+    RState* st_p = states + (u64)home * R_STATES;
+    const u32* e = ends + (u64)i * cfg->max_datagrams;
+    u32 own = h->has_own_now ? 1u : 0u;
+    u32 start = 0;
+    for (u32 d = 0; d < done->datagrams; d++) {
+        u32 end = e[d];
+        u32 at = 0;
+        if (lane == 0) at = r_commit_flight(h, fl_p, st_p, done->first + d, tick, end - start);
+        at = __shfl_sync(FULL_WARP, at, 0);
+        __syncwarp();
+        for (u32 k = start + lane; k < end; k += 32)
+            r_commit_record(tick, &chosen[o + k], cands + o, next_tracks + o, &st_p[at + own + (k - start)]);
+        __syncwarp();
+        start = end;
+    }
 }
 
 // Players left out of this build keep their tracks: `carry` holds (home, new offset)

@@ -461,6 +461,36 @@ RFN int r_key_less(const RKey* a, const RKey* b) {
     return a->index < b->index;
 }
 
+// The end of `Replica::match_view`: tracks new this build by slot (`un`, indices into
+// `next`) take the state of an old track no candidate took by slot (`orph`, indices into
+// `old`) of the same id, an object whose slot changed; returns how many, each in
+// `moved`.
+RFN u32 r_match_moved(const RTrack* old, RTrack* next, RKey* un, u32 nun, RKey* orph, u32 norph, RMoved* moved) {
+    if (nun == 0 || norph == 0) return 0;
+    for (u32 k = 0; k < nun; k++) un[k].id = next[un[k].index].id;
+    for (u32 k = 0; k < norph; k++) orph[k].id = old[orph[k].index].id;
+    R_HEAPSORT(RKey, un, nun, r_key_less);
+    R_HEAPSORT(RKey, orph, norph, r_key_less);
+    u32 o = 0, nmoved = 0;
+    for (u32 k = 0; k < nun; k++) {
+        u64 id = un[k].id;
+        while (o < norph && orph[o].id < id) o++;
+        if (o < norph && orph[o].id == id) {
+            u32 at = un[k].index;
+            u32 slot = next[at].slot;
+            const RTrack* from = &old[orph[o].index];
+            moved[nmoved].from = from->slot;
+            moved[nmoved].id = id;
+            moved[nmoved].to = slot;
+            nmoved++;
+            next[at] = *from;
+            next[at].slot = slot;
+            o++;
+        }
+    }
+    return nmoved;
+}
+
 // `Replica::match_view`: this build's tracks into `next` (one per candidate taken, in
 // the view's order, its candidate in `cand_of`); returns how many there are. `un` and
 // `moved` are scratch for `ncands` entries, `orph` for `nold`.
@@ -504,28 +534,7 @@ RFN u32 r_match_view(int has_own, u64 own_id, const RCand* cands, u32 ncands, co
         orph[norph].index = i;
         norph++;
     }
-    if (norph == 0) return n;
-    for (u32 k = 0; k < nun; k++) un[k].id = next[un[k].index].id;
-    for (u32 k = 0; k < norph; k++) orph[k].id = old[orph[k].index].id;
-    R_HEAPSORT(RKey, un, nun, r_key_less);
-    R_HEAPSORT(RKey, orph, norph, r_key_less);
-    u32 o = 0;
-    for (u32 k = 0; k < nun; k++) {
-        u64 id = un[k].id;
-        while (o < norph && orph[o].id < id) o++;
-        if (o < norph && orph[o].id == id) {
-            u32 at = un[k].index;
-            u32 slot = next[at].slot;
-            const RTrack* from = &old[orph[o].index];
-            moved[*nmoved].from = from->slot;
-            moved[*nmoved].id = id;
-            moved[*nmoved].to = slot;
-            *nmoved += 1;
-            next[at] = *from;
-            next[at].slot = slot;
-            o++;
-        }
-    }
+    *nmoved = r_match_moved(old, next, un, nun, orph, norph, moved);
     return n;
 }
 
@@ -542,6 +551,58 @@ RFN u32 r_find_slot(const RTrack* tracks, u32 n, u32 slot) {
     return lo < n && tracks[lo].slot == slot ? lo : R_NO_SLOT;
 }
 
+// One state of an acknowledged flight of `tick`: its object's baseline if newer (the own
+// object's, or the track of its slot and id; nothing for an object that left the view).
+RFN void r_ack_state(RHome* h, RTrack* tracks, u32 ntracks, const RState* st, u64 tick) {
+    RTrack* t = 0;
+    if (h->has_own && h->own.id == st->id) {
+        t = &h->own;
+    } else {
+        u32 k = r_find_slot(tracks, ntracks, st->slot);
+        if (k != R_NO_SLOT && tracks[k].id == st->id) t = &tracks[k];
+    }
+    if (t) r_track_acknowledge(t, tick, st->pos);
+}
+
+// Whether `Replica::apply_acks` keeps a flight (0: acknowledged, unacknowledgeable or
+// too old); `acked` is set if the player acknowledged it.
+RFN int r_flight_kept(const RPlayer* p, const RFlight* fl, u64 floor, int* acked) {
+    *acked = p->has_acks && r_ack_contains(p->ack_newest, p->ack_bits, fl->sequence);
+    u64 behind = p->ack_newest > fl->sequence ? p->ack_newest - fl->sequence : 0;
+    int unackable = p->has_acks && behind > R_ACK_BITS;
+    return !(*acked || unackable || fl->tick < floor);
+}
+
+// Step 2 of `Replica::build` for one track (index `k`, candidate `cand`): its priority
+// grows by its rate; if it is due, `due` describes it and 1 is returned.
+RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, RTrack* t, const RCand* c, u32 k, u32 cand, RDue* due) {
+    RBase acked = r_track_acked(t, floor);
+    int has_sent = t->sent_tick != R_NONE;
+    int holds = acked.valid && r_pos_eq(acked.pos, c->pos);
+    u64 since = now > t->sent_tick ? now - t->sent_tick : 0;
+    int sending = has_sent && r_pos_eq(t->sent, c->pos) && since < cfg->resend_ticks;
+    float rate;
+    if (holds)
+        rate = 1.0f / fmaxf(cfg->refresh, 1.0f);
+    else if (sending)
+        rate = 0.0f;
+    else if (!acked.valid && !has_sent)
+        rate = 1.0f;
+    else
+        rate = 1.0f / r_bound_ticks(cfg, c->distance);
+    t->priority += rate;
+    if (t->priority < 1.0f) return 0;
+    int starving = rate > 0.0f && t->priority / rate + R_WAIT_SLACK >= cfg->max_wait;
+    int first = c->distance <= cfg->near_units || !acked.valid;
+    due->hi = r_rank_hi(first, t->priority, c->distance);
+    due->id = c->id;
+    due->track = k;
+    due->cand = cand;
+    due->starving = (u32)starving;
+    due->pad = 0;
+    return 1;
+}
+
 // `Replica::apply_acks`: flights in order; an acknowledged one's states become
 // baselines; acknowledged, unacknowledgeable and too old flights are dropped (their
 // states stay in the arena until `r_push_flight` compacts it).
@@ -551,23 +612,12 @@ RFN void r_apply_acks(RHome* h, const RPlayer* p, u64 now, RTrack* tracks, u32 n
     u32 kept = 0;
     for (u32 f = 0; f < h->nflights; f++) {
         RFlight fl = flights[f];
-        int acked = p->has_acks && r_ack_contains(p->ack_newest, p->ack_bits, fl.sequence);
+        int acked;
+        int keep = r_flight_kept(p, &fl, floor, &acked);
         if (acked) {
-            for (u32 s = 0; s < fl.len; s++) {
-                const RState* st = &states[fl.start + s];
-                RTrack* t = 0;
-                if (h->has_own && h->own.id == st->id) {
-                    t = &h->own;
-                } else {
-                    u32 k = r_find_slot(tracks, ntracks, st->slot);
-                    if (k != R_NO_SLOT && tracks[k].id == st->id) t = &tracks[k];
-                }
-                if (t) r_track_acknowledge(t, fl.tick, st->pos);
-            }
+            for (u32 s = 0; s < fl.len; s++) r_ack_state(h, tracks, ntracks, &states[fl.start + s], fl.tick);
         }
-        u64 behind = p->ack_newest > fl.sequence ? p->ack_newest - fl.sequence : 0;
-        int unackable = p->has_acks && behind > R_ACK_BITS;
-        if (!(acked || unackable || fl.tick < floor)) flights[kept++] = fl;
+        if (keep) flights[kept++] = fl;
     }
     h->nflights = kept;
 }
@@ -660,6 +710,60 @@ RFN void r_take(RFilling* fill, const RDue* d, const RCand* cands, const RTrack*
     }
 }
 
+// Step 3 of `Replica::build`: the objects due (`wanted`, any order) taken into the
+// budget in the order of urgency; `chosen[0 .. info->count]` (ids increasing) and
+// `info->datagrams` are the result. `info->own_record` and `info->has_own_record` are
+// set, and `info->deferred` and `info->starving` count on.
+RFN void r_take_due(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin, const RCand* cands,
+                    const RTrack* next, RDue* wanted, u32 nwanted, RChosen* chosen, RInfo* info) {
+    int has_own_record = info->has_own_record != 0;
+    u32 own_bits = has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
+    u32 room = (R_MAX_BODY - R_DELTA_HEADER_LEN - R_MAX_RECORD_LEN) * 8u - R_STREAM_PARAMS_BITS - own_bits;
+    float per_datagram = (float)R_DATAGRAM_OVERHEAD + (float)own_bits / 8.0f;
+    float per_tick = r_per_tick(cfg);
+    RFilling fill;
+    fill.budget = per_tick + h->credit - per_datagram;
+    fill.datagrams = 1;
+    fill.max_datagrams = cfg->max_datagrams > 1 ? cfg->max_datagrams : 1;
+    fill.in_datagram = 0;
+    fill.room = room;
+    fill.per_datagram = per_datagram;
+    // Offered in the order of urgency (a total order), taken from a heap while the
+    // budget can pay the smallest record; then only the starving can go, in their
+    // order. The host takes the order a slice at a time and checks the budget between
+    // slices; the same objects are taken either way (an object offered when the budget
+    // cannot pay the smallest record is refused).
+    u32 nchosen = 0;
+    u32 heap = nwanted;
+    for (u32 s = heap / 2; s-- > 0;) R_SIFT(RDue, wanted, s, heap, r_due_greater);
+    while (heap > 0 && fill.budget >= R_MIN_COST) {
+        RDue d = wanted[0];
+        wanted[0] = wanted[heap - 1];
+        heap--;
+        R_SIFT(RDue, wanted, 0, heap, r_due_greater);
+        r_take(&fill, &d, cands, next, now, floor, origin, chosen, &nchosen, info);
+    }
+    u32 starving = 0;
+    for (u32 k = 0; k < heap; k++) {
+        if (wanted[k].starving)
+            wanted[starving++] = wanted[k];
+        else
+            info->deferred += 1;
+    }
+    R_HEAPSORT(RDue, wanted, starving, r_due_less);
+    for (u32 k = 0; k < starving; k++) r_take(&fill, &wanted[k], cands, next, now, floor, origin, chosen, &nchosen, info);
+    R_HEAPSORT(RChosen, chosen, nchosen, r_chosen_less);
+    // A repeated id goes once (the first of it).
+    u32 unique = 0;
+    for (u32 k = 0; k < nchosen; k++) {
+        if (unique > 0 && chosen[unique - 1].rec.id == chosen[k].rec.id) continue;
+        chosen[unique++] = chosen[k];
+    }
+    info->deferred += nchosen - unique;
+    info->count = unique;
+    info->datagrams = fill.datagrams;
+}
+
 // The first half of `Replica::build`, up to the records it sends: matches the view,
 // applies acknowledgements, accumulates priorities and takes the objects due into the
 // budget; `chosen[0 .. info->count]` (ids increasing) and `info` are the result. The
@@ -711,81 +815,44 @@ RFN void r_select(const RConfig* cfg, u64 now, RHome* h, const RPlayer* p, int h
 
     u32 nwanted = 0;
     for (u32 k = 0; k < n; k++) {
-        RTrack* t = &next[k];
-        const RCand* c = &cands[cand_of[k]];
-        RBase acked = r_track_acked(t, floor);
-        int has_sent = t->sent_tick != R_NONE;
-        int holds = acked.valid && r_pos_eq(acked.pos, c->pos);
-        u64 since = now > t->sent_tick ? now - t->sent_tick : 0;
-        int sending = has_sent && r_pos_eq(t->sent, c->pos) && since < cfg->resend_ticks;
-        float rate;
-        if (holds)
-            rate = 1.0f / fmaxf(cfg->refresh, 1.0f);
-        else if (sending)
-            rate = 0.0f;
-        else if (!acked.valid && !has_sent)
-            rate = 1.0f;
-        else
-            rate = 1.0f / r_bound_ticks(cfg, c->distance);
-        t->priority += rate;
-        if (t->priority >= 1.0f) {
-            int starving = rate > 0.0f && t->priority / rate + R_WAIT_SLACK >= cfg->max_wait;
-            int first = c->distance <= cfg->near_units || !acked.valid;
-            RDue* d = &wanted[nwanted++];
-            d->hi = r_rank_hi(first, t->priority, c->distance);
-            d->id = c->id;
-            d->track = k;
-            d->cand = cand_of[k];
-            d->starving = (u32)starving;
-            d->pad = 0;
-        }
+        if (r_priority(cfg, now, floor, &next[k], &cands[cand_of[k]], k, cand_of[k], &wanted[nwanted])) nwanted++;
     }
 
-    u32 own_bits = has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
-    u32 room = (R_MAX_BODY - R_DELTA_HEADER_LEN - R_MAX_RECORD_LEN) * 8u - R_STREAM_PARAMS_BITS - own_bits;
-    float per_datagram = (float)R_DATAGRAM_OVERHEAD + (float)own_bits / 8.0f;
+    r_take_due(cfg, now, floor, h, origin, cands, next, wanted, nwanted, chosen, info);
+}
+
+// What the datagrams took: the credit left (never more than a tick's worth).
+RFN void r_commit_credit(const RConfig* cfg, RHome* h, const RCommit* done) {
     float per_tick = r_per_tick(cfg);
-    RFilling fill;
-    fill.budget = per_tick + h->credit - per_datagram;
-    fill.datagrams = 1;
-    fill.max_datagrams = cfg->max_datagrams > 1 ? cfg->max_datagrams : 1;
-    fill.in_datagram = 0;
-    fill.room = room;
-    fill.per_datagram = per_datagram;
-    // Offered in the order of urgency (a total order), taken from a heap while the
-    // budget can pay the smallest record; then only the starving can go, in their
-    // order. The host takes the order a slice at a time and checks the budget between
-    // slices; the same objects are taken either way (an object offered when the budget
-    // cannot pay the smallest record is refused).
-    u32 nchosen = 0;
-    u32 heap = nwanted;
-    for (u32 s = heap / 2; s-- > 0;) R_SIFT(RDue, wanted, s, heap, r_due_greater);
-    while (heap > 0 && fill.budget >= R_MIN_COST) {
-        RDue d = wanted[0];
-        wanted[0] = wanted[heap - 1];
-        heap--;
-        R_SIFT(RDue, wanted, 0, heap, r_due_greater);
-        r_take(&fill, &d, cands, next, now, floor, origin, chosen, &nchosen, info);
+    float credit = per_tick + h->credit - done->spent;
+    if (credit < 0.0f) credit = 0.0f;
+    if (credit > per_tick) credit = per_tick;
+    h->credit = credit;
+}
+
+// A datagram of `records` records in flight, the own object's state first if there is
+// one; returns where its states start.
+RFN u32 r_commit_flight(RHome* h, RFlight* flights, RState* states, u64 sequence, u64 now, u32 records) {
+    u32 own = h->has_own_now ? 1u : 0u;
+    u32 at = r_push_flight(h, flights, states, sequence, now, own + records);
+    if (own) {
+        states[at].id = h->own_now_id;
+        states[at].slot = R_NO_SLOT;
+        states[at].pos = h->own_now;
     }
-    u32 starving = 0;
-    for (u32 k = 0; k < heap; k++) {
-        if (wanted[k].starving)
-            wanted[starving++] = wanted[k];
-        else
-            info->deferred += 1;
-    }
-    R_HEAPSORT(RDue, wanted, starving, r_due_less);
-    for (u32 k = 0; k < starving; k++) r_take(&fill, &wanted[k], cands, next, now, floor, origin, chosen, &nchosen, info);
-    R_HEAPSORT(RChosen, chosen, nchosen, r_chosen_less);
-    // A repeated id goes once (the first of it).
-    u32 unique = 0;
-    for (u32 k = 0; k < nchosen; k++) {
-        if (unique > 0 && chosen[unique - 1].rec.id == chosen[k].rec.id) continue;
-        chosen[unique++] = chosen[k];
-    }
-    info->deferred += nchosen - unique;
-    info->count = unique;
-    info->datagrams = fill.datagrams;
+    return at;
+}
+
+// A record sent: its track marked sent, its state into its flight at `st`.
+RFN void r_commit_record(u64 now, const RChosen* chosen, const RCand* cands, RTrack* next, RState* st) {
+    const RCand* c = &cands[chosen->cand];
+    RTrack* t = &next[chosen->track];
+    t->sent_tick = now;
+    t->sent = c->pos;
+    t->priority = 0.0f;
+    st->id = c->id;
+    st->slot = c->slot;
+    st->pos = c->pos;
 }
 
 // The second half of `Replica::build`: the credit left, and, if the datagrams were
@@ -793,33 +860,14 @@ RFN void r_select(const RConfig* cfg, u64 now, RHome* h, const RPlayer* p, int h
 // sent records' tracks marked sent.
 RFN void r_commit(const RConfig* cfg, u64 now, RHome* h, const RCommit* done, const u32* ends, const RChosen* chosen,
                   const RCand* cands, RTrack* next, RFlight* flights, RState* states) {
-    float per_tick = r_per_tick(cfg);
-    float credit = per_tick + h->credit - done->spent;
-    if (credit < 0.0f) credit = 0.0f;
-    if (credit > per_tick) credit = per_tick;
-    h->credit = credit;
+    r_commit_credit(cfg, h, done);
     if (!done->ok) return;
     u32 start = 0;
     for (u32 d = 0; d < done->datagrams; d++) {
         u32 end = ends[d];
+        u32 at = r_commit_flight(h, flights, states, done->first + d, now, end - start);
         u32 own = h->has_own_now ? 1u : 0u;
-        u32 at = r_push_flight(h, flights, states, done->first + d, now, own + (end - start));
-        if (own) {
-            states[at].id = h->own_now_id;
-            states[at].slot = R_NO_SLOT;
-            states[at].pos = h->own_now;
-        }
-        for (u32 k = start; k < end; k++) {
-            const RCand* c = &cands[chosen[k].cand];
-            RTrack* t = &next[chosen[k].track];
-            t->sent_tick = now;
-            t->sent = c->pos;
-            t->priority = 0.0f;
-            RState* st = &states[at + own + (k - start)];
-            st->id = c->id;
-            st->slot = c->slot;
-            st->pos = c->pos;
-        }
+        for (u32 k = start; k < end; k++) r_commit_record(now, &chosen[k], cands, next, &states[at + own + (k - start)]);
         start = end;
     }
 }

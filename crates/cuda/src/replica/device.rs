@@ -2,7 +2,7 @@
 //!
 //! A build: [`DeviceReplicas::select`] answers the AOI boxes on the device (the lists
 //! stay there), carries the tracks of players left out of the build, and runs
-//! `k_replica_select` (one thread a player), whose choices land in mapped host memory;
+//! `k_replica_select` (one warp a player), whose choices land in mapped host memory;
 //! the host packs and seals them per player ([`Choices`], then
 //! `Subscriber::seal_chosen`) and hands back what the datagrams took with
 //! [`DeviceReplicas::commit`], which queues `k_replica_commit` and does not wait.
@@ -45,8 +45,11 @@ pub const RECORDS_PER_DATAGRAM: usize = 343;
 /// Builds a player may miss in a row before its replica is forgotten.
 pub const FORGET_BUILDS: u64 = 2 * myriad_protocol::MAX_BACK;
 
-/// Threads per block of the per-player kernels.
-const BLOCK: u32 = 32;
+/// Players (one warp each) per block of `k_replica_select` and `k_replica_commit`.
+const PLAYERS_PER_BLOCK: u32 = 4;
+
+/// Threads per block of `k_replica_carry` (one a player left out).
+const CARRY_BLOCK: u32 = 32;
 
 /// One player of a build.
 #[derive(Debug, Clone, Copy)]
@@ -431,8 +434,8 @@ impl State {
         };
         if !carried.is_empty() {
             gpu.launch_grid(
-                (carried.len() as u32).div_ceil(BLOCK),
-                BLOCK,
+                (carried.len() as u32).div_ceil(CARRY_BLOCK),
+                CARRY_BLOCK,
                 KReplicaCarry {
                     count: carried.len() as u32,
                     carry: self.carry.ptr(),
@@ -444,8 +447,8 @@ impl State {
         }
         if nq > 0 {
             gpu.launch_grid(
-                (nq as u32).div_ceil(BLOCK),
-                BLOCK,
+                (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
+                32 * PLAYERS_PER_BLOCK,
                 KReplicaSelect {
                     nq: nq as u32,
                     cfg: self.config.ptr(),
@@ -478,11 +481,13 @@ impl State {
         gpu.sync()?;
         gpu.collect_profile()?;
         let info = self.host_info.slice::<RInfo>(nq);
-        if let Some(i) = info.iter().position(|r| r.overflow != 0) {
-            return Err(PhysicsError::Device {
-                stage: "replica",
-                message: format!("player {i} chose more records than {out_cap}"),
-            });
+        if let Some((i, r)) = info.iter().enumerate().find(|(_, r)| r.overflow != 0) {
+            let message = if r.overflow == 2 {
+                format!("player {i}'s AOI list is not in ascending slot order")
+            } else {
+                format!("player {i} chose more records than {out_cap}")
+            };
+            return Err(PhysicsError::Device { stage: "replica", message });
         }
         for (p, r) in players.iter().zip(info) {
             if let Some(h) = self.homes_of.get_mut(&p.key) {
@@ -520,8 +525,8 @@ impl State {
             gpu.upload_async(&self.ends, &self.host_ends, ends.len())?;
             let offsets = if p.no_objects { self.no_lists.ptr() } else { d.aoi_counts.ptr() };
             gpu.launch_grid(
-                (nq as u32).div_ceil(BLOCK),
-                BLOCK,
+                (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
+                32 * PLAYERS_PER_BLOCK,
                 KReplicaCommit {
                     nq: nq as u32,
                     cfg: self.config.ptr(),

@@ -1,6 +1,6 @@
 //! The replica on the device: each player's [`Replica`](myriad_interest::Replica)
 //! (protocol version 3's deltas, priorities and budget) kept in device memory and
-//! stepped by one device thread per player (`kernels/replica.cu`), with the host
+//! stepped by one device warp per player (`kernels/replica.cu`), with the host
 //! packing and sealing what the device chose.
 //!
 //! The decisions are C shared by the device and the host (`kernels/replica.cuh`): one

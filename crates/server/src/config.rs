@@ -82,6 +82,10 @@ pub struct ServerConfig {
     /// included: what its updates spend on average (protocol version 3's priority
     /// accumulator decides what fits; an object that waited too long goes over it).
     pub send_budget_kbps: f64,
+    /// How often a changing object within 30 units of a player is sent, at most every
+    /// this many ticks (1 to 30): 1 draws near objects as exactly as every state would,
+    /// for the bytes of sending each of them every tick.
+    pub near_bound_ticks: u32,
     /// Data directory: the SQLite database and the development TLS certificate.
     pub data_dir: PathBuf,
     /// Database URL (`mysql://user:pass@host/db`); empty uses SQLite in `data_dir`.
@@ -205,6 +209,7 @@ impl Default for ServerConfig {
             max_datagrams_per_player: 2,
             outbound: OutboundKind::Auto,
             send_budget_kbps: DEFAULT_SEND_BUDGET_KBPS,
+            near_bound_ticks: 3,
             data_dir: PathBuf::from("data"),
             database_url: String::new(),
             backend: BackendKind::Auto,
@@ -317,6 +322,9 @@ impl ServerConfig {
         }
         if !(self.send_budget_kbps.is_finite() && (1.0..=100_000.0).contains(&self.send_budget_kbps)) {
             return bad("send_budget_kbps", format!("{} (1 to 100000)", self.send_budget_kbps));
+        }
+        if !(1..=30).contains(&self.near_bound_ticks) {
+            return bad("near_bound_ticks", format!("{} (1 to 30)", self.near_bound_ticks));
         }
         if self.persist_interval_ms == 0 || self.persist_interval_ms > 60_000 {
             return bad("persist_interval_ms", format!("{} (1 to 60000)", self.persist_interval_ms));
@@ -457,13 +465,16 @@ impl ServerConfig {
     }
 
     /// What each player is sent: at most `max_datagrams_per_player` datagrams a tick
-    /// and `send_budget_kbps` on average at `tick_rate`.
+    /// and `send_budget_kbps` on average at `tick_rate`, near objects at most every
+    /// `near_bound_ticks`.
     pub fn interest(&self) -> myriad_interest::InterestConfig {
-        myriad_interest::InterestConfig::with_budget(
+        let mut c = myriad_interest::InterestConfig::with_budget(
             self.max_datagrams_per_player,
             self.send_budget_kbps,
             f64::from(self.tick_rate),
-        )
+        );
+        c.replication.near_bound_ticks = self.near_bound_ticks as f32;
+        c
     }
 
     /// The physics parameters (the defaults with this tick rate and player speed).
@@ -544,6 +555,19 @@ mod tests {
         assert!(c.set("nope", "1").unwrap_err().to_string().contains("nope"));
         assert!(c.set("max_players", "0").unwrap_err().to_string().contains("max_players"));
         assert_eq!(c.max_players, 10_000, "a failed set leaves the config unchanged");
+    }
+
+    #[test]
+    fn replication_keys_are_checked_and_reach_the_replicas() {
+        let mut c = ServerConfig::default();
+        for (key, value) in [("near_bound_ticks", "0"), ("near_bound_ticks", "31"), ("outbound", "\"gpu\"")] {
+            assert!(c.set(key, value).unwrap_err().to_string().contains(key), "{key} = {value}");
+        }
+        c.set("near_bound_ticks", "1").unwrap();
+        c.set("outbound", "\"host\"").unwrap();
+        assert_eq!(c.outbound, OutboundKind::Host);
+        assert_eq!(c.interest().replication.near_bound_ticks, 1.0);
+        assert_eq!(ServerConfig::default().interest().replication.near_bound_ticks, 3.0);
     }
 
     #[test]

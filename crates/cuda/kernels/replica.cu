@@ -80,15 +80,7 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
     RDue* wd = wanted + o;
     RChosen* ch = chosen + o;
     __syncwarp();
-    if (lane == 0) {
-        if (has_own && (!h->has_own || h->own.id != own_id)) {
-            h->own = r_track_new(own_id, R_NO_SLOT);
-            h->has_own = 1;
-        }
-        h->has_own_now = (u32)has_own;
-        h->own_now_id = own_id;
-        h->own_now = own_pos;
-    }
+    if (lane == 0) r_own_now(h, has_own, own_id, own_pos);
 
     // Candidates: the list less the own object, in its order.
     u32 nc = 0;

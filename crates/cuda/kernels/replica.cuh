@@ -710,6 +710,18 @@ RFN void r_take(RFilling* fill, const RDue* d, const RCand* cands, const RTrack*
     }
 }
 
+// This build's own object (`has_own`: whether there is one): a new own object starts a
+// new track; its state goes into each of this build's flights.
+RFN void r_own_now(RHome* h, int has_own, u64 own_id, RPos own_pos) {
+    if (has_own && (!h->has_own || h->own.id != own_id)) {
+        h->own = r_track_new(own_id, R_NO_SLOT);
+        h->has_own = 1;
+    }
+    h->has_own_now = (u32)has_own;
+    h->own_now_id = own_id;
+    h->own_now = own_pos;
+}
+
 // Step 3 of `Replica::build`: the objects due (`wanted`, any order) taken into the
 // budget in the order of urgency; `chosen[0 .. info->count]` (ids increasing) and
 // `info->datagrams` are the result. `info->own_record` and `info->has_own_record` are
@@ -780,13 +792,7 @@ RFN void r_select(const RConfig* cfg, u64 now, RHome* h, const RPlayer* p, int h
     info->deferred = 0;
     info->starving = 0;
     info->overflow = 0;
-    if (has_own && (!h->has_own || h->own.id != own_id)) {
-        h->own = r_track_new(own_id, R_NO_SLOT);
-        h->has_own = 1;
-    }
-    h->has_own_now = (u32)has_own;
-    h->own_now_id = own_id;
-    h->own_now = own_pos;
+    r_own_now(h, has_own, own_id, own_pos);
     u32 nmoved = 0;
     u32 n = r_match_view(has_own, own_id, cands, ncands, old, nold, next, cand_of, un, orph, moved, &nmoved,
                          &info->out_of_order);

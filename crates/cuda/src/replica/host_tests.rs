@@ -2,9 +2,8 @@
 //! against the Rust replica: the same world, views, acknowledgements and losses, and
 //! every player's datagrams and report equal, byte for byte, tick after tick.
 
-use myriad_interest::{
-    AoiLists, InterestConfig, InterestManager, ReplicaReport, ReplicationConfig, SoaObjects, Subscriber, TickInfo,
-};
+use myriad_core::rng::Stream;
+use myriad_interest::{AoiLists, InterestConfig, InterestManager, ReplicationConfig, SoaObjects, Subscriber, TickInfo};
 use myriad_protocol::{AckTracker, Direction, QuantPos, Sealer, ShapeKind, UpdateHeader};
 
 use super::*;
@@ -156,13 +155,7 @@ impl CReplica {
         let records: Vec<_> = chosen[..info.count as usize].iter().map(|c| delta_record(&c.rec).unwrap()).collect();
         let own_record = (info.has_own_record != 0).then(|| delta_record(&info.own_record).unwrap());
         let header = UpdateHeader { tick: tick.tick, dilation_permille: tick.dilation_permille, origin };
-        let chose = ReplicaReport {
-            in_view: info.in_view as usize,
-            out_of_order: info.out_of_order as usize,
-            deferred: info.deferred as usize,
-            starving: info.starving as usize,
-            ..ReplicaReport::default()
-        };
+        let chose = chose_report(&info);
         let mut ends = Vec::new();
         let done = sub.seal_chosen(&header, own_record.as_ref(), &records, info.datagrams as usize, chose, &mut ends);
         let commit = RCommit {
@@ -193,24 +186,16 @@ impl CReplica {
     }
 }
 
-/// A small deterministic generator (SplitMix64).
-struct Rng(u64);
+/// The test's random numbers: the world's seeded generator.
+struct Rng(Stream);
 
 impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
     fn below(&mut self, n: u64) -> u64 {
-        self.next() % n
+        self.0.next_u64() % n
     }
 
     fn unit(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
+        self.0.unit()
     }
 }
 
@@ -224,7 +209,7 @@ fn sealer(session: u64) -> Sealer {
 /// and the C one side by side, and checks every build; returns (records, relative
 /// records, starving, deferred) over the run, so that a caller can see what it covered.
 fn run(seed: u64, n: usize, players: usize, ticks: u64, config: InterestConfig, loss: u64) -> [usize; 4] {
-    let mut rng = Rng(seed);
+    let mut rng = Rng(Stream::new(seed, 26));
     let mut ids: Vec<u64> = (0..n).map(|i| 10 + i as u64 * (1 + rng.below(900))).collect();
     let mut kinds: Vec<ShapeKind> = (0..n).map(|_| ShapeKind::from_code(rng.below(3) as u8).unwrap()).collect();
     let mut positions: Vec<[f32; 3]> =

@@ -14,7 +14,7 @@ mod layout;
 pub use device::{Choices, DeviceReplicas, FORGET_BUILDS, RECORDS_PER_DATAGRAM, ReplicaPlayer};
 pub use layout::*;
 
-use myriad_interest::ReplicationConfig;
+use myriad_interest::{ReplicaReport, ReplicationConfig};
 use myriad_protocol::{DeltaRecord, QuantPos, RecordState, ShapeKind};
 
 #[cfg(test)]
@@ -55,4 +55,16 @@ pub fn delta_record(r: &RRecord) -> Option<DeltaRecord> {
         _ => return None,
     };
     Some(DeltaRecord { id: r.id, state })
+}
+
+/// What the device's choosing counted for one player, as the host replica reports it
+/// (packing adds what it packed).
+pub fn chose_report(info: &RInfo) -> ReplicaReport {
+    ReplicaReport {
+        in_view: info.in_view as usize,
+        out_of_order: info.out_of_order as usize,
+        deferred: info.deferred as usize,
+        starving: info.starving as usize,
+        ..ReplicaReport::default()
+    }
 }

@@ -8,8 +8,8 @@ use std::cell::RefCell;
 use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3};
-use myriad_cuda::replica::{Choices, DeviceReplicas, RCommit, ReplicaPlayer, delta_record};
-use myriad_interest::{InterestConfig, ReplicaReport, TickReport};
+use myriad_cuda::replica::{Choices, DeviceReplicas, RCommit, ReplicaPlayer, chose_report, delta_record};
+use myriad_interest::{InterestConfig, TickReport};
 use myriad_protocol::{DeltaRecord, QuantPos, UpdateHeader};
 use rayon::prelude::*;
 
@@ -145,13 +145,7 @@ fn seal_one(
         dilation_permille: tick.dilation_permille,
         origin: QuantPos::from_f32(r.centre.to_array()),
     };
-    let chose = ReplicaReport {
-        in_view: info.in_view as usize,
-        out_of_order: info.out_of_order as usize,
-        deferred: info.deferred as usize,
-        starving: info.starving as usize,
-        ..ReplicaReport::default()
-    };
+    let chose = chose_report(info);
     let done =
         r.view.seal_chosen(&header, own.as_ref(), &scratch.records, info.datagrams as usize, chose, &mut scratch.ends);
     *commit = RCommit {

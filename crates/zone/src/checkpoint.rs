@@ -20,10 +20,13 @@ use crate::layout::ZoneId;
 use crate::rebalance::Cuts;
 use crate::wire::{ClusterKey, Message, decode, encode_checkpoint};
 
-/// A zone's checkpoint: its objects at a tick and the cuts they were stepped there
-/// with (so a zone restarted after a cut move resumes on the moved cuts).
+/// A zone's checkpoint: its objects at a tick, the cuts they were stepped there with (so
+/// a zone restarted after a cut move resumes on the moved cuts) and the epoch that
+/// wrote it (checkpoints of one tick from two epochs are not one world).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Snapshot {
+    /// The epoch (run) that wrote it.
+    pub run: u64,
     /// The cuts along x and z.
     pub cuts: Cuts,
     /// The objects, by id.
@@ -83,8 +86,8 @@ fn log_name(zone: ZoneId, tick: u64) -> String {
 
 fn checked(key: &ClusterKey, bytes: &[u8], zone: ZoneId, tick: u64) -> Result<Snapshot, ZoneError> {
     match decode(key, bytes) {
-        Ok(Message::Checkpoint { tick: t, zone: z, cuts, objects, .. }) if t == tick && z == zone => {
-            Ok(Snapshot { cuts, objects })
+        Ok(Message::Checkpoint { run, tick: t, zone: z, cuts, objects }) if t == tick && z == zone => {
+            Ok(Snapshot { run, cuts, objects })
         }
         Ok(_) => Err(ZoneError::Checkpoint(format!("{} holds another zone's or tick's state", name(zone, tick)))),
         Err(e) => Err(ZoneError::Checkpoint(format!("{} refused: {e}", name(zone, tick)))),
@@ -289,7 +292,7 @@ mod tests {
         assert_eq!(s.latest_consistent(3, &candidates).unwrap(), None);
         s.forget(ZoneId(1), 30).unwrap();
         assert_eq!(s.latest_consistent(2, &candidates).unwrap(), Some(0));
-        assert_eq!(s.get(ZoneId(0), 60).unwrap(), Snapshot { cuts, objects: vec![o] });
+        assert_eq!(s.get(ZoneId(0), 60).unwrap(), Snapshot { run: 1, cuts, objects: vec![o] });
         assert!(s.get(ZoneId(1), 60).is_err());
         // A blob signed with another key is refused.
         let mut other = MemoryCheckpoints { blobs: s.blobs.clone(), key: Some(ClusterKey::random()) };

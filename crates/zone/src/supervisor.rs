@@ -105,12 +105,17 @@ pub fn assemble(
 ) -> Result<(u64, Vec<ObjectState>), ZoneError> {
     match assemble_with_cuts(store, zones, tick, objects)? {
         Some((hash, all, _)) => Ok((hash, all)),
-        None => Err(ZoneError::Checkpoint(format!("tick {tick}: the zones' checkpoints hold different cuts"))),
+        None => Err(ZoneError::Checkpoint(format!(
+            "tick {tick}: the zones' checkpoints hold different cuts or come from different epochs"
+        ))),
     }
 }
 
-/// [`assemble`], with the cuts every zone's checkpoint holds; `None` when they differ
-/// (a zone missed a cut move: the world of `tick` is not one world).
+/// [`assemble`], with the cuts every zone's checkpoint holds; `None` when they differ (a
+/// zone missed a cut move) or when the checkpoints were written by different epochs (a
+/// fault came while the zones were writing this tick again after a rollback, and live
+/// intents may have made the two epochs' states of it differ): either way the world of
+/// `tick` is not one world.
 pub fn assemble_with_cuts(
     store: &mut dyn CheckpointStore,
     zones: usize,
@@ -118,14 +123,16 @@ pub fn assemble_with_cuts(
     objects: Option<usize>,
 ) -> Result<Option<(u64, Vec<ObjectState>, Cuts)>, ZoneError> {
     let mut all = Vec::with_capacity(objects.unwrap_or(0));
-    let mut cuts: Option<Cuts> = None;
+    let mut first: Option<(Cuts, u64)> = None;
     for z in 0..zones {
         let snap = store.get(ZoneId(z as u16), tick)?;
-        if cuts.get_or_insert_with(|| snap.cuts.clone()) != &snap.cuts {
+        let (cuts, run) = first.get_or_insert_with(|| (snap.cuts.clone(), snap.run));
+        if *cuts != snap.cuts || *run != snap.run {
             return Ok(None);
         }
         all.extend(snap.objects);
     }
+    let cuts = first.map(|(c, _)| c);
     all.sort_unstable_by_key(|o| o.id);
     if let Some(w) = all.windows(2).find(|w| w[0].id == w[1].id) {
         return Err(ZoneError::Checkpoint(format!("tick {tick}: object {} stored by two zones", w[0].id.0)));
@@ -137,7 +144,7 @@ pub fn assemble_with_cuts(
 }
 
 /// The tick a new epoch starts from: the newest of `candidates` that every zone stored
-/// with the same cuts, with those cuts and its state hash; tick 0 (the generated world on
+/// with the same cuts in the same epoch, with those cuts and its state hash; tick 0 (the generated world on
 /// `layout`'s cuts) when there is none.
 fn start_point(
     cfg: &SupervisorConfig,
@@ -150,7 +157,7 @@ fn start_point(
         }
         match assemble_with_cuts(store, cfg.zones, t, cfg.objects)? {
             Some((hash, _, cuts)) => return Ok((t, cuts, Some(hash))),
-            None => tracing::warn!(tick = t, "the zones' checkpoints hold different cuts: an older one"),
+            None => tracing::warn!(tick = t, "the zones' checkpoints hold different cuts or epochs: an older one"),
         }
     }
     let (xs, zs) = cfg.layout.cuts();
@@ -382,5 +389,45 @@ mod tests {
         // No checkpoint: the generated world on the layout's own cuts.
         let (tick, cuts, hash) = start_point(&cfg, &mut store, &[150, 120]).unwrap();
         assert_eq!((tick, cuts, hash), (0, old, None));
+    }
+
+    /// After a rollback the zones write their checkpoints of a tick again, in the new
+    /// epoch; a fault while only some have leaves that tick with two epochs' states,
+    /// which a rollback passes over.
+    #[test]
+    fn a_rollback_passes_over_a_tick_whose_checkpoints_come_from_two_epochs() {
+        let key = ClusterKey::random();
+        let layout = ZoneLayout::for_count(&Aabb::new(Vec3::ZERO, Vec3::splat(100.0)), 2, 1.5, 2.0).unwrap();
+        let (xs, zs) = layout.cuts();
+        let cuts = (xs.to_vec(), zs.to_vec());
+        let cfg = SupervisorConfig {
+            cluster: "c".into(),
+            key: key.clone(),
+            zones: 2,
+            ticks: 300,
+            objects: Some(2),
+            dead_after: Duration::from_secs(1),
+            checkpoint_every: 30,
+            layout,
+            rebalance: None,
+        };
+        let mut store = MemoryCheckpoints::new(key);
+        for t in [30, 60] {
+            store.put(ZoneId(0), t, 1, &cuts, &[object(1)]).unwrap();
+            store.put(ZoneId(1), t, 1, &cuts, &[object(2)]).unwrap();
+        }
+        // Epoch 2 restarted from 30 and zone 1 stored 60 again, with another history
+        // (its object moved otherwise: live intents arrive at other ticks); zone 0's 60
+        // is still epoch 1's. Nothing is missing or doubled: only the epochs tell.
+        let elsewhere = crate::test_objects::npc_at(2, Vec3::splat(3.0));
+        store.put(ZoneId(1), 60, 2, &cuts, &[elsewhere]).unwrap();
+        let (tick, _, hash) = start_point(&cfg, &mut store, &[60, 30, 0]).unwrap();
+        assert_eq!(tick, 30);
+        assert!(hash.is_some());
+        let err = assemble(&mut store, 2, 60, None).unwrap_err().to_string();
+        assert!(err.contains("epochs"), "{err}");
+        // Once zone 0 has stored it in epoch 2 too, tick 60 is one world again.
+        store.put(ZoneId(0), 60, 2, &cuts, &[object(1)]).unwrap();
+        assert_eq!(start_point(&cfg, &mut store, &[60, 30, 0]).unwrap().0, 60);
     }
 }

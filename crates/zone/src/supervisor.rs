@@ -355,13 +355,9 @@ mod tests {
         crate::test_objects::npc_at(id, Vec3::ONE)
     }
 
-    /// A zone that missed a cut move stores its checkpoints on the old cuts: a rollback
-    /// passes over the ticks whose checkpoints disagree, to the newest where all agree.
-    #[test]
-    fn a_rollback_starts_from_the_newest_checkpoint_whose_cuts_agree() {
-        let key = ClusterKey::random();
-        let layout = ZoneLayout::for_count(&Aabb::new(Vec3::ZERO, Vec3::splat(100.0)), 2, 1.5, 2.0).unwrap();
-        let cfg = SupervisorConfig {
+    /// Two zones of two objects, checkpoints every 30 ticks.
+    fn two_zones(key: &ClusterKey, layout: ZoneLayout) -> SupervisorConfig {
+        SupervisorConfig {
             cluster: "c".into(),
             key: key.clone(),
             zones: 2,
@@ -371,7 +367,16 @@ mod tests {
             checkpoint_every: 30,
             layout,
             rebalance: None,
-        };
+        }
+    }
+
+    /// A zone that missed a cut move stores its checkpoints on the old cuts: a rollback
+    /// passes over the ticks whose checkpoints disagree, to the newest where all agree.
+    #[test]
+    fn a_rollback_starts_from_the_newest_checkpoint_whose_cuts_agree() {
+        let key = ClusterKey::random();
+        let layout = ZoneLayout::for_count(&Aabb::new(Vec3::ZERO, Vec3::splat(100.0)), 2, 1.5, 2.0).unwrap();
+        let cfg = two_zones(&key, layout);
         let mut store = MemoryCheckpoints::new(key);
         let old = (vec![0.0, 50.0, 100.0], vec![0.0, 100.0]);
         let moved = (vec![0.0, 60.0, 100.0], vec![0.0, 100.0]);
@@ -400,17 +405,7 @@ mod tests {
         let layout = ZoneLayout::for_count(&Aabb::new(Vec3::ZERO, Vec3::splat(100.0)), 2, 1.5, 2.0).unwrap();
         let (xs, zs) = layout.cuts();
         let cuts = (xs.to_vec(), zs.to_vec());
-        let cfg = SupervisorConfig {
-            cluster: "c".into(),
-            key: key.clone(),
-            zones: 2,
-            ticks: 300,
-            objects: Some(2),
-            dead_after: Duration::from_secs(1),
-            checkpoint_every: 30,
-            layout,
-            rebalance: None,
-        };
+        let cfg = two_zones(&key, layout);
         let mut store = MemoryCheckpoints::new(key);
         for t in [30, 60] {
             store.put(ZoneId(0), t, 1, &cuts, &[object(1)]).unwrap();

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::config::{InterestConfig, TickInfo};
-use crate::replica::{Candidate, Replica, ReplicaReport, ReplicaScratch, Sealed, is_relative, pack_and_seal};
+use crate::replica::{Candidate, Replica, ReplicaReport, ReplicaScratch, Sealed, pack_and_seal};
 use crate::source::{AoiLists, ObjectSource};
 
 /// Errors of [`InterestManager::build`]. Bad data inside a list (slots out of range,
@@ -96,12 +96,7 @@ impl Subscriber {
     ) -> Sealed {
         let done = pack_and_seal(header, own, records, datagrams, &mut self.sealer, &mut self.datagrams, ends);
         let mut report = chose;
-        if done.sealed.is_ok() {
-            report.packed = done.packed;
-            report.deferred += records.len() - done.packed;
-            report.relative = usize::from(own.is_some_and(is_relative))
-                + records[..done.packed].iter().filter(|r| is_relative(r)).count();
-        }
+        done.count(&mut report, own, records);
         self.take_report(own.is_some(), done.sealed.as_ref().map(|_| report).map_err(|_| ()), 0);
         done
     }
@@ -293,7 +288,7 @@ fn build_one<O: ObjectSource>(
 ) {
     let Scratch { cands, sorted, replica } = scratch;
     cands.clear();
-    let mut report = SubscriberReport { skipped: usize::from(list.is_none()), ..SubscriberReport::default() };
+    let mut skipped = usize::from(list.is_none());
     let own = objects.get(sub.object).map(|(id, kind, p)| (id, kind, QuantPos::from_f32(p)));
     let c = sub.centre;
     let mut list = list.unwrap_or(&[]);
@@ -320,7 +315,7 @@ fn build_one<O: ObjectSource>(
                 cands.push(Candidate { slot, id, kind, pos: QuantPos::from_f32(p), distance });
             }
             Some(_) => {}
-            None => report.skipped += 1,
+            None => skipped += 1,
         }
     }
     let origin = QuantPos::from_f32(sub.centre);
@@ -335,5 +330,5 @@ fn build_one<O: ObjectSource>(
         &mut sub.datagrams,
         replica,
     );
-    sub.take_report(own.is_some(), built.map_err(|_| ()), report.skipped);
+    sub.take_report(own.is_some(), built.map_err(|_| ()), skipped);
 }

@@ -227,6 +227,20 @@ pub fn pack_and_seal(
     Sealed { packed, first, spent, sealed }
 }
 
+impl Sealed {
+    /// Adds what packing did to `report`, if sealing succeeded: the records packed, the
+    /// chosen ones that did not fit deferred, and how many went relative to a state the
+    /// client acknowledged (the own object's included).
+    pub(crate) fn count(&self, report: &mut ReplicaReport, own: Option<&DeltaRecord>, records: &[DeltaRecord]) {
+        if self.sealed.is_ok() {
+            report.packed = self.packed;
+            report.deferred += records.len() - self.packed;
+            report.relative = usize::from(own.is_some_and(is_relative))
+                + records[..self.packed].iter().filter(|r| is_relative(r)).count();
+        }
+    }
+}
+
 /// One sent datagram awaiting acknowledgement.
 #[derive(Debug, Default)]
 struct Flight {
@@ -567,17 +581,14 @@ impl Replica {
         records.clear();
         records.extend(chosen.iter().map(|c| c.0));
         let header = UpdateHeader { tick: now, dilation_permille: tick.dilation_permille, origin };
-        let Sealed { packed, first, spent, sealed } =
-            pack_and_seal(&header, own_record.as_ref(), records, fill.datagrams, sealer, out, ends);
+        let done = pack_and_seal(&header, own_record.as_ref(), records, fill.datagrams, sealer, out, ends);
         // What the datagrams took, not what the records were charged, is what this tick
         // spent; what is left (never more than a tick's worth) carries over, and an
         // overdraft is forgiven.
-        self.credit = (per_tick + self.credit - spent).clamp(0.0, per_tick);
+        self.credit = (per_tick + self.credit - done.spent).clamp(0.0, per_tick);
+        done.count(&mut report, own_record.as_ref(), records);
+        let Sealed { first, sealed, .. } = done;
         if sealed.is_ok() {
-            report.packed = packed;
-            report.deferred += chosen.len() - packed;
-            report.relative = usize::from(own_record.as_ref().is_some_and(is_relative))
-                + records[..packed].iter().filter(|r| is_relative(r)).count();
             let mut start = 0;
             for (d, &end) in ends.iter().enumerate() {
                 let mut f = self.spare.pop().unwrap_or_default();

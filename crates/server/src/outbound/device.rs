@@ -13,7 +13,7 @@ use myriad_interest::{InterestConfig, TickReport};
 use myriad_protocol::{DeltaRecord, QuantPos, UpdateHeader};
 use rayon::prelude::*;
 
-use super::{Job, Outbound, OutboundReport, Recipient, clear_all, spread_over_lanes};
+use super::{Job, Outbound, OutboundReport, Recipient, aim, clear_all, spread_over_lanes};
 
 /// The device implementation: see the module docs.
 #[derive(Debug)]
@@ -57,19 +57,14 @@ impl DeviceOutbound {
     /// [`Outbound::build`] without the hand-over.
     fn build_all(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         let mut report = OutboundReport::default();
-        self.boxes.clear();
+        aim(recipients, self.half, &mut self.boxes);
         self.players.clear();
-        for r in recipients.iter_mut() {
-            r.view.object = r.object;
-            r.view.centre = r.centre.to_array();
-            self.boxes.push(Aabb::from_center_half(r.centre, self.half));
-            self.players.push(ReplicaPlayer {
-                key: r.session_id,
-                own: r.object,
-                centre: r.centre.to_array(),
-                acks: r.view.take_acks(),
-            });
-        }
+        self.players.extend(recipients.iter_mut().map(|r| ReplicaPlayer {
+            key: r.session_id,
+            own: r.object,
+            centre: r.centre.to_array(),
+            acks: r.view.take_acks(),
+        }));
         let mdg = self.config.max_datagrams.max(1);
         let t = Instant::now();
         let chose =

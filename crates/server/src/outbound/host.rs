@@ -9,19 +9,8 @@ use myriad_interest::{AoiLists, InterestConfig, InterestManager, ObjectSource};
 use myriad_physics::AoiResults;
 use myriad_protocol::ShapeKind as WireKind;
 
-use super::{Job, Outbound, OutboundReport, Recipient, clear_all, spread_over_lanes};
+use super::{Job, Outbound, OutboundReport, Recipient, aim, clear_all, spread_over_lanes};
 use crate::world::wire_kind;
-
-/// Points each recipient's view at its object and centre, and collects their AOI boxes
-/// (half extents `half`) into `boxes`.
-fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
-    boxes.clear();
-    for r in recipients.iter_mut() {
-        r.view.object = r.object;
-        r.view.centre = r.centre.to_array();
-        boxes.push(Aabb::from_center_half(r.centre, half));
-    }
-}
 
 /// The host implementation: backend AOI query, then [`InterestManager`].
 #[derive(Debug)]

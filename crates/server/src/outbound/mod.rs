@@ -26,7 +26,8 @@ use std::borrow::{Borrow, BorrowMut};
 use std::net::SocketAddr;
 use std::ops::AddAssign;
 
-use myriad_core::{Vec3, World};
+use myriad_core::{Aabb, Vec3, World};
+use myriad_cuda::replica::DeviceReplicas;
 use myriad_interest::{Subscriber, TickInfo, TickReport};
 use myriad_physics::Backend;
 use rayon::prelude::*;
@@ -35,7 +36,6 @@ use crate::config::{OutboundKind, ServerConfig};
 use crate::transport::lane_share;
 pub use device::DeviceOutbound;
 pub use host::HostOutbound;
-use myriad_cuda::replica::DeviceReplicas;
 
 /// The outbound for the config's AOI size and what each player is sent
 /// ([`ServerConfig::interest`]): on the device when the backend brought its
@@ -47,6 +47,17 @@ pub fn create(config: &ServerConfig, replicas: Option<DeviceReplicas>) -> Box<dy
             Box::new(DeviceOutbound::new(replicas, config.aoi_size, config.interest()))
         }
         _ => Box::new(HostOutbound::new(config.aoi_size, config.interest())),
+    }
+}
+
+/// Points each recipient's view at its object and centre, and collects their AOI boxes
+/// (half extents `half`) into `boxes`.
+fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
+    boxes.clear();
+    for r in recipients.iter_mut() {
+        r.view.object = r.object;
+        r.view.centre = r.centre.to_array();
+        boxes.push(Aabb::from_center_half(r.centre, half));
     }
 }
 

@@ -118,6 +118,46 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
     if (sort) sort_range(dst, min(c, len));
 }
 
+// Sorts each query's range of `objects` ascending, one block a query: a bitonic sort in
+// shared memory for ranges of up to SORT_SHARED slots (padded to a power of two with
+// slots no object has), the per-thread sort above for longer ones (rare: a crowd of
+// thousands in one box). The AOI queries of the server (thousands of boxes of thousands
+// of objects) walk their tree unsorted and sort here: one thread sorting each range in
+// global memory left the device waiting on memory for tens of milliseconds.
+#define SORT_SHARED 4096
+extern "C" __global__ void k_sort_ranges(u32 nq, const u32* offsets, u32* objects) {
+    __shared__ u32 s[SORT_SHARED];
+    u32 q = blockIdx.x;
+    if (q >= nq) return;
+    u32 begin = offsets[q], len = offsets[q + 1] - begin;
+    if (len <= 1) return;
+    if (len > SORT_SHARED) {
+        if (threadIdx.x == 0) sort_range(objects + begin, len);
+        return;
+    }
+    u32 n = 2;
+    while (n < len) n <<= 1;
+    for (u32 i = threadIdx.x; i < n; i += blockDim.x) s[i] = i < len ? objects[begin + i] : 0xffffffffu;
+    __syncthreads();
+    for (u32 k = 2; k <= n; k <<= 1) {
+        for (u32 j = k >> 1; j > 0; j >>= 1) {
+            for (u32 i = threadIdx.x; i < n; i += blockDim.x) {
+                u32 other = i ^ j;
+                if (other > i) {
+                    u32 a = s[i], b = s[other];
+                    bool ascending = (i & k) == 0;
+                    if ((a > b) == ascending) {
+                        s[i] = b;
+                        s[other] = a;
+                    }
+                }
+            }
+            __syncthreads();
+        }
+    }
+    for (u32 i = threadIdx.x; i < len; i += blockDim.x) objects[begin + i] = s[i];
+}
+
 // All pairs (cuda-naive): query q tests every target in index order, so its list comes
 // out sorted.
 extern "C" __global__ void k_naive_count(u32 nq, const float* qboxes, u32 exclude_self, u32 nt,

@@ -36,7 +36,7 @@ pub const HEADERS: [(&str, &str); 3] = [
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 21] = [
+pub const KERNELS: [(&str, usize); 22] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -47,6 +47,7 @@ pub const KERNELS: [(&str, usize); 21] = [
     ("k_refit", 7),
     ("k_tree_count", 11),
     ("k_tree_write", 14),
+    ("k_sort_ranges", 3),
     ("k_naive_count", 6),
     ("k_naive_write", 8),
     ("k_boxes", 4),

@@ -362,6 +362,8 @@ kernels! {
         slots: u32,
         sort: u32,
     }
+    /// `k_sort_ranges`: each query's range of `objects` sorted ascending, a block each.
+    KSortRanges = "k_sort_ranges" { nq: u32, offsets: DevPtr<u32>, objects: DevPtr<u32> }
     /// `k_naive_count`: per query, the targets its box overlaps, testing all `nt`.
     KNaiveCount = "k_naive_count" {
         nq: u32,

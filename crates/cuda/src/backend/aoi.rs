@@ -6,6 +6,7 @@ use myriad_physics::{AoiResults, PhysicsError};
 
 use super::Resident;
 use super::broad::{Queries, count_pass, write_pass};
+use crate::launch::KSortRanges;
 
 impl Resident {
     /// The objects overlapping each box of `boxes`, as CSR lists in `out`.
@@ -67,7 +68,16 @@ impl Resident {
         gpu.sync()?;
         let total = self.host.small.slice::<u32>(1)[0] as usize;
         self.aoi_out.ensure(gpu, total * 4, 1.25)?;
-        write_pass(gpu, Queries { sorted: true, ..qs }, false, self.dynamic_targets(), counts, &self.aoi_out)?;
+        // A tree walk writes each list in its own order, sorted after by a block a list
+        // (`k_sort_ranges`); the all-pairs walk's lists come sorted.
+        write_pass(gpu, Queries { sorted: false, ..qs }, false, self.dynamic_targets(), counts, &self.aoi_out)?;
+        if !self.naive() {
+            gpu.launch_grid(
+                nq as u32,
+                256,
+                KSortRanges { nq: nq as u32, offsets: counts, objects: self.aoi_out.ptr() },
+            )?;
+        }
         Ok(total)
     }
 }

@@ -86,9 +86,9 @@ extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, const u32* 
     counts[q] = c;
 }
 
-// `sort` = 0 leaves each range in the walk's order: for the device interest selection,
-// whose result does not depend on the order of a list (kernels/interest.cu), and for which
-// sorting thousands of slots a query on one thread was most of an AOI query.
+// `sort` = 0 leaves each range in the walk's order: for the AOI queries, whose thousands
+// of slots a query one thread sorted in global memory slowly; `k_sort_ranges` sorts
+// them after, a block a query.
 extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* qorder,
                                         u32 exclude_self, const Node* nodes, const u32* order,
                                         u32 nleaves, const float* tboxes, const u32* offsets,

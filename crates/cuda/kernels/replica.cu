@@ -23,24 +23,11 @@
 // Lanes below this one set in `mask`: where this lane's item goes in a compacted list.
 __device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(mask & ((1u << lane) - 1u)); }
 
-// Index of the candidate of `slot` in `cands` (ascending by slot), or R_NO_SLOT.
-__device__ __forceinline__ u32 find_cand(const RCand* cands, u32 n, u32 slot) {
-    u32 lo = 0, hi = n;
-    while (lo < hi) {
-        u32 mid = lo + (hi - lo) / 2;
-        if (cands[mid].slot < slot)
-            lo = mid + 1;
-        else
-            hi = mid;
-    }
-    return lo < n && cands[lo].slot == slot ? lo : R_NO_SLOT;
-}
-
 extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets,
                                             const u32* objects, u32 n, const float* pos, const u32* ids,
                                             const u8* shapes, const RPlayer* players, RHome* homes,
                                             const RTrack* old_tracks, RTrack* next_tracks, RCand* cands,
-                                            u32* cand_of, RKey* un, RKey* orph, RMoved* moved, RDue* wanted,
+                                            RKey* un, RKey* orph, RMoved* moved, RDue* wanted,
                                             RChosen* chosen, RFlight* flights, RState* states, RInfo* info,
                                             RRecord* out, u32 out_cap) {
     u32 lane = threadIdx.x & 31u;
@@ -133,7 +120,6 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
                 nx[k] = r_track_new(c->id, c->slot);
                 fresh = 1;
             }
-            cand_of[o + k] = k;
         }
         u32 mask = __ballot_sync(FULL_WARP, fresh);
         if (fresh) un_p[nun + lanes_before(mask, lane)].index = k;
@@ -145,7 +131,7 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
             u32 k = base + lane;
             int orphan = 0;
             if (k < nold) {
-                u32 at = find_cand(cs, nc, old[k].slot);
+                u32 at = r_find_cand(cs, nc, old[k].slot);
                 orphan = !(at != R_NO_SLOT && cs[at].id == old[k].id);
             }
             u32 mask = __ballot_sync(FULL_WARP, orphan);

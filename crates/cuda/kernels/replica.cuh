@@ -538,18 +538,22 @@ RFN u32 r_match_view(int has_own, u64 own_id, const RCand* cands, u32 ncands, co
     return n;
 }
 
-// Index of the track of `slot` in `tracks` (ascending by slot), or R_NO_SLOT.
-RFN u32 r_find_slot(const RTrack* tracks, u32 n, u32 slot) {
-    u32 lo = 0, hi = n;
-    while (lo < hi) {
-        u32 mid = lo + (hi - lo) / 2;
-        if (tracks[mid].slot < slot)
-            lo = mid + 1;
-        else
-            hi = mid;
+// `NAME(items, n, slot)`: the index of the item of `slot` in `items` (of type `T`,
+// ascending by slot), or R_NO_SLOT. Tracks and candidates are both searched by slot.
+#define R_FIND_BY_SLOT(NAME, T)                                                                         \
+    RFN u32 NAME(const T* items, u32 n, u32 slot) {                                                     \
+        u32 lo = 0, hi = n;                                                                             \
+        while (lo < hi) {                                                                               \
+            u32 mid = lo + (hi - lo) / 2;                                                               \
+            if (items[mid].slot < slot)                                                                 \
+                lo = mid + 1;                                                                           \
+            else                                                                                        \
+                hi = mid;                                                                               \
+        }                                                                                               \
+        return lo < n && items[lo].slot == slot ? lo : R_NO_SLOT;                                       \
     }
-    return lo < n && tracks[lo].slot == slot ? lo : R_NO_SLOT;
-}
+R_FIND_BY_SLOT(r_find_slot, RTrack)
+R_FIND_BY_SLOT(r_find_cand, RCand)
 
 // One state of an acknowledged flight of `tick`: its object's baseline if newer (the own
 // object's, or the track of its slot and id; nothing for an object that left the view).

@@ -56,7 +56,7 @@ pub const KERNELS: [(&str, usize); 22] = [
     ("k_forces", 16),
     ("k_patch_gather", 21),
     ("k_patch_scatter", 12),
-    ("k_replica_select", 25),
+    ("k_replica_select", 24),
     ("k_replica_commit", 13),
     ("k_replica_carry", 5),
 ];

@@ -219,8 +219,8 @@ macro_rules! kernels {
 }
 
 kernels! {
-    /// `k_replica_select` (`kernels/replica.cu`): one thread per player chooses its
-    /// records (`replica.cuh`'s `r_select`) into mapped host memory.
+    /// `k_replica_select` (`kernels/replica.cu`): one warp per player chooses its
+    /// records (the steps of `replica.cuh`'s `r_select`) into mapped host memory.
     KReplicaSelect = "k_replica_select" {
         nq: u32,
         cfg: DevPtr<RConfig>,
@@ -236,7 +236,6 @@ kernels! {
         old_tracks: DevPtr<RTrack>,
         next_tracks: DevPtr<RTrack>,
         cands: DevPtr<RCand>,
-        cand_of: DevPtr<u32>,
         un: DevPtr<RKey>,
         orph: DevPtr<RKey>,
         moved: DevPtr<RMoved>,
@@ -248,8 +247,8 @@ kernels! {
         out: DevPtr<RRecord>,
         out_cap: u32,
     }
-    /// `k_replica_commit`: one thread per player takes what its datagrams took
-    /// (`r_commit`).
+    /// `k_replica_commit`: one warp per player takes what its datagrams took (the steps
+    /// of `r_commit`).
     KReplicaCommit = "k_replica_commit" {
         nq: u32,
         cfg: DevPtr<RConfig>,

@@ -2,6 +2,7 @@
 //! with the query boxes as queries and the dynamic objects as targets.
 
 use myriad_core::{Aabb, World};
+use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{AoiResults, PhysicsError};
 
 use super::Resident;
@@ -57,9 +58,11 @@ impl Resident {
         let gpu = &self.gpu;
         self.aoi_boxes.ensure(gpu, nq * 24, 1.25)?;
         self.aoi_counts.ensure(gpu, (nq + 1) * 4, 1.25)?;
+        self.aoi_order.ensure(gpu, nq * 4, 1.25)?;
         let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
         gpu.upload(&self.aoi_boxes, &flat)?;
-        let qs = Queries::plain(nq, self.aoi_boxes.ptr());
+        gpu.upload(&self.aoi_order, &query_order(boxes))?;
+        let qs = Queries { order: self.aoi_order.ptr(), ..Queries::plain(nq, self.aoi_boxes.ptr()) };
         let counts = self.aoi_counts.ptr();
         count_pass(gpu, qs, false, self.dynamic_targets(), counts)?;
         self.scan.exclusive(gpu, counts, nq + 1)?;
@@ -79,5 +82,43 @@ impl Resident {
             )?;
         }
         Ok(total)
+    }
+}
+
+/// The boxes' indices in the Morton order of their centres (ties by index): the order in
+/// which the AOI passes' threads take them. Players' boxes come in session order,
+/// scattered over the map, and a warp's walk of the tree lasts as long as the union of
+/// its 32 walks: neighbours in one warp share most of theirs. Only which thread answers
+/// a box changes, not any list.
+fn query_order(boxes: &[Aabb]) -> Vec<u32> {
+    let bounds = boxes.iter().fold(Aabb::EMPTY, |acc, b| acc.union(&Aabb::new(b.center(), b.center())));
+    let frame = MortonFrame::new(&bounds);
+    let mut keyed: Vec<(u64, u32)> =
+        boxes.iter().enumerate().map(|(i, b)| (frame.code(b.center()), i as u32)).collect();
+    keyed.sort_unstable();
+    keyed.into_iter().map(|(_, i)| i).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use myriad_core::Vec3;
+
+    use super::*;
+
+    #[test]
+    fn the_query_order_is_a_permutation_that_keeps_neighbours_together() {
+        let at = |x: f32, z: f32| Aabb::new(Vec3::new(x - 1.0, 0.0, z - 1.0), Vec3::new(x + 1.0, 2.0, z + 1.0));
+        // Two clusters, interleaved in the input.
+        let boxes: Vec<Aabb> =
+            (0..8).map(|i| if i % 2 == 0 { at(i as f32, 0.0) } else { at(900.0 + i as f32, 900.0) }).collect();
+        let order = query_order(&boxes);
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..8).collect::<Vec<u32>>());
+        let first: Vec<u32> = order[..4].iter().map(|i| i % 2).collect();
+        assert!(first.iter().all(|&c| c == first[0]), "one cluster first: {order:?}");
+        assert!(query_order(&[]).is_empty());
+        // Identical centres: by index.
+        assert_eq!(query_order(&[at(5.0, 5.0), at(5.0, 5.0), at(5.0, 5.0)]), vec![0, 1, 2]);
     }
 }

@@ -27,8 +27,9 @@ pub(super) enum Targets<'a> {
 /// Query boxes: `n` boxes at `boxes`, visited in the order `order` (null: in index
 /// order). A tree count pass keeps each query's first `slots` targets at `scratch`
 /// (`slots` a query), so the write pass walks the tree again only for queries with more.
-/// `sorted`: the write pass sorts each range (the canonical order); a tree walk's order
-/// is enough for the device interest selection, which does not depend on it.
+/// `sorted`: the write pass sorts each range on its thread (the canonical order; the
+/// step's short lists of contacts); the AOI queries' long lists are sorted after, a block
+/// a list (`aoi_on_device`).
 #[derive(Clone, Copy)]
 pub(super) struct Queries {
     pub n: usize,

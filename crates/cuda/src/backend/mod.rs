@@ -139,6 +139,8 @@ pub(crate) struct Resident {
     static_pairs: DevBuf<u32>,
     dynamic_pairs: DevBuf<u32>,
     aoi_boxes: DevBuf<f32>,
+    /// The order in which the AOI queries' threads take their boxes (`aoi::query_order`).
+    aoi_order: DevBuf<u32>,
     /// The last AOI query's list offsets and slots ([`Resident::aoi_on_device`]).
     pub(crate) aoi_counts: DevBuf<u32>,
     pub(crate) aoi_out: DevBuf<u32>,
@@ -220,6 +222,7 @@ impl Resident {
             static_pairs: DevBuf::empty(),
             dynamic_pairs: DevBuf::empty(),
             aoi_boxes: DevBuf::empty(),
+            aoi_order: DevBuf::empty(),
             aoi_counts: DevBuf::empty(),
             aoi_out: DevBuf::empty(),
             params: DevBuf::empty(),

@@ -88,12 +88,18 @@ struct Pending {
     no_objects: bool,
 }
 
-/// A build's players' homes and the homes it carries.
+/// A build's players' homes and the homes it carries (kept from build to build, so that
+/// the tick does not allocate them each time).
+#[derive(Default)]
 struct Placed {
     /// Each player's home, and whether it starts afresh.
     homes: Vec<(u32, bool)>,
     /// (home, tracks) of each player left out whose tracks move to this build's buffer.
     carried: Vec<(u32, u32)>,
+    /// Scratch: the keys of players forgotten by this build.
+    forgotten: Vec<u64>,
+    /// Scratch: (home, offset) pairs for `k_replica_carry`.
+    carry: Vec<u32>,
 }
 
 struct State {
@@ -108,12 +114,13 @@ struct State {
     current: usize,
     used: usize,
     pending: Option<Pending>,
+    /// The last build's placement (its vectors reused).
+    placed: Placed,
     homes: DevBuf<RHome>,
     flights: DevBuf<RFlight>,
     states: DevBuf<RState>,
     tracks: [DevBuf<RTrack>; 2],
     cands: DevBuf<RCand>,
-    cand_of: DevBuf<u32>,
     un: DevBuf<RKey>,
     orph: DevBuf<RKey>,
     moved: DevBuf<RMoved>,
@@ -161,16 +168,6 @@ pub struct Choices<'a> {
 }
 
 impl<'a> Choices<'a> {
-    /// Players of the build.
-    pub fn len(&self) -> usize {
-        self.info.len()
-    }
-
-    /// Whether the build had no player.
-    pub fn is_empty(&self) -> bool {
-        self.info.is_empty()
-    }
-
     /// Player `i`'s counts and own record.
     pub fn info(&self, i: usize) -> &'a RInfo {
         &self.info[i]
@@ -242,12 +239,12 @@ impl State {
             current: 0,
             used: 0,
             pending: None,
+            placed: Placed::default(),
             homes: DevBuf::empty(),
             flights: DevBuf::empty(),
             states: DevBuf::empty(),
             tracks: [DevBuf::empty(), DevBuf::empty()],
             cands: DevBuf::empty(),
-            cand_of: DevBuf::empty(),
             un: DevBuf::empty(),
             orph: DevBuf::empty(),
             moved: DevBuf::empty(),
@@ -280,14 +277,15 @@ impl State {
 
     /// This build's homes: each player's and whether it starts afresh; the players left
     /// out are carried or forgotten.
-    fn place(&mut self, players: &[ReplicaPlayer]) -> Result<Placed, PhysicsError> {
+    fn place(&mut self, players: &[ReplicaPlayer], out: &mut Placed) -> Result<(), PhysicsError> {
         if !self.valid || self.pending.is_some() {
             // A build that never committed, or a failure: start afresh.
             self.failed();
         }
         self.builds += 1;
         let build = self.builds;
-        let mut placed = Vec::with_capacity(players.len());
+        let placed = &mut out.homes;
+        placed.clear();
         for p in players {
             // Every index below homes and free ones together is taken or free.
             let next_index = (self.homes_of.len() + self.free.len()) as u32;
@@ -309,8 +307,9 @@ impl State {
                 }
             }
         }
-        let mut carried = Vec::new();
-        let mut forgotten = Vec::new();
+        let (carried, forgotten) = (&mut out.carried, &mut out.forgotten);
+        carried.clear();
+        forgotten.clear();
         for (&key, h) in &self.homes_of {
             if h.seen == build {
                 continue;
@@ -321,14 +320,14 @@ impl State {
                 carried.push((h.index, h.tracks));
             }
         }
-        for key in forgotten {
+        for key in forgotten.drain(..) {
             if let Some(h) = self.homes_of.remove(&key) {
                 self.free.push(h.index);
             }
         }
         // The device order of the copies does not matter; a fixed one keeps runs alike.
         carried.sort_unstable();
-        Ok(Placed { homes: placed, carried })
+        Ok(())
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -349,7 +348,11 @@ impl State {
                 message: format!("{} boxes for {nq} players", boxes.len()),
             });
         }
-        let Placed { homes: placed, carried } = self.place(players)?;
+        // The placement's vectors are reused; a build that fails drops them (the next
+        // allocates afresh).
+        let mut placement = std::mem::take(&mut self.placed);
+        self.place(players, &mut placement)?;
+        let Placed { homes: placed, carried, carry, .. } = &mut placement;
         let cfg = device_config(config, max_datagrams);
         let mdg = cfg.max_datagrams as usize;
         let out_cap = mdg * RECORDS_PER_DATAGRAM;
@@ -358,8 +361,8 @@ impl State {
         let (old, new) = (self.current, 1 - self.current);
         // Carried tracks go after this build's lists.
         let mut used = total;
-        let mut carry = Vec::with_capacity(2 * carried.len());
-        for &(home, tracks) in &carried {
+        carry.clear();
+        for &(home, tracks) in carried.iter() {
             carry.extend([home, used as u32]);
             used += tracks as usize;
         }
@@ -391,7 +394,6 @@ impl State {
         // The old buffer must exist for the kernels' pointer even when nothing is in it.
         self.tracks[old].ensure(gpu, size_of::<RTrack>(), 1.0)?;
         self.cands.ensure(gpu, items * size_of::<RCand>(), 1.25)?;
-        self.cand_of.ensure(gpu, items * 4, 1.25)?;
         self.un.ensure(gpu, items * size_of::<RKey>(), 1.25)?;
         self.orph.ensure(gpu, self.used.max(1) * size_of::<RKey>(), 1.25)?;
         self.moved.ensure(gpu, items * size_of::<RMoved>(), 1.25)?;
@@ -406,7 +408,7 @@ impl State {
         self.host_info.ensure(gpu, nq.max(1) * size_of::<RInfo>())?;
         self.host_out.ensure(gpu, (nq * out_cap).max(1) * size_of::<RRecord>())?;
         for ((dst, p), &(home, reset)) in
-            self.host_players.slice_mut::<RPlayer>(nq).iter_mut().zip(players).zip(&placed)
+            self.host_players.slice_mut::<RPlayer>(nq).iter_mut().zip(players).zip(placed.iter())
         {
             *dst = RPlayer {
                 ack_newest: p.acks.map_or(0, |a| a.newest()),
@@ -420,7 +422,7 @@ impl State {
             };
         }
         self.host_config.slice_mut::<RConfig>(1)[0] = cfg;
-        self.host_carry.slice_mut::<u32>(carry.len()).copy_from_slice(&carry);
+        self.host_carry.slice_mut::<u32>(carry.len()).copy_from_slice(carry);
         gpu.upload_async(&self.players, &self.host_players, nq)?;
         gpu.upload_async(&self.config, &self.host_config, 1)?;
         gpu.upload_async(&self.carry, &self.host_carry, carry.len())?;
@@ -464,7 +466,6 @@ impl State {
                     old_tracks: self.tracks[old].ptr(),
                     next_tracks: self.tracks[new].ptr(),
                     cands: self.cands.ptr(),
-                    cand_of: self.cand_of.ptr(),
                     un: self.un.ptr(),
                     orph: self.orph.ptr(),
                     moved: self.moved.ptr(),
@@ -496,6 +497,7 @@ impl State {
         }
         let no_objects = d.n == 0 || nq == 0;
         self.pending = Some(Pending { players: nq, out_cap, max_datagrams: mdg, tick, used, no_objects });
+        self.placed = placement;
         Ok(())
     }
 

@@ -6,7 +6,8 @@
 //! about two send intervals ([`Interpolation::delay_ticks`]). With states on both sides
 //! of the render time the position is interpolated between them; past the newest state
 //! (updates late or lost) it is extrapolated along the last two states' velocity for at
-//! most [`Interpolation::max_extrapolation`], then held.
+//! most [`Interpolation::max_extrapolation`], then held. An object at rest (two states
+//! at one place) stays at rest until the tick before its next state.
 
 use std::time::{Duration, Instant};
 
@@ -186,7 +187,16 @@ impl MirrorObject {
             return Rendered { position: oldest.position, mode: RenderMode::Oldest };
         };
         let next = older.get(after).copied().unwrap_or(newest);
-        let t = (render_tick - before.tick as f64) / (next.tick - before.tick) as f64;
+        // An object at rest (the state before `before` at the same place) stays there
+        // until the tick before its next state: a server sends a still object only now
+        // and then, so a long gap after a rest is more rest, and the move is the last
+        // tick's. (Gliding across the gap would start it moving ticks early.)
+        let at_rest = after >= 2 && older[after - 2].position == before.position;
+        let from = if at_rest { before.tick.max(next.tick - 1) } else { before.tick };
+        if render_tick <= from as f64 {
+            return Rendered { position: before.position, mode: RenderMode::Between };
+        }
+        let t = (render_tick - from as f64) / (next.tick - from) as f64;
         Rendered { position: lerp(before.position, next.position, t), mode: RenderMode::Between }
     }
 }

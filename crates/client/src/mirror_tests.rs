@@ -81,6 +81,29 @@ fn a_reordered_state_takes_its_place_and_the_history_stays_bounded() {
 }
 
 #[test]
+fn an_object_at_rest_stays_at_rest_until_the_tick_before_its_next_state() {
+    let mut m = WorldMirror::new(Duration::from_secs(1));
+    let t = Instant::now();
+    // Still at 2 (two states at one place), then sent again only when it moved at 20.
+    for (tick, pos) in [(10, 0.0), (11, 2.0), (12, 2.0), (20, 5.0)] {
+        m.apply(tick, [rec(1, pos)], t);
+    }
+    assert_eq!(x(m.sample(1, 10.5)).0, 1.0, "moving: between the two");
+    assert_eq!(x(m.sample(1, 15.0)), (2.0, RenderMode::Between), "at rest across the gap");
+    assert_eq!(x(m.sample(1, 19.0)).0, 2.0, "until the tick before its next state");
+    assert_eq!(x(m.sample(1, 19.5)).0, 3.5, "then the last tick's move");
+    assert_eq!(x(m.sample(1, 20.0)).0, 5.0);
+    // Not at rest (the states before differ): across the gap on a straight line.
+    m.apply(10, [rec(2, 0.0)], t);
+    m.apply(11, [rec(2, 1.0)], t);
+    m.apply(15, [rec(2, 5.0)], t);
+    assert_eq!(x(m.sample(2, 13.0)).0, 3.0);
+    // Stopped (two equal states): not carried on past them.
+    m.apply(21, [rec(1, 5.0)], t);
+    assert_eq!(x(m.sample(1, 23.0)), (5.0, RenderMode::Extrapolated));
+}
+
+#[test]
 fn extrapolates_for_at_most_the_cap_then_holds() {
     let mut m = WorldMirror::new(Duration::from_secs(1));
     let t = Instant::now();

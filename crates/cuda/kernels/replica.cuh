@@ -54,7 +54,7 @@ typedef struct {
     float priority;
     u32 slot;
     u8 prior_back;
-    u8 pad;
+    u8 sent_moved;
     short prior_offset[3];
 } RTrack;
 
@@ -338,7 +338,7 @@ RFN RTrack r_track_new(u64 id, u32 slot) {
     t.priority = 0.0f;
     t.slot = slot;
     t.prior_back = 0;
-    t.pad = 0;
+    t.sent_moved = 0;
     t.prior_offset[0] = t.prior_offset[1] = t.prior_offset[2] = 0;
     return t;
 }
@@ -585,8 +585,11 @@ RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, RTrack* t, const RCan
     int holds = acked.valid && r_pos_eq(acked.pos, c->pos);
     u64 since = now > t->sent_tick ? now - t->sent_tick : 0;
     int sending = has_sent && r_pos_eq(t->sent, c->pos) && since < cfg->resend_ticks;
+    int stopped = sending && t->sent_moved && t->sent_tick + 1 == now;
     float rate;
-    if (holds)
+    if (stopped)
+        rate = 1.0f;
+    else if (holds)
         rate = 1.0f / fmaxf(cfg->refresh, 1.0f);
     else if (sending)
         rate = 0.0f;
@@ -857,6 +860,7 @@ RFN u32 r_commit_flight(RHome* h, RFlight* flights, RState* states, u64 sequence
 RFN void r_commit_record(u64 now, const RChosen* chosen, const RCand* cands, RTrack* next, RState* st) {
     const RCand* c = &cands[chosen->cand];
     RTrack* t = &next[chosen->track];
+    t->sent_moved = (u8)(t->sent_tick != R_NONE && !r_pos_eq(t->sent, c->pos));
     t->sent_tick = now;
     t->sent = c->pos;
     t->priority = 0.0f;

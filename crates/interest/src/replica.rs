@@ -18,7 +18,9 @@
 //!    where `bound(d)` is the refresh bound in ticks at its distance `d` from the
 //!    player: `near_bound_ticks` within `near` units, growing linearly to
 //!    `far_bound_ticks` at `far` units; an object the client holds unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
-//!    then, so a client can tell a still object from one that left its view);
+//!    then, so a client can tell a still object from one that left its view); an object
+//!    sent moving last tick that has not moved since is due at once, so that the client
+//!    holds it still (two equal states) instead of carrying it on past its stop;
 //! 3. the objects due (priority at least 1) are taken into this tick's byte budget, near
 //!    ones and ones the client lacks first, then by priority
 //!    (`budget_bytes_per_tick`, with what earlier ticks left unspent, up to one tick's
@@ -117,6 +119,9 @@ struct Track {
     priority: f32,
     /// The object's slot when last in view.
     slot: u32,
+    /// Whether the newest state sent differed from the one sent before it: the object
+    /// was moving, and a client extrapolates it past that state.
+    sent_moved: bool,
     /// The state acknowledged before the newest, as ticks before it (0: none) and its
     /// position less the newest's: small, so the track stays one cache line.
     prior_back: u8,
@@ -137,6 +142,7 @@ impl Track {
             sent_pos: zero,
             priority: 0.0,
             slot,
+            sent_moved: false,
             prior_back: 0,
             prior_offset: [0; 3],
         }
@@ -484,7 +490,13 @@ impl Replica {
             let (acked, sent) = (t.acked(floor), t.sent());
             let holds = acked.is_some_and(|b| b.pos == c.pos);
             let sending = sent.is_some_and(|s| s.pos == c.pos && now.saturating_sub(s.tick) < config.resend_ticks);
-            let rate = if holds {
+            // Sent moving last tick and still there since: it stopped, and the client,
+            // holding two states apart, would carry it on past the stop. The same state
+            // once more (now) shows it still.
+            let stopped = sending && t.sent_moved && sent.is_some_and(|s| s.tick + 1 == now);
+            let rate = if stopped {
+                1.0
+            } else if holds {
                 1.0 / config.refresh_ticks.max(1.0)
             } else if sending {
                 0.0
@@ -599,6 +611,7 @@ impl Replica {
                 for &(_, i, j) in &chosen[start..end] {
                     let c = &candidates[j as usize];
                     let t = &mut next[i as usize];
+                    t.sent_moved = t.sent_tick != NONE && t.sent_pos != c.pos;
                     (t.sent_tick, t.sent_pos, t.priority) = (now, c.pos, 0.0);
                     f.states.push((c.slot, c.id, c.pos));
                 }

@@ -266,6 +266,23 @@ fn changing_objects_go_at_their_bound_not_every_tick() {
 }
 
 #[test]
+fn an_object_that_stops_is_sent_once_more_where_it_stopped() {
+    let config = ReplicationConfig { budget_bytes_per_tick: 10_000.0, near_bound_ticks: 1.0, ..Default::default() };
+    let mut run = Run::new(config);
+    let mut packed = Vec::new();
+    for t in 1..=20 {
+        // Ten walkers, still from tick 10 on.
+        packed.push(run.tick(t, &world(t.min(10), 10, 10), |_, _| true, true).packed);
+    }
+    // New at 1, then every tick while they move (a bound of one tick), once more at 11
+    // where they stopped, then nothing: the client holds two equal states.
+    assert_eq!(packed[..11], [10; 11], "{packed:?}");
+    assert!(packed[11..].iter().all(|&p| p == 0), "{packed:?}");
+    assert!(run.client.held.iter().filter(|(id, _)| **id != OWN).all(|(_, held)| held.0 == 11));
+    assert_eq!(run.client.unresolved, 0);
+}
+
+#[test]
 fn a_budget_too_small_for_anything_still_sends_the_starving() {
     // Less than a datagram's own overhead: only objects past twice their bound go.
     let config = ReplicationConfig { budget_bytes_per_tick: 40.0, ..Default::default() };

@@ -27,7 +27,7 @@ pub struct RTrack {
     pub priority: f32,
     pub slot: u32,
     pub prior_back: u8,
-    pub pad: u8,
+    pub sent_moved: u8,
     pub prior_offset: [i16; 3],
 }
 

@@ -103,7 +103,7 @@ typedef struct {
 typedef struct {
     u64 hi, id;
     u32 track, cand;
-    u32 starving, pad;
+    u32 starving, eager;
 } RDue;
 
 // What a player's build chose: the record and where it came from.
@@ -405,11 +405,11 @@ RFN u32 r_float_bits(float f) {
 }
 
 // `Due::rank`'s upper word (the id is the lower).
-RFN u64 r_rank_hi(int first, float priority, float distance) {
+RFN u64 r_rank_hi(int eager, int first, float priority, float distance) {
     const u32 magnitude = 0x7fffffffu;
     u64 p = (u64)(magnitude - (r_float_bits(priority) & magnitude));
     u64 d = (u64)(r_float_bits(distance) & magnitude);
-    return ((u64)(first ? 0 : 1) << 62) | (p << 31) | d;
+    return ((u64)(eager ? 1 : 0) << 63) | ((u64)(first ? 0 : 1) << 62) | (p << 31) | d;
 }
 
 // Orders of the sorts below: `a` before `b`.
@@ -598,15 +598,20 @@ RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, RTrack* t, const RCan
     else
         rate = 1.0f / r_bound_ticks(cfg, c->distance);
     t->priority += rate;
-    if (t->priority < 1.0f) return 0;
-    int starving = rate > 0.0f && t->priority / rate + R_WAIT_SLACK >= cfg->max_wait;
-    int first = c->distance <= cfg->near_units || !acked.valid;
-    due->hi = r_rank_hi(first, t->priority, c->distance);
+    int eager = 0;
+    if (t->priority < 1.0f) {
+        // Near and not held, before its bound: offered after everything due.
+        if (holds || !(rate > 0.0f) || !(c->distance <= cfg->near_units)) return 0;
+        eager = 1;
+    }
+    int starving = !eager && rate > 0.0f && t->priority / rate + R_WAIT_SLACK >= cfg->max_wait;
+    int first = eager || c->distance <= cfg->near_units || !acked.valid;
+    due->hi = r_rank_hi(eager, first, t->priority, c->distance);
     due->id = c->id;
     due->track = k;
     due->cand = cand;
     due->starving = (u32)starving;
-    due->pad = 0;
+    due->eager = (u32)eager;
     return 1;
 }
 
@@ -713,7 +718,7 @@ RFN void r_take(RFilling* fill, const RDue* d, const RCand* cands, const RTrack*
         chosen[*nchosen].cand = d->cand;
         *nchosen += 1;
     } else {
-        info->deferred += 1;
+        info->deferred += d->eager ? 0u : 1u;
     }
 }
 
@@ -767,7 +772,7 @@ RFN void r_take_due(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos
         if (wanted[k].starving)
             wanted[starving++] = wanted[k];
         else
-            info->deferred += 1;
+            info->deferred += wanted[k].eager ? 0u : 1u;
     }
     R_HEAPSORT(RDue, wanted, starving, r_due_less);
     for (u32 k = 0; k < starving; k++) r_take(&fill, &wanted[k], cands, next, now, floor, origin, chosen, &nchosen, info);

@@ -339,20 +339,24 @@ struct Due {
     candidate: u32,
     /// It waited `max_wait_ticks`: sent even over the budget.
     starving: bool,
+    /// Not due, but near and changed: sent if the budget has room once everything due
+    /// was offered (not counted as deferred when it does not).
+    eager: bool,
 }
 
 impl Due {
-    /// The order of urgency as one integer, smallest first: near objects and ones the
-    /// client lacks (`first`), then by priority (higher first), then the nearer (so a
+    /// The order of urgency as one integer, smallest first: everything due before the
+    /// `eager` (not due), near objects and ones the client lacks (`first`), then by
+    /// priority (higher first), then the nearer (so a
     /// player who just joined gets its surroundings first), then by id, a total order,
     /// so the choice is a function of the inputs alone. Both floats are at least zero
     /// (or NaN, which goes last), whose bit patterns order as the numbers do; an integer
     /// key compares in one instruction where four comparisons of fields took many.
-    fn rank(first: bool, priority: f32, distance: f32, id: u64) -> u128 {
+    fn rank(eager: bool, first: bool, priority: f32, distance: f32, id: u64) -> u128 {
         const MAGNITUDE: u32 = 0x7fff_ffff;
         let priority = MAGNITUDE - (priority.to_bits() & MAGNITUDE);
         let distance = distance.to_bits() & MAGNITUDE;
-        (u128::from(!first) << 126) | (u128::from(priority) << 95) | (u128::from(distance) << 64) | u128::from(id)
+        (u128::from(eager) << 127) | (u128::from(!first) << 126) | (u128::from(priority) << 95) | (u128::from(distance) << 64) | u128::from(id)
     }
 
     /// The order of [`Due::rank`], then by track (two tracks of one id come only from a
@@ -516,8 +520,14 @@ impl Replica {
                 // bound is the tightest, and a far object that waits its turn is drawn
                 // off by less. Nothing far starves: `max_wait_ticks` still holds.
                 let first = c.distance <= config.near || acked.is_none();
-                let rank = Due::rank(first, t.priority, c.distance, c.id);
-                wanted.push(Due { rank, track: k as u32, candidate: j, starving });
+                let rank = Due::rank(false, first, t.priority, c.distance, c.id);
+                wanted.push(Due { rank, track: k as u32, candidate: j, starving, eager: false });
+            } else if !holds && rate > 0.0 && c.distance <= config.near {
+                // A near object the client does not hold, before its bound: what the
+                // budget has left goes to these (every tick where it can), so a small
+                // view is sent whole each tick and drawn as exactly as full states.
+                let rank = Due::rank(true, true, t.priority, c.distance, c.id);
+                wanted.push(Due { rank, track: k as u32, candidate: j, starving: false, eager: true });
             }
         }
 
@@ -557,7 +567,7 @@ impl Replica {
                         n += 1;
                     }
                 }
-                report.deferred += rest.len() - n;
+                report.deferred += rest[n..].iter().filter(|d| !d.eager).count();
                 n
             } else {
                 let n = ORDER_SLICE.min(rest.len());
@@ -577,7 +587,7 @@ impl Replica {
                         report.starving += usize::from(over_budget);
                         chosen.push((record, d.track, d.candidate));
                     }
-                    None => report.deferred += 1,
+                    None => report.deferred += usize::from(!d.eager),
                 }
             }
             start = if exhausted { wanted.len() } else { start + take };

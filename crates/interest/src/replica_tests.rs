@@ -255,14 +255,22 @@ fn records_are_the_smallest_form() {
 }
 
 #[test]
-fn changing_objects_go_at_their_bound_not_every_tick() {
-    let mut run = Run::new(ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() });
-    let mut sent = 0;
-    for t in 1..=31 {
-        sent += run.tick(t, &world(t, 10, 10), |_, _| true, true).packed;
-    }
-    // Ten near objects, new at tick 1, then every third tick.
-    assert_eq!(sent, 10 + 10 * 10, "{sent}");
+fn changing_objects_go_at_their_bound_and_near_ones_whenever_the_budget_has_room() {
+    // A bound of 3 ticks at any distance; near is within 10 units.
+    let config = ReplicationConfig {
+        budget_bytes_per_tick: 10_000.0,
+        near: 10.0,
+        far_bound_ticks: 3.0,
+        ..Default::default()
+    };
+    let sent = |distance: f32| {
+        let mut run = Run::new(config);
+        (1..=31).map(|t| run.tick(t, &walkers(t, 10, |i| 100 + i, |_| distance), |_, _| true, true).packed).sum::<usize>()
+    };
+    // Ten objects beyond `near`: new at tick 1, then every third tick.
+    assert_eq!(sent(20.0), 10 + 10 * 10);
+    // Near ones go every tick the budget has room for them (it has for all here).
+    assert_eq!(sent(2.0), 10 * 31);
 }
 
 #[test]
@@ -383,7 +391,7 @@ fn a_budget_that_is_not_a_positive_number_sends_only_the_own_object_and_the_star
 
 #[test]
 fn the_rank_orders_as_its_fields() {
-    let r = Due::rank;
+    let r = |first, priority, distance, id| Due::rank(false, first, priority, distance, id);
     // First before not, then higher priority, then nearer, then the smaller id.
     assert!(r(true, 0.5, 90.0, 9) < r(false, 40.0, 1.0, 1));
     assert!(r(true, 2.0, 90.0, 9) < r(true, 1.5, 1.0, 1));
@@ -391,6 +399,8 @@ fn the_rank_orders_as_its_fields() {
     assert!(r(true, 2.0, 1.0, 1) < r(true, 2.0, 1.0, 2));
     assert!(r(false, 1.0, f32::MAX, 1) < r(false, 1.0, f32::NAN, 0), "a NaN distance goes last");
     assert!(r(false, 1.0e9, 0.0, u64::MAX) < r(false, 1.0, 0.0, 0));
+    // Everything due before anything eager.
+    assert!(r(false, 1.0, f32::NAN, u64::MAX) < Due::rank(true, true, 0.9, 0.0, 0));
 }
 
 #[test]

@@ -106,7 +106,7 @@ pub struct RDue {
     pub track: u32,
     pub cand: u32,
     pub starving: u32,
-    pub pad: u32,
+    pub eager: u32,
 }
 
 /// `RChosen`: a record chosen and where it came from.

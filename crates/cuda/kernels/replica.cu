@@ -23,6 +23,88 @@
 // Lanes below this one set in `mask`: where this lane's item goes in a compacted list.
 __device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(mask & ((1u << lane) - 1u)); }
 
+// Sorts `a[0 .. n)` ascending by `LESS` with the warp's 32 lanes (`lane`), in place: a
+// bitonic network whose every comparison moves the smaller item to the lower index (the
+// first step of each merge compares mirrored pairs), so items past `n` never take part
+// and any `n` works. Every lane calls it with the same `n`; it ends synchronised.
+#define WARP_SORT(T, a, n, LESS, lane)                                                                  \
+    do {                                                                                                \
+        u32 n_ = (n), size_ = 1;                                                                        \
+        while (size_ < n_) size_ <<= 1;                                                                 \
+        for (u32 k_ = 2; k_ <= size_; k_ <<= 1) {                                                       \
+            for (u32 j_ = k_ >> 1; j_ > 0; j_ >>= 1) {                                                  \
+                for (u32 p_ = (lane); p_ < size_ / 2; p_ += 32) {                                       \
+                    u32 lo_ = ((p_ & ~(j_ - 1)) << 1) | (p_ & (j_ - 1));                                \
+                    u32 hi_ = j_ == (k_ >> 1) ? lo_ ^ (k_ - 1) : lo_ | j_;                              \
+                    if (hi_ < n_ && LESS(&(a)[hi_], &(a)[lo_])) {                                       \
+                        T t_ = (a)[lo_];                                                                \
+                        (a)[lo_] = (a)[hi_];                                                            \
+                        (a)[hi_] = t_;                                                                  \
+                    }                                                                                   \
+                }                                                                                       \
+                __syncwarp();                                                                           \
+            }                                                                                           \
+        }                                                                                               \
+    } while (0)
+
+// `r_take_sorted` with the warp: 32 objects at a time, each lane chooses its object's
+// record and its charge, then every lane runs the same budget over the 32 in order
+// (shuffled to all), so all hold the same `fill` and counts, and the lane of an object
+// taken writes its record. `wanted` is sorted; returns how many were chosen (in the
+// order taken); `info->datagrams`, `deferred` and `starving` as `r_take_sorted`.
+__device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin,
+                                  const RCand* cands, const RTrack* next, const RDue* wanted, u32 nwanted,
+                                  RChosen* chosen, RInfo* info, u32 lane) {
+    u32 own_bits = info->has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
+    RFilling fill;
+    fill.per_datagram = (float)R_DATAGRAM_OVERHEAD + (float)own_bits / 8.0f;
+    fill.budget = r_per_tick(cfg) + h->credit - fill.per_datagram;
+    fill.datagrams = 1;
+    fill.max_datagrams = cfg->max_datagrams > 1 ? cfg->max_datagrams : 1;
+    fill.in_datagram = 0;
+    fill.room = (R_MAX_BODY - R_DELTA_HEADER_LEN - R_MAX_RECORD_LEN) * 8u - R_STREAM_PARAMS_BITS - own_bits;
+    u32 nchosen = 0;
+    int open = 1;  // still taking whatever the budget pays (else only the starving)
+    for (u32 base = 0; base < nwanted; base += 32) {
+        u32 k = base + lane;
+        RRecord rec = {};
+        u32 bits = 0, starving = 0, eager = 0, track = 0, cand = 0;
+        if (k < nwanted) {
+            RDue d = wanted[k];
+            const RCand* c = &cands[d.cand];
+            const RTrack* t = &next[d.track];
+            RBase acked = r_track_acked(t, floor);
+            rec = r_choose(c->id, c->kind, c->pos, now, acked, r_track_prior(t, acked));
+            bits = r_charge_bits(&rec, origin);
+            starving = d.starving;
+            eager = d.eager;
+            track = d.track;
+            cand = d.cand;
+        }
+        u32 items = min(32u, nwanted - base);
+        for (u32 j = 0; j < items; j++) {
+            u32 b = __shfl_sync(FULL_WARP, bits, j);
+            u32 st = __shfl_sync(FULL_WARP, starving, j);
+            u32 eg = __shfl_sync(FULL_WARP, eager, j);
+            open = open && fill.budget >= R_MIN_COST;
+            int taken = open || st ? r_offer(&fill, b, (int)st) : 0;
+            if (taken) {
+                info->starving += taken == 2;
+                if (lane == j) {
+                    chosen[nchosen].rec = rec;
+                    chosen[nchosen].track = track;
+                    chosen[nchosen].cand = cand;
+                }
+                nchosen++;
+            } else {
+                info->deferred += eg ? 0u : 1u;
+            }
+        }
+    }
+    info->datagrams = fill.datagrams;
+    return nchosen;
+}
+
 extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets,
                                             const u32* objects, u32 n, const float* pos, const u32* ids,
                                             const u8* shapes, const RPlayer* players, RHome* homes,
@@ -192,18 +274,30 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
     }
     __syncwarp();
 
-    // In order, on lane 0: the own record, then the objects due into the budget.
-    u32 count = 0;
+    // The own record, then the objects due into the budget in the order of urgency
+    // (`r_take_due`'s steps: the warp sorts, every lane keeps the same budget).
     RInfo mine = {};
+    mine.in_view = nc;
+    mine.has_own_record = (u32)(has_own && h->has_own);
+    if (mine.has_own_record) {
+        RBase acked = r_track_acked(&h->own, floor);
+        mine.own_record = r_choose(own_id, own_kind, own_pos, tick, acked, r_track_prior(&h->own, acked));
+    }
+    RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
+    WARP_SORT(RDue, wd, nw, r_due_less, lane);
+    u32 nch = r_take_sorted_warp(cfg, tick, floor, h, origin, cs, nx, wd, nw, ch, &mine, lane);
+    __syncwarp();
+    WARP_SORT(RChosen, ch, nch, r_chosen_less, lane);
+    // A repeated id (only from a broken source) goes once: the rare case on lane 0.
+    int repeated = 0;
+    for (u32 k = 1 + lane; k < nch; k += 32) repeated |= ch[k].rec.id == ch[k - 1].rec.id;
+    if (__any_sync(FULL_WARP, repeated)) {
+        if (lane == 0) r_chosen_unique(ch, nch, &mine);
+    } else {
+        mine.count = nch;
+    }
+    u32 count = 0;
     if (lane == 0) {
-        mine.in_view = nc;
-        mine.has_own_record = (u32)(has_own && h->has_own);
-        if (mine.has_own_record) {
-            RBase acked = r_track_acked(&h->own, floor);
-            mine.own_record = r_choose(own_id, own_kind, own_pos, tick, acked, r_track_prior(&h->own, acked));
-        }
-        RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
-        r_take_due(cfg, tick, floor, h, origin, cs, nx, wd, nw, ch, &mine);
         h->track_off = o;
         h->track_len = nc;
         if (mine.count > out_cap) {

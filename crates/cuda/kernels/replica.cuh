@@ -418,7 +418,6 @@ RFN int r_due_less(const RDue* a, const RDue* b) {
     if (a->id != b->id) return a->id < b->id;
     return a->track < b->track;
 }
-RFN int r_due_greater(const RDue* a, const RDue* b) { return r_due_less(b, a); }
 RFN int r_chosen_less(const RChosen* a, const RChosen* b) {
     if (a->rec.id != b->rec.id) return a->rec.id < b->rec.id;
     return a->track < b->track;
@@ -734,12 +733,16 @@ RFN void r_own_now(RHome* h, int has_own, u64 own_id, RPos own_pos) {
     h->own_now = own_pos;
 }
 
-// Step 3 of `Replica::build`: the objects due (`wanted`, any order) taken into the
-// budget in the order of urgency; `chosen[0 .. info->count]` (ids increasing) and
-// `info->datagrams` are the result. `info->own_record` and `info->has_own_record` are
-// set, and `info->deferred` and `info->starving` count on.
-RFN void r_take_due(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin, const RCand* cands,
-                    const RTrack* next, RDue* wanted, u32 nwanted, RChosen* chosen, RInfo* info) {
+// Step 3 of `Replica::build`, on the objects due sorted by `r_due_less`: taken into
+// the budget in that order while it can pay the smallest record, then only the
+// starving, in their order. The chosen records are appended to `chosen` in the order
+// taken (`*nchosen` of them); `info->datagrams` is set, `info->deferred` and
+// `info->starving` count on. (The host takes the order a slice at a time and checks
+// the budget between slices; the same objects are taken either way: an object offered
+// when the budget cannot pay the smallest record is refused.)
+RFN void r_take_sorted(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin, const RCand* cands,
+                       const RTrack* next, const RDue* wanted, u32 nwanted, RChosen* chosen, u32* nchosen,
+                       RInfo* info) {
     int has_own_record = info->has_own_record != 0;
     u32 own_bits = has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
     u32 room = (R_MAX_BODY - R_DELTA_HEADER_LEN - R_MAX_RECORD_LEN) * 8u - R_STREAM_PARAMS_BITS - own_bits;
@@ -752,32 +755,22 @@ RFN void r_take_due(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos
     fill.in_datagram = 0;
     fill.room = room;
     fill.per_datagram = per_datagram;
-    // Offered in the order of urgency (a total order), taken from a heap while the
-    // budget can pay the smallest record; then only the starving can go, in their
-    // order. The host takes the order a slice at a time and checks the budget between
-    // slices; the same objects are taken either way (an object offered when the budget
-    // cannot pay the smallest record is refused).
-    u32 nchosen = 0;
-    u32 heap = nwanted;
-    for (u32 s = heap / 2; s-- > 0;) R_SIFT(RDue, wanted, s, heap, r_due_greater);
-    while (heap > 0 && fill.budget >= R_MIN_COST) {
-        RDue d = wanted[0];
-        wanted[0] = wanted[heap - 1];
-        heap--;
-        R_SIFT(RDue, wanted, 0, heap, r_due_greater);
-        r_take(&fill, &d, cands, next, now, floor, origin, chosen, &nchosen, info);
-    }
-    u32 starving = 0;
-    for (u32 k = 0; k < heap; k++) {
+    *nchosen = 0;
+    u32 k = 0;
+    for (; k < nwanted && fill.budget >= R_MIN_COST; k++)
+        r_take(&fill, &wanted[k], cands, next, now, floor, origin, chosen, nchosen, info);
+    for (; k < nwanted; k++) {
         if (wanted[k].starving)
-            wanted[starving++] = wanted[k];
+            r_take(&fill, &wanted[k], cands, next, now, floor, origin, chosen, nchosen, info);
         else
             info->deferred += wanted[k].eager ? 0u : 1u;
     }
-    R_HEAPSORT(RDue, wanted, starving, r_due_less);
-    for (u32 k = 0; k < starving; k++) r_take(&fill, &wanted[k], cands, next, now, floor, origin, chosen, &nchosen, info);
-    R_HEAPSORT(RChosen, chosen, nchosen, r_chosen_less);
-    // A repeated id goes once (the first of it).
+    info->datagrams = fill.datagrams;
+}
+
+// The chosen records sorted by `r_chosen_less` (ids increasing): a repeated id goes once
+// (the first of it); `info->count` is what is left.
+RFN void r_chosen_unique(RChosen* chosen, u32 nchosen, RInfo* info) {
     u32 unique = 0;
     for (u32 k = 0; k < nchosen; k++) {
         if (unique > 0 && chosen[unique - 1].rec.id == chosen[k].rec.id) continue;
@@ -785,7 +778,20 @@ RFN void r_take_due(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos
     }
     info->deferred += nchosen - unique;
     info->count = unique;
-    info->datagrams = fill.datagrams;
+}
+
+// Step 3 of `Replica::build`: the objects due (`wanted`, any order) taken into the
+// budget in the order of urgency; `chosen[0 .. info->count]` (ids increasing) and
+// `info->datagrams` are the result. `info->own_record` and `info->has_own_record` are
+// set, and `info->deferred` and `info->starving` count on. (The device sorts with a
+// warp where this sorts on one thread; the steps between the sorts are these.)
+RFN void r_take_due(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin, const RCand* cands,
+                    const RTrack* next, RDue* wanted, u32 nwanted, RChosen* chosen, RInfo* info) {
+    R_HEAPSORT(RDue, wanted, nwanted, r_due_less);
+    u32 nchosen = 0;
+    r_take_sorted(cfg, now, floor, h, origin, cands, next, wanted, nwanted, chosen, &nchosen, info);
+    R_HEAPSORT(RChosen, chosen, nchosen, r_chosen_less);
+    r_chosen_unique(chosen, nchosen, info);
 }
 
 // The first half of `Replica::build`, up to the records it sends: matches the view,

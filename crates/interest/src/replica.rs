@@ -356,7 +356,11 @@ impl Due {
         const MAGNITUDE: u32 = 0x7fff_ffff;
         let priority = MAGNITUDE - (priority.to_bits() & MAGNITUDE);
         let distance = distance.to_bits() & MAGNITUDE;
-        (u128::from(eager) << 127) | (u128::from(!first) << 126) | (u128::from(priority) << 95) | (u128::from(distance) << 64) | u128::from(id)
+        (u128::from(eager) << 127)
+            | (u128::from(!first) << 126)
+            | (u128::from(priority) << 95)
+            | (u128::from(distance) << 64)
+            | u128::from(id)
     }
 
     /// The order of [`Due::rank`], then by track (two tracks of one id come only from a

@@ -257,15 +257,13 @@ fn records_are_the_smallest_form() {
 #[test]
 fn changing_objects_go_at_their_bound_and_near_ones_whenever_the_budget_has_room() {
     // A bound of 3 ticks at any distance; near is within 10 units.
-    let config = ReplicationConfig {
-        budget_bytes_per_tick: 10_000.0,
-        near: 10.0,
-        far_bound_ticks: 3.0,
-        ..Default::default()
-    };
+    let config =
+        ReplicationConfig { budget_bytes_per_tick: 10_000.0, near: 10.0, far_bound_ticks: 3.0, ..Default::default() };
     let sent = |distance: f32| {
         let mut run = Run::new(config);
-        (1..=31).map(|t| run.tick(t, &walkers(t, 10, |i| 100 + i, |_| distance), |_, _| true, true).packed).sum::<usize>()
+        (1..=31)
+            .map(|t| run.tick(t, &walkers(t, 10, |i| 100 + i, |_| distance), |_, _| true, true).packed)
+            .sum::<usize>()
     };
     // Ten objects beyond `near`: new at tick 1, then every third tick.
     assert_eq!(sent(20.0), 10 + 10 * 10);

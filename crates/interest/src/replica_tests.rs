@@ -269,6 +269,12 @@ fn changing_objects_go_at_their_bound_and_near_ones_whenever_the_budget_has_room
     assert_eq!(sent(20.0), 10 + 10 * 10);
     // Near ones go every tick the budget has room for them (it has for all here).
     assert_eq!(sent(2.0), 10 * 31);
+    // Unless the client acknowledges too slowly for a cheap record (every eighth tick):
+    // then between its bound and every tick.
+    let mut run = Run::new(config);
+    let slow: usize =
+        (1..=31).map(|t| run.tick(t, &walkers(t, 10, |i| 100 + i, |_| 2.0), |_, _| true, t % 8 == 0).packed).sum();
+    assert!(slow > 10 + 10 * 10 && slow < 10 * 31, "{slow}");
 }
 
 #[test]

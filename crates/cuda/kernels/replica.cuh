@@ -33,8 +33,6 @@
 // `DATAGRAM_OVERHEAD`: packet header 18, tag 16, delta update header 24.
 #define R_DATAGRAM_OVERHEAD 58u
 #define R_WAIT_SLACK 1.0e-3f
-// `EAGER_BASELINE_TICKS`.
-#define R_EAGER_BASELINE_TICKS 4u
 
 // Record forms (`RecordState`).
 #define R_ABSOLUTE 0u
@@ -603,7 +601,7 @@ RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, RTrack* t, const RCan
     if (t->priority < 1.0f) {
         // Near and not held, before its bound: offered after everything due.
         if (holds || !(rate > 0.0f) || !(c->distance <= cfg->near_units)) return 0;
-        if (!acked.valid || acked.tick + R_EAGER_BASELINE_TICKS < now) return 0;
+        if (!acked.valid || acked.tick + cfg->resend_ticks < now) return 0;
         eager = 1;
     }
     int starving = !eager && rate > 0.0f && t->priority / rate + R_WAIT_SLACK >= cfg->max_wait;

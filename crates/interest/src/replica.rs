@@ -22,8 +22,9 @@
 //!    sent moving last tick that has not moved since is due at once, so that the client
 //!    holds it still (two equal states) instead of carrying it on past its stop; a
 //!    near object the client does not hold, not yet due, is offered after everything
-//!    due while the budget has room (if the client acknowledged a state of it within
-//!    [`EAGER_BASELINE_TICKS`]);
+//!    due while the budget has room, if the client acknowledged a state of it within
+//!    `resend_ticks` (a slower or lossy link gets near objects at their bound: every
+//!    record against an older baseline is larger);
 //! 3. the objects due (priority at least 1) are taken into this tick's byte budget, near
 //!    ones and ones the client lacks first, then by priority
 //!    (`budget_bytes_per_tick`, with what earlier ticks left unspent, up to one tick's
@@ -434,12 +435,6 @@ const MIN_COST: f32 = (3 + 7 + ID_CHARGE_BITS) as f32 / 8.0;
 /// one slice mostly suffices.
 const ORDER_SLICE: usize = 64;
 
-/// A near object goes eagerly (before its bound, on what the budget has left) only
-/// relative to a state the client acknowledged at most this many ticks before: against
-/// an older one (a slow or lossy link) every record is larger, so such a client gets its
-/// near objects at their bound, as on a tight budget.
-pub const EAGER_BASELINE_TICKS: u64 = 4;
-
 /// Slack on the starvation test: a priority is a running sum of one rate, and thirty
 /// additions of 1/3 in `f32` fall short of 30 × 1/3 by a few ulps; the test counts
 /// whole ticks, so a thousandth of one is far below anything that matters.
@@ -538,7 +533,7 @@ impl Replica {
             } else if !holds
                 && rate > 0.0
                 && c.distance <= config.near
-                && acked.is_some_and(|b| b.tick + EAGER_BASELINE_TICKS >= now)
+                && acked.is_some_and(|b| b.tick + config.resend_ticks >= now)
             {
                 // A near object the client does not hold, before its bound: what the
                 // budget has left goes to these (every tick where it can), so a small

@@ -58,7 +58,9 @@ __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const 
     u32 own_bits = info->has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
     RFilling fill;
     fill.per_datagram = (float)R_DATAGRAM_OVERHEAD + (float)own_bits / 8.0f;
-    fill.budget = r_per_tick(cfg) + h->credit - fill.per_datagram;
+    float per_tick = r_per_tick(cfg);
+    fill.budget = per_tick + h->credit - fill.per_datagram;
+    fill.keep = isinf(per_tick) ? 0.0f : per_tick;
     fill.datagrams = 1;
     fill.max_datagrams = cfg->max_datagrams > 1 ? cfg->max_datagrams : 1;
     fill.in_datagram = 0;
@@ -87,7 +89,7 @@ __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const 
             u32 st = __shfl_sync(FULL_WARP, starving, j);
             u32 eg = __shfl_sync(FULL_WARP, eager, j);
             open = open && fill.budget >= R_MIN_COST;
-            int taken = open || st ? r_offer(&fill, b, (int)st) : 0;
+            int taken = open || st ? r_offer(&fill, b, (int)st, (int)eg) : 0;
             if (taken) {
                 info->starving += taken == 2;
                 if (lane == j) {

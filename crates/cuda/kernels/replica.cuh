@@ -673,15 +673,16 @@ RFN u32 r_push_flight(RHome* h, RFlight* flights, RState* states, u64 sequence, 
 typedef struct {
     float budget;
     u32 datagrams, max_datagrams, in_datagram, room;
-    float per_datagram;
+    float per_datagram, keep;
 } RFilling;
 
 // `Filling::offer`: 0 not taken, 1 taken within the budget, 2 taken over it.
-RFN int r_offer(RFilling* f, u32 bits, int starving) {
+RFN int r_offer(RFilling* f, u32 bits, int starving, int eager) {
     float cost = (float)bits / 8.0f;
-    int fits = cost <= f->budget || starving;
+    float free = f->budget - (eager ? f->keep : 0.0f);
+    int fits = cost <= free || starving;
     if (fits && f->in_datagram + bits > f->room) {
-        fits = f->datagrams < f->max_datagrams && (cost + f->per_datagram <= f->budget || starving);
+        fits = f->datagrams < f->max_datagrams && (cost + f->per_datagram <= free || starving);
         if (fits) {
             f->datagrams += 1;
             f->in_datagram = 0;
@@ -710,7 +711,7 @@ RFN void r_take(RFilling* fill, const RDue* d, const RCand* cands, const RTrack*
     const RTrack* t = &next[d->track];
     RBase acked = r_track_acked(t, floor);
     RRecord rec = r_choose(c->id, c->kind, c->pos, now, acked, r_track_prior(t, acked));
-    int taken = r_offer(fill, r_charge_bits(&rec, origin), (int)d->starving);
+    int taken = r_offer(fill, r_charge_bits(&rec, origin), (int)d->starving, (int)d->eager);
     if (taken) {
         info->starving += taken == 2;
         chosen[*nchosen].rec = rec;
@@ -756,6 +757,7 @@ RFN void r_take_sorted(const RConfig* cfg, u64 now, u64 floor, const RHome* h, R
     fill.in_datagram = 0;
     fill.room = room;
     fill.per_datagram = per_datagram;
+    fill.keep = isinf(per_tick) ? 0.0f : per_tick;
     *nchosen = 0;
     u32 k = 0;
     for (; k < nwanted && fill.budget >= R_MIN_COST; k++)

@@ -22,7 +22,8 @@
 //!    sent moving last tick that has not moved since is due at once, so that the client
 //!    holds it still (two equal states) instead of carrying it on past its stop; a
 //!    near object the client does not hold, not yet due, is offered after everything
-//!    due while the budget has room, if the client acknowledged a state of it within
+//!    due, from what the budget would otherwise forfeit (beyond the tick's worth that
+//!    carries over), if the client acknowledged a state of it within
 //!    `resend_ticks` (a slower or lossy link gets near objects at their bound: every
 //!    record against an older baseline is larger);
 //! 3. the objects due (priority at least 1) are taken into this tick's byte budget, near
@@ -387,18 +388,22 @@ struct Filling {
     room: usize,
     /// What opening a datagram costs: its overhead and the own object's record.
     per_datagram: f32,
+    /// What an eager record must leave of the budget: what carries over to the next
+    /// tick at most, so that eager records spend only what would be forfeited.
+    keep: f32,
 }
 
 impl Filling {
     /// Takes a record of `bits` if the budget pays for it (opening a datagram if needed
-    /// and allowed), or over the budget if it is `starving`; `Some(over budget)` when
-    /// taken.
-    fn offer(&mut self, bits: usize, starving: bool) -> Option<bool> {
+    /// and allowed; an `eager` one only from what the budget would forfeit), or over the
+    /// budget if it is `starving`; `Some(over budget)` when taken.
+    fn offer(&mut self, bits: usize, starving: bool, eager: bool) -> Option<bool> {
         let cost = bits as f32 / 8.0;
-        let mut fits = cost <= self.budget || starving;
+        let free = self.budget - if eager { self.keep } else { 0.0 };
+        let mut fits = cost <= free || starving;
         if fits && self.in_datagram + bits > self.room {
             // Another datagram, if allowed and paid for.
-            fits = self.datagrams < self.max_datagrams && (cost + self.per_datagram <= self.budget || starving);
+            fits = self.datagrams < self.max_datagrams && (cost + self.per_datagram <= free || starving);
             if fits {
                 self.datagrams += 1;
                 self.in_datagram = 0;
@@ -536,8 +541,9 @@ impl Replica {
                 && acked.is_some_and(|b| b.tick + config.resend_ticks >= now)
             {
                 // A near object the client does not hold, before its bound: what the
-                // budget has left goes to these (every tick where it can), so a small
-                // view is sent whole each tick and drawn as exactly as full states.
+                // budget would forfeit goes to these (every tick where it can), so a
+                // small view is sent whole each tick and drawn as exactly as full
+                // states, and a view the budget binds loses nothing to them.
                 let rank = Due::rank(true, true, t.priority, c.distance, c.id);
                 wanted.push(Due { rank, track: k as u32, candidate: j, starving: false, eager: true });
             }
@@ -559,6 +565,8 @@ impl Replica {
             in_datagram: 0,
             room,
             per_datagram,
+            // An infinite budget keeps nothing back from eager records.
+            keep: if per_tick.is_finite() { per_tick } else { 0.0 },
         };
         chosen.clear();
         // A budget holds a few dozen of the objects due where hundreds may be: the order
@@ -594,7 +602,7 @@ impl Replica {
                 let t = &next[d.track as usize];
                 let acked = t.acked(floor);
                 let record = DeltaRecord::choose(c.id, c.kind, c.pos, now, acked, t.prior(acked));
-                match fill.offer(charge_bits(&record, origin), d.starving) {
+                match fill.offer(charge_bits(&record, origin), d.starving, d.eager) {
                     Some(over_budget) => {
                         report.starving += usize::from(over_budget);
                         chosen.push((record, d.track, d.candidate));

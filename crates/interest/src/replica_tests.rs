@@ -275,6 +275,19 @@ fn changing_objects_go_at_their_bound_and_near_ones_whenever_the_budget_has_room
     let slow: usize =
         (1..=31).map(|t| run.tick(t, &walkers(t, 10, |i| 100 + i, |_| 2.0), |_, _| true, t % 8 == 0).packed).sum();
     assert!(slow > 10 + 10 * 10 && slow < 10 * 31, "{slow}");
+    // A budget just above what the bound needs (90 bytes a tick: a datagram's overhead,
+    // ten small records every third tick): eager records take only what it would
+    // forfeit, so some go, and nothing due ever waits for them.
+    let tight = ReplicationConfig { budget_bytes_per_tick: 90.0, ..config };
+    let mut run = Run::new(tight);
+    let (mut sent, mut deferred) = (0, 0);
+    for t in 1..=31 {
+        let r = run.tick(t, &walkers(t, 10, |i| 100 + i, |_| 2.0), |_, _| true, true);
+        // (The first two ticks' absolute records are more than it holds.)
+        (sent, deferred) = (sent + r.packed, deferred + if t > 2 { r.deferred } else { 0 });
+    }
+    assert!(sent > 10 + 10 * 10 && sent < 10 * 31, "{sent}");
+    assert_eq!(deferred, 0);
 }
 
 #[test]

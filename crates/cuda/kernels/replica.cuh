@@ -584,7 +584,7 @@ RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, RTrack* t, const RCan
     int holds = acked.valid && r_pos_eq(acked.pos, c->pos);
     u64 since = now > t->sent_tick ? now - t->sent_tick : 0;
     int sending = has_sent && r_pos_eq(t->sent, c->pos) && since < cfg->resend_ticks;
-    int stopped = sending && t->sent_moved && t->sent_tick + 1 == now;
+    int stopped = sending && t->sent_moved && c->distance <= cfg->near_units && t->sent_tick + 1 == now;
     float rate;
     if (stopped)
         rate = 1.0f;

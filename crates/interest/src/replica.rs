@@ -510,7 +510,8 @@ impl Replica {
             // Sent moving last tick and still there since: it stopped, and the client,
             // holding two states apart, would carry it on past the stop. The same state
             // once more (now) shows it still.
-            let stopped = sending && t.sent_moved && sent.is_some_and(|s| s.tick + 1 == now);
+            let stopped =
+                sending && t.sent_moved && c.distance <= config.near && sent.is_some_and(|s| s.tick + 1 == now);
             let rate = if stopped {
                 1.0
             } else if holds {

@@ -305,6 +305,14 @@ fn an_object_that_stops_is_sent_once_more_where_it_stopped() {
     assert!(packed[11..].iter().all(|&p| p == 0), "{packed:?}");
     assert!(run.client.held.iter().filter(|(id, _)| **id != OWN).all(|(_, held)| held.0 == 11));
     assert_eq!(run.client.unresolved, 0);
+    // Beyond `near` a stop is not worth a record of its own (where the budget binds it
+    // would push over it what waits): the same walkers, near only within 5 units.
+    let mut run = Run::new(ReplicationConfig { near: 5.0, far_bound_ticks: 1.0, ..config });
+    let packed: Vec<usize> =
+        (1..=20).map(|t| run.tick(t, &world(t.min(10), 10, 10), |_, _| true, true).packed).collect();
+    // Walkers 0, 1 and 2 stop within 5 units (x = 1.5 i + 1.7): they alone go again at 11.
+    assert_eq!(packed[..10], [10; 10], "{packed:?}");
+    assert_eq!(packed[10], 3, "{packed:?}");
 }
 
 #[test]

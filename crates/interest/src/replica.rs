@@ -18,8 +18,8 @@
 //!    where `bound(d)` is the refresh bound in ticks at its distance `d` from the
 //!    player: `near_bound_ticks` within `near` units, growing linearly to
 //!    `far_bound_ticks` at `far` units; an object the client holds unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
-//!    then, so a client can tell a still object from one that left its view); an object
-//!    sent moving last tick that has not moved since is due at once, so that the client
+//!    then, so a client can tell a still object from one that left its view); a near
+//!    object sent moving last tick that has not moved since is due at once, so that the client
 //!    holds it still (two equal states) instead of carrying it on past its stop; a
 //!    near object the client does not hold, not yet due, is offered after everything
 //!    due, from what the budget would otherwise forfeit (beyond the tick's worth that
@@ -509,7 +509,8 @@ impl Replica {
             let sending = sent.is_some_and(|s| s.pos == c.pos && now.saturating_sub(s.tick) < config.resend_ticks);
             // Sent moving last tick and still there since: it stopped, and the client,
             // holding two states apart, would carry it on past the stop. The same state
-            // once more (now) shows it still.
+            // once more (now) shows it still; only near, where the error shows (beyond,
+            // where the budget binds, these records pushed what waits over it).
             let stopped =
                 sending && t.sent_moved && c.distance <= config.near && sent.is_some_and(|s| s.tick + 1 == now);
             let rate = if stopped {

@@ -55,16 +55,7 @@ __device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(
 __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin,
                                   const RCand* cands, const RTrack* next, const RDue* wanted, u32 nwanted,
                                   RChosen* chosen, RInfo* info, u32 lane) {
-    u32 own_bits = info->has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
-    RFilling fill;
-    fill.per_datagram = (float)R_DATAGRAM_OVERHEAD + (float)own_bits / 8.0f;
-    float per_tick = r_per_tick(cfg);
-    fill.budget = per_tick + h->credit - fill.per_datagram;
-    fill.keep = isinf(per_tick) ? 0.0f : per_tick;
-    fill.datagrams = 1;
-    fill.max_datagrams = cfg->max_datagrams > 1 ? cfg->max_datagrams : 1;
-    fill.in_datagram = 0;
-    fill.room = (R_MAX_BODY - R_DELTA_HEADER_LEN - R_MAX_RECORD_LEN) * 8u - R_STREAM_PARAMS_BITS - own_bits;
+    RFilling fill = r_filling_new(cfg, h, info, origin);
     u32 nchosen = 0;
     int open = 1;  // still taking whatever the budget pays (else only the starving)
     for (u32 base = 0; base < nwanted; base += 32) {

@@ -735,6 +735,24 @@ RFN void r_own_now(RHome* h, int has_own, u64 own_id, RPos own_pos) {
     h->own_now = own_pos;
 }
 
+// A build's budget and datagrams before anything is offered (`Filling` as
+// `Replica::build` makes it): this tick's budget and the credit, less the first
+// datagram with the own record (`info->own_record` if `info->has_own_record`).
+RFN RFilling r_filling_new(const RConfig* cfg, const RHome* h, const RInfo* info, RPos origin) {
+    u32 own_bits = info->has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
+    float per_tick = r_per_tick(cfg);
+    RFilling fill;
+    fill.per_datagram = (float)R_DATAGRAM_OVERHEAD + (float)own_bits / 8.0f;
+    fill.budget = per_tick + h->credit - fill.per_datagram;
+    fill.datagrams = 1;
+    fill.max_datagrams = cfg->max_datagrams > 1 ? cfg->max_datagrams : 1;
+    fill.in_datagram = 0;
+    fill.room = (R_MAX_BODY - R_DELTA_HEADER_LEN - R_MAX_RECORD_LEN) * 8u - R_STREAM_PARAMS_BITS - own_bits;
+    // An infinite budget keeps nothing back from eager records.
+    fill.keep = isinf(per_tick) ? 0.0f : per_tick;
+    return fill;
+}
+
 // Step 3 of `Replica::build`, on the objects due sorted by `r_due_less`: taken into
 // the budget in that order while it can pay the smallest record, then only the
 // starving, in their order. The chosen records are appended to `chosen` in the order
@@ -745,19 +763,7 @@ RFN void r_own_now(RHome* h, int has_own, u64 own_id, RPos own_pos) {
 RFN void r_take_sorted(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin, const RCand* cands,
                        const RTrack* next, const RDue* wanted, u32 nwanted, RChosen* chosen, u32* nchosen,
                        RInfo* info) {
-    int has_own_record = info->has_own_record != 0;
-    u32 own_bits = has_own_record ? r_charge_bits(&info->own_record, origin) : 0u;
-    u32 room = (R_MAX_BODY - R_DELTA_HEADER_LEN - R_MAX_RECORD_LEN) * 8u - R_STREAM_PARAMS_BITS - own_bits;
-    float per_datagram = (float)R_DATAGRAM_OVERHEAD + (float)own_bits / 8.0f;
-    float per_tick = r_per_tick(cfg);
-    RFilling fill;
-    fill.budget = per_tick + h->credit - per_datagram;
-    fill.datagrams = 1;
-    fill.max_datagrams = cfg->max_datagrams > 1 ? cfg->max_datagrams : 1;
-    fill.in_datagram = 0;
-    fill.room = room;
-    fill.per_datagram = per_datagram;
-    fill.keep = isinf(per_tick) ? 0.0f : per_tick;
+    RFilling fill = r_filling_new(cfg, h, info, origin);
     *nchosen = 0;
     u32 k = 0;
     for (; k < nwanted && fill.budget >= R_MIN_COST; k++)

@@ -19,8 +19,8 @@
 //!    player: `near_bound_ticks` within `near` units, growing linearly to
 //!    `far_bound_ticks` at `far` units; an object the client holds unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
 //!    then, so a client can tell a still object from one that left its view); a near
-//!    object sent moving last tick that has not moved since is due at once, so that the client
-//!    holds it still (two equal states) instead of carrying it on past its stop; a
+//!    object sent moving last tick that has not moved since is due at once, so that the
+//!    client holds it still (two equal states) instead of carrying it on past its stop; a
 //!    near object the client does not hold, not yet due, is offered after everything
 //!    due, from what the budget would otherwise forfeit (beyond the tick's worth that
 //!    carries over), if the client acknowledged a state of it within
@@ -344,8 +344,8 @@ struct Due {
     candidate: u32,
     /// It waited `max_wait_ticks`: sent even over the budget.
     starving: bool,
-    /// Not due, but near and changed: sent if the budget has room once everything due
-    /// was offered (not counted as deferred when it does not).
+    /// Not due, but near and not held by the client: offered after everything due, from
+    /// what the budget would forfeit (not counted as deferred when it does not fit).
     eager: bool,
 }
 

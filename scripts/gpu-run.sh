@@ -27,8 +27,8 @@
 # on cuda, AOI 14 and 100, with the build in .carry/before/ first when there is one
 # (scripts/gpu-build.sh with PARTS=host BEFORE=path), then this build, then this build
 # with a shadow of the same budget through a simulated lossy link (5 % loss,
-# 100 ± 20 ms; REPLICATION_LOSSY=0 leaves that run out), and a profiled run at AOI 100
-# (per-kernel device times; REPLICATION_PROFILE=0 leaves it out).
+# 100 ± 20 ms; REPLICATION_LOSSY=0 leaves that run out), and profiled runs at AOI 100
+# (per-kernel device times, before and after; REPLICATION_PROFILE=0 leaves them out).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -332,12 +332,18 @@ if [[ $mode == replication ]]; then
         grep -E '^\| 3 \|' "$out/replication-lossy.md" | tee -a "$out/replication.txt"
     fi
     if [[ ${REPLICATION_PROFILE:-1} == 1 ]]; then
-        # Where the device time of a tick at AOI 100 goes, kernel by kernel.
-        echo "=== after, per-kernel device time at AOI 100 (MYRIAD_CUDA_PROFILE=1)" | tee -a "$out/replication.txt"
-        MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 3 --backend cuda --ticks 20 --warmup 10 --aoi-size 100 \
-            --quality-players 0 --out "$out/bench/replication-profile" >"$out/replication-profile.md" \
-            2>"$out/replication-profile.log" || fail "profiled bench scenario 3 failed"
-        grep -E -A40 "per-kernel" "$out/replication-profile.log" | grep -E "per-kernel|^\|" | tee -a "$out/replication.txt"
+        # Where the device time of a tick at AOI 100 goes, kernel by kernel (the build
+        # before too, when there is one).
+        for bin in .carry/before/myriad .carry/myriad; do
+            [[ -x $bin ]] || continue
+            tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
+            echo "=== $tag, per-kernel device time at AOI 100 (MYRIAD_CUDA_PROFILE=1)" | tee -a "$out/replication.txt"
+            MYRIAD_CUDA_PROFILE=1 $bin bench --scenario 3 --backend cuda --ticks 20 --warmup 10 --aoi-size 100 \
+                --quality-players 0 --out "$out/bench/replication-profile-$tag" >"$out/replication-profile-$tag.md" \
+                2>"$out/replication-profile-$tag.log" || fail "profiled bench scenario 3 ($tag) failed"
+            grep -E -A40 "per-kernel" "$out/replication-profile-$tag.log" | grep -E "per-kernel|^\|" |
+                tee -a "$out/replication.txt"
+        done
     fi
 fi
 

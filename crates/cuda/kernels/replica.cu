@@ -1,16 +1,19 @@
 // The replica on the device (crates/cuda/src/replica): each player's tracks, flights and
-// credit live in device memory, and one warp per player makes the decisions of
-// replica.cuh, which the host replica (crates/interest/src/replica.rs) makes the same
-// way. A build is k_replica_carry (players left out keep their tracks), k_replica_select
-// (the records chosen, stored into mapped host memory), the host's packing and sealing,
-// then k_replica_commit (what the datagrams took, flights, tracks marked sent).
+// credit live in device memory, and the kernels here make the decisions of replica.cuh,
+// which the host replica (crates/interest/src/replica.rs) makes the same way. A build is
+// k_replica_carry (players left out keep their tracks), k_replica_due (a warp a player:
+// the view matched with the tracks, acknowledgements, priorities, the objects due),
+// k_replica_rank (a block a player: the objects due sorted by urgency in shared memory),
+// k_replica_take (a warp a player: the budget, the records chosen, stored into mapped
+// host memory), the host's packing and sealing, then k_replica_commit (what the
+// datagrams took, flights, tracks marked sent).
 //
 // What is per object (candidates, the merge with last build's tracks, acknowledgements
-// within a datagram, priorities, marking what was sent) runs on the warp's 32 lanes;
-// what is in order (the objects due taken into the budget, the flights) on lane 0, with
-// replica.cuh's functions, so the two halves cannot drift apart. Lists compacted across
-// lanes keep their order (a ballot and a population count), and every step reads only
-// what the step before wrote after a __syncwarp.
+// within a datagram, priorities, the records' forms, marking what was sent) runs on the
+// warp's 32 lanes; what is in order (the budget, the flights) runs on every lane alike
+// or on lane 0, with replica.cuh's functions, so the two halves cannot drift apart.
+// Lists compacted across lanes keep their order (a ballot and a population count), and
+// every step reads only what the step before wrote after a __syncwarp.
 //
 // Layout: this build's per-candidate arrays (candidates, tracks, scratch) are at each
 // player's AOI list offset; `orph` is at its old tracks' offset; flights and their
@@ -23,10 +26,17 @@
 // Lanes below this one set in `mask`: where this lane's item goes in a compacted list.
 __device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(mask & ((1u << lane) - 1u)); }
 
-// Sorts `a[0 .. n)` ascending by `LESS` with the warp's 32 lanes (`lane`), in place: a
-// bitonic network whose every comparison moves the smaller item to the lower index (the
-// first step of each merge compares mirrored pairs), so items past `n` never take part
-// and any `n` works. Every lane calls it with the same `n`; it ends synchronised.
+// The `p`-th comparison of a bitonic network's step (`k`, `j`): items `*lo < *hi`. The
+// first step of each merge compares mirrored pairs, so every comparison moves the smaller
+// item to the lower index, and items past a count `n` never take part: sorting `n` items
+// needs no padding (checked against a sort for every n up to 70 before its first GPU run).
+__device__ __forceinline__ void bitonic_pair(u32 p, u32 k, u32 j, u32* lo, u32* hi) {
+    *lo = ((p & ~(j - 1)) << 1) | (p & (j - 1));
+    *hi = j == (k >> 1) ? *lo ^ (k - 1) : *lo | j;
+}
+
+// Sorts `a[0 .. n)` ascending by `LESS` with the warp's 32 lanes (`lane`), in place, by
+// `bitonic_pair`'s network. Every lane calls it with the same `n`; it ends synchronised.
 #define WARP_SORT(T, a, n, LESS, lane)                                                                  \
     do {                                                                                                \
         u32 n_ = (n), size_ = 1;                                                                        \
@@ -34,8 +44,8 @@ __device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(
         for (u32 k_ = 2; k_ <= size_; k_ <<= 1) {                                                       \
             for (u32 j_ = k_ >> 1; j_ > 0; j_ >>= 1) {                                                  \
                 for (u32 p_ = (lane); p_ < size_ / 2; p_ += 32) {                                       \
-                    u32 lo_ = ((p_ & ~(j_ - 1)) << 1) | (p_ & (j_ - 1));                                \
-                    u32 hi_ = j_ == (k_ >> 1) ? lo_ ^ (k_ - 1) : lo_ | j_;                              \
+                    u32 lo_, hi_;                                                                       \
+                    bitonic_pair(p_, k_, j_, &lo_, &hi_);                                               \
                     if (hi_ < n_ && LESS(&(a)[hi_], &(a)[lo_])) {                                       \
                         T t_ = (a)[lo_];                                                                \
                         (a)[lo_] = (a)[hi_];                                                            \
@@ -98,13 +108,37 @@ __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const 
     return nchosen;
 }
 
-extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets,
-                                            const u32* objects, u32 n, const float* pos, const u32* ids,
-                                            const u8* shapes, const RPlayer* players, RHome* homes,
-                                            const RTrack* old_tracks, RTrack* next_tracks, RCand* cands,
-                                            RKey* un, RKey* orph, RMoved* moved, RDue* wanted,
-                                            RChosen* chosen, RFlight* flights, RState* states, RInfo* info,
-                                            RRecord* out, u32 out_cap) {
+// A player's own object this build: whether there is one, its id, kind and position.
+typedef struct {
+    int has;
+    u64 id;
+    u32 kind;
+    RPos pos;
+} ROwn;
+
+__device__ ROwn r_own_of(const RPlayer* p, u32 n, const float* pos, const u32* ids, const u8* shapes) {
+    ROwn own = {0, 0, 0, {0, 0, 0}};
+    if (p->own_slot < n) {
+        u32 s = p->own_slot;
+        own.has = 1;
+        own.id = ids[s];
+        own.kind = shapes[s];
+        own.pos.x = r_quant(pos[3 * (u64)s]);
+        own.pos.y = r_quant(pos[3 * (u64)s + 1]);
+        own.pos.z = r_quant(pos[3 * (u64)s + 2]);
+    }
+    return own;
+}
+
+// Step 1 and 2 of a build, a warp a player: the candidates, the merge with last build's
+// tracks, the acknowledgements and the priorities; the objects due go to `wanted` in the
+// candidates' order, and `counts[2 i]` and `counts[2 i + 1]` say how many candidates and
+// how many due (R_NO_SLOT due: the list was out of order, reported in `info[i]`).
+extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, const u32* objects,
+                                         u32 n, const float* pos, const u32* ids, const u8* shapes,
+                                         const RPlayer* players, RHome* homes, const RTrack* old_tracks,
+                                         RTrack* next_tracks, RCand* cands, RKey* un, RKey* orph, RMoved* moved,
+                                         RDue* wanted, RFlight* flights, RState* states, u32* counts, RInfo* info) {
     u32 lane = threadIdx.x & 31u;
     u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (i >= nq) return;
@@ -117,19 +151,8 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
     __syncwarp();
     u64 floor = tick > R_MAX_BACK - 1 ? tick - (R_MAX_BACK - 1) : 0;
     u32 o = offsets[i], len = offsets[i + 1] - o;
-    int has_own = p->own_slot < n;
-    u64 own_id = 0;
-    u32 own_kind = 0;
-    RPos own_pos = {0, 0, 0};
-    if (has_own) {
-        u32 s = p->own_slot;
-        own_id = ids[s];
-        own_kind = shapes[s];
-        own_pos.x = r_quant(pos[3 * (u64)s]);
-        own_pos.y = r_quant(pos[3 * (u64)s + 1]);
-        own_pos.z = r_quant(pos[3 * (u64)s + 2]);
-    }
-    // Last build's tracks, read before lane 0 points the home at this build's.
+    ROwn own = r_own_of(p, n, pos, ids, shapes);
+    // Last build's tracks (`k_replica_take` points the home at this build's).
     const RTrack* old = old_tracks + h->track_off;
     u32 nold = h->track_len;
     RKey* orph_p = orph + h->track_off;
@@ -140,9 +163,8 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
     RKey* un_p = un + o;
     RMoved* mv = moved + o;
     RDue* wd = wanted + o;
-    RChosen* ch = chosen + o;
     __syncwarp();
-    if (lane == 0) r_own_now(h, has_own, own_id, own_pos);
+    if (lane == 0) r_own_now(h, own.has, own.id, own.pos);
 
     // Candidates: the list less the own object, in its order.
     u32 nc = 0;
@@ -154,7 +176,7 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
             u32 s = objects[o + j];
             if (s < n) {
                 u64 id = ids[s];
-                if (!(has_own && id == own_id)) {
+                if (!(own.has && id == own.id)) {
                     valid = 1;
                     c = r_candidate(s, id, shapes[s], pos + 3 * (u64)s, p->centre);
                 }
@@ -175,22 +197,27 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
             RInfo bad = {};
             bad.overflow = 2;
             info[i] = bad;
+            counts[2 * i] = nc;
+            counts[2 * i + 1] = R_NO_SLOT;
         }
         return;
     }
 
     // The merge with last build's tracks: a candidate keeps the track of its slot and
     // id; the rest start afresh (`un`), and old tracks nobody took (`orph`) may be theirs
-    // by id (an object whose slot changed).
+    // by id (an object whose slot changed). A view changes little from tick to tick, so
+    // each lane looks for its next item where its last one was found, shifted alike.
     u32 nun = 0;
+    int drift = 0;
     for (u32 base = 0; base < nc; base += 32) {
         u32 k = base + lane;
         int fresh = 0;
         if (k < nc) {
             const RCand* c = &cs[k];
-            u32 at = r_find_slot(old, nold, c->slot);
+            u32 at = r_find_slot(old, nold, c->slot, (u32)max((int)k + drift, 0));
             if (at != R_NO_SLOT && old[at].id == c->id) {
                 nx[k] = old[at];
+                drift = (int)at - (int)k;
             } else {
                 nx[k] = r_track_new(c->id, c->slot);
                 fresh = 1;
@@ -202,12 +229,14 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
     }
     u32 norph = 0;
     if (nun > 0) {
+        drift = 0;
         for (u32 base = 0; base < nold; base += 32) {
             u32 k = base + lane;
             int orphan = 0;
             if (k < nold) {
-                u32 at = r_find_cand(cs, nc, old[k].slot);
+                u32 at = r_find_cand(cs, nc, old[k].slot, (u32)max((int)k + drift, 0));
                 orphan = !(at != R_NO_SLOT && cs[at].id == old[k].id);
+                if (at != R_NO_SLOT) drift = (int)at - (int)k;
             }
             u32 mask = __ballot_sync(FULL_WARP, orphan);
             if (orphan) orph_p[norph + lanes_before(mask, lane)].index = k;
@@ -265,20 +294,109 @@ extern "C" __global__ void k_replica_select(u32 nq, const RConfig* cfg, u64 tick
         if (due) wd[nw + lanes_before(mask, lane)] = d;
         nw += __popc(mask);
     }
-    __syncwarp();
+    if (lane == 0) {
+        counts[2 * i] = nc;
+        counts[2 * i + 1] = nw;
+    }
+}
 
-    // The own record, then the objects due into the budget in the order of urgency
-    // (`r_take_due`'s steps: the warp sorts, every lane keeps the same budget).
+// The most objects due that `k_replica_rank` sorts in shared memory (a player's view
+// rarely holds more; beyond, the block sorts them in global memory).
+#define RANK_CAP 4096u
+
+// A block a player: the objects due sorted by `r_due_less` into `ranked`. The sort keys
+// (each rank's upper word and the item's index) are sorted in shared memory, where a
+// warp sorting 32-byte items in global memory waited on every step; equal upper words,
+// rare, are told apart by the items themselves. The items are in the candidates' order,
+// so the index orders them as their track does.
+extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32* counts, RDue* wanted,
+                                          RDue* ranked) {
+    __shared__ u64 key[RANK_CAP];
+    __shared__ unsigned short at[RANK_CAP];
+    u32 i = blockIdx.x;
+    if (i >= nq) return;
+    u32 nw = counts[2 * i + 1];
+    if (nw == R_NO_SLOT) return;
+    u32 o = offsets[i], t = threadIdx.x, step = blockDim.x;
+    RDue* wd = wanted + o;
+    RDue* rk = ranked + o;
+    u32 size = 1;
+    while (size < nw) size <<= 1;
+    if (nw > RANK_CAP) {
+        for (u32 k = 2; k <= size; k <<= 1) {
+            for (u32 j = k >> 1; j > 0; j >>= 1) {
+                for (u32 q = t; q < size / 2; q += step) {
+                    u32 lo, hi;
+                    bitonic_pair(q, k, j, &lo, &hi);
+                    if (hi < nw && r_due_less(&wd[hi], &wd[lo])) {
+                        RDue x = wd[lo];
+                        wd[lo] = wd[hi];
+                        wd[hi] = x;
+                    }
+                }
+                __syncthreads();
+            }
+        }
+        for (u32 k = t; k < nw; k += step) rk[k] = wd[k];
+        return;
+    }
+    for (u32 k = t; k < nw; k += step) {
+        key[k] = wd[k].hi;
+        at[k] = (unsigned short)k;
+    }
+    __syncthreads();
+    for (u32 k = 2; k <= size; k <<= 1) {
+        for (u32 j = k >> 1; j > 0; j >>= 1) {
+            for (u32 q = t; q < size / 2; q += step) {
+                u32 lo, hi;
+                bitonic_pair(q, k, j, &lo, &hi);
+                if (hi < nw) {
+                    u64 a = key[hi], b = key[lo];
+                    if (a < b || (a == b && r_due_less(&wd[at[hi]], &wd[at[lo]]))) {
+                        key[hi] = b;
+                        key[lo] = a;
+                        unsigned short x = at[lo];
+                        at[lo] = at[hi];
+                        at[hi] = x;
+                    }
+                }
+            }
+            __syncthreads();
+        }
+    }
+    for (u32 k = t; k < nw; k += step) rk[k] = wd[at[k]];
+}
+
+// Step 3 of a build, a warp a player: the own record, then the objects due (`ranked`, in
+// the order of urgency) into the budget (`r_take_due`'s steps: every lane keeps the same
+// budget), the chosen records sorted by the warp and stored into mapped host memory.
+extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, u32 n,
+                                          const float* pos, const u32* ids, const u8* shapes,
+                                          const RPlayer* players, RHome* homes, const RTrack* next_tracks,
+                                          const RCand* cands, const u32* counts, const RDue* ranked,
+                                          RChosen* chosen, RInfo* info, RRecord* out, u32 out_cap) {
+    u32 lane = threadIdx.x & 31u;
+    u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
+    if (i >= nq) return;
+    u32 nc = counts[2 * i], nw = counts[2 * i + 1];
+    if (nw == R_NO_SLOT) return;
+    const RPlayer* p = &players[i];
+    RHome* h = &homes[p->home];
+    u64 floor = tick > R_MAX_BACK - 1 ? tick - (R_MAX_BACK - 1) : 0;
+    u32 o = offsets[i];
+    ROwn own = r_own_of(p, n, pos, ids, shapes);
+    RChosen* ch = chosen + o;
+
     RInfo mine = {};
     mine.in_view = nc;
-    mine.has_own_record = (u32)(has_own && h->has_own);
+    mine.has_own_record = (u32)(own.has && h->has_own);
     if (mine.has_own_record) {
         RBase acked = r_track_acked(&h->own, floor);
-        mine.own_record = r_choose(own_id, own_kind, own_pos, tick, acked, r_track_prior(&h->own, acked));
+        mine.own_record = r_choose(own.id, own.kind, own.pos, tick, acked, r_track_prior(&h->own, acked));
     }
     RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
-    WARP_SORT(RDue, wd, nw, r_due_less, lane);
-    u32 nch = r_take_sorted_warp(cfg, tick, floor, h, origin, cs, nx, wd, nw, ch, &mine, lane);
+    u32 nch = r_take_sorted_warp(cfg, tick, floor, h, origin, cands + o, next_tracks + o, ranked + o, nw, ch, &mine,
+                                 lane);
     __syncwarp();
     WARP_SORT(RChosen, ch, nch, r_chosen_less, lane);
     // A repeated id (only from a broken source) goes once: the rare case on lane 0.

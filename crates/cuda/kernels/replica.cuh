@@ -537,11 +537,36 @@ RFN u32 r_match_view(int has_own, u64 own_id, const RCand* cands, u32 ncands, co
     return n;
 }
 
-// `NAME(items, n, slot)`: the index of the item of `slot` in `items` (of type `T`,
-// ascending by slot), or R_NO_SLOT. Tracks and candidates are both searched by slot.
+// `NAME(items, n, slot, hint)`: the index of the item of `slot` in `items` (of type `T`,
+// ascending by slot), or R_NO_SLOT. Tracks and candidates are both searched by slot. The
+// search starts at `hint` and gallops outward, so an answer near it costs a few reads
+// where bisecting costs a dozen dependent ones (the merge's: a candidate's track of the
+// last build sits near the candidate's own index); a hint of R_NO_SLOT bisects.
 #define R_FIND_BY_SLOT(NAME, T)                                                                         \
-    RFN u32 NAME(const T* items, u32 n, u32 slot) {                                                     \
-        u32 lo = 0, hi = n;                                                                             \
+    RFN u32 NAME(const T* items, u32 n, u32 slot, u32 hint) {                                           \
+        u32 lo = 0, hi = n; /* the first item not below `slot` is in [lo, hi] */                        \
+        if (hint < n && items[hint].slot < slot) {                                                      \
+            lo = hint + 1;                                                                              \
+            for (u32 step = 1; lo < hi; step <<= 1) {                                                   \
+                u32 probe = lo + step - 1;                                                              \
+                if (probe >= n) break;                                                                  \
+                if (items[probe].slot >= slot) {                                                        \
+                    hi = probe;                                                                         \
+                    break;                                                                              \
+                }                                                                                       \
+                lo = probe + 1;                                                                         \
+            }                                                                                           \
+        } else if (hint < n) {                                                                          \
+            hi = hint;                                                                                  \
+            for (u32 step = 1; lo < hi && step <= hi - lo; step <<= 1) {                                \
+                u32 probe = hi - step;                                                                  \
+                if (items[probe].slot < slot) {                                                         \
+                    lo = probe + 1;                                                                     \
+                    break;                                                                              \
+                }                                                                                       \
+                hi = probe;                                                                             \
+            }                                                                                           \
+        }                                                                                               \
         while (lo < hi) {                                                                               \
             u32 mid = lo + (hi - lo) / 2;                                                               \
             if (items[mid].slot < slot)                                                                 \
@@ -561,7 +586,7 @@ RFN void r_ack_state(RHome* h, RTrack* tracks, u32 ntracks, const RState* st, u6
     if (h->has_own && h->own.id == st->id) {
         t = &h->own;
     } else {
-        u32 k = r_find_slot(tracks, ntracks, st->slot);
+        u32 k = r_find_slot(tracks, ntracks, st->slot, R_NO_SLOT);
         if (k != R_NO_SLOT && tracks[k].id == st->id) t = &tracks[k];
     }
     if (t) r_track_acknowledge(t, tick, st->pos);

@@ -36,7 +36,7 @@ pub const HEADERS: [(&str, &str); 3] = [
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 22] = [
+pub const KERNELS: [(&str, usize); 24] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -56,7 +56,9 @@ pub const KERNELS: [(&str, usize); 22] = [
     ("k_forces", 16),
     ("k_patch_gather", 21),
     ("k_patch_scatter", 12),
-    ("k_replica_select", 24),
+    ("k_replica_due", 22),
+    ("k_replica_rank", 5),
+    ("k_replica_take", 18),
     ("k_replica_commit", 13),
     ("k_replica_carry", 5),
 ];

@@ -219,9 +219,10 @@ macro_rules! kernels {
 }
 
 kernels! {
-    /// `k_replica_select` (`kernels/replica.cu`): one warp per player chooses its
-    /// records (the steps of `replica.cuh`'s `r_select`) into mapped host memory.
-    KReplicaSelect = "k_replica_select" {
+    /// `k_replica_due` (`kernels/replica.cu`): one warp per player matches its view
+    /// with its tracks, applies its acknowledgements and finds the objects due (steps 1
+    /// and 2 of `replica.cuh`'s `r_select`); `counts` gets how many of each.
+    KReplicaDue = "k_replica_due" {
         nq: u32,
         cfg: DevPtr<RConfig>,
         tick: u64,
@@ -240,9 +241,39 @@ kernels! {
         orph: DevPtr<RKey>,
         moved: DevPtr<RMoved>,
         wanted: DevPtr<RDue>,
-        chosen: DevPtr<RChosen>,
         flights: DevPtr<RFlight>,
         states: DevPtr<RState>,
+        counts: DevPtr<u32>,
+        info: DevPtr<RInfo>,
+    }
+    /// `k_replica_rank`: one block per player sorts its objects due by urgency into
+    /// `ranked`.
+    KReplicaRank = "k_replica_rank" {
+        nq: u32,
+        offsets: DevPtr<u32>,
+        counts: DevPtr<u32>,
+        wanted: DevPtr<RDue>,
+        ranked: DevPtr<RDue>,
+    }
+    /// `k_replica_take`: one warp per player takes its ranked objects into its budget
+    /// and stores the chosen records (ids increasing) into mapped host memory (step 3 of
+    /// `r_select`).
+    KReplicaTake = "k_replica_take" {
+        nq: u32,
+        cfg: DevPtr<RConfig>,
+        tick: u64,
+        offsets: DevPtr<u32>,
+        n: u32,
+        pos: DevPtr<f32>,
+        ids: DevPtr<u32>,
+        shapes: DevPtr<u8>,
+        players: DevPtr<RPlayer>,
+        homes: DevPtr<RHome>,
+        next_tracks: DevPtr<RTrack>,
+        cands: DevPtr<RCand>,
+        counts: DevPtr<u32>,
+        ranked: DevPtr<RDue>,
+        chosen: DevPtr<RChosen>,
         info: DevPtr<RInfo>,
         out: DevPtr<RRecord>,
         out_cap: u32,

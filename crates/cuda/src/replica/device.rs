@@ -2,7 +2,9 @@
 //!
 //! A build: [`DeviceReplicas::select`] answers the AOI boxes on the device (the lists
 //! stay there), carries the tracks of players left out of the build, and runs
-//! `k_replica_select` (one warp a player), whose choices land in mapped host memory;
+//! `k_replica_due` (a warp a player: the objects due), `k_replica_rank` (a block a
+//! player: sorted by urgency) and `k_replica_take` (a warp a player: the budget), whose
+//! choices land in mapped host memory;
 //! the host packs and seals them per player ([`Choices`], then
 //! `Subscriber::seal_chosen`) and hands back what the datagrams took with
 //! [`DeviceReplicas::commit`], which queues `k_replica_commit` and does not wait.
@@ -28,7 +30,7 @@ use super::device_config;
 use super::layout::*;
 use crate::backend::{Resident, lock};
 use crate::device::{DevBuf, Pinned};
-use crate::launch::{KReplicaCarry, KReplicaCommit, KReplicaSelect};
+use crate::launch::{KReplicaCarry, KReplicaCommit, KReplicaDue, KReplicaRank, KReplicaTake};
 
 /// Flights a player keeps at most (`R_FLIGHTS` in the kernels; the host replica's
 /// `MAX_FLIGHTS`).
@@ -45,8 +47,12 @@ pub const RECORDS_PER_DATAGRAM: usize = 343;
 /// Builds a player may miss in a row before its replica is forgotten.
 pub const FORGET_BUILDS: u64 = 2 * myriad_protocol::MAX_BACK;
 
-/// Players (one warp each) per block of `k_replica_select` and `k_replica_commit`.
+/// Players (one warp each) per block of `k_replica_due`, `k_replica_take` and
+/// `k_replica_commit`.
 const PLAYERS_PER_BLOCK: u32 = 4;
+
+/// Threads per block of `k_replica_rank` (one block a player).
+const RANK_BLOCK: u32 = 256;
 
 /// Threads per block of `k_replica_carry` (one a player left out).
 const CARRY_BLOCK: u32 = 32;
@@ -125,7 +131,11 @@ struct State {
     orph: DevBuf<RKey>,
     moved: DevBuf<RMoved>,
     wanted: DevBuf<RDue>,
+    /// The objects due sorted by urgency (`k_replica_rank`).
+    ranked: DevBuf<RDue>,
     chosen: DevBuf<RChosen>,
+    /// Per player: candidates and objects due (`k_replica_due`).
+    counts: DevBuf<u32>,
     players: DevBuf<RPlayer>,
     config: DevBuf<RConfig>,
     commits: DevBuf<RCommit>,
@@ -138,7 +148,7 @@ struct State {
     host_carry: Pinned,
     host_commits: Pinned,
     host_ends: Pinned,
-    /// Written by `k_replica_select` through the mapping.
+    /// Written by `k_replica_due` and `k_replica_take` through the mapping.
     host_info: Pinned,
     host_out: Pinned,
 }
@@ -249,7 +259,9 @@ impl State {
             orph: DevBuf::empty(),
             moved: DevBuf::empty(),
             wanted: DevBuf::empty(),
+            ranked: DevBuf::empty(),
             chosen: DevBuf::empty(),
+            counts: DevBuf::empty(),
             players: DevBuf::empty(),
             config: DevBuf::empty(),
             commits: DevBuf::empty(),
@@ -398,7 +410,9 @@ impl State {
         self.orph.ensure(gpu, self.used.max(1) * size_of::<RKey>(), 1.25)?;
         self.moved.ensure(gpu, items * size_of::<RMoved>(), 1.25)?;
         self.wanted.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
+        self.ranked.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
         self.chosen.ensure(gpu, items * size_of::<RChosen>(), 1.25)?;
+        self.counts.ensure(gpu, nq.max(1) * 2 * 4, 1.25)?;
         self.players.ensure(gpu, nq.max(1) * size_of::<RPlayer>(), 1.25)?;
         self.config.ensure(gpu, size_of::<RConfig>(), 1.0)?;
         self.carry.ensure(gpu, carry.len().max(1) * 4, 1.25)?;
@@ -448,15 +462,17 @@ impl State {
             )?;
         }
         if nq > 0 {
+            let objects = if d.n == 0 { self.no_lists.ptr() } else { d.aoi_out.ptr() };
+            let info = self.host_info.device_ptr()?;
             gpu.launch_grid(
                 (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
                 32 * PLAYERS_PER_BLOCK,
-                KReplicaSelect {
+                KReplicaDue {
                     nq: nq as u32,
                     cfg: self.config.ptr(),
                     tick,
                     offsets,
-                    objects: if d.n == 0 { self.no_lists.ptr() } else { d.aoi_out.ptr() },
+                    objects,
                     n: d.n as u32,
                     pos: d.obj.pos.ptr(),
                     ids: d.obj.id.ptr(),
@@ -470,10 +486,43 @@ impl State {
                     orph: self.orph.ptr(),
                     moved: self.moved.ptr(),
                     wanted: self.wanted.ptr(),
-                    chosen: self.chosen.ptr(),
                     flights: self.flights.ptr(),
                     states: self.states.ptr(),
-                    info: self.host_info.device_ptr()?,
+                    counts: self.counts.ptr(),
+                    info,
+                },
+            )?;
+            gpu.launch_grid(
+                nq as u32,
+                RANK_BLOCK,
+                KReplicaRank {
+                    nq: nq as u32,
+                    offsets,
+                    counts: self.counts.ptr(),
+                    wanted: self.wanted.ptr(),
+                    ranked: self.ranked.ptr(),
+                },
+            )?;
+            gpu.launch_grid(
+                (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
+                32 * PLAYERS_PER_BLOCK,
+                KReplicaTake {
+                    nq: nq as u32,
+                    cfg: self.config.ptr(),
+                    tick,
+                    offsets,
+                    n: d.n as u32,
+                    pos: d.obj.pos.ptr(),
+                    ids: d.obj.id.ptr(),
+                    shapes: d.obj.shape.ptr(),
+                    players: self.players.ptr(),
+                    homes: self.homes.ptr(),
+                    next_tracks: self.tracks[new].ptr(),
+                    cands: self.cands.ptr(),
+                    counts: self.counts.ptr(),
+                    ranked: self.ranked.ptr(),
+                    chosen: self.chosen.ptr(),
+                    info,
                     out: self.host_out.device_ptr()?,
                     out_cap: out_cap as u32,
                 },

@@ -31,6 +31,11 @@ void myriad_replica_candidate(u32 slot, u64 id, u32 kind, const float* p, const 
     *out = r_candidate(slot, id, kind, p, centre);
 }
 
+// `r_find_slot` from `hint`, for the test that holds it to a search of the whole array.
+u32 myriad_replica_find_slot(const RTrack* tracks, u32 n, u32 slot, u32 hint) {
+    return r_find_slot(tracks, n, slot, hint);
+}
+
 // The size of each shared struct, for the layout test.
 void myriad_replica_sizes(u32* out) {
     out[0] = sizeof(RTrack);

@@ -51,6 +51,7 @@ unsafe extern "C" {
     );
     fn myriad_replica_candidate(slot: u32, id: u64, kind: u32, p: *const f32, centre: *const f32, out: *mut RCand);
     fn myriad_replica_sizes(out: *mut u32);
+    fn myriad_replica_find_slot(tracks: *const RTrack, n: u32, slot: u32, hint: u32) -> u32;
 }
 
 #[test]
@@ -59,6 +60,32 @@ fn layout_matches_the_c_side() {
     // SAFETY: writes 14 words.
     unsafe { myriad_replica_sizes(sizes.as_mut_ptr()) };
     assert_eq!(sizes.map(|s| s as usize), layout::SIZES);
+}
+
+/// The search from a hint finds what a search of the whole array finds, from every hint
+/// (none, out of range, on the answer, before it, after it), slots present and absent.
+#[test]
+fn a_search_from_any_hint_finds_the_slot() {
+    let mut rng = Stream::new(11, 0);
+    for n in 0..70u32 {
+        let mut tracks = Vec::new();
+        let mut slot = 0u32;
+        for _ in 0..n {
+            slot += 1 + rng.below(4);
+            // SAFETY: `RTrack` is plain data; all zeros is a valid value.
+            let mut t: RTrack = unsafe { std::mem::zeroed() };
+            t.slot = slot;
+            tracks.push(t);
+        }
+        for target in 0..slot + 3 {
+            let want = tracks.iter().position(|t| t.slot == target).map_or(u32::MAX, |at| at as u32);
+            for hint in (0..n + 2).chain([u32::MAX, u32::MAX - 1]) {
+                // SAFETY: reads `n` tracks.
+                let got = unsafe { myriad_replica_find_slot(tracks.as_ptr(), n, target, hint) };
+                assert_eq!(got, want, "n {n}, slot {target}, hint {hint}");
+            }
+        }
+    }
 }
 
 fn pos(q: QuantPos) -> RPos {

@@ -74,17 +74,26 @@ __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const 
         u32 bits = 0, starving = 0, eager = 0, track = 0, cand = 0;
         if (k < nwanted) {
             RDue d = wanted[k];
-            const RCand* c = &cands[d.cand];
-            const RTrack* t = &next[d.track];
-            RBase acked = r_track_acked(t, floor);
-            rec = r_choose(c->id, c->kind, c->pos, now, acked, r_track_prior(t, acked));
-            bits = r_charge_bits(&rec, origin);
             starving = d.starving;
             eager = d.eager;
             track = d.track;
             cand = d.cand;
+            // Once the budget has closed, only the starving are offered: the rest need
+            // no record (most of a view where the budget binds).
+            if (open || starving) {
+                const RCand* c = &cands[d.cand];
+                const RTrack* t = &next[d.track];
+                RBase acked = r_track_acked(t, floor);
+                rec = r_choose(c->id, c->kind, c->pos, now, acked, r_track_prior(t, acked));
+                bits = r_charge_bits(&rec, origin);
+            }
         }
         u32 items = min(32u, nwanted - base);
+        if (!open && __ballot_sync(FULL_WARP, starving) == 0) {
+            // Nothing here is offered: each goes deferred (the eager not counted).
+            info->deferred += __popc(__ballot_sync(FULL_WARP, k < nwanted && !eager));
+            continue;
+        }
         for (u32 j = 0; j < items; j++) {
             u32 b = __shfl_sync(FULL_WARP, bits, j);
             u32 st = __shfl_sync(FULL_WARP, starving, j);

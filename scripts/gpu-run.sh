@@ -330,7 +330,7 @@ if [[ $mode == replication ]]; then
     if [[ ${REPLICATION_LOSSY:-1} == 1 ]]; then
         echo "=== after, shadow through 5 % loss, 100 ± 20 ms" | tee -a "$out/replication.txt"
         .carry/myriad bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 \
-            --shadow-budget-kbps 256 --shadow-loss 0.05 --shadow-delay-ms 100 --shadow-jitter-ms 20 \
+            --shadow-budget-kbps 244 --shadow-loss 0.05 --shadow-delay-ms 100 --shadow-jitter-ms 20 \
             --out "$out/bench/replication-lossy" >"$out/replication-lossy.md" 2>>"$out/replication.log" ||
             fail "bench scenario 3 (lossy shadow) failed"
         grep -E '^\| 3 \|' "$out/replication-lossy.md" | tee -a "$out/replication.txt"

@@ -8,6 +8,7 @@ use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
 use std::ffi::{CString, c_void};
 use std::sync::Arc;
+use std::time::Instant;
 
 use bytemuck::Pod;
 use cudarc::driver::result;
@@ -84,6 +85,7 @@ pub(crate) struct Gpu {
 
 /// Per-kernel device times: an event pair around every launch, folded into totals after
 /// each synchronization. Costs two event records per launch, so it is off by default.
+/// Spans of host time between launches (named `host: ...`) join the same totals.
 #[derive(Default)]
 struct Profile {
     pending: Vec<(&'static str, Event, Event)>,
@@ -203,6 +205,17 @@ impl Gpu {
             p.spare.push(end);
         }
         Ok(())
+    }
+
+    /// Adds the host time since `since` under `name` to the profile (when profiling): the
+    /// host's own work and waits between launches, beside the kernels' device times.
+    pub fn profile_host(&self, name: &'static str, since: Instant) {
+        if let Some(p) = &self.profile {
+            let mut p = p.borrow_mut();
+            let t = p.totals.entry(name).or_default();
+            t.0 += 1;
+            t.1 += since.elapsed().as_secs_f64() * 1e3;
+        }
     }
 
     /// The per-kernel table (launches, total and mean device time), when profiling.

@@ -20,6 +20,7 @@
 use std::collections::HashMap;
 use std::collections::hash_map::Entry;
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use myriad_core::{Aabb, World};
 use myriad_interest::ReplicationConfig;
@@ -362,13 +363,18 @@ impl State {
         }
         // The placement's vectors are reused; a build that fails drops them (the next
         // allocates afresh).
+        let started = Instant::now();
         let mut placement = std::mem::take(&mut self.placed);
         self.place(players, &mut placement)?;
         let Placed { homes: placed, carried, carry, .. } = &mut placement;
         let cfg = device_config(config, max_datagrams);
         let mdg = cfg.max_datagrams as usize;
         let out_cap = mdg * RECORDS_PER_DATAGRAM;
+        d.gpu.profile_host("host: replica homes", started);
+        let started = Instant::now();
         let total = d.aoi_on_device(world, boxes)?;
+        d.gpu.profile_host("host: AOI query (to its total)", started);
+        let started = Instant::now();
         let gpu = &d.gpu;
         let (old, new) = (self.current, 1 - self.current);
         // Carried tracks go after this build's lists.
@@ -528,8 +534,12 @@ impl State {
                 },
             )?;
         }
+        gpu.profile_host("host: replica buffers and launches", started);
+        let started = Instant::now();
         gpu.sync()?;
+        gpu.profile_host("host: wait for the replica kernels", started);
         gpu.collect_profile()?;
+        let started = Instant::now();
         let info = self.host_info.slice::<RInfo>(nq);
         if let Some((i, r)) = info.iter().enumerate().find(|(_, r)| r.overflow != 0) {
             let message = if r.overflow == 2 {
@@ -544,6 +554,7 @@ impl State {
                 h.tracks = r.in_view;
             }
         }
+        gpu.profile_host("host: replica reports", started);
         let no_objects = d.n == 0 || nq == 0;
         self.pending = Some(Pending { players: nq, out_cap, max_datagrams: mdg, tick, used, no_objects });
         self.placed = placement;

@@ -23,7 +23,8 @@
 # MODE=players times the whole server tick with bots on loopback, PLAYERS_RUNS times
 # (default 2): scenario 3 (10,000 players, AOI 14 and 100, with what a player gets:
 # bytes, staleness, error) and scenario 4 (50,000 players, bots grouped 20 a socket);
-# PLAYERS_SCENARIOS (default "3 4") picks which.
+# PLAYERS_SCENARIOS (default "3 4") picks which, PLAYERS_AOI (default "14,100") scenario
+# 4's AOI edges, PLAYERS_TIMEOUT (seconds, default none) bounds each bench run.
 # MODE=replication measures what a player gets (issue 26) at 10,000 players: scenario 3
 # on cuda, AOI 14 and 100, with the build in .carry/before/ first when there is one
 # (scripts/gpu-build.sh with PARTS=host BEFORE=path), then this build, then this build
@@ -303,13 +304,15 @@ if [[ $mode == players ]]; then
         for scenario in ${PLAYERS_SCENARIOS:-3 4}; do
             echo "=== scenario $scenario, run $run"
             if [[ $scenario == 3 ]]; then
-                .carry/myriad bench --scenario 3 --backend cuda --ticks 90 --warmup 30 --aoi-size 14,100 \
+                timeout "${PLAYERS_TIMEOUT:-0}" .carry/myriad bench --scenario 3 --backend cuda --ticks 90 \
+                    --warmup 30 --aoi-size 14,100 \
                     --out "$out/bench/players-s3-$run" >"$out/players-s3-$run.md" 2>>"$out/players.log" ||
                     fail "bench scenario 3 run $run failed"
             else
-                .carry/myriad bench --scenario 4 --backend cuda --ticks 30 --warmup 3 --aoi-size 14,100 \
-                    --bots-per-socket 20 --out "$out/bench/players-s4-$run" >"$out/players-s4-$run.md" \
-                    2>>"$out/players.log" || fail "bench scenario 4 run $run failed"
+                timeout "${PLAYERS_TIMEOUT:-0}" .carry/myriad bench --scenario 4 --backend cuda --ticks 30 \
+                    --warmup 3 --aoi-size "${PLAYERS_AOI:-14,100}" --bots-per-socket 20 \
+                    --out "$out/bench/players-s4-$run" >"$out/players-s4-$run.md" 2>>"$out/players.log" ||
+                    fail "bench scenario 4 run $run failed"
             fi
             grep -E "^\| $scenario \|" "$out/players-s$scenario-$run.md"
         done

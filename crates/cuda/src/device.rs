@@ -59,6 +59,31 @@ pub fn probe_on(ordinal: usize) -> Result<(Arc<CudaContext>, DeviceInfo), String
     Ok((ctx, DeviceInfo { name, arch: (major * 10 + minor) as u32 }))
 }
 
+/// The profile's table: each name's launches (or spans), total, mean and median time,
+/// largest total first.
+fn profile_rows(samples: &BTreeMap<&'static str, Vec<f64>>) -> String {
+    let mut rows: Vec<(&str, usize, f64, f64)> = samples
+        .iter()
+        .filter(|(_, ms)| !ms.is_empty())
+        .map(|(&name, ms)| {
+            let mut sorted = ms.clone();
+            sorted.sort_by(f64::total_cmp);
+            (name, ms.len(), ms.iter().sum::<f64>(), sorted[sorted.len() / 2])
+        })
+        .collect();
+    rows.sort_by(|a, b| b.2.total_cmp(&a.2));
+    let mut s =
+        String::from("| kernel | launches | total ms | mean us | median us |\n| --- | ---: | ---: | ---: | ---: |\n");
+    for (name, count, total, median) in rows {
+        s.push_str(&format!(
+            "| {name} | {count} | {total:.3} | {:.2} | {:.2} |\n",
+            total * 1e3 / count as f64,
+            median * 1e3
+        ));
+    }
+    s
+}
+
 /// A kernel argument.
 #[derive(Clone, Copy, Debug)]
 pub(crate) enum Arg {
@@ -83,14 +108,17 @@ pub(crate) struct Gpu {
     profile: Option<RefCell<Profile>>,
 }
 
-/// Per-kernel device times: an event pair around every launch, folded into totals after
-/// each synchronization. Costs two event records per launch, so it is off by default.
-/// Spans of host time between launches (named `host: ...`) join the same totals.
+/// Per-kernel device times: an event pair around every launch, folded into each name's
+/// samples after each synchronization. Costs two event records per launch, so it is off
+/// by default. Spans of host time between launches (named `host: ...`) join the same
+/// samples. The table gives the median beside the mean: a run's first launches also
+/// pay for allocating and first touching its buffers.
 #[derive(Default)]
 struct Profile {
     pending: Vec<(&'static str, Event, Event)>,
     spare: Vec<Event>,
-    totals: BTreeMap<&'static str, (u64, f64)>,
+    /// Milliseconds of each launch or span, by name.
+    samples: BTreeMap<&'static str, Vec<f64>>,
 }
 
 // SAFETY: the stream, module and function handles belong to the context held in `ctx`;
@@ -198,9 +226,7 @@ impl Gpu {
         let pending = std::mem::take(&mut p.pending);
         for (name, start, end) in pending {
             let ms = start.ms_to(&end)?;
-            let t = p.totals.entry(name).or_default();
-            t.0 += 1;
-            t.1 += ms;
+            p.samples.entry(name).or_default().push(ms);
             p.spare.push(start);
             p.spare.push(end);
         }
@@ -211,23 +237,13 @@ impl Gpu {
     /// host's own work and waits between launches, beside the kernels' device times.
     pub fn profile_host(&self, name: &'static str, since: Instant) {
         if let Some(p) = &self.profile {
-            let mut p = p.borrow_mut();
-            let t = p.totals.entry(name).or_default();
-            t.0 += 1;
-            t.1 += since.elapsed().as_secs_f64() * 1e3;
+            p.borrow_mut().samples.entry(name).or_default().push(since.elapsed().as_secs_f64() * 1e3);
         }
     }
 
-    /// The per-kernel table (launches, total and mean device time), when profiling.
+    /// The per-kernel table (launches, total, mean and median time), when profiling.
     pub fn profile_table(&self) -> Option<String> {
-        let p = self.profile.as_ref()?.borrow();
-        let mut rows: Vec<_> = p.totals.iter().collect();
-        rows.sort_by(|a, b| b.1.1.total_cmp(&a.1.1));
-        let mut s = String::from("| kernel | launches | total ms | mean us |\n| --- | ---: | ---: | ---: |\n");
-        for (name, (count, ms)) in rows {
-            s.push_str(&format!("| {name} | {count} | {ms:.3} | {:.2} |\n", ms * 1e3 / *count as f64));
-        }
-        Some(s)
+        Some(profile_rows(&self.profile.as_ref()?.borrow().samples))
     }
 
     /// Waits for everything queued on the stream.
@@ -591,5 +607,25 @@ impl Drop for Event {
                 let _ = result::event::destroy(self.raw);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_profile_table_gives_each_name_its_median_beside_its_mean() {
+        let mut samples = BTreeMap::new();
+        // A first launch that paid for its buffers, then the steady state.
+        samples.insert("k_slow_start", vec![100.0, 1.0, 1.0, 2.0, 1.0]);
+        samples.insert("host: span", vec![0.5, 0.5]);
+        samples.insert("never", vec![]);
+        let table = profile_rows(&samples);
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(lines[0], "| kernel | launches | total ms | mean us | median us |");
+        assert_eq!(lines[2], "| k_slow_start | 5 | 105.000 | 21000.00 | 1000.00 |");
+        assert_eq!(lines[3], "| host: span | 2 | 1.000 | 500.00 | 500.00 |");
+        assert_eq!(lines.len(), 4, "a name with no sample has no row: {table}");
     }
 }

@@ -98,6 +98,9 @@ struct Covered {
     relative: usize,
     deferred: usize,
     starving: usize,
+    /// The most objects one player had due in one build (packed or deferred: in a
+    /// player's first build every object in view is due).
+    most_due: usize,
 }
 
 /// Builds one tick with both outbounds for `players` (in this order) and checks that
@@ -151,6 +154,7 @@ fn compare(
         covered.relative += ra.relative;
         covered.deferred += ra.deferred;
         covered.starving += ra.starving;
+        covered.most_due = covered.most_due.max(ra.packed + ra.deferred);
     }
 }
 
@@ -219,4 +223,10 @@ fn device_outbound_datagrams_equal_the_host_outbound() {
     let c = run(&mut world, &mut backend, 14.0, 256.0, &many, 20);
     eprintln!("AOI 14: {c:?}");
     assert!(c.records > 0, "{c:?}");
+    // AOI 400: views of thousands, more objects due than `k_replica_rank` sorts in
+    // shared memory (4,096), which the block then sorts in global memory.
+    let few: Vec<u32> = (0..12).map(|i| i * (n / 12)).collect();
+    let c = run(&mut world, &mut backend, 400.0, 256.0, &few, 6);
+    eprintln!("AOI 400: {c:?}");
+    assert!(c.most_due > 4096, "{c:?}");
 }

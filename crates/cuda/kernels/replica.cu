@@ -35,15 +35,16 @@ __device__ __forceinline__ void bitonic_pair(u32 p, u32 k, u32 j, u32* lo, u32* 
     *hi = j == (k >> 1) ? *lo ^ (k - 1) : *lo | j;
 }
 
-// Sorts `a[0 .. n)` ascending by `LESS` with the warp's 32 lanes (`lane`), in place, by
-// `bitonic_pair`'s network. Every lane calls it with the same `n`; it ends synchronised.
-#define WARP_SORT(T, a, n, LESS, lane)                                                                  \
+// Sorts `a[0 .. n)` ascending by `LESS`, in place, by `bitonic_pair`'s network: the
+// thread numbered `first` of `stride` makes every `stride`-th comparison of a step, and
+// `SYNC` ends each step. Every thread calls it with the same `n`; it ends synchronised.
+#define NETWORK_SORT(T, a, n, LESS, first, stride, SYNC)                                                \
     do {                                                                                                \
         u32 n_ = (n), size_ = 1;                                                                        \
         while (size_ < n_) size_ <<= 1;                                                                 \
         for (u32 k_ = 2; k_ <= size_; k_ <<= 1) {                                                       \
             for (u32 j_ = k_ >> 1; j_ > 0; j_ >>= 1) {                                                  \
-                for (u32 p_ = (lane); p_ < size_ / 2; p_ += 32) {                                       \
+                for (u32 p_ = (first); p_ < size_ / 2; p_ += (stride)) {                                \
                     u32 lo_, hi_;                                                                       \
                     bitonic_pair(p_, k_, j_, &lo_, &hi_);                                               \
                     if (hi_ < n_ && LESS(&(a)[hi_], &(a)[lo_])) {                                       \
@@ -52,10 +53,13 @@ __device__ __forceinline__ void bitonic_pair(u32 p, u32 k, u32 j, u32* lo, u32* 
                         (a)[hi_] = t_;                                                                  \
                     }                                                                                   \
                 }                                                                                       \
-                __syncwarp();                                                                           \
+                SYNC;                                                                                   \
             }                                                                                           \
         }                                                                                               \
     } while (0)
+
+// `NETWORK_SORT` by the warp's 32 lanes (`lane`).
+#define WARP_SORT(T, a, n, LESS, lane) NETWORK_SORT(T, a, n, LESS, lane, 32u, __syncwarp())
 
 // `r_take_sorted` with the warp: 32 objects at a time, each lane chooses its object's
 // record and its charge, then every lane runs the same budget over the 32 in order
@@ -329,26 +333,13 @@ extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32*
     u32 o = offsets[i], t = threadIdx.x, step = blockDim.x;
     RDue* wd = wanted + o;
     RDue* rk = ranked + o;
-    u32 size = 1;
-    while (size < nw) size <<= 1;
     if (nw > RANK_CAP) {
-        for (u32 k = 2; k <= size; k <<= 1) {
-            for (u32 j = k >> 1; j > 0; j >>= 1) {
-                for (u32 q = t; q < size / 2; q += step) {
-                    u32 lo, hi;
-                    bitonic_pair(q, k, j, &lo, &hi);
-                    if (hi < nw && r_due_less(&wd[hi], &wd[lo])) {
-                        RDue x = wd[lo];
-                        wd[lo] = wd[hi];
-                        wd[hi] = x;
-                    }
-                }
-                __syncthreads();
-            }
-        }
+        NETWORK_SORT(RDue, wd, nw, r_due_less, t, step, __syncthreads());
         for (u32 k = t; k < nw; k += step) rk[k] = wd[k];
         return;
     }
+    u32 size = 1;
+    while (size < nw) size <<= 1;
     for (u32 k = t; k < nw; k += step) {
         key[k] = wd[k].hi;
         at[k] = (unsigned short)k;

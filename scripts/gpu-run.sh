@@ -19,7 +19,8 @@
 # step-time policy, on cpu and on cuda (REBALANCE_BACKENDS, default "cpu cuda").
 # MODE=million runs a million-object live world with gateways and bots
 # (scripts/million-live.sh: 4 zones on the GPU, 2 gateways, 200 bots; MILLION_SECONDS,
-# MILLION_RUNS: "DYNAMIC:MAP ...", default "1000000:3", or MILLION_DYNAMIC on map 3).
+# MILLION_RUNS: "DYNAMIC:MAP ...", default "1000000:3", or MILLION_DYNAMIC on map 3; with
+# a build in .carry/before/, each run with it first).
 # MODE=players times the whole server tick with bots on loopback, PLAYERS_RUNS times
 # (default 2): scenario 3 (10,000 players, AOI 14 and 100, with what a player gets:
 # bytes, staleness, error) and scenario 4 (50,000 players, bots grouped 20 a socket);
@@ -286,10 +287,17 @@ if [[ $mode == million ]]; then
         sleep 1
         # One run per "DYNAMIC:MAP" of MILLION_RUNS (MAP: the reference scenario whose
         # map, statics and users the world has).
+        # With a build in .carry/before/, each run goes with it first, then with this one.
+        builds=(this)
+        if [[ -x .carry/before/myriad ]]; then builds=(before this); fi
         for run in ${MILLION_RUNS:-${MILLION_DYNAMIC:-1000000}:3}; do
-            echo "=== ${run%%:*} dynamic objects on scenario ${run##*:}'s map"
-            bash scripts/million-live.sh -b .carry/myriad -d "${MILLION_SECONDS:-60}" -n "${run%%:*}" -s "${run##*:}" \
-                -o "$out/million-${run%%:*}" 2>&1 || fail "million-live $run failed"
+            for build in "${builds[@]}"; do
+                bin=.carry/myriad
+                if [[ $build == before ]]; then bin=.carry/before/myriad; fi
+                echo "=== ${run%%:*} dynamic objects on scenario ${run##*:}'s map, $build build"
+                bash scripts/million-live.sh -b "$bin" -d "${MILLION_SECONDS:-60}" -n "${run%%:*}" -s "${run##*:}" \
+                    -o "$out/million-${run%%:*}-$build" 2>&1 || fail "million-live $run ($build) failed"
+            done
         done | tee "$out/million.log"
         kill "$ml_nats"
     else

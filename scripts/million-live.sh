@@ -76,7 +76,8 @@ snap() {
   for g in $(seq 0 $((G - 1))); do
     for n in myriad_gateway_mirrors_total myriad_gateway_zone_bytes_in_total myriad_bytes_sent_total \
       myriad_gateway_player_handoffs_total myriad_gateway_subscription_cells myriad_gateway_rollbacks_total \
-      myriad_gateway_zone_objects_in_total myriad_gateway_zone_nudges_in_total myriad_gateway_held_objects; do
+      myriad_gateway_zone_objects_in_total myriad_gateway_zone_nudges_in_total myriad_gateway_held_objects \
+      myriad_gateway_resyncs_total myriad_gateway_skipped_ticks_total; do
       echo "gateway $g $n $(m $((MPORT + 100 + g)) "$n")"; done; done
 }
 sleep 10; snap >"$DIR/a"; T0=$(date +%s.%N)
@@ -117,7 +118,8 @@ for i in range(g):
           f" {delta(k('myriad_gateway_player_handoffs_total')):.0f} player hand-offs,"
           f" {b[k('myriad_gateway_subscription_cells')]:.0f} cells, {b[k('myriad_gateway_rollbacks_total')]:.0f} rollbacks,"
           f" holds {b[k('myriad_gateway_held_objects')]:.0f} objects, records in {delta(k('myriad_gateway_zone_objects_in_total')) / dt:.0f}/s"
-          f" ({delta(k('myriad_gateway_zone_nudges_in_total')) / dt:.0f} nudges)")
+          f" ({delta(k('myriad_gateway_zone_nudges_in_total')) / dt:.0f} nudges),"
+          f" {delta(k('myriad_gateway_resyncs_total')):.0f} resyncs, {delta(k('myriad_gateway_skipped_ticks_total')):.0f} zone ticks skipped")
 for i in range(g):
     final = [json.loads(l) for l in open(f"{d}/bots{i}.json") if '"final"' in l]
     print(f"bots on gateway {i}: {json.dumps(final[-1]) if final else 'no final line'}")

@@ -20,12 +20,13 @@
 //!    players can see ([`crate::subscription`]), with the last zones' tick it took,
 //!    to every zone ([`crate::wire::Subscription`]), every step.
 //! 3. **World.** After every step each zone sends the gateway its view: the objects in
-//!    its cells that changed since the tick it confirmed, and those gone
-//!    ([`crate::wire::Message::View`], [`crate::views`]); or, in mirror mode, all its
-//!    owned objects ([`crate::wire::Message::States`]). The backend takes the newest
-//!    tick for which every zone's message is complete (waiting up to `wait` when none is
-//!    newer than the last), applies it to what it holds of each zone, and replaces the
-//!    world's objects with the result. The gateway's players that the
+//!    its cells that changed since a base tick (the last view sent, or the tick it
+//!    confirmed), and those gone ([`crate::wire::Message::View`], [`crate::views`]); or,
+//!    in mirror mode, all its owned objects ([`crate::wire::Message::States`]). The
+//!    backend takes, in order, the complete ticks (every zone's message complete) that
+//!    apply on what it holds, skipping to the newest where views allow (waiting up to
+//!    `wait` when none is newer than the last), applies them to what it holds of each
+//!    zone, and replaces the world's objects with the result. The gateway's players that the
 //!    zones have not adopted yet stay as they are; players that left are left out; the
 //!    newest action a player asked for is kept on its object.
 //!
@@ -44,7 +45,7 @@ use crate::gateway_cuts::CutsBook;
 use crate::gateway_view::{Applicable, Part, ZoneViews};
 use crate::subscription::{Interest, InterestConfig};
 use crate::wire::{
-    ClusterKey, IntentKind, Intents, Message, Subscription, decode, encode_intents, encode_subscription,
+    ClusterKey, IntentKind, Intents, MAX_RESYNCS, Message, Subscription, decode, encode_intents, encode_subscription,
 };
 
 /// Gateways a cluster can have (each owns a range of player ids).
@@ -55,6 +56,10 @@ const INTENTS_PER_MESSAGE: usize = 16_384;
 
 /// Ticks of zones' states kept while incomplete.
 const PENDING_TICKS: usize = 16;
+
+/// Gateway steps after asking the zones for views relative to its confirmation before
+/// it asks again (a round trip is a few steps).
+const RESYNC_STEPS: u64 = 8;
 
 /// The entity ids gateway `g` gives its players: its own range, so two gateways never
 /// spawn the same id, and far above any generated world's objects.
@@ -107,8 +112,11 @@ pub struct GatewayStats {
     pub mirrors: u64,
     /// Steps that found no newer world in time (the world stood still for a tick).
     pub stale_steps: u64,
-    /// Zone ticks skipped because a newer one was complete.
+    /// Zone ticks skipped because a newer one was complete (or dropped incomplete).
     pub skipped: u64,
+    /// Times the gateway asked the zones for views relative to its confirmation, a view
+    /// of a chain having been lost (`crate::views`, "Bases").
+    pub resyncs: u64,
     /// Objects two zones both claimed in one tick (kept once).
     pub duplicates: u64,
     /// Rollbacks seen (a newer run of the zones).
@@ -152,6 +160,7 @@ impl GatewayStats {
         metrics::counter!("myriad_gateway_mirrors_total").absolute(self.mirrors);
         metrics::counter!("myriad_gateway_stale_steps_total").absolute(self.stale_steps);
         metrics::counter!("myriad_gateway_skipped_ticks_total").absolute(self.skipped);
+        metrics::counter!("myriad_gateway_resyncs_total").absolute(self.resyncs);
         metrics::counter!("myriad_gateway_duplicates_total").absolute(self.duplicates);
         metrics::counter!("myriad_gateway_rollbacks_total").absolute(self.rollbacks);
         metrics::counter!("myriad_gateway_errors_total").absolute(self.errors);
@@ -237,6 +246,10 @@ pub struct ZonesBackend {
     interest: Option<Interest>,
     /// What the gateway holds of each zone's view.
     views: ZoneViews,
+    /// Times it found a chain of views broken (its subscriptions carry it).
+    resyncs: u32,
+    /// The gateway tick it last asked for a resync, until a tick is taken.
+    resync_asked: Option<u64>,
     /// The AOI boxes the server queried last (the subscription covers them too).
     boxes: Vec<Aabb>,
     /// The zones' cuts as the supervisor announced them (made at the first step, from
@@ -291,6 +304,8 @@ impl ZonesBackend {
             stats: GatewayStats::default(),
             interest,
             views: ZoneViews::default(),
+            resyncs: 0,
+            resync_asked: None,
             boxes: Vec::new(),
             cuts: None,
             cuts_made: false,
@@ -415,6 +430,7 @@ impl ZonesBackend {
             gateway: self.cfg.gateway,
             version,
             confirmed: self.taken.map(|t| (self.run, t)),
+            resyncs: self.resyncs,
             cell: grid.cell(),
             cols,
             rows,
@@ -520,45 +536,79 @@ impl ZonesBackend {
         }
     }
 
-    /// The newest complete tick's objects with the zone that sent each, sorted by id;
-    /// older ticks are dropped.
+    /// Takes what it can of the complete ticks, in order: each time the newest complete
+    /// tick whose parts all apply on what the gateway holds (views relative to its
+    /// confirmation let it skip to the newest; a chain of views takes every tick, each
+    /// relative to the one before), until none does. Returns the world of the last one
+    /// taken: its objects with the zone that sent each, sorted by id. A complete tick that
+    /// does not apply never will (each zone's messages come in order, so an earlier tick
+    /// still incomplete lost one of them): such ticks are dropped and counted, and the
+    /// zones asked for views relative to the confirmation ([`ZonesBackend::ask_resync`]).
     fn take_complete(&mut self) -> Option<ZonesWorld> {
-        let tick = *self.pending.iter().rev().find(|(_, p)| p.complete(self.cfg.zones))?.0;
-        let mut older = self.pending.split_off(&tick);
-        std::mem::swap(&mut older, &mut self.pending);
-        self.stats.skipped += older.len() as u64;
-        let parts = self.pending.pop_first().expect("the complete tick").1;
-        let zones: Vec<(u16, Vec<Part>)> =
-            parts.zones.into_iter().map(|(z, (_, got))| (z, got.into_values().collect())).collect();
-        let verdicts: Vec<Applicable> = zones.iter().map(|(z, p)| self.views.applicable(*z, p, self.taken)).collect();
-        if verdicts.contains(&Applicable::Lost) {
-            // Nudges from positions this gateway no longer has: start again from whole
-            // views (the next subscription confirms nothing).
-            self.reject("nudge_base");
-            self.views.clear();
-            self.taken = None;
-            return None;
-        }
-        if verdicts.contains(&Applicable::Ahead) {
-            // Changes since a tick this gateway does not hold: never sent to a gateway
-            // that confirmed what it holds (a zone sends whole views until then).
-            self.reject("base");
-            return None;
-        }
-        for (z, p) in zones {
-            let unknown = self.views.apply(z, p);
-            if unknown > 0 {
-                *self.stats.rejected.entry("move").or_default() += unknown;
+        let mut took = None;
+        loop {
+            let complete: Vec<u64> =
+                self.pending.iter().filter(|(_, p)| p.complete(self.cfg.zones)).map(|(t, _)| *t).collect();
+            let Some(&newest) = complete.last() else { break };
+            let verdicts = |t: &u64| -> Vec<Applicable> {
+                let parts = &self.pending[t].zones;
+                parts.iter().map(|(z, (_, got))| self.views.applicable(*z, got.values(), self.taken)).collect()
+            };
+            let Some(tick) = complete.iter().rev().find(|t| verdicts(t).iter().all(|v| *v == Applicable::Yes)) else {
+                let lost = verdicts(&newest).contains(&Applicable::Lost);
+                let rest = self.pending.split_off(&(newest + 1));
+                let dropped = std::mem::replace(&mut self.pending, rest);
+                let dropped_complete = dropped.values().filter(|p| p.complete(self.cfg.zones)).count() as u64;
+                self.stats.skipped += dropped.len() as u64 - dropped_complete;
+                if lost {
+                    // Nudges from positions this gateway no longer has: start again from
+                    // whole views (the next subscription confirms nothing).
+                    self.reject("nudge_base");
+                    self.views.clear();
+                    self.taken = None;
+                } else {
+                    // Changes since a tick this gateway does not hold: a view of a chain
+                    // was lost (or a tick dropped before it was complete).
+                    *self.stats.rejected.entry("base").or_default() += dropped_complete;
+                }
+                self.ask_resync();
+                break;
+            };
+            let tick = *tick;
+            let mut older = self.pending.split_off(&tick);
+            std::mem::swap(&mut older, &mut self.pending);
+            self.stats.skipped += older.len() as u64;
+            let parts = self.pending.pop_first().expect("the complete tick").1;
+            for (z, (_, got)) in parts.zones {
+                let unknown = self.views.apply(z, got.into_values().collect());
+                if unknown > 0 {
+                    *self.stats.rejected.entry("move").or_default() += unknown;
+                }
             }
+            self.taken = Some(tick);
+            self.views.remember(tick);
+            self.resync_asked = None;
+            took = Some(tick);
         }
+        let tick = took?;
         let mut all = self.views.assemble();
         let before = all.len();
         all.dedup_by_key(|(o, _)| o.id);
         self.stats.duplicates += (before - all.len()) as u64;
         self.stats.held_objects = all.len();
-        self.taken = Some(tick);
-        self.views.remember(tick);
         Some((tick, all))
+    }
+
+    /// Asks every zone, through the next subscriptions, for its next view relative to
+    /// the confirmation (`resyncs` grows): once a break, and again if no tick was taken
+    /// in [`RESYNC_STEPS`] steps (that view was lost too).
+    fn ask_resync(&mut self) {
+        let now = self.last_tick;
+        if self.resync_asked.is_none_or(|at| now >= at + RESYNC_STEPS) {
+            self.resyncs = (self.resyncs + 1) % MAX_RESYNCS;
+            self.resync_asked = Some(now);
+            self.stats.resyncs += 1;
+        }
     }
 
     /// Step 2: the newest world of the zones, waiting up to `wait` for one newer than

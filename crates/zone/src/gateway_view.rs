@@ -91,12 +91,17 @@ impl ZoneViews {
     /// Whether zone `zone`'s parts of one tick can be applied on what the gateway holds,
     /// the zones' tick `taken` (none: nothing of this run): a whole view always; changes
     /// since a tick the gateway has reached, and nudges from one whose positions it kept.
-    pub fn applicable(&self, zone: u16, parts: &[Part], taken: Option<u64>) -> Applicable {
-        if !parts.iter().all(|p| p.base.is_none_or(|c| taken.is_some_and(|t| c <= t))) {
+    pub fn applicable<'a>(
+        &self,
+        zone: u16,
+        parts: impl IntoIterator<Item = &'a Part> + Clone,
+        taken: Option<u64>,
+    ) -> Applicable {
+        if !parts.clone().into_iter().all(|p| p.base.is_none_or(|c| taken.is_some_and(|t| c <= t))) {
             return Applicable::Ahead;
         }
         let kept = |c: u64| self.history.get(&zone).is_some_and(|h| h.iter().any(|(t, _)| *t == c));
-        match parts.iter().all(|p| p.nudges.is_empty() || p.base.is_some_and(kept)) {
+        match parts.into_iter().all(|p| p.nudges.is_empty() || p.base.is_some_and(kept)) {
             true => Applicable::Yes,
             false => Applicable::Lost,
         }

@@ -4,8 +4,8 @@
 //! A gateway's **view** of a zone at tick t is the set V: the zone's owned objects whose
 //! centres lie in the gateway's subscribed cells, and the gateway's own players wherever
 //! they are. The zone remembers which objects of V the gateway was sent (`known`, each
-//! with the tick it entered) and sends, relative to the last tick the gateway confirmed
-//! having whole (`c`):
+//! with the tick it entered) and sends, relative to a **base** tick `c` (see
+//! [Bases](#bases)):
 //! - every object of V that entered V after c, whole (48 bytes), and the new position
 //!   of every other object of V that changed after c (its state differs bit for bit
 //!   from the tick before), since an object's id, kind, shape and extents never change
@@ -15,14 +15,27 @@
 //!   the zone still has its positions of tick c ([`NUDGE_WINDOW`]) and the change is
 //!   small, else a *move* of 16 bytes;
 //! - the ids of objects that left V (moved out of the cells, cells unsubscribed, handed
-//!   to another zone, removed) after c: **gone**, until the gateway confirms past them;
-//! - with no confirmation (a new subscriber, a restarted gateway, a new run after a
-//!   rollback) the **whole** view, which replaces what the gateway had of this zone.
+//!   to another zone, removed) after c: **gone** (kept until the gateway confirms past
+//!   them, for the views relative to its confirmation);
+//! - with no base (a new subscriber, a restarted gateway, a new run after a rollback)
+//!   the **whole** view, which replaces what the gateway had of this zone.
 //!
-//! So a gateway that has the zone's view of any tick s ≥ c and applies the view of
-//! tick t > s has exactly V at t: what is unchanged since c it already holds, the rest
-//! is in the message. Lost messages cost nothing but a later confirmation; an object at
-//! rest costs nothing after it was sent once.
+//! So a gateway that has the zone's view of any tick s with c ≤ s < t and applies the
+//! view of tick t has exactly V at t: what is unchanged since c it already holds, the
+//! rest is in the message. An object at rest costs nothing after it was sent once.
+//!
+//! # Bases
+//! A view's base is either the last tick the gateway **confirmed** having whole (every
+//! subscription carries it), which it always holds, or the tick of the **last view**
+//! the zone sent it, which it holds if it took every view in order: a **chain**. A live
+//! gateway confirms a few ticks behind the zones (a round trip), so a view relative to
+//! its confirmation carries again, every tick, each change of those few ticks; a chain
+//! sends each change once, and its nudges span one tick. The zone chains while the
+//! gateway's confirmation is within [`CHAIN_LAG`] ticks (a gateway further behind takes
+//! only the newest of the ticks it has, which views relative to its confirmation allow),
+//! and the gateway asks for a view relative to its confirmation again (its
+//! subscription's `resyncs` grows) when a view of the chain was lost: the next view
+//! after a new `resyncs` is relative to the confirmation, or whole without one.
 //!
 //! The work per tick is one pass over the owned objects that keeps each one's last
 //! change (a merge by id with the last tick's), one pass that buckets them by cell
@@ -59,6 +72,12 @@ pub const EXPIRE_TICKS: u64 = 150;
 /// gateway confirms what it took, so a base the zone nudges from is always one the
 /// gateway still has.
 pub const NUDGE_WINDOW: u64 = 8;
+
+/// How far behind the zone's tick a gateway's confirmation may be for its views to
+/// chain (each relative to the last one sent): a gateway further behind is taking only
+/// the newest of the ticks it has, so it gets views relative to its confirmation, which
+/// allow that. Within [`NUDGE_WINDOW`], so a chain's bases always have positions.
+pub const CHAIN_LAG: u64 = NUDGE_WINDOW;
 
 /// The owned objects' positions after one tick, ids ascending.
 pub(crate) type Positions = Vec<(EntityId, Vec3)>;
@@ -116,12 +135,33 @@ struct Subscriber {
     cells: CellSet,
     /// The last tick of this zone's run the gateway has whole.
     confirmed: Option<u64>,
+    /// The gateway's count of broken chains, as last heard.
+    resyncs: u32,
+    /// Whether the next view goes relative to the confirmation (a new `resyncs`).
+    resync: bool,
+    /// The run and tick of the last view sent (the base of a chain).
+    last_sent: Option<(u64, u64)>,
     heard_at: u64,
     /// The objects of V the gateway was sent, each with the tick it entered V, ids
     /// ascending.
     known: Vec<(EntityId, u64)>,
     /// Objects that left its view, with the tick they left, until it confirms past it.
     gone: HashMap<EntityId, u64>,
+}
+
+impl Subscriber {
+    /// The base of its view of `tick` in run `run` (see [Bases](self#bases)): the last
+    /// view sent while the chain holds, else the confirmation (`None`: whole).
+    fn base(&self, run: u64, tick: u64) -> Option<u64> {
+        let chain = self.last_sent.filter(|&(r, t)| r == run && t < tick).map(|(_, t)| t);
+        match (chain, self.confirmed) {
+            _ if self.resync => self.confirmed,
+            // Whole views went out, and the gateway has not confirmed one yet.
+            (Some(last), None) => Some(last),
+            (Some(last), Some(c)) if tick.saturating_sub(c) <= CHAIN_LAG => Some(last),
+            _ => self.confirmed,
+        }
+    }
 }
 
 /// An owned object and the last tick its state changed.
@@ -253,8 +293,13 @@ impl Subscribers {
                 e.grid = grid;
                 e.cells = cells;
                 // Confirmations only grow; none (the gateway dropped what it had) asks
-                // for a whole view.
+                // for a whole view, as one of another run does.
+                let dropped = e.confirmed.is_some() && confirmed.is_none();
+                let elsewhere = s.confirmed.is_some_and(|(r, _)| r != run);
                 e.confirmed = confirmed.map(|c| e.confirmed.map_or(c, |was| was.max(c)));
+                // A broken chain: the next view goes relative to the confirmation.
+                e.resync |= dropped || elsewhere || s.resyncs != e.resyncs;
+                e.resyncs = s.resyncs;
                 e.heard_at = tick;
             }
             _ => {
@@ -265,6 +310,9 @@ impl Subscribers {
                     grid,
                     cells,
                     confirmed: None,
+                    resyncs: s.resyncs,
+                    resync: false,
+                    last_sent: None,
                     heard_at: tick,
                     known: Vec::new(),
                     gone: HashMap::new(),
@@ -307,9 +355,12 @@ impl Subscribers {
         let mut out = Vec::with_capacity(self.gateways.len());
         for (&g, s) in &mut self.gateways {
             let buckets = &self.buckets.iter().find(|(grid, _)| *grid == s.grid).expect("filled").1;
-            let at_base = s.confirmed.and_then(|c| self.history.iter().find(|(t, _)| *t == c)).map(|(_, p)| &p[..]);
-            let (objects, moves, nudges, gone) = view_of(g, s, &self.tracked, buckets, tick, at_base, &mut self.marks);
-            let base = s.confirmed;
+            let base = s.base(run, tick);
+            let at_base = base.and_then(|c| self.history.iter().find(|(t, _)| *t == c)).map(|(_, p)| &p[..]);
+            let (objects, moves, nudges, gone) =
+                view_of(g, s, base, &self.tracked, buckets, tick, at_base, &mut self.marks);
+            s.resync = false;
+            s.last_sent = Some((run, tick));
             let mut sent = Sent { objects: (objects.len() + moves.len() + nudges.len()) as u64, ..Sent::default() };
             for (part, parts, (records, moved, nudged, ids)) in parts(&objects, &moves, &nudges, &gone, max_message)? {
                 let v = View {
@@ -366,18 +417,20 @@ impl Subscribers {
 /// What a view holds: whole records, moves, nudges, gone ids (each ids ascending).
 type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<Nudge>, Vec<EntityId>);
 
-/// Gateway `g`'s view at `tick`, nudging from `at_base` (the positions of the base
-/// tick, when the zone still has them). Updates what it was sent. `marks` is scratch.
+/// Gateway `g`'s view at `tick` relative to `base` (`None`: whole), nudging from
+/// `at_base` (the positions of the base tick, when the zone still has them). Updates
+/// what it was sent. `marks` is scratch.
+#[allow(clippy::too_many_arguments)]
 fn view_of(
     g: u16,
     s: &mut Subscriber,
+    base: Option<u64>,
     tracked: &[Tracked],
     buckets: &Buckets,
     tick: u64,
     at_base: Option<&[(EntityId, Vec3)]>,
     marks: &mut Vec<u64>,
 ) -> ViewLists {
-    let base = s.confirmed;
     if base.is_none() {
         s.known.clear();
         s.gone.clear();
@@ -447,8 +500,13 @@ fn view_of(
         s.gone.insert(id, tick);
     }
     s.known = known;
-    s.gone.retain(|_, left| *left > c);
-    let mut gone: Vec<EntityId> = if base.is_some() { s.gone.keys().copied().collect() } else { Vec::new() };
+    // Kept while a view relative to the confirmation may need them.
+    let confirmed = s.confirmed.unwrap_or(0);
+    s.gone.retain(|_, left| *left > confirmed);
+    let mut gone: Vec<EntityId> = match base {
+        Some(_) => s.gone.iter().filter(|(_, left)| **left > c).map(|(id, _)| *id).collect(),
+        None => Vec::new(),
+    };
     gone.sort_unstable();
     // Taken in id order: every list is ascending already.
     (objects, moves, nudges, gone)

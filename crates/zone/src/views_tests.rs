@@ -32,6 +32,7 @@ fn subscription(incarnation: u64, version: u64, confirmed: Option<u64>) -> Subsc
         gateway: G,
         version,
         confirmed: confirmed.map(|c| (RUN, c)),
+        resyncs: 0,
         cell: 10.0,
         cols: 10,
         rows: 10,
@@ -62,7 +63,7 @@ fn publish(
 }
 
 #[test]
-fn a_view_is_whole_then_only_what_changed_and_what_left_until_confirmed() {
+fn a_view_is_whole_then_only_what_changed_and_what_left_since_its_base() {
     let player = player_ids(G).start + 5;
     let mut world = vec![object(1, 5.0, 5.0), object(2, 25.0, 50.0), object(3, 50.0, 50.0), object(player, 90.0, 90.0)];
     let mut subs = Subscribers::default();
@@ -77,29 +78,54 @@ fn a_view_is_whole_then_only_what_changed_and_what_left_until_confirmed() {
     world[0].pos.x = 6.0;
     world[1].pos.x = 35.0;
     world[2].pos.x = 29.0;
-    assert_eq!(publish(&mut subs, 4, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
-    // Not confirmed yet: the same again (changes since 2), however old.
-    assert_eq!(publish(&mut subs, 5, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
-    subs.offer(subscription(10, 1, Some(5)), RUN, 5, &bounds()).unwrap();
+    // Relative to the last view sent (a chain): each change once.
+    assert_eq!(publish(&mut subs, 4, &world), [(G, Some(3), vec![3], vec![1], vec![2])]);
+    assert_eq!(publish(&mut subs, 5, &world), [(G, Some(4), vec![], vec![], vec![])]);
+    // The gateway lost a view of the chain: the next is relative to its confirmation,
+    // with every change since (gone ids kept until it confirms past them); then the
+    // chain goes on from that view.
+    let mut resync = subscription(10, 1, Some(2));
+    resync.resyncs = 1;
+    subs.offer(resync.clone(), RUN, 5, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, 6, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
+    assert_eq!(publish(&mut subs, 7, &world), [(G, Some(6), vec![], vec![], vec![])]);
+    // Told again (the same count): nothing new to do.
+    subs.offer(resync, RUN, 7, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, 8, &world), [(G, Some(7), vec![], vec![], vec![])]);
+    // A confirmation more than CHAIN_LAG ticks behind: the gateway takes only its newest
+    // tick, so views go relative to the confirmation.
+    let behind = 8 + CHAIN_LAG + 1;
+    assert_eq!(publish(&mut subs, behind, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
+    let mut caught_up = subscription(10, 1, Some(behind));
+    caught_up.resyncs = 1;
+    subs.offer(caught_up, RUN, behind, &bounds()).unwrap();
     // The gateway's own player comes whole when it changes.
     world[3].pos.x = 91.0;
-    assert_eq!(publish(&mut subs, 6, &world), [(G, Some(5), vec![player], vec![], vec![])]);
+    assert_eq!(publish(&mut subs, behind + 1, &world), [(G, Some(behind), vec![player], vec![], vec![])]);
     // Handed to another zone: gone from this one.
     world.remove(0);
-    assert_eq!(publish(&mut subs, 7, &world), [(G, Some(5), vec![player], vec![], vec![1])]);
-    // A confirmation of another run (the gateway followed a rollback): whole again.
-    let mut other = subscription(10, 2, Some(6));
-    other.confirmed = Some((RUN + 1, 6));
-    subs.offer(other, RUN, 7, &bounds()).unwrap();
-    assert_eq!(publish(&mut subs, 8, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    assert_eq!(publish(&mut subs, behind + 2, &world), [(G, Some(behind + 1), vec![], vec![], vec![1])]);
+    let t = behind + 2;
+    // A gateway that dropped what it held (it confirms nothing now): whole again.
+    subs.offer(subscription(10, 1, None), RUN, t, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, t + 1, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    // Then a chain from that whole view, even before a confirmation comes.
+    assert_eq!(publish(&mut subs, t + 2, &world), [(G, Some(t + 1), vec![], vec![], vec![])]);
+    // A confirmation of another run (the gateway followed a rollback): whole again,
+    // however recent the last view.
+    subs.offer(subscription(10, 2, Some(t + 1)), RUN, t + 2, &bounds()).unwrap();
+    let mut other = subscription(10, 3, Some(t));
+    other.confirmed = Some((RUN + 1, t));
+    subs.offer(other, RUN, t + 2, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, t + 3, &world), [(G, None, vec![3, player], vec![], vec![])]);
     // A restarted gateway (a newer incarnation) starts whole too; an older one is refused.
-    subs.offer(subscription(11, 1, Some(8)), RUN, 8, &bounds()).unwrap();
-    assert_eq!(publish(&mut subs, 9, &world), [(G, None, vec![3, player], vec![], vec![])]);
-    let stale = subs.offer(subscription(10, 9, Some(8)), RUN, 9, &bounds());
+    subs.offer(subscription(11, 1, Some(t + 3)), RUN, t + 3, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, t + 4, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    let stale = subs.offer(subscription(10, 9, Some(t)), RUN, t + 4, &bounds());
     assert_eq!(stale, Err(SubscriptionError::Stale { incarnation: 10, version: 9 }));
-    // A subscriber silent for longer than EXPIRE_TICKS (last heard at 8) is dropped.
-    assert_eq!(publish(&mut subs, 8 + EXPIRE_TICKS, &world).len(), 1);
-    assert!(publish(&mut subs, 9 + EXPIRE_TICKS, &world).is_empty());
+    // A subscriber silent for longer than EXPIRE_TICKS (last heard at t + 3) is dropped.
+    assert_eq!(publish(&mut subs, t + 3 + EXPIRE_TICKS, &world).len(), 1);
+    assert!(publish(&mut subs, t + 4 + EXPIRE_TICKS, &world).is_empty());
     assert!(subs.is_empty());
 }
 
@@ -120,7 +146,7 @@ fn part(v: View) -> crate::gateway_view::Part {
 }
 
 #[test]
-fn small_moves_go_as_nudges_from_the_confirmed_tick_and_rebuild_exact_positions() {
+fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exact_positions() {
     use crate::gateway_view::{Applicable, ZoneViews};
     let mut world: Vec<ObjectState> = (1..=20).map(|i| object(i, i as f32 + 0.37, 11.0 * i as f32 / 3.0)).collect();
     let mut subs = Subscribers::default();
@@ -132,37 +158,52 @@ fn small_moves_go_as_nudges_from_the_confirmed_tick_and_rebuild_exact_positions(
     gateway.remember(2);
     subs.offer(subscription(10, 1, Some(2)), RUN, 2, &bounds()).unwrap();
     // Walk every object a little each tick, and one far (a move, not a nudge); the
-    // gateway takes every other tick and confirms late, as a live one may.
-    let mut confirmed = 2;
+    // gateway confirms two ticks late, as a live one may, and loses the view of tick 14.
+    let (mut confirmed, mut taken, mut resyncs) = (2, 2, 0);
     for tick in 3..30u64 {
         for (i, o) in world.iter_mut().enumerate() {
             o.pos.x += 0.013 * (i as f32 - 9.5);
             o.pos.y -= 0.001;
         }
-        world[3].pos.z = 2.0 + 7.0 * tick as f32;
+        world[3].pos.z = if tick % 2 == 0 { 5.0 } else { 95.0 };
         let v = views(&mut subs, tick, &world).remove(0);
-        assert_eq!(v.base, Some(confirmed));
+        // A chain (the last view), but for the view after the gateway asked again.
+        let resynced = tick == 16;
+        assert_eq!(v.base, Some(if resynced { confirmed } else { tick - 1 }), "tick {tick}");
         assert!(v.moves.iter().any(|m| m.0 == EntityId(4)), "a jump goes as a move");
         assert_eq!(v.nudges.len() + v.moves.len(), world.iter().filter(|o| o.pos.x < 30.0).count());
         assert!(v.nudges.len() >= 15, "small steps go as nudges: {} of them", v.nudges.len());
-        if tick % 2 == 1 {
-            continue;
-        }
         let parts = vec![part(v)];
-        assert_eq!(gateway.applicable(0, &parts, Some(confirmed)), Applicable::Yes);
-        assert_eq!(gateway.apply(0, parts), 0);
-        gateway.remember(tick);
-        let held = gateway.assemble();
-        let want: Vec<[u32; 3]> =
-            world.iter().filter(|o| o.pos.x < 30.0).map(|o| [o.pos.x, o.pos.y, o.pos.z].map(f32::to_bits)).collect();
-        let got: Vec<[u32; 3]> = held.iter().map(|(o, _)| [o.pos.x, o.pos.y, o.pos.z].map(f32::to_bits)).collect();
-        assert_eq!(got, want, "tick {tick}: the gateway holds the zone's positions bit for bit");
-        // The confirmation reaches the zone two ticks later.
-        if tick >= 6 {
-            confirmed = tick - 2;
-            subs.offer(subscription(10, 1, Some(confirmed)), RUN, tick, &bounds()).unwrap();
+        match gateway.applicable(0, &parts, Some(taken)) {
+            _ if tick == 14 => {}
+            Applicable::Yes => {
+                assert_eq!(gateway.apply(0, parts), 0);
+                gateway.remember(tick);
+                taken = tick;
+                let held = gateway.assemble();
+                let want: Vec<[u32; 3]> = world
+                    .iter()
+                    .filter(|o| o.pos.x < 30.0)
+                    .map(|o| [o.pos.x, o.pos.y, o.pos.z].map(f32::to_bits))
+                    .collect();
+                let got: Vec<[u32; 3]> =
+                    held.iter().map(|(o, _)| [o.pos.x, o.pos.y, o.pos.z].map(f32::to_bits)).collect();
+                assert_eq!(got, want, "tick {tick}: the gateway holds the zone's positions bit for bit");
+            }
+            // The chain broke at 14: refused until the view relative to the confirmation.
+            Applicable::Ahead => {
+                assert_eq!(tick, 15);
+                resyncs += 1;
+            }
+            Applicable::Lost => panic!("tick {tick}: nudges from a base the gateway has"),
         }
+        // The confirmation reaches the zone two ticks later.
+        confirmed = taken.min(tick.saturating_sub(2)).max(confirmed);
+        let mut s = subscription(10, 1, Some(confirmed));
+        s.resyncs = resyncs;
+        subs.offer(s, RUN, tick, &bounds()).unwrap();
     }
+    assert_eq!(taken, 29);
     // A base older than the window: moves only, whatever the step.
     let late = 29 + NUDGE_WINDOW;
     for o in &mut world {

@@ -29,7 +29,8 @@ use cuts::{cut_block, read_cuts};
 
 mod interest;
 pub use interest::{
-    KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, MOVE_LEN, Subscription, View, cell_bytes, encode_subscription, encode_view,
+    KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, MAX_RESYNCS, MOVE_LEN, Subscription, View, cell_bytes,
+    encode_subscription, encode_view,
 };
 mod nudge;
 pub use nudge::{NUDGE_MAX_LEN, Nudge};

@@ -219,6 +219,13 @@ impl DeviceReplicas {
         r
     }
 
+    /// Adds the host time since `since` under `name` to the device's profile, when
+    /// profiling (`MYRIAD_CUDA_PROFILE`): for the host work of a build that happens
+    /// outside this type (packing and sealing what it chose).
+    pub fn profile_host(&self, name: &'static str, since: Instant) {
+        lock(&self.resident).gpu.profile_host(name, since);
+    }
+
     /// The last [`select`](Self::select)'s choices.
     pub fn choices(&self) -> Choices<'_> {
         let s = &self.state;

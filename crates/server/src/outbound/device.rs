@@ -81,6 +81,7 @@ impl DeviceOutbound {
         self.commits.resize(n, RCommit::default());
         self.ends.clear();
         self.ends.resize(n * mdg, 0);
+        let packing = Instant::now();
         let choices = self.replicas.choices();
         let tick = job.tick;
         let faults: usize = recipients
@@ -93,16 +94,22 @@ impl DeviceOutbound {
             })
             .filter(|ok| !ok)
             .count();
+        self.replicas.profile_host("host: pack and seal", packing);
         if faults > 0 {
             tracing::error!(players = faults, "the device chose records no datagram can carry");
             metrics::counter!("myriad_outbound_errors_total", "reason" => "device_record").increment(faults as u64);
         }
-        if let Err(e) = self.replicas.commit(&self.commits, &self.ends) {
+        let committing = Instant::now();
+        let committed = self.replicas.commit(&self.commits, &self.ends);
+        self.replicas.profile_host("host: replica commit", committing);
+        if let Err(e) = committed {
             tracing::error!(error = %e, "device replicas failed to commit");
             metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
         }
+        let committed = Instant::now();
         let tick_report = recipients.iter().fold(TickReport::default(), |acc, r| acc.with(&r.view.report()));
         report.add_interest(&tick_report);
+        self.replicas.profile_host("host: outbound report", committed);
         report
     }
 }

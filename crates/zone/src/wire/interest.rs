@@ -26,6 +26,8 @@ const SUBSCRIPTION_FIXED: usize = 24;
 const VIEW_FIXED: usize = 24;
 /// Bytes of a move: id and position.
 pub const MOVE_LEN: usize = 16;
+/// A subscription's `resyncs` stay below this (they share a word with a flag).
+pub const MAX_RESYNCS: u32 = 1 << 31;
 /// A view's base when it is whole (the gateway drops what it had of the zone).
 const WHOLE: u64 = u64::MAX;
 
@@ -43,6 +45,10 @@ pub struct Subscription {
     /// The zones' run and the last tick of it whose views this gateway has taken whole,
     /// from every zone: a zone sends what changed since then. `None`: nothing yet.
     pub confirmed: Option<(u64, u64)>,
+    /// How many times the gateway found a zone's chain of views broken (a view it needed
+    /// was lost), below 2^31: each new value asks every zone for its next view relative
+    /// to `confirmed` (`crate::views`, "Bases").
+    pub resyncs: u32,
     /// The grid's cell side, in world units (the grid starts at the world's lower x and
     /// z bounds).
     pub cell: f32,
@@ -103,6 +109,7 @@ pub fn encode_subscription(key: &ClusterKey, s: &Subscription) -> Result<Vec<u8>
         return Err(WireError::Cells(n));
     }
     if s.cells.len() != cell_bytes(s.cols, s.rows)
+        || s.resyncs >= MAX_RESYNCS
         || !tail_clear(&s.cells, n)
         || s.gateway == ALL.0
         || !(s.cell.is_finite() && s.cell > 0.0)
@@ -120,7 +127,8 @@ pub fn encode_subscription(key: &ClusterKey, s: &Subscription) -> Result<Vec<u8>
     };
     let mut b = header(&h, len as u32, len);
     let (run, tick) = s.confirmed.unwrap_or((0, 0));
-    b.extend_from_slice(&u32::from(s.confirmed.is_some()).to_le_bytes());
+    // The confirmation's flag and the resyncs share a word: bit 0 and the rest.
+    b.extend_from_slice(&(s.resyncs << 1 | u32::from(s.confirmed.is_some())).to_le_bytes());
     b.extend_from_slice(&s.cell.to_le_bytes());
     b.extend_from_slice(&run.to_le_bytes());
     b.extend_from_slice(&tick.to_le_bytes());
@@ -234,11 +242,13 @@ pub(super) fn decode_subscription(f: &Fields, body: &[u8]) -> Result<Subscriptio
     if f.to != ALL || f.from == ALL {
         return Err(WireError::Field("subscription header"));
     }
-    let confirmed = match u32_at(body, 0) {
+    let word = u32_at(body, 0);
+    let confirmed = match word & 1 {
         0 if u64_at(body, 8) == 0 && u64_at(body, 16) == 0 => None,
         1 => Some((u64_at(body, 8), u64_at(body, 16))),
         _ => return Err(WireError::Field("subscription confirmation")),
     };
+    let resyncs = word >> 1;
     let cell = f32::from_le_bytes(body[4..8].try_into().expect("4 bytes"));
     if !(cell.is_finite() && cell > 0.0) {
         return Err(WireError::Field("subscription cell"));
@@ -247,7 +257,17 @@ pub(super) fn decode_subscription(f: &Fields, body: &[u8]) -> Result<Subscriptio
     if !tail_clear(&cells, n) {
         return Err(WireError::Field("subscription cells"));
     }
-    Ok(Subscription { incarnation: f.run, gateway: f.from.0, version: f.tick, confirmed, cell, cols, rows, cells })
+    Ok(Subscription {
+        incarnation: f.run,
+        gateway: f.from.0,
+        version: f.tick,
+        confirmed,
+        resyncs,
+        cell,
+        cols,
+        rows,
+        cells,
+    })
 }
 
 /// Decodes an authenticated view's body.

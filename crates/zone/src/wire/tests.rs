@@ -94,6 +94,7 @@ fn subscription() -> Subscription {
         gateway: 7,
         version: 3,
         confirmed: Some((2, 99)),
+        resyncs: 5,
         cell: 32.0,
         cols: 3,
         rows: 5,
@@ -122,7 +123,7 @@ fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
     let s = encode_subscription(&key(), &subscription()).unwrap();
     assert_eq!(s.len(), HEADER_LEN + 24 + 2 + TAG_LEN);
     assert_eq!(decode(&key(), &s).unwrap(), Message::Subscription(subscription()));
-    let none = Subscription { confirmed: None, ..subscription() };
+    let none = Subscription { confirmed: None, resyncs: MAX_RESYNCS - 1, ..subscription() };
     assert_eq!(
         decode(&key(), &encode(&key(), &Message::Subscription(none.clone())).unwrap()).unwrap(),
         Message::Subscription(none)
@@ -146,6 +147,8 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
     let tail = Subscription { cells: vec![0, 0b1000_0000], ..subscription() };
     assert!(encode_subscription(&key(), &tail).is_err(), "a cell past the grid");
     assert!(encode_subscription(&key(), &Subscription { cell: f32::NAN, ..subscription() }).is_err());
+    let resyncs = Subscription { resyncs: MAX_RESYNCS, ..subscription() };
+    assert!(encode_subscription(&key(), &resyncs).is_err(), "resyncs share a word with a flag");
     let whole = View { base: None, moves: vec![], gone: vec![], nudges: vec![], ..view() };
     assert!(encode_view(&key(), &View { gone: view().gone, ..whole.clone() }).is_err(), "gone ids in a whole view");
     assert!(encode_view(&key(), &View { moves: view().moves, ..whole.clone() }).is_err(), "moves in a whole view");

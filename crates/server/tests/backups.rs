@@ -16,7 +16,9 @@ fn periodic_backups_are_whole_and_pruned() {
     let backups = myriad_server::backups::backup_dir(dir.path());
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     rt.block_on(server.store().seed_users(3)).unwrap();
-    // Three or more intervals: at least three backups made (names seen), two kept.
+    // Three or more intervals: at least three backups made (names seen), two kept. A
+    // new backup is renamed into place before the oldest is deleted, so three can be
+    // seen for a moment: wait for the pruning.
     let end = Instant::now() + Duration::from_secs(30);
     let mut seen = std::collections::BTreeSet::new();
     let files = loop {
@@ -26,8 +28,21 @@ fn periodic_backups_are_whole_and_pruned() {
             .unwrap_or_default();
         files.sort();
         seen.extend(files.iter().cloned());
-        if seen.len() >= 3 || Instant::now() > end {
-            break files;
+        // Checked as copies taken at once: the next interval may prune one meanwhile.
+        let kept = dir.path().join("kept");
+        let _ = std::fs::remove_dir_all(&kept);
+        std::fs::create_dir(&kept).unwrap();
+        let copies: std::io::Result<Vec<_>> = files
+            .iter()
+            .map(|f| {
+                let to = kept.join(f.file_name().unwrap());
+                std::fs::copy(f, &to).map(|_| to)
+            })
+            .collect();
+        match copies {
+            Ok(copies) if seen.len() >= 3 && copies.len() <= 2 => break copies,
+            _ if Instant::now() > end => break files,
+            _ => {}
         }
     };
     assert!(seen.len() >= 3, "backups made: {seen:?}");

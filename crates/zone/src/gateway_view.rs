@@ -101,7 +101,12 @@ impl ZoneViews {
             return Applicable::Ahead;
         }
         let kept = |c: u64| self.history.get(&zone).is_some_and(|h| h.iter().any(|(t, _)| *t == c));
-        match parts.into_iter().all(|p| p.nudges.is_empty() || p.base.is_some_and(kept)) {
+        // Predicted nudges start from the tick before the base too.
+        let bases_kept = |p: &Part| {
+            let predicted = p.nudges.iter().any(|n| n.predicted);
+            p.base.is_some_and(|c| kept(c) && (!predicted || c.checked_sub(1).is_some_and(kept)))
+        };
+        match parts.into_iter().all(|p| p.nudges.is_empty() || bases_kept(p)) {
             true => Applicable::Yes,
             false => Applicable::Lost,
         }
@@ -134,19 +139,27 @@ impl ZoneViews {
                     true
                 },
             );
-            let at_base = p.base.and_then(|c| history?.iter().find(|(t, _)| *t == c)).map(|(_, at)| &at[..]);
-            // Nudges come ids ascending, as the base's positions are: one merge.
-            let (at_base, mut b) = (at_base.unwrap_or_default(), 0);
+            let at = |c: Option<u64>| {
+                c.and_then(|c| history?.iter().find(|(t, _)| *t == c)).map(|(_, at)| &at[..]).unwrap_or_default()
+            };
+            // Nudges come ids ascending, as the positions of the base (and of the tick
+            // before, for predicted ones) are: one merge each.
+            let (at_base, mut b) = (at(p.base), 0);
+            let (at_prior, mut q) = (at(p.base.and_then(|c| c.checked_sub(1))), 0);
             unknown += update_sorted(
                 held,
                 p.nudges,
                 |n| n.id,
                 |o, n| {
-                    while b < at_base.len() && at_base[b].0 < n.id {
-                        b += 1;
-                    }
-                    let from = at_base.get(b).filter(|p| p.0 == n.id);
-                    from.map(|&(_, from)| o.pos = n.apply(from)).is_some()
+                    let find = |at: &[(EntityId, Vec3)], i: &mut usize| {
+                        while *i < at.len() && at[*i].0 < n.id {
+                            *i += 1;
+                        }
+                        at.get(*i).filter(|p| p.0 == n.id).map(|p| p.1)
+                    };
+                    let Some(from) = find(at_base, &mut b) else { return false };
+                    let before = if n.predicted { find(at_prior, &mut q) } else { None };
+                    n.apply(before, from).map(|pos| o.pos = pos).is_some()
                 },
             );
         }

@@ -139,8 +139,8 @@ struct Subscriber {
     resyncs: u32,
     /// Whether the next view goes relative to the confirmation (a new `resyncs`).
     resync: bool,
-    /// The run and tick of the last view sent (the base of a chain).
-    last_sent: Option<(u64, u64)>,
+    /// The run, tick and base of the last view sent (its tick is the base of a chain).
+    last_sent: Option<(u64, u64, Option<u64>)>,
     heard_at: u64,
     /// The objects of V the gateway was sent, each with the tick it entered V, ids
     /// ascending.
@@ -150,10 +150,18 @@ struct Subscriber {
 }
 
 impl Subscriber {
+    /// The tick before `base` when the gateway took it before the base, so that it holds
+    /// the positions nudges are predicted from: along a chain (the last view, of the tick
+    /// before, was relative to the tick before that).
+    fn prior(&self, run: u64, tick: u64, base: Option<u64>) -> Option<u64> {
+        let before = base.filter(|&b| b + 1 == tick && b > 0)? - 1;
+        (self.last_sent == Some((run, before + 1, Some(before)))).then_some(before)
+    }
+
     /// The base of its view of `tick` in run `run` (see [Bases](self#bases)): the last
     /// view sent while the chain holds, else the confirmation (`None`: whole).
     fn base(&self, run: u64, tick: u64) -> Option<u64> {
-        let chain = self.last_sent.filter(|&(r, t)| r == run && t < tick).map(|(_, t)| t);
+        let chain = self.last_sent.filter(|&(r, t, _)| r == run && t < tick).map(|(_, t, _)| t);
         match (chain, self.confirmed) {
             _ if self.resync => self.confirmed,
             // Whole views went out, and the gateway has not confirmed one yet.
@@ -356,11 +364,14 @@ impl Subscribers {
         for (&g, s) in &mut self.gateways {
             let buckets = &self.buckets.iter().find(|(grid, _)| *grid == s.grid).expect("filled").1;
             let base = s.base(run, tick);
-            let at_base = base.and_then(|c| self.history.iter().find(|(t, _)| *t == c)).map(|(_, p)| &p[..]);
-            let (objects, moves, nudges, gone) =
-                view_of(g, s, base, &self.tracked, buckets, tick, at_base, &mut self.marks);
+            let positions = |c: Option<u64>| {
+                c.and_then(|c| self.history.iter().find(|(t, _)| *t == c)).map(|(_, p)| &p[..]).unwrap_or_default()
+            };
+            let prior = s.prior(run, tick, base);
+            let at = Bases { base: positions(base), prior: prior.and(Some(positions(prior))) };
+            let (objects, moves, nudges, gone) = view_of(g, s, base, &self.tracked, buckets, tick, at, &mut self.marks);
             s.resync = false;
-            s.last_sent = Some((run, tick));
+            s.last_sent = Some((run, tick, base));
             let mut sent = Sent { objects: (objects.len() + moves.len() + nudges.len()) as u64, ..Sent::default() };
             for (part, parts, (records, moved, nudged, ids)) in parts(&objects, &moves, &nudges, &gone, max_message)? {
                 let v = View {
@@ -417,9 +428,16 @@ impl Subscribers {
 /// What a view holds: whole records, moves, nudges, gone ids (each ids ascending).
 type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<Nudge>, Vec<EntityId>);
 
-/// Gateway `g`'s view at `tick` relative to `base` (`None`: whole), nudging from
-/// `at_base` (the positions of the base tick, when the zone still has them). Updates
-/// what it was sent. `marks` is scratch.
+/// The owned objects' positions (ids ascending) that a view's nudges start from.
+struct Bases<'a> {
+    /// At the base tick (empty when the zone no longer has them: moves, then).
+    base: &'a [(EntityId, Vec3)],
+    /// At the tick before it, when nudges may be predicted (`Subscriber::prior`).
+    prior: Option<&'a [(EntityId, Vec3)]>,
+}
+
+/// Gateway `g`'s view at `tick` relative to `base` (`None`: whole), nudging from the
+/// positions `at`. Updates what it was sent. `marks` is scratch.
 #[allow(clippy::too_many_arguments)]
 fn view_of(
     g: u16,
@@ -428,7 +446,7 @@ fn view_of(
     tracked: &[Tracked],
     buckets: &Buckets,
     tick: u64,
-    at_base: Option<&[(EntityId, Vec3)]>,
+    at: Bases<'_>,
     marks: &mut Vec<u64>,
 ) -> ViewLists {
     if base.is_none() {
@@ -453,7 +471,8 @@ fn view_of(
     let old = std::mem::take(&mut s.known);
     let mut known = Vec::with_capacity(old.len() + 64);
     let (mut k, mut b) = (0, 0);
-    let at_base = at_base.unwrap_or_default();
+    let (at_base, mut q) = (at.base, 0);
+    let prior_tick = c.saturating_sub(1);
     for (w, &word) in marks.iter().enumerate() {
         let mut bits = word;
         while bits != 0 {
@@ -469,16 +488,16 @@ fn view_of(
             // Whole: new to the gateway since what it confirmed (it may lack the
             // record), or one of its own players that changed; else a move when it
             // changed.
-            let (whole, moved) = if k < old.len() && old[k].0 == id {
+            let (whole, moved, since) = if k < old.len() && old[k].0 == id {
                 let since = old[k].1;
                 k += 1;
                 known.push((id, since));
                 let whole = base.is_none() || since > c || (t.changed_at > c && players.contains(&id.0));
-                (whole, !whole && t.changed_at > c)
+                (whole, !whole && t.changed_at > c, since)
             } else {
                 known.push((id, tick));
                 s.gone.remove(&id);
-                (true, false)
+                (true, false, tick)
             };
             if whole {
                 objects.push(t.state);
@@ -489,7 +508,24 @@ fn view_of(
                     b += 1;
                 }
                 let from = at_base.get(b).filter(|p| p.0 == id).map(|p| p.1);
-                match from.map(|from| Nudge::between(id, from, t.state.pos)) {
+                // Predicted when the gateway held it at the tick before the base too.
+                let before = match at.prior {
+                    Some(prior) if since <= prior_tick => {
+                        while q < prior.len() && prior[q].0 < id {
+                            q += 1;
+                        }
+                        prior.get(q).filter(|p| p.0 == id).map(|p| p.1)
+                    }
+                    _ => None,
+                };
+                let nudge = from.map(|from| {
+                    let plain = Nudge::between(id, from, t.state.pos);
+                    match before {
+                        Some(before) => Nudge::shorter(plain, Nudge::predicted(id, before, from, t.state.pos)),
+                        None => plain,
+                    }
+                });
+                match nudge {
                     Some(n) if n.compact() => nudges.push(n),
                     _ => moves.push((id, t.state.pos)),
                 }

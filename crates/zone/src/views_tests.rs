@@ -173,6 +173,11 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
         assert!(v.moves.iter().any(|m| m.0 == EntityId(4)), "a jump goes as a move");
         assert_eq!(v.nudges.len() + v.moves.len(), world.iter().filter(|o| o.pos.x < 30.0).count());
         assert!(v.nudges.len() >= 15, "small steps go as nudges: {} of them", v.nudges.len());
+        // Steady walks are predicted along a chain: from its second step, and again from
+        // the second view after the resync.
+        let predicted = v.nudges.iter().filter(|n| n.predicted).count();
+        let chained = tick >= 4 && !(16..=17).contains(&tick);
+        assert_eq!(predicted >= 15, chained, "tick {tick}: {predicted} predicted");
         let parts = vec![part(v)];
         match gateway.applicable(0, &parts, Some(taken)) {
             _ if tick == 14 => {}
@@ -213,7 +218,7 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
     assert!(v.nudges.is_empty() && !v.moves.is_empty());
     // Nudges from a base the gateway no longer keeps cannot be applied: only whole
     // views bring it back.
-    let nudges = vec![Nudge { id: EntityId(1), bits: [1, 0, 0] }];
+    let nudges = vec![Nudge { id: EntityId(1), predicted: false, bits: [1, 0, 0] }];
     let forged = part(View { base: Some(3), nudges, moves: vec![], ..v });
     assert_eq!(gateway.applicable(0, std::slice::from_ref(&forged), Some(28)), Applicable::Lost);
     assert_eq!(gateway.applicable(0, &[forged], Some(2)), Applicable::Ahead);

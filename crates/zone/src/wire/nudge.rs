@@ -12,10 +12,21 @@
 //! whole nudge (id delta included) is at most [`NUDGE_MAX_LEN`] bytes, under a 16-byte
 //! move's.
 //!
-//! Encoding, one nudge after another, ids strictly ascending: the id as a varint of its
-//! difference from the previous nudge's id (from 0 for the first), then the three
-//! coordinates' zigzagged bit changes as varints. Varints must be minimal (one encoding
-//! per message): `unsigned-varint` refuses the others.
+//! **Predicted nudges.** An object that walks steadily changes its bits by about the same
+//! each tick, so a nudge can carry the change against a prediction instead: the bits at
+//! the base plus the change from the tick before the base to the base (both sides hold
+//! both ticks' positions, and the arithmetic is on integers, so the result is exact). A
+//! walker at constant speed then costs a byte an axis where its plain change takes two
+//! or three. The zone predicts only along a chain of views (the base is the tick before
+//! the view's, and the tick before the base is the base of the view before: a tick the
+//! gateway took) and only for objects the gateway held at that tick
+//! (`crate::views`), and takes whichever form is shorter.
+//!
+//! Encoding, one nudge after another, ids strictly ascending: a varint of the id's
+//! difference from the previous nudge's id (from 0 for the first), shifted left by one,
+//! whose low bit says the nudge is predicted; then the three coordinates' zigzagged bit
+//! changes (from the base, or from the prediction) as varints. Varints must be minimal
+//! (one encoding per message): `unsigned-varint` refuses the others.
 
 use myriad_core::{EntityId, Vec3};
 use unsigned_varint::{decode, encode};
@@ -32,26 +43,68 @@ const NUDGE_MIN_LEN: usize = 4;
 const COMPACT_LIMIT: u32 = 1 << 21;
 
 /// An object's new position as the wrapping change of each coordinate's `f32` bits since
-/// the view's base tick.
+/// the view's base tick, or since a prediction from the base and the tick before it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Nudge {
     /// The object.
     pub id: EntityId,
-    /// Per axis: the new coordinate's bits minus (wrapping) those at the base tick.
+    /// Whether `bits` are the change from the prediction (`2 × base − before`, on the
+    /// bits) rather than from the base.
+    pub predicted: bool,
+    /// Per axis: the new coordinate's bits minus (wrapping) those at the base tick, or
+    /// those predicted.
     pub bits: [i32; 3],
+}
+
+/// Each coordinate's bits.
+fn bits(v: Vec3) -> [u32; 3] {
+    [v.x, v.y, v.z].map(f32::to_bits)
+}
+
+/// The prediction from the tick before the base (`before`) and the base (`base`): each
+/// coordinate's bits at the base plus their change from `before` (wrapping).
+fn predict(before: Vec3, base: Vec3) -> [u32; 3] {
+    let (a, b) = (bits(before), bits(base));
+    [0, 1, 2].map(|i| b[i].wrapping_add(b[i].wrapping_sub(a[i])))
 }
 
 impl Nudge {
     /// The nudge that takes `from` to `to` exactly.
     pub fn between(id: EntityId, from: Vec3, to: Vec3) -> Nudge {
-        let d = |a: f32, b: f32| b.to_bits().wrapping_sub(a.to_bits()) as i32;
-        Nudge { id, bits: [d(from.x, to.x), d(from.y, to.y), d(from.z, to.z)] }
+        Nudge::change(id, false, bits(from), to)
     }
 
-    /// The position it gives from the base tick's `from`.
-    pub fn apply(&self, from: Vec3) -> Vec3 {
-        let a = |c: f32, d: i32| f32::from_bits(c.to_bits().wrapping_add(d as u32));
-        Vec3::new(a(from.x, self.bits[0]), a(from.y, self.bits[1]), a(from.z, self.bits[2]))
+    /// The predicted nudge that takes the object from `before` (its position at the tick
+    /// before the base) and `from` (at the base) to `to` exactly.
+    pub fn predicted(id: EntityId, before: Vec3, from: Vec3, to: Vec3) -> Nudge {
+        Nudge::change(id, true, predict(before, from), to)
+    }
+
+    fn change(id: EntityId, predicted: bool, from: [u32; 3], to: Vec3) -> Nudge {
+        let to = bits(to);
+        Nudge { id, predicted, bits: [0, 1, 2].map(|i| to[i].wrapping_sub(from[i]) as i32) }
+    }
+
+    /// The position it gives from the base tick's `from` (and, if it is predicted, the
+    /// tick before's `before`; `None` then: no position).
+    pub fn apply(&self, before: Option<Vec3>, from: Vec3) -> Option<Vec3> {
+        let start = match (self.predicted, before) {
+            (false, _) => bits(from),
+            (true, Some(before)) => predict(before, from),
+            (true, None) => return None,
+        };
+        let a = |i: usize| f32::from_bits(start[i].wrapping_add(self.bits[i] as u32));
+        Some(Vec3::new(a(0), a(1), a(2)))
+    }
+
+    /// The bytes it takes on the wire (its id's delta from `prev`'s).
+    fn len(&self, prev: u32) -> usize {
+        varint_len(id_word(self, prev)) + self.bits.iter().map(|&c| varint_len(u64::from(zigzag(c)))).sum::<usize>()
+    }
+
+    /// Whichever of `a` and `b` takes fewer bytes (`a` when equal).
+    pub fn shorter(a: Nudge, b: Nudge) -> Nudge {
+        if b.len(0) < a.len(0) { b } else { a }
     }
 
     /// Whether every coordinate takes at most three bytes (so the nudge is smaller than
@@ -69,15 +122,25 @@ fn unzigzag(u: u32) -> i32 {
     ((u >> 1) as i32) ^ -((u & 1) as i32)
 }
 
+/// The first varint of a nudge: its id's delta from `prev`, and whether it is predicted.
+fn id_word(n: &Nudge, prev: u32) -> u64 {
+    u64::from(n.id.0 - prev) << 1 | u64::from(n.predicted)
+}
+
+/// The bytes of `v` as a LEB128 varint.
+fn varint_len(v: u64) -> usize {
+    (64 - v.leading_zeros()).max(1).div_ceil(7) as usize
+}
+
 /// Appends `nudges` (ids strictly ascending, checked by the caller).
 pub(super) fn put_nudges(b: &mut Vec<u8>, nudges: &[Nudge]) {
     let mut prev = 0u32;
     for n in nudges {
-        let mut buf = encode::u32_buffer();
-        b.extend_from_slice(encode::u32(n.id.0 - prev, &mut buf));
+        let mut buf = encode::u64_buffer();
+        b.extend_from_slice(encode::u64(id_word(n, prev), &mut buf));
         prev = n.id.0;
         for &c in &n.bits {
-            b.extend_from_slice(encode::u32(zigzag(c), &mut buf));
+            b.extend_from_slice(encode::u64(u64::from(zigzag(c)), &mut buf));
         }
     }
 }
@@ -94,7 +157,9 @@ pub(super) fn nudges(bytes: &[u8], count: u32) -> Result<Vec<Nudge>, WireError> 
     let mut rest = bytes;
     let mut prev: Option<u32> = None;
     for _ in 0..count {
-        let (delta, r) = decode::u32(rest).map_err(bad)?;
+        let (word, r) = decode::u64(rest).map_err(bad)?;
+        let predicted = word & 1 == 1;
+        let delta = u32::try_from(word >> 1).map_err(|_| WireError::Field("view ids"))?;
         let id = match prev {
             None => delta,
             Some(_) if delta == 0 => return Err(WireError::Field("view ids")),
@@ -107,7 +172,7 @@ pub(super) fn nudges(bytes: &[u8], count: u32) -> Result<Vec<Nudge>, WireError> 
             *c = unzigzag(u);
             r = r2;
         }
-        out.push(Nudge { id: EntityId(id), bits });
+        out.push(Nudge { id: EntityId(id), predicted, bits });
         prev = Some(id);
         rest = r;
     }
@@ -119,14 +184,13 @@ pub(super) fn nudges(bytes: &[u8], count: u32) -> Result<Vec<Nudge>, WireError> 
 
 /// The bytes `nudges` take.
 pub(super) fn nudges_len(nudges: &[Nudge]) -> usize {
-    let len = |v: u32| (32 - v.leading_zeros()).max(1).div_ceil(7) as usize;
     let mut prev = 0u32;
     nudges
         .iter()
         .map(|n| {
-            let id = len(n.id.0 - prev);
+            let len = n.len(prev);
             prev = n.id.0;
-            id + n.bits.iter().map(|&c| len(zigzag(c))).sum::<usize>()
+            len
         })
         .sum()
 }
@@ -144,8 +208,13 @@ mod tests {
         ];
         for (a, b) in cases {
             let n = Nudge::between(EntityId(3), a, b);
-            let got = n.apply(a);
-            assert_eq!([got.x, got.y, got.z].map(f32::to_bits), [b.x, b.y, b.z].map(f32::to_bits));
+            assert_eq!(n.apply(None, a).map(bits), Some(bits(b)));
+            // Predicted from any two earlier positions, as exact.
+            for before in [a, b, Vec3::new(-3.0, f32::MAX, 0.5)] {
+                let p = Nudge::predicted(EntityId(3), before, a, b);
+                assert_eq!(p.apply(Some(before), a).map(bits), Some(bits(b)));
+                assert_eq!(p.apply(None, a), None, "a prediction needs the tick before");
+            }
         }
         // A short walk is compact; a jump across the map or through zero is not.
         assert!(Nudge::between(EntityId(1), cases[0].0, cases[0].1).compact());
@@ -154,11 +223,23 @@ mod tests {
     }
 
     #[test]
+    fn a_steady_walk_predicted_takes_a_byte_an_axis() {
+        // A walk of 0.1 units a tick near 500 (3,277 ulps), slowing a little.
+        let (before, from, to) =
+            (Vec3::new(499.8, 12.5, 3.0), Vec3::new(499.9, 12.5, 2.95), Vec3::new(499.99995, 12.5, 2.900001));
+        let plain = Nudge::between(EntityId(9), from, to);
+        let predicted = Nudge::predicted(EntityId(9), before, from, to);
+        assert_eq!((plain.len(0), predicted.len(0)), (1 + 2 + 1 + 3, 1 + 1 + 1 + 1));
+        assert_eq!(Nudge::shorter(plain, predicted), predicted);
+        assert_eq!(Nudge::shorter(plain, plain), plain);
+    }
+
+    #[test]
     fn nudges_round_trip_at_their_computed_length_and_refuse_bad_bytes() {
         let list = vec![
-            Nudge { id: EntityId(0), bits: [0, -1, 1] },
-            Nudge { id: EntityId(200), bits: [3277, -(1 << 20), (1 << 20) - 1] },
-            Nudge { id: EntityId(u32::MAX), bits: [i32::MIN, i32::MAX, 64] },
+            Nudge { id: EntityId(0), predicted: false, bits: [0, -1, 1] },
+            Nudge { id: EntityId(200), predicted: true, bits: [3277, -(1 << 20), (1 << 20) - 1] },
+            Nudge { id: EntityId(u32::MAX), predicted: true, bits: [i32::MIN, i32::MAX, 64] },
         ];
         let mut b = Vec::new();
         put_nudges(&mut b, &list);
@@ -175,7 +256,7 @@ mod tests {
         // Ids past u32::MAX.
         let mut over = Vec::new();
         put_nudges(&mut over, &list[2..]);
-        over.extend_from_slice(&[1, 0, 0, 0]);
+        over.extend_from_slice(&[2, 0, 0, 0]);
         assert_eq!(nudges(&over, 2), Err(WireError::Field("view ids")));
     }
 }

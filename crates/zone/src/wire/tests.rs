@@ -113,7 +113,10 @@ fn view() -> View {
         base: Some(99),
         objects: vec![object(5, 1.0), object(9, -7.5)],
         moves: vec![(EntityId(2), Vec3::new(1.0, 2.0, 3.0)), (EntityId(6), Vec3::new(-4.0, 0.5, 9.0))],
-        nudges: vec![Nudge { id: EntityId(4), bits: [3277, -2, 0] }, Nudge { id: EntityId(700), bits: [0, 0, -64] }],
+        nudges: vec![
+            Nudge { id: EntityId(4), predicted: false, bits: [3277, -2, 0] },
+            Nudge { id: EntityId(700), predicted: true, bits: [0, 0, -64] },
+        ],
         gone: vec![EntityId(3), EntityId(1 << 30)],
     }
 }
@@ -129,7 +132,8 @@ fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
         Message::Subscription(none)
     );
     let v = encode_view(&key(), &view()).unwrap();
-    // Nudges: id 4 (1 byte), 3277 (2), -2 (1), 0 (1); id 700 as 696 more (2), 0, 0, -64 (1).
+    // Nudges: id 4 (1 byte), 3277 (2), -2 (1), 0 (1); id 700 as 696 more, predicted (2),
+    // 0, 0, -64 (1).
     let nudges = (1 + 2 + 1 + 1) + (2 + 1 + 1 + 1);
     assert_eq!(v.len(), HEADER_LEN + 24 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + nudges + TAG_LEN);
     assert_eq!(decode(&key(), &v).unwrap(), Message::View(view()));
@@ -153,7 +157,7 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
     assert!(encode_view(&key(), &View { gone: view().gone, ..whole.clone() }).is_err(), "gone ids in a whole view");
     assert!(encode_view(&key(), &View { moves: view().moves, ..whole.clone() }).is_err(), "moves in a whole view");
     assert!(encode_view(&key(), &View { nudges: view().nudges, ..whole }).is_err(), "nudges in a whole view");
-    let both = vec![Nudge { id: EntityId(6), bits: [1, 1, 1] }];
+    let both = vec![Nudge { id: EntityId(6), predicted: false, bits: [1, 1, 1] }];
     assert!(encode_view(&key(), &View { nudges: both, ..view() }).is_err(), "one object moved and nudged");
     let nan = vec![(EntityId(2), Vec3::new(f32::NAN, 0.0, 0.0))];
     assert!(encode_view(&key(), &View { moves: nan, ..view() }).is_err(), "a move nowhere");

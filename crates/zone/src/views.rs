@@ -34,8 +34,11 @@
 //! gateway's confirmation is within [`CHAIN_LAG`] ticks (a gateway further behind takes
 //! only the newest of the ticks it has, which views relative to its confirmation allow),
 //! and the gateway asks for a view relative to its confirmation again (its
-//! subscription's `resyncs` grows) when a view of the chain was lost: the next view
-//! after a new `resyncs` is relative to the confirmation, or whole without one.
+//! subscription's `resyncs` grows) when a view of the chain was lost: the views after a
+//! new `resyncs` are relative to the confirmation, or whole without one, until the
+//! gateway confirms one of them. Not just the next one: the zones hear the subscription
+//! at different ticks, and the gateway takes a tick only when every zone's view of it
+//! applies, which views relative to its confirmation always do.
 //!
 //! The work per tick is one pass over the owned objects that keeps each one's last
 //! change (a merge by id with the last tick's), one pass that buckets them by cell
@@ -137,8 +140,9 @@ struct Subscriber {
     confirmed: Option<u64>,
     /// The gateway's count of broken chains, as last heard.
     resyncs: u32,
-    /// Whether the next view goes relative to the confirmation (a new `resyncs`).
-    resync: bool,
+    /// Whether views go relative to the confirmation (a new `resyncs`), and from which
+    /// tick they did: until the gateway confirms that tick or a later one.
+    resync: Option<Option<u64>>,
     /// The run, tick and base of the last view sent (its tick is the base of a chain).
     last_sent: Option<(u64, u64, Option<u64>)>,
     heard_at: u64,
@@ -163,7 +167,7 @@ impl Subscriber {
     fn base(&self, run: u64, tick: u64) -> Option<u64> {
         let chain = self.last_sent.filter(|&(r, t, _)| r == run && t < tick).map(|(_, t, _)| t);
         match (chain, self.confirmed) {
-            _ if self.resync => self.confirmed,
+            _ if self.resync.is_some() => self.confirmed,
             // Whole views went out, and the gateway has not confirmed one yet.
             (Some(last), None) => Some(last),
             (Some(last), Some(c)) if tick.saturating_sub(c) <= CHAIN_LAG => Some(last),
@@ -306,8 +310,16 @@ impl Subscribers {
                 let elsewhere = s.confirmed.is_some_and(|(r, _)| r != run);
                 e.confirmed = confirmed.map(|c| e.confirmed.map_or(c, |was| was.max(c)));
                 // A broken chain: the next view goes relative to the confirmation.
-                e.resync |= dropped || elsewhere || s.resyncs != e.resyncs;
+                if dropped || elsewhere || s.resyncs != e.resyncs {
+                    e.resync = Some(None);
+                }
                 e.resyncs = s.resyncs;
+                // Over once the gateway confirms a view sent since.
+                if let (Some(Some(from)), Some(c)) = (e.resync, e.confirmed)
+                    && c >= from
+                {
+                    e.resync = None;
+                }
                 e.heard_at = tick;
             }
             _ => {
@@ -319,7 +331,7 @@ impl Subscribers {
                     cells,
                     confirmed: None,
                     resyncs: s.resyncs,
-                    resync: false,
+                    resync: None,
                     last_sent: None,
                     heard_at: tick,
                     known: Vec::new(),
@@ -370,7 +382,9 @@ impl Subscribers {
             let prior = s.prior(run, tick, base);
             let at = Bases { base: positions(base), prior: prior.and(Some(positions(prior))) };
             let (objects, moves, nudges, gone) = view_of(g, s, base, &self.tracked, buckets, tick, at, &mut self.marks);
-            s.resync = false;
+            if s.resync == Some(None) {
+                s.resync = Some(Some(tick));
+            }
             s.last_sent = Some((run, tick, base));
             let mut sent = Sent { objects: (objects.len() + moves.len() + nudges.len()) as u64, ..Sent::default() };
             for (part, parts, (records, moved, nudged, ids)) in parts(&objects, &moves, &nudges, &gone, max_message)? {

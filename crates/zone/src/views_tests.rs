@@ -81,21 +81,25 @@ fn a_view_is_whole_then_only_what_changed_and_what_left_since_its_base() {
     // Relative to the last view sent (a chain): each change once.
     assert_eq!(publish(&mut subs, 4, &world), [(G, Some(3), vec![3], vec![1], vec![2])]);
     assert_eq!(publish(&mut subs, 5, &world), [(G, Some(4), vec![], vec![], vec![])]);
-    // The gateway lost a view of the chain: the next is relative to its confirmation,
-    // with every change since (gone ids kept until it confirms past them); then the
-    // chain goes on from that view.
+    // The gateway lost a view of the chain: the views are relative to its confirmation,
+    // with every change since (gone ids kept until it confirms past them), until it
+    // confirms one of them; then the chain goes on.
     let mut resync = subscription(10, 1, Some(2));
     resync.resyncs = 1;
     subs.offer(resync.clone(), RUN, 5, &bounds()).unwrap();
     assert_eq!(publish(&mut subs, 6, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
-    assert_eq!(publish(&mut subs, 7, &world), [(G, Some(6), vec![], vec![], vec![])]);
-    // Told again (the same count): nothing new to do.
-    subs.offer(resync, RUN, 7, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, 7, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
+    resync.confirmed = Some((RUN, 6));
+    subs.offer(resync.clone(), RUN, 7, &bounds()).unwrap();
     assert_eq!(publish(&mut subs, 8, &world), [(G, Some(7), vec![], vec![], vec![])]);
+    // Told again (the same count): nothing new to do.
+    subs.offer(resync, RUN, 8, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, 9, &world), [(G, Some(8), vec![], vec![], vec![])]);
     // A confirmation more than CHAIN_LAG ticks behind: the gateway takes only its newest
     // tick, so views go relative to the confirmation.
-    let behind = 8 + CHAIN_LAG + 1;
-    assert_eq!(publish(&mut subs, behind, &world), [(G, Some(2), vec![3], vec![1], vec![2])]);
+    let behind = 9 + CHAIN_LAG + 1;
+    world[0].pos.x = 7.0;
+    assert_eq!(publish(&mut subs, behind, &world), [(G, Some(6), vec![], vec![1], vec![])]);
     let mut caught_up = subscription(10, 1, Some(behind));
     caught_up.resyncs = 1;
     subs.offer(caught_up, RUN, behind, &bounds()).unwrap();
@@ -106,26 +110,33 @@ fn a_view_is_whole_then_only_what_changed_and_what_left_since_its_base() {
     world.remove(0);
     assert_eq!(publish(&mut subs, behind + 2, &world), [(G, Some(behind + 1), vec![], vec![], vec![1])]);
     let t = behind + 2;
-    // A gateway that dropped what it held (it confirms nothing now): whole again.
+    // A gateway that dropped what it held (it confirms nothing now): whole again, until
+    // it confirms one of them; then a chain.
     subs.offer(subscription(10, 1, None), RUN, t, &bounds()).unwrap();
     assert_eq!(publish(&mut subs, t + 1, &world), [(G, None, vec![3, player], vec![], vec![])]);
-    // Then a chain from that whole view, even before a confirmation comes.
-    assert_eq!(publish(&mut subs, t + 2, &world), [(G, Some(t + 1), vec![], vec![], vec![])]);
+    assert_eq!(publish(&mut subs, t + 2, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    subs.offer(subscription(10, 1, Some(t + 1)), RUN, t + 2, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, t + 3, &world), [(G, Some(t + 2), vec![], vec![], vec![])]);
+    // A new subscriber's whole view is followed by a chain even before it confirms.
+    let mut fresh = Subscribers::default();
+    fresh.offer(subscription(10, 1, None), RUN, t, &bounds()).unwrap();
+    assert_eq!(publish(&mut fresh, t + 1, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    assert_eq!(publish(&mut fresh, t + 2, &world), [(G, Some(t + 1), vec![], vec![], vec![])]);
     // A confirmation of another run (the gateway followed a rollback): whole again,
     // however recent the last view.
-    subs.offer(subscription(10, 2, Some(t + 1)), RUN, t + 2, &bounds()).unwrap();
+    let u = t + 3;
     let mut other = subscription(10, 3, Some(t));
     other.confirmed = Some((RUN + 1, t));
-    subs.offer(other, RUN, t + 2, &bounds()).unwrap();
-    assert_eq!(publish(&mut subs, t + 3, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    subs.offer(other, RUN, u, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, u + 1, &world), [(G, None, vec![3, player], vec![], vec![])]);
     // A restarted gateway (a newer incarnation) starts whole too; an older one is refused.
-    subs.offer(subscription(11, 1, Some(t + 3)), RUN, t + 3, &bounds()).unwrap();
-    assert_eq!(publish(&mut subs, t + 4, &world), [(G, None, vec![3, player], vec![], vec![])]);
-    let stale = subs.offer(subscription(10, 9, Some(t)), RUN, t + 4, &bounds());
+    subs.offer(subscription(11, 1, Some(u + 1)), RUN, u + 1, &bounds()).unwrap();
+    assert_eq!(publish(&mut subs, u + 2, &world), [(G, None, vec![3, player], vec![], vec![])]);
+    let stale = subs.offer(subscription(10, 9, Some(u)), RUN, u + 2, &bounds());
     assert_eq!(stale, Err(SubscriptionError::Stale { incarnation: 10, version: 9 }));
-    // A subscriber silent for longer than EXPIRE_TICKS (last heard at t + 3) is dropped.
-    assert_eq!(publish(&mut subs, t + 3 + EXPIRE_TICKS, &world).len(), 1);
-    assert!(publish(&mut subs, t + 4 + EXPIRE_TICKS, &world).is_empty());
+    // A subscriber silent for longer than EXPIRE_TICKS (last heard at u + 1) is dropped.
+    assert_eq!(publish(&mut subs, u + 1 + EXPIRE_TICKS, &world).len(), 1);
+    assert!(publish(&mut subs, u + 2 + EXPIRE_TICKS, &world).is_empty());
     assert!(subs.is_empty());
 }
 
@@ -160,6 +171,7 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
     // Walk every object a little each tick, and one far (a move, not a nudge); the
     // gateway confirms two ticks late, as a live one may, and loses the view of tick 14.
     let (mut confirmed, mut taken, mut resyncs) = (2, 2, 0);
+    let mut took = vec![2];
     for tick in 3..30u64 {
         for (i, o) in world.iter_mut().enumerate() {
             o.pos.x += 0.013 * (i as f32 - 9.5);
@@ -167,16 +179,17 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
         }
         world[3].pos.z = if tick % 2 == 0 { 5.0 } else { 95.0 };
         let v = views(&mut subs, tick, &world).remove(0);
-        // A chain (the last view), but for the view after the gateway asked again.
-        let resynced = tick == 16;
+        // A chain (the last view), but for the views after the gateway asked again,
+        // until it confirms one of them.
+        let resynced = (16..=18).contains(&tick);
         assert_eq!(v.base, Some(if resynced { confirmed } else { tick - 1 }), "tick {tick}");
         assert!(v.moves.iter().any(|m| m.0 == EntityId(4)), "a jump goes as a move");
         assert_eq!(v.nudges.len() + v.moves.len(), world.iter().filter(|o| o.pos.x < 30.0).count());
         assert!(v.nudges.len() >= 15, "small steps go as nudges: {} of them", v.nudges.len());
         // Steady walks are predicted along a chain: from its second step, and again from
-        // the second view after the resync.
+        // the second view after the resync's.
         let predicted = v.nudges.iter().filter(|n| n.predicted).count();
-        let chained = tick >= 4 && !(16..=17).contains(&tick);
+        let chained = tick >= 4 && !(16..=19).contains(&tick);
         assert_eq!(predicted >= 15, chained, "tick {tick}: {predicted} predicted");
         let parts = vec![part(v)];
         match gateway.applicable(0, &parts, Some(taken)) {
@@ -185,6 +198,7 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
                 assert_eq!(gateway.apply(0, parts), 0);
                 gateway.remember(tick);
                 taken = tick;
+                took.push(tick);
                 let held = gateway.assemble();
                 let want: Vec<[u32; 3]> = world
                     .iter()
@@ -202,8 +216,8 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
             }
             Applicable::Lost => panic!("tick {tick}: nudges from a base the gateway has"),
         }
-        // The confirmation reaches the zone two ticks later.
-        confirmed = taken.min(tick.saturating_sub(2)).max(confirmed);
+        // The confirmation (a tick it took) reaches the zone two ticks later.
+        confirmed = took.iter().copied().filter(|&t| t + 2 <= tick).max().unwrap_or(confirmed);
         let mut s = subscription(10, 1, Some(confirmed));
         s.resyncs = resyncs;
         subs.offer(s, RUN, tick, &bounds()).unwrap();

@@ -4,6 +4,7 @@
 use myriad_core::{Aabb, World};
 use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{AoiResults, PhysicsError};
+use rayon::slice::ParallelSliceMut;
 
 use super::Resident;
 use super::broad::{Queries, count_pass, write_pass};
@@ -95,7 +96,9 @@ fn query_order(boxes: &[Aabb]) -> Vec<u32> {
     let frame = MortonFrame::new(&bounds);
     let mut keyed: Vec<(u64, u32)> =
         boxes.iter().enumerate().map(|(i, b)| (frame.code(b.center()), i as u32)).collect();
-    keyed.sort_unstable();
+    // 10,000 players' keys: on the pool, a few times faster than on one core. The keys
+    // are unique (ties broken by index), so the order is the same either way.
+    keyed.par_sort_unstable();
     keyed.into_iter().map(|(_, i)| i).collect()
 }
 

@@ -17,7 +17,6 @@
 //! [`FORGET_BUILDS`] builds in a row is forgotten and starts afresh if it comes back.
 //! After any failure every player starts afresh (the device state is not trusted).
 
-use std::collections::HashMap;
 use std::collections::hash_map::Entry;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -110,7 +109,9 @@ struct Placed {
 }
 
 struct State {
-    homes_of: HashMap<u64, Home>,
+    /// By session key: two look-ups a player a build (`place`, the reports), so a fast
+    /// hash (the keys are the server's own, not a peer's).
+    homes_of: foldhash::HashMap<u64, Home>,
     free: Vec<u32>,
     /// Homes the device arrays hold.
     capacity: usize,
@@ -249,7 +250,7 @@ impl DeviceReplicas {
 impl State {
     fn new() -> State {
         State {
-            homes_of: HashMap::new(),
+            homes_of: foldhash::HashMap::default(),
             free: Vec::new(),
             capacity: 0,
             builds: 0,

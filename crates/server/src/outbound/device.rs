@@ -84,16 +84,21 @@ impl DeviceOutbound {
         let packing = Instant::now();
         let choices = self.replicas.choices();
         let tick = job.tick;
-        let faults: usize = recipients
+        // The tick's report is summed here, over each player just sealed (its
+        // subscriber is in cache), rather than by a serial pass after.
+        let (faults, tick_report) = recipients
             .par_iter_mut()
             .zip(self.commits.par_iter_mut())
             .zip(self.ends.par_chunks_mut(mdg))
             .enumerate()
-            .map(|(i, ((r, commit), ends))| {
-                SCRATCH.with_borrow_mut(|s| seal_one(&choices, i, tick, r, commit, ends, s))
-            })
-            .filter(|ok| !ok)
-            .count();
+            .fold(
+                || (0usize, TickReport::default()),
+                |(faults, report), (i, ((r, commit), ends))| {
+                    let ok = SCRATCH.with_borrow_mut(|s| seal_one(&choices, i, tick, r, commit, ends, s));
+                    (faults + usize::from(!ok), report.with(&r.view.report()))
+                },
+            )
+            .reduce(|| (0, TickReport::default()), |a, b| (a.0 + b.0, a.1.merge(b.1)));
         self.replicas.profile_host("host: pack and seal", packing);
         if faults > 0 {
             tracing::error!(players = faults, "the device chose records no datagram can carry");
@@ -106,10 +111,7 @@ impl DeviceOutbound {
             tracing::error!(error = %e, "device replicas failed to commit");
             metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
         }
-        let committed = Instant::now();
-        let tick_report = recipients.iter().fold(TickReport::default(), |acc, r| acc.with(&r.view.report()));
         report.add_interest(&tick_report);
-        self.replicas.profile_host("host: outbound report", committed);
         report
     }
 }

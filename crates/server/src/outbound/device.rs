@@ -57,14 +57,18 @@ impl DeviceOutbound {
     /// [`Outbound::build`] without the hand-over.
     fn build_all(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         let mut report = OutboundReport::default();
+        let setting_up = Instant::now();
         aim(recipients, self.half, &mut self.boxes);
-        self.players.clear();
-        self.players.extend(recipients.iter_mut().map(|r| ReplicaPlayer {
-            key: r.session_id,
-            own: r.object,
-            centre: r.centre.to_array(),
-            acks: r.view.take_acks(),
-        }));
+        recipients
+            .par_iter_mut()
+            .map(|r| ReplicaPlayer {
+                key: r.session_id,
+                own: r.object,
+                centre: r.centre.to_array(),
+                acks: r.view.take_acks(),
+            })
+            .collect_into_vec(&mut self.players);
+        self.replicas.profile_host("host: outbound set-up", setting_up);
         let mdg = self.config.max_datagrams.max(1);
         let t = Instant::now();
         let chose =
@@ -176,7 +180,9 @@ impl Outbound for DeviceOutbound {
 
     fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         let report = self.build_all(job, recipients);
+        let sending = Instant::now();
         spread_over_lanes(recipients, job.ready);
+        self.replicas.profile_host("host: hand to the lanes (sending)", sending);
         report
     }
 }

@@ -51,14 +51,17 @@ pub fn create(config: &ServerConfig, replicas: Option<DeviceReplicas>) -> Box<dy
 }
 
 /// Points each recipient's view at its object and centre, and collects their AOI boxes
-/// (half extents `half`) into `boxes`.
+/// (half extents `half`) into `boxes`. In parallel: each recipient's subscriber is a
+/// cache miss, 10,000 of them a tick.
 fn aim(recipients: &mut [Recipient<'_>], half: Vec3, boxes: &mut Vec<Aabb>) {
-    boxes.clear();
-    for r in recipients.iter_mut() {
-        r.view.object = r.object;
-        r.view.centre = r.centre.to_array();
-        boxes.push(Aabb::from_center_half(r.centre, half));
-    }
+    recipients
+        .par_iter_mut()
+        .map(|r| {
+            r.view.object = r.object;
+            r.view.centre = r.centre.to_array();
+            Aabb::from_center_half(r.centre, half)
+        })
+        .collect_into_vec(boxes);
 }
 
 /// Leaves every recipient without datagrams this tick (a build that failed).

@@ -7,7 +7,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 use myriad_core::{EntityId, ObjectState, Vec3};
 
-use crate::views::{NUDGE_WINDOW, Positions};
+use crate::views::{NUDGE_WINDOW, Positions, seek};
 use crate::wire::Nudge;
 
 /// One part of a zone's message of one tick, as the gateway files it.
@@ -151,14 +151,8 @@ impl ZoneViews {
                 p.nudges,
                 |n| n.id,
                 |o, n| {
-                    let find = |at: &[(EntityId, Vec3)], i: &mut usize| {
-                        while *i < at.len() && at[*i].0 < n.id {
-                            *i += 1;
-                        }
-                        at.get(*i).filter(|p| p.0 == n.id).map(|p| p.1)
-                    };
-                    let Some(from) = find(at_base, &mut b) else { return false };
-                    let before = if n.predicted { find(at_prior, &mut q) } else { None };
+                    let Some(from) = seek(at_base, &mut b, n.id) else { return false };
+                    let before = if n.predicted { seek(at_prior, &mut q, n.id) } else { None };
                     n.apply(before, from).map(|pos| o.pos = pos).is_some()
                 },
             );

@@ -85,6 +85,27 @@ pub const CHAIN_LAG: u64 = NUDGE_WINDOW;
 /// The owned objects' positions after one tick, ids ascending.
 pub(crate) type Positions = Vec<(EntityId, Vec3)>;
 
+/// `id`'s position in `at` (ids ascending), searching on from `*i` and leaving `*i` there:
+/// a merge of ascending ids with positions, a step or a few each, no look-up.
+pub(crate) fn seek(at: &[(EntityId, Vec3)], i: &mut usize, id: EntityId) -> Option<Vec3> {
+    while *i < at.len() && at[*i].0 < id {
+        *i += 1;
+    }
+    at.get(*i).filter(|p| p.0 == id).map(|p| p.1)
+}
+
+/// Where a gateway's views stand after a new `resyncs` (or a dropped confirmation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Resync {
+    /// No resync: views may chain.
+    Off,
+    /// Asked: the next view goes relative to the confirmation.
+    Asked,
+    /// Views go relative to the confirmation since this tick, until the gateway
+    /// confirms it or a later one.
+    Since(u64),
+}
+
 /// Why a zone refused a subscription (counted by [`SubscriptionError::label`]).
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum SubscriptionError {
@@ -140,9 +161,8 @@ struct Subscriber {
     confirmed: Option<u64>,
     /// The gateway's count of broken chains, as last heard.
     resyncs: u32,
-    /// Whether views go relative to the confirmation (a new `resyncs`), and from which
-    /// tick they did: until the gateway confirms that tick or a later one.
-    resync: Option<Option<u64>>,
+    /// Whether views go relative to the confirmation (a new `resyncs`).
+    resync: Resync,
     /// The run, tick and base of the last view sent (its tick is the base of a chain).
     last_sent: Option<(u64, u64, Option<u64>)>,
     heard_at: u64,
@@ -167,7 +187,7 @@ impl Subscriber {
     fn base(&self, run: u64, tick: u64) -> Option<u64> {
         let chain = self.last_sent.filter(|&(r, t, _)| r == run && t < tick).map(|(_, t, _)| t);
         match (chain, self.confirmed) {
-            _ if self.resync.is_some() => self.confirmed,
+            _ if self.resync != Resync::Off => self.confirmed,
             // Whole views went out, and the gateway has not confirmed one yet.
             (Some(last), None) => Some(last),
             (Some(last), Some(c)) if tick.saturating_sub(c) <= CHAIN_LAG => Some(last),
@@ -311,14 +331,14 @@ impl Subscribers {
                 e.confirmed = confirmed.map(|c| e.confirmed.map_or(c, |was| was.max(c)));
                 // A broken chain: the next view goes relative to the confirmation.
                 if dropped || elsewhere || s.resyncs != e.resyncs {
-                    e.resync = Some(None);
+                    e.resync = Resync::Asked;
                 }
                 e.resyncs = s.resyncs;
                 // Over once the gateway confirms a view sent since.
-                if let (Some(Some(from)), Some(c)) = (e.resync, e.confirmed)
+                if let (Resync::Since(from), Some(c)) = (e.resync, e.confirmed)
                     && c >= from
                 {
-                    e.resync = None;
+                    e.resync = Resync::Off;
                 }
                 e.heard_at = tick;
             }
@@ -331,7 +351,7 @@ impl Subscribers {
                     cells,
                     confirmed: None,
                     resyncs: s.resyncs,
-                    resync: None,
+                    resync: Resync::Off,
                     last_sent: None,
                     heard_at: tick,
                     known: Vec::new(),
@@ -379,11 +399,11 @@ impl Subscribers {
             let positions = |c: Option<u64>| {
                 c.and_then(|c| self.history.iter().find(|(t, _)| *t == c)).map(|(_, p)| &p[..]).unwrap_or_default()
             };
-            let prior = s.prior(run, tick, base);
-            let at = Bases { base: positions(base), prior: prior.and(Some(positions(prior))) };
+            let prior = s.prior(run, tick, base).map(|p| (p, positions(Some(p))));
+            let at = Bases { base: positions(base), prior };
             let (objects, moves, nudges, gone) = view_of(g, s, base, &self.tracked, buckets, tick, at, &mut self.marks);
-            if s.resync == Some(None) {
-                s.resync = Some(Some(tick));
+            if s.resync == Resync::Asked {
+                s.resync = Resync::Since(tick);
             }
             s.last_sent = Some((run, tick, base));
             let mut sent = Sent { objects: (objects.len() + moves.len() + nudges.len()) as u64, ..Sent::default() };
@@ -446,8 +466,9 @@ type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<Nudge>, Vec<Entit
 struct Bases<'a> {
     /// At the base tick (empty when the zone no longer has them: moves, then).
     base: &'a [(EntityId, Vec3)],
-    /// At the tick before it, when nudges may be predicted (`Subscriber::prior`).
-    prior: Option<&'a [(EntityId, Vec3)]>,
+    /// The tick before it and its positions, when nudges may be predicted
+    /// (`Subscriber::prior`).
+    prior: Option<(u64, &'a [(EntityId, Vec3)])>,
 }
 
 /// Gateway `g`'s view at `tick` relative to `base` (`None`: whole), nudging from the
@@ -485,8 +506,7 @@ fn view_of(
     let old = std::mem::take(&mut s.known);
     let mut known = Vec::with_capacity(old.len() + 64);
     let (mut k, mut b) = (0, 0);
-    let (at_base, mut q) = (at.base, 0);
-    let prior_tick = c.saturating_sub(1);
+    let mut q = 0;
     for (w, &word) in marks.iter().enumerate() {
         let mut bits = word;
         while bits != 0 {
@@ -518,18 +538,10 @@ fn view_of(
             } else if moved {
                 // Known since c or before, so it was in V at c and the positions of c
                 // hold it (when the zone still has them).
-                while b < at_base.len() && at_base[b].0 < id {
-                    b += 1;
-                }
-                let from = at_base.get(b).filter(|p| p.0 == id).map(|p| p.1);
+                let from = seek(at.base, &mut b, id);
                 // Predicted when the gateway held it at the tick before the base too.
                 let before = match at.prior {
-                    Some(prior) if since <= prior_tick => {
-                        while q < prior.len() && prior[q].0 < id {
-                            q += 1;
-                        }
-                        prior.get(q).filter(|p| p.0 == id).map(|p| p.1)
-                    }
+                    Some((prior, positions)) if since <= prior => seek(positions, &mut q, id),
                     _ => None,
                 };
                 let nudge = from.map(|from| {

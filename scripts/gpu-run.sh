@@ -31,7 +31,8 @@
 # (scripts/gpu-build.sh with PARTS=host BEFORE=path), then this build, then this build
 # with a shadow of the same budget through a simulated lossy link (5 % loss,
 # 100 ± 20 ms; REPLICATION_LOSSY=0 leaves that run out), and profiled runs at AOI 100
-# (per-kernel device times, before and after; REPLICATION_PROFILE=0 leaves them out).
+# (per-kernel device times, before and after; REPLICATION_PROFILE=0 leaves them out);
+# REPLICATION_S2=1 adds scenario 2 (5,000 players) at AOI 100, before and after.
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -345,6 +346,17 @@ if [[ $mode == replication ]]; then
             --out "$out/bench/replication-lossy" >"$out/replication-lossy.md" 2>>"$out/replication.log" ||
             fail "bench scenario 3 (lossy shadow) failed"
         grep -E '^\| 3 \|' "$out/replication-lossy.md" | tee -a "$out/replication.txt"
+    fi
+    if [[ ${REPLICATION_S2:-0} == 1 ]]; then
+        for bin in .carry/before/myriad .carry/myriad; do
+            [[ -x $bin ]] || continue
+            tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
+            echo "=== $tag, scenario 2 at AOI 100" | tee -a "$out/replication.txt"
+            $bin bench --scenario 2 --backend cuda --ticks 60 --warmup 30 --aoi-size 100 --quality-players 0 \
+                --out "$out/bench/replication-s2-$tag" >"$out/replication-s2-$tag.md" 2>>"$out/replication.log" ||
+                fail "bench scenario 2 ($tag) failed"
+            grep -E '^\| 2 \|' "$out/replication-s2-$tag.md" | tee -a "$out/replication.txt"
+        done
     fi
     if [[ ${REPLICATION_PROFILE:-1} == 1 ]]; then
         # Where the device time of a tick at AOI 100 goes, kernel by kernel (the build

@@ -7,8 +7,6 @@
 // Canonical order: each query's range is sorted ascending, so static pairs come out by
 // (object, primitive) and each object's dynamic neighbours by slot, whatever order the
 // tree walk found them in.
-// (k_tree_write with sort = 0 leaves a range in the walk's order, for callers that do
-// not need one.)
 #include "common.cuh"
 
 // Moves a[root] down the max-heap a[0..end).
@@ -42,9 +40,9 @@ __device__ __forceinline__ void sort_range(u32* a, u32 len) {
         }
         return;
     }
-    // Heapsort, O(n log n) in place: an area-of-interest list holds thousands of
-    // objects, where insertion sort's O(n^2) took a whole second per tick for 10,000
-    // players (scenario 3).
+    // Heapsort, O(n log n) in place: an object in a dense crowd overlaps hundreds, where
+    // insertion sort's O(n^2) stalls its thread (the AOI lists, thousands of objects,
+    // took a whole second a tick that way for 10,000 players; `k_sort_ranges` sorts those).
     for (u32 i = len / 2; i-- > 0;) sift_down(a, i, len);
     for (u32 end = len - 1; end > 0; end--) {
         u32 t = a[0];
@@ -86,14 +84,10 @@ extern "C" __global__ void k_tree_count(u32 nq, const float* qboxes, const u32* 
     counts[q] = c;
 }
 
-// `sort` = 0 leaves each range in the walk's order: for the AOI queries, whose thousands
-// of slots a query one thread sorted in global memory slowly; `k_sort_ranges` sorts
-// them after, a block a query.
 extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* qorder,
                                         u32 exclude_self, const Node* nodes, const u32* order,
                                         u32 nleaves, const float* tboxes, const u32* offsets,
-                                        u32* out, u32 cap, const u32* scratch, u32 slots,
-                                        u32 sort) {
+                                        u32* out, u32 cap, const u32* scratch, u32 slots) {
     u32 t = blockIdx.x * blockDim.x + threadIdx.x;
     if (t >= nq) return;
     u32 q = query_index(qorder, t);
@@ -104,7 +98,7 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
     if (len <= slots) {
         const u32* keep = scratch + (u64)q * slots;
         for (u32 k = 0; k < len; k++) dst[k] = keep[k];
-        if (sort) sort_range(dst, len);
+        sort_range(dst, len);
         return;
     }
     const float* qb = qboxes + 6 * (u64)q;
@@ -115,47 +109,33 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
         if (c < len) dst[c] = target;
         c++;
     });
-    if (sort) sort_range(dst, min(c, len));
+    sort_range(dst, min(c, len));
 }
 
-// Sorts each query's range of `objects` ascending, one block a query: a bitonic sort in
-// shared memory for ranges of up to SORT_SHARED slots (padded to a power of two with
-// slots no object has), the per-thread sort above for longer ones (rare: a crowd of
-// thousands in one box). The AOI queries of the server (thousands of boxes of thousands
-// of objects) walk their tree unsorted and sort here: one thread sorting each range in
-// global memory left the device waiting on memory for tens of milliseconds.
+// Sorts each query's range of `objects` ascending, one block a query: `NETWORK_SORT` in
+// shared memory for ranges of up to SORT_SHARED slots, in global memory (the same
+// network, the whole block) for longer ones (a crowd of thousands in one box). The AOI
+// queries of the server (thousands of boxes of thousands of objects, `grid.cu`) are
+// sorted here: one thread sorting each range in global memory left the device waiting
+// on memory for tens of milliseconds.
 #define SORT_SHARED 4096
+__device__ __forceinline__ bool slot_less(const u32* a, const u32* b) { return *a < *b; }
 extern "C" __global__ void k_sort_ranges(u32 nq, const u32* offsets, u32* objects) {
     __shared__ u32 s[SORT_SHARED];
     u32 q = blockIdx.x;
     if (q >= nq) return;
     u32 begin = offsets[q], len = offsets[q + 1] - begin;
     if (len <= 1) return;
+    u32* a = objects + begin;
+    u32 t = threadIdx.x, step = blockDim.x;
     if (len > SORT_SHARED) {
-        if (threadIdx.x == 0) sort_range(objects + begin, len);
+        NETWORK_SORT(u32, a, len, slot_less, t, step, __syncthreads());
         return;
     }
-    u32 n = 2;
-    while (n < len) n <<= 1;
-    for (u32 i = threadIdx.x; i < n; i += blockDim.x) s[i] = i < len ? objects[begin + i] : 0xffffffffu;
+    for (u32 i = t; i < len; i += step) s[i] = a[i];
     __syncthreads();
-    for (u32 k = 2; k <= n; k <<= 1) {
-        for (u32 j = k >> 1; j > 0; j >>= 1) {
-            for (u32 i = threadIdx.x; i < n; i += blockDim.x) {
-                u32 other = i ^ j;
-                if (other > i) {
-                    u32 a = s[i], b = s[other];
-                    bool ascending = (i & k) == 0;
-                    if ((a > b) == ascending) {
-                        s[i] = b;
-                        s[other] = a;
-                    }
-                }
-            }
-            __syncthreads();
-        }
-    }
-    for (u32 i = threadIdx.x; i < len; i += blockDim.x) objects[begin + i] = s[i];
+    NETWORK_SORT(u32, s, len, slot_less, t, step, __syncthreads());
+    for (u32 i = t; i < len; i += step) a[i] = s[i];
 }
 
 // All pairs (cuda-naive): query q tests every target in index order, so its list comes

@@ -15,6 +15,11 @@ typedef unsigned char u8;
 // The LBVH depth is at most 97 (delta grows strictly down the tree, <= 64 + 32 bits) and
 // each level leaves at most one sibling on the stack.
 #define STACK_SIZE 128
+#define FULL_WARP 0xffffffffu
+
+// Lanes below this one set in `mask`: where this lane's item goes in a list a warp
+// compacts in order.
+__device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(mask & ((1u << lane) - 1u)); }
 
 // Per-tick constants, world bounds and terrain sampling constants. Mirrors
 // `DeviceParams` in crates/cuda/src/params.rs field for field (all 4 bytes wide).
@@ -51,6 +56,38 @@ __device__ __forceinline__ void store3(float* p, u32 i, V3 v) {
     p[3 * i + 1] = v.y;
     p[3 * i + 2] = v.z;
 }
+
+// The `p`-th comparison of a bitonic network's step (`k`, `j`): items `*lo < *hi`. The
+// first step of each merge compares mirrored pairs, so every comparison moves the smaller
+// item to the lower index, and items past a count `n` never take part: sorting `n` items
+// needs no padding (checked against a sort for every n up to 70 before its first GPU run).
+__device__ __forceinline__ void bitonic_pair(u32 p, u32 k, u32 j, u32* lo, u32* hi) {
+    *lo = ((p & ~(j - 1)) << 1) | (p & (j - 1));
+    *hi = j == (k >> 1) ? *lo ^ (k - 1) : *lo | j;
+}
+
+// Sorts `a[0 .. n)` ascending by `LESS`, in place, by `bitonic_pair`'s network: the
+// thread numbered `first` of `stride` makes every `stride`-th comparison of a step, and
+// `SYNC` ends each step. Every thread calls it with the same `n`; it ends synchronised.
+#define NETWORK_SORT(T, a, n, LESS, first, stride, SYNC)                                                \
+    do {                                                                                                \
+        u32 n_ = (n), size_ = 1;                                                                        \
+        while (size_ < n_) size_ <<= 1;                                                                 \
+        for (u32 k_ = 2; k_ <= size_; k_ <<= 1) {                                                       \
+            for (u32 j_ = k_ >> 1; j_ > 0; j_ >>= 1) {                                                  \
+                for (u32 p_ = (first); p_ < size_ / 2; p_ += (stride)) {                                \
+                    u32 lo_, hi_;                                                                       \
+                    bitonic_pair(p_, k_, j_, &lo_, &hi_);                                               \
+                    if (hi_ < n_ && LESS(&(a)[hi_], &(a)[lo_])) {                                       \
+                        T t_ = (a)[lo_];                                                                \
+                        (a)[lo_] = (a)[hi_];                                                            \
+                        (a)[hi_] = t_;                                                                  \
+                    }                                                                                   \
+                }                                                                                       \
+                SYNC;                                                                                   \
+            }                                                                                           \
+        }                                                                                               \
+    } while (0)
 
 // Boxes are six floats: min xyz, max xyz (the layout of `myriad_core::Aabb`).
 __device__ __forceinline__ bool box_overlaps(const float* a, const float* b) {

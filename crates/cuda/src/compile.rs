@@ -17,10 +17,11 @@ use std::path::PathBuf;
 use cudarc::nvrtc::sys as nvrtc;
 
 /// The kernel sources, in the order they are concatenated into one program.
-pub const SOURCES: [(&str, &str); 6] = [
+pub const SOURCES: [(&str, &str); 7] = [
     ("scan.cu", include_str!("../kernels/scan.cu")),
     ("lbvh.cu", include_str!("../kernels/lbvh.cu")),
     ("broad.cu", include_str!("../kernels/broad.cu")),
+    ("grid.cu", include_str!("../kernels/grid.cu")),
     ("physics.cu", include_str!("../kernels/physics.cu")),
     ("patch.cu", include_str!("../kernels/patch.cu")),
     ("replica.cu", include_str!("../kernels/replica.cu")),
@@ -36,7 +37,7 @@ pub const HEADERS: [(&str, &str); 3] = [
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 24] = [
+pub const KERNELS: [(&str, usize); 28] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -46,8 +47,12 @@ pub const KERNELS: [(&str, usize); 24] = [
     ("k_emit", 5),
     ("k_refit", 7),
     ("k_tree_count", 11),
-    ("k_tree_write", 14),
+    ("k_tree_write", 13),
     ("k_sort_ranges", 3),
+    ("k_grid_keys", 9),
+    ("k_grid_scatter", 6),
+    ("k_grid_count", 11),
+    ("k_grid_write", 14),
     ("k_naive_count", 6),
     ("k_naive_write", 8),
     ("k_boxes", 4),

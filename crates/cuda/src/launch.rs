@@ -390,10 +390,62 @@ kernels! {
         cap: u32,
         scratch: DevPtr<u32>,
         slots: u32,
-        sort: u32,
     }
     /// `k_sort_ranges`: each query's range of `objects` sorted ascending, a block each.
     KSortRanges = "k_sort_ranges" { nq: u32, offsets: DevPtr<u32>, objects: DevPtr<u32> }
+    /// `k_grid_keys` (`kernels/grid.cu`): each object's column, the columns' populations
+    /// and the widest object's width.
+    KGridKeys = "k_grid_keys" {
+        n: u32,
+        boxes: DevPtr<f32>,
+        ox: f32,
+        oz: f32,
+        inv: f32,
+        g: u32,
+        keys: DevPtr<u32>,
+        cells: DevPtr<u32>,
+        wmax: DevPtr<u32>,
+    }
+    /// `k_grid_scatter`: the objects' slots and boxes in column order.
+    KGridScatter = "k_grid_scatter" {
+        n: u32,
+        keys: DevPtr<u32>,
+        cells: DevPtr<u32>,
+        boxes: DevPtr<f32>,
+        gboxes: DevPtr<f32>,
+        gslots: DevPtr<u32>,
+    }
+    /// `k_grid_count`: a warp a query, the objects its box overlaps.
+    KGridCount = "k_grid_count" {
+        nq: u32,
+        qboxes: DevPtr<f32>,
+        qorder: DevPtr<u32>,
+        ox: f32,
+        oz: f32,
+        inv: f32,
+        g: u32,
+        cells: DevPtr<u32>,
+        gboxes: DevPtr<f32>,
+        wmax: DevPtr<u32>,
+        counts: DevPtr<u32>,
+    }
+    /// `k_grid_write`: a warp a query, its objects at its scanned offset (unsorted).
+    KGridWrite = "k_grid_write" {
+        nq: u32,
+        qboxes: DevPtr<f32>,
+        qorder: DevPtr<u32>,
+        ox: f32,
+        oz: f32,
+        inv: f32,
+        g: u32,
+        cells: DevPtr<u32>,
+        gboxes: DevPtr<f32>,
+        gslots: DevPtr<u32>,
+        wmax: DevPtr<u32>,
+        offsets: DevPtr<u32>,
+        out: DevPtr<u32>,
+        cap: u32,
+    }
     /// `k_naive_count`: per query, the targets its box overlaps, testing all `nt`.
     KNaiveCount = "k_naive_count" {
         nq: u32,

@@ -217,18 +217,26 @@ pub fn overlapping_objects_are_pushed_apart(backends: &mut [Box<dyn Backend>]) {
 }
 
 /// AOI answers equal brute force before any step (build), after steps (refit), after
-/// the object set changed (rebuild), for an empty batch, and after a teleport between
-/// steps.
+/// the object set changed (rebuild), for an empty batch, after a teleport between steps,
+/// and with objects and boxes where a spatial index's edges are: objects far outside the
+/// world's bounds on every side, one object much wider than the rest, boxes reaching
+/// past the bounds, a box as thin as an object, and a box turned inside out (which
+/// overlaps nothing).
 pub fn area_of_interest_matches_brute_force(backends: &mut [Box<dyn Backend>]) {
     for b in backends {
         let mut w = crowded(17, Placement::Clustered { hotspots: 2, fraction: 0.5, spread: 6.0 });
         let c = w.bounds.center();
-        let queries: Vec<Aabb> = (0..40)
+        let mut queries: Vec<Aabb> = (0..40)
             .map(|i| {
                 let centre = c + Vec3::new((i % 7) as f32 * 9.0 - 30.0, 0.0, (i % 5) as f32 * 11.0 - 25.0);
                 Aabb::from_center_half(centre, Vec3::new(8.0 + i as f32, 100.0, 6.0))
             })
             .collect();
+        let far = [Vec3::new(500.0, 0.0, 3.0), Vec3::new(-700.0, 5.0, -2.0), Vec3::new(1.0, 0.0, 900.0)];
+        queries.extend(far.iter().map(|&d| Aabb::from_center_half(c + d, Vec3::new(4.0, 100.0, 4.0))));
+        queries.push(Aabb::from_center_half(c, Vec3::splat(2_000.0)));
+        queries.push(Aabb::from_center_half(c + Vec3::new(-47.0, 0.0, 0.0), Vec3::new(0.25, 100.0, 60.0)));
+        queries.push(Aabb::new(c + Vec3::splat(5.0), c - Vec3::splat(5.0)));
         let check = |w: &World, b: &mut dyn Backend| {
             let mut out = AoiResults::default();
             b.query_aoi(w, &queries, &mut out).expect("AOI query");
@@ -255,6 +263,18 @@ pub fn area_of_interest_matches_brute_force(backends: &mut [Box<dyn Backend>]) {
         let id = w.dynamics.ids()[5];
         w.dynamics.teleport(id, c);
         check(&w, b.as_mut());
+        for (k, &d) in far.iter().enumerate() {
+            let id = w.dynamics.ids()[10 + k];
+            assert!(w.dynamics.teleport(id, c + d));
+        }
+        let wide = Shape::Box { half: Vec3::new(30.0, 1.0, 25.0) };
+        w.dynamics.spawn(wide, c + Vec3::new(-60.0, 0.0, 40.0), ObjectKind::Npc).expect("spawn");
+        check(&w, b.as_mut());
+        for q in &queries[40..43] {
+            let mut out = AoiResults::default();
+            b.query_aoi(&w, std::slice::from_ref(q), &mut out).expect("AOI query");
+            assert_eq!(out.get(0).len(), 1, "{}: the far object at {q:?}", b.kind());
+        }
     }
 }
 

@@ -1,5 +1,6 @@
-//! Area-of-interest queries on the device: the broad phase's count and write passes
-//! with the query boxes as queries and the dynamic objects as targets.
+//! Area-of-interest queries on the device: count and write passes with the query boxes
+//! as queries and the dynamic objects as targets, over a grid of columns for `cuda`
+//! (`grid`) and every object for `cuda-naive` (the broad phase's passes).
 
 use myriad_core::{Aabb, World};
 use myriad_physics::lbvh::morton::MortonFrame;
@@ -8,6 +9,7 @@ use rayon::slice::ParallelSliceMut;
 
 use super::Resident;
 use super::broad::{Queries, count_pass, write_pass};
+use super::grid::Frame;
 use crate::launch::KSortRanges;
 
 impl Resident {
@@ -42,7 +44,8 @@ impl Resident {
     /// lists: the lists' offsets (`nq + 1`) are in `aoi_counts`, their slots in
     /// `aoi_out`, each list sorted by slot, and only the total comes back to the host.
     /// With no box or no object nothing is launched and the device buffers are not
-    /// written.
+    /// written. `cuda` answers from a grid of columns (`grid`), `cuda-naive` by testing
+    /// every object; both give every object whose box overlaps, as the CPU does.
     pub(crate) fn aoi_on_device(&mut self, world: &World, boxes: &[Aabb]) -> Result<usize, PhysicsError> {
         self.gpu.bind()?;
         self.sync_world(world, None)?;
@@ -53,7 +56,7 @@ impl Resident {
         // The boxes of the last step (or query) serve as long as no one moved an object.
         let generation = world.dynamics.generation();
         if self.boxes_fresh != Some(generation) {
-            self.build_dynamic(world)?;
+            self.build_boxes()?;
             self.boxes_fresh = Some(generation);
         }
         let gpu = &self.gpu;
@@ -62,23 +65,33 @@ impl Resident {
         self.aoi_order.ensure(gpu, nq * 4, 1.25)?;
         let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
         gpu.upload(&self.aoi_boxes, &flat)?;
-        gpu.upload(&self.aoi_order, &query_order(boxes))?;
-        let qs = Queries { order: self.aoi_order.ptr(), ..Queries::plain(nq, self.aoi_boxes.ptr()) };
-        let counts = self.aoi_counts.ptr();
-        count_pass(gpu, qs, false, self.dynamic_targets(), counts)?;
+        let (qboxes, qorder, counts) = (self.aoi_boxes.ptr(), self.aoi_order.ptr(), self.aoi_counts.ptr());
+        let naive = self.naive();
+        if naive {
+            count_pass(gpu, Queries::plain(nq, qboxes), false, self.dynamic_targets(), counts)?;
+        } else {
+            gpu.upload(&self.aoi_order, &query_order(boxes))?;
+            let frame = Frame::new(&world.bounds, boxes);
+            self.grid.build(gpu, &mut self.scan, self.n, self.obj.boxes.ptr(), frame)?;
+            self.grid.count(gpu, nq, qboxes, qorder, counts)?;
+        }
         self.scan.exclusive(gpu, counts, nq + 1)?;
         self.host.small.ensure(gpu, 4)?;
         gpu.download_async(&mut self.host.small, 0, counts.add(nq), 1)?;
         gpu.sync()?;
         let total = self.host.small.slice::<u32>(1)[0] as usize;
         self.aoi_out.ensure(gpu, total * 4, 1.25)?;
-        // A tree walk writes each list in its own order, sorted after by a block a list
-        // (`k_sort_ranges`); the all-pairs walk's lists come sorted.
-        write_pass(gpu, Queries { sorted: false, ..qs }, false, self.dynamic_targets(), counts, &self.aoi_out)?;
-        if !self.naive() {
+        if naive {
+            // Testing every object in order gives each list sorted.
+            write_pass(gpu, Queries::plain(nq, qboxes), false, self.dynamic_targets(), counts, &self.aoi_out)?;
+        } else {
+            // The grid writes each list in its columns' order; a block a list sorts it.
+            self.grid.write(gpu, nq, qboxes, qorder, counts, &self.aoi_out)?;
+            // 512 threads: a list of 2,500 (AOI 100, scenario 3) is 2,048 comparisons a
+            // step of its sorting network, 4 a thread.
             gpu.launch_grid(
                 nq as u32,
-                256,
+                512,
                 KSortRanges { nq: nq as u32, offsets: counts, objects: self.aoi_out.ptr() },
             )?;
         }
@@ -87,10 +100,9 @@ impl Resident {
 }
 
 /// The boxes' indices in the Morton order of their centres (ties by index): the order in
-/// which the AOI passes' threads take them. Players' boxes come in session order,
-/// scattered over the map, and a warp's walk of the tree lasts as long as the union of
-/// its 32 walks: neighbours in one warp share most of theirs. Only which thread answers
-/// a box changes, not any list.
+/// which the grid's warps take them. Players' boxes come in session order, scattered over
+/// the map: taken in this order, warps running at once read the same columns, which the
+/// cache then holds. Only which warp answers a box changes, not any list.
 fn query_order(boxes: &[Aabb]) -> Vec<u32> {
     let bounds = boxes.iter().fold(Aabb::EMPTY, |acc, b| acc.union(&Aabb::new(b.center(), b.center())));
     let frame = MortonFrame::new(&bounds);

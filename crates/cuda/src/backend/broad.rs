@@ -27,9 +27,8 @@ pub(super) enum Targets<'a> {
 /// Query boxes: `n` boxes at `boxes`, visited in the order `order` (null: in index
 /// order). A tree count pass keeps each query's first `slots` targets at `scratch`
 /// (`slots` a query), so the write pass walks the tree again only for queries with more.
-/// `sorted`: the write pass sorts each range on its thread (the canonical order; the
-/// step's short lists of contacts); the AOI queries' long lists are sorted after, a block
-/// a list (`aoi_on_device`).
+/// The write pass sorts each range on its thread (the canonical order of the step's
+/// short lists of contacts).
 #[derive(Clone, Copy)]
 pub(super) struct Queries {
     pub n: usize,
@@ -37,13 +36,12 @@ pub(super) struct Queries {
     pub order: DevPtr<u32>,
     pub scratch: DevPtr<u32>,
     pub slots: u32,
-    pub sorted: bool,
 }
 
 impl Queries {
     /// `n` boxes at `boxes`, in index order, with no kept targets.
     pub fn plain(n: usize, boxes: DevPtr<f32>) -> Queries {
-        Queries { n, boxes, order: DevPtr::NULL, scratch: DevPtr::NULL, slots: 0, sorted: true }
+        Queries { n, boxes, order: DevPtr::NULL, scratch: DevPtr::NULL, slots: 0 }
     }
 }
 
@@ -112,7 +110,6 @@ pub(super) fn write_pass(
                 cap,
                 scratch: qs.scratch,
                 slots: qs.slots,
-                sort: u32::from(qs.sorted),
             },
         ),
         Targets::All(nt, tboxes) => gpu.launch(
@@ -153,7 +150,6 @@ impl Resident {
             order: self.dyn_tree.order.ptr(),
             scratch: scratch.ptr(),
             slots: SLOTS,
-            sorted: true,
         }
     }
 

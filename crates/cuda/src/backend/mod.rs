@@ -47,7 +47,7 @@
 //! - `narrow`, `forces`: the narrow-phase launches, the force and integration launch;
 //! - `step`: one tick in order, the download of the new state and the stage times;
 //! - `aoi`: area-of-interest queries (the device replicas start from its lists,
-//!   which stay on the device).
+//!   which stay on the device), and `grid`, the columns `cuda` answers them from.
 //!
 //! Every launch goes through the typed argument structs of the crate's `launch` module.
 //!
@@ -59,6 +59,7 @@
 mod aoi;
 mod broad;
 mod forces;
+mod grid;
 mod narrow;
 mod patch;
 mod scan;
@@ -73,6 +74,7 @@ use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport,
 
 use crate::device::{DevBuf, Event, Gpu, Pinned};
 use crate::params::DeviceParams;
+use grid::Grid;
 use patch::Patch;
 use scan::Scan;
 use sync::{Host, Objects, Prims};
@@ -127,7 +129,8 @@ pub(crate) struct Resident {
     /// The stamp of the terrain on the device.
     terrain_key: Option<u64>,
     params_key: Option<DeviceParams>,
-    /// The dynamics generation the dynamic boxes (and tree) were built at.
+    /// The dynamics generation the dynamic boxes were built at (the AOI query reuses them;
+    /// the step builds its own).
     boxes_fresh: Option<u64>,
     pub(crate) obj: Objects,
     /// The incremental upload's spare arrays and staging buffers.
@@ -135,6 +138,8 @@ pub(crate) struct Resident {
     prims: Prims,
     dyn_tree: Tree,
     static_tree: Tree,
+    /// The columns the AOI queries of `cuda` are answered from.
+    grid: Grid,
     scan: Scan,
     static_pairs: DevBuf<u32>,
     dynamic_pairs: DevBuf<u32>,
@@ -218,6 +223,7 @@ impl Resident {
             prims: Prims::new(),
             dyn_tree: Tree::new(),
             static_tree: Tree::new(),
+            grid: Grid::new(),
             scan: Scan { sums: DevBuf::empty() },
             static_pairs: DevBuf::empty(),
             dynamic_pairs: DevBuf::empty(),

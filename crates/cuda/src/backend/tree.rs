@@ -159,13 +159,18 @@ impl Tree {
 impl Resident {
     /// Dynamic boxes (and, for `cuda`, the dynamic tree) at the device's positions.
     pub(super) fn build_dynamic(&mut self, world: &World) -> Result<(), PhysicsError> {
-        let n = self.n;
-        let o = &self.obj;
         if self.naive() {
-            self.gpu.launch(n, KBoxes { n: n as u32, pos: o.pos.ptr(), half: o.half.ptr(), boxes: o.boxes.ptr() })
+            self.build_boxes()
         } else {
+            let o = &self.obj;
             let frame = MortonFrame::new(&world.bounds);
-            self.dyn_tree.build(&self.gpu, n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr(), &frame)
+            self.dyn_tree.build(&self.gpu, self.n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr(), &frame)
         }
+    }
+
+    /// The dynamic boxes alone (the same boxes as the tree's build writes).
+    pub(super) fn build_boxes(&mut self) -> Result<(), PhysicsError> {
+        let o = &self.obj;
+        self.gpu.launch(self.n, KBoxes { n: self.n as u32, pos: o.pos.ptr(), half: o.half.ptr(), boxes: o.boxes.ptr() })
     }
 }

@@ -5,66 +5,105 @@
 
 use crate::error::DecodeError;
 
-/// Appends bits to a byte slice.
+/// Appends bits to a byte slice. Fields gather in a 64-bit word, which goes to the slice
+/// eight bytes at a time: a record is a dozen short fields, and reading and writing the
+/// slice for each field was most of the cost of packing a datagram. The bits reach the
+/// slice when the word fills and when the writer finishes ([`BitWriter::finish`]) or is
+/// dropped.
 pub(crate) struct BitWriter<'a> {
     out: &'a mut [u8],
-    /// Bits written so far.
-    at: usize,
+    /// Bytes of `out` written.
+    flushed: usize,
+    /// Bits not in `out` yet, the first in the lowest bit.
+    word: u64,
+    /// How many bits `word` holds (below 64).
+    held: u32,
 }
 
 impl<'a> BitWriter<'a> {
-    /// A writer at the start of `out`, which must be zeroed (bits are or-ed in).
+    /// A writer at the start of `out`, whose bytes it overwrites as far as it writes.
     pub(crate) fn new(out: &'a mut [u8]) -> Self {
-        Self { out, at: 0 }
+        Self { out, flushed: 0, word: 0, held: 0 }
     }
 
     /// Writes the low `n` bits of `v` (`n` ≤ 64). The caller sized the slice: writing
     /// past its end panics, which `pack_deltas` rules out by measuring first.
+    #[inline]
     pub(crate) fn put(&mut self, v: u64, n: u32) {
-        let (byte, bit) = (self.at / 8, (self.at % 8) as u32);
-        // Fast path: a field of up to 56 bits and 8 bytes of room, or-ed in as one
-        // little-endian word (the bits above the field are zero, as is the slice).
-        if n <= 56 && byte + 8 <= self.out.len() {
-            let word = u64::from_le_bytes(self.out[byte..byte + 8].try_into().expect("8 bytes"));
-            let field = if n == 0 { 0 } else { v & (u64::MAX >> (64 - n)) };
-            self.out[byte..byte + 8].copy_from_slice(&(word | field << bit).to_le_bytes());
-            self.at += n as usize;
+        if n == 0 {
             return;
         }
-        let mut left = n;
-        let mut v = if n < 64 { v & ((1u64 << n) - 1) } else { v };
-        while left > 0 {
-            let (byte, bit) = (self.at / 8, (self.at % 8) as u32);
-            let take = (8 - bit).min(left);
-            self.out[byte] |= ((v & ((1u64 << take) - 1)) as u8) << bit;
-            v = v.checked_shr(take).unwrap_or(0);
-            left -= take;
-            self.at += take as usize;
+        let v = v & (u64::MAX >> (64 - n));
+        self.word |= v << self.held;
+        let total = self.held + n;
+        if total < 64 {
+            self.held = total;
+            return;
         }
+        // The word is full: out it goes, and the field's bits that did not fit start
+        // the next (none when the word was empty).
+        self.out[self.flushed..self.flushed + 8].copy_from_slice(&self.word.to_le_bytes());
+        self.flushed += 8;
+        self.word = v.checked_shr(64 - self.held).unwrap_or(0);
+        self.held = total - 64;
     }
 
     /// Writes `v` in `n` bits, two's complement (the caller checked it fits).
+    #[inline]
     pub(crate) fn put_signed(&mut self, v: i64, n: u32) {
         self.put(v as u64, n);
     }
 
     /// Writes `v` as an exp-Golomb code of order `k` ([`exp_golomb_bits`]).
+    #[inline]
     pub(crate) fn put_exp_golomb(&mut self, v: u64, k: u32) {
         let w = u128::from(v) + (1u128 << k);
         let n = 127 - w.leading_zeros();
-        // `n - k` zeros, a one, then the `n` bits of `w` below its top bit.
-        self.put(0, n - k);
-        self.put(1, 1);
+        // `n - k` zeros, a one, then the `n` bits of `w` below its top bit: one field
+        // when they fit one (every id gap of a datagram does).
         let low = w - (1u128 << n);
+        let zeros = n - k;
+        if zeros + 1 + n <= 64 {
+            self.put((1 | (low as u64) << 1) << zeros, zeros + 1 + n);
+            return;
+        }
+        self.put(0, zeros);
+        self.put(1, 1);
         self.put(low as u64, n.min(64));
         if n > 64 {
             self.put((low >> 64) as u64, n - 64);
         }
     }
 
-    /// Bytes the bits written so far take (the last one padded with zeros).
-    pub(crate) fn bytes(&self) -> usize {
-        self.at.div_ceil(8)
+    /// Bits written so far.
+    #[cfg(test)]
+    pub(crate) fn bits(&self) -> usize {
+        self.flushed * 8 + self.held as usize
+    }
+
+    /// Puts the last bits into the slice (the last byte padded with zeros) and returns
+    /// the bytes written.
+    pub(crate) fn finish(mut self) -> usize {
+        assert!(self.flush(), "the bits written overran the slice");
+        self.flushed
+    }
+
+    /// Writes the bits held; false if the slice has no room for them (a caller's bug,
+    /// which `finish` reports by panicking and a drop during a panic must not).
+    fn flush(&mut self) -> bool {
+        let tail = self.held.div_ceil(8) as usize;
+        let Some(dst) = self.out.get_mut(self.flushed..self.flushed + tail) else { return false };
+        dst.copy_from_slice(&self.word.to_le_bytes()[..tail]);
+        self.flushed += tail;
+        (self.word, self.held) = (0, 0);
+        true
+    }
+}
+
+impl Drop for BitWriter<'_> {
+    /// A writer dropped unfinished still leaves every bit in the slice.
+    fn drop(&mut self) {
+        self.flush();
     }
 }
 
@@ -206,7 +245,7 @@ mod tests {
             w.put_exp_golomb(v, (i as u32 * 7) % 64);
             w.put_signed(-(i as i64), 6);
         }
-        let len = w.bytes();
+        let len = w.finish();
         let mut r = BitReader::new(&buf[..len]);
         for (i, &v) in values.iter().enumerate() {
             assert_eq!(r.get(3).unwrap(), i as u64 % 8);
@@ -223,7 +262,7 @@ mod tests {
                 let mut buf = [0u8; 32];
                 let mut w = BitWriter::new(&mut buf);
                 w.put_exp_golomb(v, k);
-                assert_eq!(w.at as u32, exp_golomb_bits(v, k), "v {v} k {k}");
+                assert_eq!(w.bits() as u32, exp_golomb_bits(v, k), "v {v} k {k}");
             }
         }
         assert_eq!(exp_golomb_bits(0, 0), 1);
@@ -249,6 +288,7 @@ mod tests {
         w.put(0, 64);
         w.put(1, 1);
         w.put(u64::MAX, 64);
+        w.finish();
         assert_eq!(BitReader::new(&buf).get_exp_golomb(0), Err(DecodeError::BadIdCode));
         // A set padding bit.
         let mut r = BitReader::new(&[0b1000_0001]);
@@ -258,5 +298,53 @@ mod tests {
         assert!(r.bit().unwrap());
         assert_eq!(r.finish(), Err(DecodeError::TrailingBytes { extra: 1 }));
         assert!(matches!(BitReader::new(&[1]).get(9), Err(DecodeError::Truncated { needed: 2, got: 1 })));
+    }
+
+    /// The word-at-a-time writer against one that sets bit after bit: fields of every
+    /// width from 0 to 64 at every offset within the word, and codes long and short.
+    #[test]
+    fn the_writer_puts_each_bit_where_one_bit_at_a_time_would() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut buf = vec![0xAAu8; 16_384];
+        let mut want = vec![0u8; 16_384];
+        let mut at = 0usize;
+        let mut set = |want: &mut Vec<u8>, v: u64, n: u32| {
+            for b in 0..n {
+                want[at / 8] |= (((v >> b) & 1) as u8) << (at % 8);
+                at += 1;
+            }
+        };
+        let mut w = BitWriter::new(&mut buf);
+        for i in 0..1500u32 {
+            let v = next();
+            if i % 5 == 4 {
+                let k = (next() % 12) as u32;
+                let v = v >> (next() % 64);
+                w.put_exp_golomb(v, k);
+                let wide = u128::from(v) + (1u128 << k);
+                let n = 127 - wide.leading_zeros();
+                set(&mut want, 0, n - k);
+                set(&mut want, 1, 1);
+                let low = wide - (1u128 << n);
+                set(&mut want, low as u64, n.min(64));
+                set(&mut want, (low >> 64) as u64, n.saturating_sub(64));
+            } else {
+                let n = i % 65;
+                w.put(v, n);
+                set(&mut want, v, n);
+            }
+        }
+        let bits = w.bits();
+        let len = w.finish();
+        assert_eq!(bits, at);
+        assert_eq!(len, at.div_ceil(8));
+        assert_eq!(buf[..len], want[..len]);
+        assert_eq!(buf[len], 0xAA, "nothing past the last byte written");
     }
 }

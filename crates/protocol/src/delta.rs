@@ -428,6 +428,7 @@ impl DeltaUpdate {
             r.write(&mut w, previous, params, origin);
             previous = Some(r.id);
         }
+        w.finish();
         Ok(())
     }
 
@@ -551,7 +552,7 @@ pub fn pack_deltas(
             previous = Some(r.id);
             end += 1;
         }
-        // Zeroed, as the bit writer needs.
+        // Zeroed: what the headers do not set stays zero.
         let buf = out.begin(MAX_DATAGRAM);
         buf[0] = PROTOCOL_VERSION;
         buf[1] = PacketKind::StateUpdate as u8;
@@ -575,7 +576,7 @@ pub fn pack_deltas(
             p.write(&mut w, previous, params, origin);
             count += 1;
         }
-        let at = HEADER_LEN + DELTA_HEADER_LEN + w.bytes();
+        let at = HEADER_LEN + DELTA_HEADER_LEN + w.finish();
         write_delta_header(header, count, &mut buf[HEADER_LEN..]);
         out.finish(at + TAG_LEN);
         ends.push(end);

@@ -67,7 +67,7 @@ fn body_of(count: u16, usual: u8, k: u32, write: impl FnOnce(&mut BitWriter<'_>)
     let mut w = BitWriter::new(&mut b[DELTA_HEADER_LEN..]);
     StreamParams { usual, k }.write(&mut w);
     write(&mut w);
-    let len = DELTA_HEADER_LEN + w.bytes();
+    let len = DELTA_HEADER_LEN + w.finish();
     b.truncate(len);
     b
 }

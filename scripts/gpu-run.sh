@@ -31,8 +31,11 @@
 # (scripts/gpu-build.sh with PARTS=host BEFORE=path), then this build, then this build
 # with a shadow of the same budget through a simulated lossy link (5 % loss,
 # 100 ± 20 ms; REPLICATION_LOSSY=0 leaves that run out), and profiled runs at AOI 100
-# (per-kernel device times, before and after; REPLICATION_PROFILE=0 leaves them out);
-# REPLICATION_S2=1 adds scenario 2 (5,000 players) at AOI 100, before and after.
+# (per-kernel device times, before and after; REPLICATION_PROFILE=0 leaves them out,
+# REPLICATION_PROFILE_AOI="14 100" profiles each edge listed, REPLICATION_PROFILE_BEFORE=0
+# profiles this build only); REPLICATION_S2=1 adds scenario 2 (5,000 players) at AOI 100,
+# before and after; REPLICATION_S4=1 a profiled run of scenario 4 (50,000 players, bots
+# 20 a socket) at AOI 14 with this build.
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -361,16 +364,30 @@ if [[ $mode == replication ]]; then
     if [[ ${REPLICATION_PROFILE:-1} == 1 ]]; then
         # Where the device time of a tick at AOI 100 goes, kernel by kernel (the build
         # before too, when there is one).
-        for bin in .carry/before/myriad .carry/myriad; do
-            [[ -x $bin ]] || continue
-            tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
-            echo "=== $tag, per-kernel device time at AOI 100 (MYRIAD_CUDA_PROFILE=1)" | tee -a "$out/replication.txt"
-            MYRIAD_CUDA_PROFILE=1 $bin bench --scenario 3 --backend cuda --ticks 20 --warmup 10 --aoi-size 100 \
-                --quality-players 0 --out "$out/bench/replication-profile-$tag" >"$out/replication-profile-$tag.md" \
-                2>"$out/replication-profile-$tag.log" || fail "profiled bench scenario 3 ($tag) failed"
-            grep -E -A40 "per-kernel" "$out/replication-profile-$tag.log" | grep -E "per-kernel|^\|" |
-                tee -a "$out/replication.txt"
+        for aoi in ${REPLICATION_PROFILE_AOI:-100}; do
+            for bin in .carry/before/myriad .carry/myriad; do
+                [[ -x $bin ]] || continue
+                [[ $bin == .carry/myriad || ${REPLICATION_PROFILE_BEFORE:-1} == 1 ]] || continue
+                tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)-$aoi
+                echo "=== $tag, per-kernel device time at AOI $aoi (MYRIAD_CUDA_PROFILE=1)" |
+                    tee -a "$out/replication.txt"
+                MYRIAD_CUDA_PROFILE=1 $bin bench --scenario 3 --backend cuda --ticks 20 --warmup 10 --aoi-size "$aoi" \
+                    --quality-players 0 --out "$out/bench/replication-profile-$tag" \
+                    >"$out/replication-profile-$tag.md" 2>"$out/replication-profile-$tag.log" ||
+                    fail "profiled bench scenario 3 ($tag) failed"
+                grep -E -A40 "per-kernel" "$out/replication-profile-$tag.log" | grep -E "per-kernel|^\|" |
+                    tee -a "$out/replication.txt"
+            done
         done
+    fi
+    if [[ ${REPLICATION_S4:-0} == 1 ]]; then
+        ulimit -n 65536 || true
+        echo "=== after, scenario 4 at AOI 14, profiled (MYRIAD_CUDA_PROFILE=1)" | tee -a "$out/replication.txt"
+        MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --aoi-size 14 \
+            --bots-per-socket 20 --quality-players 0 --out "$out/bench/replication-s4" \
+            >"$out/replication-s4.md" 2>"$out/replication-s4.log" || fail "profiled bench scenario 4 failed"
+        grep -E '^\| 4 \|' "$out/replication-s4.md" | tee -a "$out/replication.txt"
+        grep -E -A45 "per-kernel" "$out/replication-s4.log" | grep -E "per-kernel|^\|" | tee -a "$out/replication.txt"
     fi
 fi
 

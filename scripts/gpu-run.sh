@@ -35,7 +35,7 @@
 # REPLICATION_PROFILE_AOI="14 100" profiles each edge listed, REPLICATION_PROFILE_BEFORE=0
 # profiles this build only); REPLICATION_S2=1 adds scenario 2 (5,000 players) at AOI 100,
 # before and after; REPLICATION_S4=1 a profiled run of scenario 4 (50,000 players, bots
-# 20 a socket) at AOI 14 with this build.
+# 20 a socket) at AOI 14 with this build (REPLICATION_S4_TIMEOUT seconds at most).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -383,7 +383,7 @@ if [[ $mode == replication ]]; then
     if [[ ${REPLICATION_S4:-0} == 1 ]]; then
         ulimit -n 65536 || true
         echo "=== after, scenario 4 at AOI 14, profiled (MYRIAD_CUDA_PROFILE=1)" | tee -a "$out/replication.txt"
-        MYRIAD_CUDA_PROFILE=1 .carry/myriad bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --aoi-size 14 \
+        MYRIAD_CUDA_PROFILE=1 timeout "${REPLICATION_S4_TIMEOUT:-0}" .carry/myriad bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --aoi-size 14 \
             --bots-per-socket 20 --quality-players 0 --out "$out/bench/replication-s4" \
             >"$out/replication-s4.md" 2>"$out/replication-s4.log" || fail "profiled bench scenario 4 failed"
         grep -E '^\| 4 \|' "$out/replication-s4.md" | tee -a "$out/replication.txt"

@@ -78,9 +78,21 @@ fn bench(c: &mut Criterion) {
     let recs = all[..pack_deltas(&header, Some(&own), &all, 2, &mut batch, &mut ends)].to_vec();
     let datagram_bytes = batch.total_bytes() as u64;
     let n = recs.len();
+    let mut server_small = ServerSession::new(&keys());
     eprintln!("{n} records and the own one in {} datagrams of {datagram_bytes} bytes in all", batch.len());
 
+    // A small view's tick (AOI 14: about 40 records, one datagram), where what a
+    // datagram costs whatever it holds weighs most.
+    let small = records(40);
     let mut g = c.benchmark_group("protocol");
+    g.bench_function("pack_and_seal_deltas_40_records", |b| {
+        b.iter(|| {
+            batch.clear();
+            pack_deltas(&header, Some(&own), black_box(&small), 1, &mut batch, &mut ends);
+            server_small.sealer.seal_batch(&mut batch).expect("seal");
+            black_box(batch.total_bytes())
+        })
+    });
     g.throughput(Throughput::Bytes(datagram_bytes));
     g.bench_function("pack_deltas_2_datagrams", |b| {
         b.iter(|| {

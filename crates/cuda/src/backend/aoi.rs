@@ -6,6 +6,7 @@ use myriad_core::{Aabb, World};
 use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{AoiResults, PhysicsError};
 use rayon::slice::ParallelSliceMut;
+use std::time::Instant;
 
 use super::Resident;
 use super::broad::{Queries, count_pass, write_pass};
@@ -47,6 +48,7 @@ impl Resident {
     /// written. `cuda` answers from a grid of columns (`grid`), `cuda-naive` by testing
     /// every object; both give every object whose box overlaps, as the CPU does.
     pub(crate) fn aoi_on_device(&mut self, world: &World, boxes: &[Aabb]) -> Result<usize, PhysicsError> {
+        let started = Instant::now();
         self.gpu.bind()?;
         self.sync_world(world, None)?;
         let nq = boxes.len();
@@ -60,6 +62,8 @@ impl Resident {
             self.boxes_fresh = Some(generation);
         }
         let gpu = &self.gpu;
+        gpu.profile_host("host: AOI query, the world's copy and boxes", started);
+        let started = Instant::now();
         self.aoi_boxes.ensure(gpu, nq * 24, 1.25)?;
         self.aoi_counts.ensure(gpu, (nq + 1) * 4, 1.25)?;
         self.aoi_order.ensure(gpu, nq * 4, 1.25)?;
@@ -72,6 +76,7 @@ impl Resident {
         } else {
             gpu.upload(&self.aoi_order, &query_order(boxes))?;
             let frame = Frame::new(&world.bounds, boxes);
+            gpu.profile_host("host: AOI query, boxes and order up", started);
             self.grid.build(gpu, &mut self.scan, self.n, self.obj.boxes.ptr(), frame)?;
             self.grid.count(gpu, nq, qboxes, qorder, counts)?;
         }

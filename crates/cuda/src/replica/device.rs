@@ -54,6 +54,10 @@ const PLAYERS_PER_BLOCK: u32 = 4;
 /// Threads per block of `k_replica_rank` (one block a player).
 const RANK_BLOCK: u32 = 256;
 
+/// Counts a player in `counts` (`R_COUNTS` in `kernels/replica.cu`): candidates, objects
+/// due, starving, eager.
+const COUNTS: usize = 4;
+
 /// Threads per block of `k_replica_carry` (one a player left out).
 const CARRY_BLOCK: u32 = 32;
 
@@ -76,8 +80,6 @@ struct Home {
     index: u32,
     /// The build that last served it.
     seen: u64,
-    /// Its tracks (the last build's count).
-    tracks: u32,
 }
 
 /// A build between its [`select`](DeviceReplicas::select) and its
@@ -109,9 +111,11 @@ struct Placed {
 }
 
 struct State {
-    /// By session key: two look-ups a player a build (`place`, the reports), so a fast
-    /// hash (the keys are the server's own, not a peer's).
+    /// By session key: a look-up a player a build (`place`), so a fast hash (the keys
+    /// are the server's own, not a peer's).
     homes_of: foldhash::HashMap<u64, Home>,
+    /// Each home's tracks (the last build's count), by home index.
+    tracks_of: Vec<u32>,
     free: Vec<u32>,
     /// Homes the device arrays hold.
     capacity: usize,
@@ -136,7 +140,8 @@ struct State {
     /// The objects due sorted by urgency (`k_replica_rank`).
     ranked: DevBuf<RDue>,
     chosen: DevBuf<RChosen>,
-    /// Per player: candidates and objects due (`k_replica_due`).
+    /// Per player, [`COUNTS`] each: candidates, objects due, starving, eager
+    /// (`k_replica_due`).
     counts: DevBuf<u32>,
     players: DevBuf<RPlayer>,
     config: DevBuf<RConfig>,
@@ -251,6 +256,7 @@ impl State {
     fn new() -> State {
         State {
             homes_of: foldhash::HashMap::default(),
+            tracks_of: Vec::new(),
             free: Vec::new(),
             capacity: 0,
             builds: 0,
@@ -292,6 +298,7 @@ impl State {
         self.valid = false;
         self.pending = None;
         self.homes_of.clear();
+        self.tracks_of.clear();
         self.free.clear();
         self.used = 0;
     }
@@ -323,7 +330,12 @@ impl State {
                 }
                 Entry::Vacant(e) => {
                     let index = self.free.pop().unwrap_or(next_index);
-                    e.insert(Home { index, seen: build, tracks: 0 });
+                    e.insert(Home { index, seen: build });
+                    let at = index as usize;
+                    if self.tracks_of.len() <= at {
+                        self.tracks_of.resize(at + 1, 0);
+                    }
+                    self.tracks_of[at] = 0;
                     placed.push((index, true));
                 }
             }
@@ -337,8 +349,8 @@ impl State {
             }
             if build - h.seen > FORGET_BUILDS {
                 forgotten.push(key);
-            } else if h.tracks > 0 {
-                carried.push((h.index, h.tracks));
+            } else if self.tracks_of[h.index as usize] > 0 {
+                carried.push((h.index, self.tracks_of[h.index as usize]));
             }
         }
         for key in forgotten.drain(..) {
@@ -426,7 +438,7 @@ impl State {
         self.wanted.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
         self.ranked.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
         self.chosen.ensure(gpu, items * size_of::<RChosen>(), 1.25)?;
-        self.counts.ensure(gpu, nq.max(1) * 2 * 4, 1.25)?;
+        self.counts.ensure(gpu, nq.max(1) * COUNTS * 4, 1.25)?;
         self.players.ensure(gpu, nq.max(1) * size_of::<RPlayer>(), 1.25)?;
         self.config.ensure(gpu, size_of::<RConfig>(), 1.0)?;
         self.carry.ensure(gpu, carry.len().max(1) * 4, 1.25)?;
@@ -557,10 +569,9 @@ impl State {
             };
             return Err(PhysicsError::Device { stage: "replica", message });
         }
-        for (p, r) in players.iter().zip(info) {
-            if let Some(h) = self.homes_of.get_mut(&p.key) {
-                h.tracks = r.in_view;
-            }
+        // By home, not by key: a store a player instead of a hash look-up.
+        for (&(home, _), r) in placed.iter().zip(info) {
+            self.tracks_of[home as usize] = r.in_view;
         }
         gpu.profile_host("host: replica reports", started);
         let no_objects = d.n == 0 || nq == 0;
@@ -619,5 +630,15 @@ impl State {
         self.valid = true;
         self.pending = None;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// The stride of `counts` is the kernels' (`R_COUNTS`), which index it by hand.
+    #[test]
+    fn the_counts_stride_is_the_kernels() {
+        let source = crate::compile::program_source();
+        assert!(source.contains(&format!("#define R_COUNTS {}u", super::COUNTS)));
     }
 }

@@ -98,39 +98,29 @@ __device__ __forceinline__ u32 grid_visit(const float* q, const u32* cells, cons
     return c;
 }
 
-// A warp a query (`qorder` maps warps to queries, as for the tree): `counts[q]` = the
-// objects its box overlaps.
-extern "C" __global__ void k_grid_count(u32 nq, const float* qboxes, const u32* qorder, float ox, float oz,
-                                        float inv, u32 g, const u32* cells, const float* gboxes, const u32* wmax,
-                                        u32* counts) {
+// A warp a query (`qorder` maps warps to queries, as for the tree), in one of two passes.
+// Counting (`out` null): `counts[q]` = the objects box q overlaps. Writing: `counts`
+// holds the scanned offsets, and the objects' slots go to `out[counts[q] ..]` in the
+// grid's order, for the queries whose range ends within `cap`.
+extern "C" __global__ void k_grid_pass(u32 nq, const float* qboxes, const u32* qorder, float ox, float oz, float inv,
+                                       u32 g, const u32* cells, const float* gboxes, const u32* gslots,
+                                       const u32* wmax, u32* counts, u32* out, u32 cap) {
     u32 lane = threadIdx.x & 31u;
     u32 t = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (t >= nq) return;
     u32 q = query_index(qorder, t);
+    u32 begin = 0, len = 0;
+    if (out) {
+        begin = counts[q];
+        u32 end = counts[q + 1];
+        if (end > cap) return;
+        len = end - begin;
+    }
     float b[6];
     for (int k = 0; k < 6; k++) b[k] = qboxes[6 * (u64)q + k];
     float w = __uint_as_float(*wmax);
-    u32 c = grid_visit(b, cells, gboxes, w, ox, oz, inv, g, lane, [](u32, bool, u32) {});
-    if (lane == 0) counts[q] = c;
-}
-
-// A warp a query: its objects' slots at `out[offsets[q] ..]`, in the grid's order (for
-// the queries whose range ends within `cap`).
-extern "C" __global__ void k_grid_write(u32 nq, const float* qboxes, const u32* qorder, float ox, float oz,
-                                        float inv, u32 g, const u32* cells, const float* gboxes, const u32* gslots,
-                                        const u32* wmax, const u32* offsets, u32* out, u32 cap) {
-    u32 lane = threadIdx.x & 31u;
-    u32 t = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
-    if (t >= nq) return;
-    u32 q = query_index(qorder, t);
-    u32 begin = offsets[q], end = offsets[q + 1];
-    if (end > cap) return;
-    float b[6];
-    for (int k = 0; k < 6; k++) b[k] = qboxes[6 * (u64)q + k];
-    float w = __uint_as_float(*wmax);
-    u32* dst = out + begin;
-    u32 len = end - begin;
-    grid_visit(b, cells, gboxes, w, ox, oz, inv, g, lane, [&](u32 j, bool hit, u32 at) {
-        if (hit && at < len) dst[at] = gslots[j];
+    u32 c = grid_visit(b, cells, gboxes, w, ox, oz, inv, g, lane, [&](u32 j, bool hit, u32 at) {
+        if (out && hit && at < len) out[begin + at] = gslots[j];
     });
+    if (!out && lane == 0) counts[q] = c;
 }

@@ -37,7 +37,7 @@ pub const HEADERS: [(&str, &str); 3] = [
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 28] = [
+pub const KERNELS: [(&str, usize); 27] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -51,8 +51,7 @@ pub const KERNELS: [(&str, usize); 28] = [
     ("k_sort_ranges", 3),
     ("k_grid_keys", 9),
     ("k_grid_scatter", 6),
-    ("k_grid_count", 11),
-    ("k_grid_write", 14),
+    ("k_grid_pass", 14),
     ("k_naive_count", 6),
     ("k_naive_write", 8),
     ("k_boxes", 4),

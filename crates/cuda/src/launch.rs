@@ -415,22 +415,9 @@ kernels! {
         gboxes: DevPtr<f32>,
         gslots: DevPtr<u32>,
     }
-    /// `k_grid_count`: a warp a query, the objects its box overlaps.
-    KGridCount = "k_grid_count" {
-        nq: u32,
-        qboxes: DevPtr<f32>,
-        qorder: DevPtr<u32>,
-        ox: f32,
-        oz: f32,
-        inv: f32,
-        g: u32,
-        cells: DevPtr<u32>,
-        gboxes: DevPtr<f32>,
-        wmax: DevPtr<u32>,
-        counts: DevPtr<u32>,
-    }
-    /// `k_grid_write`: a warp a query, its objects at its scanned offset (unsorted).
-    KGridWrite = "k_grid_write" {
+    /// `k_grid_pass`: a warp a query, counting the objects its box overlaps (`out`
+    /// null) or writing them at its scanned offset (unsorted).
+    KGridPass = "k_grid_pass" {
         nq: u32,
         qboxes: DevPtr<f32>,
         qorder: DevPtr<u32>,
@@ -442,7 +429,7 @@ kernels! {
         gboxes: DevPtr<f32>,
         gslots: DevPtr<u32>,
         wmax: DevPtr<u32>,
-        offsets: DevPtr<u32>,
+        counts: DevPtr<u32>,
         out: DevPtr<u32>,
         cap: u32,
     }

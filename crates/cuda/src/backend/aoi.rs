@@ -69,16 +69,20 @@ impl Resident {
         self.aoi_order.ensure(gpu, nq * 4, 1.25)?;
         let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
         gpu.upload(&self.aoi_boxes, &flat)?;
-        let (qboxes, qorder, counts) = (self.aoi_boxes.ptr(), self.aoi_order.ptr(), self.aoi_counts.ptr());
+        let counts = self.aoi_counts.ptr();
+        // `cuda-naive` tests the boxes in index order; the grid's warps take them in
+        // `query_order`.
+        let qs = Queries::plain(nq, self.aoi_boxes.ptr());
+        let ordered = Queries { order: self.aoi_order.ptr(), ..qs };
         let naive = self.naive();
         if naive {
-            count_pass(gpu, Queries::plain(nq, qboxes), false, self.dynamic_targets(), counts)?;
+            count_pass(gpu, qs, false, self.dynamic_targets(), counts)?;
         } else {
             gpu.upload(&self.aoi_order, &query_order(boxes))?;
             let frame = Frame::new(&world.bounds, boxes);
             gpu.profile_host("host: AOI query, boxes and order up", started);
             self.grid.build(gpu, &mut self.scan, self.n, self.obj.boxes.ptr(), frame)?;
-            self.grid.count(gpu, nq, qboxes, qorder, counts)?;
+            self.grid.count(gpu, ordered, counts)?;
         }
         self.scan.exclusive(gpu, counts, nq + 1)?;
         self.host.small.ensure(gpu, 4)?;
@@ -88,10 +92,10 @@ impl Resident {
         self.aoi_out.ensure(gpu, total * 4, 1.25)?;
         if naive {
             // Testing every object in order gives each list sorted.
-            write_pass(gpu, Queries::plain(nq, qboxes), false, self.dynamic_targets(), counts, &self.aoi_out)?;
+            write_pass(gpu, qs, false, self.dynamic_targets(), counts, &self.aoi_out)?;
         } else {
             // The grid writes each list in its columns' order; a block a list sorts it.
-            self.grid.write(gpu, nq, qboxes, qorder, counts, &self.aoi_out)?;
+            self.grid.write(gpu, ordered, counts, &self.aoi_out)?;
             // 512 threads: a list of 2,500 (AOI 100, scenario 3) is 2,048 comparisons a
             // step of its sorting network, 4 a thread.
             gpu.launch_grid(

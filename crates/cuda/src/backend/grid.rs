@@ -7,9 +7,10 @@
 use myriad_core::Aabb;
 use myriad_physics::PhysicsError;
 
+use super::broad::Queries;
 use super::scan::Scan;
 use crate::device::{DevBuf, Gpu};
-use crate::launch::{DevPtr, KGridCount, KGridKeys, KGridScatter, KGridWrite};
+use crate::launch::{DevPtr, KGridKeys, KGridPass, KGridScatter};
 
 /// Columns along each axis at most: 2,048² columns are 16 MiB of counts.
 const MAX_COLUMNS: f32 = 2048.0;
@@ -130,56 +131,30 @@ impl Grid {
         )
     }
 
-    /// `counts[q]` = the objects box `q` of `qboxes` overlaps (`nq` boxes, warps taking
-    /// them in `qorder`); `counts[nq]` = 0, for the scan.
-    pub fn count(
-        &self,
-        gpu: &Gpu,
-        nq: usize,
-        qboxes: DevPtr<f32>,
-        qorder: DevPtr<u32>,
-        counts: DevPtr<u32>,
-    ) -> Result<(), PhysicsError> {
-        gpu.zero(counts.add(nq), 1)?;
-        let Frame { ox, oz, inv, g } = self.frame;
-        gpu.launch_grid(
-            warp_blocks(nq),
-            BLOCK,
-            KGridCount {
-                nq: nq as u32,
-                qboxes,
-                qorder,
-                ox,
-                oz,
-                inv,
-                g,
-                cells: self.cells.ptr(),
-                gboxes: self.boxes.ptr(),
-                wmax: self.wmax.ptr(),
-                counts,
-            },
-        )
+    /// `counts[q]` = the objects box `q` of `qs` overlaps (warps taking the boxes in
+    /// `qs.order`); `counts[qs.n]` = 0, for the scan.
+    pub fn count(&self, gpu: &Gpu, qs: Queries, counts: DevPtr<u32>) -> Result<(), PhysicsError> {
+        gpu.zero(counts.add(qs.n), 1)?;
+        self.pass(gpu, qs, counts, None)
     }
 
     /// Each box's objects at `out[offsets[q] .. offsets[q + 1]]`, unsorted, for the
     /// boxes whose range ends within `out`'s capacity.
-    pub fn write(
-        &self,
-        gpu: &Gpu,
-        nq: usize,
-        qboxes: DevPtr<f32>,
-        qorder: DevPtr<u32>,
-        offsets: DevPtr<u32>,
-        out: &DevBuf<u32>,
-    ) -> Result<(), PhysicsError> {
+    pub fn write(&self, gpu: &Gpu, qs: Queries, offsets: DevPtr<u32>, out: &DevBuf<u32>) -> Result<(), PhysicsError> {
+        self.pass(gpu, qs, offsets, Some(out))
+    }
+
+    /// `k_grid_pass`: counting into `counts` without `out`, else writing into `out` at
+    /// the offsets `counts` holds.
+    fn pass(&self, gpu: &Gpu, qs: Queries, counts: DevPtr<u32>, out: Option<&DevBuf<u32>>) -> Result<(), PhysicsError> {
         let Frame { ox, oz, inv, g } = self.frame;
         gpu.launch_grid(
-            warp_blocks(nq),
+            warp_blocks(qs.n),
             BLOCK,
-            KGridWrite {
-                nq: nq as u32,
-                qboxes,
-                qorder,
+            KGridPass {
+                nq: qs.n as u32,
+                qboxes: qs.boxes,
+                qorder: qs.order,
                 ox,
                 oz,
                 inv,
@@ -188,9 +163,9 @@ impl Grid {
                 gboxes: self.boxes.ptr(),
                 gslots: self.slots.ptr(),
                 wmax: self.wmax.ptr(),
-                offsets,
-                out: out.ptr(),
-                cap: out.capacity(),
+                counts,
+                out: out.map_or(DevPtr::NULL, DevBuf::ptr),
+                cap: out.map_or(0, DevBuf::capacity),
             },
         )
     }

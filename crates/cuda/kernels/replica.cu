@@ -21,33 +21,21 @@
 #include "common.cuh"
 #include "replica.cuh"
 
-// Counts a player (`counts`): candidates, objects due, of those starving and eager.
-#define R_COUNTS 4u
-
 // `NETWORK_SORT` by the warp's 32 lanes (`lane`).
 #define WARP_SORT(T, a, n, LESS, lane) NETWORK_SORT(T, a, n, LESS, lane, 32u, __syncwarp())
 
 // `r_take_sorted` with the warp: 32 objects at a time, each lane chooses its object's
 // record and its charge, then every lane runs the same budget over the 32 in order
 // (shuffled to all), so all hold the same `fill` and counts, and the lane of an object
-// taken writes its record. `wanted` is sorted, `nstarving` and `neager` of its objects
-// are starving and eager; returns how many were chosen (in the order taken);
-// `info->datagrams`, `deferred` and `starving` as `r_take_sorted`.
+// taken writes its record. `wanted` is sorted; returns how many were chosen (in the
+// order taken); `info->datagrams`, `deferred` and `starving` as `r_take_sorted`.
 __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const RHome* h, RPos origin,
                                   const RCand* cands, const RTrack* next, const RDue* wanted, u32 nwanted,
-                                  u32 nstarving, u32 neager, RChosen* chosen, RInfo* info, u32 lane) {
+                                  RChosen* chosen, RInfo* info, u32 lane) {
     RFilling fill = r_filling_new(cfg, h, info, origin);
     u32 nchosen = 0;
     int open = 1;  // still taking whatever the budget pays (else only the starving)
-    u32 seen_starving = 0, seen_eager = 0;
     for (u32 base = 0; base < nwanted; base += 32) {
-        if (!open && seen_starving == nstarving) {
-            // The budget is spent and no starving object is left to offer: the rest
-            // goes deferred (the eager not counted) without being read. Where the
-            // budget binds (a large view) that is most of the list.
-            info->deferred += (nwanted - base) - (neager - seen_eager);
-            break;
-        }
         u32 k = base + lane;
         RRecord rec = {};
         u32 bits = 0, starving = 0, eager = 0, track = 0, cand = 0;
@@ -68,8 +56,6 @@ __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const 
             }
         }
         u32 items = min(32u, nwanted - base);
-        seen_starving += __popc(__ballot_sync(FULL_WARP, starving));
-        seen_eager += __popc(__ballot_sync(FULL_WARP, eager));
         if (!open && __ballot_sync(FULL_WARP, starving) == 0) {
             // Nothing here is offered: each goes deferred (the eager not counted).
             info->deferred += __popc(__ballot_sync(FULL_WARP, k < nwanted && !eager));
@@ -122,9 +108,8 @@ __device__ ROwn r_own_of(const RPlayer* p, u32 n, const float* pos, const u32* i
 
 // Step 1 and 2 of a build, a warp a player: the candidates, the merge with last build's
 // tracks, the acknowledgements and the priorities; the objects due go to `wanted` in the
-// candidates' order, and `counts[R_COUNTS i ..]` say how many candidates, how many due
-// (R_NO_SLOT: the list was out of order, reported in `info[i]`), and how many of those
-// are starving and eager (which let `k_replica_take` stop once the budget is spent).
+// candidates' order, and `counts[2 i]` and `counts[2 i + 1]` say how many candidates and
+// how many due (R_NO_SLOT due: the list was out of order, reported in `info[i]`).
 extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, const u32* objects,
                                          u32 n, const float* pos, const u32* ids, const u8* shapes,
                                          const RPlayer* players, RHome* homes, const RTrack* old_tracks,
@@ -188,8 +173,8 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, c
             RInfo bad = {};
             bad.overflow = 2;
             info[i] = bad;
-            counts[R_COUNTS * i] = nc;
-            counts[R_COUNTS * i + 1] = R_NO_SLOT;
+            counts[2 * i] = nc;
+            counts[2 * i + 1] = R_NO_SLOT;
         }
         return;
     }
@@ -276,7 +261,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, c
     if (lane == 0) h->nflights = kept;
 
     // Priorities; the objects due, compacted.
-    u32 nw = 0, nstarving = 0, neager = 0;
+    u32 nw = 0;
     for (u32 base = 0; base < nc; base += 32) {
         u32 k = base + lane;
         RDue d;
@@ -284,14 +269,10 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, c
         u32 mask = __ballot_sync(FULL_WARP, due);
         if (due) wd[nw + lanes_before(mask, lane)] = d;
         nw += __popc(mask);
-        nstarving += __popc(__ballot_sync(FULL_WARP, due && d.starving));
-        neager += __popc(__ballot_sync(FULL_WARP, due && d.eager));
     }
     if (lane == 0) {
-        counts[R_COUNTS * i] = nc;
-        counts[R_COUNTS * i + 1] = nw;
-        counts[R_COUNTS * i + 2] = nstarving;
-        counts[R_COUNTS * i + 3] = neager;
+        counts[2 * i] = nc;
+        counts[2 * i + 1] = nw;
     }
 }
 
@@ -310,7 +291,7 @@ extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32*
     __shared__ unsigned short at[RANK_CAP];
     u32 i = blockIdx.x;
     if (i >= nq) return;
-    u32 nw = counts[R_COUNTS * i + 1];
+    u32 nw = counts[2 * i + 1];
     if (nw == R_NO_SLOT) return;
     u32 o = offsets[i], t = threadIdx.x, step = blockDim.x;
     RDue* wd = wanted + o;
@@ -360,7 +341,7 @@ extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, 
     u32 lane = threadIdx.x & 31u;
     u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (i >= nq) return;
-    u32 nc = counts[R_COUNTS * i], nw = counts[R_COUNTS * i + 1];
+    u32 nc = counts[2 * i], nw = counts[2 * i + 1];
     if (nw == R_NO_SLOT) return;
     const RPlayer* p = &players[i];
     RHome* h = &homes[p->home];
@@ -377,8 +358,8 @@ extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, 
         mine.own_record = r_choose(own.id, own.kind, own.pos, tick, acked, r_track_prior(&h->own, acked));
     }
     RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
-    u32 nch = r_take_sorted_warp(cfg, tick, floor, h, origin, cands + o, next_tracks + o, ranked + o, nw,
-                                 counts[R_COUNTS * i + 2], counts[R_COUNTS * i + 3], ch, &mine, lane);
+    u32 nch = r_take_sorted_warp(cfg, tick, floor, h, origin, cands + o, next_tracks + o, ranked + o, nw, ch, &mine,
+                                 lane);
     __syncwarp();
     WARP_SORT(RChosen, ch, nch, r_chosen_less, lane);
     // A repeated id (only from a broken source) goes once: the rare case on lane 0.

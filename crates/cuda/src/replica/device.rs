@@ -54,10 +54,6 @@ const PLAYERS_PER_BLOCK: u32 = 4;
 /// Threads per block of `k_replica_rank` (one block a player).
 const RANK_BLOCK: u32 = 256;
 
-/// Counts a player in `counts` (`R_COUNTS` in `kernels/replica.cu`): candidates, objects
-/// due, starving, eager.
-const COUNTS: usize = 4;
-
 /// Threads per block of `k_replica_carry` (one a player left out).
 const CARRY_BLOCK: u32 = 32;
 
@@ -140,8 +136,7 @@ struct State {
     /// The objects due sorted by urgency (`k_replica_rank`).
     ranked: DevBuf<RDue>,
     chosen: DevBuf<RChosen>,
-    /// Per player, [`COUNTS`] each: candidates, objects due, starving, eager
-    /// (`k_replica_due`).
+    /// Per player: candidates and objects due (`k_replica_due`).
     counts: DevBuf<u32>,
     players: DevBuf<RPlayer>,
     config: DevBuf<RConfig>,
@@ -438,7 +433,7 @@ impl State {
         self.wanted.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
         self.ranked.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
         self.chosen.ensure(gpu, items * size_of::<RChosen>(), 1.25)?;
-        self.counts.ensure(gpu, nq.max(1) * COUNTS * 4, 1.25)?;
+        self.counts.ensure(gpu, nq.max(1) * 2 * 4, 1.25)?;
         self.players.ensure(gpu, nq.max(1) * size_of::<RPlayer>(), 1.25)?;
         self.config.ensure(gpu, size_of::<RConfig>(), 1.0)?;
         self.carry.ensure(gpu, carry.len().max(1) * 4, 1.25)?;
@@ -630,15 +625,5 @@ impl State {
         self.valid = true;
         self.pending = None;
         Ok(())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    /// The stride of `counts` is the kernels' (`R_COUNTS`), which index it by hand.
-    #[test]
-    fn the_counts_stride_is_the_kernels() {
-        let source = crate::compile::program_source();
-        assert!(source.contains(&format!("#define R_COUNTS {}u", super::COUNTS)));
     }
 }

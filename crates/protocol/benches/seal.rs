@@ -131,6 +131,20 @@ fn bench(c: &mut Criterion) {
             black_box(client.opener.open_with(&mut buf, |_, body| Ok(body.len())).expect("open").message)
         })
     });
+    // A tick of 50,000 such players on one core, each with its own session and batch:
+    // what no single-player loop shows, every player's memory cold by its turn.
+    let mut players: Vec<(ServerSession, DatagramBatch)> =
+        (0..50_000).map(|_| (ServerSession::new(&keys()), DatagramBatch::new())).collect();
+    g.sample_size(10);
+    g.bench_function("pack_and_seal_40_records_50000_players", |b| {
+        b.iter(|| {
+            for (session, batch) in players.iter_mut() {
+                batch.clear();
+                pack_deltas(&header, Some(&own), black_box(&small), 1, batch, &mut ends);
+                session.sealer.seal_batch(batch).expect("seal");
+            }
+        })
+    });
     g.finish();
 
     // The same operations timed by CPU time rather than wall time.

@@ -409,6 +409,12 @@ impl<T> Verified<T> {
     pub fn sequence(&self) -> u64 {
         self.header.sequence
     }
+
+    /// Its message, verified but not committed: reading it changes nothing (the
+    /// receiver prepares what applying it will need while the window is not yet moved).
+    pub fn message(&self) -> &T {
+        &self.message
+    }
 }
 
 /// Opens incoming datagrams of one session and direction, rejecting replays.

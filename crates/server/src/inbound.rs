@@ -28,7 +28,9 @@
 //!    a time;
 //! 2. on the rayon pool: `Opener::verify` of every datagram that got through, which
 //!    checks the header, the replay window as it was before the batch, the tag and the
-//!    body, and changes nothing (so the openers are only read);
+//!    body, and changes nothing (so the openers are only read); for an action, also the
+//!    slot of the player's object (a look-up in the map of every object's id, which no
+//!    part of a receive changes);
 //! 3. in arrival order, on the tick thread: `Opener::commit`, which checks the window
 //!    again and records the sequence number (so of two copies of one datagram only the
 //!    first is accepted), then the message is applied.
@@ -53,7 +55,7 @@ use std::net::SocketAddr;
 use std::ops::Range;
 use std::time::Instant;
 
-use myriad_core::World;
+use myriad_core::{Dynamics, EntityId, World};
 use myriad_protocol::{
     ClientMessage, Direction, ErrorClass, OpenError, Opener, ServerInfo, ServerMessage, Verified, peek_header,
 };
@@ -248,7 +250,7 @@ fn handle_batch(
     let mut start = 0;
     while start < buffers.inbox.len() {
         start = admit(sessions, ctx, report, buffers, start);
-        let verified = verify(sessions, buffers);
+        let verified = verify(sessions, &world.dynamics, buffers);
         for (a, verified) in buffers.admitted.drain(..).zip(verified) {
             apply(sessions, world, ctx, report, a, verified);
         }
@@ -310,14 +312,21 @@ fn admit(
     inbox.len()
 }
 
+/// What phase 2 found of one datagram: `None` if its session is gone, else the
+/// verification and, for an action, its player's object's slot (`None`: no object).
+type Checked = Option<(Result<Verified<ClientMessage>, OpenError>, Option<usize>)>;
+
+/// One datagram for phase 2: its session's opener and object (`None`: the session is
+/// gone), and its bytes.
+type Job<'a> = (Option<(&'a Opener, EntityId)>, &'a mut [u8]);
+
 /// Phase 2: verifies every admitted datagram against its session's opener, in parallel
-/// for a large batch; one result per admitted datagram (`None`: its session is gone).
-fn verify(
-    sessions: &Sessions,
-    buffers: &mut ReceiveBuffers,
-) -> Vec<Option<Result<Verified<ClientMessage>, OpenError>>> {
+/// for a large batch, and looks up the slot an action will set (a hash look-up in a map
+/// of every object, which phase 3 would otherwise make one at a time: nothing changes
+/// slots during a receive); one result per admitted datagram.
+fn verify(sessions: &Sessions, dynamics: &Dynamics, buffers: &mut ReceiveBuffers) -> Vec<Checked> {
     let ReceiveBuffers { inbox: Inbox { bytes, items }, admitted, .. } = buffers;
-    let mut jobs: Vec<(Option<&Opener>, &mut [u8])> = Vec::with_capacity(admitted.len());
+    let mut jobs: Vec<Job<'_>> = Vec::with_capacity(admitted.len());
     // Admitted datagrams lie in the buffer in order and apart: split it into them.
     let (mut rest, mut offset) = (&mut bytes[..], 0);
     for a in admitted.iter() {
@@ -325,10 +334,14 @@ fn verify(
         let (_, tail) = std::mem::take(&mut rest).split_at_mut(range.start - offset);
         let (datagram, tail) = tail.split_at_mut(range.len());
         (rest, offset) = (tail, range.end);
-        jobs.push((sessions.get(a.player).map(|p| &p.opener), datagram));
+        jobs.push((sessions.get(a.player).map(|p| (&p.opener, p.entity)), datagram));
     }
-    let open = |(opener, datagram): &mut (Option<&Opener>, &mut [u8])| {
-        opener.map(|o| o.verify(datagram, ClientMessage::decode_body))
+    let open = |(player, datagram): &mut Job<'_>| {
+        player.map(|(opener, entity)| {
+            let verified = opener.verify(datagram, ClientMessage::decode_body);
+            let acts = verified.as_ref().is_ok_and(|v| matches!(v.message(), ClientMessage::Action { .. }));
+            (verified, if acts { dynamics.slot(entity) } else { None })
+        })
     };
     if jobs.len() >= PARALLEL_OPEN_MIN {
         jobs.par_iter_mut().with_min_len(OPEN_CHUNK).map(open).collect()
@@ -344,9 +357,9 @@ fn apply(
     ctx: &Ctx<'_>,
     report: &mut InboundReport,
     a: Admitted,
-    verified: Option<Result<Verified<ClientMessage>, OpenError>>,
+    checked: Checked,
 ) {
-    let (Some(p), Some(verified)) = (sessions.get_mut(a.player), verified) else {
+    let (Some(p), Some((verified, slot))) = (sessions.get_mut(a.player), checked) else {
         Refusal::UnknownSession.count();
         return;
     };
@@ -379,7 +392,7 @@ fn apply(
         ClientMessage::Action { input, .. } => {
             if p.accept_frame(input.client_frame) {
                 let action = p.action_for(input.mask.bits(), ctx.tick);
-                if world.dynamics.set_action(p.entity, action) {
+                if slot.is_some_and(|s| world.dynamics.set_action_at(s, action)) {
                     report.actions += 1;
                 } else {
                     missing_entity(p);

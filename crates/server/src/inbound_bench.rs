@@ -4,6 +4,7 @@
 //! printed. Ignored by default; it asserts nothing about time. Run:
 //!
 //! `N=3333 RAYON_NUM_THREADS=16 cargo test --release -p myriad-server --lib -- --ignored receive_timing --nocapture`
+//! (`OBJECTS=1300000` adds scenario 4's objects to the world.)
 //!
 //! (`RAYON_NUM_THREADS=1` runs the parallel path on one worker: the cost of going
 //! through the pool.)
@@ -23,7 +24,10 @@ use crate::transport::MemoryTransport;
 #[ignore = "a timing, run by hand (module docs)"]
 fn receive_timing() {
     let n: usize = std::env::var("N").ok().and_then(|v| v.parse().ok()).unwrap_or(3333);
-    let mut world = myriad_core::ScenarioSpec::custom(11).counts(10, 0, 0).map_size(1024.0, 33).build().unwrap();
+    // Objects besides the players: the map from ids to slots that each action looks up
+    // is as large as the world (`OBJECTS=1300000` for scenario 4's).
+    let objects: u32 = std::env::var("OBJECTS").ok().and_then(|v| v.parse().ok()).unwrap_or(10);
+    let mut world = myriad_core::ScenarioSpec::custom(11).counts(objects, 0, 0).map_size(1024.0, 33).build().unwrap();
     let mut sessions = Sessions::new(n, MapId(1));
     let ctx = JoinContext { tick: 0, dilation_permille: 1000 };
     let mut clients: Vec<ClientSession> = (0..n)

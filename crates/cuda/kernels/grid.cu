@@ -76,8 +76,9 @@ __device__ __forceinline__ GridSpan grid_span(const float* q, float w, float ox,
     return s;
 }
 
-// Walks query `t`'s rows with its warp: `emit(index, mask)` for every 32 grid entries
-// tested, `mask` the lanes whose object overlaps the box; returns the count.
+// Walks box `q`'s rows with its warp, 32 grid entries at a time: each lane calls
+// `emit(j, hit, at)` for its entry `j`, `hit` whether that object overlaps the box and
+// `at` its place among the hits so far (in order); returns the count of hits.
 template <typename F>
 __device__ __forceinline__ u32 grid_visit(const float* q, const u32* cells, const float* gboxes, float w, float ox,
                                           float oz, float inv, u32 g, u32 lane, F emit) {

@@ -552,7 +552,8 @@ pub fn pack_deltas(
             previous = Some(r.id);
             end += 1;
         }
-        // Zeroed: what the headers do not set stays zero.
+        // Every byte up to the datagram's end is written here or by the sealer (the
+        // bit writer overwrites what it reaches), so no stale byte can be sent.
         let buf = out.begin(MAX_DATAGRAM);
         buf[0] = PROTOCOL_VERSION;
         buf[1] = PacketKind::StateUpdate as u8;

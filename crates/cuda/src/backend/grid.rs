@@ -31,13 +31,17 @@ pub(super) struct Frame {
 }
 
 impl Frame {
+    /// One column holding everything: where the bounds give no grid, and before the
+    /// first build.
+    const WHOLE: Frame = Frame { ox: 0.0, oz: 0.0, inv: 0.0, g: 1 };
+
     /// Columns over the world's `bounds`, about [`COLUMNS_PER_BOX`] across the narrowest
     /// of `queries` (fewer where that would exceed [`MAX_COLUMNS`]). Degenerate or
     /// non-finite bounds get one column: the lists are right, only slower.
     pub fn new(bounds: &Aabb, queries: &[Aabb]) -> Frame {
         let extent = (bounds.max.x - bounds.min.x).max(bounds.max.z - bounds.min.z);
         if !(extent.is_finite() && extent > 0.0 && bounds.min.x.is_finite() && bounds.min.z.is_finite()) {
-            return Frame { ox: 0.0, oz: 0.0, inv: 0.0, g: 1 };
+            return Frame::WHOLE;
         }
         let narrowest = queries
             .iter()
@@ -75,7 +79,7 @@ impl Grid {
     /// An empty grid; the first build allocates.
     pub fn new() -> Grid {
         Grid {
-            frame: Frame { ox: 0.0, oz: 0.0, inv: 0.0, g: 1 },
+            frame: Frame::WHOLE,
             keys: DevBuf::empty(),
             cells: DevBuf::empty(),
             boxes: DevBuf::empty(),

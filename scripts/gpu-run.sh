@@ -34,8 +34,9 @@
 # (per-kernel device times, before and after; REPLICATION_PROFILE=0 leaves them out,
 # REPLICATION_PROFILE_AOI="14 100" profiles each edge listed, REPLICATION_PROFILE_BEFORE=0
 # profiles this build only); REPLICATION_S2=1 adds scenario 2 (5,000 players) at AOI 100,
-# before and after; REPLICATION_S4=1 a profiled run of scenario 4 (50,000 players, bots
-# 20 a socket) at AOI 14 with this build (REPLICATION_S4_TIMEOUT seconds at most).
+# before and after; REPLICATION_S4=1 scenario 4 (50,000 players, bots 20 a socket) at AOI
+# 14, before and after (REPLICATION_S4_TIMEOUT seconds at most each; profiled with
+# REPLICATION_S4_PROFILE=1).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -381,13 +382,24 @@ if [[ $mode == replication ]]; then
         done
     fi
     if [[ ${REPLICATION_S4:-0} == 1 ]]; then
+        # Scenario 4 at AOI 14, before (when there is a build before) and after;
+        # REPLICATION_S4_PROFILE=1 profiles them (per-kernel and host spans).
         ulimit -n 65536 || true
-        echo "=== after, scenario 4 at AOI 14, profiled (MYRIAD_CUDA_PROFILE=1)" | tee -a "$out/replication.txt"
-        MYRIAD_CUDA_PROFILE=1 timeout "${REPLICATION_S4_TIMEOUT:-0}" .carry/myriad bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --aoi-size 14 \
-            --bots-per-socket 20 --quality-players 0 --out "$out/bench/replication-s4" \
-            >"$out/replication-s4.md" 2>"$out/replication-s4.log" || fail "profiled bench scenario 4 failed"
-        grep -E '^\| 4 \|' "$out/replication-s4.md" | tee -a "$out/replication.txt"
-        grep -E -A45 "per-kernel" "$out/replication-s4.log" | grep -E "per-kernel|^\|" | tee -a "$out/replication.txt"
+        profile=${REPLICATION_S4_PROFILE:-0}
+        for bin in .carry/before/myriad .carry/myriad; do
+            [[ -x $bin ]] || continue
+            tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
+            echo "=== $tag, scenario 4 at AOI 14 (MYRIAD_CUDA_PROFILE=$profile)" | tee -a "$out/replication.txt"
+            MYRIAD_CUDA_PROFILE=$profile timeout "${REPLICATION_S4_TIMEOUT:-0}" $bin bench --scenario 4 --backend cuda \
+                --ticks 20 --warmup 3 --aoi-size 14 --bots-per-socket 20 --quality-players 0 \
+                --out "$out/bench/replication-s4-$tag" >"$out/replication-s4-$tag.md" 2>"$out/replication-s4-$tag.log" ||
+                fail "bench scenario 4 ($tag) failed"
+            grep -E '^\| 4 \|' "$out/replication-s4-$tag.md" | tee -a "$out/replication.txt"
+            if [[ $profile == 1 ]]; then
+                grep -E -A45 "per-kernel" "$out/replication-s4-$tag.log" | grep -E "per-kernel|^\|" |
+                    tee -a "$out/replication.txt"
+            fi
+        done
     fi
 fi
 

@@ -4,6 +4,7 @@
 fn main() {
     println!("cargo:rerun-if-changed=src/replica/host.c");
     println!("cargo:rerun-if-changed=kernels/replica.cuh");
+    println!("cargo:rerun-if-changed=kernels/pack.cuh");
     cc::Build::new()
         .file("src/replica/host.c")
         .flag_if_supported("-ffp-contract=off")

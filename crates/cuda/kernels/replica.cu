@@ -4,8 +4,9 @@
 // k_replica_carry (players left out keep their tracks), k_replica_due (a warp a player:
 // the view matched with the tracks, acknowledgements, priorities, the objects due),
 // k_replica_rank (a block a player: the objects due sorted by urgency in shared memory),
-// k_replica_take (a warp a player: the budget, the records chosen, stored into mapped
-// host memory), the host's packing and sealing, then k_replica_commit (what the
+// k_replica_take (a warp a player: the budget, the records chosen), k_replica_pack (a
+// warp a player: the records packed into delta update bodies, pack.cuh, copied into
+// mapped host memory), the host's framing and sealing, then k_replica_commit (what the
 // datagrams took, flights, tracks marked sent).
 //
 // What is per object (candidates, the merge with last build's tracks, acknowledgements
@@ -20,6 +21,7 @@
 // states at its home times R_FLIGHTS and R_STATES.
 #include "common.cuh"
 #include "replica.cuh"
+#include "pack.cuh"
 
 // `NETWORK_SORT` by the warp's 32 lanes (`lane`).
 #define WARP_SORT(T, a, n, LESS, lane) NETWORK_SORT(T, a, n, LESS, lane, 32u, __syncwarp())
@@ -332,12 +334,13 @@ extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32*
 
 // Step 3 of a build, a warp a player: the own record, then the objects due (`ranked`, in
 // the order of urgency) into the budget (`r_take_due`'s steps: every lane keeps the same
-// budget), the chosen records sorted by the warp and stored into mapped host memory.
+// budget), the chosen records sorted by the warp; the counts to the host (`info`, mapped)
+// and to `k_replica_pack` (`infos`).
 extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, u32 n,
                                           const float* pos, const u32* ids, const u8* shapes,
                                           const RPlayer* players, RHome* homes, const RTrack* next_tracks,
                                           const RCand* cands, const u32* counts, const RDue* ranked,
-                                          RChosen* chosen, RInfo* info, RRecord* out, u32 out_cap) {
+                                          RChosen* chosen, RInfo* info, RInfo* infos) {
     u32 lane = threadIdx.x & 31u;
     u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (i >= nq) return;
@@ -370,21 +373,51 @@ extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, 
     } else {
         mine.count = nch;
     }
-    u32 count = 0;
     if (lane == 0) {
         h->track_off = o;
         h->track_len = nc;
-        if (mine.count > out_cap) {
-            mine.overflow = 1;
-            mine.count = out_cap;
-        }
-        count = mine.count;
+        info[i] = mine;
+        infos[i] = mine;
     }
-    count = __shfl_sync(FULL_WARP, count, 0);
+}
+
+// Step 4 of a build, a warp a player: lane 0 packs the chosen records and the own one
+// into delta update bodies (pack.cuh's `r_pack`, `pack_deltas`' rules) in device
+// memory, then the warp copies them into mapped host memory 16 bytes a lane, so that
+// what crosses the bus is the datagrams' bytes, not the records. `ends` (where each
+// datagram's records end) stays on the device for `k_replica_commit`; the bodies
+// (`out`), their lengths (`out_lens`) and `RPacked` go to the host, which frames and
+// seals them.
+extern "C" __global__ void k_replica_pack(u32 nq, const RConfig* cfg, u64 tick, u32 dilation, const u32* offsets,
+                                          const RPlayer* players, const u32* counts, const RInfo* infos,
+                                          const RChosen* chosen, u8* bodies, u32* ends, u32* lens, RPacked* packed,
+                                          u8* out, u32* out_lens) {
+    u32 lane = threadIdx.x & 31u;
+    u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
+    if (i >= nq) return;
+    u32 mdg = cfg->max_datagrams;
+    u64 at = (u64)i * mdg;
+    RPacked done = {0, 0, 0, 0};
+    if (counts[2 * i + 1] != R_NO_SLOT && lane == 0) {
+        const RInfo* in = &infos[i];
+        const RPlayer* p = &players[i];
+        RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
+        u32 most = in->datagrams < mdg ? in->datagrams : mdg;
+        done = r_pack(tick, dilation, origin, in->has_own_record ? &in->own_record : 0, chosen + offsets[i],
+                      in->count, most, bodies + at * R_BODY_STRIDE, lens + at, ends + at);
+        packed[i] = done;
+    }
+    u32 datagrams = __shfl_sync(FULL_WARP, done.datagrams, 0);
     __syncwarp();
-    RRecord* dst = out + (u64)i * out_cap;
-    for (u32 k = lane; k < count; k += 32) dst[k] = ch[k].rec;
-    if (lane == 0) info[i] = mine;
+    for (u32 d = 0; d < datagrams; d++) {
+        u64 base = (at + d) * R_BODY_STRIDE;
+        u32 len = lens[at + d];
+        if (lane == 0) out_lens[at + d] = len;
+        u32 words = (len + 15) / 16;
+        const uint4* src = (const uint4*)(bodies + base);
+        uint4* dst = (uint4*)(out + base);
+        for (u32 k = lane; k < words; k += 32) dst[k] = src[k];
+    }
 }
 
 extern "C" __global__ void k_replica_commit(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets,

@@ -28,16 +28,17 @@ pub const SOURCES: [(&str, &str); 7] = [
 ];
 
 /// Headers the sources include, handed to NVRTC by name.
-pub const HEADERS: [(&str, &str); 3] = [
+pub const HEADERS: [(&str, &str); 4] = [
     ("common.cuh", include_str!("../kernels/common.cuh")),
     ("narrow.cuh", include_str!("../kernels/narrow.cuh")),
     ("replica.cuh", include_str!("../kernels/replica.cuh")),
+    ("pack.cuh", include_str!("../kernels/pack.cuh")),
 ];
 
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 27] = [
+pub const KERNELS: [(&str, usize); 28] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -62,7 +63,8 @@ pub const KERNELS: [(&str, usize); 27] = [
     ("k_patch_scatter", 12),
     ("k_replica_due", 22),
     ("k_replica_rank", 5),
-    ("k_replica_take", 18),
+    ("k_replica_take", 17),
+    ("k_replica_pack", 15),
     ("k_replica_commit", 13),
     ("k_replica_carry", 5),
 ];

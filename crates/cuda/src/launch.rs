@@ -27,7 +27,8 @@ use myriad_physics::PhysicsError;
 use crate::device::{Arg, Gpu};
 use crate::params::DeviceParams;
 use crate::replica::{
-    RCand, RChosen, RCommit, RConfig, RDue, RFlight, RHome, RInfo, RKey, RMoved, RPlayer, RRecord, RState, RTrack,
+    RCand, RChosen, RCommit, RConfig, RDue, RFlight, RHome, RInfo, RKey, RMoved, RPacked, RPlayer, RRecord, RState,
+    RTrack,
 };
 
 /// A device address of items of type `T` (no ownership: the buffer it came from owns the
@@ -117,6 +118,7 @@ device_items!(
     RInfo => "RInfo",
     RCommit => "RCommit",
     RKey => "RKey",
+    RPacked => "RPacked",
 );
 
 /// A value that can be passed as one kernel parameter.
@@ -255,9 +257,9 @@ kernels! {
         wanted: DevPtr<RDue>,
         ranked: DevPtr<RDue>,
     }
-    /// `k_replica_take`: one warp per player takes its ranked objects into its budget
-    /// and stores the chosen records (ids increasing) into mapped host memory (step 3 of
-    /// `r_select`).
+    /// `k_replica_take`: one warp per player takes its ranked objects into its budget,
+    /// the chosen records sorted by id (step 3 of `r_select`); its counts to the host
+    /// (`info`, mapped) and to `k_replica_pack` (`infos`).
     KReplicaTake = "k_replica_take" {
         nq: u32,
         cfg: DevPtr<RConfig>,
@@ -275,8 +277,27 @@ kernels! {
         ranked: DevPtr<RDue>,
         chosen: DevPtr<RChosen>,
         info: DevPtr<RInfo>,
-        out: DevPtr<RRecord>,
-        out_cap: u32,
+        infos: DevPtr<RInfo>,
+    }
+    /// `k_replica_pack`: one warp per player packs its chosen records and its own into
+    /// delta update bodies (`pack.cuh`'s `r_pack`, `pack_deltas`' rules) and copies them
+    /// into mapped host memory (`out`, `out_lens`, `packed`); `ends` stays on the device.
+    KReplicaPack = "k_replica_pack" {
+        nq: u32,
+        cfg: DevPtr<RConfig>,
+        tick: u64,
+        dilation: u32,
+        offsets: DevPtr<u32>,
+        players: DevPtr<RPlayer>,
+        counts: DevPtr<u32>,
+        infos: DevPtr<RInfo>,
+        chosen: DevPtr<RChosen>,
+        bodies: DevPtr<u8>,
+        ends: DevPtr<u32>,
+        lens: DevPtr<u32>,
+        packed: DevPtr<RPacked>,
+        out: DevPtr<u8>,
+        out_lens: DevPtr<u32>,
     }
     /// `k_replica_commit`: one warp per player takes what its datagrams took (the steps
     /// of `r_commit`).

@@ -4,12 +4,12 @@
 use std::borrow::BorrowMut;
 use std::cell::RefCell;
 
-use myriad_protocol::{AckField, DatagramBatch, DeltaRecord, QuantPos, Sealer, UpdateHeader};
+use myriad_protocol::{AckField, BodyLengthError, DatagramBatch, QuantPos, Sealer, frame_delta_body};
 use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::config::{InterestConfig, TickInfo};
-use crate::replica::{Candidate, Replica, ReplicaReport, ReplicaScratch, Sealed, pack_and_seal};
+use crate::replica::{Candidate, Replica, ReplicaReport, ReplicaScratch, Sealed};
 use crate::source::{AoiLists, ObjectSource};
 
 /// Errors of [`InterestManager::build`]. Bad data inside a list (slots out of range,
@@ -80,25 +80,36 @@ impl Subscriber {
         self.replica.take_acks()
     }
 
-    /// Finishes a build whose choices a replica kept elsewhere made (the device's, which
-    /// follows [`Replica`]'s rules): packs and seals `own` and `records` (ids increasing)
-    /// into at most `datagrams` datagrams under `header`, and takes the report of it
-    /// (`chose`: what the choosing counted). Returns what packing and sealing did, for
-    /// that replica to commit; `ends` receives where each datagram's records end.
-    pub fn seal_chosen(
+    /// Finishes a build whose records a replica kept elsewhere chose and packed (the
+    /// device's, which follows [`Replica`]'s rules and `pack_deltas`'): frames and seals
+    /// `bodies` (delta update bodies, in order) and takes the report of the build
+    /// (`chose`: what the choosing counted; `packing`: what the packing did; `own`:
+    /// whether the player's own object was in every datagram). Returns what sealing did,
+    /// for that replica to commit, or the error of a body no datagram can carry (the
+    /// player then gets nothing this tick).
+    pub fn seal_packed<'b>(
         &mut self,
-        header: &UpdateHeader,
-        own: Option<&DeltaRecord>,
-        records: &[DeltaRecord],
-        datagrams: usize,
+        bodies: impl IntoIterator<Item = &'b [u8]>,
+        own: bool,
+        packing: Packing,
         chose: ReplicaReport,
-        ends: &mut Vec<usize>,
-    ) -> Sealed {
-        let done = pack_and_seal(header, own, records, datagrams, &mut self.sealer, &mut self.datagrams, ends);
+    ) -> Result<Sealed, BodyLengthError> {
+        self.datagrams.clear();
+        for body in bodies {
+            if let Err(e) = frame_delta_body(body, &mut self.datagrams) {
+                self.clear_datagrams();
+                return Err(e);
+            }
+        }
+        let first = self.sealer.next_sequence();
+        let sealed = self.sealer.seal_batch(&mut self.datagrams);
+        let spent = if sealed.is_ok() { self.datagrams.total_bytes() as f32 } else { 0.0 };
         let mut report = chose;
-        done.count(&mut report, own, records);
-        self.take_report(own.is_some(), done.sealed.as_ref().map(|_| report).map_err(|_| ()), 0);
-        done
+        report.packed = packing.packed;
+        report.deferred += packing.chosen.saturating_sub(packing.packed);
+        report.relative = packing.relative;
+        self.take_report(own, sealed.as_ref().map(|_| report).map_err(|_| ()), 0);
+        Ok(Sealed { packed: packing.packed, first, spent, sealed })
     }
 
     /// Records the report of a build (`own`: whether the player's own object was in
@@ -131,6 +142,19 @@ impl Subscriber {
         self.datagrams.clear();
         self.report = SubscriberReport::default();
     }
+}
+
+/// What packing one build's chosen records did, where they were packed elsewhere
+/// ([`Subscriber::seal_packed`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Packing {
+    /// Records of other objects chosen.
+    pub chosen: usize,
+    /// Of them, packed (the first `packed`; the rest wait for a later tick).
+    pub packed: usize,
+    /// Records packed relative to a state the client acknowledged, the own object's
+    /// included (once).
+    pub relative: usize,
 }
 
 /// Counters of one subscriber's last build.

@@ -592,6 +592,29 @@ pub fn pack_deltas(
     packed
 }
 
+/// A delta update body of a length no datagram has: shorter than its header or longer
+/// than [`MAX_BODY`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("a delta update body of {0} bytes (a body holds {DELTA_HEADER_LEN} to {MAX_BODY})")]
+pub struct BodyLengthError(pub usize);
+
+/// Appends to `out` a state update datagram (unsealed, ready for
+/// [`Sealer::seal_batch`](crate::Sealer::seal_batch)) around `body`, a delta update body
+/// as [`pack_deltas`] writes it: the frame for bodies packed elsewhere by the same rules
+/// (the CUDA backend packs on the device). Only the length is checked: the body's
+/// maker answers for its contents.
+pub fn frame_delta_body(body: &[u8], out: &mut DatagramBatch) -> Result<(), BodyLengthError> {
+    if !(DELTA_HEADER_LEN..=MAX_BODY).contains(&body.len()) {
+        return Err(BodyLengthError(body.len()));
+    }
+    let buf = out.begin(HEADER_LEN + body.len() + TAG_LEN);
+    buf[0] = PROTOCOL_VERSION;
+    buf[1] = PacketKind::StateUpdate as u8;
+    buf[HEADER_LEN..HEADER_LEN + body.len()].copy_from_slice(body);
+    out.finish(HEADER_LEN + body.len() + TAG_LEN);
+    Ok(())
+}
+
 #[cfg(test)]
 #[path = "delta_tests.rs"]
 mod tests;

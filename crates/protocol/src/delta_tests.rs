@@ -213,6 +213,29 @@ fn the_pinned_record_is_in_every_datagram_in_id_order() {
     assert_eq!(out.len(), 1);
 }
 
+/// A body packed elsewhere, framed, is the datagram `pack_deltas` makes; a body of a
+/// length no datagram has is refused and adds nothing.
+#[test]
+fn a_framed_body_is_the_packed_datagram() {
+    let header = UpdateHeader { tick: 9, dilation_permille: 950, origin: q(-5, 6, 7) };
+    let records: Vec<_> = (0..900u64)
+        .map(|i| DeltaRecord { id: 4 + i * 2, state: RecordState::Delta { back: 2, d: [1, -1, 2] } })
+        .collect();
+    let mut packed = DatagramBatch::new();
+    let mut ends = Vec::new();
+    pack_deltas(&header, None, &records, 2, &mut packed, &mut ends);
+    assert_eq!(packed.len(), 2);
+    let mut framed = DatagramBatch::new();
+    for d in packed.iter() {
+        frame_delta_body(&d[HEADER_LEN..d.len() - TAG_LEN], &mut framed).unwrap();
+    }
+    assert_eq!(framed, packed);
+    for len in [0, DELTA_HEADER_LEN - 1, MAX_BODY + 1] {
+        assert_eq!(frame_delta_body(&vec![0; len], &mut framed), Err(BodyLengthError(len)));
+    }
+    assert_eq!(framed, packed);
+}
+
 #[test]
 fn a_missing_baseline_skips_the_record_and_changes_nothing() {
     let mut b = Baselines::default();

@@ -54,8 +54,8 @@ mod wire;
 pub use ack::{ACK_LEN, AckField, AckTracker};
 pub use batch::DatagramBatch;
 pub use delta::{
-    Baseline, Baselines, DELTA_HEADER_LEN, DeltaRecord, DeltaUpdate, DeltaUpdateView, MAX_BACK, RecordState,
-    ResolveError, pack_deltas, predict,
+    Baseline, Baselines, BodyLengthError, DELTA_HEADER_LEN, DeltaRecord, DeltaUpdate, DeltaUpdateView, MAX_BACK,
+    RecordState, ResolveError, frame_delta_body, pack_deltas, predict,
 };
 pub use error::{DecodeError, EncodeError, ErrorClass, OpenError, ReplayError, SealError};
 pub use header::{

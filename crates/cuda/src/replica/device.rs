@@ -3,10 +3,10 @@
 //! A build: [`DeviceReplicas::select`] answers the AOI boxes on the device (the lists
 //! stay there), carries the tracks of players left out of the build, and runs
 //! `k_replica_due` (a warp a player: the objects due), `k_replica_rank` (a block a
-//! player: sorted by urgency) and `k_replica_take` (a warp a player: the budget), whose
-//! choices land in mapped host memory;
-//! the host packs and seals them per player ([`Choices`], then
-//! `Subscriber::seal_chosen`) and hands back what the datagrams took with
+//! player: sorted by urgency), `k_replica_take` (a warp a player: the budget) and
+//! `k_replica_pack` (a warp a player: the chosen records packed into delta update
+//! bodies, which land in mapped host memory); the host frames and seals them per player
+//! ([`Choices`], then `Subscriber::seal_packed`) and hands back what sealing did with
 //! [`DeviceReplicas::commit`], which queues `k_replica_commit` and does not wait.
 //!
 //! Players are known by a key (the session id): each has a *home*, an index into the
@@ -22,7 +22,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use myriad_core::{Aabb, World};
-use myriad_interest::ReplicationConfig;
+use myriad_interest::{ReplicationConfig, TickInfo};
 use myriad_physics::PhysicsError;
 use myriad_protocol::AckField;
 
@@ -30,7 +30,7 @@ use super::device_config;
 use super::layout::*;
 use crate::backend::{Resident, lock};
 use crate::device::{DevBuf, Pinned};
-use crate::launch::{KReplicaCarry, KReplicaCommit, KReplicaDue, KReplicaRank, KReplicaTake};
+use crate::launch::{KReplicaCarry, KReplicaCommit, KReplicaDue, KReplicaPack, KReplicaRank, KReplicaTake};
 
 /// Flights a player keeps at most (`R_FLIGHTS` in the kernels; the host replica's
 /// `MAX_FLIGHTS`).
@@ -39,10 +39,9 @@ pub const FLIGHTS: usize = myriad_interest::replica::MAX_FLIGHTS;
 /// States in a player's flights at most (`R_STATES`; `MAX_FLIGHT_STATES`).
 pub const STATES: usize = myriad_interest::replica::MAX_FLIGHT_STATES;
 
-/// Most records one datagram can hold as the replica charges them (a `Same` record at 26
-/// bits in a datagram's 8,892 bits of records), plus one: the room each player's records
-/// get in the output.
-pub const RECORDS_PER_DATAGRAM: usize = 343;
+/// Bytes between two delta update bodies in the packing's output (`R_BODY_STRIDE` in
+/// `kernels/pack.cuh`): the largest body, rounded up so that every body starts 8-aligned.
+pub const BODY_STRIDE: usize = 1168;
 
 /// Builds a player may miss in a row before its replica is forgotten.
 pub const FORGET_BUILDS: u64 = 2 * myriad_protocol::MAX_BACK;
@@ -83,7 +82,6 @@ struct Home {
 #[derive(Debug, Clone, Copy)]
 struct Pending {
     players: usize,
-    out_cap: usize,
     max_datagrams: usize,
     tick: u64,
     /// Tracks in the buffer this build writes (lists and carried).
@@ -140,8 +138,14 @@ struct State {
     counts: DevBuf<u32>,
     players: DevBuf<RPlayer>,
     config: DevBuf<RConfig>,
-    commits: DevBuf<RCommit>,
+    /// Per player: `k_replica_take`'s counts, for `k_replica_pack`.
+    infos: DevBuf<RInfo>,
+    /// Per player and datagram: the packed bodies (`BODY_STRIDE` bytes each), their
+    /// lengths, and where their records end (read by `k_replica_commit`).
+    bodies: DevBuf<u8>,
+    lens: DevBuf<u32>,
     ends: DevBuf<u32>,
+    commits: DevBuf<RCommit>,
     carry: DevBuf<u32>,
     /// All-zero list offsets, for a build with no object in the world.
     no_lists: DevBuf<u32>,
@@ -149,10 +153,13 @@ struct State {
     host_config: Pinned,
     host_carry: Pinned,
     host_commits: Pinned,
-    host_ends: Pinned,
     /// Written by `k_replica_due` and `k_replica_take` through the mapping.
     host_info: Pinned,
-    host_out: Pinned,
+    /// Written by `k_replica_pack` through the mapping: per player its `RPacked`, per
+    /// datagram its body's length, and the bodies.
+    host_packed: Pinned,
+    host_lens: Pinned,
+    host_bodies: Pinned,
 }
 
 /// Every player's replica on a CUDA backend's device; see the module docs.
@@ -171,12 +178,14 @@ impl std::fmt::Debug for DeviceReplicas {
     }
 }
 
-/// What a build chose for each player, read from the host's mapped memory.
+/// What a build chose and packed for each player, read from the host's mapped memory.
 #[derive(Clone, Copy)]
 pub struct Choices<'a> {
     info: &'a [RInfo],
-    out: &'a Pinned,
-    out_cap: usize,
+    packed: &'a [RPacked],
+    lens: &'a [u32],
+    bodies: &'a Pinned,
+    max_datagrams: usize,
 }
 
 impl<'a> Choices<'a> {
@@ -185,10 +194,21 @@ impl<'a> Choices<'a> {
         &self.info[i]
     }
 
-    /// Player `i`'s records, ids increasing.
-    pub fn records(&self, i: usize) -> &'a [RRecord] {
-        let n = (self.info[i].count as usize).min(self.out_cap);
-        self.out.range::<RRecord>(i * self.out_cap, n)
+    /// What packing player `i`'s records did.
+    pub fn packed(&self, i: usize) -> &'a RPacked {
+        &self.packed[i]
+    }
+
+    /// Player `i`'s delta update bodies, in order (a length past a body's room is cut
+    /// to it, and the framing refuses it).
+    pub fn bodies(&self, i: usize) -> impl ExactSizeIterator<Item = &'a [u8]> + 'a {
+        let (bodies, m) = (self.bodies, self.max_datagrams);
+        let lens = &self.lens[i * m..(i + 1) * m];
+        let n = (self.packed[i].datagrams as usize).min(m);
+        lens[..n].iter().enumerate().map(move |(d, &len)| {
+            let at = (i * m + d) * BODY_STRIDE;
+            bodies.range::<u8>(at, (len as usize).min(BODY_STRIDE))
+        })
     }
 }
 
@@ -209,7 +229,7 @@ impl DeviceReplicas {
         players: &[ReplicaPlayer],
         config: &ReplicationConfig,
         max_datagrams: usize,
-        tick: u64,
+        tick: TickInfo,
     ) -> Result<(), PhysicsError> {
         let mut resident = lock(&self.resident);
         let s = &mut self.state;
@@ -230,16 +250,22 @@ impl DeviceReplicas {
     /// The last [`select`](Self::select)'s choices.
     pub fn choices(&self) -> Choices<'_> {
         let s = &self.state;
-        let (players, out_cap) = s.pending.map_or((0, 0), |p| (p.players, p.out_cap));
-        Choices { info: s.host_info.slice::<RInfo>(players), out: &s.host_out, out_cap }
+        let (players, m) = s.pending.map_or((0, 1), |p| (p.players, p.max_datagrams));
+        Choices {
+            info: s.host_info.slice::<RInfo>(players),
+            packed: s.host_packed.slice::<RPacked>(players),
+            lens: s.host_lens.slice::<u32>(players * m),
+            bodies: &s.host_bodies,
+            max_datagrams: m,
+        }
     }
 
-    /// Ends the build: `commits[i]` is what packing and sealing did for player `i`,
-    /// `ends[i * max_datagrams ..]` where each of its datagrams' records end.
-    pub fn commit(&mut self, commits: &[RCommit], ends: &[u32]) -> Result<(), PhysicsError> {
+    /// Ends the build: `commits[i]` is what sealing player `i`'s datagrams did (where
+    /// each datagram's records end stayed on the device).
+    pub fn commit(&mut self, commits: &[RCommit]) -> Result<(), PhysicsError> {
         let mut resident = lock(&self.resident);
         let s = &mut self.state;
-        let r = s.commit(&mut resident, commits, ends);
+        let r = s.commit(&mut resident, commits);
         if r.is_err() {
             s.failed();
         }
@@ -274,17 +300,21 @@ impl State {
             counts: DevBuf::empty(),
             players: DevBuf::empty(),
             config: DevBuf::empty(),
-            commits: DevBuf::empty(),
+            infos: DevBuf::empty(),
+            bodies: DevBuf::empty(),
+            lens: DevBuf::empty(),
             ends: DevBuf::empty(),
+            commits: DevBuf::empty(),
             carry: DevBuf::empty(),
             no_lists: DevBuf::empty(),
             host_players: Pinned::empty(),
             host_config: Pinned::empty(),
             host_carry: Pinned::empty(),
             host_commits: Pinned::empty(),
-            host_ends: Pinned::empty(),
             host_info: Pinned::empty(),
-            host_out: Pinned::empty(),
+            host_packed: Pinned::empty(),
+            host_lens: Pinned::empty(),
+            host_bodies: Pinned::empty(),
         }
     }
 
@@ -367,9 +397,10 @@ impl State {
         players: &[ReplicaPlayer],
         config: &ReplicationConfig,
         max_datagrams: usize,
-        tick: u64,
+        at: TickInfo,
     ) -> Result<(), PhysicsError> {
         let nq = players.len();
+        let tick = at.tick;
         if boxes.len() != nq {
             return Err(PhysicsError::Device {
                 stage: "replica",
@@ -384,7 +415,6 @@ impl State {
         let Placed { homes: placed, carried, carry, .. } = &mut placement;
         let cfg = device_config(config, max_datagrams);
         let mdg = cfg.max_datagrams as usize;
-        let out_cap = mdg * RECORDS_PER_DATAGRAM;
         d.gpu.profile_host("host: replica homes", started);
         let started = Instant::now();
         let total = d.aoi_on_device(world, boxes)?;
@@ -440,8 +470,14 @@ impl State {
         self.host_players.ensure(gpu, nq.max(1) * size_of::<RPlayer>())?;
         self.host_config.ensure(gpu, size_of::<RConfig>())?;
         self.host_carry.ensure(gpu, carry.len().max(1) * 4)?;
+        self.infos.ensure(gpu, nq.max(1) * size_of::<RInfo>(), 1.25)?;
+        self.bodies.ensure(gpu, (nq * mdg).max(1) * BODY_STRIDE, 1.25)?;
+        self.lens.ensure(gpu, (nq * mdg).max(1) * 4, 1.25)?;
+        self.ends.ensure(gpu, (nq * mdg).max(1) * 4, 1.25)?;
         self.host_info.ensure(gpu, nq.max(1) * size_of::<RInfo>())?;
-        self.host_out.ensure(gpu, (nq * out_cap).max(1) * size_of::<RRecord>())?;
+        self.host_packed.ensure(gpu, nq.max(1) * size_of::<RPacked>())?;
+        self.host_lens.ensure(gpu, (nq * mdg).max(1) * 4)?;
+        self.host_bodies.ensure(gpu, (nq * mdg).max(1) * BODY_STRIDE)?;
         for ((dst, p), &(home, reset)) in
             self.host_players.slice_mut::<RPlayer>(nq).iter_mut().zip(players).zip(placed.iter())
         {
@@ -544,8 +580,28 @@ impl State {
                     ranked: self.ranked.ptr(),
                     chosen: self.chosen.ptr(),
                     info,
-                    out: self.host_out.device_ptr()?,
-                    out_cap: out_cap as u32,
+                    infos: self.infos.ptr(),
+                },
+            )?;
+            gpu.launch_grid(
+                (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
+                32 * PLAYERS_PER_BLOCK,
+                KReplicaPack {
+                    nq: nq as u32,
+                    cfg: self.config.ptr(),
+                    tick,
+                    dilation: u32::from(at.dilation_permille),
+                    offsets,
+                    players: self.players.ptr(),
+                    counts: self.counts.ptr(),
+                    infos: self.infos.ptr(),
+                    chosen: self.chosen.ptr(),
+                    bodies: self.bodies.ptr(),
+                    ends: self.ends.ptr(),
+                    lens: self.lens.ptr(),
+                    packed: self.host_packed.device_ptr()?,
+                    out: self.host_bodies.device_ptr()?,
+                    out_lens: self.host_lens.device_ptr()?,
                 },
             )?;
         }
@@ -560,7 +616,7 @@ impl State {
             let message = if r.overflow == 2 {
                 format!("player {i}'s AOI list is not in ascending slot order")
             } else {
-                format!("player {i} chose more records than {out_cap}")
+                format!("player {i}'s build overflowed ({})", r.overflow)
             };
             return Err(PhysicsError::Device { stage: "replica", message });
         }
@@ -570,20 +626,20 @@ impl State {
         }
         gpu.profile_host("host: replica reports", started);
         let no_objects = d.n == 0 || nq == 0;
-        self.pending = Some(Pending { players: nq, out_cap, max_datagrams: mdg, tick, used, no_objects });
+        self.pending = Some(Pending { players: nq, max_datagrams: mdg, tick, used, no_objects });
         self.placed = placement;
         Ok(())
     }
 
-    fn commit(&mut self, d: &mut Resident, commits: &[RCommit], ends: &[u32]) -> Result<(), PhysicsError> {
+    fn commit(&mut self, d: &mut Resident, commits: &[RCommit]) -> Result<(), PhysicsError> {
         let Some(p) = self.pending else {
             return Err(PhysicsError::Device { stage: "replica", message: "a commit without a build".into() });
         };
         let nq = p.players;
-        if commits.len() != nq || ends.len() != nq * p.max_datagrams {
+        if commits.len() != nq {
             return Err(PhysicsError::Device {
                 stage: "replica",
-                message: format!("{} commits and {} ends for {nq} players", commits.len(), ends.len()),
+                message: format!("{} commits for {nq} players", commits.len()),
             });
         }
         let gpu = &d.gpu;
@@ -591,14 +647,10 @@ impl State {
         let new = 1 - self.current;
         if nq > 0 {
             self.commits.ensure(gpu, nq * size_of::<RCommit>(), 1.25)?;
-            self.ends.ensure(gpu, ends.len() * 4, 1.25)?;
             self.host_commits.ensure(gpu, nq * size_of::<RCommit>())?;
-            self.host_ends.ensure(gpu, ends.len() * 4)?;
             // The stream may still read last build's: `select` waited for it since.
             self.host_commits.slice_mut::<RCommit>(nq).copy_from_slice(commits);
-            self.host_ends.slice_mut::<u32>(ends.len()).copy_from_slice(ends);
             gpu.upload_async(&self.commits, &self.host_commits, nq)?;
-            gpu.upload_async(&self.ends, &self.host_ends, ends.len())?;
             let offsets = if p.no_objects { self.no_lists.ptr() } else { d.aoi_counts.ptr() };
             gpu.launch_grid(
                 (nq as u32).div_ceil(PLAYERS_PER_BLOCK),

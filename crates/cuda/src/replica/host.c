@@ -11,6 +11,7 @@ typedef uint64_t u64;
 typedef uint8_t u8;
 
 #include "../../kernels/replica.cuh"
+#include "../../kernels/pack.cuh"
 
 void myriad_replica_select(const RConfig* cfg, u64 now, RHome* h, const RPlayer* p, int has_own, u64 own_id,
                            u32 own_kind, const RPos* own_pos, const RPos* origin, const RCand* cands, u32 ncands,
@@ -52,4 +53,14 @@ void myriad_replica_sizes(u32* out) {
     out[11] = sizeof(RInfo);
     out[12] = sizeof(RCommit);
     out[13] = sizeof(RKey);
+    out[14] = sizeof(RPacked);
 }
+
+// `r_pack`: `pinned` may be null; `bodies` holds `max_datagrams` strides of
+// `R_BODY_STRIDE` bytes, `lens` and `ends` `max_datagrams` entries.
+void myriad_replica_pack(u64 tick, u32 dilation, const RPos* origin, const RRecord* pinned, const RChosen* chosen,
+                         u32 n, u32 max_datagrams, u8* bodies, u32* lens, u32* ends, RPacked* out) {
+    *out = r_pack(tick, dilation, *origin, pinned, chosen, n, max_datagrams, bodies, lens, ends);
+}
+
+u32 myriad_replica_body_stride(void) { return R_BODY_STRIDE; }

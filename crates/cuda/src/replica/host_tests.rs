@@ -3,10 +3,16 @@
 //! every player's datagrams and report equal, byte for byte, tick after tick.
 
 use myriad_core::rng::Stream;
-use myriad_interest::{AoiLists, InterestConfig, InterestManager, ReplicationConfig, SoaObjects, Subscriber, TickInfo};
-use myriad_protocol::{AckTracker, Direction, QuantPos, Sealer, ShapeKind, UpdateHeader};
+use myriad_interest::{
+    AoiLists, InterestConfig, InterestManager, Packing, ReplicationConfig, SoaObjects, Subscriber, TickInfo,
+};
+use myriad_protocol::{AckTracker, Direction, QuantPos, RecordState, Sealer, ShapeKind, UpdateHeader};
 
 use super::*;
+
+/// Most records one datagram can hold as the replica charges them (a `Same` record at 26
+/// bits in a datagram's 8,892 bits of records), plus one.
+const RECORDS_PER_DATAGRAM: usize = 343;
 
 /// The caps every replica keeps its flights under (`R_FLIGHTS`, `R_STATES` in the C).
 use myriad_interest::replica::{MAX_FLIGHT_STATES as STATES, MAX_FLIGHTS as FLIGHTS};
@@ -52,12 +58,64 @@ unsafe extern "C" {
     fn myriad_replica_candidate(slot: u32, id: u64, kind: u32, p: *const f32, centre: *const f32, out: *mut RCand);
     fn myriad_replica_sizes(out: *mut u32);
     fn myriad_replica_find_slot(tracks: *const RTrack, n: u32, slot: u32, hint: u32) -> u32;
+    fn myriad_replica_pack(
+        tick: u64,
+        dilation: u32,
+        origin: *const RPos,
+        pinned: *const RRecord,
+        chosen: *const RChosen,
+        n: u32,
+        max_datagrams: u32,
+        bodies: *mut u8,
+        lens: *mut u32,
+        ends: *mut u32,
+        out: *mut RPacked,
+    );
+    fn myriad_replica_body_stride() -> u32;
+}
+
+/// The C packing of `chosen` and `pinned`: the bodies, where each datagram's records
+/// end, and what it counted.
+fn c_pack(
+    tick: TickInfo,
+    origin: QuantPos,
+    pinned: Option<&RRecord>,
+    chosen: &[RChosen],
+    max_datagrams: usize,
+) -> (Vec<Vec<u8>>, Vec<u32>, RPacked) {
+    // SAFETY: no arguments.
+    let stride = unsafe { myriad_replica_body_stride() } as usize;
+    assert_eq!(stride, BODY_STRIDE);
+    let mut bodies = vec![0u8; stride * max_datagrams.max(1)];
+    let mut lens = vec![0u32; max_datagrams.max(1)];
+    let mut ends = vec![0u32; max_datagrams.max(1)];
+    let mut done = RPacked::default();
+    // SAFETY: `bodies` holds `max_datagrams` strides, `lens` and `ends` as many entries.
+    unsafe {
+        myriad_replica_pack(
+            tick.tick,
+            u32::from(tick.dilation_permille),
+            &pos(origin),
+            pinned.map_or(std::ptr::null(), |p| p as *const RRecord),
+            chosen.as_ptr(),
+            chosen.len() as u32,
+            max_datagrams as u32,
+            bodies.as_mut_ptr(),
+            lens.as_mut_ptr(),
+            ends.as_mut_ptr(),
+            &mut done,
+        );
+    }
+    let n = done.datagrams as usize;
+    let out = (0..n).map(|d| bodies[d * stride..d * stride + lens[d] as usize].to_vec()).collect();
+    ends.truncate(n);
+    (out, ends, done)
 }
 
 #[test]
 fn layout_matches_the_c_side() {
-    let mut sizes = [0u32; 14];
-    // SAFETY: writes 14 words.
+    let mut sizes = [0u32; 15];
+    // SAFETY: writes 15 words.
     unsafe { myriad_replica_sizes(sizes.as_mut_ptr()) };
     assert_eq!(sizes.map(|s| s as usize), layout::SIZES);
 }
@@ -179,12 +237,13 @@ impl CReplica {
                 &mut info,
             );
         }
-        let records: Vec<_> = chosen[..info.count as usize].iter().map(|c| delta_record(&c.rec).unwrap()).collect();
-        let own_record = (info.has_own_record != 0).then(|| delta_record(&info.own_record).unwrap());
-        let header = UpdateHeader { tick: tick.tick, dilation_permille: tick.dilation_permille, origin };
-        let chose = chose_report(&info);
-        let mut ends = Vec::new();
-        let done = sub.seal_chosen(&header, own_record.as_ref(), &records, info.datagrams as usize, chose, &mut ends);
+        let count = info.count as usize;
+        let own_record = (info.has_own_record != 0).then_some(&info.own_record);
+        let (bodies, ends, packed) = c_pack(tick, origin, own_record, &chosen[..count], info.datagrams as usize);
+        let packing = Packing { chosen: count, packed: packed.packed as usize, relative: packed.relative as usize };
+        let done = sub
+            .seal_packed(bodies.iter().map(Vec::as_slice), own_record.is_some(), packing, chose_report(&info))
+            .expect("bodies of datagrams' lengths");
         let commit = RCommit {
             first: done.first,
             spent: done.spent,
@@ -192,7 +251,6 @@ impl CReplica {
             packed: done.packed as u32,
             datagrams: ends.len() as u32,
         };
-        let ends: Vec<u32> = ends.iter().map(|&e| e as u32).collect();
         // SAFETY: as above; `ends` holds `commit.datagrams` entries.
         unsafe {
             myriad_replica_commit(
@@ -388,4 +446,88 @@ fn an_odd_configuration_is_read_alike() {
         resend_ticks: 2,
     };
     run(5, 300, 4, 60, InterestConfig { max_datagrams: 0, replication }, 10, 0);
+}
+
+/// A random record of every form: deltas of every class, positions near the origin and
+/// far from it, backs mostly alike, now and then one no datagram can carry (a back of 0).
+fn random_record(rng: &mut Rng, id: u64) -> RRecord {
+    let mut r = RRecord { id, kind: rng.below(3) as u8, ..RRecord::default() };
+    let back = if rng.below(3) == 0 { 1 + rng.below(63) as u8 } else { 4 };
+    let width = [3u32, 5, 7, 10][rng.below(4) as usize];
+    let delta = |rng: &mut Rng| (rng.below(1 << width) as i64 - (1 << (width - 1))) as i32;
+    match rng.below(5) {
+        0 => {
+            r.form = ABSOLUTE;
+            let spread = [600u64, 4_000, 70_000, 1 << 32][rng.below(4) as usize];
+            r.v = [0; 3].map(|_| (rng.below(spread) as i64 - (spread / 2) as i64) as i32);
+        }
+        1 => (r.form, r.back) = (SAME, if rng.below(300) == 0 { 0 } else { back }),
+        2 => (r.form, r.back, r.v) = (DELTA, back, [delta(rng), delta(rng), delta(rng)]),
+        _ => {
+            r.v = [delta(rng), delta(rng), delta(rng)];
+            let prior = if rng.below(2) == 0 { back } else { 1 + rng.below(u64::from(63 - back).max(1)) as u8 };
+            (r.form, r.back, r.prior) = (PREDICTED, back, prior.min(63 - back).max(1));
+        }
+    }
+    r
+}
+
+/// The C packing makes the bodies, the datagram ends and the counts `pack_deltas` makes,
+/// byte for byte: views of every size, ids close and far apart (up to the top of the
+/// range), with and without a pinned record anywhere among them, one to four datagrams.
+#[test]
+fn the_c_packing_packs_what_pack_deltas_does() {
+    let mut rng = Rng(Stream::new(77, 3));
+    let mut datagrams_made = 0;
+    for round in 0..400u64 {
+        let n = [0usize, 1, 5, 40, 300, 1_000, 3_000][round as usize % 7];
+        let bits = rng.below(40) + 1;
+        let mut id = rng.below(1 << bits);
+        let mut chosen = Vec::new();
+        for _ in 0..n {
+            let rec = random_record(&mut rng, id);
+            chosen.push(RChosen { rec, ..RChosen::default() });
+            let step = [1u64, 2, 30, 5_000, 1 << 40][rng.below(5) as usize];
+            let jump = 1 + rng.below(step);
+            id = match id.checked_add(jump) {
+                Some(next) => next,
+                None => break,
+            };
+        }
+        if round % 13 == 0 && n > 0 {
+            chosen.last_mut().expect("a record").rec.id = u64::MAX;
+        }
+        let pinned = match rng.below(4) {
+            0 => None,
+            _ => {
+                let at = rng.below(u64::MAX);
+                (!chosen.iter().any(|c| c.rec.id == at)).then(|| random_record(&mut rng, at))
+            }
+        };
+        let pinned = pinned.filter(|p| p.form != SAME || p.back != 0);
+        let (x, y, z) = (rng.below(4_000) as i32 - 2_000, rng.below(100) as i32, -(rng.below(4_000) as i32));
+        let origin = QuantPos::new(x, y, z);
+        let tick = TickInfo { tick: rng.below(1 << 40), dilation_permille: rng.below(1_500) as u16 };
+        let max_datagrams = 1 + rng.below(4) as usize;
+
+        let header = UpdateHeader { tick: tick.tick, dilation_permille: tick.dilation_permille, origin };
+        let records: Vec<_> = chosen.iter().map(|c| delta_record(&c.rec).expect("a record")).collect();
+        let own = pinned.as_ref().map(|p| delta_record(p).expect("a record"));
+        let mut out = myriad_protocol::DatagramBatch::new();
+        let mut ends = Vec::new();
+        let packed = myriad_protocol::pack_deltas(&header, own.as_ref(), &records, max_datagrams, &mut out, &mut ends);
+        let want: Vec<&[u8]> =
+            out.iter().map(|d| &d[myriad_protocol::HEADER_LEN..d.len() - myriad_protocol::TAG_LEN]).collect();
+        let (bodies, c_ends, done) = c_pack(tick, origin, pinned.as_ref(), &chosen, max_datagrams);
+        let got: Vec<&[u8]> = bodies.iter().map(Vec::as_slice).collect();
+        assert_eq!(got, want, "round {round}: bodies");
+        assert_eq!(c_ends, ends.iter().map(|&e| e as u32).collect::<Vec<_>>(), "round {round}: ends");
+        assert_eq!(done.packed as usize, packed, "round {round}: packed");
+        let relative = |r: &myriad_protocol::DeltaRecord| !matches!(r.state, RecordState::Absolute { .. });
+        let want_relative =
+            usize::from(own.as_ref().is_some_and(relative)) + records[..packed].iter().filter(|r| relative(r)).count();
+        assert_eq!(done.relative as usize, want_relative, "round {round}: relative");
+        datagrams_made += want.len();
+    }
+    assert!(datagrams_made > 300, "{datagrams_made}");
 }

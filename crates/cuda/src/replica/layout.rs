@@ -183,9 +183,19 @@ pub struct RKey {
     pub pad: u32,
 }
 
+/// `RPacked`: what packing one player's records did (`kernels/pack.cuh`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, Pod, Zeroable)]
+pub struct RPacked {
+    pub packed: u32,
+    pub relative: u32,
+    pub datagrams: u32,
+    pub pad: u32,
+}
+
 /// Sizes in the order of `myriad_replica_sizes` (`src/replica/host.c`).
 #[cfg(test)]
-pub(crate) const SIZES: [usize; 14] = [
+pub(crate) const SIZES: [usize; 15] = [
     size_of::<RTrack>(),
     size_of::<RConfig>(),
     size_of::<RRecord>(),
@@ -200,4 +210,5 @@ pub(crate) const SIZES: [usize; 14] = [
     size_of::<RInfo>(),
     size_of::<RCommit>(),
     size_of::<RKey>(),
+    size_of::<RPacked>(),
 ];

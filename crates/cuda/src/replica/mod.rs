@@ -1,21 +1,22 @@
 //! The replica on the device: each player's [`Replica`](myriad_interest::Replica)
 //! (protocol version 3's deltas, priorities and budget) kept in device memory and
-//! stepped by one device warp per player (`kernels/replica.cu`), with the host
-//! packing and sealing what the device chose.
+//! stepped by one device warp per player (`kernels/replica.cu`), which also packs the
+//! records it chose into delta update bodies (`kernels/pack.cuh`); the host frames and
+//! seals them.
 //!
-//! The decisions are C shared by the device and the host (`kernels/replica.cuh`): one
-//! test compiles it for the host and holds it to the Rust replica byte for byte on any
-//! machine (`host_tests.rs`); the GPU suite holds the device to the host outbound
+//! The decisions and the packing are C shared by the device and the host
+//! (`kernels/replica.cuh`, `kernels/pack.cuh`): tests compile them for the host and hold
+//! them to the Rust replica and `pack_deltas` byte for byte on any machine
+//! (`host_tests.rs`); the GPU suite holds the device to the host outbound
 //! (`crates/server/tests/device_outbound.rs`).
 
 mod device;
 mod layout;
 
-pub use device::{Choices, DeviceReplicas, FORGET_BUILDS, RECORDS_PER_DATAGRAM, ReplicaPlayer};
+pub use device::{BODY_STRIDE, Choices, DeviceReplicas, FORGET_BUILDS, ReplicaPlayer};
 pub use layout::*;
 
 use myriad_interest::{ReplicaReport, ReplicationConfig};
-use myriad_protocol::{DeltaRecord, QuantPos, RecordState, ShapeKind};
 
 #[cfg(test)]
 mod host_tests;
@@ -36,14 +37,20 @@ pub fn device_config(c: &ReplicationConfig, max_datagrams: usize) -> RConfig {
 }
 
 /// Record forms (`R_ABSOLUTE` … in the kernels).
+#[cfg(test)]
 const ABSOLUTE: u8 = 0;
+#[cfg(test)]
 const SAME: u8 = 1;
+#[cfg(test)]
 const DELTA: u8 = 2;
+#[cfg(test)]
 const PREDICTED: u8 = 3;
 
-/// A record the device chose, as the protocol's; `None` for a form or kind no record
-/// has (a device fault, never a choice).
-pub fn delta_record(r: &RRecord) -> Option<DeltaRecord> {
+/// A record the C replica chose, as the protocol's; `None` for a form or kind no record
+/// has.
+#[cfg(test)]
+fn delta_record(r: &RRecord) -> Option<myriad_protocol::DeltaRecord> {
+    use myriad_protocol::{DeltaRecord, QuantPos, RecordState, ShapeKind};
     let d = r.v.map(|a| a as i16);
     let state = match r.form {
         ABSOLUTE => {

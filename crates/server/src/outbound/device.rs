@@ -1,16 +1,15 @@
 //! The device implementation of [`Outbound`]: every player's replica lives on the CUDA
-//! backend's device ([`DeviceReplicas`]), which answers the AOI boxes and chooses each
-//! player's records there; the host packs and seals them in parallel over players
-//! (`Subscriber::seal_chosen`) and hands what the datagrams took back to the device.
+//! backend's device ([`DeviceReplicas`]), which answers the AOI boxes, chooses each
+//! player's records and packs them into delta update bodies there; the host frames and
+//! seals the bodies in parallel over players (`Subscriber::seal_packed`) and hands what
+//! sealing did back to the device.
 //! The bytes are the host outbound's, byte for byte (`tests/device_outbound.rs`).
 
-use std::cell::RefCell;
 use std::time::Instant;
 
 use myriad_core::{Aabb, Vec3};
-use myriad_cuda::replica::{Choices, DeviceReplicas, RCommit, ReplicaPlayer, chose_report, delta_record};
-use myriad_interest::{InterestConfig, TickReport};
-use myriad_protocol::{DeltaRecord, QuantPos, UpdateHeader};
+use myriad_cuda::replica::{Choices, DeviceReplicas, RCommit, ReplicaPlayer, chose_report};
+use myriad_interest::{InterestConfig, Packing, TickReport};
 use rayon::prelude::*;
 
 use super::{Job, Outbound, OutboundReport, Recipient, aim, clear_all, spread_over_lanes};
@@ -25,18 +24,6 @@ pub struct DeviceOutbound {
     boxes: Vec<Aabb>,
     players: Vec<ReplicaPlayer>,
     commits: Vec<RCommit>,
-    ends: Vec<u32>,
-}
-
-/// Per-thread memory of the packing: records and datagram ends.
-#[derive(Default)]
-struct Scratch {
-    records: Vec<DeltaRecord>,
-    ends: Vec<usize>,
-}
-
-thread_local! {
-    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
 impl DeviceOutbound {
@@ -50,7 +37,6 @@ impl DeviceOutbound {
             boxes: Vec::new(),
             players: Vec::new(),
             commits: Vec::new(),
-            ends: Vec::new(),
         }
     }
 
@@ -72,7 +58,7 @@ impl DeviceOutbound {
         let mdg = self.config.max_datagrams.max(1);
         let t = Instant::now();
         let chose =
-            self.replicas.select(job.world, &self.boxes, &self.players, &self.config.replication, mdg, job.tick.tick);
+            self.replicas.select(job.world, &self.boxes, &self.players, &self.config.replication, mdg, job.tick);
         report.aoi_ms = t.elapsed().as_secs_f64() * 1e3;
         if let Err(e) = chose {
             tracing::error!(error = %e, "device replicas failed");
@@ -83,33 +69,29 @@ impl DeviceOutbound {
         let n = recipients.len();
         self.commits.clear();
         self.commits.resize(n, RCommit::default());
-        self.ends.clear();
-        self.ends.resize(n * mdg, 0);
-        let packing = Instant::now();
+        let sealing = Instant::now();
         let choices = self.replicas.choices();
-        let tick = job.tick;
         // The tick's report is summed here, over each player just sealed (its
         // subscriber is in cache), rather than by a serial pass after.
         let (faults, tick_report) = recipients
             .par_iter_mut()
             .zip(self.commits.par_iter_mut())
-            .zip(self.ends.par_chunks_mut(mdg))
             .enumerate()
             .fold(
                 || (0usize, TickReport::default()),
-                |(faults, report), (i, ((r, commit), ends))| {
-                    let ok = SCRATCH.with_borrow_mut(|s| seal_one(&choices, i, tick, r, commit, ends, s));
+                |(faults, report), (i, (r, commit))| {
+                    let ok = seal_one(&choices, i, r, commit);
                     (faults + usize::from(!ok), report.with(&r.view.report()))
                 },
             )
             .reduce(|| (0, TickReport::default()), |a, b| (a.0 + b.0, a.1.merge(b.1)));
-        self.replicas.profile_host("host: pack and seal", packing);
+        self.replicas.profile_host("host: frame and seal", sealing);
         if faults > 0 {
-            tracing::error!(players = faults, "the device chose records no datagram can carry");
+            tracing::error!(players = faults, "the device packed bodies no datagram can carry");
             metrics::counter!("myriad_outbound_errors_total", "reason" => "device_record").increment(faults as u64);
         }
         let committing = Instant::now();
-        let committed = self.replicas.commit(&self.commits, &self.ends);
+        let committed = self.replicas.commit(&self.commits);
         self.replicas.profile_host("host: replica commit", committing);
         if let Err(e) = committed {
             tracing::error!(error = %e, "device replicas failed to commit");
@@ -120,53 +102,32 @@ impl DeviceOutbound {
     }
 }
 
-/// Packs and seals player `i`'s choices into its subscriber, and notes in `commit` and
-/// `ends` what that took; false if the device chose a record that is not one (the player
-/// then gets nothing this tick, and the device is told nothing was sealed).
-fn seal_one(
-    choices: &Choices<'_>,
-    i: usize,
-    tick: myriad_interest::TickInfo,
-    r: &mut Recipient<'_>,
-    commit: &mut RCommit,
-    ends: &mut [u32],
-    scratch: &mut Scratch,
-) -> bool {
+/// Frames and seals player `i`'s bodies into its subscriber, and notes in `commit` what
+/// that did; false if the device packed a body no datagram can carry (the player then
+/// gets nothing this tick, and the device is told nothing was sealed).
+fn seal_one(choices: &Choices<'_>, i: usize, r: &mut Recipient<'_>, commit: &mut RCommit) -> bool {
     let info = choices.info(i);
-    scratch.records.clear();
-    let mut faulty = false;
-    for rec in choices.records(i) {
-        match delta_record(rec) {
-            Some(d) => scratch.records.push(d),
-            None => faulty = true,
+    let packed = choices.packed(i);
+    let packing =
+        Packing { chosen: info.count as usize, packed: packed.packed as usize, relative: packed.relative as usize };
+    let bodies = choices.bodies(i);
+    let datagrams = bodies.len() as u32;
+    match r.view.seal_packed(bodies, info.has_own_record != 0, packing, chose_report(info)) {
+        Ok(done) => {
+            *commit = RCommit {
+                first: done.first,
+                spent: done.spent,
+                ok: u32::from(done.sealed.is_ok()),
+                packed: packed.packed,
+                datagrams,
+            };
+            true
+        }
+        Err(_) => {
+            *commit = RCommit::default();
+            false
         }
     }
-    let own = if info.has_own_record != 0 { delta_record(&info.own_record) } else { None };
-    faulty |= info.has_own_record != 0 && own.is_none();
-    if faulty {
-        r.view.clear_datagrams();
-        *commit = RCommit::default();
-        return false;
-    }
-    let header = UpdateHeader {
-        tick: tick.tick,
-        dilation_permille: tick.dilation_permille,
-        origin: QuantPos::from_f32(r.centre.to_array()),
-    };
-    let chose = chose_report(info);
-    let done =
-        r.view.seal_chosen(&header, own.as_ref(), &scratch.records, info.datagrams as usize, chose, &mut scratch.ends);
-    *commit = RCommit {
-        first: done.first,
-        spent: done.spent,
-        ok: u32::from(done.sealed.is_ok()),
-        packed: done.packed as u32,
-        datagrams: scratch.ends.len().min(ends.len()) as u32,
-    };
-    for (e, &end) in ends.iter_mut().zip(&scratch.ends) {
-        *e = end as u32;
-    }
-    true
 }
 
 impl Outbound for DeviceOutbound {

@@ -17,7 +17,6 @@
 //! [`FORGET_BUILDS`] builds in a row is forgotten and starts afresh if it comes back.
 //! After any failure every player starts afresh (the device state is not trusted).
 
-use std::collections::hash_map::Entry;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -27,6 +26,7 @@ use myriad_physics::PhysicsError;
 use myriad_protocol::AckField;
 
 use super::device_config;
+use super::homes::{Homes, Placed, Twice};
 use super::layout::*;
 use crate::backend::{Resident, lock};
 use crate::device::{DevBuf, Pinned};
@@ -69,14 +69,6 @@ pub struct ReplicaPlayer {
     pub acks: Option<AckField>,
 }
 
-/// Where a player's replica lives, as the host keeps track of it.
-#[derive(Debug, Clone, Copy)]
-struct Home {
-    index: u32,
-    /// The build that last served it.
-    seen: u64,
-}
-
 /// A build between its [`select`](DeviceReplicas::select) and its
 /// [`commit`](DeviceReplicas::commit).
 #[derive(Debug, Clone, Copy)]
@@ -90,27 +82,9 @@ struct Pending {
     no_objects: bool,
 }
 
-/// A build's players' homes and the homes it carries (kept from build to build, so that
-/// the tick does not allocate them each time).
-#[derive(Default)]
-struct Placed {
-    /// Each player's home, and whether it starts afresh.
-    homes: Vec<(u32, bool)>,
-    /// (home, tracks) of each player left out whose tracks move to this build's buffer.
-    carried: Vec<(u32, u32)>,
-    /// Scratch: the keys of players forgotten by this build.
-    forgotten: Vec<u64>,
-    /// Scratch: (home, offset) pairs for `k_replica_carry`.
-    carry: Vec<u32>,
-}
-
 struct State {
-    /// By session key: a look-up a player a build (`place`), so a fast hash (the keys
-    /// are the server's own, not a peer's).
-    homes_of: foldhash::HashMap<u64, Home>,
-    /// Each home's tracks (the last build's count), by home index.
-    tracks_of: Vec<u32>,
-    free: Vec<u32>,
+    /// Each player's home, by session key.
+    home_of: Homes,
     /// Homes the device arrays hold.
     capacity: usize,
     builds: u64,
@@ -122,6 +96,8 @@ struct State {
     pending: Option<Pending>,
     /// The last build's placement (its vectors reused).
     placed: Placed,
+    /// Scratch: (home, offset) pairs for `k_replica_carry`.
+    carry_pairs: Vec<u32>,
     homes: DevBuf<RHome>,
     flights: DevBuf<RFlight>,
     states: DevBuf<RState>,
@@ -172,7 +148,7 @@ pub struct DeviceReplicas {
 impl std::fmt::Debug for DeviceReplicas {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("DeviceReplicas")
-            .field("players", &self.state.homes_of.len())
+            .field("players", &self.state.home_of.len())
             .field("builds", &self.state.builds)
             .finish_non_exhaustive()
     }
@@ -276,9 +252,7 @@ impl DeviceReplicas {
 impl State {
     fn new() -> State {
         State {
-            homes_of: foldhash::HashMap::default(),
-            tracks_of: Vec::new(),
-            free: Vec::new(),
+            home_of: Homes::default(),
             capacity: 0,
             builds: 0,
             valid: false,
@@ -286,6 +260,7 @@ impl State {
             used: 0,
             pending: None,
             placed: Placed::default(),
+            carry_pairs: Vec::new(),
             homes: DevBuf::empty(),
             flights: DevBuf::empty(),
             states: DevBuf::empty(),
@@ -322,9 +297,7 @@ impl State {
     fn failed(&mut self) {
         self.valid = false;
         self.pending = None;
-        self.homes_of.clear();
-        self.tracks_of.clear();
-        self.free.clear();
+        self.home_of.clear();
         self.used = 0;
     }
 
@@ -336,56 +309,9 @@ impl State {
             self.failed();
         }
         self.builds += 1;
-        let build = self.builds;
-        let placed = &mut out.homes;
-        placed.clear();
-        for p in players {
-            // Every index below homes and free ones together is taken or free.
-            let next_index = (self.homes_of.len() + self.free.len()) as u32;
-            match self.homes_of.entry(p.key) {
-                Entry::Occupied(mut e) => {
-                    if e.get().seen == build {
-                        return Err(PhysicsError::Device {
-                            stage: "replica",
-                            message: format!("player {} twice in one build", p.key),
-                        });
-                    }
-                    e.get_mut().seen = build;
-                    placed.push((e.get().index, false));
-                }
-                Entry::Vacant(e) => {
-                    let index = self.free.pop().unwrap_or(next_index);
-                    e.insert(Home { index, seen: build });
-                    let at = index as usize;
-                    if self.tracks_of.len() <= at {
-                        self.tracks_of.resize(at + 1, 0);
-                    }
-                    self.tracks_of[at] = 0;
-                    placed.push((index, true));
-                }
-            }
-        }
-        let (carried, forgotten) = (&mut out.carried, &mut out.forgotten);
-        carried.clear();
-        forgotten.clear();
-        for (&key, h) in &self.homes_of {
-            if h.seen == build {
-                continue;
-            }
-            if build - h.seen > FORGET_BUILDS {
-                forgotten.push(key);
-            } else if self.tracks_of[h.index as usize] > 0 {
-                carried.push((h.index, self.tracks_of[h.index as usize]));
-            }
-        }
-        for key in forgotten.drain(..) {
-            if let Some(h) = self.homes_of.remove(&key) {
-                self.free.push(h.index);
-            }
-        }
-        // The device order of the copies does not matter; a fixed one keeps runs alike.
-        carried.sort_unstable();
-        Ok(())
+        self.home_of.place(players.iter().map(|p| p.key), self.builds, FORGET_BUILDS, out).map_err(|Twice(key)| {
+            PhysicsError::Device { stage: "replica", message: format!("player {key} twice in one build") }
+        })
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -412,7 +338,8 @@ impl State {
         let started = Instant::now();
         let mut placement = std::mem::take(&mut self.placed);
         self.place(players, &mut placement)?;
-        let Placed { homes: placed, carried, carry, .. } = &mut placement;
+        let Placed { homes: placed, carried } = &mut placement;
+        let carry = &mut self.carry_pairs;
         let cfg = device_config(config, max_datagrams);
         let mdg = cfg.max_datagrams as usize;
         d.gpu.profile_host("host: replica homes", started);
@@ -433,7 +360,7 @@ impl State {
             return Err(PhysicsError::Device { stage: "replica", message: format!("{used} tracks") });
         }
         // Homes: the arrays grow keeping what they hold.
-        let homes_needed = (self.homes_of.len() + self.free.len()).max(1);
+        let homes_needed = self.home_of.span().max(1);
         if homes_needed > self.capacity {
             let keep = self.capacity;
             let want = homes_needed.next_power_of_two().max(64);
@@ -622,7 +549,7 @@ impl State {
         }
         // By home, not by key: a store a player instead of a hash look-up.
         for (&(home, _), r) in placed.iter().zip(info) {
-            self.tracks_of[home as usize] = r.in_view;
+            self.home_of.set_tracks(home, r.in_view);
         }
         gpu.profile_host("host: replica reports", started);
         let no_objects = d.n == 0 || nq == 0;

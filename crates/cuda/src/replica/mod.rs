@@ -11,6 +11,7 @@
 //! (`crates/server/tests/device_outbound.rs`).
 
 mod device;
+mod homes;
 mod layout;
 
 pub use device::{BODY_STRIDE, Choices, DeviceReplicas, FORGET_BUILDS, ReplicaPlayer};

@@ -112,11 +112,15 @@ __device__ ROwn r_own_of(const RPlayer* p, u32 n, const float* pos, const u32* i
 // tracks, the acknowledgements and the priorities; the objects due go to `wanted` in the
 // candidates' order, and `counts[2 i]` and `counts[2 i + 1]` say how many candidates and
 // how many due (R_NO_SLOT due: the list was out of order, reported in `info[i]`).
-extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, const u32* objects,
-                                         u32 n, const float* pos, const u32* ids, const u8* shapes,
-                                         const RPlayer* players, RHome* homes, const RTrack* old_tracks,
-                                         RTrack* next_tracks, RCand* cands, RKey* un, RKey* orph, RMoved* moved,
-                                         RDue* wanted, RFlight* flights, RState* states, u32* counts, RInfo* info) {
+// `taken` marks, at last build's track offsets, each old track a candidate took with
+// `build` (a number no earlier build used), so the old tracks nobody took are found
+// without searching the candidates.
+extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u64 build, const u32* offsets,
+                                         const u32* objects, u32 n, const float* pos, const u32* ids,
+                                         const u8* shapes, const RPlayer* players, RHome* homes,
+                                         const RTrack* old_tracks, RTrack* next_tracks, u64* taken, RCand* cands,
+                                         RKey* un, RKey* orph, RMoved* moved, RDue* wanted, RFlight* flights,
+                                         RState* states, u32* counts, RInfo* info) {
     u32 lane = threadIdx.x & 31u;
     u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (i >= nq) return;
@@ -134,6 +138,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, c
     const RTrack* old = old_tracks + h->track_off;
     u32 nold = h->track_len;
     RKey* orph_p = orph + h->track_off;
+    u64* taken_p = taken + h->track_off;
     RFlight* fl_p = flights + (u64)p->home * R_FLIGHTS;
     RState* st_p = states + (u64)p->home * R_STATES;
     RCand* cs = cands + o;
@@ -144,8 +149,17 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, c
     __syncwarp();
     if (lane == 0) r_own_now(h, own.has, own.id, own.pos);
 
-    // Candidates: the list less the own object, in its order.
-    u32 nc = 0;
+    // One pass over the list: the candidates (the list less the own object, in its
+    // order), each checked against the one before it and merged at once with last
+    // build's tracks: a candidate keeps the track of its slot and id; the rest start
+    // afresh (`un`), and old tracks nobody took (`orph`) may be theirs by id (an object
+    // whose slot changed). A view changes little from tick to tick, so each lane looks
+    // for its next item where its last one was found, shifted alike.
+    // The device's lists are sorted with no slot twice, so every candidate takes a track
+    // (the host replica's out-of-order drops never happen); a list that is not is a
+    // fault the host is told of, not a choice.
+    u32 nc = 0, nun = 0, last_slot = 0;
+    int has_last = 0, disorder = 0, drift = 0;
     for (u32 base = 0; base < len; base += 32) {
         u32 j = base + lane;
         int valid = 0;
@@ -161,15 +175,33 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, c
             }
         }
         u32 mask = __ballot_sync(FULL_WARP, valid);
-        if (valid) cs[nc + lanes_before(mask, lane)] = c;
+        u32 my_slot = valid ? c.slot : 0;
+        u32 below = mask & ((1u << lane) - 1u);
+        u32 before = __shfl_sync(FULL_WARP, my_slot, below ? 31 - __clz(below) : lane);
+        int fresh = 0;
+        if (valid) {
+            if (below || has_last) disorder |= c.slot <= (below ? before : last_slot);
+            u32 k = nc + __popc(below);
+            cs[k] = c;
+            u32 at = r_find_slot(old, nold, c.slot, (u32)max((int)k + drift, 0));
+            if (at != R_NO_SLOT && old[at].id == c.id) {
+                nx[k] = old[at];
+                taken_p[at] = build;
+                drift = (int)at - (int)k;
+            } else {
+                nx[k] = r_track_new(c.id, c.slot);
+                fresh = 1;
+            }
+        }
+        u32 fmask = __ballot_sync(FULL_WARP, fresh);
+        if (fresh) un_p[nun + lanes_before(fmask, lane)].index = nc + __popc(below);
+        nun += __popc(fmask);
+        if (mask) {
+            last_slot = __shfl_sync(FULL_WARP, my_slot, 31 - __clz(mask));
+            has_last = 1;
+        }
         nc += __popc(mask);
     }
-    __syncwarp();
-    // The device's lists are sorted with no slot twice, so every candidate takes a track
-    // (the host replica's out-of-order drops never happen); a list that is not is a
-    // fault the host is told of, not a choice.
-    int disorder = 0;
-    for (u32 k = 1 + lane; k < nc; k += 32) disorder |= cs[k].slot <= cs[k - 1].slot;
     if (__any_sync(FULL_WARP, disorder)) {
         if (lane == 0) {
             RInfo bad = {};
@@ -180,42 +212,12 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, c
         }
         return;
     }
-
-    // The merge with last build's tracks: a candidate keeps the track of its slot and
-    // id; the rest start afresh (`un`), and old tracks nobody took (`orph`) may be theirs
-    // by id (an object whose slot changed). A view changes little from tick to tick, so
-    // each lane looks for its next item where its last one was found, shifted alike.
-    u32 nun = 0;
-    int drift = 0;
-    for (u32 base = 0; base < nc; base += 32) {
-        u32 k = base + lane;
-        int fresh = 0;
-        if (k < nc) {
-            const RCand* c = &cs[k];
-            u32 at = r_find_slot(old, nold, c->slot, (u32)max((int)k + drift, 0));
-            if (at != R_NO_SLOT && old[at].id == c->id) {
-                nx[k] = old[at];
-                drift = (int)at - (int)k;
-            } else {
-                nx[k] = r_track_new(c->id, c->slot);
-                fresh = 1;
-            }
-        }
-        u32 mask = __ballot_sync(FULL_WARP, fresh);
-        if (fresh) un_p[nun + lanes_before(mask, lane)].index = k;
-        nun += __popc(mask);
-    }
+    __syncwarp();
     u32 norph = 0;
     if (nun > 0) {
-        drift = 0;
         for (u32 base = 0; base < nold; base += 32) {
             u32 k = base + lane;
-            int orphan = 0;
-            if (k < nold) {
-                u32 at = r_find_cand(cs, nc, old[k].slot, (u32)max((int)k + drift, 0));
-                orphan = !(at != R_NO_SLOT && cs[at].id == old[k].id);
-                if (at != R_NO_SLOT) drift = (int)at - (int)k;
-            }
+            int orphan = k < nold && taken_p[k] != build;
             u32 mask = __ballot_sync(FULL_WARP, orphan);
             if (orphan) orph_p[norph + lanes_before(mask, lane)].index = k;
             norph += __popc(mask);

@@ -61,7 +61,7 @@ pub const KERNELS: [(&str, usize); 28] = [
     ("k_forces", 16),
     ("k_patch_gather", 21),
     ("k_patch_scatter", 12),
-    ("k_replica_due", 22),
+    ("k_replica_due", 24),
     ("k_replica_rank", 5),
     ("k_replica_take", 17),
     ("k_replica_pack", 15),

@@ -102,6 +102,9 @@ struct State {
     flights: DevBuf<RFlight>,
     states: DevBuf<RState>,
     tracks: [DevBuf<RTrack>; 2],
+    /// At last build's track offsets: the build whose candidate took each old track
+    /// (builds count from 1; zeroed when allocated).
+    taken: DevBuf<u64>,
     cands: DevBuf<RCand>,
     un: DevBuf<RKey>,
     orph: DevBuf<RKey>,
@@ -265,6 +268,7 @@ impl State {
             flights: DevBuf::empty(),
             states: DevBuf::empty(),
             tracks: [DevBuf::empty(), DevBuf::empty()],
+            taken: DevBuf::empty(),
             cands: DevBuf::empty(),
             un: DevBuf::empty(),
             orph: DevBuf::empty(),
@@ -386,6 +390,10 @@ impl State {
         self.cands.ensure(gpu, items * size_of::<RCand>(), 1.25)?;
         self.un.ensure(gpu, items * size_of::<RKey>(), 1.25)?;
         self.orph.ensure(gpu, self.used.max(1) * size_of::<RKey>(), 1.25)?;
+        if self.taken.ensure(gpu, self.used.max(1) * 8, 1.25)? {
+            // Stale memory could hold any number, this build's too: no build is 0.
+            gpu.zero(self.taken.ptr(), self.taken.capacity() as usize)?;
+        }
         self.moved.ensure(gpu, items * size_of::<RMoved>(), 1.25)?;
         self.wanted.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
         self.ranked.ensure(gpu, items * size_of::<RDue>(), 1.25)?;
@@ -455,6 +463,7 @@ impl State {
                     nq: nq as u32,
                     cfg: self.config.ptr(),
                     tick,
+                    build: self.builds,
                     offsets,
                     objects,
                     n: d.n as u32,
@@ -465,6 +474,7 @@ impl State {
                     homes: self.homes.ptr(),
                     old_tracks: self.tracks[old].ptr(),
                     next_tracks: self.tracks[new].ptr(),
+                    taken: self.taken.ptr(),
                     cands: self.cands.ptr(),
                     un: self.un.ptr(),
                     orph: self.orph.ptr(),

@@ -5,7 +5,7 @@
 use myriad_core::{Aabb, World};
 use myriad_physics::lbvh::morton::MortonFrame;
 use myriad_physics::{AoiResults, PhysicsError};
-use rayon::slice::ParallelSliceMut;
+use rayon::prelude::*;
 use std::time::Instant;
 
 use super::Resident;
@@ -66,9 +66,18 @@ impl Resident {
         let started = Instant::now();
         self.aoi_boxes.ensure(gpu, nq * 24, 1.25)?;
         self.aoi_counts.ensure(gpu, (nq + 1) * 4, 1.25)?;
-        self.aoi_order.ensure(gpu, nq * 4, 1.25)?;
-        let flat: Vec<f32> = boxes.iter().flat_map(|b| [b.min.to_array(), b.max.to_array()]).flatten().collect();
-        gpu.upload(&self.aoi_boxes, &flat)?;
+        if self.aoi_order.ensure(gpu, nq * 4, 1.25)? {
+            self.order_age = None;
+        }
+        // Into page-locked memory on the pool, then up on the stream: the stream has
+        // passed the copy before the next query writes here (every query waits for its
+        // total, and the lists' readers wait for their kernels).
+        let h = &mut self.host;
+        h.aoi_boxes.ensure(gpu, nq * 24)?;
+        h.aoi_boxes.slice_mut::<[f32; 6]>(nq).par_iter_mut().zip(boxes.par_iter()).for_each(|(f, b)| {
+            *f = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
+        });
+        gpu.upload_async(&self.aoi_boxes, &h.aoi_boxes, 6 * nq)?;
         let counts = self.aoi_counts.ptr();
         // `cuda-naive` tests the boxes in index order; the grid's warps take them in
         // `query_order`.
@@ -78,7 +87,19 @@ impl Resident {
         if naive {
             count_pass(gpu, qs, false, self.dynamic_targets(), counts)?;
         } else {
-            gpu.upload(&self.aoi_order, &query_order(boxes))?;
+            // Which warp answers which box changes no list, so the order is kept while
+            // the boxes are as many, and made again now and then as players move.
+            let age = match self.order_age {
+                Some((len, age)) if len == nq && age < ORDER_KEPT => age + 1,
+                _ => {
+                    let h = &mut self.host;
+                    h.aoi_order.ensure(gpu, nq * 4)?;
+                    h.aoi_order.slice_mut::<u32>(nq).copy_from_slice(&query_order(boxes));
+                    gpu.upload_async(&self.aoi_order, &h.aoi_order, nq)?;
+                    0
+                }
+            };
+            self.order_age = Some((nq, age));
             let frame = Frame::new(&world.bounds, boxes);
             gpu.profile_host("host: AOI query, boxes and order up", started);
             self.grid.build(gpu, &mut self.scan, self.n, self.obj.boxes.ptr(), frame)?;
@@ -107,6 +128,9 @@ impl Resident {
         Ok(total)
     }
 }
+
+/// Queries that keep the order of the boxes before it is made again.
+const ORDER_KEPT: u32 = 30;
 
 /// The boxes' indices in the Morton order of their centres (ties by index): the order in
 /// which the grid's warps take them. Players' boxes come in session order, scattered over

@@ -146,6 +146,8 @@ pub(crate) struct Resident {
     aoi_boxes: DevBuf<f32>,
     /// The order in which the AOI queries' threads take their boxes (`aoi::query_order`).
     aoi_order: DevBuf<u32>,
+    /// For how many boxes `aoi_order` was computed, and the queries since.
+    order_age: Option<(usize, u32)>,
     /// The last AOI query's list offsets and slots ([`Resident::aoi_on_device`]).
     pub(crate) aoi_counts: DevBuf<u32>,
     pub(crate) aoi_out: DevBuf<u32>,
@@ -229,12 +231,23 @@ impl Resident {
             dynamic_pairs: DevBuf::empty(),
             aoi_boxes: DevBuf::empty(),
             aoi_order: DevBuf::empty(),
+            order_age: None,
             aoi_counts: DevBuf::empty(),
             aoi_out: DevBuf::empty(),
             params: DevBuf::empty(),
             counters: DevBuf::empty(),
             samples: DevBuf::empty(),
-            host: Host { pos: p(), prev: p(), action: p(), flags: p(), small: p(), aoi_offsets: p(), aoi_objects: p() },
+            host: Host {
+                pos: p(),
+                prev: p(),
+                action: p(),
+                flags: p(),
+                small: p(),
+                aoi_offsets: p(),
+                aoi_objects: p(),
+                aoi_boxes: p(),
+                aoi_order: p(),
+            },
             events,
             gpu,
         })

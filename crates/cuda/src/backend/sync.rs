@@ -124,6 +124,10 @@ pub(super) struct Host {
     pub aoi_offsets: Pinned,
     /// AOI results, the objects of every query.
     pub aoi_objects: Pinned,
+    /// The AOI query boxes, six floats each, on their way up.
+    pub aoi_boxes: Pinned,
+    /// The order the grid's warps take the boxes in, on its way up.
+    pub aoi_order: Pinned,
 }
 
 /// The vectors as packed floats (x, y, z, x, ...), without copying (glam's `Vec3` is

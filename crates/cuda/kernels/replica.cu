@@ -108,13 +108,29 @@ __device__ ROwn r_own_of(const RPlayer* p, u32 n, const float* pos, const u32* i
     return own;
 }
 
+// Warps a block of `k_replica_due` (PLAYERS_PER_BLOCK in src/replica/device.rs).
+#define DUE_WARPS 4u
+// Bits of a warp's filter of the ids its acknowledged flights carry.
+#define DUE_BLOOM_BITS 4096u
+
+__device__ __forceinline__ u32 r_bloom_bit(u64 id) { return (u32)((id * 0x9E3779B97F4A7C15ull) >> 52); }
+__device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {
+    u32 b = r_bloom_bit(id);
+    return (bloom[b >> 5] >> (b & 31u)) & 1u;
+}
+
 // Step 1 and 2 of a build, a warp a player: the candidates, the merge with last build's
 // tracks, the acknowledgements and the priorities; the objects due go to `wanted` in the
 // candidates' order, and `counts[2 i]` and `counts[2 i + 1]` say how many candidates and
 // how many due (R_NO_SLOT due: the list was out of order, reported in `info[i]`).
 // `taken` marks, at last build's track offsets, each old track a candidate took with
 // `build` (a number no earlier build used), so the old tracks nobody took are found
-// without searching the candidates.
+// without searching the candidates. A track whose id no acknowledged flight carries (a
+// filter of their ids says so) takes its priority in the pass over the list, while it
+// and its candidate are in registers; the rest (tracks new this build, and those the
+// acknowledgements may touch) after the acknowledgements, as the host replica does
+// for all. The objects due are in no particular order (`k_replica_rank` orders them by
+// what they are).
 extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u64 build, const u32* offsets,
                                          const u32* objects, u32 n, const float* pos, const u32* ids,
                                          const u8* shapes, const RPlayer* players, RHome* homes,
@@ -149,6 +165,24 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     __syncwarp();
     if (lane == 0) r_own_now(h, own.has, own.id, own.pos);
 
+    // The filter of the ids the acknowledged flights carry.
+    __shared__ u32 blooms[DUE_WARPS][DUE_BLOOM_BITS / 32];
+    u32* bloom = blooms[(threadIdx.x >> 5) % DUE_WARPS];
+    for (u32 w = lane; w < DUE_BLOOM_BITS / 32; w += 32) bloom[w] = 0;
+    __syncwarp();
+    u32 nfl = h->nflights;
+    for (u32 f = 0; f < nfl; f++) {
+        RFlight fl = fl_p[f];
+        int acked;
+        r_flight_kept(p, &fl, floor, &acked);
+        if (!acked) continue;
+        for (u32 s = lane; s < fl.len; s += 32) {
+            u32 b = r_bloom_bit(st_p[fl.start + s].id);
+            atomicOr(&bloom[b >> 5], 1u << (b & 31u));
+        }
+    }
+    __syncwarp();
+
     // One pass over the list: the candidates (the list less the own object, in its
     // order), each checked against the one before it and merged at once with last
     // build's tracks: a candidate keeps the track of its slot and id; the rest start
@@ -158,7 +192,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     // The device's lists are sorted with no slot twice, so every candidate takes a track
     // (the host replica's out-of-order drops never happen); a list that is not is a
     // fault the host is told of, not a choice.
-    u32 nc = 0, nun = 0, last_slot = 0;
+    u32 nc = 0, nun = 0, nw = 0, nlater = 0, last_slot = 0;
     int has_last = 0, disorder = 0, drift = 0;
     for (u32 base = 0; base < len; base += 32) {
         u32 j = base + lane;
@@ -178,24 +212,37 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         u32 my_slot = valid ? c.slot : 0;
         u32 below = mask & ((1u << lane) - 1u);
         u32 before = __shfl_sync(FULL_WARP, my_slot, below ? 31 - __clz(below) : lane);
-        int fresh = 0;
+        int fresh = 0, due = 0, later = 0;
+        RDue d;
+        u32 k = nc + __popc(below);
         if (valid) {
             if (below || has_last) disorder |= c.slot <= (below ? before : last_slot);
-            u32 k = nc + __popc(below);
             cs[k] = c;
             u32 at = r_find_slot(old, nold, c.slot, (u32)max((int)k + drift, 0));
             if (at != R_NO_SLOT && old[at].id == c.id) {
-                nx[k] = old[at];
+                RTrack t = old[at];
                 taken_p[at] = build;
                 drift = (int)at - (int)k;
+                if (r_bloom_has(bloom, c.id))
+                    later = 1;
+                else
+                    due = r_priority(cfg, tick, floor, &t, &c, k, k, &d);
+                nx[k] = t;
             } else {
                 nx[k] = r_track_new(c.id, c.slot);
                 fresh = 1;
             }
         }
         u32 fmask = __ballot_sync(FULL_WARP, fresh);
-        if (fresh) un_p[nun + lanes_before(fmask, lane)].index = nc + __popc(below);
+        if (fresh) un_p[nun + lanes_before(fmask, lane)].index = k;
         nun += __popc(fmask);
+        u32 dmask = __ballot_sync(FULL_WARP, due);
+        if (due) wd[nw + lanes_before(dmask, lane)] = d;
+        nw += __popc(dmask);
+        // The later ones' indices from the end of `wanted` down (the due fill it up).
+        u32 lmask = __ballot_sync(FULL_WARP, later);
+        if (later) wd[len - 1 - (nlater + lanes_before(lmask, lane))].track = k;
+        nlater += __popc(lmask);
         if (mask) {
             last_slot = __shfl_sync(FULL_WARP, my_slot, 31 - __clz(mask));
             has_last = 1;
@@ -228,7 +275,6 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     if (lane == 0) nmoved = r_match_moved(old, nx, un_p, nun, orph_p, norph, mv);
     nmoved = __shfl_sync(FULL_WARP, nmoved, 0);
     __syncwarp();
-    u32 nfl = h->nflights;
     if (nmoved > 0) {
         // States in flight name objects by slot: the moved ones' follow them.
         for (u32 f = 0; f < nfl; f++) {
@@ -264,12 +310,25 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     }
     if (lane == 0) h->nflights = kept;
 
-    // Priorities; the objects due, compacted.
-    u32 nw = 0;
-    for (u32 base = 0; base < nc; base += 32) {
-        u32 k = base + lane;
+    // Priorities of the tracks new this build, then of those the acknowledgements may
+    // have touched; the objects due after the list pass's. Those read from the end of
+    // `wanted` lowest index first, each chunk read before any is written: the due
+    // written so far never reach an index not yet read.
+    for (u32 base = 0; base < nun; base += 32) {
+        u32 j = base + lane;
+        u32 k = j < nun ? un_p[j].index : 0;
         RDue d;
-        int due = k < nc && r_priority(cfg, tick, floor, &nx[k], &cs[k], k, k, &d);
+        int due = j < nun && r_priority(cfg, tick, floor, &nx[k], &cs[k], k, k, &d);
+        u32 mask = __ballot_sync(FULL_WARP, due);
+        if (due) wd[nw + lanes_before(mask, lane)] = d;
+        nw += __popc(mask);
+    }
+    for (u32 base = 0; base < nlater; base += 32) {
+        u32 j = base + lane;
+        u32 k = j < nlater ? wd[len - nlater + j].track : 0;
+        __syncwarp();
+        RDue d;
+        int due = j < nlater && r_priority(cfg, tick, floor, &nx[k], &cs[k], k, k, &d);
         u32 mask = __ballot_sync(FULL_WARP, due);
         if (due) wd[nw + lanes_before(mask, lane)] = d;
         nw += __popc(mask);

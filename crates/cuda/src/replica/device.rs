@@ -46,9 +46,11 @@ pub const BODY_STRIDE: usize = 1168;
 /// Builds a player may miss in a row before its replica is forgotten.
 pub const FORGET_BUILDS: u64 = 2 * myriad_protocol::MAX_BACK;
 
-/// Players (one warp each) per block of `k_replica_due`, `k_replica_take` and
-/// `k_replica_commit`.
+/// Players (one warp each) per block of `k_replica_due`, `k_replica_take`,
+/// `k_replica_pack` and `k_replica_commit`; `k_replica_due` keeps a filter per warp in
+/// shared memory for `DUE_WARPS` of them.
 const PLAYERS_PER_BLOCK: u32 = 4;
+const _: () = assert!(PLAYERS_PER_BLOCK == 4, "DUE_WARPS in kernels/replica.cu");
 
 /// Threads per block of `k_replica_rank` (one block a player).
 const RANK_BLOCK: u32 = 256;

@@ -316,14 +316,15 @@ fn admit(
 /// verification and, for an action, its player's object's slot (`None`: no object).
 type Checked = Option<(Result<Verified<ClientMessage>, OpenError>, Option<usize>)>;
 
-/// One datagram for phase 2: its session's opener and object (`None`: the session is
-/// gone), and its bytes.
-type Job<'a> = (Option<(&'a Opener, EntityId)>, &'a mut [u8]);
+/// One datagram for phase 2: its session's opener, object and the slot the object last
+/// had (`None`: the session is gone), and its bytes.
+type Job<'a> = (Option<(&'a Opener, EntityId, Option<u32>)>, &'a mut [u8]);
 
 /// Phase 2: verifies every admitted datagram against its session's opener, in parallel
-/// for a large batch, and looks up the slot an action will set (a hash look-up in a map
-/// of every object, which phase 3 would otherwise make one at a time: nothing changes
-/// slots during a receive); one result per admitted datagram.
+/// for a large batch, and finds the slot an action will set (from the slot the tick last
+/// saw, else a look-up in the map of every object, which phase 3 would otherwise make
+/// one at a time: nothing changes slots during a receive); one result per admitted
+/// datagram.
 fn verify(sessions: &Sessions, dynamics: &Dynamics, buffers: &mut ReceiveBuffers) -> Vec<Checked> {
     let ReceiveBuffers { inbox: Inbox { bytes, items }, admitted, .. } = buffers;
     let mut jobs: Vec<Job<'_>> = Vec::with_capacity(admitted.len());
@@ -334,13 +335,13 @@ fn verify(sessions: &Sessions, dynamics: &Dynamics, buffers: &mut ReceiveBuffers
         let (_, tail) = std::mem::take(&mut rest).split_at_mut(range.start - offset);
         let (datagram, tail) = tail.split_at_mut(range.len());
         (rest, offset) = (tail, range.end);
-        jobs.push((sessions.get(a.player).map(|p| (&p.opener, p.entity)), datagram));
+        jobs.push((sessions.get(a.player).map(|p| (&p.opener, p.entity, p.slot_hint)), datagram));
     }
     let open = |(player, datagram): &mut Job<'_>| {
-        player.map(|(opener, entity)| {
+        player.map(|(opener, entity, hint)| {
             let verified = opener.verify(datagram, ClientMessage::decode_body);
             let acts = verified.as_ref().is_ok_and(|v| matches!(v.message(), ClientMessage::Action { .. }));
-            (verified, if acts { dynamics.slot(entity) } else { None })
+            (verified, if acts { dynamics.slot_hinted(entity, hint) } else { None })
         })
     };
     if jobs.len() >= PARALLEL_OPEN_MIN {

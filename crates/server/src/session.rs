@@ -52,6 +52,9 @@ pub(crate) struct Player {
     pub user_id: UserId,
     pub username: String,
     pub entity: EntityId,
+    /// The slot `entity` had when the tick last looked (a hint for
+    /// `Dynamics::slot_hinted`; slots move only when objects come or go).
+    pub slot_hint: Option<u32>,
     pub shape: Shape,
     pub session_id: u64,
     /// Opens what the client sends.
@@ -360,6 +363,7 @@ impl Sessions {
             user_id,
             username,
             entity,
+            slot_hint: Some(slot as u32),
             shape,
             session_id: keys.session_id,
             opener: session.opener,

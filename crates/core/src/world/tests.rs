@@ -39,6 +39,26 @@ fn despawn_keeps_slots_dense_and_ids_stable() {
     assert!(d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::NAN, ObjectKind::Npc).is_err());
 }
 
+/// A hint that still names the entity's slot is taken; a stale, wrong or absent one
+/// falls back to the look-up, and an unknown entity has no slot whatever the hint.
+#[test]
+fn a_slot_hint_is_taken_only_while_it_names_the_entity() {
+    let mut w = world();
+    let d = &mut w.dynamics;
+    let a = d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::ZERO, ObjectKind::Npc).unwrap();
+    let b = d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::X, ObjectKind::User).unwrap();
+    let c = d.spawn(Shape::Sphere { radius: 1.0 }, Vec3::Y, ObjectKind::Npc).unwrap();
+    assert_eq!(d.slot_hinted(b, Some(1)), Some(1));
+    for hint in [None, Some(0), Some(2), Some(7), Some(u32::MAX)] {
+        assert_eq!(d.slot_hinted(b, hint), Some(1), "hint {hint:?}");
+    }
+    // `a` goes: `c` moves into its slot, and `c`'s old hint is stale.
+    assert!(d.despawn(a));
+    assert_eq!(d.slot_hinted(c, Some(2)), Some(0));
+    assert_eq!(d.slot_hinted(a, Some(0)), None);
+    assert_eq!(d.slot_hinted(a, None), None);
+}
+
 #[test]
 fn insert_keeps_the_id_and_refuses_bad_states() {
     let mut w = world();

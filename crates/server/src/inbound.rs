@@ -416,7 +416,7 @@ fn apply(
     // Authenticated: the sender holds the session key, so its address is the player's
     // (this also follows a client whose NAT mapping changed). Set before the reply is
     // queued, which goes to the player's address within its reply credit.
-    sessions.answer(a.session_id, a.from, a.len, reply);
+    sessions.answer(a.player, a.from, a.len, reply);
 }
 
 fn dropped(reason: &'static str) {

@@ -190,14 +190,17 @@ impl Sessions {
         }
     }
 
-    /// Records an authenticated datagram of `len` bytes from `from` for `session_id`
-    /// (the session's address follows it) and queues `reply` to it, if any, within the
-    /// reply credit: the server never sends an address more bytes in answer than it
-    /// received from it since it became the session's address (docs/protocol.md §6.2). A
-    /// ServerInfo (38 bytes) answering a session's first Ready (34) therefore waits for
-    /// its next datagram (an action, a resent Ready).
-    pub fn answer(&mut self, session_id: u64, from: SocketAddr, len: usize, reply: Option<ServerMessage>) {
-        let Some(&idx) = self.by_session.get(&session_id) else { return };
+    /// Records an authenticated datagram of `len` bytes from `from` for the player at
+    /// table position `idx` (the session's address follows it; the receive knows the
+    /// position, and nothing joins or leaves meanwhile) and queues `reply` to it, if
+    /// any, within the reply credit: the server never sends an address more bytes in
+    /// answer than it received from it since it became the session's address
+    /// (docs/protocol.md §6.2). A ServerInfo (38 bytes) answering a session's first
+    /// Ready (34) therefore waits for its next datagram (an action, a resent Ready).
+    pub fn answer(&mut self, idx: usize, from: SocketAddr, len: usize, reply: Option<ServerMessage>) {
+        if idx >= self.players.len() {
+            return;
+        }
         self.follow_address(idx, from);
         let p = &mut self.players[idx];
         p.reply_credit = p.reply_credit.saturating_add(len);

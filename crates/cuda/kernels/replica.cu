@@ -120,9 +120,9 @@ __device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {
 }
 
 // Step 1 and 2 of a build, a warp a player: the candidates, the merge with last build's
-// tracks, the acknowledgements and the priorities; the objects due go to `wanted` in the
-// candidates' order, and `counts[2 i]` and `counts[2 i + 1]` say how many candidates and
-// how many due (R_NO_SLOT due: the list was out of order, reported in `info[i]`).
+// tracks, the acknowledgements and the priorities; the objects due go to `wanted`, and
+// `counts[2 i]` and `counts[2 i + 1]` say how many candidates and how many due
+// (R_NO_SLOT due: the list was out of order, reported in `info[i]`).
 // `taken` marks, at last build's track offsets, each old track a candidate took with
 // `build` (a number no earlier build used), so the old tracks nobody took are found
 // without searching the candidates. A track whose id no acknowledged flight carries (a

@@ -346,8 +346,8 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
 // A block a player: the objects due sorted by `r_due_less` into `ranked`. The sort keys
 // (each rank's upper word and the item's index) are sorted in shared memory, where a
 // warp sorting 32-byte items in global memory waited on every step; equal upper words,
-// rare, are told apart by the items themselves. The items are in the candidates' order,
-// so the index orders them as their track does.
+// rare, are told apart by the items themselves (`r_due_less` is a total order), so the
+// order the items come in does not matter.
 extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32* counts, RDue* wanted,
                                           RDue* ranked) {
     __shared__ u64 key[RANK_CAP];

@@ -45,6 +45,6 @@ pub mod replica;
 mod source;
 
 pub use config::{InterestConfig, TickInfo};
-pub use manager::{InterestError, InterestManager, Packing, Subscriber, SubscriberReport, TickReport};
-pub use replica::{Replica, ReplicaReport, ReplicaScratch, ReplicationConfig};
+pub use manager::{InterestError, InterestManager, Subscriber, SubscriberReport, TickReport};
+pub use replica::{Packing, Replica, ReplicaReport, ReplicaScratch, ReplicationConfig};
 pub use source::{AoiLists, ObjectSource, SoaObjects};

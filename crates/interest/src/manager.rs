@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::config::{InterestConfig, TickInfo};
-use crate::replica::{Candidate, Replica, ReplicaReport, ReplicaScratch, Sealed};
+use crate::replica::{Candidate, Packing, Replica, ReplicaReport, ReplicaScratch, Sealed, seal};
 use crate::source::{AoiLists, ObjectSource};
 
 /// Errors of [`InterestManager::build`]. Bad data inside a list (slots out of range,
@@ -101,15 +101,11 @@ impl Subscriber {
                 return Err(e);
             }
         }
-        let first = self.sealer.next_sequence();
-        let sealed = self.sealer.seal_batch(&mut self.datagrams);
-        let spent = if sealed.is_ok() { self.datagrams.total_bytes() as f32 } else { 0.0 };
+        let done = seal(packing.packed, &mut self.sealer, &mut self.datagrams);
         let mut report = chose;
-        report.packed = packing.packed;
-        report.deferred += packing.chosen.saturating_sub(packing.packed);
-        report.relative = packing.relative;
-        self.take_report(own, sealed.as_ref().map(|_| report).map_err(|_| ()), 0);
-        Ok(Sealed { packed: packing.packed, first, spent, sealed })
+        done.count(&mut report, packing);
+        self.take_report(own, done.sealed.as_ref().map(|_| report).map_err(|_| ()), 0);
+        Ok(done)
     }
 
     /// Records the report of a build (`own`: whether the player's own object was in
@@ -142,19 +138,6 @@ impl Subscriber {
         self.datagrams.clear();
         self.report = SubscriberReport::default();
     }
-}
-
-/// What packing one build's chosen records did, where they were packed elsewhere
-/// ([`Subscriber::seal_packed`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Packing {
-    /// Records of other objects chosen.
-    pub chosen: usize,
-    /// Of them, packed (the first `packed`; the rest wait for a later tick).
-    pub packed: usize,
-    /// Records packed relative to a state the client acknowledged, the own object's
-    /// included (once).
-    pub relative: usize,
 }
 
 /// Counters of one subscriber's last build.

@@ -219,8 +219,7 @@ pub struct Sealed {
 
 /// Packs `own` (in every datagram) and `records` (ids increasing) into at most
 /// `datagrams` delta updates under `header`, `ends` getting where each datagram's
-/// records end, and seals them into `out`: the last step of a build, shared by the host
-/// replica and the device one.
+/// records end, and seals them into `out`: the last step of the host replica's build.
 pub fn pack_and_seal(
     header: &UpdateHeader,
     own: Option<&DeltaRecord>,
@@ -232,22 +231,49 @@ pub fn pack_and_seal(
 ) -> Sealed {
     out.clear();
     let packed = pack_deltas(header, own, records, datagrams, out, ends);
+    seal(packed, sealer, out)
+}
+
+/// Seals `out`, a build's datagrams, which hold `packed` of its records: the step after
+/// packing, wherever the packing was done (here, or on a device).
+pub(crate) fn seal(packed: usize, sealer: &mut Sealer, out: &mut DatagramBatch) -> Sealed {
     let first = sealer.next_sequence();
     let sealed = sealer.seal_batch(out);
     let spent = if sealed.is_ok() { out.total_bytes() as f32 } else { 0.0 };
     Sealed { packed, first, spent, sealed }
 }
 
+/// What packing one build's chosen records did (here by [`pack_and_seal`], or elsewhere:
+/// [`Subscriber::seal_packed`](crate::Subscriber::seal_packed)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Packing {
+    /// Records of other objects chosen.
+    pub chosen: usize,
+    /// Of them, packed (the first `packed`; the rest wait for a later tick).
+    pub packed: usize,
+    /// Records packed relative to a state the client acknowledged, the own object's
+    /// included (once).
+    pub relative: usize,
+}
+
+impl Packing {
+    /// What packing the first `packed` of `records`, and `own` in every datagram, did.
+    pub(crate) fn of(own: Option<&DeltaRecord>, records: &[DeltaRecord], packed: usize) -> Packing {
+        let relative =
+            usize::from(own.is_some_and(is_relative)) + records[..packed].iter().filter(|r| is_relative(r)).count();
+        Packing { chosen: records.len(), packed, relative }
+    }
+}
+
 impl Sealed {
     /// Adds what packing did to `report`, if sealing succeeded: the records packed, the
     /// chosen ones that did not fit deferred, and how many went relative to a state the
     /// client acknowledged (the own object's included).
-    pub(crate) fn count(&self, report: &mut ReplicaReport, own: Option<&DeltaRecord>, records: &[DeltaRecord]) {
+    pub(crate) fn count(&self, report: &mut ReplicaReport, packing: Packing) {
         if self.sealed.is_ok() {
-            report.packed = self.packed;
-            report.deferred += records.len() - self.packed;
-            report.relative = usize::from(own.is_some_and(is_relative))
-                + records[..self.packed].iter().filter(|r| is_relative(r)).count();
+            report.packed = packing.packed;
+            report.deferred += packing.chosen.saturating_sub(packing.packed);
+            report.relative = packing.relative;
         }
     }
 }
@@ -630,7 +656,7 @@ impl Replica {
         // spent; what is left (never more than a tick's worth) carries over, and an
         // overdraft is forgiven.
         self.credit = (per_tick + self.credit - done.spent).clamp(0.0, per_tick);
-        done.count(&mut report, own_record.as_ref(), records);
+        done.count(&mut report, Packing::of(own_record.as_ref(), records, done.packed));
         let Sealed { first, sealed, .. } = done;
         if sealed.is_ok() {
             let mut start = 0;

@@ -252,7 +252,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     if (__any_sync(FULL_WARP, disorder)) {
         if (lane == 0) {
             RInfo bad = {};
-            bad.overflow = 2;
+            bad.unsorted = 1;
             info[i] = bad;
             counts[2 * i] = nc;
             counts[2 * i + 1] = R_NO_SLOT;

@@ -1,8 +1,8 @@
 // The replica's decisions (crates/interest/src/replica.rs, protocol version 3), one
 // player at a time, in C that compiles for the device (kernels/replica.cu, NVRTC) and
-// for the host (src/replica/host.c, the test that holds it to the Rust replica). The host
-// packs and seals the records chosen here (`pack_deltas`, the sealer) and hands back
-// what the datagrams took (`r_commit`).
+// for the host (src/replica/host.c, the test that holds it to the Rust replica). The
+// records chosen here are packed by pack.cuh's `r_pack` (`pack_deltas`' rules), the host
+// seals them, and what the datagrams took comes back (`r_commit`).
 //
 // Every function mirrors its Rust counterpart operation for operation: floats in the
 // same order with no fused multiply–add (--fmad=false, -ffp-contract=off), IEEE division
@@ -136,12 +136,15 @@ typedef struct {
 // One player's outputs of a build (besides the chosen records).
 typedef struct {
     RRecord own_record;
-    u32 has_own_record, datagrams, count, in_view, out_of_order, deferred, starving, overflow;
+    // `unsorted`: the player's AOI list was not in ascending slot order (a device
+    // fault the host is told of; nothing else was built).
+    u32 has_own_record, datagrams, count, in_view, out_of_order, deferred, starving, unsorted;
 } RInfo;
 
-// What the host's packing and sealing did, for `r_commit`: whether the datagrams were
-// sealed, the first one's sequence number, the bytes they took, how many records they
-// packed, and how many there are (`ends` holds where each one's records end).
+// What packing (pack.cuh) and the host's sealing did, for `r_commit`: whether the
+// datagrams were sealed, the first one's sequence number, the bytes they took, how many
+// records they packed, and how many there are (`ends` holds where each one's records
+// end).
 typedef struct {
     u64 first;
     float spent;
@@ -843,7 +846,7 @@ RFN void r_select(const RConfig* cfg, u64 now, RHome* h, const RPlayer* p, int h
     u64 floor = now > R_MAX_BACK - 1 ? now - (R_MAX_BACK - 1) : 0;
     info->deferred = 0;
     info->starving = 0;
-    info->overflow = 0;
+    info->unsorted = 0;
     r_own_now(h, has_own, own_id, own_pos);
     u32 nmoved = 0;
     u32 n = r_match_view(has_own, own_id, cands, ncands, old, nold, next, cand_of, un, orph, moved, &nmoved,

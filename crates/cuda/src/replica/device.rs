@@ -551,12 +551,8 @@ impl State {
         gpu.collect_profile()?;
         let started = Instant::now();
         let info = self.host_info.slice::<RInfo>(nq);
-        if let Some((i, r)) = info.iter().enumerate().find(|(_, r)| r.overflow != 0) {
-            let message = if r.overflow == 2 {
-                format!("player {i}'s AOI list is not in ascending slot order")
-            } else {
-                format!("player {i}'s build overflowed ({})", r.overflow)
-            };
+        if let Some(i) = info.iter().position(|r| r.unsorted != 0) {
+            let message = format!("player {i}'s AOI list is not in ascending slot order");
             return Err(PhysicsError::Device { stage: "replica", message });
         }
         // By home, not by key: a store a player instead of a hash look-up.

@@ -160,7 +160,7 @@ pub struct RInfo {
     pub out_of_order: u32,
     pub deferred: u32,
     pub starving: u32,
-    pub overflow: u32,
+    pub unsorted: u32,
 }
 
 /// `RCommit`: what the host's packing and sealing did.

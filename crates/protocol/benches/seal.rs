@@ -84,14 +84,21 @@ fn bench(c: &mut Criterion) {
     // A small view's tick (AOI 14: about 40 records, one datagram), where what a
     // datagram costs whatever it holds weighs most.
     let small = records(40);
+    // A build's last step on the host: `records` and the own one into at most
+    // `datagrams` datagrams, sealed.
+    let pack_and_seal = |records: &[DeltaRecord],
+                         datagrams: usize,
+                         session: &mut ServerSession,
+                         batch: &mut DatagramBatch,
+                         ends: &mut Vec<usize>| {
+        batch.clear();
+        pack_deltas(&header, Some(&own), black_box(records), datagrams, batch, ends);
+        session.sealer.seal_batch(batch).expect("seal");
+        batch.total_bytes()
+    };
     let mut g = c.benchmark_group("protocol");
     g.bench_function("pack_and_seal_deltas_40_records", |b| {
-        b.iter(|| {
-            batch.clear();
-            pack_deltas(&header, Some(&own), black_box(&small), 1, &mut batch, &mut ends);
-            server_small.sealer.seal_batch(&mut batch).expect("seal");
-            black_box(batch.total_bytes())
-        })
+        b.iter(|| black_box(pack_and_seal(&small, 1, &mut server_small, &mut batch, &mut ends)))
     });
     g.throughput(Throughput::Bytes(datagram_bytes));
     g.bench_function("pack_deltas_2_datagrams", |b| {
@@ -102,12 +109,7 @@ fn bench(c: &mut Criterion) {
     });
     let mut server = ServerSession::new(&keys());
     g.bench_function("pack_and_seal_deltas_2_datagrams", |b| {
-        b.iter(|| {
-            batch.clear();
-            pack_deltas(&header, Some(&own), black_box(&recs), 2, &mut batch, &mut ends);
-            server.sealer.seal_batch(&mut batch).expect("seal");
-            black_box(batch.total_bytes())
-        })
+        b.iter(|| black_box(pack_and_seal(&recs, 2, &mut server, &mut batch, &mut ends)))
     });
     // Sealing and opening one full datagram: reseal a fresh copy each time so the replay
     // window accepts it.
@@ -139,9 +141,7 @@ fn bench(c: &mut Criterion) {
     g.bench_function("pack_and_seal_40_records_50000_players", |b| {
         b.iter(|| {
             for (session, batch) in players.iter_mut() {
-                batch.clear();
-                pack_deltas(&header, Some(&own), black_box(&small), 1, batch, &mut ends);
-                session.sealer.seal_batch(batch).expect("seal");
+                pack_and_seal(&small, 1, session, batch, &mut ends);
             }
         })
     });

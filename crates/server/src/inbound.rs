@@ -29,8 +29,8 @@
 //! 2. on the rayon pool: `Opener::verify` of every datagram that got through, which
 //!    checks the header, the replay window as it was before the batch, the tag and the
 //!    body, and changes nothing (so the openers are only read); for an action, also the
-//!    slot of the player's object (a look-up in the map of every object's id, which no
-//!    part of a receive changes);
+//!    slot of the player's object (the slot it had last tick, else a look-up in the map
+//!    of every object's id; no part of a receive changes slots);
 //! 3. in arrival order, on the tick thread: `Opener::commit`, which checks the window
 //!    again and records the sequence number (so of two copies of one datagram only the
 //!    first is accepted), then the message is applied.

@@ -27,8 +27,7 @@ use myriad_physics::PhysicsError;
 use crate::device::{Arg, Gpu};
 use crate::params::DeviceParams;
 use crate::replica::{
-    RCand, RChosen, RCommit, RConfig, RDue, RFlight, RHome, RInfo, RKey, RMoved, RPacked, RPlayer, RRecord, RState,
-    RTrack,
+    RCand, RChosen, RCommit, RConfig, RDue, RFlight, RHome, RInfo, RKey, RMoved, RPacked, RPlayer, RState, RTrack,
 };
 
 /// A device address of items of type `T` (no ownership: the buffer it came from owns the
@@ -106,7 +105,6 @@ device_items!(
     DeviceParams => "Params",
     RTrack => "RTrack",
     RConfig => "RConfig",
-    RRecord => "RRecord",
     RCand => "RCand",
     RFlight => "RFlight",
     RState => "RState",

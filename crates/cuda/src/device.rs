@@ -8,7 +8,7 @@ use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
 use std::ffi::{CString, c_void};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use bytemuck::Pod;
 use cudarc::driver::result;
@@ -236,8 +236,14 @@ impl Gpu {
     /// Adds the host time since `since` under `name` to the profile (when profiling): the
     /// host's own work and waits between launches, beside the kernels' device times.
     pub fn profile_host(&self, name: &'static str, since: Instant) {
+        self.profile_span(name, since.elapsed());
+    }
+
+    /// Adds `took` under `name` to the profile, when profiling: a host span timed by
+    /// its caller.
+    pub fn profile_span(&self, name: &'static str, took: Duration) {
         if let Some(p) = &self.profile {
-            p.borrow_mut().samples.entry(name).or_default().push(since.elapsed().as_secs_f64() * 1e3);
+            p.borrow_mut().samples.entry(name).or_default().push(took.as_secs_f64() * 1e3);
         }
     }
 

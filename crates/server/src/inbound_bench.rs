@@ -1,7 +1,7 @@
 //! A timing of the receive stage alone, for picking `PARALLEL_OPEN_MIN` on a given
 //! machine: `N` players (default 3,333, scenario 3's actions a tick) each send one action
-//! a tick through the in-memory transport, gated inline, and the median receive is
-//! printed. Ignored by default; it asserts nothing about time. Run:
+//! a tick through the in-memory transport (with acknowledgements, as protocol 3's
+//! clients send them), gated inline, and the median receive is printed. Ignored by default; it asserts nothing about time. Run:
 //!
 //! `N=3333 RAYON_NUM_THREADS=16 cargo test --release -p myriad-server --lib -- --ignored receive_timing --nocapture`
 //! (`OBJECTS=1300000` adds scenario 4's objects to the world.)
@@ -12,7 +12,7 @@
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
-use myriad_protocol::{ActionMask, ClientMessage, ClientSession, PlayerInput, ServerInfo};
+use myriad_protocol::{AckField, ActionMask, ClientMessage, ClientSession, PlayerInput, ServerInfo};
 use myriad_store::{MapId, UserId};
 
 use super::{PARALLEL_OPEN_MIN, ReceiveBuffers, receive};
@@ -46,7 +46,10 @@ fn receive_timing() {
         for (i, c) in clients.iter_mut().enumerate() {
             let input = PlayerInput { mask: ActionMask::new(ActionMask::FORWARD).unwrap(), client_frame: frame };
             let mut d = Vec::new();
-            c.seal(&ClientMessage::Action { input, acks: None }, &mut d).unwrap();
+            // Acknowledgements as a protocol 3 client sends them (the receive merges them
+            // into the player's view).
+            let acks = AckField::new(u64::from(frame) + 64, u64::MAX);
+            c.seal(&ClientMessage::Action { input, acks }, &mut d).unwrap();
             net.push(SocketAddr::from(([10, 0, (i >> 8) as u8, i as u8], 5000)), d);
         }
         world.tick += 1;

@@ -67,15 +67,15 @@ pub(crate) struct Player {
     /// of what the server sends.
     pub view: Subscriber,
     /// Where the last authenticated datagram came from; nothing is sent before that.
-    /// Only [`Sessions::answer`] changes it once the player is in the table (the
-    /// published [`SessionDirectory`] follows it).
+    /// Only [`Player::answer`] changes it once the player is in the table (the
+    /// published [`SessionDirectory`] follows it through [`Sessions::take_answer`]).
     pub addr: Option<SocketAddr>,
     /// The client asked for state updates. A repeated Ready (the client resends it
     /// until the session starts) only sets it again: it resets nothing.
     pub ready: bool,
     pub last_heard: Instant,
     /// Bytes of authenticated datagrams received from `addr` not yet spent on replies
-    /// to it ([`Sessions::answer`]).
+    /// to it ([`Player::answer`]).
     reply_credit: usize,
     /// A reply waiting for credit (the newest one).
     reply_owed: Option<ServerMessage>,
@@ -124,6 +124,66 @@ impl Player {
         }
         Action::from_bits_truncate(bits)
     }
+
+    /// Records an authenticated datagram of `len` bytes from `from` and seals `reply`,
+    /// if any, within the reply credit: the server never sends an address more bytes in
+    /// answer than it received from it since it became the session's address
+    /// (docs/protocol.md §6.2). A ServerInfo (38 bytes) answering a session's first
+    /// Ready (34) therefore waits for its next datagram (an action, a resent Ready).
+    /// The address follows the datagram (a client whose NAT mapping changed); a new
+    /// address starts with no credit. Touches only this player, so that the receive
+    /// answers many at once; what the table must know comes back
+    /// ([`Sessions::take_answer`]).
+    pub fn answer(&mut self, from: SocketAddr, len: usize, reply: Option<ServerMessage>) -> Answered {
+        let moved = self.addr != Some(from);
+        if moved {
+            self.addr = Some(from);
+            self.reply_credit = 0;
+        }
+        self.reply_credit = self.reply_credit.saturating_add(len);
+        if reply.is_some() {
+            self.reply_owed = reply;
+        }
+        let mut answered = Answered { moved, reply: None };
+        let Some(msg) = self.reply_owed.take() else { return answered };
+        let mut body = Vec::new();
+        let size = match msg.encode_body(&mut body) {
+            Ok(()) => MIN_DATAGRAM + body.len(),
+            Err(_) => usize::MAX,
+        };
+        if size <= self.reply_credit {
+            self.reply_credit -= size;
+            answered.reply = self.seal_control(&msg);
+        } else {
+            self.reply_owed = Some(msg);
+        }
+        answered
+    }
+
+    /// `msg` sealed for this player's address; `None` before the address is known, or
+    /// when sealing failed (logged and counted).
+    fn seal_control(&mut self, msg: &ServerMessage) -> Option<(SocketAddr, Vec<u8>)> {
+        let addr = self.addr?;
+        let mut out = Vec::with_capacity(64);
+        match self.view.sealer.seal_server_message(msg, &mut out) {
+            Ok(_) => Some((addr, out)),
+            Err(e) => {
+                tracing::warn!(error = %e, user = %self.username, "control message not sealed");
+                metrics::counter!("myriad_seal_failures_total").increment(1);
+                None
+            }
+        }
+    }
+}
+
+/// What [`Player::answer`] leaves for the table ([`Sessions::take_answer`]).
+#[must_use = "the table must take the answer: a moved address, a reply to queue"]
+#[derive(Debug, Default)]
+pub(crate) struct Answered {
+    /// The player's address moved (the published directory is stale).
+    moved: bool,
+    /// The reply, sealed, and where it goes.
+    reply: Option<(SocketAddr, Vec<u8>)>,
 }
 
 /// Context a join needs besides the world.
@@ -181,47 +241,12 @@ impl Sessions {
         Some(Arc::new(SessionDirectory::new(self.players.iter().map(|p| (p.session_id, p.addr)))))
     }
 
-    /// Follows the address of the player at `idx`, whose authenticated datagram came from
-    /// `from` (a client whose NAT mapping changed): a new address starts with no reply
-    /// credit, and the published directory is marked stale.
-    fn follow_address(&mut self, idx: usize, from: SocketAddr) {
-        let p = &mut self.players[idx];
-        if p.addr != Some(from) {
-            p.addr = Some(from);
-            p.reply_credit = 0;
-            self.directory_stale = true;
-        }
-    }
-
-    /// Records an authenticated datagram of `len` bytes from `from` for the player at
-    /// table position `idx` (the session's address follows it; the receive knows the
-    /// position, and nothing joins or leaves meanwhile) and queues `reply` to it, if
-    /// any, within the reply credit: the server never sends an address more bytes in
-    /// answer than it received from it since it became the session's address
-    /// (docs/protocol.md §6.2). A ServerInfo (38 bytes) answering a session's first
-    /// Ready (34) therefore waits for its next datagram (an action, a resent Ready).
-    pub fn answer(&mut self, idx: usize, from: SocketAddr, len: usize, reply: Option<ServerMessage>) {
-        if idx >= self.players.len() {
-            return;
-        }
-        self.follow_address(idx, from);
-        let p = &mut self.players[idx];
-        p.reply_credit = p.reply_credit.saturating_add(len);
-        if reply.is_some() {
-            p.reply_owed = reply;
-        }
-        let Some(msg) = p.reply_owed.take() else { return };
-        let mut body = Vec::new();
-        let size = match msg.encode_body(&mut body) {
-            Ok(()) => MIN_DATAGRAM + body.len(),
-            Err(_) => usize::MAX,
-        };
-        if size <= p.reply_credit {
-            p.reply_credit -= size;
-            self.queue_message(idx, &msg);
-        } else {
-            p.reply_owed = Some(msg);
-        }
+    /// The table's half of an answer ([`Player::answer`]): the published directory is
+    /// stale if the player's address moved, and the sealed reply is queued for this
+    /// tick's send.
+    pub fn take_answer(&mut self, answered: Answered) {
+        self.directory_stale |= answered.moved;
+        self.control.extend(answered.reply);
     }
 
     /// Players logged in.
@@ -261,6 +286,26 @@ impl Sessions {
     /// The player at table position `idx`, mutably.
     pub fn get_mut(&mut self, idx: usize) -> Option<&mut Player> {
         self.players.get_mut(idx)
+    }
+
+    /// The players at the table positions `ascending` (increasing, as their name says),
+    /// mutably and all at once (the receive applies their datagrams on the pool): one
+    /// entry per position, `None` for a position past the table or not above the one
+    /// before it.
+    pub fn players_at_mut(&mut self, ascending: impl IntoIterator<Item = usize>) -> Vec<Option<&mut Player>> {
+        let (mut rest, mut base): (&mut [Player], usize) = (&mut self.players, 0);
+        ascending
+            .into_iter()
+            .map(|idx| {
+                if idx < base || idx - base >= rest.len() {
+                    return None;
+                }
+                let (_, tail) = std::mem::take(&mut rest).split_at_mut(idx - base);
+                let (p, tail) = tail.split_first_mut()?;
+                (rest, base) = (tail, idx + 1);
+                Some(p)
+            })
+            .collect()
     }
 
     /// The table position of the player of `session_id`.
@@ -411,15 +456,8 @@ impl Sessions {
     /// Seals `msg` for player `idx` and queues it for this tick's send; nothing is
     /// queued before the player's address is known.
     pub fn queue_message(&mut self, idx: usize, msg: &ServerMessage) {
-        let Some(p) = self.players.get_mut(idx) else { return };
-        let Some(addr) = p.addr else { return };
-        let mut out = Vec::with_capacity(64);
-        match p.view.sealer.seal_server_message(msg, &mut out) {
-            Ok(_) => self.control.push((addr, out)),
-            Err(e) => {
-                tracing::warn!(error = %e, user = %p.username, "control message not sealed");
-                metrics::counter!("myriad_seal_failures_total").increment(1);
-            }
+        if let Some(sealed) = self.players.get_mut(idx).and_then(|p| p.seal_control(msg)) {
+            self.control.push(sealed);
         }
     }
 

@@ -335,6 +335,7 @@ impl TickLoop {
         // A gating transport spends this tick's budgets from here on.
         self.publish_sessions();
         let now = Instant::now();
+        self.outbound.profile("tick: publish the sessions", now - t);
         let inbound = inbound::receive(
             self.transport.as_mut(),
             &mut self.sessions,
@@ -349,8 +350,19 @@ impl TickLoop {
             .iter()
             .filter_map(|&session| self.sessions.remove(&mut self.world, session, None))
             .collect();
+        let received = Instant::now();
         let timeout = Duration::from_secs_f32(self.config.session_timeout_s);
         left.extend(self.sessions.expire(&mut self.world, now, timeout));
+        let phases =
+            ["tick: receive, phase 1 (admit)", "tick: receive, phase 2 (verify)", "tick: receive, phase 3 (apply)"];
+        for (span, took) in phases.into_iter().zip(inbound.phases) {
+            self.outbound.profile(span, took);
+        }
+        self.outbound.profile(
+            "tick: receive, the rest (transport, leaving)",
+            (received - now).saturating_sub(inbound.phases.iter().sum()),
+        );
+        self.outbound.profile("tick: silence check", received.elapsed());
         // Sessions an operator ended (kick, ban, disable, delete): their Disconnects go
         // out with this tick's control replies.
         if let Some(admin) = &mut self.admin {

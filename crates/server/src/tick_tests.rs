@@ -504,6 +504,73 @@ fn a_parallel_batch_follows_an_address_that_moves_in_it() {
     assert_eq!(p.addr, Some(c.addr));
 }
 
+/// A batch of many players' datagrams applies each player's part on the pool (module
+/// docs of `inbound`): a player's datagrams, far apart in the batch, still apply in
+/// arrival order (a newer frame wins, an older one is ignored, a jump taken in the tick
+/// stays, a copy is refused), and what players share (the world's actions, the replies,
+/// who leaves) is what one datagram at a time would give.
+#[test]
+fn a_parallel_batch_of_many_players_applies_each_players_datagrams_in_arrival_order() {
+    let mut r = rig(ServerConfig { receive_per_session: 16, ..ServerConfig::default() });
+    let n = PARALLEL + 21;
+    let mut clients: Vec<Client> = (0..n).map(|i| r.join(i as i64 + 1, 41_000 + i as u16)).collect();
+    r.net.take_sent();
+    let input = |mask: u8, frame: u32| ClientMessage::Action {
+        input: PlayerInput { mask: ActionMask::new(mask).unwrap(), client_frame: frame },
+        acks: None,
+    };
+    // Its second datagram is a Disconnect instead of its second action (5 % 4 == 1).
+    let leaver = 5;
+    let mut copies = Vec::new();
+    // Two rounds over every player, so that each player's second datagram comes long
+    // after its first.
+    for (i, c) in clients.iter_mut().enumerate() {
+        match i % 4 {
+            0 => drop(r.send(c, &input(ActionMask::FORWARD, 1))),
+            1 => drop(r.send(c, &input(ActionMask::FORWARD | ActionMask::JUMP, 1))),
+            2 => drop(r.send(c, &input(ActionMask::BACK, 2))),
+            _ => copies.push((c.addr, r.send(c, &ClientMessage::KeepAlive { acks: None }))),
+        }
+    }
+    for (i, c) in clients.iter_mut().enumerate() {
+        match i % 4 {
+            _ if i == leaver => drop(r.send(c, &ClientMessage::Disconnect)),
+            0 => {}
+            1 => drop(r.send(c, &input(ActionMask::LEFT, 2))),
+            2 => drop(r.send(c, &input(ActionMask::RIGHT, 1))),
+            _ => {}
+        }
+    }
+    for (addr, copy) in copies {
+        r.net.push(addr, copy);
+    }
+    let count = |k: usize| (0..n).filter(|i| i % 4 == k).count();
+    let work = r.tick.tick_once();
+    let datagrams = (n + count(1) + count(2) + count(3)) as u64;
+    assert_eq!(work.received, datagrams);
+    assert_eq!(work.tag_checks, datagrams, "every one reached the window, in one parallel batch");
+    // Every first action, and the second where its frame is newer (the leaver's second
+    // datagram is its Disconnect).
+    let actions = count(0) + count(1) + count(2) + count(1) - 1;
+    assert_eq!(work.actions, actions as u64, "every newer frame, no older one");
+    let sent = r.net.take_sent();
+    for (i, c) in clients.iter_mut().enumerate() {
+        if i == leaver {
+            continue;
+        }
+        let expected = match i % 4 {
+            0 => Action::FORWARD,
+            1 => Action::LEFT | Action::JUMP,
+            2 => Action::BACK,
+            _ => 0,
+        };
+        assert_eq!(r.action_of(c).bits(), expected, "player {i}");
+        let replies = r.received(&sent, c).iter().filter(|o| o.message == ServerMessage::KeepAlive).count();
+        assert_eq!(replies, usize::from(i % 4 == 3), "player {i}: one reply to its keep-alive, none to the copy");
+    }
+    assert_eq!(r.tick.sessions().len(), n - 1, "the player who asked to leave left");
+}
+
 /// The client resends Ready until its session starts (docs/protocol.md §7a), so a Ready
 /// may arrive again, late or twice, after the player moved: it is the same Ready. No
 /// second join, nothing reset (object, action, newest frame), no Disconnect; a replayed

@@ -4,8 +4,8 @@
 //! stay there), carries the tracks of players left out of the build, and runs
 //! `k_replica_due` (a warp a player: the objects due), `k_replica_rank` (a block a
 //! player: sorted by urgency), `k_replica_take` (a warp a player: the budget) and
-//! `k_replica_pack` (a warp a player: the chosen records packed into delta update
-//! bodies, which land in mapped host memory); the host frames and seals them per player
+//! `k_replica_pack` (a thread a player: the chosen records packed into delta update
+//! bodies, which the warp copies into mapped host memory); the host frames and seals them per player
 //! ([`Choices`], then `Subscriber::seal_packed`) and hands back what sealing did with
 //! [`DeviceReplicas::commit`], which queues `k_replica_commit` and does not wait.
 //!
@@ -18,7 +18,7 @@
 //! After any failure every player starts afresh (the device state is not trusted).
 
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use myriad_core::{Aabb, World};
 use myriad_interest::{ReplicationConfig, TickInfo};
@@ -46,11 +46,16 @@ pub const BODY_STRIDE: usize = 1168;
 /// Builds a player may miss in a row before its replica is forgotten.
 pub const FORGET_BUILDS: u64 = 2 * myriad_protocol::MAX_BACK;
 
-/// Players (one warp each) per block of `k_replica_due`, `k_replica_take`,
-/// `k_replica_pack` and `k_replica_commit`; `k_replica_due` keeps a filter per warp in
-/// shared memory for `DUE_WARPS` of them.
+/// Players (one warp each) per block of `k_replica_due`, `k_replica_take` and
+/// `k_replica_commit`; `k_replica_due` keeps a filter per warp in shared memory for
+/// `DUE_WARPS` of them.
 const PLAYERS_PER_BLOCK: u32 = 4;
 const _: () = assert!(PLAYERS_PER_BLOCK == 4, "DUE_WARPS in kernels/replica.cu");
+
+/// Threads (one a player) per block of `k_replica_pack`: whole warps, which copy their
+/// players' bodies together.
+const PACK_BLOCK: u32 = 128;
+const _: () = assert!(PACK_BLOCK % 32 == 0);
 
 /// Threads per block of `k_replica_rank` (one block a player).
 const RANK_BLOCK: u32 = 256;
@@ -225,7 +230,13 @@ impl DeviceReplicas {
     /// profiling (`MYRIAD_CUDA_PROFILE`): for the host work of a build that happens
     /// outside this type (packing and sealing what it chose).
     pub fn profile_host(&self, name: &'static str, since: Instant) {
-        lock(&self.resident).gpu.profile_host(name, since);
+        self.profile_span(name, since.elapsed());
+    }
+
+    /// Adds `took` under `name` to the device's profile, when profiling: a span of the
+    /// tick's host work timed elsewhere (the receive's phases).
+    pub fn profile_span(&self, name: &'static str, took: Duration) {
+        lock(&self.resident).gpu.profile_span(name, took);
     }
 
     /// The last [`select`](Self::select)'s choices.
@@ -523,8 +534,8 @@ impl State {
                 },
             )?;
             gpu.launch_grid(
-                (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
-                32 * PLAYERS_PER_BLOCK,
+                (nq as u32).div_ceil(PACK_BLOCK),
+                PACK_BLOCK,
                 KReplicaPack {
                     nq: nq as u32,
                     cfg: self.config.ptr(),

@@ -5,7 +5,7 @@
 //! sealing did back to the device.
 //! The bytes are the host outbound's, byte for byte (`tests/device_outbound.rs`).
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use myriad_core::{Aabb, Vec3};
 use myriad_cuda::replica::{Choices, DeviceReplicas, RCommit, ReplicaPlayer, chose_report};
@@ -137,6 +137,10 @@ impl Outbound for DeviceOutbound {
             "device replicas, protocol 3 ({:.0} bytes a player a tick, {} datagrams at most)",
             c.replication.budget_bytes_per_tick, c.max_datagrams
         )
+    }
+
+    fn profile(&self, span: &'static str, took: Duration) {
+        self.replicas.profile_span(span, took);
     }
 
     fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {

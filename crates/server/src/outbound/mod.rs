@@ -25,6 +25,7 @@ mod host;
 use std::borrow::{Borrow, BorrowMut};
 use std::net::SocketAddr;
 use std::ops::AddAssign;
+use std::time::Duration;
 
 use myriad_core::{Aabb, Vec3, World};
 use myriad_cuda::replica::DeviceReplicas;
@@ -148,6 +149,13 @@ pub trait Outbound: Send {
     /// and counted by the implementation; recipients it could not serve get no datagrams
     /// (and are still handed over).
     fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport;
+
+    /// Adds `took`, a span of the tick's host work timed elsewhere (the receive's
+    /// phases), under `span` to the profile this outbound keeps, if any: the device
+    /// outbound's, under `MYRIAD_CUDA_PROFILE=1`, prints it with its kernels.
+    fn profile(&self, span: &'static str, took: Duration) {
+        let _ = (span, took);
+    }
 }
 
 /// What an [`Outbound::build`] works with besides its recipients.

@@ -479,6 +479,7 @@ impl TickLoop {
     /// as the outbound hands them over; returns what was sent and the milliseconds spent
     /// sending.
     fn build_and_send(&mut self, work: &mut TickWork) -> (Sent, f64) {
+        let started = Instant::now();
         let dynamics = &self.world.dynamics;
         // In parallel: each player costs a few cache misses (its table entry, its slot,
         // found from where it was last tick unless objects came or went): 0.7 ms a tick
@@ -513,8 +514,11 @@ impl TickLoop {
         let (outbound, backend, world) = (&mut self.outbound, self.backend.as_mut(), &self.world);
         // On a thread of the pool: the outbound's parallel steps then start as the pool's
         // own work, not injected from outside (tens of microseconds each).
+        let building = Instant::now();
+        outbound.profile("tick: recipients", building - started);
         let report =
             rayon::scope(|_| outbound.build(&mut Job { backend, world, tick, ready: &sender }, &mut recipients));
+        outbound.profile("tick: outbound build (to its total)", building.elapsed());
         work.records = report.records;
         work.relative = report.relative;
         work.aoi_ms = report.aoi_ms;

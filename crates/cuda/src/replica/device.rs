@@ -55,7 +55,7 @@ const _: () = assert!(PLAYERS_PER_BLOCK == 4, "DUE_WARPS in kernels/replica.cu")
 /// Threads (one a player) per block of `k_replica_pack`: whole warps, which copy their
 /// players' bodies together.
 const PACK_BLOCK: u32 = 128;
-const _: () = assert!(PACK_BLOCK % 32 == 0);
+const _: () = assert!(PACK_BLOCK.is_multiple_of(32));
 
 /// Threads per block of `k_replica_rank` (one block a player).
 const RANK_BLOCK: u32 = 256;

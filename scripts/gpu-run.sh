@@ -36,7 +36,8 @@
 # profiles this build only); REPLICATION_S2=1 adds scenario 2 (5,000 players) at AOI 100,
 # before and after; REPLICATION_S4=1 scenario 4 (50,000 players, bots 20 a socket) at AOI
 # 14, before and after (REPLICATION_S4_TIMEOUT seconds at most each; profiled with
-# REPLICATION_S4_PROFILE=1).
+# REPLICATION_S4_PROFILE=1). REPLICATION_S3=0 leaves out scenario 3 (for a second run of
+# the others in the same call).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -335,7 +336,7 @@ fi
 if [[ $mode == replication ]]; then
     nproc
     for bin in .carry/before/myriad .carry/myriad; do
-        [[ -x $bin ]] || continue
+        [[ -x $bin && ${REPLICATION_S3:-1} == 1 ]] || continue
         tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
         echo "=== $tag"
         $bin bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 \

@@ -23,9 +23,11 @@
 //! The tag checks (ChaCha20-Poly1305, about a microsecond each) are most of what a
 //! receive costs, so each batch the transport hands over is opened in three phases:
 //!
-//! 1. in arrival order, on the tick thread: the gate (when this receive gates) and the
-//!    lookup of each datagram's session, with the same refusals and counters as one at
-//!    a time;
+//! 1. the gate (when this receive gates) and the lookup of each datagram's session,
+//!    with the same refusals and counters as one at a time: in arrival order on the
+//!    tick thread when the gate is here, else (the receiver thread gated, and nothing
+//!    in this phase depends on what came before) on the rayon pool for a large batch,
+//!    the admitted kept in arrival order;
 //! 2. on the rayon pool: `Opener::verify` of every datagram that got through, which
 //!    checks the header, the replay window as it was before the batch, the tag and the
 //!    body, and changes nothing (so the openers are only read); for an action, also the
@@ -61,9 +63,9 @@ use std::net::SocketAddr;
 use std::ops::Range;
 use std::time::{Duration, Instant};
 
-use myriad_core::{Action, Dynamics, EntityId, World};
+use myriad_core::{Action, Dynamics, World};
 use myriad_protocol::{
-    ClientMessage, Direction, ErrorClass, OpenError, Opener, ServerInfo, ServerMessage, Verified, peek_header,
+    ClientMessage, Direction, ErrorClass, OpenError, ServerInfo, ServerMessage, Verified, peek_header,
 };
 use rayon::prelude::*;
 
@@ -284,6 +286,32 @@ fn admit(
     start: usize,
 ) -> usize {
     let ReceiveBuffers { inbox, admitted, moving, .. } = buffers;
+    if ctx.gate.is_none() && inbox.len() - start >= PARALLEL_OPEN_MIN {
+        // Behind the receiver thread nothing here depends on what came before (no
+        // address is read, the batch is never cut): each datagram's session is looked
+        // up on the pool, the admitted kept in arrival order.
+        let Inbox { bytes, items } = &*inbox;
+        admitted.par_extend(items[start..].par_iter().enumerate().filter_map(|(k, (from, range))| {
+            let datagram = &bytes[range.clone()];
+            let Ok(header) = peek_header(datagram, Direction::ClientToServer) else {
+                Refusal::Malformed.count();
+                return None;
+            };
+            let Some(player) = sessions.index_of(header.session_id) else {
+                Refusal::UnknownSession.count();
+                return None;
+            };
+            Some(Admitted {
+                item: start + k,
+                from: *from,
+                session_id: header.session_id,
+                sequence: header.sequence,
+                len: datagram.len(),
+                player,
+            })
+        }));
+        return inbox.len();
+    }
     moving.clear();
     for (i, (from, bytes)) in inbox.iter().enumerate().skip(start) {
         let header = peek_header(bytes, Direction::ClientToServer);
@@ -332,9 +360,10 @@ fn admit(
 /// verification and, for an action, its player's object's slot (`None`: no object).
 type Checked = Option<(Result<Verified<ClientMessage>, OpenError>, Option<usize>)>;
 
-/// One datagram for phase 2: its session's opener, object and the slot the object last
-/// had (`None`: the session is gone), and its bytes.
-type Job<'a> = (Option<(&'a Opener, EntityId, Option<u32>)>, &'a mut [u8]);
+/// One datagram for phase 2: its player (`None`: the session is gone), whose opener,
+/// object and object's last slot the pool reads (not the tick thread: at 50,000 players
+/// each is a cache miss), and its bytes.
+type Job<'a> = (Option<&'a Player>, &'a mut [u8]);
 
 /// Phase 2: verifies every admitted datagram against its session's opener, in parallel
 /// for a large batch, and finds the slot an action will set (from the slot the tick last
@@ -351,13 +380,13 @@ fn verify(sessions: &Sessions, dynamics: &Dynamics, buffers: &mut ReceiveBuffers
         let (_, tail) = std::mem::take(&mut rest).split_at_mut(range.start - offset);
         let (datagram, tail) = tail.split_at_mut(range.len());
         (rest, offset) = (tail, range.end);
-        jobs.push((sessions.get(a.player).map(|p| (&p.opener, p.entity, p.slot_hint)), datagram));
+        jobs.push((sessions.get(a.player), datagram));
     }
     let open = |(player, datagram): &mut Job<'_>| {
-        player.map(|(opener, entity, hint)| {
-            let verified = opener.verify(datagram, ClientMessage::decode_body);
+        player.map(|p| {
+            let verified = p.opener.verify(datagram, ClientMessage::decode_body);
             let acts = verified.as_ref().is_ok_and(|v| matches!(v.message(), ClientMessage::Action { .. }));
-            (verified, if acts { dynamics.slot_hinted(entity, hint) } else { None })
+            (verified, if acts { dynamics.slot_hinted(p.entity, p.slot_hint) } else { None })
         })
     };
     if jobs.len() >= PARALLEL_OPEN_MIN {

@@ -15,7 +15,7 @@ use myriad_store::{PlayerState, UserId};
 
 use super::{Command, StateSink, TickLoop};
 use crate::config::ServerConfig;
-use crate::transport::MemoryTransport;
+use crate::transport::{GateCounts, Lane, MemoryTransport, Sent, Transport};
 
 /// Collects the states the tick persists.
 #[derive(Clone, Default)]
@@ -43,12 +43,17 @@ struct Client {
 }
 
 fn rig(config: ServerConfig) -> Rig {
-    let world = ScenarioSpec::custom(11).counts(300, 0, 30).map_size(96.0, 33).build().unwrap();
     let net = MemoryTransport::new("127.0.0.1:7777".parse().unwrap());
+    rig_on(config, Box::new(net.clone()), net)
+}
+
+/// A rig whose tick receives through `transport`, which hands over what reaches `net`.
+fn rig_on(config: ServerConfig, transport: Box<dyn Transport>, net: MemoryTransport) -> Rig {
+    let world = ScenarioSpec::custom(11).counts(300, 0, 30).map_size(96.0, 33).build().unwrap();
     let (commands, receiver) = std::sync::mpsc::channel();
     let saved = Saved::default();
     let backend = create_cpu_backend(BackendKind::Cpu).unwrap();
-    let tick = TickLoop::builder(config, world, backend, Box::new(net.clone()))
+    let tick = TickLoop::builder(config, world, backend, transport)
         .commands(receiver)
         .persister(Box::new(saved.clone()), myriad_store::MapId(1))
         .build();
@@ -511,7 +516,61 @@ fn a_parallel_batch_follows_an_address_that_moves_in_it() {
 /// who leaves) is what one datagram at a time would give.
 #[test]
 fn a_parallel_batch_of_many_players_applies_each_players_datagrams_in_arrival_order() {
-    let mut r = rig(ServerConfig { receive_per_session: 16, ..ServerConfig::default() });
+    many_players_in_one_batch(rig(ServerConfig { receive_per_session: 16, ..ServerConfig::default() }));
+}
+
+/// Behind a receiver thread (which gated already) the batch's sessions are looked up on
+/// the pool too (phase 1): the same datagrams give the same decisions, and what has no
+/// header or no session is still refused.
+#[test]
+fn behind_a_receiver_thread_a_large_batch_is_admitted_on_the_pool_in_arrival_order() {
+    let net = MemoryTransport::new("127.0.0.1:7777".parse().unwrap());
+    let transport = PreGated { net: net.clone(), taken: 0 };
+    many_players_in_one_batch(rig_on(ServerConfig::default(), Box::new(transport), net));
+}
+
+/// The in-memory transport as if a receiver thread had gated what reaches it: everything
+/// queued in one call, and no gate in the tick.
+struct PreGated {
+    net: MemoryTransport,
+    taken: u64,
+}
+
+impl Transport for PreGated {
+    fn receive(&mut self, each: &mut dyn FnMut(SocketAddr, &[u8])) -> std::io::Result<usize> {
+        let mut n = 0;
+        while let k @ 1.. = self.net.receive(each)? {
+            n += k;
+        }
+        self.taken += n as u64;
+        Ok(n)
+    }
+
+    fn send(&mut self, out: &[(SocketAddr, &[u8])]) -> std::io::Result<Sent> {
+        self.net.send(out)
+    }
+
+    fn lanes(&mut self) -> Vec<&mut dyn Lane> {
+        self.net.lanes()
+    }
+
+    fn local_addr(&self) -> SocketAddr {
+        self.net.local_addr()
+    }
+
+    fn gates(&self) -> bool {
+        true
+    }
+
+    fn gate_counts(&mut self) -> GateCounts {
+        GateCounts { taken: std::mem::take(&mut self.taken), over_budget: 0 }
+    }
+}
+
+/// Players' datagrams in two rounds (each player's second long after its first), with
+/// datagrams of no session and no header among them, in one receive; see the tests
+/// above.
+fn many_players_in_one_batch(mut r: Rig) {
     let n = PARALLEL + 21;
     let mut clients: Vec<Client> = (0..n).map(|i| r.join(i as i64 + 1, 41_000 + i as u16)).collect();
     r.net.take_sent();
@@ -532,6 +591,18 @@ fn a_parallel_batch_of_many_players_applies_each_players_datagrams_in_arrival_or
             _ => copies.push((c.addr, r.send(c, &ClientMessage::KeepAlive { acks: None }))),
         }
     }
+    // Strays: a session nobody holds, and no header at all.
+    let stranger = SocketAddr::from(([127, 0, 0, 1], 40_999));
+    let keys =
+        myriad_protocol::SessionKeys { session_id: 987_654_321, client_to_server: [1; 32], server_to_client: [2; 32] };
+    let mut nobody = ClientSession::new(&keys);
+    let strays = 20;
+    for _ in 0..strays / 2 {
+        let mut d = Vec::new();
+        nobody.seal(&ClientMessage::KeepAlive { acks: None }, &mut d).unwrap();
+        r.net.push(stranger, d);
+        r.net.push(stranger, b"junk".to_vec());
+    }
     for (i, c) in clients.iter_mut().enumerate() {
         match i % 4 {
             _ if i == leaver => drop(r.send(c, &ClientMessage::Disconnect)),
@@ -547,7 +618,7 @@ fn a_parallel_batch_of_many_players_applies_each_players_datagrams_in_arrival_or
     let count = |k: usize| (0..n).filter(|i| i % 4 == k).count();
     let work = r.tick.tick_once();
     let datagrams = (n + count(1) + count(2) + count(3)) as u64;
-    assert_eq!(work.received, datagrams);
+    assert_eq!(work.received, datagrams + strays);
     assert_eq!(work.tag_checks, datagrams, "every one reached the window, in one parallel batch");
     // Every first action, and the second where its frame is newer (the leaver's second
     // datagram is its Disconnect).

@@ -36,8 +36,8 @@
 # profiles this build only); REPLICATION_S2=1 adds scenario 2 (5,000 players) at AOI 100,
 # before and after; REPLICATION_S4=1 scenario 4 (50,000 players, bots 20 a socket) at AOI
 # 14, before and after (REPLICATION_S4_TIMEOUT seconds at most each; profiled with
-# REPLICATION_S4_PROFILE=1). REPLICATION_S3=0 leaves out scenario 3 (for a second run of
-# the others in the same call).
+# REPLICATION_S4_PROFILE=1; REPLICATION_S4_AOI=100 at another edge). REPLICATION_S3=0
+# leaves out scenario 3 (for a second run of the others in the same call).
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -390,9 +390,10 @@ if [[ $mode == replication ]]; then
         for bin in .carry/before/myriad .carry/myriad; do
             [[ -x $bin ]] || continue
             tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
-            echo "=== $tag, scenario 4 at AOI 14 (MYRIAD_CUDA_PROFILE=$profile)" | tee -a "$out/replication.txt"
+            echo "=== $tag, scenario 4 at AOI ${REPLICATION_S4_AOI:-14} (MYRIAD_CUDA_PROFILE=$profile)" |
+                tee -a "$out/replication.txt"
             MYRIAD_CUDA_PROFILE=$profile timeout "${REPLICATION_S4_TIMEOUT:-0}" $bin bench --scenario 4 --backend cuda \
-                --ticks 20 --warmup 3 --aoi-size 14 --bots-per-socket 20 --quality-players 0 \
+                --ticks 20 --warmup 3 --aoi-size "${REPLICATION_S4_AOI:-14}" --bots-per-socket 20 --quality-players 0 \
                 --out "$out/bench/replication-s4-$tag" >"$out/replication-s4-$tag.md" 2>"$out/replication-s4-$tag.log" ||
                 fail "bench scenario 4 ($tag) failed"
             grep -E '^\| 4 \|' "$out/replication-s4-$tag.md" | tee -a "$out/replication.txt"

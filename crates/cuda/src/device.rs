@@ -247,6 +247,14 @@ impl Gpu {
         }
     }
 
+    /// Forgets the samples gathered so far (the launches still pending are kept): a
+    /// measurement that starts after its warm-up profiles only what it measures.
+    pub fn restart_profile(&self) {
+        if let Some(p) = &self.profile {
+            p.borrow_mut().samples.clear();
+        }
+    }
+
     /// The per-kernel table (launches, total, mean and median time), when profiling.
     pub fn profile_table(&self) -> Option<String> {
         Some(profile_rows(&self.profile.as_ref()?.borrow().samples))

@@ -241,6 +241,13 @@ impl TickLoop {
         &self.world
     }
 
+    /// Forgets what the outbound's profile gathered so far (`Outbound::restart_profile`;
+    /// the device outbound under `MYRIAD_CUDA_PROFILE=1`): the tick benchmark's
+    /// measurement starts here.
+    pub fn restart_profile(&self) {
+        self.outbound.restart_profile();
+    }
+
     /// Ends the loop, keeping the world (the scripted harness's result).
     #[cfg(feature = "harness")]
     pub fn into_world(self) -> World {

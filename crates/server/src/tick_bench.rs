@@ -359,6 +359,13 @@ impl TickBench {
         self.tick.world()
     }
 
+    /// Forgets what the device's profile gathered so far (`TickLoop::restart_profile`):
+    /// called when measuring starts, so that the profile leaves out the ticks that made
+    /// the players active and the warm-up.
+    pub fn restart_profile(&self) {
+        self.tick.restart_profile();
+    }
+
     /// The bots whose turn it is send their actions (untimed), the server runs one tick
     /// (timed per stage), then every bot drains and opens what it received (untimed).
     pub fn tick(&mut self) -> Result<TickSample, ServerError> {

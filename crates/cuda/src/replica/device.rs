@@ -233,6 +233,12 @@ impl DeviceReplicas {
         self.profile_span(name, since.elapsed());
     }
 
+    /// Forgets what the device's profile gathered so far (`Gpu::restart_profile`), when
+    /// profiling: for a measurement that starts after its warm-up.
+    pub fn restart_profile(&self) {
+        lock(&self.resident).gpu.restart_profile();
+    }
+
     /// Adds `took` under `name` to the device's profile, when profiling: a span of the
     /// tick's host work timed elsewhere (the receive's phases).
     pub fn profile_span(&self, name: &'static str, took: Duration) {

@@ -219,6 +219,7 @@ fn server_one(
         progress.tick();
     }
     probe.start_measuring();
+    bench.restart_profile();
     let mut samples: Vec<TickSample> = Vec::with_capacity(args.ticks as usize);
     let mut probe_ms = 0.0;
     let cpu_before = process_cpu_ms();

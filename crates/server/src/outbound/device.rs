@@ -143,6 +143,10 @@ impl Outbound for DeviceOutbound {
         self.replicas.profile_span(span, took);
     }
 
+    fn restart_profile(&self) {
+        self.replicas.restart_profile();
+    }
+
     fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         let report = self.build_all(job, recipients);
         let sending = Instant::now();

@@ -156,6 +156,11 @@ pub trait Outbound: Send {
     fn profile(&self, span: &'static str, took: Duration) {
         let _ = (span, took);
     }
+
+    /// Forgets what that profile gathered so far: a measurement that starts after its
+    /// warm-up (and, in `myriad bench`, after its players were made active) profiles only
+    /// the ticks it measures.
+    fn restart_profile(&self) {}
 }
 
 /// What an [`Outbound::build`] works with besides its recipients.

@@ -619,6 +619,20 @@ mod tests {
     }
 
     #[test]
+    fn players_at_mut_hands_each_position_once_and_refuses_the_rest() {
+        let mut w = world();
+        let mut s = Sessions::new(4, MapId(1));
+        for u in 1..=4 {
+            s.join(&mut w, UserId(u), format!("u{u}"), None, CTX).unwrap();
+        }
+        let users = |got: Vec<Option<&mut Player>>| got.into_iter().map(|p| p.map(|p| p.user_id.0)).collect::<Vec<_>>();
+        assert_eq!(users(s.players_at_mut([0, 2, 3])), [Some(1), Some(3), Some(4)]);
+        // A position repeated or below the one before, or past the table: none.
+        assert_eq!(users(s.players_at_mut([1, 1, 0, 3, 4, 9])), [Some(2), None, None, Some(4), None, None]);
+        assert_eq!(users(s.players_at_mut([])), []);
+    }
+
+    #[test]
     fn silent_sessions_expire_with_their_final_state() {
         let mut w = world();
         let mut s = Sessions::new(4, MapId(1));

@@ -65,7 +65,8 @@ use std::time::{Duration, Instant};
 
 use myriad_core::{Action, Dynamics, World};
 use myriad_protocol::{
-    ClientMessage, Direction, ErrorClass, OpenError, ServerInfo, ServerMessage, Verified, peek_header,
+    ClientMessage, DecodeError, Direction, ErrorClass, Header, OpenError, ServerInfo, ServerMessage, Verified,
+    peek_header,
 };
 use rayon::prelude::*;
 
@@ -293,22 +294,7 @@ fn admit(
         let Inbox { bytes, items } = &*inbox;
         admitted.par_extend(items[start..].par_iter().enumerate().filter_map(|(k, (from, range))| {
             let datagram = &bytes[range.clone()];
-            let Ok(header) = peek_header(datagram, Direction::ClientToServer) else {
-                Refusal::Malformed.count();
-                return None;
-            };
-            let Some(player) = sessions.index_of(header.session_id) else {
-                Refusal::UnknownSession.count();
-                return None;
-            };
-            Some(Admitted {
-                item: start + k,
-                from: *from,
-                session_id: header.session_id,
-                sequence: header.sequence,
-                len: datagram.len(),
-                player,
-            })
+            resolve(sessions, start + k, *from, datagram, peek_header(datagram, Direction::ClientToServer))
         }));
         return inbox.len();
     }
@@ -329,31 +315,35 @@ fn admit(
             refusal.count();
             continue;
         }
-        // Without a gate here, the receiver thread gated it and checked its header; the
-        // gate refuses what has no header.
-        let Ok(header) = header else {
-            Refusal::Malformed.count();
-            continue;
-        };
-        // With a receiver thread the session may have left since the directory was
-        // published.
-        let Some(player) = sessions.index_of(header.session_id) else {
-            Refusal::UnknownSession.count();
-            continue;
-        };
-        if ctx.gate.is_some() && sessions.get(player).and_then(|p| p.addr) != Some(from) {
-            moving.insert(header.session_id);
+        let Some(a) = resolve(sessions, i, from, bytes, header) else { continue };
+        if ctx.gate.is_some() && sessions.get(a.player).and_then(|p| p.addr) != Some(from) {
+            moving.insert(a.session_id);
         }
-        admitted.push(Admitted {
-            item: i,
-            from,
-            session_id: header.session_id,
-            sequence: header.sequence,
-            len: bytes.len(),
-            player,
-        });
+        admitted.push(a);
     }
     inbox.len()
+}
+
+/// Datagram `item` of the batch, from `from`, with its peeked `header`, as phase 1
+/// admits it: `None` (counted) when it has no header (the gate, inline or on the
+/// receiver thread, refuses those first) or no live session (with a receiver thread it
+/// may have left since the directory was published).
+fn resolve(
+    sessions: &Sessions,
+    item: usize,
+    from: SocketAddr,
+    datagram: &[u8],
+    header: Result<Header, DecodeError>,
+) -> Option<Admitted> {
+    let Ok(header) = header else {
+        Refusal::Malformed.count();
+        return None;
+    };
+    let Some(player) = sessions.index_of(header.session_id) else {
+        Refusal::UnknownSession.count();
+        return None;
+    };
+    Some(Admitted { item, from, session_id: header.session_id, sequence: header.sequence, len: datagram.len(), player })
 }
 
 /// What phase 2 found of one datagram: `None` if its session is gone, else the

@@ -1,7 +1,8 @@
 //! A timing of the receive stage alone, for picking `PARALLEL_OPEN_MIN` on a given
 //! machine: `N` players (default 3,333, scenario 3's actions a tick) each send one action
 //! a tick through the in-memory transport (with acknowledgements, as protocol 3's
-//! clients send them), gated inline, and the median receive is printed. Ignored by default; it asserts nothing about time. Run:
+//! clients send them), gated inline, and the median receive is printed. Ignored by
+//! default; it asserts nothing about time. Run:
 //!
 //! `N=3333 RAYON_NUM_THREADS=16 cargo test --release -p myriad-server --lib -- --ignored receive_timing --nocapture`
 //! (`OBJECTS=1300000` adds scenario 4's objects to the world.)

@@ -178,7 +178,7 @@ impl Player {
 
 /// What [`Player::answer`] leaves for the table ([`Sessions::take_answer`]).
 #[must_use = "the table must take the answer: a moved address, a reply to queue"]
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(crate) struct Answered {
     /// The player's address moved (the published directory is stale).
     moved: bool,

@@ -360,6 +360,7 @@ impl TickLoop {
         let received = Instant::now();
         let timeout = Duration::from_secs_f32(self.config.session_timeout_s);
         left.extend(self.sessions.expire(&mut self.world, now, timeout));
+        let checked = Instant::now();
         let phases =
             ["tick: receive, phase 1 (admit)", "tick: receive, phase 2 (verify)", "tick: receive, phase 3 (apply)"];
         for (span, took) in phases.into_iter().zip(inbound.phases) {
@@ -369,7 +370,7 @@ impl TickLoop {
             "tick: receive, the rest (transport, leaving)",
             (received - now).saturating_sub(inbound.phases.iter().sum()),
         );
-        self.outbound.profile("tick: silence check", received.elapsed());
+        self.outbound.profile("tick: silence check", checked - received);
         // Sessions an operator ended (kick, ban, disable, delete): their Disconnects go
         // out with this tick's control replies.
         if let Some(admin) = &mut self.admin {

@@ -5,9 +5,10 @@
 //! `k_replica_due` (a warp a player: the objects due), `k_replica_rank` (a block a
 //! player: sorted by urgency), `k_replica_take` (a warp a player: the budget) and
 //! `k_replica_pack` (a thread a player: the chosen records packed into delta update
-//! bodies, which the warp copies into mapped host memory); the host frames and seals them per player
-//! ([`Choices`], then `Subscriber::seal_packed`) and hands back what sealing did with
-//! [`DeviceReplicas::commit`], which queues `k_replica_commit` and does not wait.
+//! bodies, which the warp copies into mapped host memory); the host frames and seals
+//! them per player ([`Choices`], then `Subscriber::seal_packed`) and hands back what
+//! sealing did with [`DeviceReplicas::commit`], which queues `k_replica_commit` and does
+//! not wait.
 //!
 //! Players are known by a key (the session id): each has a *home*, an index into the
 //! device arrays of what persists besides its tracks (own object's track, credit,

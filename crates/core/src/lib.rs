@@ -42,4 +42,4 @@ pub use script::{ActionScript, ScriptError, ScriptedAction};
 pub use shape::{Shape, ShapeKind};
 pub use stamp::Stamp;
 pub use terrain::Terrain;
-pub use world::{Dynamics, EntityId, ObjectKind, ObjectState, StaticKind, Statics, World, hash_state};
+pub use world::{Dynamics, EntityId, HeldState, ObjectKind, ObjectState, StaticKind, Statics, World, hash_state};

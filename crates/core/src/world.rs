@@ -13,7 +13,7 @@
 //!   terrain after every step).
 
 use std::collections::hash_map::Entry;
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 use crate::stamp::Stamp;
 
@@ -103,13 +103,14 @@ macro_rules! soa_accessors {
 pub struct Dynamics {
     id: Vec<EntityId>,
     pos: Vec<Vec3>,
-    prev: Vec<Vec3>,
     half: Vec<Vec3>,
     radius: Vec<f32>,
     shape: Vec<ShapeKind>,
     kind: Vec<ObjectKind>,
     action: Vec<u8>,
-    flags: Vec<u8>,
+    /// Previous positions and flag bits: here, or held by the backend that stepped
+    /// them until something reads them ([`Dynamics::state_mut_holding`]).
+    late: Late,
     /// Slot by id, built when first asked for: a zone rebuilds its world every tick
     /// from states in id order and rarely asks, so it never pays for the map. Seeded
     /// foldhash, not SipHash: the server looks up every player's slot every tick, and
@@ -253,13 +254,14 @@ impl Dynamics {
         let s = slot as usize;
         self.id.swap_remove(s);
         self.pos.swap_remove(s);
-        self.prev.swap_remove(s);
         self.half.swap_remove(s);
         self.radius.swap_remove(s);
         self.shape.swap_remove(s);
         self.kind.swap_remove(s);
         self.action.swap_remove(s);
-        self.flags.swap_remove(s);
+        let late = self.late.get_mut();
+        late.prev.swap_remove(s);
+        late.flags.swap_remove(s);
         if s < self.id.len() {
             let moved = self.id[s];
             self.slots_mut().insert(moved, slot);
@@ -272,6 +274,7 @@ impl Dynamics {
 
     /// The whole state of the object in `slot`.
     pub fn state_of(&self, slot: usize) -> ObjectState {
+        let late = self.late.get();
         ObjectState {
             id: self.id[slot],
             kind: self.kind[slot],
@@ -279,9 +282,9 @@ impl Dynamics {
             half: self.half[slot],
             radius: self.radius[slot],
             pos: self.pos[slot],
-            prev: self.prev[slot],
+            prev: late.prev[slot],
             action: self.action[slot],
-            flags: self.flags[slot],
+            flags: late.flags[slot],
         }
     }
 
@@ -329,26 +332,27 @@ impl Dynamics {
             // Slots change meaning: a map built before is stale.
             self.slot_of.take();
         }
+        let late = self.late.get_mut();
         self.id.reserve(n);
         self.pos.reserve(n);
-        self.prev.reserve(n);
+        late.prev.reserve(n);
         self.half.reserve(n);
         self.radius.reserve(n);
         self.shape.reserve(n);
         self.kind.reserve(n);
         self.action.reserve(n);
-        self.flags.reserve(n);
+        late.flags.reserve(n);
         let mut max = self.next_id;
         for s in states {
             self.id.push(s.id);
             self.pos.push(s.pos);
-            self.prev.push(s.prev);
+            late.prev.push(s.prev);
             self.half.push(s.half);
             self.radius.push(s.radius);
             self.shape.push(s.shape);
             self.kind.push(s.kind);
             self.action.push(s.action);
-            self.flags.push(s.flags);
+            late.flags.push(s.flags);
             max = max.max(s.id.0 + 1);
         }
         self.next_id = max;
@@ -363,13 +367,13 @@ impl Dynamics {
     pub fn clear(&mut self) {
         self.id.clear();
         self.pos.clear();
-        self.prev.clear();
         self.half.clear();
         self.radius.clear();
         self.shape.clear();
         self.kind.clear();
         self.action.clear();
-        self.flags.clear();
+        // Nothing left to fetch: whatever held the old values is forgotten.
+        self.late = Late::default();
         self.slot_of.take();
         self.generation += 1;
         self.layout_generation += 1;
@@ -429,7 +433,7 @@ impl Dynamics {
             return false;
         }
         self.pos[s] = pos;
-        self.prev[s] = pos;
+        self.late.get_mut().prev[s] = pos;
         self.generation += 1;
         self.journal = None;
         true
@@ -439,11 +443,12 @@ impl Dynamics {
     pub fn state_mut(&mut self) -> DynamicsMut<'_> {
         self.generation += 1;
         self.restart_journal();
+        let late = self.late.get_mut();
         DynamicsMut {
             pos: &mut self.pos,
-            prev: &mut self.prev,
+            prev: &mut late.prev,
             action: &mut self.action,
-            flags: &mut self.flags,
+            flags: &mut late.flags,
             half: &self.half,
             radius: &self.radius,
             shape: &self.shape,
@@ -452,13 +457,39 @@ impl Dynamics {
         }
     }
 
+    /// [`Dynamics::state_mut`] for a step that leaves the previous positions and the
+    /// flags with `holder` (where the step computed them): the step writes the
+    /// positions and actions it returns, and the others are fetched from `holder` when
+    /// something first reads or changes them (module `late`). Whatever held them before
+    /// is forgotten unread: this step's values are newer. Bumps the generation.
+    pub fn state_mut_holding(&mut self, holder: Arc<dyn HeldState>) -> (&mut [Vec3], &mut [u8]) {
+        self.generation += 1;
+        self.restart_journal();
+        self.late.hold(holder);
+        (&mut self.pos, &mut self.action)
+    }
+
+    /// Whether the previous positions and flags are held by the backend that stepped
+    /// them, not yet fetched ([`Dynamics::state_mut_holding`]).
+    pub fn late_is_held(&self) -> bool {
+        self.late.is_held()
+    }
+
     soa_accessors! {
         "slot";
         ids: id: EntityId, "Entity ids by slot.";
-        prev_positions: prev: Vec3, "Previous positions by slot (velocity per tick is `pos - prev`).";
         kinds: kind: ObjectKind, "NPC or user, by slot.";
         actions: action: u8, "Held action masks by slot.";
-        flags: flags: u8, "Flag bits by slot (see [`flags`]).";
+    }
+    /// Previous positions by slot (velocity per tick is `pos - prev`); fetched first
+    /// when the last step left them with its backend.
+    pub fn prev_positions(&self) -> &[Vec3] {
+        &self.late.get().prev
+    }
+    /// Flag bits by slot (see [`flags`]); fetched first like
+    /// [`Dynamics::prev_positions`].
+    pub fn flags(&self) -> &[u8] {
+        &self.late.get().flags
     }
     /// A counter bumped whenever objects are added or removed.
     pub fn layout_generation(&self) -> u64 {
@@ -636,8 +667,12 @@ pub fn hash_state(objects: impl Iterator<Item = ObjectState>, tick: u64, len: us
 }
 
 mod edit;
+mod late;
 
 pub use edit::{Changes, EditPlan, SlotRun, SortedEdit};
+pub use late::HeldState;
+
+use late::Late;
 
 #[cfg(test)]
 mod tests;

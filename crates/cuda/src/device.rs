@@ -266,6 +266,17 @@ impl Gpu {
         unsafe { result::stream::synchronize(self.stream) }.map_err(dev_err("synchronize"))
     }
 
+    /// Copies `items` items from `src` to `dst` on the device, asynchronously.
+    pub fn copy<T>(&self, dst: DevPtr<T>, src: DevPtr<T>, items: usize) -> Result<(), PhysicsError> {
+        let bytes = items * std::mem::size_of::<T>();
+        if bytes == 0 {
+            return Ok(());
+        }
+        // SAFETY: both point to at least `items` items of device memory (callers pass
+        // buffers and a count within both), and the two do not overlap.
+        unsafe { result::memcpy_dtod_async(dst.raw(), src.raw(), bytes, self.stream) }.map_err(dev_err("copy"))
+    }
+
     /// Fills `items` items at `dst` with zero bytes, asynchronously.
     pub fn zero<T>(&self, dst: DevPtr<T>, items: usize) -> Result<(), PhysicsError> {
         let bytes = items * std::mem::size_of::<T>();
@@ -483,6 +494,11 @@ impl Pinned {
 
     /// Makes room for `bytes` bytes (contents dropped when it grows).
     pub fn ensure(&mut self, gpu: &Gpu, bytes: usize) -> Result<(), PhysicsError> {
+        self.ensure_in(&gpu.ctx, bytes)
+    }
+
+    /// [`Pinned::ensure`] in context `ctx`, which is current on this thread.
+    pub fn ensure_in(&mut self, ctx: &Arc<CudaContext>, bytes: usize) -> Result<(), PhysicsError> {
         if bytes <= self.bytes && !self.ptr.is_null() {
             return Ok(());
         }
@@ -497,7 +513,7 @@ impl Pinned {
         unsafe { std::ptr::write_bytes(ptr as *mut u8, 0, want) };
         self.ptr = ptr;
         self.bytes = want;
-        self.ctx = Some(gpu.ctx.clone());
+        self.ctx = Some(ctx.clone());
         Ok(())
     }
 

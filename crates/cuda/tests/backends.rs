@@ -78,3 +78,14 @@ fn a_moved_backend_answers_for_its_new_world() {
     let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
     conformance::a_moved_backend_answers_for_its_new_world(cpu.as_mut(), &mut gpus);
 }
+
+/// Worlds stepped in turn keep their own previous positions and flags, which each step
+/// leaves on the device until the host reads them: three worlds (one more than the
+/// backend keeps copies for while the others are unread), a clone, readers on several
+/// threads.
+#[test]
+fn worlds_stepped_in_turn_keep_their_own_state() {
+    let Some(mut gpus) = cuda_backends("worlds_stepped_in_turn_keep_their_own_state") else { return };
+    let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
+    conformance::worlds_stepped_in_turn_keep_their_own_state(cpu.as_mut(), &mut gpus);
+}

@@ -329,6 +329,57 @@ pub fn a_moved_backend_answers_for_its_new_world(reference: &mut dyn Backend, ot
     }
 }
 
+/// Worlds stepped in turn by one backend, read only at the end, each end as if stepped
+/// alone: a backend that leaves a step's state where it computed it (the CUDA backends
+/// keep the previous positions and flags on the device until the host reads them) must
+/// not hand one world another's, nor an older step's, whether the worlds are three (more
+/// than such a backend keeps copies for), a clone taken mid-run, or a world read between
+/// steps on several threads at once.
+pub fn worlds_stepped_in_turn_keep_their_own_state(reference: &mut dyn Backend, others: &mut [Box<dyn Backend>]) {
+    let k = TickConstants::default();
+    let build = |seed| crowded(seed, Placement::Uniform);
+    let mut want: Vec<World> = (1..=3).map(build).collect();
+    for w in &mut want {
+        run(reference, w, 12);
+    }
+    let want_clone = {
+        let mut w = build(1);
+        run(reference, &mut w, 6);
+        w.state_hash()
+    };
+    for b in others {
+        let mut worlds: Vec<World> = (1..=3).map(build).collect();
+        let mut clone = None;
+        for tick in 0..12 {
+            for (i, w) in worlds.iter_mut().enumerate() {
+                // Two worlds every tick, the third every other: the backend's copies are
+                // taken in varying order.
+                if i < 2 || tick % 2 == 0 {
+                    b.step(w, &k).expect("step");
+                }
+            }
+            if tick == 5 {
+                clone = Some(worlds[0].clone());
+                // Read on several threads at once between steps.
+                let d = &worlds[1].dynamics;
+                std::thread::scope(|s| {
+                    for _ in 0..4 {
+                        s.spawn(|| assert!(d.prev_positions().iter().all(|p| p.is_finite())));
+                    }
+                });
+            }
+        }
+        // The third world missed six steps: make them up, alone.
+        for _ in 0..6 {
+            b.step(&mut worlds[2], &k).expect("step");
+        }
+        assert_eq!(clone.expect("cloned").state_hash(), want_clone, "{}: a clone taken after 6 steps", b.kind());
+        for (i, (got, want)) in worlds.iter().zip(&want).enumerate() {
+            assert_eq!(got.state_hash(), want.state_hash(), "{}: world {i} stepped in turn with others", b.kind());
+        }
+    }
+}
+
 /// The golden world stepped 120 times: its state hash (which `tests/golden.rs` pins).
 pub fn golden_hash(backend: &mut dyn Backend) -> u64 {
     let mut w = golden_world();

@@ -80,3 +80,9 @@ fn a_moved_backend_answers_for_its_new_world() {
     let mut reference = create_cpu_backend(BackendKind::Cpu).unwrap();
     conformance::a_moved_backend_answers_for_its_new_world(reference.as_mut(), &mut backends());
 }
+
+#[test]
+fn worlds_stepped_in_turn_keep_their_own_state() {
+    let mut reference = create_cpu_backend(BackendKind::Cpu).unwrap();
+    conformance::worlds_stepped_in_turn_keep_their_own_state(reference.as_mut(), &mut backends());
+}

@@ -106,8 +106,9 @@ pub(crate) struct InboundReport {
     pub actions: u64,
     /// Sessions that asked to leave (authenticated `Disconnect`), in arrival order.
     pub leaving: Vec<u64>,
-    /// Time in each phase of the module docs (1, 2, 3), over every batch.
-    pub phases: [Duration; 3],
+    /// Time in each phase of the module docs (1, 2, then 3 in its two parts: each
+    /// player's, what players share), over every batch.
+    pub phases: [Duration; 4],
 }
 
 /// Datagrams in arrival order, copied into one flat buffer: a batch taken from the
@@ -269,10 +270,11 @@ fn handle_batch(
         let admitted = Instant::now();
         let verified = verify(sessions, &world.dynamics, buffers);
         let checked = Instant::now();
-        apply(sessions, world, ctx, report, buffers, verified);
+        let shared = apply(sessions, world, ctx, report, buffers, verified);
         report.phases[0] += admitted - t;
         report.phases[1] += checked - admitted;
-        report.phases[2] += checked.elapsed();
+        report.phases[2] += shared - checked;
+        report.phases[3] += shared.elapsed();
     }
 }
 
@@ -396,7 +398,8 @@ struct Now {
 
 /// Phase 3 (module docs): each player's part of every admitted datagram (on the pool
 /// for a large batch), then the shared part in arrival order. `verified` holds one
-/// result per admitted datagram.
+/// result per admitted datagram. Returns when the shared part started (a small batch,
+/// one datagram at a time, counts whole as the shared part).
 fn apply(
     sessions: &mut Sessions,
     world: &mut World,
@@ -404,15 +407,16 @@ fn apply(
     report: &mut InboundReport,
     buffers: &mut ReceiveBuffers,
     mut verified: Vec<Checked>,
-) {
+) -> Instant {
     let ReceiveBuffers { admitted, by_player, position, .. } = buffers;
     let now = Now { info: ctx.info, tick: ctx.tick, now: ctx.now };
     if admitted.len() < PARALLEL_OPEN_MIN {
+        let started = Instant::now();
         for (a, checked) in admitted.drain(..).zip(verified) {
             let done = apply_to_player(sessions.get_mut(a.player), now, &a, checked);
             finish(sessions, world, report, &a, done);
         }
-        return;
+        return started;
     }
     by_player.clear();
     by_player.extend(admitted.iter().enumerate().map(|(i, a)| ((a.player as u64) << 32) | i as u64));
@@ -436,6 +440,7 @@ fn apply(
             *done = apply_to_player(p.as_deref_mut(), now, &admitted_now[arrival(k)], checked.take());
         }
     });
+    let shared = Instant::now();
     position.clear();
     position.resize(admitted.len(), 0);
     for (at, &k) in by_player.iter().enumerate() {
@@ -445,6 +450,7 @@ fn apply(
         let done = std::mem::take(&mut items[position[i] as usize].1);
         finish(sessions, world, report, &a, done);
     }
+    shared
 }
 
 /// What a datagram's player part left for the shared part ([`finish`]).

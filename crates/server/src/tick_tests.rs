@@ -699,3 +699,23 @@ fn a_repeated_ready_resets_nothing_and_is_answered_within_what_was_received() {
     take(&mut r, &mut c);
     assert!(replies <= received, "replies {replies} B, received {received} B");
 }
+
+#[test]
+fn a_lane_some_thread_holds_is_passed_over_for_a_free_one() {
+    let addr = |port| SocketAddr::from(([127, 0, 0, 1], port));
+    let mut lanes: Vec<MemoryTransport> = (1..=3).map(|port| MemoryTransport::new(addr(port))).collect();
+    let queues = lanes.clone();
+    // Which lane the last transmit went out on.
+    let last = || queues.iter().position(|q| !q.take_sent().is_empty());
+    let sender = super::Sender::new(lanes.iter_mut().map(|l| l as &mut dyn Lane).collect(), 5);
+    let out = [(addr(9), &b"x"[..])];
+    let busy = sender.lanes[1].lock().unwrap();
+    sender.free_lane(1).transmit(&out).unwrap();
+    assert_eq!(last(), Some(2), "lane 1 is held: the next free one");
+    let busy_too = sender.lanes[2].lock().unwrap();
+    sender.free_lane(2).transmit(&out).unwrap();
+    assert_eq!(last(), Some(0), "lanes 1 and 2 are held: round to lane 0");
+    drop((busy, busy_too));
+    sender.free_lane(1).transmit(&out).unwrap();
+    assert_eq!(last(), Some(1), "all free: the preferred lane");
+}

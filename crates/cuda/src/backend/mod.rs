@@ -2,7 +2,8 @@
 //!
 //! # How it works
 //! World state lives on the device between steps; a step uploads only what the host
-//! changed and downloads the new state into pinned buffers. The upload (`sync`, and
+//! changed and downloads the new positions and actions into pinned buffers, and leaves
+//! the previous positions and flags on the device until the host reads them (`held`). The upload (`sync`, and
 //! [`StepReport::upload_bytes`] counts it):
 //! - when the device copy was made right after the last step and every change since is
 //!   on the world's record (`Dynamics::changes`: a zone's one `apply_sorted` a tick and
@@ -46,6 +47,8 @@
 //! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];
 //! - `narrow`, `forces`: the narrow-phase launches, the force and integration launch;
 //! - `step`: one tick in order, the download of the new state and the stage times;
+//! - `held`: the previous positions and flags a step leaves on the device, and their
+//!   fetch when the host first reads them;
 //! - `aoi`: area-of-interest queries (the device replicas start from its lists,
 //!   which stay on the device), and `grid`, the columns `cuda` answers them from.
 //!
@@ -60,6 +63,7 @@ mod aoi;
 mod broad;
 mod forces;
 mod grid;
+mod held;
 mod narrow;
 mod patch;
 mod scan;
@@ -75,6 +79,7 @@ use myriad_physics::{AoiResults, Backend, BackendKind, PhysicsError, StepReport,
 use crate::device::{DevBuf, Event, Gpu, Pinned};
 use crate::params::DeviceParams;
 use grid::Grid;
+use held::HeldPool;
 use patch::Patch;
 use scan::Scan;
 use sync::{Host, Objects, Prims};
@@ -155,6 +160,9 @@ pub(crate) struct Resident {
     counters: DevBuf<u32>,
     samples: DevBuf<u16>,
     host: Host,
+    /// The previous positions and flags of recent steps, held on the device for the
+    /// worlds that have not read them (`held`).
+    held: HeldPool,
     events: Vec<Event>,
     // Last: the context must outlive every buffer above (fields drop in order).
     pub(crate) gpu: Gpu,
@@ -248,6 +256,7 @@ impl Resident {
                 aoi_boxes: p(),
                 aoi_order: p(),
             },
+            held: HeldPool::default(),
             events,
             gpu,
         })

@@ -1,5 +1,6 @@
 //! One tick: sync, boxes and tree, broad phase, narrow phase, forces, then the download
-//! of the new state into the `World`, with the stage times from the events.
+//! of the new positions and actions into the `World` (the previous positions and flags
+//! stay on the device, `held`), with the stage times from the events.
 
 use std::time::Instant;
 
@@ -25,6 +26,8 @@ impl Resident {
         let mut report = StepReport::default();
         self.gpu.record(self.events[0].raw)?;
         *sent += self.sync_world(world, Some(k))?;
+        self.gpu.profile_host("host: physics, uploads", wall);
+        let launching = Instant::now();
         report.upload_bytes = *sent;
         let n = self.n;
         if n == 0 {
@@ -64,10 +67,16 @@ impl Resident {
         let o = &self.obj;
         let h = &mut self.host;
         let gpu = &self.gpu;
+        // The previous positions and flags stay on the device, copied there for the world
+        // to fetch if it ever reads them (`held`); when every copy is still referred to,
+        // they come back with the rest.
+        let held = self.held.fill(gpu, n, &o.prev, &o.flags)?;
         h.pos.ensure(gpu, n * 12)?;
-        h.prev.ensure(gpu, n * 12)?;
         h.action.ensure(gpu, n)?;
-        h.flags.ensure(gpu, n)?;
+        if held.is_none() {
+            h.prev.ensure(gpu, n * 12)?;
+            h.flags.ensure(gpu, n)?;
+        }
         // The small totals first, then the state array by array, each followed by an
         // event: the host checks the totals as soon as they land and copies each array
         // into the World while the next one is still crossing the bus.
@@ -78,12 +87,20 @@ impl Resident {
         gpu.record(self.events[12].raw)?;
         gpu.download_async(&mut h.pos, 0, o.pos.ptr(), 3 * n)?;
         gpu.record(self.events[13].raw)?;
-        gpu.download_async(&mut h.prev, 0, o.prev.ptr(), 3 * n)?;
+        if held.is_none() {
+            gpu.download_async(&mut h.prev, 0, o.prev.ptr(), 3 * n)?;
+        }
         gpu.record(self.events[14].raw)?;
         gpu.download_async(&mut h.action, 0, o.action.ptr(), n)?;
-        gpu.download_async(&mut h.flags, 0, o.flags.ptr(), n)?;
+        if held.is_none() {
+            gpu.download_async(&mut h.flags, 0, o.flags.ptr(), n)?;
+        }
         gpu.record(self.events[11].raw)?;
+        gpu.profile_host("host: physics, launches", launching);
+        let waiting = Instant::now();
         self.events[12].wait()?;
+        gpu.profile_host("host: physics, waiting for the step", waiting);
+        let copying = Instant::now();
 
         let small = h.small.slice::<u32>(4);
         let (contacts, totals) = ([small[0], small[1]], [small[2], small[3]]);
@@ -101,7 +118,16 @@ impl Resident {
         report.dynamic_pairs = totals[1] as u64 / 2;
         report.static_contacts = contacts[0] as u64;
         report.dynamic_contacts = contacts[1] as u64;
-        {
+        if let Some(held) = held {
+            let (pos, action) = world.dynamics.state_mut_holding(held);
+            self.events[13].wait()?;
+            par_copy(flat3_mut(pos), h.pos.slice::<f32>(3 * n));
+            gpu.profile_host("host: physics, positions into the world", copying);
+            let rest = Instant::now();
+            gpu.sync()?;
+            par_copy(action, h.action.slice::<u8>(n));
+            gpu.profile_host("host: physics, actions into the world", rest);
+        } else {
             let st = world.dynamics.state_mut();
             self.events[13].wait()?;
             par_copy(flat3_mut(st.pos), h.pos.slice::<f32>(3 * n));

@@ -43,6 +43,7 @@ fn receive_timing() {
     let mut buffers = ReceiveBuffers::default();
     let info = ServerInfo { tick_rate_hz: 30, dilation_permille: 1000 };
     let mut times = Vec::new();
+    let mut phases: [Vec<f64>; 4] = Default::default();
     for frame in 1..=60u32 {
         for (i, c) in clients.iter_mut().enumerate() {
             let input = PlayerInput { mask: ActionMask::new(ActionMask::FORWARD).unwrap(), client_frame: frame };
@@ -58,8 +59,19 @@ fn receive_timing() {
         let report =
             receive(&mut transport, &mut sessions, &mut world, info, Some(&mut gate), &mut buffers, Instant::now());
         times.push(t.elapsed().as_secs_f64() * 1e3);
+        for (all, took) in phases.iter_mut().zip(report.phases) {
+            all.push(took.as_secs_f64() * 1e3);
+        }
         assert_eq!(report.actions, n as u64);
     }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let [admit, verify, own, shared] = phases.each_mut().map(median);
+    eprintln!(
+        "phases (medians, ms): admit {admit:.3}, verify {verify:.3}, apply each player's part {own:.3}, the shared part {shared:.3}"
+    );
     times.sort_by(f64::total_cmp);
     eprintln!(
         "receive of {n} actions (parallel from {PARALLEL_OPEN_MIN}, {} threads): median {:.3} ms, fastest {:.3} ms",

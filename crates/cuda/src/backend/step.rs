@@ -119,14 +119,14 @@ impl Resident {
         report.static_contacts = contacts[0] as u64;
         report.dynamic_contacts = contacts[1] as u64;
         if let Some(held) = held {
-            let (pos, action) = world.dynamics.state_mut_holding(held);
-            self.events[13].wait()?;
-            par_copy(flat3_mut(pos), h.pos.slice::<f32>(3 * n));
-            gpu.profile_host("host: physics, positions into the world", copying);
-            let rest = Instant::now();
+            // Everything has landed before the world is written, and the world takes this
+            // step's held copy only then: a step that fails leaves the world as it was,
+            // holding its own last step's copy.
             gpu.sync()?;
+            let (pos, action) = world.dynamics.state_mut_holding(held);
+            par_copy(flat3_mut(pos), h.pos.slice::<f32>(3 * n));
             par_copy(action, h.action.slice::<u8>(n));
-            gpu.profile_host("host: physics, actions into the world", rest);
+            gpu.profile_host("host: physics, the new state into the world", copying);
         } else {
             let st = world.dynamics.state_mut();
             self.events[13].wait()?;

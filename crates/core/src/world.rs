@@ -469,12 +469,6 @@ impl Dynamics {
         (&mut self.pos, &mut self.action)
     }
 
-    /// Whether the previous positions and flags are held by the backend that stepped
-    /// them, not yet fetched ([`Dynamics::state_mut_holding`]).
-    pub fn late_is_held(&self) -> bool {
-        self.late.is_held()
-    }
-
     soa_accessors! {
         "slot";
         ids: id: EntityId, "Entity ids by slot.";

@@ -114,7 +114,7 @@ const TRIM_THRESHOLD: i32 = 64 << 20;
 ///
 /// A fixed threshold also fixes the trim threshold, which glibc would otherwise have
 /// raised with it: at its default (128 KiB) every arena handed back the top of what the
-/// tick freed (its buffers of megabytes a tick: some 3.6 MB of recipients alone at
+/// tick freed (its buffers of megabytes a tick: 3.2 MB of recipients alone at
 /// 50,000 players), and the next tick faulted the same pages in again, 670 page faults
 /// a tick at scenario 2's 5,000 players on the development VM. Arenas now keep up to
 /// 64 MiB free at their top (315 faults a tick, the rest from elsewhere); the Argon2

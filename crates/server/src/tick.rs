@@ -500,8 +500,8 @@ impl TickLoop {
         // In parallel: each player costs a few cache misses (its table entry, its slot,
         // found from where it was last tick unless objects came or went): 0.7 ms a tick
         // for 10,000 players on one core of the GPU host, 0.37 on its 16, when every slot
-        // was a look-up in the map of every object. In last tick's memory: 50,000 players'
-        // recipients are 3.2 MB, twice (chosen, then gathered).
+        // was a look-up in the map of every object. In last tick's memory (3.2 MB at
+        // 50,000 players), chosen and then gathered in place.
         let mut chosen: Vec<Option<Recipient<'_>>> = recycle(std::mem::take(&mut self.recipient_store));
         self.sessions
             .par_iter_mut()
@@ -647,9 +647,7 @@ impl<'t> Sender<'t> {
         let sent = Sent { datagrams: self.datagrams.into_inner() as usize, bytes: self.bytes.into_inner() };
         (sent, self.nanos.into_inner() as f64 / 1e6 / self.lanes.len().max(1) as f64)
     }
-}
 
-impl<'t> Sender<'t> {
     /// The first lane from `preferred` on that no thread holds, or, when every lane is
     /// in use (more threads than sockets), `preferred` itself once it is free.
     fn free_lane(&self, preferred: usize) -> MutexGuard<'_, &'t mut dyn Lane> {

@@ -79,6 +79,7 @@ impl Late {
     }
 
     /// Whether the arrays are held elsewhere (not yet fetched).
+    #[cfg(test)]
     pub fn is_held(&self) -> bool {
         self.here.get().is_none()
     }

@@ -2,9 +2,9 @@
 //!
 //! # How it works
 //! World state lives on the device between steps; a step uploads only what the host
-//! changed and downloads the new positions and actions into pinned buffers, and leaves
-//! the previous positions and flags on the device until the host reads them (`held`). The upload (`sync`, and
-//! [`StepReport::upload_bytes`] counts it):
+//! changed, downloads the new positions and actions into pinned buffers, and leaves the
+//! previous positions and flags on the device until the host reads them (`held`). The
+//! upload (`sync`, and [`StepReport::upload_bytes`] counts it):
 //! - when the device copy was made right after the last step and every change since is
 //!   on the world's record (`Dynamics::changes`: a zone's one `apply_sorted` a tick and
 //!   its actions), only the record travels (`patch`): the runs of kept slots and the

@@ -78,8 +78,9 @@ impl Resident {
             h.flags.ensure(gpu, n)?;
         }
         // The small totals first, then the state array by array, each followed by an
-        // event: the host checks the totals as soon as they land and copies each array
-        // into the World while the next one is still crossing the bus.
+        // event: the host checks the totals as soon as they land (and, when nothing is
+        // held, copies each array into the World while the next one is still crossing
+        // the bus).
         h.small.ensure(gpu, 64)?;
         gpu.download_async(&mut h.small, 0, self.counters.ptr(), 2)?;
         gpu.download_async(&mut h.small, 2, sc.add(n), 1)?;

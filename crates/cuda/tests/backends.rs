@@ -89,3 +89,57 @@ fn worlds_stepped_in_turn_keep_their_own_state() {
     let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
     conformance::worlds_stepped_in_turn_keep_their_own_state(cpu.as_mut(), &mut gpus);
 }
+
+/// A step leaves the previous positions and flags on the device while the backend has a
+/// copy no world refers to (13 bytes an object come back, not 26), and brings them back
+/// when every copy is referred to; the worlds keep the CPU's state either way. Without
+/// this the conformance checks above would also pass if no step held anything.
+#[test]
+fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
+    let Some(mut gpus) = cuda_backends("a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free") else {
+        return;
+    };
+    let k = myriad_physics::TickConstants::default();
+    let build = |seed| conformance::crowded(seed, myriad_core::Placement::Uniform);
+    let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
+    // (world, whether its step finds a free copy). Nothing reads a world between these
+    // steps (a read fetches the held arrays and frees the copy): worlds 0, 1 and 2 take
+    // the backend's three copies; world 3 finds none and brings everything back; world 0
+    // still refers to its copy while it steps, so it finds none either, and frees its
+    // copy by taking the full arrays; world 3 takes that copy; world 0 again finds none.
+    let unread = [(0, true), (1, true), (2, true), (3, false), (0, false), (3, true), (0, false)];
+    for b in &mut gpus {
+        let name = b.kind();
+        let mut want: Vec<_> = (1..=4).map(build).collect();
+        let mut got: Vec<_> = (1..=4).map(build).collect();
+        let mut step = |i: usize, held: bool, when: &str| {
+            cpu.step(&mut want[i], &k).unwrap();
+            let report = b.step(&mut got[i], &k).unwrap();
+            let per_object = if held { 13 } else { 26 };
+            let n = got[i].dynamics.len() as u64;
+            assert_eq!(report.download_bytes, 16 + per_object * n, "{name}, {when} (world {i}): held {held}");
+        };
+        for (turn, (i, held)) in unread.into_iter().enumerate() {
+            step(i, held, &format!("turn {turn}"));
+        }
+        let check = |got: &[myriad_core::World], want: &[myriad_core::World], when: &str| {
+            for (i, (g, w)) in got.iter().zip(want).enumerate() {
+                assert_eq!(g.state_hash(), w.state_hash(), "{name}: world {i} {when}");
+            }
+        };
+        // Reading every world fetched what it held: every copy is free again.
+        drop(step);
+        check(&got, &want, "after the unread turns");
+        let mut step = |i: usize| {
+            cpu.step(&mut want[i], &k).unwrap();
+            let report = b.step(&mut got[i], &k).unwrap();
+            assert_eq!(report.download_bytes, 16 + 13 * got[i].dynamics.len() as u64, "{name}: world {i} after reads");
+        };
+        for i in [1, 2, 3] {
+            step(i);
+        }
+        drop(step);
+        check(&got, &want, "at the end");
+        println!("{name}: held steps download 13 bytes an object, full ones 26; every world = cpu");
+    }
+}

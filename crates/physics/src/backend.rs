@@ -135,6 +135,12 @@ pub struct StepReport {
     /// against its boundary traffic. Missing in reports written before it existed.
     #[serde(default)]
     pub upload_bytes: u64,
+    /// Bytes copied from a device back to the host by this step (0 for the CPU
+    /// backends): on `cuda` the new positions and actions, and the previous positions
+    /// and flags only when the step could not leave them on the device. Missing in
+    /// reports written before it existed.
+    #[serde(default)]
+    pub download_bytes: u64,
 }
 
 impl StepReport {

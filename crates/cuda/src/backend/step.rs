@@ -119,6 +119,10 @@ impl Resident {
         report.dynamic_pairs = totals[1] as u64 / 2;
         report.static_contacts = contacts[0] as u64;
         report.dynamic_contacts = contacts[1] as u64;
+        // The four totals, positions and actions; previous positions and flags when
+        // nothing held them.
+        let per_object = if held.is_some() { 13 } else { 26 };
+        report.download_bytes = 16 + per_object * n as u64;
         if let Some(held) = held {
             // Everything has landed before the world is written, and the world takes this
             // step's held copy only then: a step that fails leaves the world as it was,

@@ -112,15 +112,17 @@ fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
         let name = b.kind();
         let mut want: Vec<_> = (1..=4).map(build).collect();
         let mut got: Vec<_> = (1..=4).map(build).collect();
-        let mut step = |i: usize, held: bool, when: &str| {
-            cpu.step(&mut want[i], &k).unwrap();
-            let report = b.step(&mut got[i], &k).unwrap();
-            let per_object = if held { 13 } else { 26 };
-            let n = got[i].dynamics.len() as u64;
-            assert_eq!(report.download_bytes, 16 + per_object * n, "{name}, {when} (world {i}): held {held}");
-        };
-        for (turn, (i, held)) in unread.into_iter().enumerate() {
-            step(i, held, &format!("turn {turn}"));
+        {
+            let mut step = |i: usize, held: bool, when: &str| {
+                cpu.step(&mut want[i], &k).unwrap();
+                let report = b.step(&mut got[i], &k).unwrap();
+                let per_object = if held { 13 } else { 26 };
+                let n = got[i].dynamics.len() as u64;
+                assert_eq!(report.download_bytes, 16 + per_object * n, "{name}, {when} (world {i}): held {held}");
+            };
+            for (turn, (i, held)) in unread.into_iter().enumerate() {
+                step(i, held, &format!("turn {turn}"));
+            }
         }
         let check = |got: &[myriad_core::World], want: &[myriad_core::World], when: &str| {
             for (i, (g, w)) in got.iter().zip(want).enumerate() {
@@ -128,17 +130,12 @@ fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
             }
         };
         // Reading every world fetched what it held: every copy is free again.
-        drop(step);
         check(&got, &want, "after the unread turns");
-        let mut step = |i: usize| {
+        for i in [1, 2, 3] {
             cpu.step(&mut want[i], &k).unwrap();
             let report = b.step(&mut got[i], &k).unwrap();
             assert_eq!(report.download_bytes, 16 + 13 * got[i].dynamics.len() as u64, "{name}: world {i} after reads");
-        };
-        for i in [1, 2, 3] {
-            step(i);
         }
-        drop(step);
         check(&got, &want, "at the end");
         println!("{name}: held steps download 13 bytes an object, full ones 26; every world = cpu");
     }

@@ -217,7 +217,6 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         u32 k = nc + __popc(below);
         if (valid) {
             if (below || has_last) disorder |= c.slot <= (below ? before : last_slot);
-            cs[k] = c;
             u32 at = r_find_slot(old, nold, c.slot, (u32)max((int)k + drift, 0));
             if (at != R_NO_SLOT && old[at].id == c.id) {
                 RTrack t = old[at];
@@ -232,6 +231,10 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
                 nx[k] = r_track_new(c.id, c.slot);
                 fresh = 1;
             }
+            // Only what a later step reads keeps its candidate: the due (the take and
+            // the commit), the fresh and the later (their priorities below). At AOI 100
+            // most of a view is neither, and this is 32 bytes a candidate not written.
+            if (fresh || due || later) cs[k] = c;
         }
         u32 fmask = __ballot_sync(FULL_WARP, fresh);
         if (fresh) un_p[nun + lanes_before(fmask, lane)].index = k;

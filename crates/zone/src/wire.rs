@@ -29,8 +29,8 @@ use cuts::{cut_block, read_cuts};
 
 mod interest;
 pub use interest::{
-    KIND_SUBSCRIPTION, KIND_VIEW, MAX_CELLS, MAX_RESYNCS, MOVE_LEN, Subscription, View, cell_bytes,
-    encode_subscription, encode_view,
+    KIND_SUBSCRIPTION, KIND_VIEW, KIND_VIEW_PACKED, MAX_CELLS, MAX_PACKED_VIEW_BODY, MAX_RESYNCS, MOVE_LEN,
+    Subscription, View, cell_bytes, encode_subscription, encode_view,
 };
 mod nudge;
 pub use nudge::{NUDGE_MAX_LEN, Nudge};
@@ -39,8 +39,8 @@ pub use nudge::{NUDGE_MAX_LEN, Nudge};
 pub const MAGIC: [u8; 2] = *b"MZ";
 /// The format's version; a message of another version is refused. (2: heartbeats carry
 /// the zone's load, starts and checkpoints the cuts, and cut moves exist; 3: views carry
-/// nudges.)
-pub const VERSION: u8 = 3;
+/// nudges; 4: views travel packed.)
+pub const VERSION: u8 = 4;
 /// Bytes before the body.
 pub const HEADER_LEN: usize = 32;
 /// Bytes of one object record.
@@ -348,6 +348,7 @@ pub enum Message {
 /// The `to` field of messages for every zone.
 pub const ALL: ZoneId = ZoneId(u16::MAX);
 
+#[derive(Clone, Copy)]
 struct Head {
     kind: u8,
     run: u64,
@@ -612,12 +613,12 @@ pub fn decode(key: &ClusterKey, b: &[u8]) -> Result<Message, WireError> {
     };
     let body = &signed[HEADER_LEN..];
     // The kinds of states by interest have bodies of their own.
-    if let k @ (KIND_SUBSCRIPTION | KIND_VIEW) = signed[3] {
+    if let k @ (KIND_SUBSCRIPTION | KIND_VIEW | KIND_VIEW_PACKED) = signed[3] {
         let f = interest::Fields { run, tick, from, to, aux0, aux1, count };
-        return if k == KIND_SUBSCRIPTION {
-            interest::decode_subscription(&f, body).map(Message::Subscription)
-        } else {
-            interest::decode_view(&f, body).map(Message::View)
+        return match k {
+            KIND_SUBSCRIPTION => interest::decode_subscription(&f, body).map(Message::Subscription),
+            KIND_VIEW => interest::decode_view(&f, body).map(Message::View),
+            _ => interest::decode_packed_view(&f, body).map(Message::View),
         };
     }
     if body.len() as u64 != prefix + count as u64 * RECORD_LEN as u64 {

@@ -231,7 +231,7 @@ fn signed_message() -> impl Strategy<Value = Vec<u8>> {
     // reach their parsers too.
     let prefix = (0u8..4, any::<[u64; 3]>());
     (
-        (1u8..=12, any::<u64>(), any::<u64>()),
+        (1u8..=13, any::<u64>(), any::<u64>()),
         (ids.clone(), ids, 0u16..4, 0u16..4),
         prefix,
         proptest::collection::vec(record, 0..3),
@@ -266,7 +266,13 @@ proptest! {
     #[test]
     fn whatever_decodes_has_one_encoding(signed in signed_message()) {
         if let Ok(m) = decode(&key(), &signed) {
-            prop_assert_eq!(encode(&key(), &m).unwrap(), signed);
+            // A view has two encodings, plain and packed (whichever is smaller): both
+            // decode to the same view.
+            if matches!(m, Message::View(_)) {
+                prop_assert_eq!(decode(&key(), &encode(&key(), &m).unwrap()).unwrap(), m);
+            } else {
+                prop_assert_eq!(encode(&key(), &m).unwrap(), signed);
+            }
         }
     }
 }
@@ -276,4 +282,66 @@ proptest! {
     fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..400)) {
         let _ = decode(&key(), &bytes);
     }
+}
+
+/// A view of a walking crowd (thousands of nudges of a byte or two an axis, whole records
+/// of neighbours): packed, smaller, and it decodes to the same view.
+fn crowd_view() -> View {
+    let nudges = (0..3000u32)
+        .map(|i| {
+            let wobble = (i.wrapping_mul(2_654_435_761) >> 24) as i32 - 128;
+            Nudge { id: EntityId(10 + 3 * i), predicted: i % 4 != 0, bits: [wobble, -2846, wobble / 3] }
+        })
+        .collect();
+    let objects = (0..200).map(|i| object(20_000 + i, 300.0 + i as f32 * 0.25)).collect();
+    View { objects, moves: vec![], gone: vec![EntityId(9_000)], nudges, ..view() }
+}
+
+#[test]
+fn a_crowds_view_travels_packed_and_decodes_to_the_same_view() {
+    let v = crowd_view();
+    let b = encode_view(&key(), &v).unwrap();
+    assert_eq!(b[3], KIND_VIEW_PACKED);
+    let plain = HEADER_LEN + 24 + 200 * RECORD_LEN + 4 + super::nudge::nudges_len(&v.nudges) + TAG_LEN;
+    assert!(b.len() * 10 < plain * 9, "packed {} bytes of {plain}", b.len());
+    assert_eq!(decode(&key(), &b).unwrap(), Message::View(v.clone()));
+    // The same view through the general encoder.
+    assert_eq!(encode(&key(), &Message::View(v)).unwrap(), b);
+}
+
+#[test]
+fn packed_views_that_lie_about_their_length_or_frame_are_refused() {
+    let b = encode_view(&key(), &crowd_view()).unwrap();
+    let body = &b[HEADER_LEN..b.len() - TAG_LEN];
+    let stated = u32::from_le_bytes(body[..4].try_into().unwrap()) as usize;
+    let frame = body[4..].to_vec();
+    // The same header, another body, signed as the cluster would.
+    let with_body = |body: &[u8]| {
+        let mut raw = b[..HEADER_LEN].to_vec();
+        raw.extend_from_slice(body);
+        decode(&key(), &sign(&key(), &raw))
+    };
+    let body_of = |len: usize, frame: &[u8]| {
+        let mut v = (len as u32).to_le_bytes().to_vec();
+        v.extend_from_slice(frame);
+        v
+    };
+    assert!(with_body(&body_of(stated, &frame)).is_ok(), "the body as sent");
+    assert_eq!(with_body(&body_of(stated - 1, &frame)), Err(WireError::Field("packed view")), "unpacks to more");
+    assert_eq!(with_body(&body_of(stated + 1, &frame)), Err(WireError::Field("packed view length")), "to less");
+    let huge = MAX_PACKED_VIEW_BODY + 1;
+    assert_eq!(with_body(&body_of(huge, &frame)), Err(WireError::Field("packed view length")), "over the bound");
+    assert_eq!(
+        with_body(&body_of(8, &frame)),
+        Err(WireError::Field("packed view length")),
+        "under a view's fixed part"
+    );
+    let mut cut = frame.clone();
+    cut.truncate(frame.len() / 2);
+    assert_eq!(with_body(&body_of(stated, &cut)), Err(WireError::Field("packed view")), "a cut frame");
+    assert!(matches!(with_body(&[1, 2]), Err(WireError::Length { .. })), "no room for the length");
+    // A frame that unpacks to a bad plain body is refused as the plain view would be.
+    let bad_plain = vec![0u8; 30];
+    let packed = zstd::bulk::compress(&bad_plain, 1).unwrap();
+    assert!(matches!(with_body(&body_of(30, &packed)), Err(WireError::Length { .. })));
 }

@@ -49,7 +49,7 @@ pub struct GatewayArgs {
     /// or `mirror` (every object, every tick); as the zones were started with.
     #[arg(long, value_enum, default_value = "interest")]
     gateway_states: GatewayStates,
-    /// The side of a subscription's cells (default: a quarter of the AOI size, larger
+    /// The side of a subscription's cells (default: an eighth of the AOI size, larger
     /// where the map would need more than 262,144 cells).
     #[arg(long)]
     interest_cell: Option<f32>,

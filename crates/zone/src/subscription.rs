@@ -177,13 +177,15 @@ impl InterestConfig {
         lag_ticks as f32 * max_step + max_half_extent
     }
 
-    /// The cell side a gateway uses unless told: a quarter of the AOI's side, grown
+    /// The cell side a gateway uses unless told: an eighth of the AOI's side, grown
     /// where the world's x–z extent would need more than [`MAX_CELLS`] of them. Smaller
     /// cells hug the players' AOI boxes closer: with 100 players spread over scenario 2's
-    /// map, AOI 100, cells of 25 bring a gateway 276 kB a tick against 328 kB with cells
-    /// of 100, for the same 240 kB sent to the players (`docs/zones.md`).
+    /// map, AOI 100, lag 4, a gateway takes 157 kB a tick with cells of 12.5 against 167
+    /// kB with cells of 25 and 197 kB with cells of 100 (lag 8), for the same 51 kB sent
+    /// to its players; cells of 8 took 4 % less again at lag 2, where the subscription's
+    /// bits grow with the square (`docs/zones.md`, "Packed views").
     pub fn default_cell(aoi_size: f32, bounds: &Aabb) -> f32 {
-        let mut cell = if aoi_size.is_finite() && aoi_size > 0.0 { aoi_size / 4.0 } else { 1.0 };
+        let mut cell = if aoi_size.is_finite() && aoi_size > 0.0 { aoi_size / 8.0 } else { 1.0 };
         // A quarter larger until the grid fits (a few steps even for huge worlds).
         while CellGrid::new(bounds, cell).is_err() && cell < f32::MAX / 2.0 {
             cell *= 1.25;
@@ -320,15 +322,15 @@ mod tests {
     }
 
     #[test]
-    fn the_default_cell_is_a_quarter_of_the_aoi_unless_the_world_needs_fewer_cells() {
+    fn the_default_cell_is_an_eighth_of_the_aoi_unless_the_world_needs_fewer_cells() {
         let map = |side: f32| Aabb::new(Vec3::ZERO, Vec3::new(side, 50.0, side));
-        assert_eq!(InterestConfig::default_cell(100.0, &map(1024.0)), 25.0);
+        assert_eq!(InterestConfig::default_cell(100.0, &map(1024.0)), 12.5);
         let long = Aabb::new(Vec3::ZERO, Vec3::new(1.0e7, 50.0, 1.0));
         for world in [map(1024.0), map(100_000.0), map(1.0e6), long] {
             let cell = InterestConfig::default_cell(100.0, &world);
             let grid = CellGrid::new(&world, cell);
             assert!(grid.is_ok(), "{world:?}: cell {cell}: {grid:?}");
         }
-        assert!(InterestConfig::default_cell(100.0, &map(100_000.0)) > 25.0);
+        assert!(InterestConfig::default_cell(100.0, &map(100_000.0)) > 12.5);
     }
 }

@@ -39,6 +39,15 @@
 # REPLICATION_S4_PROFILE=1; REPLICATION_S4_AOI=100 at another edge). REPLICATION_S3=0
 # leaves out scenario 3 (for a second run of the others in the same call).
 #
+# MODE=table measures issue 27's table, alternating the build in .carry/before/ (when
+# there is one) with this one, round by round (TABLE_ROUNDS, default 2): scenario 3's
+# and 2 M + 1 M objects' physics steps, scenario 4 (50,000 players, bots 20 a socket) at
+# AOI 14, scenario 2 at AOI 100; after the first round this build profiled
+# (MYRIAD_CUDA_PROFILE=1) at scenario 4, AOI 14 and 100, and last scenario 2 at AOI 100
+# and scenario 3's physics profiled, scenario 4 at AOI 100 before, and scenario 3 in 4
+# zones on the GPU, before and after. Every log lands in $OUT/table.tgz as soon as it is
+# written, so a call that runs out of time still brings back what finished.
+#
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
 # checks that on fake bundles, without a GPU.
@@ -411,6 +420,45 @@ if [[ $mode == flood ]]; then
     SERVE_ARGS="--set receive_thread=false" DURATION=8 bash scripts/flood-figures.sh .carry/myriad .carry/myriad \
         "$out/flood-inline" session garbage || fail "flood figures with receive_thread=false failed"
     nproc
+fi
+
+if [[ $mode == table ]]; then
+    # Outside $OUT: the device tool brings back a few files only, so they travel as one.
+    dir=$(mktemp -d)/table
+    mkdir -p "$dir"
+    builds=(.carry/myriad)
+    [[ -x .carry/before/myriad ]] && builds=(.carry/before/myriad .carry/myriad)
+    which_build() { if [[ $1 == .carry/myriad ]]; then echo after; else echo before; fi; }
+    keep() { tar -C "$dir/.." -czf "$out/table.tgz" table; }
+    # One run: a log name, a time limit, the build, then its arguments.
+    measure() {
+        local log=$1 limit=$2 bin=$3
+        shift 3
+        timeout "$limit" "$bin" "$@" >"$dir/$log.txt" 2>&1 || fail "table: $log ($bin $*)"
+        grep -E '^\| (2|3|4|sweep) \||state_hash' "$dir/$log.txt" | sed "s/^/$log: /"
+        keep
+    }
+    s4=(bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --bots-per-socket 20 --quality-players 0)
+    s2=(bench --scenario 2 --backend cuda --ticks 60 --warmup 30 --aoi-size 100 --quality-players 0)
+    physics=(bench --scenario 3 --backend cuda --ticks 30 --warmup 3 --physics-only)
+    for r in $(seq 1 "${TABLE_ROUNDS:-2}"); do
+        for b in "${builds[@]}"; do
+            n=$(which_build "$b")
+            measure "physics-$n-$r" 90 "$b" "${physics[@]}" --sweep 2000000
+            measure "s4-14-$n-$r" 120 "$b" "${s4[@]}" --aoi-size 14
+            measure "s2-100-$n-$r" 60 "$b" "${s2[@]}"
+        done
+        if [[ $r == 1 ]]; then
+            MYRIAD_CUDA_PROFILE=1 measure s4-14-profiled 120 .carry/myriad "${s4[@]}" --aoi-size 14
+            MYRIAD_CUDA_PROFILE=1 measure s4-100-profiled 150 .carry/myriad "${s4[@]}" --aoi-size 100
+        fi
+    done
+    MYRIAD_CUDA_PROFILE=1 measure s2-100-profiled 60 .carry/myriad "${s2[@]}"
+    MYRIAD_CUDA_PROFILE=1 measure physics-profiled 60 .carry/myriad "${physics[@]}"
+    [[ ${#builds[@]} == 2 ]] && measure s4-100-before 150 .carry/before/myriad "${s4[@]}" --aoi-size 100
+    for b in "${builds[@]}"; do
+        measure "zones4-$(which_build "$b")" 90 "$b" sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json
+    done
 fi
 
 if [[ $mode == host ]]; then

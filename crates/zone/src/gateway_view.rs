@@ -103,7 +103,7 @@ impl ZoneViews {
         let kept = |c: u64| self.history.get(&zone).is_some_and(|h| h.iter().any(|(t, _)| *t == c));
         // Predicted nudges start from the tick before the base too.
         let bases_kept = |p: &Part| {
-            let predicted = p.nudges.iter().any(|n| n.predicted);
+            let predicted = p.nudges.iter().any(|n| n.prediction.needs_before());
             p.base.is_some_and(|c| kept(c) && (!predicted || c.checked_sub(1).is_some_and(kept)))
         };
         match parts.into_iter().all(|p| p.nudges.is_empty() || bases_kept(p)) {
@@ -152,7 +152,7 @@ impl ZoneViews {
                 |n| n.id,
                 |o, n| {
                     let Some(from) = seek(at_base, &mut b, n.id) else { return false };
-                    let before = if n.predicted { seek(at_prior, &mut q, n.id) } else { None };
+                    let before = if n.prediction.needs_before() { seek(at_prior, &mut q, n.id) } else { None };
                     n.apply(before, from).map(|pos| o.pos = pos).is_some()
                 },
             );

@@ -544,13 +544,7 @@ fn view_of(
                     Some((prior, positions)) if since <= prior => seek(positions, &mut q, id),
                     _ => None,
                 };
-                let nudge = from.map(|from| {
-                    let plain = Nudge::between(id, from, t.state.pos);
-                    match before {
-                        Some(before) => Nudge::shorter(plain, Nudge::predicted(id, before, from, t.state.pos)),
-                        None => plain,
-                    }
-                });
+                let nudge = from.map(|from| Nudge::shortest(id, before, from, t.state.pos));
                 match nudge {
                     Some(n) if n.compact() => nudges.push(n),
                     _ => moves.push((id, t.state.pos)),

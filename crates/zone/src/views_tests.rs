@@ -1,5 +1,5 @@
 use super::*;
-use crate::wire::{Message, decode};
+use crate::wire::{Message, Prediction, decode};
 use myriad_core::Vec3;
 
 const RUN: u64 = 4;
@@ -188,7 +188,7 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
         assert!(v.nudges.len() >= 15, "small steps go as nudges: {} of them", v.nudges.len());
         // Steady walks are predicted along a chain: from its second step, and again from
         // the second view after the resync's.
-        let predicted = v.nudges.iter().filter(|n| n.predicted).count();
+        let predicted = v.nudges.iter().filter(|n| n.prediction.needs_before()).count();
         let chained = tick >= 4 && !(16..=19).contains(&tick);
         assert_eq!(predicted >= 15, chained, "tick {tick}: {predicted} predicted");
         let parts = vec![part(v)];
@@ -232,7 +232,7 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
     assert!(v.nudges.is_empty() && !v.moves.is_empty());
     // Nudges from a base the gateway no longer keeps cannot be applied: only whole
     // views bring it back.
-    let nudges = vec![Nudge { id: EntityId(1), predicted: false, bits: [1, 0, 0] }];
+    let nudges = vec![Nudge { id: EntityId(1), prediction: Prediction::Off, bits: [1, 0, 0] }];
     let forged = part(View { base: Some(3), nudges, moves: vec![], ..v });
     assert_eq!(gateway.applicable(0, std::slice::from_ref(&forged), Some(28)), Applicable::Lost);
     assert_eq!(gateway.applicable(0, &[forged], Some(2)), Applicable::Ahead);

@@ -33,7 +33,7 @@ pub use interest::{
     Subscription, View, cell_bytes, encode_subscription, encode_view,
 };
 mod nudge;
-pub use nudge::{NUDGE_MAX_LEN, Nudge};
+pub use nudge::{NUDGE_MAX_LEN, Nudge, Prediction};
 
 /// First two bytes of every message.
 pub const MAGIC: [u8; 2] = *b"MZ";

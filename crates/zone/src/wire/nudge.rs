@@ -22,13 +22,26 @@
 //! gateway took) and only for objects the gateway held at that tick
 //! (`crate::views`), and takes whichever form is shorter.
 //!
+//! **Airborne nudges.** An object in the air moves as the physics' Verlet step says:
+//! its velocity kept by the air's drag, less gravity's pull a tick (`integrate` with no
+//! action, not standing). A steady prediction misses that by the pull, about 2,850 ulps
+//! of the height at heights in [32, 64): two bytes for y in three nudges of four at
+//! scenario 2's density (`docs/zones.md`, "Packed views"). The airborne prediction runs
+//! that step, with the default physics constants (a fixed part of this format, whatever
+//! the world's), on both sides from the same two positions, in `f32` operations that
+//! give the same bits everywhere; an object in free flight then costs a byte an axis,
+//! its change exactly zero. Only finite positions are predicted this way.
+//!
 //! Encoding, one nudge after another, ids strictly ascending: a varint of the id's
-//! difference from the previous nudge's id (from 0 for the first), shifted left by one,
-//! whose low bit says the nudge is predicted; then the three coordinates' zigzagged bit
-//! changes (from the base, or from the prediction) as varints. Varints must be minimal
-//! (one encoding per message): `unsigned-varint` refuses the others.
+//! difference from the previous nudge's id (from 0 for the first), shifted left by two,
+//! whose low bits say what the change is from (0: the base, 1: the steady prediction,
+//! 2: the airborne one; 3 is refused); then the three coordinates' zigzagged bit changes
+//! as varints. Varints must be minimal (one encoding per message): `unsigned-varint`
+//! refuses the others.
 
 use myriad_core::{EntityId, Vec3};
+use myriad_physics::TickConstants;
+use myriad_physics::integrate::integrate;
 use unsigned_varint::{decode, encode};
 
 use super::WireError;
@@ -42,15 +55,42 @@ const NUDGE_MIN_LEN: usize = 4;
 /// A zigzagged change below this takes at most three varint bytes.
 const COMPACT_LIMIT: u32 = 1 << 21;
 
+/// What a nudge's change is from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Prediction {
+    /// The position at the base tick.
+    Off,
+    /// The steady prediction: the bits at the base plus their change from the tick
+    /// before (`2 × base − before`, on the bits).
+    Steady,
+    /// The airborne prediction: the physics' step in the air from the tick before and
+    /// the base (see the module docs).
+    Airborne,
+}
+
+impl Prediction {
+    /// Whether it needs the position at the tick before the base.
+    pub fn needs_before(self) -> bool {
+        self != Prediction::Off
+    }
+
+    fn code(self) -> u64 {
+        match self {
+            Prediction::Off => 0,
+            Prediction::Steady => 1,
+            Prediction::Airborne => 2,
+        }
+    }
+}
+
 /// An object's new position as the wrapping change of each coordinate's `f32` bits since
 /// the view's base tick, or since a prediction from the base and the tick before it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Nudge {
     /// The object.
     pub id: EntityId,
-    /// Whether `bits` are the change from the prediction (`2 × base − before`, on the
-    /// bits) rather than from the base.
-    pub predicted: bool,
+    /// What `bits` are the change from.
+    pub prediction: Prediction,
     /// Per axis: the new coordinate's bits minus (wrapping) those at the base tick, or
     /// those predicted.
     pub bits: [i32; 3],
@@ -61,37 +101,68 @@ fn bits(v: Vec3) -> [u32; 3] {
     [v.x, v.y, v.z].map(f32::to_bits)
 }
 
-/// The prediction from the tick before the base (`before`) and the base (`base`): each
-/// coordinate's bits at the base plus their change from `before` (wrapping).
+/// The steady prediction from the tick before the base (`before`) and the base (`base`):
+/// each coordinate's bits at the base plus their change from `before` (wrapping).
 fn predict(before: Vec3, base: Vec3) -> [u32; 3] {
     let (a, b) = (bits(before), bits(base));
     [0, 1, 2].map(|i| b[i].wrapping_add(b[i].wrapping_sub(a[i])))
 }
 
+/// The airborne prediction: the physics' step of an object in the air with no action,
+/// from `before` and `base`, with the default constants; `None` unless both are finite
+/// (a NaN's bits after arithmetic are not the same on every machine).
+fn predict_airborne(before: Vec3, base: Vec3) -> Option<[u32; 3]> {
+    if !(before.is_finite() && base.is_finite()) {
+        return None;
+    }
+    let (mut pos, mut prev) = (base, before);
+    integrate(&mut pos, &mut prev, 0, false, &TickConstants::default());
+    Some(bits(pos))
+}
+
 impl Nudge {
     /// The nudge that takes `from` to `to` exactly.
     pub fn between(id: EntityId, from: Vec3, to: Vec3) -> Nudge {
-        Nudge::change(id, false, bits(from), to)
+        Nudge::change(id, Prediction::Off, bits(from), to)
     }
 
-    /// The predicted nudge that takes the object from `before` (its position at the tick
-    /// before the base) and `from` (at the base) to `to` exactly.
+    /// The steadily predicted nudge that takes the object from `before` (its position at
+    /// the tick before the base) and `from` (at the base) to `to` exactly.
     pub fn predicted(id: EntityId, before: Vec3, from: Vec3, to: Vec3) -> Nudge {
-        Nudge::change(id, true, predict(before, from), to)
+        Nudge::change(id, Prediction::Steady, predict(before, from), to)
     }
 
-    fn change(id: EntityId, predicted: bool, from: [u32; 3], to: Vec3) -> Nudge {
+    /// The airborne nudge that does the same, or `None` where positions are not finite.
+    pub fn airborne(id: EntityId, before: Vec3, from: Vec3, to: Vec3) -> Option<Nudge> {
+        Some(Nudge::change(id, Prediction::Airborne, predict_airborne(before, from)?, to))
+    }
+
+    /// The shortest of the plain nudge and, given the tick before, the two predicted ones
+    /// (the earlier of these when equal).
+    pub fn shortest(id: EntityId, before: Option<Vec3>, from: Vec3, to: Vec3) -> Nudge {
+        let plain = Nudge::between(id, from, to);
+        let Some(before) = before else { return plain };
+        let best = Nudge::shorter(plain, Nudge::predicted(id, before, from, to));
+        match Nudge::airborne(id, before, from, to) {
+            Some(air) => Nudge::shorter(best, air),
+            None => best,
+        }
+    }
+
+    fn change(id: EntityId, prediction: Prediction, from: [u32; 3], to: Vec3) -> Nudge {
         let to = bits(to);
-        Nudge { id, predicted, bits: [0, 1, 2].map(|i| to[i].wrapping_sub(from[i]) as i32) }
+        Nudge { id, prediction, bits: [0, 1, 2].map(|i| to[i].wrapping_sub(from[i]) as i32) }
     }
 
     /// The position it gives from the base tick's `from` (and, if it is predicted, the
-    /// tick before's `before`; `None` then: no position).
+    /// tick before's `before`; `None` then: no position; nor for an airborne prediction
+    /// from positions that are not finite).
     pub fn apply(&self, before: Option<Vec3>, from: Vec3) -> Option<Vec3> {
-        let start = match (self.predicted, before) {
-            (false, _) => bits(from),
-            (true, Some(before)) => predict(before, from),
-            (true, None) => return None,
+        let start = match (self.prediction, before) {
+            (Prediction::Off, _) => bits(from),
+            (Prediction::Steady, Some(before)) => predict(before, from),
+            (Prediction::Airborne, Some(before)) => predict_airborne(before, from)?,
+            (_, None) => return None,
         };
         let a = |i: usize| f32::from_bits(start[i].wrapping_add(self.bits[i] as u32));
         Some(Vec3::new(a(0), a(1), a(2)))
@@ -122,9 +193,9 @@ fn unzigzag(u: u32) -> i32 {
     ((u >> 1) as i32) ^ -((u & 1) as i32)
 }
 
-/// The first varint of a nudge: its id's delta from `prev`, and whether it is predicted.
+/// The first varint of a nudge: its id's delta from `prev`, and what its change is from.
 fn id_word(n: &Nudge, prev: u32) -> u64 {
-    u64::from(n.id.0 - prev) << 1 | u64::from(n.predicted)
+    u64::from(n.id.0 - prev) << 2 | n.prediction.code()
 }
 
 /// The bytes of `v` as a LEB128 varint.
@@ -158,8 +229,13 @@ pub(super) fn nudges(bytes: &[u8], count: u32) -> Result<Vec<Nudge>, WireError> 
     let mut prev: Option<u32> = None;
     for _ in 0..count {
         let (word, r) = decode::u64(rest).map_err(bad)?;
-        let predicted = word & 1 == 1;
-        let delta = u32::try_from(word >> 1).map_err(|_| WireError::Field("view ids"))?;
+        let prediction = match word & 3 {
+            0 => Prediction::Off,
+            1 => Prediction::Steady,
+            2 => Prediction::Airborne,
+            _ => return Err(WireError::Field("view nudges")),
+        };
+        let delta = u32::try_from(word >> 2).map_err(|_| WireError::Field("view ids"))?;
         let id = match prev {
             None => delta,
             Some(_) if delta == 0 => return Err(WireError::Field("view ids")),
@@ -172,7 +248,7 @@ pub(super) fn nudges(bytes: &[u8], count: u32) -> Result<Vec<Nudge>, WireError> 
             *c = unzigzag(u);
             r = r2;
         }
-        out.push(Nudge { id: EntityId(id), predicted, bits });
+        out.push(Nudge { id: EntityId(id), prediction, bits });
         prev = Some(id);
         rest = r;
     }
@@ -214,6 +290,11 @@ mod tests {
                 let p = Nudge::predicted(EntityId(3), before, a, b);
                 assert_eq!(p.apply(Some(before), a).map(bits), Some(bits(b)));
                 assert_eq!(p.apply(None, a), None, "a prediction needs the tick before");
+                if before.is_finite() && a.is_finite() {
+                    let air = Nudge::airborne(EntityId(3), before, a, b).expect("finite");
+                    assert_eq!(air.apply(Some(before), a).map(bits), Some(bits(b)));
+                    assert_eq!(air.apply(None, a), None, "a prediction needs the tick before");
+                }
             }
         }
         // A short walk is compact; a jump across the map or through zero is not.
@@ -235,11 +316,41 @@ mod tests {
     }
 
     #[test]
+    fn a_fall_predicted_airborne_takes_a_byte_an_axis() {
+        // Thrown up and across at 40 units, then falling: the physics' own steps.
+        let k = TickConstants::default();
+        let (mut pos, mut prev) = (Vec3::new(300.0, 40.0, 7.0), Vec3::new(299.9, 39.8, 7.05));
+        let mut path = vec![prev, pos];
+        for _ in 0..40 {
+            integrate(&mut pos, &mut prev, 0, false, &k);
+            path.push(pos);
+        }
+        for w in path.windows(3) {
+            let (before, from, to) = (w[0], w[1], w[2]);
+            let air = Nudge::airborne(EntityId(9), before, from, to).unwrap();
+            assert_eq!(air.bits, [0; 3], "free flight is the prediction exactly");
+            assert_eq!(air.len(0), 4);
+            let best = Nudge::shortest(EntityId(9), Some(before), from, to);
+            assert_eq!(best.prediction, Prediction::Airborne);
+            assert!(Nudge::predicted(EntityId(9), before, from, to).len(0) > 4, "the steady one misses gravity");
+        }
+        // On the ground (no change), the plain nudge is as short and comes first.
+        let still = Vec3::new(1.0, 2.0, 3.0);
+        assert_eq!(Nudge::shortest(EntityId(9), Some(still), still, still).prediction, Prediction::Off);
+        assert_eq!(Nudge::shortest(EntityId(9), None, still, still).prediction, Prediction::Off);
+        // Not from positions that are not finite.
+        let nan = Vec3::new(f32::NAN, 0.0, 0.0);
+        assert_eq!(Nudge::airborne(EntityId(9), nan, still, still), None);
+        let forged = Nudge { id: EntityId(9), prediction: Prediction::Airborne, bits: [0; 3] };
+        assert_eq!(forged.apply(Some(still), nan), None);
+    }
+
+    #[test]
     fn nudges_round_trip_at_their_computed_length_and_refuse_bad_bytes() {
         let list = vec![
-            Nudge { id: EntityId(0), predicted: false, bits: [0, -1, 1] },
-            Nudge { id: EntityId(200), predicted: true, bits: [3277, -(1 << 20), (1 << 20) - 1] },
-            Nudge { id: EntityId(u32::MAX), predicted: true, bits: [i32::MIN, i32::MAX, 64] },
+            Nudge { id: EntityId(0), prediction: Prediction::Off, bits: [0, -1, 1] },
+            Nudge { id: EntityId(200), prediction: Prediction::Steady, bits: [3277, -(1 << 20), (1 << 20) - 1] },
+            Nudge { id: EntityId(u32::MAX), prediction: Prediction::Airborne, bits: [i32::MIN, i32::MAX, 64] },
         ];
         let mut b = Vec::new();
         put_nudges(&mut b, &list);
@@ -253,6 +364,8 @@ mod tests {
         assert_eq!(nudges(&[1, 0, 0, 0, 0, 0, 0, 0], 2), Err(WireError::Field("view ids")));
         // A non-minimal varint (0 written in two bytes).
         assert!(nudges(&[0x80, 0x00, 0, 0, 0], 1).is_err());
+        // The fourth kind of change, which does not exist.
+        assert_eq!(nudges(&[3, 0, 0, 0], 1), Err(WireError::Field("view nudges")));
         // Ids past u32::MAX.
         let mut over = Vec::new();
         put_nudges(&mut over, &list[2..]);

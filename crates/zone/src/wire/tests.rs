@@ -114,8 +114,8 @@ fn view() -> View {
         objects: vec![object(5, 1.0), object(9, -7.5)],
         moves: vec![(EntityId(2), Vec3::new(1.0, 2.0, 3.0)), (EntityId(6), Vec3::new(-4.0, 0.5, 9.0))],
         nudges: vec![
-            Nudge { id: EntityId(4), predicted: false, bits: [3277, -2, 0] },
-            Nudge { id: EntityId(700), predicted: true, bits: [0, 0, -64] },
+            Nudge { id: EntityId(4), prediction: Prediction::Off, bits: [3277, -2, 0] },
+            Nudge { id: EntityId(700), prediction: Prediction::Steady, bits: [0, 0, -64] },
         ],
         gone: vec![EntityId(3), EntityId(1 << 30)],
     }
@@ -157,7 +157,7 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
     assert!(encode_view(&key(), &View { gone: view().gone, ..whole.clone() }).is_err(), "gone ids in a whole view");
     assert!(encode_view(&key(), &View { moves: view().moves, ..whole.clone() }).is_err(), "moves in a whole view");
     assert!(encode_view(&key(), &View { nudges: view().nudges, ..whole }).is_err(), "nudges in a whole view");
-    let both = vec![Nudge { id: EntityId(6), predicted: false, bits: [1, 1, 1] }];
+    let both = vec![Nudge { id: EntityId(6), prediction: Prediction::Off, bits: [1, 1, 1] }];
     assert!(encode_view(&key(), &View { nudges: both, ..view() }).is_err(), "one object moved and nudged");
     let nan = vec![(EntityId(2), Vec3::new(f32::NAN, 0.0, 0.0))];
     assert!(encode_view(&key(), &View { moves: nan, ..view() }).is_err(), "a move nowhere");
@@ -290,7 +290,11 @@ fn crowd_view() -> View {
     let nudges = (0..3000u32)
         .map(|i| {
             let wobble = (i.wrapping_mul(2_654_435_761) >> 24) as i32 - 128;
-            Nudge { id: EntityId(10 + 3 * i), predicted: i % 4 != 0, bits: [wobble, -2846, wobble / 3] }
+            Nudge {
+                id: EntityId(10 + 3 * i),
+                prediction: [Prediction::Off, Prediction::Steady, Prediction::Airborne][i as usize % 3],
+                bits: [wobble, -2846, wobble / 3],
+            }
         })
         .collect();
     let objects = (0..200).map(|i| object(20_000 + i, 300.0 + i as f32 * 0.25)).collect();

@@ -143,6 +143,11 @@ impl Nudge {
         let plain = Nudge::between(id, from, to);
         let Some(before) = before else { return plain };
         let best = Nudge::shorter(plain, Nudge::predicted(id, before, from, to));
+        // A byte an axis is the least a nudge takes: no third form can be shorter (and
+        // the physics' step costs more than the others).
+        if best.bits.iter().all(|&c| varint_len(u64::from(zigzag(c))) == 1) {
+            return best;
+        }
         match Nudge::airborne(id, before, from, to) {
             Some(air) => Nudge::shorter(best, air),
             None => best,

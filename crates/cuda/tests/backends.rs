@@ -103,11 +103,15 @@ fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
     let build = |seed| conformance::crowded(seed, myriad_core::Placement::Uniform);
     let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
     // (world, whether its step finds a free copy). Nothing reads a world between these
-    // steps (a read fetches the held arrays and frees the copy): worlds 0, 1 and 2 take
-    // the backend's three copies; world 3 finds none and brings everything back; world 0
-    // still refers to its copy while it steps, so it finds none either, and frees its
-    // copy by taking the full arrays; world 3 takes that copy; world 0 again finds none.
-    let unread = [(0, true), (1, true), (2, true), (3, false), (0, false), (3, true), (0, false)];
+    // steps (a read fetches the held arrays and frees the copy), except the backend
+    // itself: a step of another world than the last uploads that world whole, reading
+    // (so freeing) its own copy first. Worlds 0, 1 and 2 take the backend's three
+    // copies; world 3 finds none and brings everything back; world 0, uploaded, frees
+    // its copy and takes it again; world 3 again finds none; world 0 again takes its
+    // own; stepped twice in a row (nothing uploaded) it still refers to that copy and
+    // finds none free, and frees it by taking the full arrays; a third time in a row it
+    // takes it again.
+    let unread = [(0, true), (1, true), (2, true), (3, false), (0, true), (3, false), (0, true), (0, false), (0, true)];
     for b in &mut gpus {
         let name = b.kind();
         let mut want: Vec<_> = (1..=4).map(build).collect();

@@ -55,6 +55,10 @@ set -uo pipefail
 out=${OUT:-out}
 mkdir -p "$out"
 mode=${MODE:-all}
+# scripts/gpu-build.sh packs the build before (see there).
+if [[ -f .carry/before/myriad.gz && ! -e .carry/before/myriad ]]; then
+    gunzip .carry/before/myriad.gz
+fi
 export MYRIAD_REQUIRE_CUDA=1
 export MYRIAD_CUBIN_CACHE=${MYRIAD_CUBIN_CACHE:-/tmp/myriad-cubin}
 # Failures are appended to a file, not to a variable: most steps below run in the

@@ -46,7 +46,10 @@
 # (MYRIAD_CUDA_PROFILE=1) at scenario 4, AOI 14 and 100, and last scenario 2 at AOI 100
 # and scenario 3's physics profiled, scenario 4 at AOI 100 before, and scenario 3 in 4
 # zones on the GPU, before and after. Every log lands in $OUT/table.tgz as soon as it is
-# written, so a call that runs out of time still brings back what finished.
+# written, so a call that runs out of time still brings back what finished. Two rounds
+# and the profiles take longer than one call of 600 s with the tests (scenario 4 at AOI
+# 100 took over 150 s profiled on an H100): TABLE_ROUNDS=1 in one call, or the tests in
+# another.
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -454,12 +457,12 @@ if [[ $mode == table ]]; then
         done
         if [[ $r == 1 ]]; then
             MYRIAD_CUDA_PROFILE=1 measure s4-14-profiled 120 .carry/myriad "${s4[@]}" --aoi-size 14
-            MYRIAD_CUDA_PROFILE=1 measure s4-100-profiled 150 .carry/myriad "${s4[@]}" --aoi-size 100
+            MYRIAD_CUDA_PROFILE=1 measure s4-100-profiled 240 .carry/myriad "${s4[@]}" --aoi-size 100
         fi
     done
     MYRIAD_CUDA_PROFILE=1 measure s2-100-profiled 60 .carry/myriad "${s2[@]}"
     MYRIAD_CUDA_PROFILE=1 measure physics-profiled 60 .carry/myriad "${physics[@]}"
-    [[ ${#builds[@]} == 2 ]] && measure s4-100-before 150 .carry/before/myriad "${s4[@]}" --aoi-size 100
+    [[ ${#builds[@]} == 2 ]] && measure s4-100-before 240 .carry/before/myriad "${s4[@]}" --aoi-size 100
     for b in "${builds[@]}"; do
         measure "zones4-$(which_build "$b")" 90 "$b" sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json
     done

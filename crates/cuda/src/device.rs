@@ -331,18 +331,18 @@ impl Gpu {
     }
 
     /// Queues a copy of `count` items of type `T` from device memory into pinned host
-    /// memory, starting at item `at` of the host buffer.
+    /// memory, starting at item `at` of the host buffer; returns the bytes queued.
     pub fn download_async<T: Pod>(
         &self,
         dst: &mut Pinned,
         at: usize,
         src: DevPtr<T>,
         count: usize,
-    ) -> Result<(), PhysicsError> {
+    ) -> Result<u64, PhysicsError> {
         let size = std::mem::size_of::<T>();
         let bytes = count * size;
         if bytes == 0 {
-            return Ok(());
+            return Ok(0);
         }
         if (at + count) * size > dst.bytes {
             return Err(PhysicsError::Device {
@@ -356,7 +356,8 @@ impl Gpu {
             sys::cuMemcpyDtoHAsync_v2((dst.ptr as *mut u8).add(at * size) as *mut c_void, src.raw(), bytes, self.stream)
                 .result()
         }
-        .map_err(dev_err("download"))
+        .map_err(dev_err("download"))?;
+        Ok(bytes as u64)
     }
 
     /// Records `event` on the stream.

@@ -103,8 +103,8 @@ impl ZoneViews {
         let kept = |c: u64| self.history.get(&zone).is_some_and(|h| h.iter().any(|(t, _)| *t == c));
         // Predicted nudges start from the tick before the base too.
         let bases_kept = |p: &Part| {
-            let predicted = p.nudges.iter().any(|n| n.prediction.needs_before());
-            p.base.is_some_and(|c| kept(c) && (!predicted || c.checked_sub(1).is_some_and(kept)))
+            let needs_before = p.nudges.iter().any(|n| n.prediction.needs_before());
+            p.base.is_some_and(|c| kept(c) && (!needs_before || c.checked_sub(1).is_some_and(kept)))
         };
         match parts.into_iter().all(|p| p.nudges.is_empty() || bases_kept(p)) {
             true => Applicable::Yes,

@@ -82,19 +82,19 @@ impl Resident {
         // held, copies each array into the World while the next one is still crossing
         // the bus).
         h.small.ensure(gpu, 64)?;
-        gpu.download_async(&mut h.small, 0, self.counters.ptr(), 2)?;
-        gpu.download_async(&mut h.small, 2, sc.add(n), 1)?;
-        gpu.download_async(&mut h.small, 3, dc.add(n), 1)?;
+        let mut down = gpu.download_async(&mut h.small, 0, self.counters.ptr(), 2)?;
+        down += gpu.download_async(&mut h.small, 2, sc.add(n), 1)?;
+        down += gpu.download_async(&mut h.small, 3, dc.add(n), 1)?;
         gpu.record(self.events[12].raw)?;
-        gpu.download_async(&mut h.pos, 0, o.pos.ptr(), 3 * n)?;
+        down += gpu.download_async(&mut h.pos, 0, o.pos.ptr(), 3 * n)?;
         gpu.record(self.events[13].raw)?;
         if held.is_none() {
-            gpu.download_async(&mut h.prev, 0, o.prev.ptr(), 3 * n)?;
+            down += gpu.download_async(&mut h.prev, 0, o.prev.ptr(), 3 * n)?;
         }
         gpu.record(self.events[14].raw)?;
-        gpu.download_async(&mut h.action, 0, o.action.ptr(), n)?;
+        down += gpu.download_async(&mut h.action, 0, o.action.ptr(), n)?;
         if held.is_none() {
-            gpu.download_async(&mut h.flags, 0, o.flags.ptr(), n)?;
+            down += gpu.download_async(&mut h.flags, 0, o.flags.ptr(), n)?;
         }
         gpu.record(self.events[11].raw)?;
         gpu.profile_host("host: physics, launches", launching);
@@ -119,10 +119,7 @@ impl Resident {
         report.dynamic_pairs = totals[1] as u64 / 2;
         report.static_contacts = contacts[0] as u64;
         report.dynamic_contacts = contacts[1] as u64;
-        // The four totals, positions and actions; previous positions and flags when
-        // nothing held them.
-        let per_object = if held.is_some() { 13 } else { 26 };
-        report.download_bytes = 16 + per_object * n as u64;
+        report.download_bytes = down;
         if let Some(held) = held {
             // Everything has landed before the world is written, and the world takes this
             // step's held copy only then: a step that fails leaves the world as it was,

@@ -8,9 +8,9 @@
 //! field: every body has exactly one encoding.
 //!
 //! **Packed views.** A view's body of 512 bytes or more travels compressed (zstd, kind
-//! [`KIND_VIEW_PACKED`]) whenever that makes it smaller: its nudges are mostly small integers in a few bytes
-//! each, and its whole records carry positions near one another, which a general
-//! compressor shortens by about a fifth (`docs/zones.md`, "Packed views"). The tag covers
+//! [`KIND_VIEW_PACKED`]) whenever that makes it smaller: its nudges are mostly small
+//! integers in a few bytes each, and its whole records carry positions near one
+//! another, which a general compressor shortens by about a fifth (`docs/zones.md`, "Packed views"). The tag covers
 //! the packed bytes, so nothing is unpacked before the sender is known; the plain body
 //! inside has the one encoding above, and a packed view that unpacks to anything else,
 //! or to more than its stated length, is refused.
@@ -222,7 +222,8 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
 /// same body.
 fn pack_view(h: Head, count: u32, plain: Vec<u8>) -> Vec<u8> {
     let body = &plain[HEADER_LEN..];
-    if body.len() < VIEW_PACK_MIN {
+    // Past the bound a decoder takes, the plain view goes (no fabric carries one).
+    if !(VIEW_PACK_MIN..=MAX_PACKED_VIEW_BODY).contains(&body.len()) {
         return plain;
     }
     // Compression into memory cannot fail for a body this size; if it ever did, the

@@ -224,3 +224,45 @@ impl Store {
         Ok(out)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use crate::password::VERIFIED_HASHES;
+    use crate::{HashCost, Store, StoreConfig, StoreError};
+
+    /// A PHC string's algorithm, version and cost (`$argon2id$v=19$m=…,t=…,p=…`), without
+    /// its salt and output.
+    fn cost_part(phc: &str) -> String {
+        phc.split('$').take(4).collect::<Vec<_>>().join("$")
+    }
+
+    /// An unknown username must cost a verification of the same cost as a wrong password,
+    /// or login timing tells which usernames exist. Checked by the work each login asked
+    /// for rather than by a clock: timings on a shared machine decide nothing.
+    #[tokio::test]
+    async fn an_unknown_user_costs_the_same_verification_as_a_wrong_password() {
+        let dir = tempfile::tempdir().unwrap();
+        let cost = HashCost { m_kib: 512, t: 2, p: 1 };
+        let store = Store::open(&StoreConfig::sqlite(dir.path()).hash_cost(cost)).await.unwrap();
+        store.create_user("known", "right-password").await.unwrap();
+        let stored: String = sqlx::query_scalar("SELECT password_hash FROM users WHERE username = ?")
+            .bind("known")
+            .fetch_one(&store.pool)
+            .await
+            .unwrap();
+        let asked = |phc: &str| VERIFIED_HASHES.lock().unwrap_or_else(|p| p.into_inner()).iter().any(|h| h == phc);
+        assert!(!asked(&stored) && !asked(&store.dummy_hash), "nothing checked yet");
+
+        let err = store.check_credentials("known", "wrong").await.unwrap_err();
+        assert!(matches!(err, StoreError::WrongCredentials), "{err:?}");
+        assert!(asked(&stored), "a wrong password is checked against the user's hash");
+        assert!(!asked(&store.dummy_hash));
+
+        let err = store.check_credentials("ghost", "wrong").await.unwrap_err();
+        assert!(matches!(err, StoreError::WrongCredentials), "{err:?}");
+        assert!(asked(&store.dummy_hash), "an unknown user is checked against the dummy hash");
+        assert_eq!(cost_part(&store.dummy_hash), cost_part(&stored), "the same algorithm and cost");
+        assert_eq!(cost_part(&stored), "$argon2id$v=19$m=512,t=2,p=1");
+        store.close().await;
+    }
+}

@@ -350,6 +350,34 @@ impl Terrain {
     pub fn sampling_constants(&self) -> (f32, f32, f32) {
         (self.inv_cell_x, self.inv_cell_z, self.height_scale)
     }
+
+    /// A hash of everything [`Terrain::height_at`] reads (what `==` compares), the same
+    /// on every machine and in every process: two processes that must compute the same
+    /// heights (a zone and a gateway) compare it instead of the samples. Unlike the
+    /// [`stamp`](Terrain::stamp), equal terrains hash equal.
+    pub fn content_hash(&self) -> u64 {
+        let mut h = xxhash_rust::xxh3::Xxh3::new();
+        h.update(&self.width.to_le_bytes());
+        h.update(&self.depth.to_le_bytes());
+        let floats = [
+            self.max_height,
+            self.origin_x,
+            self.origin_z,
+            self.extent_x,
+            self.extent_z,
+            self.base_y,
+            self.inv_cell_x,
+            self.inv_cell_z,
+            self.height_scale,
+        ];
+        for f in floats {
+            h.update(&f.to_bits().to_le_bytes());
+        }
+        for s in &self.samples {
+            h.update(&s.to_le_bytes());
+        }
+        h.digest()
+    }
 }
 
 /// Smoothly interpolated lattice noise in [0, 1) at `(u, v)` (lattice spacing 1).
@@ -397,6 +425,11 @@ mod tests {
         let c = Terrain::generate(8, 257, 257, 128.0, placement()).unwrap();
         assert_eq!(a, b);
         assert_ne!(a.samples(), c.samples());
+        assert_eq!(a.content_hash(), b.content_hash(), "equal terrains hash equal (their stamps differ)");
+        assert_ne!(a.stamp(), b.stamp());
+        assert_ne!(a.content_hash(), c.content_hash());
+        let moved = TerrainPlacement { base_y: -9.0, ..placement() };
+        assert_ne!(a.content_hash(), Terrain::generate(7, 257, 257, 128.0, moved).unwrap().content_hash());
         let (lo, hi) = (a.samples().iter().min().unwrap(), a.samples().iter().max().unwrap());
         assert_eq!((*lo, *hi), (0, 65535), "normalised to the full range");
         // Hills, not noise: neighbouring samples differ far less than the full range.

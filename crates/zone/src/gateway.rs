@@ -45,7 +45,8 @@ use crate::gateway_cuts::CutsBook;
 use crate::gateway_view::{Applicable, Part, ZoneViews};
 use crate::subscription::{Interest, InterestConfig};
 use crate::wire::{
-    ClusterKey, IntentKind, Intents, MAX_RESYNCS, Message, Subscription, decode, encode_intents, encode_subscription,
+    ClusterKey, FingerprintCache, GroundWorld, IntentKind, Intents, MAX_RESYNCS, Message, Subscription, decode,
+    encode_intents, encode_subscription,
 };
 
 /// Gateways a cluster can have (each owns a range of player ids).
@@ -255,6 +256,8 @@ pub struct ZonesBackend {
     /// The zones' cuts as the supervisor announced them (made at the first step, from
     /// the world's bounds; `None` before it, or when the bounds make no layout).
     cuts: Option<CutsBook>,
+    /// The ground fingerprint of its world, which its subscriptions name.
+    fingerprint: FingerprintCache,
     /// Whether the first step has made `cuts`.
     cuts_made: bool,
 }
@@ -309,6 +312,7 @@ impl ZonesBackend {
             boxes: Vec::new(),
             cuts: None,
             cuts_made: false,
+            fingerprint: FingerprintCache::default(),
         })
     }
 
@@ -435,6 +439,7 @@ impl ZonesBackend {
             cols,
             rows,
             cells: cells.to_bytes(cols, rows),
+            ground: self.fingerprint.of(GroundWorld { terrain: &world.terrain, bounds: &world.bounds }),
         };
         self.stats.subscription_cells = cells.count();
         let bytes = encode_subscription(&self.cfg.key, &s)?;
@@ -473,7 +478,14 @@ impl ZonesBackend {
                 if v.gateway != self.cfg.gateway {
                     return self.reject("misrouted");
                 }
-                let part = Part { base: v.base, objects: v.objects, moves: v.moves, nudges: v.nudges, gone: v.gone };
+                let part = Part {
+                    base: v.base,
+                    objects: v.objects,
+                    moves: v.moves,
+                    nudges: v.nudges,
+                    gone: v.gone,
+                    acts: v.acts,
+                };
                 ((v.run, v.tick, v.zone, v.part, v.parts), part)
             }
             // The supervisor's word to the zones, heard for the map of the cuts.
@@ -544,7 +556,7 @@ impl ZonesBackend {
     /// does not apply never will (each zone's messages come in order, so an earlier tick
     /// still incomplete lost one of them): such ticks are dropped and counted, and the
     /// zones asked for views relative to the confirmation ([`ZonesBackend::ask_resync`]).
-    fn take_complete(&mut self) -> Option<ZonesWorld> {
+    fn take_complete(&mut self, ground: GroundWorld<'_>) -> Option<ZonesWorld> {
         let mut took = None;
         loop {
             let complete: Vec<u64> =
@@ -580,7 +592,7 @@ impl ZonesBackend {
             self.stats.skipped += older.len() as u64;
             let parts = self.pending.pop_first().expect("the complete tick").1;
             for (z, (_, got)) in parts.zones {
-                let unknown = self.views.apply(z, got.into_values().collect());
+                let unknown = self.views.apply(z, got.into_values().collect(), ground);
                 if unknown > 0 {
                     *self.stats.rejected.entry("move").or_default() += unknown;
                 }
@@ -612,8 +624,10 @@ impl ZonesBackend {
     }
 
     /// Step 2: the newest world of the zones, waiting up to `wait` for one newer than
-    /// the last.
-    fn next_world(&mut self) -> Result<Option<ZonesWorld>, ZoneError> {
+    /// the last (ground nudges predicted on `world`'s ground, which the subscriptions
+    /// name).
+    fn next_world(&mut self, world: &World) -> Result<Option<ZonesWorld>, ZoneError> {
+        let ground = GroundWorld { terrain: &world.terrain, bounds: &world.bounds };
         let deadline = Instant::now() + self.cfg.wait;
         let mut now = Instant::now();
         loop {
@@ -621,7 +635,7 @@ impl ZonesBackend {
             while let Some(bytes) = self.link.recv_states(now)? {
                 self.offer(&bytes);
             }
-            if let Some(found) = self.take_complete() {
+            if let Some(found) = self.take_complete(ground) {
                 return Ok(Some(found));
             }
             match self.link.recv_states(deadline)? {
@@ -735,7 +749,7 @@ impl Backend for ZonesBackend {
                 .ok();
         }
         let sent = self.send_intents(world).and_then(|()| self.send_subscription(world));
-        let taken = self.next_world().and_then(|next| match next {
+        let taken = self.next_world(world).and_then(|next| match next {
             Some((tick, objects)) => {
                 self.mirror(world, objects)?;
                 self.stats.mirrors += 1;

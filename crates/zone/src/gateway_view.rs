@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, VecDeque};
 use myriad_core::{EntityId, ObjectState, Vec3};
 
 use crate::views::{NUDGE_WINDOW, Positions, seek};
-use crate::wire::Nudge;
+use crate::wire::{Ground, GroundWorld, Nudge};
 
 /// One part of a zone's message of one tick, as the gateway files it.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -24,6 +24,8 @@ pub(crate) struct Part {
     pub nudges: Vec<Nudge>,
     /// Ids to drop.
     pub gone: Vec<EntityId>,
+    /// New actions of objects held.
+    pub acts: Vec<(EntityId, u8)>,
 }
 
 /// Whether a zone's parts of one tick can be applied.
@@ -113,9 +115,10 @@ impl ZoneViews {
     }
 
     /// Applies zone `zone`'s parts of one tick (all of the same base; checked with
-    /// [`ZoneViews::applicable`]); returns how many moves or nudges named an object not
-    /// held (ignored: never sent to a gateway that holds what it confirmed).
-    pub fn apply(&mut self, zone: u16, parts: Vec<Part>) -> u64 {
+    /// [`ZoneViews::applicable`]), ground nudges on `ground`; returns how many moves,
+    /// nudges or acts named an object not held (ignored: never sent to a gateway that
+    /// holds what it confirmed) or gave no position.
+    pub fn apply(&mut self, zone: u16, parts: Vec<Part>, ground: GroundWorld<'_>) -> u64 {
         let held = self.zones.entry(zone).or_default();
         let history = self.history.get(&zone);
         let mut parts = parts.into_iter().peekable();
@@ -124,12 +127,27 @@ impl ZoneViews {
             let first = parts.next().expect("peeked");
             *held = first.objects.into_iter().map(|o| (o.id, o)).collect();
         }
+        let mut parts: Vec<Part> = parts.collect();
         let mut unknown = 0;
-        for p in parts {
+        // Every part's records and acts before any part's nudges: a ground nudge reads
+        // the object's action, which another part of the tick may carry.
+        for p in &mut parts {
             for id in &p.gone {
                 held.remove(id);
             }
-            held.extend(p.objects.into_iter().map(|o| (o.id, o)));
+            held.extend(p.objects.drain(..).map(|o| (o.id, o)));
+            let acts = std::mem::take(&mut p.acts);
+            unknown += update_sorted(
+                held,
+                acts,
+                |a| a.0,
+                |o, (_, action)| {
+                    o.action = action;
+                    true
+                },
+            );
+        }
+        for p in parts {
             unknown += update_sorted(
                 held,
                 p.moves,
@@ -153,7 +171,8 @@ impl ZoneViews {
                 |o, n| {
                     let Some(from) = seek(at_base, &mut b, n.id) else { return false };
                     let before = if n.prediction.needs_before() { seek(at_prior, &mut q, n.id) } else { None };
-                    n.apply(before, from).map(|pos| o.pos = pos).is_some()
+                    let on = Ground { world: ground, action: o.action, half_y: o.half.y };
+                    n.apply(before, from, Some(&on)).map(|pos| o.pos = pos).is_some()
                 },
             );
         }

@@ -9,11 +9,13 @@
 //! - every object of V that entered V after c, whole (48 bytes), and the new position
 //!   of every other object of V that changed after c (its state differs bit for bit
 //!   from the tick before), since an object's id, kind, shape and extents never change
-//!   and nothing at a gateway reads another object's previous position, action or flags
-//!   (the gateway's own players always come whole): a *nudge*, the change of the
-//!   position's bits since its state at c (4 to 14 bytes, [`crate::wire::Nudge`]), when
-//!   the zone still has its positions of tick c ([`NUDGE_WINDOW`]) and the change is
-//!   small, else a *move* of 16 bytes;
+//!   and nothing at a gateway reads another object's previous position or flags (the
+//!   gateway's own players always come whole): a *nudge*, the change of the position's
+//!   bits since its state at c (4 to 14 bytes, [`crate::wire::Nudge`]), when the zone
+//!   still has its positions of tick c ([`NUDGE_WINDOW`]) and the change is small, else
+//!   a *move* of 16 bytes; and, for each such object whose action changed after c, its
+//!   action (*acts*: a gateway keeps every object's action for the ground prediction of
+//!   nudges, which reads it);
 //! - the ids of objects that left V (moved out of the cells, cells unsubscribed, handed
 //!   to another zone, removed) after c: **gone** (kept until the gateway confirms past
 //!   them, for the views relative to its confirmation);
@@ -62,7 +64,8 @@ use crate::gateway::{MAX_GATEWAYS, player_ids};
 use crate::layout::ZoneId;
 use crate::subscription::{CellGrid, CellSet};
 use crate::wire::{
-    ClusterKey, HEADER_LEN, MOVE_LEN, NUDGE_MAX_LEN, Nudge, RECORD_LEN, Subscription, TAG_LEN, View, encode_view,
+    ACT_LEN, ClusterKey, FingerprintCache, Ground, GroundWorld, HEADER_LEN, MOVE_LEN, NUDGE_MAX_LEN, Nudge, RECORD_LEN,
+    Subscription, TAG_LEN, VIEW_FIXED, View, encode_view,
 };
 
 /// Ticks after which a silent subscriber is dropped (5 s at 30 Hz, as a silent
@@ -171,6 +174,9 @@ struct Subscriber {
     known: Vec<(EntityId, u64)>,
     /// Objects that left its view, with the tick they left, until it confirms past it.
     gone: HashMap<EntityId, u64>,
+    /// The ground fingerprint its subscription names (0: none): its nudges are
+    /// predicted on the ground when it is this zone's.
+    ground: u64,
 }
 
 impl Subscriber {
@@ -196,11 +202,12 @@ impl Subscriber {
     }
 }
 
-/// An owned object and the last tick its state changed.
+/// An owned object, the last tick its state changed and the last its action did.
 #[derive(Clone, Copy, Debug)]
 struct Tracked {
     state: ObjectState,
     changed_at: u64,
+    acted_at: u64,
 }
 
 /// The owned objects of one grid, by cell.
@@ -277,6 +284,8 @@ pub struct Subscribers {
     buckets: Vec<(CellGrid, Buckets)>,
     /// Scratch: a bit per tracked object, the objects of the gateway at hand.
     marks: Vec<u64>,
+    /// The ground fingerprint of the world published from.
+    fingerprint: FingerprintCache,
 }
 
 impl Subscribers {
@@ -324,6 +333,7 @@ impl Subscribers {
                 e.version = s.version;
                 e.grid = grid;
                 e.cells = cells;
+                e.ground = s.ground;
                 // Confirmations only grow; none (the gateway dropped what it had) asks
                 // for a whole view, as one of another run does.
                 let dropped = e.confirmed.is_some() && confirmed.is_none();
@@ -356,6 +366,7 @@ impl Subscribers {
                     heard_at: tick,
                     known: Vec::new(),
                     gone: HashMap::new(),
+                    ground: s.ground,
                 };
                 self.gateways.insert(s.gateway, fresh);
             }
@@ -365,13 +376,14 @@ impl Subscribers {
 
     /// After the step that reached `tick`: each subscribed gateway's view of `owned`
     /// (the zone's owned objects, ids ascending), encoded in parts of at most
-    /// `max_message` bytes and handed to `send(gateway, bytes)`. Returns what went to
-    /// each gateway.
+    /// `max_message` bytes and handed to `send(gateway, bytes)`. Nudges are predicted on
+    /// the ground of `world` for the gateways whose subscriptions name its fingerprint.
+    /// Returns what went to each gateway.
     pub fn publish(
         &mut self,
         key: &ClusterKey,
         (run, tick, zone): (u64, u64, ZoneId),
-        owned: impl Iterator<Item = ObjectState>,
+        (owned, world): (impl Iterator<Item = ObjectState>, GroundWorld<'_>),
         max_message: usize,
         mut send: impl FnMut(u16, Vec<u8>) -> Result<(), ZoneError>,
     ) -> Result<Vec<(u16, Sent)>, ZoneError> {
@@ -392,8 +404,10 @@ impl Subscribers {
         for (grid, b) in &mut self.buckets {
             b.fill(grid, &self.tracked);
         }
+        let fingerprint = self.fingerprint.of(world);
         let mut out = Vec::with_capacity(self.gateways.len());
         for (&g, s) in &mut self.gateways {
+            let ground = (s.ground == fingerprint).then_some(world);
             let buckets = &self.buckets.iter().find(|(grid, _)| *grid == s.grid).expect("filled").1;
             let base = s.base(run, tick);
             let positions = |c: Option<u64>| {
@@ -401,13 +415,15 @@ impl Subscribers {
             };
             let prior = s.prior(run, tick, base).map(|p| (p, positions(Some(p))));
             let at = Bases { base: positions(base), prior };
-            let (objects, moves, nudges, gone) = view_of(g, s, base, &self.tracked, buckets, tick, at, &mut self.marks);
+            let (objects, moves, nudges, gone, acts) =
+                view_of(g, s, base, &self.tracked, buckets, tick, at, ground, &mut self.marks);
             if s.resync == Resync::Asked {
                 s.resync = Resync::Since(tick);
             }
             s.last_sent = Some((run, tick, base));
             let mut sent = Sent { objects: (objects.len() + moves.len() + nudges.len()) as u64, ..Sent::default() };
-            for (part, parts, (records, moved, nudged, ids)) in parts(&objects, &moves, &nudges, &gone, max_message)? {
+            let lists = (&objects[..], &moves[..], &nudges[..], &gone[..], &acts[..]);
+            for (part, parts, (records, moved, nudged, ids, acted)) in parts(lists, max_message)? {
                 let v = View {
                     run,
                     tick,
@@ -420,6 +436,7 @@ impl Subscribers {
                     moves: moved.to_vec(),
                     nudges: nudged.to_vec(),
                     gone: ids.to_vec(),
+                    acts: acted.to_vec(),
                 };
                 let bytes = encode_view(key, &v)?;
                 sent.bytes += bytes.len() as u64;
@@ -441,11 +458,12 @@ impl Subscribers {
             while i < old.len() && old[i].state.id < state.id {
                 i += 1;
             }
-            let changed_at = match old.get(i) {
-                Some(t) if same(&t.state, &state) => t.changed_at,
-                _ => tick,
+            let (changed_at, acted_at) = match old.get(i) {
+                Some(t) if same(&t.state, &state) => (t.changed_at, t.acted_at),
+                Some(t) if t.state.id == state.id && t.state.action == state.action => (tick, t.acted_at),
+                _ => (tick, tick),
             };
-            self.tracked.push(Tracked { state, changed_at });
+            self.tracked.push(Tracked { state, changed_at, acted_at });
         }
         // A rollback starts the ticks again: positions of a later tick are of no use.
         self.history.retain(|(t, _)| *t < tick && *t + NUDGE_WINDOW >= tick);
@@ -459,8 +477,8 @@ impl Subscribers {
     }
 }
 
-/// What a view holds: whole records, moves, nudges, gone ids (each ids ascending).
-type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<Nudge>, Vec<EntityId>);
+/// What a view holds: whole records, moves, nudges, gone ids, acts (each ids ascending).
+type ViewLists = (Vec<ObjectState>, Vec<(EntityId, Vec3)>, Vec<Nudge>, Vec<EntityId>, Vec<(EntityId, u8)>);
 
 /// The owned objects' positions (ids ascending) that a view's nudges start from.
 struct Bases<'a> {
@@ -472,7 +490,7 @@ struct Bases<'a> {
 }
 
 /// Gateway `g`'s view at `tick` relative to `base` (`None`: whole), nudging from the
-/// positions `at`. Updates what it was sent. `marks` is scratch.
+/// positions `at`, on `ground` when given. Updates what it was sent. `marks` is scratch.
 #[allow(clippy::too_many_arguments)]
 fn view_of(
     g: u16,
@@ -482,6 +500,7 @@ fn view_of(
     buckets: &Buckets,
     tick: u64,
     at: Bases<'_>,
+    ground: Option<GroundWorld<'_>>,
     marks: &mut Vec<u64>,
 ) -> ViewLists {
     if base.is_none() {
@@ -502,7 +521,7 @@ fn view_of(
     let to = tracked.partition_point(|t| t.state.id.0 < players.end);
     (from..to).for_each(|i| mark(i as u32));
     // Then in id order, merged with what the gateway knows and the base's positions.
-    let (mut objects, mut moves, mut nudges) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut objects, mut moves, mut nudges, mut acts) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let old = std::mem::take(&mut s.known);
     let mut known = Vec::with_capacity(old.len() + 64);
     let (mut k, mut b) = (0, 0);
@@ -536,6 +555,11 @@ fn view_of(
             if whole {
                 objects.push(t.state);
             } else if moved {
+                // The gateway holds its action as of c or later: a newer one goes first
+                // (it applies a tick's acts before its nudges).
+                if t.acted_at > c {
+                    acts.push((id, t.state.action));
+                }
                 // Known since c or before, so it was in V at c and the positions of c
                 // hold it (when the zone still has them).
                 let from = seek(at.base, &mut b, id);
@@ -544,7 +568,8 @@ fn view_of(
                     Some((prior, positions)) if since <= prior => seek(positions, &mut q, id),
                     _ => None,
                 };
-                let nudge = from.map(|from| Nudge::shortest(id, before, from, t.state.pos));
+                let on = ground.map(|world| Ground { world, action: t.state.action, half_y: t.state.half.y });
+                let nudge = from.map(|from| Nudge::shortest(id, before, from, t.state.pos, on.as_ref()));
                 match nudge {
                     Some(n) if n.compact() => nudges.push(n),
                     _ => moves.push((id, t.state.pos)),
@@ -565,26 +590,21 @@ fn view_of(
     };
     gone.sort_unstable();
     // Taken in id order: every list is ascending already.
-    (objects, moves, nudges, gone)
+    (objects, moves, nudges, gone, acts)
 }
 
 /// One part's slices of a view's lists.
-type PartLists<'a> = (&'a [ObjectState], &'a [(EntityId, Vec3)], &'a [Nudge], &'a [EntityId]);
+type PartLists<'a> = (&'a [ObjectState], &'a [(EntityId, Vec3)], &'a [Nudge], &'a [EntityId], &'a [(EntityId, u8)]);
 
-/// A view's records, moves, nudges and gone ids in parts that fit `max_message` bytes
-/// (at least one part, even when empty): (part, parts, its slices).
-fn parts<'a>(
-    objects: &'a [ObjectState],
-    moves: &'a [(EntityId, Vec3)],
-    nudges: &'a [Nudge],
-    gone: &'a [EntityId],
-    max_message: usize,
-) -> Result<Vec<(u16, u16, PartLists<'a>)>, ZoneError> {
-    // A quarter of a message for each list, so that a part with all four still fits
+/// A view's records, moves, nudges, gone ids and acts in parts that fit `max_message`
+/// bytes (at least one part, even when empty): (part, parts, its slices).
+fn parts(lists: PartLists<'_>, max_message: usize) -> Result<Vec<(u16, u16, PartLists<'_>)>, ZoneError> {
+    let (objects, moves, nudges, gone, acts) = lists;
+    // A fifth of a message for each list, so that a part with all five still fits
     // (nudges at their largest: every one the zone sends is compact).
-    let room = max_message.saturating_sub(HEADER_LEN + TAG_LEN + 24) / 4;
-    let per = [RECORD_LEN, MOVE_LEN, NUDGE_MAX_LEN, 4].map(|len| (room / len).max(1));
-    let lens = [objects.len(), moves.len(), nudges.len(), gone.len()];
+    let room = max_message.saturating_sub(HEADER_LEN + TAG_LEN + VIEW_FIXED) / 5;
+    let per = [RECORD_LEN, MOVE_LEN, NUDGE_MAX_LEN, 4, ACT_LEN].map(|len| (room / len).max(1));
+    let lens = [objects.len(), moves.len(), nudges.len(), gone.len(), acts.len()];
     let n = lens.iter().zip(per).map(|(len, per)| len.div_ceil(per)).max().unwrap_or(0).max(1);
     let parts = u16::try_from(n).map_err(|_| ZoneError::Fabric(format!("a view of {n} parts")))?;
     fn chunk<T>(all: &[T], per: usize, i: usize) -> &[T] {
@@ -592,8 +612,13 @@ fn parts<'a>(
     }
     Ok((0..n)
         .map(|i| {
-            let lists =
-                (chunk(objects, per[0], i), chunk(moves, per[1], i), chunk(nudges, per[2], i), chunk(gone, per[3], i));
+            let lists = (
+                chunk(objects, per[0], i),
+                chunk(moves, per[1], i),
+                chunk(nudges, per[2], i),
+                chunk(gone, per[3], i),
+                chunk(acts, per[4], i),
+            );
             (i as u16, parts, lists)
         })
         .collect())

@@ -1,6 +1,9 @@
+use std::sync::LazyLock;
+
 use super::*;
 use crate::wire::{Message, Prediction, decode};
-use myriad_core::Vec3;
+use myriad_core::terrain::TerrainPlacement;
+use myriad_core::{Action, Terrain, Vec3};
 
 const RUN: u64 = 4;
 const G: u16 = 1;
@@ -11,6 +14,18 @@ fn key() -> ClusterKey {
 
 fn bounds() -> Aabb {
     Aabb::new(Vec3::ZERO, Vec3::new(100.0, 20.0, 100.0))
+}
+
+/// Hills under `bounds()`, up to 12 units high.
+static HILLS: LazyLock<Terrain> = LazyLock::new(|| {
+    let at = TerrainPlacement { origin_x: 0.0, origin_z: 0.0, extent_x: 100.0, extent_z: 100.0, base_y: 0.0 };
+    Terrain::generate(5, 33, 33, 12.0, at).unwrap()
+});
+static BOUNDS: LazyLock<Aabb> = LazyLock::new(bounds);
+
+/// The zone's world: the hills and the bounds.
+fn ground() -> GroundWorld<'static> {
+    GroundWorld { terrain: &HILLS, bounds: &BOUNDS }
 }
 
 fn object(id: u32, x: f32, z: f32) -> ObjectState {
@@ -37,6 +52,7 @@ fn subscription(incarnation: u64, version: u64, confirmed: Option<u64>) -> Subsc
         cols: 10,
         rows: 10,
         cells: cells.to_bytes(10, 10),
+        ground: 0,
     }
 }
 
@@ -48,7 +64,7 @@ fn publish(
     owned: &[ObjectState],
 ) -> Vec<(u16, Option<u64>, Vec<u32>, Vec<u32>, Vec<u32>)> {
     let mut out = Vec::new();
-    subs.publish(&key(), (RUN, tick, ZoneId(0)), owned.iter().copied(), 1 << 20, |g, bytes| {
+    subs.publish(&key(), (RUN, tick, ZoneId(0)), (owned.iter().copied(), ground()), 1 << 20, |g, bytes| {
         let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
         assert_eq!((v.run, v.tick, v.gateway, v.parts), (RUN, tick, g, 1));
         let ids = |v: &[EntityId]| v.iter().map(|id| id.0).collect::<Vec<_>>();
@@ -143,7 +159,7 @@ fn a_view_is_whole_then_only_what_changed_and_what_left_since_its_base() {
 /// Gateway `G`'s views of `tick`, decoded.
 fn views(subs: &mut Subscribers, tick: u64, owned: &[ObjectState]) -> Vec<View> {
     let mut out = Vec::new();
-    subs.publish(&key(), (RUN, tick, ZoneId(0)), owned.iter().copied(), 1 << 20, |_, bytes| {
+    subs.publish(&key(), (RUN, tick, ZoneId(0)), (owned.iter().copied(), ground()), 1 << 20, |_, bytes| {
         let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
         out.push(v);
         Ok(())
@@ -153,7 +169,8 @@ fn views(subs: &mut Subscribers, tick: u64, owned: &[ObjectState]) -> Vec<View> 
 }
 
 fn part(v: View) -> crate::gateway_view::Part {
-    crate::gateway_view::Part { base: v.base, objects: v.objects, moves: v.moves, nudges: v.nudges, gone: v.gone }
+    let View { base, objects, moves, nudges, gone, acts, .. } = v;
+    crate::gateway_view::Part { base, objects, moves, nudges, gone, acts }
 }
 
 #[test]
@@ -165,7 +182,7 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
     subs.offer(subscription(10, 1, None), RUN, 1, &bounds()).unwrap();
     let v = views(&mut subs, 2, &world).remove(0);
     assert_eq!(v.base, None);
-    gateway.apply(0, vec![part(v)]);
+    gateway.apply(0, vec![part(v)], ground());
     gateway.remember(2);
     subs.offer(subscription(10, 1, Some(2)), RUN, 2, &bounds()).unwrap();
     // Walk every object a little each tick, and one far (a move, not a nudge); the
@@ -195,7 +212,7 @@ fn small_moves_go_as_nudges_along_a_chain_and_after_a_lost_view_and_rebuild_exac
         match gateway.applicable(0, &parts, Some(taken)) {
             _ if tick == 14 => {}
             Applicable::Yes => {
-                assert_eq!(gateway.apply(0, parts), 0);
+                assert_eq!(gateway.apply(0, parts, ground()), 0);
                 gateway.remember(tick);
                 taken = tick;
                 took.push(tick);
@@ -250,4 +267,84 @@ fn bad_subscriptions_are_refused_with_their_reason() {
     assert!(subs.is_empty(), "nothing refused was kept");
     subs.offer(s, RUN, 20, &bounds()).unwrap();
     assert_eq!(subs.cells_of(G), Some(30));
+}
+
+/// The positions (as bits) and actions of `objects` with x below 30 (the subscription's
+/// cells), ids ascending.
+fn seen(objects: impl Iterator<Item = ObjectState>) -> Vec<(u32, [u32; 3], u8)> {
+    objects.filter(|o| o.pos.x < 30.0).map(|o| (o.id.0, o.pos.to_array().map(f32::to_bits), o.action)).collect()
+}
+
+#[test]
+fn walkers_on_the_hills_go_as_ground_nudges_with_their_actions_and_rebuild_exact_positions() {
+    use crate::gateway_view::{Applicable, ZoneViews};
+    use myriad_physics::TickConstants;
+    use myriad_physics::integrate::{enforce_limits, integrate};
+    let k = TickConstants::default();
+    let ways = [Action::FORWARD, Action::FORWARD | Action::RIGHT, Action::RIGHT, Action::BACK | Action::LEFT, 0];
+    // Twenty walkers on the terrain, stepped by the physics' own integration and limits
+    // (no contacts), each changing its way every 7 ticks at its own phase.
+    let mut objects: Vec<ObjectState> = (1..=20)
+        .map(|i| {
+            let (x, z) = (3.0 + i as f32 * 1.1, 10.0 + 3.7 * i as f32);
+            let mut o = object(i, x, z);
+            o.pos.y = HILLS.height_at(x, z) + o.half.y;
+            o.prev = o.pos;
+            o.flags = myriad_core::world::flags::ON_TERRAIN;
+            o
+        })
+        .collect();
+    let step = |objects: &mut Vec<ObjectState>, tick: u64| {
+        for (i, o) in objects.iter_mut().enumerate() {
+            if (tick + i as u64) % 7 == 0 {
+                o.action = ways[(tick as usize + i) % ways.len()];
+            }
+            let (mut pos, mut prev) = (o.pos, o.prev);
+            integrate(&mut pos, &mut prev, o.action, o.flags != 0, &k);
+            o.flags = enforce_limits(&mut pos, &mut prev, o.half, &BOUNDS, &HILLS, &k);
+            (o.pos, o.prev) = (pos, prev);
+        }
+    };
+    for (name, fingerprint) in [("named", ground().fingerprint()), ("another world's", 7), ("none", 0)] {
+        let mut world_now = objects.clone();
+        let mut subs = Subscribers::default();
+        let mut gateway = ZoneViews::default();
+        let mut sub = subscription(10, 1, None);
+        sub.ground = fingerprint;
+        subs.offer(sub.clone(), RUN, 1, &bounds()).unwrap();
+        gateway.apply(0, views(&mut subs, 2, &world_now).into_iter().map(part).collect(), ground());
+        gateway.remember(2);
+        let (mut on_ground, mut acts, mut nudges) = (0, 0, 0);
+        for tick in 3..40u64 {
+            step(&mut world_now, tick);
+            let v = views(&mut subs, tick, &world_now);
+            for v in &v {
+                on_ground += v.nudges.iter().filter(|n| n.prediction == Prediction::Ground).count();
+                nudges += v.nudges.len();
+                acts += v.acts.len();
+                // An act is sent only for an object whose action changed this tick (a
+                // chain: each change once).
+                for &(id, action) in &v.acts {
+                    let o = world_now.iter().find(|o| o.id == id).unwrap();
+                    assert_eq!(o.action, action);
+                    assert_eq!((tick + u64::from(id.0) - 1) % 7, 0, "{name}: tick {tick}, act of {id:?}");
+                }
+            }
+            let parts: Vec<_> = v.into_iter().map(part).collect();
+            assert_eq!(gateway.applicable(0, &parts, Some(tick - 1)), Applicable::Yes);
+            assert_eq!(gateway.apply(0, parts, ground()), 0);
+            gateway.remember(tick);
+            let held = gateway.assemble();
+            assert_eq!(seen(held.iter().map(|(o, _)| *o)), seen(world_now.iter().copied()), "{name}: tick {tick}");
+            sub.confirmed = Some((RUN, tick));
+            subs.offer(sub.clone(), RUN, tick, &bounds()).unwrap();
+        }
+        assert!(acts > 0, "{name}: the actions changed");
+        if fingerprint == ground().fingerprint() {
+            assert!(on_ground * 2 > nudges, "{name}: most walkers go as ground nudges ({on_ground} of {nudges})");
+        } else {
+            assert_eq!(on_ground, 0, "{name}: no ground nudges for a gateway on another ground");
+        }
+    }
+    objects.clear();
 }

@@ -29,18 +29,19 @@ use cuts::{cut_block, read_cuts};
 
 mod interest;
 pub use interest::{
-    KIND_SUBSCRIPTION, KIND_VIEW, KIND_VIEW_PACKED, MAX_CELLS, MAX_PACKED_VIEW_BODY, MAX_RESYNCS, MOVE_LEN,
-    Subscription, View, cell_bytes, encode_subscription, encode_view,
+    ACT_LEN, KIND_SUBSCRIPTION, KIND_VIEW, KIND_VIEW_PACKED, MAX_CELLS, MAX_PACKED_VIEW_BODY, MAX_RESYNCS, MOVE_LEN,
+    Subscription, VIEW_FIXED, View, cell_bytes, encode_subscription, encode_view,
 };
 mod nudge;
-pub use nudge::{NUDGE_MAX_LEN, Nudge, Prediction};
+pub use nudge::{FingerprintCache, Ground, GroundWorld, NUDGE_MAX_LEN, Nudge, Prediction, ground_fingerprint};
 
 /// First two bytes of every message.
 pub const MAGIC: [u8; 2] = *b"MZ";
 /// The format's version; a message of another version is refused. (2: heartbeats carry
 /// the zone's load, starts and checkpoints the cuts, and cut moves exist; 3: views carry
-/// nudges; 4: views travel packed.)
-pub const VERSION: u8 = 4;
+/// nudges; 4: views travel packed; 5: ground nudges, views carry acts, subscriptions the
+/// ground fingerprint.)
+pub const VERSION: u8 = 5;
 /// Bytes before the body.
 pub const HEADER_LEN: usize = 32;
 /// Bytes of one object record.

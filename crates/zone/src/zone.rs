@@ -38,8 +38,8 @@ use crate::resident::ResidentWorld;
 use crate::stats::ZoneStats;
 use crate::views::Subscribers;
 use crate::wire::{
-    ALL, Border, BorderRecord, ClusterKey, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode, encode_border,
-    encode_states,
+    ALL, Border, BorderRecord, ClusterKey, GroundWorld, HEADER_LEN, Message, RECORD_LEN, TAG_LEN, decode,
+    encode_border, encode_states,
 };
 
 mod cuts;
@@ -351,7 +351,9 @@ impl Zone {
         let at = (self.cfg.run, self.tick(), self.cfg.id);
         let max = self.fabric.max_message();
         let fabric = &mut self.fabric;
-        let owned = self.resident.owned_states();
+        let world = self.resident.world();
+        let ground = GroundWorld { terrain: &world.terrain, bounds: &world.bounds };
+        let owned = (self.resident.owned_states(), ground);
         let sent = self.subscribers.publish(&self.cfg.key, at, owned, max, |g, b| fabric.send_view(g, b))?;
         for (g, s) in sent {
             let v = self.stats.views.entry(g).or_default();

@@ -165,6 +165,7 @@ fn hostile(key: &ClusterKey, port: &GatewayPort) {
         cols: 16,
         rows: 16,
         cells: vec![0xff; 32],
+        ground: 0,
     };
     let stranger = ClusterKey::new(b"another cluster's key, not ours").unwrap();
     let bytes = encode_subscription(key, &good).unwrap();

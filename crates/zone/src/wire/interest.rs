@@ -15,7 +15,7 @@
 //! inside has the one encoding above, and a packed view that unpacks to anything else,
 //! or to more than its stated length, is refused.
 
-use myriad_core::{EntityId, ObjectState, Vec3};
+use myriad_core::{Action, EntityId, ObjectState, Vec3};
 
 use super::nudge::{Nudge, nudges, nudges_len, put_nudges};
 use super::{ALL, ClusterKey, HEADER_LEN, Head, RECORD_LEN, WireError, header, plain, record, sign};
@@ -41,12 +41,14 @@ const VIEW_PACK_MIN: usize = 512;
 /// Most cells a subscription's grid may have (a 32 KiB bit set).
 pub const MAX_CELLS: u64 = 1 << 18;
 /// Bytes of a subscription's body before its cells.
-const SUBSCRIPTION_FIXED: usize = 24;
-/// Bytes of a view's body before its records: base, counts of gone ids, moves and
-/// nudges, and the nudges' bytes.
-const VIEW_FIXED: usize = 24;
+const SUBSCRIPTION_FIXED: usize = 32;
+/// Bytes of a view's body before its records: base, counts of gone ids, moves, nudges
+/// and acts, and the nudges' bytes.
+pub const VIEW_FIXED: usize = 28;
 /// Bytes of a move: id and position.
 pub const MOVE_LEN: usize = 16;
+/// Bytes of an act: id and action.
+pub const ACT_LEN: usize = 5;
 /// A subscription's `resyncs` stay below this (they share a word with a flag).
 pub const MAX_RESYNCS: u32 = 1 << 31;
 /// A view's base when it is whole (the gateway drops what it had of the zone).
@@ -80,6 +82,10 @@ pub struct Subscription {
     /// One bit per cell, row-major (cell `row × cols + col` is bit `i % 8` of byte
     /// `i / 8`); the bits past the last cell are zero.
     pub cells: Vec<u8>,
+    /// The fingerprint of the gateway's terrain and bounds
+    /// ([`crate::wire::ground_fingerprint`]; 0: none): a zone whose world has the same
+    /// predicts its nudges on the ground.
+    pub ground: u64,
 }
 
 /// One part of what a zone sends one gateway after a step: its owned objects in the
@@ -116,6 +122,10 @@ pub struct View {
     /// Objects of this zone the gateway must drop (they left its cells, or the zone),
     /// ids ascending; none in a whole view.
     pub gone: Vec<EntityId>,
+    /// The new actions of objects the gateway holds (ids ascending), which ground nudges
+    /// read: the gateway applies them before the tick's moves and nudges. None in a
+    /// whole view.
+    pub acts: Vec<(EntityId, u8)>,
 }
 
 /// Bytes of the bit set of `cols × rows` cells.
@@ -153,6 +163,7 @@ pub fn encode_subscription(key: &ClusterKey, s: &Subscription) -> Result<Vec<u8>
     b.extend_from_slice(&s.cell.to_le_bytes());
     b.extend_from_slice(&run.to_le_bytes());
     b.extend_from_slice(&tick.to_le_bytes());
+    b.extend_from_slice(&s.ground.to_le_bytes());
     b.extend_from_slice(&s.cells);
     Ok(sign(key, &b))
 }
@@ -168,7 +179,8 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     if v.parts == 0 || v.part >= v.parts {
         return Err(WireError::Part { part: v.part, parts: v.parts });
     }
-    let whole_with_changes = v.base.is_none() && !(v.gone.is_empty() && v.moves.is_empty() && v.nudges.is_empty());
+    let whole_with_changes =
+        v.base.is_none() && !(v.gone.is_empty() && v.moves.is_empty() && v.nudges.is_empty() && v.acts.is_empty());
     if v.gateway == ALL.0 || v.zone == ALL || whole_with_changes || v.base == Some(WHOLE) {
         return Err(WireError::Field("view"));
     }
@@ -180,6 +192,7 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
         || !ascending(&mut v.moves.iter().map(|m| m.0))
         || !ascending(&mut v.gone.iter().copied())
         || !ascending(&mut v.nudges.iter().map(|n| n.id))
+        || !ascending(&mut v.acts.iter().map(|a| a.0))
         || overlap(&v.moves, &v.nudges)
     {
         return Err(WireError::Field("view ids"));
@@ -187,21 +200,31 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     if v.moves.iter().any(|(_, p)| !p.is_finite()) {
         return Err(WireError::Field("view moves"));
     }
+    if v.acts.iter().any(|&(_, a)| Action::from_bits(a).is_none()) {
+        return Err(WireError::Field("view acts"));
+    }
     let count = u32::try_from(v.objects.len()).map_err(|_| WireError::Field("view records"))?;
     let gone = u32::try_from(v.gone.len()).map_err(|_| WireError::Field("view gone"))?;
     let moves = u32::try_from(v.moves.len()).map_err(|_| WireError::Field("view moves"))?;
     let nudges = u32::try_from(v.nudges.len()).map_err(|_| WireError::Field("view nudges"))?;
+    let acts = u32::try_from(v.acts.len()).map_err(|_| WireError::Field("view acts"))?;
     let nudge_bytes = nudges_len(&v.nudges);
     let nudge_len = u32::try_from(nudge_bytes).map_err(|_| WireError::Field("view nudges"))?;
     let h =
         Head { kind: KIND_VIEW, run: v.run, tick: v.tick, from: v.zone, to: ZoneId(v.gateway), aux: [v.part, v.parts] };
-    let body = VIEW_FIXED + v.objects.len() * RECORD_LEN + v.moves.len() * MOVE_LEN + v.gone.len() * 4 + nudge_bytes;
+    let body = VIEW_FIXED
+        + v.objects.len() * RECORD_LEN
+        + v.moves.len() * MOVE_LEN
+        + v.gone.len() * 4
+        + v.acts.len() * ACT_LEN
+        + nudge_bytes;
     let mut b = header(&h, count, body);
     b.extend_from_slice(&v.base.unwrap_or(WHOLE).to_le_bytes());
     b.extend_from_slice(&gone.to_le_bytes());
     b.extend_from_slice(&moves.to_le_bytes());
     b.extend_from_slice(&nudges.to_le_bytes());
     b.extend_from_slice(&nudge_len.to_le_bytes());
+    b.extend_from_slice(&acts.to_le_bytes());
     for o in &v.objects {
         super::put_record(&mut b, super::BorderRecord::seen(*o));
     }
@@ -213,6 +236,10 @@ pub fn encode_view(key: &ClusterKey, v: &View) -> Result<Vec<u8>, WireError> {
     }
     for id in &v.gone {
         b.extend_from_slice(&id.0.to_le_bytes());
+    }
+    for (id, action) in &v.acts {
+        b.extend_from_slice(&id.0.to_le_bytes());
+        b.push(*action);
     }
     put_nudges(&mut b, &v.nudges);
     Ok(sign(key, &pack_view(h, count, b)))
@@ -294,6 +321,7 @@ pub(super) fn decode_subscription(f: &Fields, body: &[u8]) -> Result<Subscriptio
     if !(cell.is_finite() && cell > 0.0) {
         return Err(WireError::Field("subscription cell"));
     }
+    let ground = u64_at(body, 24);
     let cells = body[SUBSCRIPTION_FIXED..].to_vec();
     if !tail_clear(&cells, n) {
         return Err(WireError::Field("subscription cells"));
@@ -308,6 +336,7 @@ pub(super) fn decode_subscription(f: &Fields, body: &[u8]) -> Result<Subscriptio
         cols,
         rows,
         cells,
+        ground,
     })
 }
 
@@ -341,17 +370,18 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         return Err(WireError::Length { count: f.count, actual: body.len() });
     }
     let base = u64_at(body, 0);
-    let (gone, moves, nudge_count, nudge_bytes) =
-        (u32_at(body, 8), u32_at(body, 12), u32_at(body, 16), u32_at(body, 20));
+    let (gone, moves, nudge_count, nudge_bytes, acts) =
+        (u32_at(body, 8), u32_at(body, 12), u32_at(body, 16), u32_at(body, 20), u32_at(body, 24));
     let expected = VIEW_FIXED as u64
         + u64::from(f.count) * RECORD_LEN as u64
         + u64::from(moves) * MOVE_LEN as u64
         + u64::from(gone) * 4
+        + u64::from(acts) * ACT_LEN as u64
         + u64::from(nudge_bytes);
     if body.len() as u64 != expected {
         return Err(WireError::Length { count: f.count, actual: body.len() });
     }
-    if base == WHOLE && (gone != 0 || moves != 0 || nudge_count != 0) {
+    if base == WHOLE && (gone != 0 || moves != 0 || nudge_count != 0 || acts != 0) {
         return Err(WireError::Field("view body"));
     }
     let records_end = VIEW_FIXED + f.count as usize * RECORD_LEN;
@@ -367,10 +397,17 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         .chunks_exact(4)
         .map(|b| EntityId(u32::from_le_bytes(b.try_into().expect("4"))))
         .collect();
-    let nudges = nudges(&body[gone_end..], nudge_count)?;
+    let acts_end = gone_end + acts as usize * ACT_LEN;
+    let acts: Vec<(EntityId, u8)> =
+        body[gone_end..acts_end].chunks_exact(ACT_LEN).map(|a| (EntityId(u32_at(a, 0)), a[4])).collect();
+    if acts.iter().any(|&(_, a)| Action::from_bits(a).is_none()) {
+        return Err(WireError::Field("view acts"));
+    }
+    let nudges = nudges(&body[acts_end..], nudge_count)?;
     if objects.windows(2).any(|w| w[0].id >= w[1].id)
         || moves.windows(2).any(|w| w[0].0 >= w[1].0)
         || gone.windows(2).any(|w| w[0] >= w[1])
+        || acts.windows(2).any(|w| w[0].0 >= w[1].0)
         || overlap(&moves, &nudges)
     {
         return Err(WireError::Field("view ids"));
@@ -390,5 +427,6 @@ pub(super) fn decode_view(f: &Fields, body: &[u8]) -> Result<View, WireError> {
         moves,
         nudges,
         gone,
+        acts,
     })
 }

@@ -99,6 +99,7 @@ fn subscription() -> Subscription {
         cols: 3,
         rows: 5,
         cells: vec![0b1010_0101, 0b0110_0000],
+        ground: 0x0123_4567_89ab_cdef,
     }
 }
 
@@ -116,15 +117,17 @@ fn view() -> View {
         nudges: vec![
             Nudge { id: EntityId(4), prediction: Prediction::Off, bits: [3277, -2, 0] },
             Nudge { id: EntityId(700), prediction: Prediction::Steady, bits: [0, 0, -64] },
+            Nudge { id: EntityId(701), prediction: Prediction::Ground, bits: [0, 0, 0] },
         ],
         gone: vec![EntityId(3), EntityId(1 << 30)],
+        acts: vec![(EntityId(4), 0b1_0101), (EntityId(701), 0)],
     }
 }
 
 #[test]
 fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
     let s = encode_subscription(&key(), &subscription()).unwrap();
-    assert_eq!(s.len(), HEADER_LEN + 24 + 2 + TAG_LEN);
+    assert_eq!(s.len(), HEADER_LEN + 32 + 2 + TAG_LEN);
     assert_eq!(decode(&key(), &s).unwrap(), Message::Subscription(subscription()));
     let none = Subscription { confirmed: None, resyncs: MAX_RESYNCS - 1, ..subscription() };
     assert_eq!(
@@ -133,11 +136,12 @@ fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
     );
     let v = encode_view(&key(), &view()).unwrap();
     // Nudges: id 4 (1 byte), 3277 (2), -2 (1), 0 (1); id 700 as 696 more, predicted (2),
-    // 0, 0, -64 (1).
-    let nudges = (1 + 2 + 1 + 1) + (2 + 1 + 1 + 1);
-    assert_eq!(v.len(), HEADER_LEN + 24 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + nudges + TAG_LEN);
+    // 0, 0, -64 (1); id 701 as 1 more on the ground (1), 0, 0, 0.
+    let nudges = (1 + 2 + 1 + 1) + (2 + 1 + 1 + 1) + (1 + 1 + 1 + 1);
+    let body = 28 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + 2 * ACT_LEN + nudges;
+    assert_eq!(v.len(), HEADER_LEN + body + TAG_LEN);
     assert_eq!(decode(&key(), &v).unwrap(), Message::View(view()));
-    let whole = View { base: None, gone: vec![], moves: vec![], nudges: vec![], ..view() };
+    let whole = View { base: None, gone: vec![], moves: vec![], nudges: vec![], acts: vec![], ..view() };
     assert_eq!(decode(&key(), &encode(&key(), &Message::View(whole.clone())).unwrap()).unwrap(), Message::View(whole));
     assert_eq!(decode(&ClusterKey::new(&[8; 32]).unwrap(), &s), Err(WireError::Tag));
 }
@@ -153,7 +157,11 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
     assert!(encode_subscription(&key(), &Subscription { cell: f32::NAN, ..subscription() }).is_err());
     let resyncs = Subscription { resyncs: MAX_RESYNCS, ..subscription() };
     assert!(encode_subscription(&key(), &resyncs).is_err(), "resyncs share a word with a flag");
-    let whole = View { base: None, moves: vec![], gone: vec![], nudges: vec![], ..view() };
+    let whole = View { base: None, moves: vec![], gone: vec![], nudges: vec![], acts: vec![], ..view() };
+    assert!(encode_view(&key(), &View { acts: view().acts, ..whole.clone() }).is_err(), "acts in a whole view");
+    let acts = |acts: &[(u32, u8)]| View { acts: acts.iter().map(|&(id, a)| (EntityId(id), a)).collect(), ..view() };
+    assert_eq!(encode_view(&key(), &acts(&[(4, 0b10_0000)])), Err(WireError::Field("view acts")), "no such action");
+    assert!(encode_view(&key(), &acts(&[(4, 1), (4, 2)])).is_err(), "one object's action twice");
     assert!(encode_view(&key(), &View { gone: view().gone, ..whole.clone() }).is_err(), "gone ids in a whole view");
     assert!(encode_view(&key(), &View { moves: view().moves, ..whole.clone() }).is_err(), "moves in a whole view");
     assert!(encode_view(&key(), &View { nudges: view().nudges, ..whole }).is_err(), "nudges in a whole view");
@@ -182,8 +190,21 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
         Err(WireError::Field("view header"))
     );
     assert!(matches!(resigned(&v, &|r| r.extend_from_slice(&[0; 4])), Err(WireError::Length { .. })));
-    // Gone ids out of order (swap the two; the view's 10 bytes of nudges follow them).
-    let n = v.len() - TAG_LEN - 10;
+    // Acts: an action no client can hold (the second act's byte, before the 14 bytes of
+    // nudges), and acts out of order (swap the two).
+    let a = v.len() - TAG_LEN - 14;
+    assert_eq!(resigned(&v, &|r| r[a - 1] = 0x20), Err(WireError::Field("view acts")));
+    assert_eq!(
+        resigned(&v, &|r| {
+            let (x, y) = (r[a - 10..a - 5].to_vec(), r[a - 5..a].to_vec());
+            r[a - 10..a - 5].copy_from_slice(&y);
+            r[a - 5..a].copy_from_slice(&x);
+        }),
+        Err(WireError::Field("view ids"))
+    );
+    // Gone ids out of order (swap the two; the view's two acts and 14 bytes of nudges
+    // follow them).
+    let n = v.len() - TAG_LEN - 14 - 2 * ACT_LEN;
     assert_eq!(
         resigned(&v, &|r| {
             let (a, b) = (r[n - 8..n - 4].to_vec(), r[n - 4..n].to_vec());

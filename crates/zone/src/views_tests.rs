@@ -296,7 +296,7 @@ fn walkers_on_the_hills_go_as_ground_nudges_with_their_actions_and_rebuild_exact
         .collect();
     let step = |objects: &mut Vec<ObjectState>, tick: u64| {
         for (i, o) in objects.iter_mut().enumerate() {
-            if (tick + i as u64) % 7 == 0 {
+            if (tick + i as u64).is_multiple_of(7) {
                 o.action = ways[(tick as usize + i) % ways.len()];
             }
             let (mut pos, mut prev) = (o.pos, o.prev);

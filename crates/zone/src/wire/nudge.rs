@@ -47,11 +47,13 @@
 //! [`ground_fingerprint`].
 //!
 //! Encoding, one nudge after another, ids strictly ascending: a varint of the id's
-//! difference from the previous nudge's id (from 0 for the first), shifted left by two,
-//! whose low bits say what the change is from (0: the base, 1: the steady prediction,
-//! 2: the airborne one, 3: the ground one); then the three coordinates' zigzagged bit
-//! changes as varints. Varints must be minimal (one encoding per message): `unsigned-varint`
-//! refuses the others.
+//! difference from the previous nudge's id (from 0 for the first), shifted left by
+//! three, whose bit 2 says that every change is zero (the prediction is exact: half the
+//! nudges at scenario 2's density once they may be on the ground) and whose two low bits
+//! say what the change is from (0: the base, 1: the steady prediction, 2: the airborne
+//! one, 3: the ground one); then, unless bit 2 is set, the three coordinates' zigzagged
+//! bit changes as varints, not all zero. Varints must be minimal (one encoding per
+//! message): `unsigned-varint` refuses the others.
 
 use myriad_core::{Aabb, EntityId, Terrain, Vec3};
 use myriad_physics::TickConstants;
@@ -63,8 +65,11 @@ use super::WireError;
 /// The most bytes a compact nudge takes: a 5-byte id delta and three 3-byte coordinates.
 pub const NUDGE_MAX_LEN: usize = 5 + 3 * 3;
 
-/// The smallest encoded nudge (a one-byte id delta, three one-byte coordinates).
-const NUDGE_MIN_LEN: usize = 4;
+/// The smallest encoded nudge (a one-byte id word, no changes).
+const NUDGE_MIN_LEN: usize = 1;
+
+/// The id word's bit saying that every change is zero (none follow).
+const EXACT: u64 = 1 << 2;
 
 /// A zigzagged change below this takes at most three varint bytes.
 const COMPACT_LIMIT: u32 = 1 << 21;
@@ -268,9 +273,9 @@ impl Nudge {
         let plain = Nudge::between(id, from, to);
         let Some(before) = before else { return plain };
         let mut best = Nudge::shorter(plain, Nudge::predicted(id, before, from, to));
-        // A byte an axis is the least a nudge takes: no other form can be shorter (and
+        // No change at all is the least a nudge takes: no other form can be shorter (and
         // the physics' steps cost more than the others).
-        let least = |n: &Nudge| n.bits.iter().all(|&c| varint_len(u64::from(zigzag(c))) == 1);
+        let least = |n: &Nudge| n.bits == [0; 3];
         if least(&best) {
             return best;
         }
@@ -317,7 +322,11 @@ impl Nudge {
 
     /// The bytes it takes on the wire (its id's delta from `prev`'s).
     fn len(&self, prev: u32) -> usize {
-        varint_len(id_word(self, prev)) + self.bits.iter().map(|&c| varint_len(u64::from(zigzag(c)))).sum::<usize>()
+        let changes = match self.bits {
+            [0, 0, 0] => 0,
+            bits => bits.iter().map(|&c| varint_len(u64::from(zigzag(c)))).sum::<usize>(),
+        };
+        varint_len(id_word(self, prev)) + changes
     }
 
     /// Whichever of `a` and `b` takes fewer bytes (`a` when equal).
@@ -340,9 +349,11 @@ fn unzigzag(u: u32) -> i32 {
     ((u >> 1) as i32) ^ -((u & 1) as i32)
 }
 
-/// The first varint of a nudge: its id's delta from `prev`, and what its change is from.
+/// The first varint of a nudge: its id's delta from `prev`, whether its changes are all
+/// zero, and what its change is from.
 fn id_word(n: &Nudge, prev: u32) -> u64 {
-    u64::from(n.id.0 - prev) << 2 | n.prediction.code()
+    let exact = if n.bits == [0; 3] { EXACT } else { 0 };
+    u64::from(n.id.0 - prev) << 3 | exact | n.prediction.code()
 }
 
 /// The bytes of `v` as a LEB128 varint.
@@ -357,8 +368,10 @@ pub(super) fn put_nudges(b: &mut Vec<u8>, nudges: &[Nudge]) {
         let mut buf = encode::u64_buffer();
         b.extend_from_slice(encode::u64(id_word(n, prev), &mut buf));
         prev = n.id.0;
-        for &c in &n.bits {
-            b.extend_from_slice(encode::u64(u64::from(zigzag(c)), &mut buf));
+        if n.bits != [0; 3] {
+            for &c in &n.bits {
+                b.extend_from_slice(encode::u64(u64::from(zigzag(c)), &mut buf));
+            }
         }
     }
 }
@@ -382,7 +395,7 @@ pub(super) fn nudges(bytes: &[u8], count: u32) -> Result<Vec<Nudge>, WireError> 
             2 => Prediction::Airborne,
             _ => Prediction::Ground,
         };
-        let delta = u32::try_from(word >> 2).map_err(|_| WireError::Field("view ids"))?;
+        let delta = u32::try_from(word >> 3).map_err(|_| WireError::Field("view ids"))?;
         let id = match prev {
             None => delta,
             Some(_) if delta == 0 => return Err(WireError::Field("view ids")),
@@ -390,10 +403,16 @@ pub(super) fn nudges(bytes: &[u8], count: u32) -> Result<Vec<Nudge>, WireError> 
         };
         let mut bits = [0i32; 3];
         let mut r = r;
-        for c in &mut bits {
-            let (u, r2) = decode::u32(r).map_err(bad)?;
-            *c = unzigzag(u);
-            r = r2;
+        if word & EXACT == 0 {
+            for c in &mut bits {
+                let (u, r2) = decode::u32(r).map_err(bad)?;
+                *c = unzigzag(u);
+                r = r2;
+            }
+            // Three zero changes have their own, shorter encoding.
+            if bits == [0; 3] {
+                return Err(WireError::Field("view nudges"));
+            }
         }
         out.push(Nudge { id: EntityId(id), prediction, bits });
         prev = Some(id);
@@ -472,7 +491,7 @@ mod tests {
     }
 
     #[test]
-    fn a_fall_predicted_airborne_takes_a_byte_an_axis() {
+    fn a_fall_predicted_airborne_takes_one_byte() {
         // Thrown up and across at 40 units, then falling: the physics' own steps.
         let k = TickConstants::default();
         let (mut pos, mut prev) = (Vec3::new(300.0, 40.0, 7.0), Vec3::new(299.9, 39.8, 7.05));
@@ -485,7 +504,7 @@ mod tests {
             let (before, from, to) = (w[0], w[1], w[2]);
             let air = Nudge::airborne(EntityId(9), before, from, to).unwrap();
             assert_eq!(air.bits, [0; 3], "free flight is the prediction exactly");
-            assert_eq!(air.len(0), 4);
+            assert_eq!(air.len(0), 1, "its id word alone");
             let best = Nudge::shortest(EntityId(9), Some(before), from, to, None);
             assert_eq!(best.prediction, Prediction::Airborne);
             assert!(Nudge::predicted(EntityId(9), before, from, to).len(0) > 4, "the steady one misses gravity");
@@ -510,7 +529,7 @@ mod tests {
     }
 
     #[test]
-    fn a_walk_on_the_hills_predicted_on_the_ground_takes_a_byte_an_axis() {
+    fn a_walk_on_the_hills_predicted_on_the_ground_takes_one_byte() {
         // The physics' own steps of an object walking on the terrain (forward and right,
         // then standing still), over slopes that change its height every tick.
         let k = TickConstants::default();
@@ -534,16 +553,16 @@ mod tests {
             let on = Nudge::ground(EntityId(9), before, from, to, &g).unwrap();
             assert_eq!(on.apply(Some(before), from, Some(&g)).map(bits), Some(bits(to)));
             // The floor clamps the height every tick: the prediction is exact, and the
-            // shortest form is a byte an axis (the ground's, unless a form before it is
-            // as short: standing still, the plain one; in the air, the airborne one).
+            // shortest form is the id word alone (the ground's, unless a form before it
+            // is as short: standing still, the plain one; in the air, the airborne one).
             let steady_len = Nudge::predicted(EntityId(9), before, from, to).len(0);
             if on.bits == [0; 3] {
                 ground += 1;
                 let best = Nudge::shortest(EntityId(9), Some(before), from, to, Some(&g));
-                assert_eq!(best.len(0), 4);
+                assert_eq!(best.len(0), 1);
                 chosen += usize::from(best.prediction == Prediction::Ground);
             }
-            steady += usize::from(steady_len == 4);
+            steady += usize::from(steady_len == 1);
         }
         assert_eq!(ground, 88, "every step predicted exactly on the ground");
         assert!(chosen >= 40, "the ground's form taken {chosen} times of 88");
@@ -573,25 +592,36 @@ mod tests {
             Nudge { id: EntityId(0), prediction: Prediction::Off, bits: [0, -1, 1] },
             Nudge { id: EntityId(200), prediction: Prediction::Steady, bits: [3277, -(1 << 20), (1 << 20) - 1] },
             Nudge { id: EntityId(201), prediction: Prediction::Ground, bits: [0, 0, -64] },
+            Nudge { id: EntityId(202), prediction: Prediction::Ground, bits: [0, 0, 0] },
             Nudge { id: EntityId(u32::MAX), prediction: Prediction::Airborne, bits: [i32::MIN, i32::MAX, 64] },
         ];
         let mut b = Vec::new();
         put_nudges(&mut b, &list);
         assert_eq!(b.len(), nudges_len(&list));
-        assert_eq!(b.len(), 4 + (2 + 2 + 3 + 3) + (1 + 1 + 1 + 1) + (5 + 5 + 5 + 2));
-        assert_eq!(nudges(&b, 4).unwrap(), list);
-        assert!(nudges(&b, 3).is_err(), "bytes left over");
-        assert!(nudges(&b[..b.len() - 1], 4).is_err(), "truncated");
+        // The exact one (id 202) is its id word alone.
+        assert_eq!(b.len(), 4 + (2 + 2 + 3 + 3) + (1 + 1 + 1 + 1) + 1 + (5 + 5 + 5 + 2));
+        assert_eq!(nudges(&b, 5).unwrap(), list);
+        assert!(nudges(&b, 4).is_err(), "bytes left over");
+        assert!(nudges(&b[..b.len() - 1], 5).is_err(), "truncated");
         assert!(nudges(&b, 1_000).is_err(), "a count the bytes cannot hold");
         // The same id twice (a zero delta after the first).
-        assert_eq!(nudges(&[1, 0, 0, 0, 0, 0, 0, 0], 2), Err(WireError::Field("view ids")));
+        assert_eq!(nudges(&[5, 5], 2), Err(WireError::Field("view ids")));
         // A non-minimal varint (0 written in two bytes).
         assert!(nudges(&[0x80, 0x00, 0, 0, 0], 1).is_err());
-        // The fourth kind of change: the ground's.
-        assert_eq!(nudges(&[3, 0, 0, 0], 1).unwrap()[0].prediction, Prediction::Ground);
+        // The fourth kind of change: the ground's; exact, its id word alone.
+        assert_eq!(
+            nudges(&[3, 2, 0, 0], 1).unwrap()[0],
+            Nudge { id: EntityId(0), prediction: Prediction::Ground, bits: [1, 0, 0] }
+        );
+        assert_eq!(
+            nudges(&[7], 1).unwrap()[0],
+            Nudge { id: EntityId(0), prediction: Prediction::Ground, bits: [0; 3] }
+        );
+        // Three zero changes written out: a second encoding of the exact one.
+        assert_eq!(nudges(&[3, 0, 0, 0], 1), Err(WireError::Field("view nudges")));
         // Ids past u32::MAX.
         let mut over = Vec::new();
-        put_nudges(&mut over, &list[3..]);
+        put_nudges(&mut over, &list[4..]);
         over.extend_from_slice(&[2, 0, 0, 0]);
         assert_eq!(nudges(&over, 2), Err(WireError::Field("view ids")));
     }

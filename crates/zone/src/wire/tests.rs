@@ -136,8 +136,8 @@ fn subscriptions_and_views_round_trip_and_are_the_documented_size() {
     );
     let v = encode_view(&key(), &view()).unwrap();
     // Nudges: id 4 (1 byte), 3277 (2), -2 (1), 0 (1); id 700 as 696 more, predicted (2),
-    // 0, 0, -64 (1); id 701 as 1 more on the ground (1), 0, 0, 0.
-    let nudges = (1 + 2 + 1 + 1) + (2 + 1 + 1 + 1) + (1 + 1 + 1 + 1);
+    // 0, 0, -64 (1); id 701 as 1 more on the ground, exact (1).
+    let nudges = (1 + 2 + 1 + 1) + (2 + 1 + 1 + 1) + 1;
     let body = 28 + 2 * RECORD_LEN + 2 * MOVE_LEN + 2 * 4 + 2 * ACT_LEN + nudges;
     assert_eq!(v.len(), HEADER_LEN + body + TAG_LEN);
     assert_eq!(decode(&key(), &v).unwrap(), Message::View(view()));
@@ -190,9 +190,9 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
         Err(WireError::Field("view header"))
     );
     assert!(matches!(resigned(&v, &|r| r.extend_from_slice(&[0; 4])), Err(WireError::Length { .. })));
-    // Acts: an action no client can hold (the second act's byte, before the 14 bytes of
+    // Acts: an action no client can hold (the second act's byte, before the 11 bytes of
     // nudges), and acts out of order (swap the two).
-    let a = v.len() - TAG_LEN - 14;
+    let a = v.len() - TAG_LEN - 11;
     assert_eq!(resigned(&v, &|r| r[a - 1] = 0x20), Err(WireError::Field("view acts")));
     assert_eq!(
         resigned(&v, &|r| {
@@ -202,9 +202,9 @@ fn bad_subscriptions_and_views_are_refused_with_their_reason() {
         }),
         Err(WireError::Field("view ids"))
     );
-    // Gone ids out of order (swap the two; the view's two acts and 14 bytes of nudges
+    // Gone ids out of order (swap the two; the view's two acts and 11 bytes of nudges
     // follow them).
-    let n = v.len() - TAG_LEN - 14 - 2 * ACT_LEN;
+    let n = v.len() - TAG_LEN - 11 - 2 * ACT_LEN;
     assert_eq!(
         resigned(&v, &|r| {
             let (a, b) = (r[n - 8..n - 4].to_vec(), r[n - 4..n].to_vec());

@@ -109,6 +109,14 @@ pub fn integrate(pos: &mut Vec3, prev: &mut Vec3, action: u8, standing: bool, k:
     *prev = old;
 }
 
+/// The lowest height the centre of an object `half_y` half high may have at (`x`, `z`):
+/// on the terrain, not below the world's lower bound. What [`enforce_limits`] clamps to,
+/// and what a zone's ground nudges predict with (`myriad_zone::wire::Nudge`).
+#[inline]
+pub fn floor_at(terrain: &Terrain, bounds: &Aabb, half_y: f32, x: f32, z: f32) -> f32 {
+    (terrain.height_at(x, z) + half_y).max(bounds.min.y + half_y)
+}
+
 /// Keeps an object with half extents `half` inside `bounds` and on or above the terrain.
 /// A clamped axis loses its velocity (`prev` is set to `pos` on that axis). Returns the
 /// object's new [`flags::ON_TERRAIN`] bit.
@@ -141,7 +149,7 @@ pub fn enforce_limits(
         pos.y = hi.y;
         prev.y = pos.y;
     }
-    let floor = (terrain.height_at(pos.x, pos.z) + half.y).max(lo.y);
+    let floor = floor_at(terrain, bounds, half.y, pos.x, pos.z);
     if pos.y < floor {
         pos.y = floor;
         prev.y = pos.y;

@@ -11,7 +11,7 @@
 //!   from the tick before), since an object's id, kind, shape and extents never change
 //!   and nothing at a gateway reads another object's previous position or flags (the
 //!   gateway's own players always come whole): a *nudge*, the change of the position's
-//!   bits since its state at c (4 to 14 bytes, [`crate::wire::Nudge`]), when the zone
+//!   bits since its state at c (1 to 14 bytes, [`crate::wire::Nudge`]), when the zone
 //!   still has its positions of tick c ([`NUDGE_WINDOW`]) and the change is small, else
 //!   a *move* of 16 bytes; and, for each such object whose action changed after c, its
 //!   action (*acts*: a gateway keeps every object's action for the ground prediction of
@@ -383,7 +383,8 @@ impl Subscribers {
         &mut self,
         key: &ClusterKey,
         (run, tick, zone): (u64, u64, ZoneId),
-        (owned, world): (impl Iterator<Item = ObjectState>, GroundWorld<'_>),
+        owned: impl Iterator<Item = ObjectState>,
+        world: GroundWorld<'_>,
         max_message: usize,
         mut send: impl FnMut(u16, Vec<u8>) -> Result<(), ZoneError>,
     ) -> Result<Vec<(u16, Sent)>, ZoneError> {

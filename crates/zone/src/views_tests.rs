@@ -64,7 +64,7 @@ fn publish(
     owned: &[ObjectState],
 ) -> Vec<(u16, Option<u64>, Vec<u32>, Vec<u32>, Vec<u32>)> {
     let mut out = Vec::new();
-    subs.publish(&key(), (RUN, tick, ZoneId(0)), (owned.iter().copied(), ground()), 1 << 20, |g, bytes| {
+    subs.publish(&key(), (RUN, tick, ZoneId(0)), owned.iter().copied(), ground(), 1 << 20, |g, bytes| {
         let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
         assert_eq!((v.run, v.tick, v.gateway, v.parts), (RUN, tick, g, 1));
         let ids = |v: &[EntityId]| v.iter().map(|id| id.0).collect::<Vec<_>>();
@@ -159,7 +159,7 @@ fn a_view_is_whole_then_only_what_changed_and_what_left_since_its_base() {
 /// Gateway `G`'s views of `tick`, decoded.
 fn views(subs: &mut Subscribers, tick: u64, owned: &[ObjectState]) -> Vec<View> {
     let mut out = Vec::new();
-    subs.publish(&key(), (RUN, tick, ZoneId(0)), (owned.iter().copied(), ground()), 1 << 20, |_, bytes| {
+    subs.publish(&key(), (RUN, tick, ZoneId(0)), owned.iter().copied(), ground(), 1 << 20, |_, bytes| {
         let Ok(Message::View(v)) = decode(&key(), &bytes) else { panic!("a view") };
         out.push(v);
         Ok(())

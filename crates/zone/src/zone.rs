@@ -353,8 +353,8 @@ impl Zone {
         let fabric = &mut self.fabric;
         let world = self.resident.world();
         let ground = GroundWorld { terrain: &world.terrain, bounds: &world.bounds };
-        let owned = (self.resident.owned_states(), ground);
-        let sent = self.subscribers.publish(&self.cfg.key, at, owned, max, |g, b| fabric.send_view(g, b))?;
+        let owned = self.resident.owned_states();
+        let sent = self.subscribers.publish(&self.cfg.key, at, owned, ground, max, |g, b| fabric.send_view(g, b))?;
         for (g, s) in sent {
             let v = self.stats.views.entry(g).or_default();
             v.0 += s.bytes;

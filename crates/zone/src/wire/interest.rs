@@ -117,7 +117,7 @@ pub struct View {
     pub moves: Vec<(EntityId, Vec3)>,
     /// New positions of objects the gateway already holds, as the change of their bits
     /// since their state at `base` (ids ascending, none also among `moves`): the same as
-    /// a move, in 4 to [`crate::wire::NUDGE_MAX_LEN`] bytes. None in a whole view.
+    /// a move, in 1 to [`crate::wire::NUDGE_MAX_LEN`] bytes. None in a whole view.
     pub nudges: Vec<Nudge>,
     /// Objects of this zone the gateway must drop (they left its cells, or the zone),
     /// ids ascending; none in a whole view.

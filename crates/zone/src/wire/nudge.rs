@@ -57,7 +57,7 @@
 
 use myriad_core::{Aabb, EntityId, Terrain, Vec3};
 use myriad_physics::TickConstants;
-use myriad_physics::integrate::integrate;
+use myriad_physics::integrate::{floor_at, integrate};
 use unsigned_varint::{decode, encode};
 
 use super::WireError;
@@ -162,10 +162,9 @@ impl GroundWorld<'_> {
         ground_fingerprint(self.terrain, self.bounds)
     }
 
-    /// The floor at (`x`, `z`) of an object `half_y` half high, as the physics' limits
-    /// compute it.
+    /// The floor at (`x`, `z`) of an object `half_y` half high: the physics' own.
     fn floor(&self, half_y: f32, x: f32, z: f32) -> f32 {
-        (self.terrain.height_at(x, z) + half_y).max(self.bounds.min.y + half_y)
+        floor_at(self.terrain, self.bounds, half_y, x, z)
     }
 
     /// Height `y` at (`x`, `z`) after the physics' limits: below the world's top, on or

@@ -39,17 +39,17 @@
 # REPLICATION_S4_PROFILE=1; REPLICATION_S4_AOI=100 at another edge). REPLICATION_S3=0
 # leaves out scenario 3 (for a second run of the others in the same call).
 #
-# MODE=table measures issue 27's table, alternating the build in .carry/before/ (when
-# there is one) with this one, round by round (TABLE_ROUNDS, default 2): scenario 3's
-# and 2 M + 1 M objects' physics steps, scenario 4 (50,000 players, bots 20 a socket) at
-# AOI 14, scenario 2 at AOI 100; after the first round this build profiled
-# (MYRIAD_CUDA_PROFILE=1) at scenario 4, AOI 14 and 100, and last scenario 2 at AOI 100
-# and scenario 3's physics profiled, scenario 4 at AOI 100 before, and scenario 3 in 4
-# zones on the GPU, before and after. Every log lands in $OUT/table.tgz as soon as it is
-# written, so a call that runs out of time still brings back what finished. Two rounds
-# and the profiles take longer than one call of 600 s with the tests (scenario 4 at AOI
-# 100 took over 150 s profiled on an H100): TABLE_ROUNDS=1 in one call, or the tests in
-# another.
+# MODE=table measures issue 27's table, step by step (TABLE_STEPS, in order; default
+# "physics s4-14 s2-100 profile-s4-14 profile-s4-100 profile-s2-100 profile-physics
+# s4-100 zones"), each step TABLE_ROUNDS times (default 2), alternating the build in
+# .carry/before/ (when there is one) with this one round by round: physics (scenario 3's
+# and 2 M + 1 M objects' steps), s4-14 and s4-100 (scenario 4, 50,000 players, bots 20 a
+# socket, AOI 14 or 100), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario
+# 2 at AOI 100), zones (scenario 3 in 4 zones on the GPU, once a build); profile-X runs X
+# once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
+# soon as it is written, so a call that runs out of time still brings back the steps that
+# finished. The default takes longer than one call of 600 s (scenario 4 at AOI 100 took
+# over 150 s profiled on an H100): name fewer steps, or run the tests in another call.
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -445,26 +445,43 @@ if [[ $mode == table ]]; then
         grep -E '^\| (2|3|4|sweep) \||state_hash' "$dir/$log.txt" | sed "s/^/$log: /"
         keep
     }
+    ulimit -n 65536 || true
     s4=(bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --bots-per-socket 20 --quality-players 0)
+    s3=(bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 --quality-players 0)
     s2=(bench --scenario 2 --backend cuda --ticks 60 --warmup 30 --aoi-size 100 --quality-players 0)
-    physics=(bench --scenario 3 --backend cuda --ticks 30 --warmup 3 --physics-only)
-    for r in $(seq 1 "${TABLE_ROUNDS:-2}"); do
-        for b in "${builds[@]}"; do
-            n=$(which_build "$b")
-            measure "physics-$n-$r" 90 "$b" "${physics[@]}" --sweep 2000000
-            measure "s4-14-$n-$r" 120 "$b" "${s4[@]}" --aoi-size 14
-            measure "s2-100-$n-$r" 60 "$b" "${s2[@]}"
-        done
-        if [[ $r == 1 ]]; then
-            MYRIAD_CUDA_PROFILE=1 measure s4-14-profiled 120 .carry/myriad "${s4[@]}" --aoi-size 14
-            MYRIAD_CUDA_PROFILE=1 measure s4-100-profiled 240 .carry/myriad "${s4[@]}" --aoi-size 100
+    physics=(bench --scenario 3 --backend cuda --ticks 30 --warmup 3 --physics-only --sweep 2000000)
+    # Each step in turn, so a call cut short still brings back the first steps whole;
+    # within a step the builds alternate round by round.
+    for step in ${TABLE_STEPS:-physics s4-14 s2-100 profile-s4-14 profile-s4-100 profile-s2-100 profile-physics s4-100 zones}; do
+        case $step in
+        physics) args=("${physics[@]}") limit=90 ;;
+        s4-14) args=("${s4[@]}" --aoi-size 14) limit=120 ;;
+        s4-100) args=("${s4[@]}" --aoi-size 100) limit=240 ;;
+        s3) args=("${s3[@]}") limit=150 ;;
+        s2-100) args=("${s2[@]}") limit=60 ;;
+        zones) args=(sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json) limit=90 ;;
+        profile-*) ;;
+        *) fail "table: unknown step $step"; continue ;;
+        esac
+        if [[ $step == profile-* ]]; then
+            case ${step#profile-} in
+            s4-14) args=("${s4[@]}" --aoi-size 14) limit=120 ;;
+            s4-100) args=("${s4[@]}" --aoi-size 100) limit=240 ;;
+            s3) args=("${s3[@]}") limit=150 ;;
+            s2-100) args=("${s2[@]}") limit=60 ;;
+            physics) args=("${physics[@]}") limit=90 ;;
+            *) fail "table: unknown step $step"; continue ;;
+            esac
+            MYRIAD_CUDA_PROFILE=1 measure "$step" "$limit" .carry/myriad "${args[@]}"
+            continue
         fi
-    done
-    MYRIAD_CUDA_PROFILE=1 measure s2-100-profiled 60 .carry/myriad "${s2[@]}"
-    MYRIAD_CUDA_PROFILE=1 measure physics-profiled 60 .carry/myriad "${physics[@]}"
-    [[ ${#builds[@]} == 2 ]] && measure s4-100-before 240 .carry/before/myriad "${s4[@]}" --aoi-size 100
-    for b in "${builds[@]}"; do
-        measure "zones4-$(which_build "$b")" 90 "$b" sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json
+        rounds=${TABLE_ROUNDS:-2}
+        [[ $step == zones ]] && rounds=1
+        for r in $(seq 1 "$rounds"); do
+            for b in "${builds[@]}"; do
+                measure "$step-$(which_build "$b")-$r" "$limit" "$b" "${args[@]}"
+            done
+        done
     done
 fi
 

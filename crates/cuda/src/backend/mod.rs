@@ -142,6 +142,11 @@ pub(crate) struct Resident {
     patch: Patch,
     prims: Prims,
     dyn_tree: Tree,
+    /// Steps that refit `dyn_tree` since it was built over the device's current slots;
+    /// `None` when the slots changed (or nothing was built): the next step rebuilds.
+    tree_age: Option<u32>,
+    /// How many steps in a row may refit the dynamic tree before one rebuilds it.
+    tree_refits: u32,
     static_tree: Tree,
     /// The columns the AOI queries of `cuda` are answered from.
     grid: Grid,
@@ -192,6 +197,21 @@ impl CudaBackend {
         lock(&self.resident)
     }
 
+    /// How many steps in a row may refit the dynamic tree (`cuda`) before one rebuilds it
+    /// (0: every step rebuilds). Results never depend on it (the broad phase's lists are
+    /// sorted); the time of a step does: a refit skips the Morton codes, the sort and the
+    /// emission, and a tree refit for longer fits its nodes less tightly. The default
+    /// comes from `MYRIAD_CUDA_TREE_REFITS`.
+    pub fn set_tree_refits(&mut self, refits: u32) {
+        self.resident().tree_refits = refits;
+    }
+
+    /// How many steps have refit the dynamic tree since its last build (`None`: no tree
+    /// over the device's current slots; `cuda-naive` never builds one).
+    pub fn tree_age(&self) -> Option<u32> {
+        self.resident().tree_age
+    }
+
     /// The candidate pairs of the world as it is, without stepping: static pairs as
     /// `object << 32 | primitive` sorted by (object, primitive), dynamic pairs as
     /// `a << 32 | b` with `a < b`, sorted. For checking the broad phase against the CPU.
@@ -232,6 +252,8 @@ impl Resident {
             patch: Patch::new(),
             prims: Prims::new(),
             dyn_tree: Tree::new(),
+            tree_age: None,
+            tree_refits: tree::tree_refits_from_env(),
             static_tree: Tree::new(),
             grid: Grid::new(),
             scan: Scan { sums: DevBuf::empty() },
@@ -276,6 +298,7 @@ impl Resident {
     pub(crate) fn invalidate(&mut self) {
         self.synced = None;
         self.n = usize::MAX;
+        self.tree_age = None;
     }
 
     /// Runs `call`, invalidating the device copy if it fails.

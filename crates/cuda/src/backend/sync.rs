@@ -196,7 +196,9 @@ impl Resident {
         let gpu = &self.gpu;
         let o = &mut self.obj;
         if let Some(bytes) = patched {
+            // A patch moves objects between slots: the tree's leaves mean other objects.
             sent += bytes;
+            self.tree_age = None;
         } else {
             if self.synced.map(|s| (s.layout, s.identity)) != Some((now.layout, now.identity)) || self.n != n {
                 // Objects came or went: slots changed meaning, upload everything.
@@ -216,6 +218,7 @@ impl Resident {
                 send(gpu, &o.id, &d.ids().iter().map(|i| i.0).collect::<Vec<u32>>(), &mut sent)?;
                 self.n = n;
                 self.synced = None;
+                self.tree_age = None;
             }
             match self.synced {
                 Some(s) if s.generation == now.generation => {}
@@ -230,6 +233,9 @@ impl Resident {
                     send(gpu, &o.action, d.actions(), &mut sent)?;
                     send(gpu, &o.flags, d.flags(), &mut sent)?;
                     self.boxes_fresh = None;
+                    // Positions set from outside the physics (teleports) may put objects
+                    // far from where the tree placed them: build it afresh.
+                    self.tree_age = None;
                 }
             }
         }

@@ -10,6 +10,10 @@ use super::Resident;
 use crate::device::{DevBuf, Gpu};
 use crate::launch::{DevPtr, KBoxes, KBoxesMorton, KEmit, KRadixCounts, KRadixPass, KRefit, Node};
 
+/// How many steps in a row refit the dynamic tree before one rebuilds it, unless
+/// `MYRIAD_CUDA_TREE_REFITS` says otherwise ([`tree_refits_from_env`]).
+pub(super) const TREE_REFITS: u32 = 0;
+
 /// Passes of 8 bits over the 63-bit Morton codes.
 const RADIX_PASSES: u32 = 8;
 /// Keys per tile of a radix pass (one block of `k_radix_pass`).
@@ -139,33 +143,88 @@ impl Tree {
                 },
             )?;
             gpu.zero(self.arrivals.ptr(), n - 1)?;
-            gpu.launch(
-                n,
-                KRefit {
-                    n: n as u32,
-                    order: self.order.ptr(),
-                    boxes,
-                    nodes: self.nodes.ptr(),
-                    node_parent: self.node_parent.ptr(),
-                    leaf_parent: self.leaf_parent.ptr(),
-                    arrivals: self.arrivals.ptr(),
-                },
-            )?;
+            self.launch_refit(gpu, n, boxes)?;
         }
         Ok(())
+    }
+
+    /// Writes the boxes of the same `n` objects, at their new positions, and refits the
+    /// tree's node boxes over them, keeping its shape and leaf order: every box still
+    /// bounds its subtree, so the walks find every overlap (what the broad phase reports
+    /// is sorted, so the tree's shape never shows in a result); only how tightly the
+    /// nodes fit degrades as the objects move. The caller makes sure `n` and the slots'
+    /// meaning are those of the last build.
+    pub fn refit(
+        &mut self,
+        gpu: &Gpu,
+        n: usize,
+        pos: DevPtr<f32>,
+        half: DevPtr<f32>,
+        boxes: DevPtr<f32>,
+    ) -> Result<(), PhysicsError> {
+        debug_assert_eq!(n, self.leaves, "a refit keeps the tree's leaves");
+        if n == 0 {
+            return Ok(());
+        }
+        gpu.launch(n, KBoxes { n: n as u32, pos, half, boxes })?;
+        if n >= 2 {
+            gpu.zero(self.arrivals.ptr(), n - 1)?;
+            self.launch_refit(gpu, n, boxes)?;
+        }
+        Ok(())
+    }
+
+    /// `k_refit` over this tree's leaves, whose boxes are in `boxes`.
+    fn launch_refit(&self, gpu: &Gpu, n: usize, boxes: DevPtr<f32>) -> Result<(), PhysicsError> {
+        gpu.launch(
+            n,
+            KRefit {
+                n: n as u32,
+                order: self.order.ptr(),
+                boxes,
+                nodes: self.nodes.ptr(),
+                node_parent: self.node_parent.ptr(),
+                leaf_parent: self.leaf_parent.ptr(),
+                arrivals: self.arrivals.ptr(),
+            },
+        )
+    }
+}
+
+/// `MYRIAD_CUDA_TREE_REFITS`: how many steps in a row refit the dynamic tree before one
+/// rebuilds it (0: every step rebuilds); [`TREE_REFITS`] when unset. A value that is not
+/// a number is reported and ignored.
+pub(super) fn tree_refits_from_env() -> u32 {
+    match std::env::var("MYRIAD_CUDA_TREE_REFITS") {
+        Err(_) => TREE_REFITS,
+        Ok(v) => v.trim().parse().unwrap_or_else(|_| {
+            eprintln!("MYRIAD_CUDA_TREE_REFITS={v:?} is not a count of steps; using {TREE_REFITS}");
+            TREE_REFITS
+        }),
     }
 }
 
 impl Resident {
-    /// Dynamic boxes (and, for `cuda`, the dynamic tree) at the device's positions.
+    /// Dynamic boxes (and, for `cuda`, the dynamic tree) at the device's positions: the
+    /// last tree refit when it is over the same slots and has been refit fewer than
+    /// `tree_refits` times since it was built, else a new one.
     pub(super) fn build_dynamic(&mut self, world: &World) -> Result<(), PhysicsError> {
         if self.naive() {
-            self.build_boxes()
-        } else {
-            let o = &self.obj;
-            let frame = MortonFrame::new(&world.bounds);
-            self.dyn_tree.build(&self.gpu, self.n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr(), &frame)
+            return self.build_boxes();
         }
+        let o = &self.obj;
+        match self.tree_age {
+            Some(age) if age < self.tree_refits && self.dyn_tree.leaves == self.n => {
+                self.dyn_tree.refit(&self.gpu, self.n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr())?;
+                self.tree_age = Some(age + 1);
+            }
+            _ => {
+                let frame = MortonFrame::new(&world.bounds);
+                self.dyn_tree.build(&self.gpu, self.n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr(), &frame)?;
+                self.tree_age = Some(0);
+            }
+        }
+        Ok(())
     }
 
     /// The dynamic boxes alone (the same boxes as the tree's build writes).

@@ -230,6 +230,53 @@ fn every_client_receives_the_same_records_by_interest_as_with_the_mirror() {
     }
 }
 
+/// `large` with its corner of `small`'s size, at the common origin, replaced by `small`'s
+/// contents: the terrain samples, the statics and the moving objects there are
+/// `small`'s (ids kept, so its NPCs draw the same numbers), the rest `large`'s (ids moved
+/// past `small`'s). Both maps must share their origin, sample spacing, heights and seed.
+/// Players spread over the corner then see the same surroundings in either world, so
+/// what a gateway takes in can be compared between the two sizes without the noise of
+/// two different neighbourhoods.
+fn with_corner_of(small: &World, large: World) -> World {
+    let (ts, tl) = (&small.terrain, &large.terrain);
+    let (ps, pl) = (ts.placement(), tl.placement());
+    assert_eq!((ps.origin_x, ps.origin_z, ps.base_y), (pl.origin_x, pl.origin_z, pl.base_y), "one origin");
+    assert_eq!(ts.max_height(), tl.max_height(), "the same heights");
+    assert_eq!(small.seed, large.seed, "the same NPC draws");
+    let spacing = |w: u32, e: f32| e / (w - 1) as f32;
+    assert_eq!(spacing(ts.width(), ps.extent_x), spacing(tl.width(), pl.extent_x), "the same spacing");
+    assert_eq!(spacing(ts.depth(), ps.extent_z), spacing(tl.depth(), pl.extent_z), "the same spacing");
+    let (ws, wl) = (ts.width() as usize, tl.width() as usize);
+    let mut samples = tl.samples().to_vec();
+    for j in 0..ts.depth() as usize {
+        samples[j * wl..j * wl + ws].copy_from_slice(&ts.samples()[j * ws..(j + 1) * ws]);
+    }
+    let terrain = myriad_core::Terrain::new(tl.width(), tl.depth(), samples, tl.max_height(), pl).unwrap();
+    let corner = small.bounds;
+    let inside = |p: Vec3| p.x < corner.max.x && p.z < corner.max.z;
+    let mut world = World::new(large.bounds, terrain, large.seed).unwrap();
+    let (sl, ss) = (&large.statics, &small.statics);
+    world.statics = sl.subset(|_, o| !inside(sl.positions()[o.first as usize]));
+    for o in ss.objects().iter().filter(|o| inside(ss.positions()[o.first as usize])) {
+        let prims: Vec<_> = (o.first as usize..(o.first + o.count) as usize)
+            .map(|i| {
+                let shape = myriad_core::Shape::from_compact(ss.shapes()[i], ss.half_extents()[i], ss.radii()[i]);
+                (shape, ss.positions()[i])
+            })
+            .collect();
+        world.statics.add(o.kind, &prims).unwrap();
+    }
+    let (dl, ds) = (&large.dynamics, &small.dynamics);
+    let past = ds.ids().iter().map(|i| i.0).max().unwrap_or(0) + 1;
+    let theirs = (0..dl.len())
+        .map(|s| dl.state_of(s))
+        .filter(|o| !inside(o.pos))
+        .map(|o| myriad_core::ObjectState { id: myriad_core::EntityId(o.id.0 + past), ..o });
+    let mine = (0..ds.len()).map(|s| ds.state_of(s)).filter(|o| inside(o.pos));
+    world.dynamics.insert_all(mine.chain(theirs).collect::<Vec<_>>().into_iter()).unwrap();
+    world
+}
+
 /// A number from the environment, or `default`.
 fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
     std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
@@ -240,7 +287,8 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
 /// map) over `MYRIAD_MEASURE_SCALE` (1) times its area, with `MYRIAD_MEASURE_PLAYERS`
 /// (100) players spread over the map (or over the square of side
 /// `MYRIAD_MEASURE_SPREAD` at its corner: the same players, at the same places, in a
-/// larger world), each walking one way and turning every two
+/// larger world; with `MYRIAD_MEASURE_CORNER=1` that corner is the 1,024² map's own,
+/// [`with_corner_of`]), each walking one way and turning every two
 /// seconds, for `MYRIAD_MEASURE_TICKS` (120) ticks, the first 30 left out; cells of
 /// `MYRIAD_MEASURE_CELL` (the AOI size), a margin for `MYRIAD_MEASURE_LAG` (8) ticks of
 /// lag at the zones' max step (2). Prints one
@@ -254,12 +302,19 @@ fn measure_bytes_in_against_bytes_out() {
     let ticks: u64 = env_or("MYRIAD_MEASURE_TICKS", 120);
     let warm = 30usize;
     let side = (1024.0 * scale.sqrt()).round();
-    let n = |base: f32| (base * scale).round() as u32;
-    let spec = ScenarioSpec::reference(2, 1)
-        .unwrap()
-        .counts(n(55_000.0), n(5_000.0), n(15_000.0))
-        .map_size(side, side as u32 + 1);
-    let world = spec.build().unwrap();
+    let build = |scale: f32| {
+        let side = (1024.0 * scale.sqrt()).round();
+        let n = |base: f32| (base * scale).round() as u32;
+        let spec = ScenarioSpec::reference(2, 1)
+            .unwrap()
+            .counts(n(55_000.0), n(5_000.0), n(15_000.0))
+            .map_size(side, side as u32 + 1);
+        spec.build().unwrap()
+    };
+    let mut world = build(scale);
+    if env_or("MYRIAD_MEASURE_CORNER", 0) == 1 && scale > 1.0 {
+        world = with_corner_of(&build(1.0), world);
+    }
     let aoi = ServerConfig::default().aoi_size;
     let spread_side: f32 = env_or("MYRIAD_MEASURE_SPREAD", side);
     // Spread over the map (a fixed sequence, so both modes get the same players).

@@ -102,18 +102,24 @@ fn there_and_back(ids: &[myriad_core::EntityId]) -> ActionScript {
 
 /// One run: mirror (`interest` none) or by interest.
 fn run(interest: Option<InterestConfig>) -> Outcome {
-    run_with(world(), interest, AOI, TICKS, &across_the_cuts, &there_and_back)
+    run_with(world(), None, interest, AOI, TICKS, &across_the_cuts, &there_and_back)
 }
 
 fn run_with(
     world: World,
+    inner_cuts: Option<f32>,
     interest: Option<InterestConfig>,
     aoi: f32,
     ticks: u64,
     players: &Players,
     script: &Script,
 ) -> Outcome {
-    let layout = Arc::new(ZoneLayout::for_count(&world.bounds, 4, pair_reach(&world), 2.0).unwrap());
+    let mut layout = ZoneLayout::for_count(&world.bounds, 4, pair_reach(&world), 2.0).unwrap();
+    if let Some(c) = inner_cuts {
+        let (xs, zs) = layout.cuts();
+        layout = layout.with_cuts(&[xs[0], c, xs[2]], &[zs[0], c, zs[2]]).unwrap();
+    }
+    let layout = Arc::new(layout);
     let key = ClusterKey::random();
     let (fabrics, mut links) = MemoryFabric::mesh_with_gateways(4, &[GW]);
     let k = TickConstants::default();
@@ -288,7 +294,7 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
 /// (100) players spread over the map (or over the square of side
 /// `MYRIAD_MEASURE_SPREAD` at its corner: the same players, at the same places, in a
 /// larger world; with `MYRIAD_MEASURE_CORNER=1` that corner is the 1,024² map's own,
-/// [`with_corner_of`]), each walking one way and turning every two
+/// [`with_corner_of`], and the zones' inner cuts where that map has them), each walking one way and turning every two
 /// seconds, for `MYRIAD_MEASURE_TICKS` (120) ticks, the first 30 left out; cells of
 /// `MYRIAD_MEASURE_CELL` (the AOI size), a margin for `MYRIAD_MEASURE_LAG` (8) ticks of
 /// lag at the zones' max step (2). Prints one
@@ -312,8 +318,13 @@ fn measure_bytes_in_against_bytes_out() {
         spec.build().unwrap()
     };
     let mut world = build(scale);
+    // With the 1,024² map's corner, the zones are cut where they are on that map (the
+    // 2 x 2 grid's inner cuts at 512), so the players are split between the zones alike.
+    let mut inner_cuts = None;
     if env_or("MYRIAD_MEASURE_CORNER", 0) == 1 && scale > 1.0 {
-        world = with_corner_of(&build(1.0), world);
+        let small = build(1.0);
+        inner_cuts = Some((small.bounds.min.x + small.bounds.max.x) / 2.0);
+        world = with_corner_of(&small, world);
     }
     let aoi = ServerConfig::default().aoi_size;
     let spread_side: f32 = env_or("MYRIAD_MEASURE_SPREAD", side);
@@ -348,7 +359,7 @@ fn measure_bytes_in_against_bytes_out() {
     };
     for (mode, cfg) in [("mirror", None), ("interest", Some(interest))] {
         let started = std::time::Instant::now();
-        let o = run_with(world.clone(), cfg, aoi, ticks, &spread, &walk);
+        let o = run_with(world.clone(), inner_cuts, cfg, aoi, ticks, &spread, &walk);
         let h = &o.history;
         let window = (h.len() - warm) as f64;
         let (a, b) = (&h[warm - 1], &h[h.len() - 1]);

@@ -46,7 +46,7 @@
 # and 2 M + 1 M objects' steps), s4-14 and s4-100 (scenario 4, 50,000 players, bots 20 a
 # socket, AOI 14 or 100), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario
 # 2 at AOI 100), zones (scenario 3 in 4 zones on the GPU, once a build), refits (the
-# physics of this build with MYRIAD_CUDA_TREE_REFITS set to each of TABLE_REFITS, default
+# physics of this build with MYRIAD_TREE_REFITS set to each of TABLE_REFITS, default
 # "0 2 4 8", alternating round by round); profile-X runs X
 # once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
 # soon as it is written, so a call that runs out of time still brings back the steps that
@@ -470,7 +470,7 @@ if [[ $mode == table ]]; then
             # N of TABLE_REFITS, this build only, alternating N round by round.
             for r in $(seq 1 "${TABLE_ROUNDS:-2}"); do
                 for n in ${TABLE_REFITS:-0 2 4 8}; do
-                    MYRIAD_CUDA_TREE_REFITS=$n measure "refits-$n-$r" 90 .carry/myriad "${physics[@]}"
+                    MYRIAD_TREE_REFITS=$n measure "refits-$n-$r" 90 .carry/myriad "${physics[@]}"
                 done
             done
             continue

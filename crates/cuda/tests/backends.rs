@@ -145,52 +145,13 @@ fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
     }
 }
 
-/// Steps that refit the dynamic tree instead of rebuilding it end in the CPU's world:
-/// for several refit counts, a crowded world stepped 30 ticks (objects falling and
-/// pushing each other, so the refit tree's nodes loosen) equals the `cpu` backend's after
-/// every tick; the tree is rebuilt on schedule, and at once after a spawn (the slots
-/// change meaning) and after a teleport (an object far from its leaf's place).
+/// Steps that refit the dynamic tree end in the CPU's world, and `cuda` builds its
+/// tree on schedule (`cuda-naive` has none).
 #[test]
 fn steps_that_refit_the_tree_end_in_the_cpus_world() {
-    let Some(mut gpu) = common::cuda_backend("steps_that_refit_the_tree_end_in_the_cpus_world", BackendKind::Cuda)
-    else {
-        return;
-    };
-    use myriad_core::{ObjectKind, Placement, Shape, Vec3};
-    use myriad_physics::Backend;
-    let k = myriad_physics::TickConstants::default();
+    let Some(mut gpus) = cuda_backends("steps_that_refit_the_tree_end_in_the_cpus_world") else { return };
     let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
-    for refits in [0, 1, 3, 8] {
-        gpu.set_tree_refits(refits);
-        let mut want = conformance::crowded(7, Placement::Uniform);
-        let mut got = conformance::crowded(7, Placement::Uniform);
-        let mut age: Option<u32> = None;
-        for tick in 0..30u32 {
-            let mut rebuild = false;
-            if tick == 11 {
-                for w in [&mut want, &mut got] {
-                    let at = w.bounds.center() + Vec3::new(3.0, 6.0, -2.0);
-                    w.dynamics.spawn(Shape::Sphere { radius: 0.5 }, at, ObjectKind::Npc).expect("spawn");
-                }
-                rebuild = true;
-            }
-            if tick == 19 {
-                for w in [&mut want, &mut got] {
-                    let id = w.dynamics.ids()[5];
-                    let c = w.bounds.center();
-                    assert!(w.dynamics.teleport(id, Vec3::new(c.x - 20.0, c.y + 8.0, c.z + 15.0)));
-                }
-                rebuild = true;
-            }
-            cpu.step(&mut want, &k).unwrap();
-            gpu.step(&mut got, &k).unwrap();
-            age = match age {
-                Some(a) if a < refits && !rebuild => Some(a + 1),
-                _ => Some(0),
-            };
-            assert_eq!(gpu.tree_age(), age, "refits {refits}, tick {tick}: the tree's age");
-            assert_eq!(got.state_hash(), want.state_hash(), "refits {refits}, tick {tick}");
-        }
-        println!("refits {refits}: 30 ticks equal to cpu, rebuilt on schedule, after a spawn and a teleport");
-    }
+    conformance::refit_steps_agree(cpu.as_mut(), &mut gpus);
+    assert!(gpus[1].tree_age().is_some(), "cuda keeps a dynamic tree");
+    assert!(gpus[0].tree_age().is_none(), "cuda-naive keeps none");
 }

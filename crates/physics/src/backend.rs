@@ -237,6 +237,18 @@ pub trait Backend: Send {
     fn zone_cuts(&self) -> Option<ZoneCuts> {
         None
     }
+
+    /// How many steps in a row may refit the dynamic tree before one builds it again (0:
+    /// every step builds it; the default comes from `MYRIAD_TREE_REFITS`, see
+    /// [`crate::lbvh::tree_refits`]). A backend without a dynamic tree ignores it.
+    /// Results never depend on it, only the time of a step does.
+    fn set_tree_refits(&mut self, _refits: u32) {}
+
+    /// How many steps refit the dynamic tree since it was last built (`None`: no tree
+    /// over the world's current objects, or a backend without one).
+    fn tree_age(&self) -> Option<u32> {
+        None
+    }
 }
 
 /// How a zones cluster splits the world, as a gateway knows it ([`Backend::zone_cuts`]).
@@ -263,7 +275,11 @@ pub struct ZoneCuts {
 pub fn create_cpu_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
     Ok(match kind {
         BackendKind::CpuNaive => Box::new(crate::cpu::CpuNaive::default()),
-        BackendKind::Cpu => Box::new(crate::cpu::CpuLbvh::default()),
+        BackendKind::Cpu => {
+            let mut b = crate::cpu::CpuLbvh::default();
+            b.set_tree_refits(crate::lbvh::tree_refits());
+            Box::new(b)
+        }
         BackendKind::CudaNaive | BackendKind::Cuda | BackendKind::Auto => {
             return Err(PhysicsError::Unavailable {
                 backend: kind.name(),

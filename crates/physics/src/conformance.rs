@@ -108,6 +108,60 @@ pub fn host_changes_between_steps_are_seen(reference: &mut dyn Backend, others: 
     }
 }
 
+/// Steps that refit the dynamic tree instead of building it end in the reference's world.
+/// For refit counts 0, 1, 3 and 8, a crowded world stepped 30 ticks (objects falling and
+/// pushing each other, so a refit tree's nodes loosen), with new actions every tick, a
+/// spawn at tick 11 and a teleport at tick 19, equals `reference`'s after every tick. A
+/// backend that keeps a dynamic tree ([`Backend::tree_age`]) must build it on schedule:
+/// after `refits` refits, and at once after the spawn (the objects changed) and the
+/// teleport (an object far from its leaf's place), but not after new actions.
+pub fn refit_steps_agree(reference: &mut dyn Backend, others: &mut [Box<dyn Backend>]) {
+    let k = TickConstants::default();
+    let edit = |w: &mut World, tick: u32| {
+        let ids: Vec<_> = w.dynamics.ids().to_vec();
+        for (i, id) in ids.iter().enumerate().filter(|(i, _)| (*i as u32 + tick).is_multiple_of(4)) {
+            let bits = (hash3(3, i as u64, u64::from(tick) / 5) & 0x1f) as u8;
+            w.dynamics.set_action(*id, Action::from_bits_truncate(bits));
+        }
+        let c = w.bounds.center();
+        match tick {
+            11 => {
+                let at = c + Vec3::new(3.0, 6.0, -2.0);
+                w.dynamics.spawn(Shape::Sphere { radius: 0.5 }, at, ObjectKind::Npc).expect("spawn");
+                true
+            }
+            19 => {
+                assert!(w.dynamics.teleport(ids[5], Vec3::new(c.x - 20.0, c.y + 8.0, c.z + 15.0)));
+                true
+            }
+            _ => false,
+        }
+    };
+    for b in others {
+        let name = b.kind();
+        for refits in [0, 1, 3, 8] {
+            b.set_tree_refits(refits);
+            let mut want = crowded(7, Placement::Uniform);
+            let mut got = want.clone();
+            let mut age: Option<u32> = None;
+            for tick in 0..30u32 {
+                edit(&mut want, tick);
+                let rebuild = edit(&mut got, tick);
+                reference.step(&mut want, &k).expect("a step succeeds");
+                b.step(&mut got, &k).expect("a step succeeds");
+                assert_eq!(got.state_hash(), want.state_hash(), "{name}, refits {refits}: tick {tick}");
+                age = match age {
+                    Some(a) if a < refits && !rebuild => Some(a + 1),
+                    _ => Some(0),
+                };
+                if let Some(got_age) = b.tree_age() {
+                    assert_eq!(Some(got_age), age, "{name}, refits {refits}: the tree's age after tick {tick}");
+                }
+            }
+        }
+    }
+}
+
 /// 300 objects spawned at one point (duplicate Morton codes, coincident centres): every
 /// backend gives the reference's world and the pile spreads out.
 pub fn stacked_duplicates_agree_and_separate(reference: &mut dyn Backend, others: &mut [Box<dyn Backend>]) {

@@ -25,6 +25,15 @@ fn every_backend_produces_the_same_world_bit_for_bit() {
     conformance::same_world_bit_for_bit(reference.as_mut(), &mut others);
 }
 
+/// `cpu` refitting its dynamic tree for 0, 1, 3 and 8 steps in a row gives `cpu-naive`'s
+/// world, and builds its tree on schedule.
+#[test]
+fn steps_that_refit_the_tree_end_in_the_reference_world() {
+    let (mut reference, mut others) = reference_and_others();
+    conformance::refit_steps_agree(reference.as_mut(), &mut others);
+    assert!(others[0].tree_age().is_some(), "cpu keeps a dynamic tree");
+}
+
 #[test]
 fn host_changes_between_steps_are_seen() {
     let (mut reference, mut others) = reference_and_others();

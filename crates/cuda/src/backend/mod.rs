@@ -197,21 +197,6 @@ impl CudaBackend {
         lock(&self.resident)
     }
 
-    /// How many steps in a row may refit the dynamic tree (`cuda`) before one rebuilds it
-    /// (0: every step rebuilds). Results never depend on it (the broad phase's lists are
-    /// sorted); the time of a step does: a refit skips the Morton codes, the sort and the
-    /// emission, and a tree refit for longer fits its nodes less tightly. The default
-    /// comes from `MYRIAD_CUDA_TREE_REFITS`.
-    pub fn set_tree_refits(&mut self, refits: u32) {
-        self.resident().tree_refits = refits;
-    }
-
-    /// How many steps have refit the dynamic tree since its last build (`None`: no tree
-    /// over the device's current slots; `cuda-naive` never builds one).
-    pub fn tree_age(&self) -> Option<u32> {
-        self.resident().tree_age
-    }
-
     /// The candidate pairs of the world as it is, without stepping: static pairs as
     /// `object << 32 | primitive` sorted by (object, primitive), dynamic pairs as
     /// `a << 32 | b` with `a < b`, sorted. For checking the broad phase against the CPU.
@@ -253,7 +238,7 @@ impl Resident {
             prims: Prims::new(),
             dyn_tree: Tree::new(),
             tree_age: None,
-            tree_refits: tree::tree_refits_from_env(),
+            tree_refits: myriad_physics::lbvh::tree_refits(),
             static_tree: Tree::new(),
             grid: Grid::new(),
             scan: Scan { sums: DevBuf::empty() },
@@ -347,5 +332,13 @@ impl Backend for CudaBackend {
 
     fn query_aoi(&mut self, world: &World, boxes: &[Aabb], out: &mut AoiResults) -> Result<(), PhysicsError> {
         self.resident().checked(|d| d.query_impl(world, boxes, out))
+    }
+
+    fn set_tree_refits(&mut self, refits: u32) {
+        self.resident().tree_refits = refits;
+    }
+
+    fn tree_age(&self) -> Option<u32> {
+        self.resident().tree_age
     }
 }

@@ -10,10 +10,6 @@ use super::Resident;
 use crate::device::{DevBuf, Gpu};
 use crate::launch::{DevPtr, KBoxes, KBoxesMorton, KEmit, KRadixCounts, KRadixPass, KRefit, Node};
 
-/// How many steps in a row refit the dynamic tree before one rebuilds it, unless
-/// `MYRIAD_CUDA_TREE_REFITS` says otherwise ([`tree_refits_from_env`]).
-pub(super) const TREE_REFITS: u32 = 0;
-
 /// Passes of 8 bits over the 63-bit Morton codes.
 const RADIX_PASSES: u32 = 8;
 /// Keys per tile of a radix pass (one block of `k_radix_pass`).
@@ -188,19 +184,6 @@ impl Tree {
                 arrivals: self.arrivals.ptr(),
             },
         )
-    }
-}
-
-/// `MYRIAD_CUDA_TREE_REFITS`: how many steps in a row refit the dynamic tree before one
-/// rebuilds it (0: every step rebuilds); [`TREE_REFITS`] when unset. A value that is not
-/// a number is reported and ignored.
-pub(super) fn tree_refits_from_env() -> u32 {
-    match std::env::var("MYRIAD_CUDA_TREE_REFITS") {
-        Err(_) => TREE_REFITS,
-        Ok(v) => v.trim().parse().unwrap_or_else(|_| {
-            eprintln!("MYRIAD_CUDA_TREE_REFITS={v:?} is not a count of steps; using {TREE_REFITS}");
-            TREE_REFITS
-        }),
     }
 }
 

@@ -1,5 +1,6 @@
 //! `cpu`: the parallel CPU backend, with an LBVH over the statics (rebuilt when they
-//! change) and one over the dynamic objects (rebuilt every tick).
+//! change) and one over the dynamic objects (built every tick, or refit for up to
+//! [`crate::lbvh::tree_refits`] ticks in a row while the objects stay the same).
 
 use myriad_core::{Aabb, World};
 use rayon::prelude::*;
@@ -29,6 +30,32 @@ struct Trees {
     /// (`Statics::stamp`, `Statics::generation`) the static tree was built for.
     statics_generation: Option<(u64, u64)>,
     dynamics: Lbvh,
+    /// The world as the last step left it, and how many steps have refit the dynamic
+    /// tree since it was built; `None` before a step.
+    fit: Option<(Counters, u32)>,
+    /// The age at which the dynamic tree is built again instead of refit.
+    refits: u32,
+}
+
+/// What tells whether the dynamic tree's leaves still mean the world's objects at the
+/// places this backend last put them.
+#[derive(Clone, Copy, PartialEq, Eq)]
+struct Counters {
+    stamp: u64,
+    layout: u64,
+    /// `generation - action_generation`: every change but a new action.
+    moves: u64,
+}
+
+impl Counters {
+    fn of(world: &World) -> Counters {
+        let d = &world.dynamics;
+        Counters {
+            stamp: d.stamp(),
+            layout: d.layout_generation(),
+            moves: d.generation().wrapping_sub(d.action_generation()),
+        }
+    }
 }
 
 impl Trees {
@@ -45,7 +72,25 @@ impl Trees {
 
 impl BroadPhase for Trees {
     fn build_dynamic(&mut self, world: &World, aabbs: &[Aabb]) {
-        self.dynamics.build(aabbs, &world.bounds);
+        // Refit only a tree over the same objects, which only this backend's steps and
+        // new actions changed since (a teleport may put an object anywhere).
+        let now = Counters::of(world);
+        match self.fit {
+            Some((seen, age)) if seen == now && age < self.refits && self.dynamics.len() == aabbs.len() => {
+                self.dynamics.refit(aabbs);
+                self.fit = Some((seen, age + 1));
+            }
+            _ => {
+                self.dynamics.build(aabbs, &world.bounds);
+                self.fit = Some((now, 0));
+            }
+        }
+    }
+
+    fn stepped(&mut self, world: &World) {
+        if let Some((seen, _)) = &mut self.fit {
+            *seen = Counters::of(world);
+        }
     }
 
     fn static_pairs(&mut self, world: &World, aabbs: &[Aabb], out: &mut Vec<u64>) {
@@ -103,5 +148,13 @@ impl Backend for CpuLbvh {
         self.aoi.prepare((d.stamp(), d.generation()), |aabbs| dynamic_aabbs(Exec::Parallel, d, aabbs), boxes);
         self.aoi.query_all(boxes, &mut out.offsets, &mut out.objects);
         Ok(())
+    }
+
+    fn set_tree_refits(&mut self, refits: u32) {
+        self.broad.refits = refits;
+    }
+
+    fn tree_age(&self) -> Option<u32> {
+        self.broad.fit.map(|(_, age)| age)
     }
 }

@@ -34,6 +34,8 @@ pub(crate) trait BroadPhase {
     fn static_pairs(&mut self, world: &World, aabbs: &[Aabb], out: &mut Vec<u64>);
     /// Appends every `(a << 32 | b)`, `a < b`, whose boxes overlap, sorted ascending.
     fn dynamic_pairs(&mut self, aabbs: &[Aabb], out: &mut Vec<u64>);
+    /// The step has written the world (what a tree kept from tick to tick must know).
+    fn stepped(&mut self, _world: &World) {}
 }
 
 /// Buffers reused from tick to tick.
@@ -163,6 +165,7 @@ pub(crate) fn run_step(
     lap(&mut report, Stage::Forces);
     // The step is the single owner of the tick counter (see `Backend::step`).
     world.tick += 1;
+    broad.stepped(world);
     report
 }
 

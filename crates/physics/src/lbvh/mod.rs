@@ -22,8 +22,10 @@
 //! "the largest Morton code reachable".
 //!
 //! # Performance note
-//! The build is O(n log n) in the sort and O(n) otherwise, all stages parallel; the tree
-//! is rebuilt every tick (it takes a fraction of the traversal's time and keeps quality).
+//! The build is O(n log n) in the sort and O(n) otherwise, all stages parallel. A
+//! backend may [`Lbvh::refit`] its dynamic tree for up to [`tree_refits`] steps in a row
+//! before it builds it again: a refit skips the Morton codes, the sort and the emission,
+//! and the tree's nodes fit a little less tightly each step the objects move.
 
 pub mod morton;
 pub mod radix;
@@ -35,6 +37,24 @@ use rayon::prelude::*;
 
 use crate::par::SharedMut;
 use morton::MortonFrame;
+
+/// How many steps in a row a backend refits its dynamic tree before one builds it again,
+/// unless `MYRIAD_TREE_REFITS` says otherwise ([`tree_refits`]). Results never depend on
+/// it: what the broad phase reports is sorted, so a tree's shape never shows.
+pub const TREE_REFITS: u32 = 0;
+
+/// `MYRIAD_TREE_REFITS` (a count of steps; 0: every step builds its tree), or
+/// [`TREE_REFITS`] when it is unset. A value that is not a count is reported on stderr
+/// and ignored. Read when a backend is created.
+pub fn tree_refits() -> u32 {
+    match std::env::var("MYRIAD_TREE_REFITS") {
+        Err(_) => TREE_REFITS,
+        Ok(v) => v.trim().parse().unwrap_or_else(|_| {
+            eprintln!("MYRIAD_TREE_REFITS={v:?} is not a count of steps; using {TREE_REFITS}");
+            TREE_REFITS
+        }),
+    }
+}
 
 /// Marks a child reference as a leaf (leaf index in the low bits).
 const LEAF: u32 = 1 << 31;

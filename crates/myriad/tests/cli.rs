@@ -180,6 +180,7 @@ fn bench_reports_every_stage_and_the_table_columns() {
             "send",
             "physics_static_ms",
             "physics_dynamic_ms",
+            "mean_ms",
             "dynamic",
             "static_objects",
             "static_boxes",
@@ -192,6 +193,7 @@ fn bench_reports_every_stage_and_the_table_columns() {
             assert!(r.get(key).is_some(), "missing {key} in {r}");
         }
         assert!(r["physics_dynamic_ms"].as_f64().unwrap() > 0.0);
+        assert!(r["mean_ms"].as_f64().unwrap() > 0.0);
         assert_eq!(r["static_boxes"], 150);
         assert_eq!(r["static_capsules"], 30);
     }

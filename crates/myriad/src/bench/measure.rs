@@ -42,6 +42,11 @@ fn median(mut v: Vec<f64>) -> f64 {
     if v.len() % 2 == 1 { v[m] } else { (v[m - 1] + v[m]) / 2.0 }
 }
 
+fn mean(v: impl ExactSizeIterator<Item = f64>) -> f64 {
+    let n = v.len();
+    if n == 0 { 0.0 } else { v.sum::<f64>() / n as f64 }
+}
+
 fn median_u64(v: impl Iterator<Item = u64>) -> u64 {
     let mut v: Vec<u64> = v.collect();
     v.sort_unstable();
@@ -81,6 +86,7 @@ fn empty_row(label: &str, world: &World, kind: BackendKind, description: String,
         physics_static_ms: 0.0,
         physics_dynamic_ms: 0.0,
         total_ms: 0.0,
+        mean_ms: 0.0,
         cpu_ms: 0.0,
         static_pairs: 0,
         dynamic_pairs: 0,
@@ -136,14 +142,15 @@ fn bench_one(label: &str, world: &World, kind: BackendKind, args: &BenchArgs, pr
     row.physics_static_ms = median(reports.iter().map(StepReport::physics_static_ms).collect());
     row.physics_dynamic_ms = median(reports.iter().map(StepReport::physics_dynamic_ms).collect());
     row.total_ms = median(reports.iter().map(StepReport::total_ms).collect());
+    row.mean_ms = mean(reports.iter().map(StepReport::total_ms));
     row.static_pairs = median_u64(reports.iter().map(|r| r.static_pairs));
     row.dynamic_pairs = median_u64(reports.iter().map(|r| r.dynamic_pairs));
     row.static_contacts = median_u64(reports.iter().map(|r| r.static_contacts));
     row.dynamic_contacts = median_u64(reports.iter().map(|r| r.dynamic_contacts));
     row.state_hash = format!("{:016x}", w.state_hash());
     progress.log(format!(
-        "  {kind}: {:.3} ms a tick (static {:.3}, dynamic {:.3}), hash {}",
-        row.total_ms, row.physics_static_ms, row.physics_dynamic_ms, row.state_hash
+        "  {kind}: {:.3} ms a tick (mean {:.3}; static {:.3}, dynamic {:.3}), hash {}",
+        row.total_ms, row.mean_ms, row.physics_static_ms, row.physics_dynamic_ms, row.state_hash
     ));
     Ok(row)
 }
@@ -243,6 +250,7 @@ fn server_one(
     row.physics_static_ms = row.upload + row.broad_static + row.narrow_static;
     row.physics_dynamic_ms = row.build_dynamic_bvh + row.broad_dynamic + row.narrow_dynamic + row.forces;
     row.total_ms = median(samples.iter().map(TickSample::total_ms).collect());
+    row.mean_ms = mean(samples.iter().map(TickSample::total_ms));
     row.state_hash = format!("{:016x}", bench.world().state_hash());
     let m = |f: fn(&TickSample) -> u64| median_u64(samples.iter().map(f));
     let bytes = m(|s| s.work.bytes);

@@ -154,6 +154,9 @@ pub struct Row {
     physics_static_ms: f64,
     physics_dynamic_ms: f64,
     pub total_ms: f64,
+    /// The mean of the same ticks: work done every few ticks (a tree built every fourth
+    /// step, a checkpoint) shows here, where the median may hide it.
+    pub mean_ms: f64,
     /// CPU time of the whole process per measured tick (all threads), in ms: on a busy
     /// machine wall times inflate, this does not.
     cpu_ms: f64,

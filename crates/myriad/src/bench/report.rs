@@ -24,28 +24,29 @@ pub fn markdown(rows: &[Row], args: &BenchArgs) -> String {
     let threads = rows.first().map_or(0, |r| r.threads);
     let _ = writeln!(
         s,
-        "#### Table 1: physics time per tick (ms, median of {} ticks after {} warm-up)\n",
+        "#### Table 1: physics time per tick (ms, median of {} ticks after {} warm-up; mean: their mean)\n",
         args.ticks, args.warmup
     );
     let _ = writeln!(
         s,
-        "| scenario | backend | static | dynamic | total | CPU per tick | dynamic pairs | static pairs | state hash |"
+        "| scenario | backend | static | dynamic | total | mean | CPU per tick | dynamic pairs | static pairs | state hash |"
     );
-    let _ = writeln!(s, "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |");
+    let _ = writeln!(s, "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |");
     for r in rows.iter().filter(|r| !r.is_server()) {
         match &r.skipped {
             Some(why) => {
-                let _ = writeln!(s, "| {} | {} | - | - | - | | | | {why} |", r.scenario, r.backend);
+                let _ = writeln!(s, "| {} | {} | - | - | - | - | | | | {why} |", r.scenario, r.backend);
             }
             None => {
                 let _ = writeln!(
                     s,
-                    "| {} | {} | {} | {} | {} | {} | {} | {} | `{}` |",
+                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} | `{}` |",
                     r.scenario,
                     r.backend,
                     fmt_ms(r.physics_static_ms),
                     fmt_ms(r.physics_dynamic_ms),
                     fmt_ms(r.total_ms),
+                    fmt_ms(r.mean_ms),
                     fmt_ms(r.cpu_ms),
                     r.dynamic_pairs,
                     r.static_pairs,

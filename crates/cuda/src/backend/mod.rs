@@ -21,7 +21,10 @@
 //! Per tick:
 //!
 //! 1. `build_dynamic_bvh`: object boxes; for `cuda` also Morton codes, the radix sort,
-//!    Karras emission and the refit (`kernels/lbvh.cu`).
+//!    Karras emission and the refit (`kernels/lbvh.cu`), or, for up to
+//!    [`Backend::set_tree_refits`] steps in a row after a build while the device's slots
+//!    keep their objects (no patch, no upload of positions), only the boxes and the refit
+//!    of the last tree.
 //! 2. `broad_static`, `broad_dynamic`: each object counts the static primitives and the
 //!    other objects its box overlaps (tree walk for `cuda`, every target for
 //!    `cuda-naive`); an exclusive scan gives each object its exact range; the host reads

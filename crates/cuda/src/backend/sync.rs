@@ -8,6 +8,7 @@ use myriad_physics::{BackendKind, PhysicsError, TickConstants};
 use rayon::prelude::*;
 
 use super::broad::SLOTS;
+use super::tree::Leaves;
 use super::{Resident, Synced};
 use crate::device::{DevBuf, Gpu, Pinned};
 use crate::launch::KBoxes;
@@ -261,7 +262,8 @@ impl Resident {
                 gpu.launch(m, KBoxes { n: m as u32, pos: p.pos.ptr(), half: p.half.ptr(), boxes: p.boxes.ptr() })?;
             } else {
                 let frame = MortonFrame::new(&world.bounds);
-                self.static_tree.build(gpu, m, p.pos.ptr(), p.half.ptr(), p.boxes.ptr(), &frame)?;
+                let leaves = Leaves { n: m, pos: p.pos.ptr(), half: p.half.ptr(), boxes: p.boxes.ptr() };
+                self.static_tree.build(gpu, leaves, &frame)?;
             }
             self.statics_key = Some(key);
         }

@@ -19,6 +19,16 @@ pub(super) const NODE_BYTES: usize = 64;
 
 const _: () = assert!(std::mem::size_of::<Node>() == NODE_BYTES);
 
+/// What a tree is built (or refit) over: `n` objects at `pos ± half`, whose boxes it
+/// writes into `boxes` (packed floats on the device).
+#[derive(Clone, Copy)]
+pub(super) struct Leaves {
+    pub n: usize,
+    pub pos: DevPtr<f32>,
+    pub half: DevPtr<f32>,
+    pub boxes: DevPtr<f32>,
+}
+
 /// A linear BVH on the device (`kernels/lbvh.cu`).
 pub(super) struct Tree {
     keys: DevBuf<u64>,
@@ -51,17 +61,10 @@ impl Tree {
         }
     }
 
-    /// Writes the boxes of the `n` objects at `pos ± half` into `boxes` and builds the
-    /// tree over them.
-    pub fn build(
-        &mut self,
-        gpu: &Gpu,
-        n: usize,
-        pos: DevPtr<f32>,
-        half: DevPtr<f32>,
-        boxes: DevPtr<f32>,
-        frame: &MortonFrame,
-    ) -> Result<(), PhysicsError> {
+    /// Writes the boxes of the leaves' objects into their `boxes` and builds the tree over
+    /// them.
+    pub fn build(&mut self, gpu: &Gpu, leaves: Leaves, frame: &MortonFrame) -> Result<(), PhysicsError> {
+        let Leaves { n, pos, half, boxes } = leaves;
         self.leaves = n;
         if n == 0 {
             return Ok(());
@@ -150,14 +153,8 @@ impl Tree {
     /// is sorted, so the tree's shape never shows in a result); only how tightly the
     /// nodes fit degrades as the objects move. The caller makes sure `n` and the slots'
     /// meaning are those of the last build.
-    pub fn refit(
-        &mut self,
-        gpu: &Gpu,
-        n: usize,
-        pos: DevPtr<f32>,
-        half: DevPtr<f32>,
-        boxes: DevPtr<f32>,
-    ) -> Result<(), PhysicsError> {
+    pub fn refit(&mut self, gpu: &Gpu, leaves: Leaves) -> Result<(), PhysicsError> {
+        let Leaves { n, pos, half, boxes } = leaves;
         debug_assert_eq!(n, self.leaves, "a refit keeps the tree's leaves");
         if n == 0 {
             return Ok(());
@@ -196,14 +193,15 @@ impl Resident {
             return self.build_boxes();
         }
         let o = &self.obj;
+        let leaves = Leaves { n: self.n, pos: o.pos.ptr(), half: o.half.ptr(), boxes: o.boxes.ptr() };
         match self.tree_age {
             Some(age) if age < self.tree_refits && self.dyn_tree.leaves == self.n => {
-                self.dyn_tree.refit(&self.gpu, self.n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr())?;
+                self.dyn_tree.refit(&self.gpu, leaves)?;
                 self.tree_age = Some(age + 1);
             }
             _ => {
                 let frame = MortonFrame::new(&world.bounds);
-                self.dyn_tree.build(&self.gpu, self.n, o.pos.ptr(), o.half.ptr(), o.boxes.ptr(), &frame)?;
+                self.dyn_tree.build(&self.gpu, leaves, &frame)?;
                 self.tree_age = Some(0);
             }
         }

@@ -449,7 +449,7 @@ if [[ $mode == table ]]; then
     }
     ulimit -n 65536 || true
     s4=(bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --bots-per-socket 20 --quality-players 0)
-    s3=(bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 --quality-players 0)
+    s3=(bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size "14,100" --quality-players 0)
     s2=(bench --scenario 2 --backend cuda --ticks 60 --warmup 30 --aoi-size 100 --quality-players 0)
     physics=(bench --scenario 3 --backend cuda --ticks 30 --warmup 3 --physics-only --sweep 2000000)
     # Each step in turn, so a call cut short still brings back the first steps whole;

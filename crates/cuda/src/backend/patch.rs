@@ -248,9 +248,11 @@ impl Resident {
             send(gpu, &o.action, d.actions(), &mut sent)?;
         }
         // Boxes follow positions and slots: stale unless only actions changed (as on
-        // the full path).
+        // the full path). So does the tree: moved slots mean other objects in its leaves,
+        // and written states put objects anywhere.
         if c.moved.is_some() || w > 0 {
             self.boxes_fresh = None;
+            self.tree_age = None;
         }
         Ok(Some(sent))
     }

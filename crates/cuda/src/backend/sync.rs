@@ -197,9 +197,7 @@ impl Resident {
         let gpu = &self.gpu;
         let o = &mut self.obj;
         if let Some(bytes) = patched {
-            // A patch moves objects between slots: the tree's leaves mean other objects.
             sent += bytes;
-            self.tree_age = None;
         } else {
             if self.synced.map(|s| (s.layout, s.identity)) != Some((now.layout, now.identity)) || self.n != n {
                 // Objects came or went: slots changed meaning, upload everything.

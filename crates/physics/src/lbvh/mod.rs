@@ -41,7 +41,7 @@ use morton::MortonFrame;
 /// How many steps in a row a backend refits its dynamic tree before one builds it again,
 /// unless `MYRIAD_TREE_REFITS` says otherwise ([`tree_refits`]). Results never depend on
 /// it: what the broad phase reports is sorted, so a tree's shape never shows.
-pub const TREE_REFITS: u32 = 0;
+pub const TREE_REFITS: u32 = 7;
 
 /// `MYRIAD_TREE_REFITS` (a count of steps; 0: every step builds its tree), or
 /// [`TREE_REFITS`] when it is unset. A value that is not a count is reported on stderr

@@ -24,7 +24,6 @@ pub struct CpuLbvh {
     aoi: AoiGrid,
 }
 
-#[derive(Default)]
 struct Trees {
     statics: Lbvh,
     /// (`Statics::stamp`, `Statics::generation`) the static tree was built for.
@@ -35,6 +34,18 @@ struct Trees {
     fit: Option<(Counters, u32)>,
     /// The age at which the dynamic tree is built again instead of refit.
     refits: u32,
+}
+
+impl Default for Trees {
+    fn default() -> Trees {
+        Trees {
+            statics: Lbvh::default(),
+            statics_generation: None,
+            dynamics: Lbvh::default(),
+            fit: None,
+            refits: crate::lbvh::TREE_REFITS,
+        }
+    }
 }
 
 /// What tells whether the dynamic tree's leaves still mean the world's objects at the

@@ -52,6 +52,8 @@
 # soon as it is written, so a call that runs out of time still brings back the steps that
 # finished. The default takes longer than one call of 600 s (scenario 4 at AOI 100 took
 # over 150 s profiled on an H100): name fewer steps, or run the tests in another call.
+# The device tool brings back a limited number of files: in a call that also runs
+# MODE=million (dozens of files), run the table first, or its archive may be left out.
 #
 # Exits non-zero when any test binary or command fails or any comparison differs, and
 # ends with a list of what failed (also in $OUT/failures.txt). scripts/check-gpu-run.sh
@@ -444,7 +446,7 @@ if [[ $mode == table ]]; then
         local log=$1 limit=$2 bin=$3
         shift 3
         timeout "$limit" "$bin" "$@" >"$dir/$log.txt" 2>&1 || fail "table: $log ($bin $*)"
-        grep -E '^\| (2|3|4|sweep) \||state_hash' "$dir/$log.txt" | sed "s/^/$log: /"
+        grep -E '^\| (2|3|4|sweep-[0-9]+) \||state_hash' "$dir/$log.txt" | sed "s/^/$log: /"
         keep
     }
     ulimit -n 65536 || true

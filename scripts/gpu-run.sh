@@ -454,19 +454,22 @@ if [[ $mode == table ]]; then
     s3=(bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size "14,100" --quality-players 0)
     s2=(bench --scenario 2 --backend cuda --ticks 60 --warmup 30 --aoi-size 100 --quality-players 0)
     physics=(bench --scenario 3 --backend cuda --ticks 30 --warmup 3 --physics-only --sweep 2000000)
-    # Each step in turn, so a call cut short still brings back the first steps whole;
-    # within a step the builds alternate round by round.
-    for step in ${TABLE_STEPS:-physics s4-14 s2-100 profile-s4-14 profile-s4-100 profile-s2-100 profile-physics s4-100 zones}; do
-        case $step in
+    # A measured run's arguments and time limit, by name (a table step, or what a
+    # profile-NAME step profiles); false for an unknown name.
+    run_of() {
+        case $1 in
         physics) args=("${physics[@]}") limit=90 ;;
         s4-14) args=("${s4[@]}" --aoi-size 14) limit=120 ;;
         s4-100) args=("${s4[@]}" --aoi-size 100) limit=240 ;;
         s3) args=("${s3[@]}") limit=150 ;;
         s2-100) args=("${s2[@]}") limit=60 ;;
         zones) args=(sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json) limit=90 ;;
-        profile-* | refits) ;;
-        *) fail "table: unknown step $step"; continue ;;
+        *) return 1 ;;
         esac
+    }
+    # Each step in turn, so a call cut short still brings back the first steps whole;
+    # within a step the builds alternate round by round.
+    for step in ${TABLE_STEPS:-physics s4-14 s2-100 profile-s4-14 profile-s4-100 profile-s2-100 profile-physics s4-100 zones}; do
         if [[ $step == refits ]]; then
             # The physics with the dynamic tree refit for N steps between builds, for each
             # N of TABLE_REFITS, this build only, alternating N round by round.
@@ -475,27 +478,19 @@ if [[ $mode == table ]]; then
                     MYRIAD_TREE_REFITS=$n measure "refits-$n-$r" 90 .carry/myriad "${physics[@]}"
                 done
             done
-            continue
-        fi
-        if [[ $step == profile-* ]]; then
-            case ${step#profile-} in
-            s4-14) args=("${s4[@]}" --aoi-size 14) limit=120 ;;
-            s4-100) args=("${s4[@]}" --aoi-size 100) limit=240 ;;
-            s3) args=("${s3[@]}") limit=150 ;;
-            s2-100) args=("${s2[@]}") limit=60 ;;
-            physics) args=("${physics[@]}") limit=90 ;;
-            *) fail "table: unknown step $step"; continue ;;
-            esac
+        elif [[ $step == profile-* && $step != profile-zones ]] && run_of "${step#profile-}"; then
             MYRIAD_CUDA_PROFILE=1 measure "$step" "$limit" .carry/myriad "${args[@]}"
-            continue
-        fi
-        rounds=${TABLE_ROUNDS:-2}
-        [[ $step == zones ]] && rounds=1
-        for r in $(seq 1 "$rounds"); do
-            for b in "${builds[@]}"; do
-                measure "$step-$(which_build "$b")-$r" "$limit" "$b" "${args[@]}"
+        elif [[ $step != profile-* ]] && run_of "$step"; then
+            rounds=${TABLE_ROUNDS:-2}
+            [[ $step == zones ]] && rounds=1
+            for r in $(seq 1 "$rounds"); do
+                for b in "${builds[@]}"; do
+                    measure "$step-$(which_build "$b")-$r" "$limit" "$b" "${args[@]}"
+                done
             done
-        done
+        else
+            fail "table: unknown step $step"
+        fi
     done
 fi
 

@@ -307,9 +307,10 @@ fn measure_bytes_in_against_bytes_out() {
     let count: usize = env_or("MYRIAD_MEASURE_PLAYERS", 100);
     let ticks: u64 = env_or("MYRIAD_MEASURE_TICKS", 120);
     let warm = 30usize;
-    let side = (1024.0 * scale.sqrt()).round();
+    let side_of = |scale: f32| (1024.0 * scale.sqrt()).round();
+    let side = side_of(scale);
     let build = |scale: f32| {
-        let side = (1024.0 * scale.sqrt()).round();
+        let side = side_of(scale);
         let n = |base: f32| (base * scale).round() as u32;
         let spec = ScenarioSpec::reference(2, 1)
             .unwrap()

@@ -275,11 +275,7 @@ pub struct ZoneCuts {
 pub fn create_cpu_backend(kind: BackendKind) -> Result<Box<dyn Backend>, PhysicsError> {
     Ok(match kind {
         BackendKind::CpuNaive => Box::new(crate::cpu::CpuNaive::default()),
-        BackendKind::Cpu => {
-            let mut b = crate::cpu::CpuLbvh::default();
-            b.set_tree_refits(crate::lbvh::tree_refits());
-            Box::new(b)
-        }
+        BackendKind::Cpu => Box::new(crate::cpu::CpuLbvh::default()),
         BackendKind::CudaNaive | BackendKind::Cuda | BackendKind::Auto => {
             return Err(PhysicsError::Unavailable {
                 backend: kind.name(),

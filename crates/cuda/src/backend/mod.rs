@@ -23,8 +23,8 @@
 //! 1. `build_dynamic_bvh`: object boxes; for `cuda` also Morton codes, the radix sort,
 //!    Karras emission and the refit (`kernels/lbvh.cu`), or, for up to
 //!    [`Backend::set_tree_refits`] steps in a row after a build while the device's slots
-//!    keep their objects (no patch, no upload of positions), only the boxes and the refit
-//!    of the last tree.
+//!    keep their objects and only the steps moved them (no upload of positions, no patch
+//!    that moves slots or writes states), only the boxes and the refit of the last tree.
 //! 2. `broad_static`, `broad_dynamic`: each object counts the static primitives and the
 //!    other objects its box overlaps (tree walk for `cuda`, every target for
 //!    `cuda-naive`); an exclusive scan gives each object its exact range; the host reads
@@ -286,7 +286,6 @@ impl Resident {
     pub(crate) fn invalidate(&mut self) {
         self.synced = None;
         self.n = usize::MAX;
-        self.tree_age = None;
     }
 
     /// Runs `call`, invalidating the device copy if it fails.

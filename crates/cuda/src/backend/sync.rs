@@ -217,7 +217,6 @@ impl Resident {
                 send(gpu, &o.id, &d.ids().iter().map(|i| i.0).collect::<Vec<u32>>(), &mut sent)?;
                 self.n = n;
                 self.synced = None;
-                self.tree_age = None;
             }
             match self.synced {
                 Some(s) if s.generation == now.generation => {}
@@ -233,7 +232,8 @@ impl Resident {
                     send(gpu, &o.flags, d.flags(), &mut sent)?;
                     self.boxes_fresh = None;
                     // Positions set from outside the physics (teleports) may put objects
-                    // far from where the tree placed them: build it afresh.
+                    // far from where the tree placed them, and after objects came or went
+                    // (or `invalidate`) its leaves mean other objects: build it afresh.
                     self.tree_age = None;
                 }
             }

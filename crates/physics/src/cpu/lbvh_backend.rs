@@ -43,7 +43,7 @@ impl Default for Trees {
             statics_generation: None,
             dynamics: Lbvh::default(),
             fit: None,
-            refits: crate::lbvh::TREE_REFITS,
+            refits: crate::lbvh::tree_refits(),
         }
     }
 }

@@ -50,7 +50,8 @@ pub mod flags {
 }
 
 /// The accessors of the structures of arrays [`Dynamics`] and [`Statics`], whose fields
-/// `pos`, `half`, `radius`, `shape`, `generation` and `stamp` mean the same in both: a
+/// `half`, `radius`, `shape`, `generation` and `stamp` mean the same in both, and whose
+/// private `centres()` gives the positions: a
 /// read-only slice of each of those four per-element vectors and of each one listed
 /// (`name: field: type, "doc";`), the shape and the bounding box of element `i`, the
 /// generation and the stamp. The literal first names an element in the docs.
@@ -62,9 +63,11 @@ macro_rules! soa_accessors {
                 &self.$field
             }
         )*
-        #[doc = concat!("Centres (current positions) by ", $what, ".")]
+        #[doc = concat!("Centres (current positions) by ", $what, ". The dynamics' positions may be held by the")]
+        #[doc = "backend whose step computed them: the first read fetches them all"]
+        #[doc = "([`Dynamics::positions_at`] reads a few without)."]
         pub fn positions(&self) -> &[Vec3] {
-            &self.pos
+            self.centres()
         }
         #[doc = concat!("Bounding-box half extents by ", $what, ".")]
         pub fn half_extents(&self) -> &[Vec3] {
@@ -84,7 +87,7 @@ macro_rules! soa_accessors {
         }
         #[doc = concat!("The bounding box of the ", $what, " `i`.")]
         pub fn aabb(&self, i: usize) -> Aabb {
-            Aabb::from_center_half(self.pos[i], self.half[i])
+            Aabb::from_center_half(self.centres()[i], self.half[i])
         }
         /// A counter bumped by every change made through this type's methods.
         pub fn generation(&self) -> u64 {
@@ -102,14 +105,13 @@ macro_rules! soa_accessors {
 #[derive(Clone, Debug, Default)]
 pub struct Dynamics {
     id: Vec<EntityId>,
-    pos: Vec<Vec3>,
     half: Vec<Vec3>,
     radius: Vec<f32>,
     shape: Vec<ShapeKind>,
     kind: Vec<ObjectKind>,
     action: Vec<u8>,
-    /// Previous positions and flag bits: here, or held by the backend that stepped
-    /// them until something reads them ([`Dynamics::state_mut_holding`]).
+    /// Positions, previous positions and flag bits: here, or held by the backend that
+    /// stepped them until something reads them ([`Dynamics::state_mut_holding`]).
     late: Late,
     /// Slot by id, built when first asked for: a zone rebuilds its world every tick
     /// from states in id order and rarely asks, so it never pays for the map. Seeded
@@ -253,13 +255,13 @@ impl Dynamics {
         };
         let s = slot as usize;
         self.id.swap_remove(s);
-        self.pos.swap_remove(s);
         self.half.swap_remove(s);
         self.radius.swap_remove(s);
         self.shape.swap_remove(s);
         self.kind.swap_remove(s);
         self.action.swap_remove(s);
         let late = self.late.get_mut();
+        late.pos.swap_remove(s);
         late.prev.swap_remove(s);
         late.flags.swap_remove(s);
         if s < self.id.len() {
@@ -281,7 +283,7 @@ impl Dynamics {
             shape: self.shape[slot],
             half: self.half[slot],
             radius: self.radius[slot],
-            pos: self.pos[slot],
+            pos: late.pos[slot],
             prev: late.prev[slot],
             action: self.action[slot],
             flags: late.flags[slot],
@@ -334,7 +336,7 @@ impl Dynamics {
         }
         let late = self.late.get_mut();
         self.id.reserve(n);
-        self.pos.reserve(n);
+        late.pos.reserve(n);
         late.prev.reserve(n);
         self.half.reserve(n);
         self.radius.reserve(n);
@@ -345,7 +347,7 @@ impl Dynamics {
         let mut max = self.next_id;
         for s in states {
             self.id.push(s.id);
-            self.pos.push(s.pos);
+            late.pos.push(s.pos);
             late.prev.push(s.prev);
             self.half.push(s.half);
             self.radius.push(s.radius);
@@ -366,7 +368,6 @@ impl Dynamics {
     /// (never back), so a backend still notices the change.
     pub fn clear(&mut self) {
         self.id.clear();
-        self.pos.clear();
         self.half.clear();
         self.radius.clear();
         self.shape.clear();
@@ -432,8 +433,9 @@ impl Dynamics {
         if !pos.is_finite() {
             return false;
         }
-        self.pos[s] = pos;
-        self.late.get_mut().prev[s] = pos;
+        let late = self.late.get_mut();
+        late.pos[s] = pos;
+        late.prev[s] = pos;
         self.generation += 1;
         self.journal = None;
         true
@@ -445,7 +447,7 @@ impl Dynamics {
         self.restart_journal();
         let late = self.late.get_mut();
         DynamicsMut {
-            pos: &mut self.pos,
+            pos: &mut late.pos,
             prev: &mut late.prev,
             action: &mut self.action,
             flags: &mut late.flags,
@@ -457,16 +459,40 @@ impl Dynamics {
         }
     }
 
-    /// [`Dynamics::state_mut`] for a step that leaves the previous positions and the
-    /// flags with `holder` (where the step computed them): the step writes the
-    /// positions and actions it returns, and the others are fetched from `holder` when
-    /// something first reads or changes them (module `late`). Whatever held them before
-    /// is forgotten unread: this step's values are newer. Bumps the generation.
-    pub fn state_mut_holding(&mut self, holder: Arc<dyn HeldState>) -> (&mut [Vec3], &mut [u8]) {
+    /// [`Dynamics::state_mut`] for a step that leaves the positions, the previous
+    /// positions and the flags with `holder` (where the step computed them): the step
+    /// writes the actions it returns, and the others are fetched from `holder` when
+    /// something first reads or changes them (module `late`), or only some positions
+    /// when a reader asks for those ([`Dynamics::positions_at`]). Whatever held them
+    /// before is forgotten unread: this step's values are newer. Bumps the generation.
+    pub fn state_mut_holding(&mut self, holder: Arc<dyn HeldState>) -> &mut [u8] {
         self.generation += 1;
         self.restart_journal();
         self.late.hold(holder);
-        (&mut self.pos, &mut self.action)
+        &mut self.action
+    }
+
+    /// The positions of the objects in `slots`, in that order, into `out` (cleared
+    /// first). Equal to indexing [`Dynamics::positions`], but when the last step left
+    /// the positions with its backend only these come back (a GPU server reads its
+    /// players' positions every tick, a few percent of the objects) and the rest stay
+    /// where they are. Panics on a slot out of range, as indexing would.
+    pub fn positions_at(&self, slots: &[u32], out: &mut Vec<Vec3>) {
+        out.clear();
+        out.resize(slots.len(), Vec3::ZERO);
+        self.late.positions_at(slots, out);
+    }
+
+    /// Whether the positions, previous positions and flags are held by the backend whose
+    /// step computed them, not read whole since ([`Dynamics::state_mut_holding`]): a
+    /// GPU server reads its players' positions every tick without fetching them.
+    pub fn state_held(&self) -> bool {
+        self.late.is_held()
+    }
+
+    /// The current positions, here or fetched (the accessors' `positions`).
+    fn centres(&self) -> &[Vec3] {
+        &self.late.get().pos
     }
 
     soa_accessors! {
@@ -475,8 +501,8 @@ impl Dynamics {
         kinds: kind: ObjectKind, "NPC or user, by slot.";
         actions: action: u8, "Held action masks by slot.";
     }
-    /// Previous positions by slot (velocity per tick is `pos - prev`); fetched first
-    /// when the last step left them with its backend.
+    /// Previous positions by slot (velocity per tick is `pos - prev`); fetched first,
+    /// like [`Dynamics::positions`], when the last step left them with its backend.
     pub fn prev_positions(&self) -> &[Vec3] {
         &self.late.get().prev
     }
@@ -591,6 +617,10 @@ impl Statics {
     /// Number of primitives.
     pub fn prim_count(&self) -> usize {
         self.pos.len()
+    }
+    /// The primitives' centres (the accessors' `positions`).
+    fn centres(&self) -> &[Vec3] {
+        &self.pos
     }
     soa_accessors! {
         "primitive";

@@ -4,7 +4,8 @@
 //
 // The nine per-object arrays are pos, prev, half (3 floats an object), radius (float),
 // shape, kind (one byte), id (u32), action, flags (one byte). Both kernels copy bits and
-// do no arithmetic on the values, so the result is exactly what a full upload gives.
+// do no arithmetic on the values, so the result is exactly what a full upload gives. The
+// last kernel reads some positions back, copying bits too.
 #include "common.cuh"
 
 // One thread per new slot `i < n`: the run covering `i` (runs of 3 words: to, from, len,
@@ -72,4 +73,14 @@ extern "C" __global__ void k_patch_scatter(u32 w, const u32* staged, u32 n, floa
     kind[s] = (u8)((bytes >> 8) & 0xffu);
     action[s] = (u8)((bytes >> 16) & 0xffu);
     flags[s] = (u8)(bytes >> 24);
+}
+
+// One thread per asked slot `i < m`: the position of object `slots[i]` into `out` (three
+// floats a slot). The host's read of a few positions (a GPU server's players, every tick)
+// while the step left every position on the device (crates/cuda/src/backend/held.rs); the
+// host checked each slot against the number of objects.
+extern "C" __global__ void k_gather_positions(u32 m, const u32* slots, const float* pos, float* out) {
+    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= m) return;
+    store3(out, i, load3(pos, slots[i]));
 }

@@ -38,7 +38,7 @@ pub const HEADERS: [(&str, &str); 4] = [
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 28] = [
+pub const KERNELS: [(&str, usize); 29] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -61,6 +61,7 @@ pub const KERNELS: [(&str, usize); 28] = [
     ("k_forces", 16),
     ("k_patch_gather", 21),
     ("k_patch_scatter", 12),
+    ("k_gather_positions", 4),
     ("k_replica_due", 24),
     ("k_replica_rank", 5),
     ("k_replica_take", 17),

@@ -574,6 +574,14 @@ kernels! {
         action: DevPtr<u8>,
         flags: DevPtr<u8>,
     }
+    /// `k_gather_positions` (`kernels/patch.cu`): the positions of `m` slots out of
+    /// `pos`, each slot's three floats into `out`.
+    KGatherPositions = "k_gather_positions" {
+        m: u32,
+        slots: DevPtr<u32>,
+        pos: DevPtr<f32>,
+        out: DevPtr<f32>,
+    }
 
 }
 

@@ -79,7 +79,7 @@ fn a_moved_backend_answers_for_its_new_world() {
     conformance::a_moved_backend_answers_for_its_new_world(cpu.as_mut(), &mut gpus);
 }
 
-/// Worlds stepped in turn keep their own previous positions and flags, which each step
+/// Worlds stepped in turn keep their own positions, previous positions and flags, which each step
 /// leaves on the device until the host reads them: three worlds (one more than the
 /// backend keeps copies for while the others are unread), a clone, readers on several
 /// threads.
@@ -90,10 +90,11 @@ fn worlds_stepped_in_turn_keep_their_own_state() {
     conformance::worlds_stepped_in_turn_keep_their_own_state(cpu.as_mut(), &mut gpus);
 }
 
-/// A step leaves the previous positions and flags on the device while the backend has a
-/// copy no world refers to (13 bytes an object come back, not 26), and brings them back
-/// when every copy is referred to; the worlds keep the CPU's state either way. Without
-/// this the conformance checks above would also pass if no step held anything.
+/// A step leaves the positions, previous positions and flags on the device while the
+/// backend has a copy no world refers to (1 byte an object comes back, the action, not
+/// 26), and brings them back when every copy is referred to; the worlds keep the CPU's
+/// state either way. Without this the conformance checks above would also pass if no
+/// step held anything.
 #[test]
 fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
     let Some(mut gpus) = cuda_backends("a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free") else {
@@ -120,7 +121,7 @@ fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
             let mut step = |i: usize, held: bool, when: &str| {
                 cpu.step(&mut want[i], &k).unwrap();
                 let report = b.step(&mut got[i], &k).unwrap();
-                let per_object = if held { 13 } else { 26 };
+                let per_object = if held { 1 } else { 26 };
                 let n = got[i].dynamics.len() as u64;
                 assert_eq!(report.download_bytes, 16 + per_object * n, "{name}, {when} (world {i}): held {held}");
             };
@@ -138,10 +139,46 @@ fn a_step_leaves_the_previous_state_on_the_device_while_a_copy_is_free() {
         for i in [1, 2, 3] {
             cpu.step(&mut want[i], &k).unwrap();
             let report = b.step(&mut got[i], &k).unwrap();
-            assert_eq!(report.download_bytes, 16 + 13 * got[i].dynamics.len() as u64, "{name}: world {i} after reads");
+            assert_eq!(report.download_bytes, 16 + got[i].dynamics.len() as u64, "{name}: world {i} after reads");
         }
         check(&got, &want, "at the end");
-        println!("{name}: held steps download 13 bytes an object, full ones 26; every world = cpu");
+        println!("{name}: held steps download 1 byte an object, full ones 26; every world = cpu");
+    }
+}
+
+/// Some positions of a world whose step left them on the device come from a gather (the
+/// world's state stays held) and equal the CPU's, in the order asked, repeats included;
+/// with the backend dropped they still do (the world's copy reads every position back).
+#[test]
+fn some_positions_are_gathered_on_the_device_and_equal_the_cpus() {
+    let Some(gpus) = cuda_backends("some_positions_are_gathered_on_the_device_and_equal_the_cpus") else { return };
+    let k = myriad_physics::TickConstants::default();
+    let mut cpu = create_cpu_backend(BackendKind::Cpu).unwrap();
+    for mut b in gpus {
+        let name = b.kind();
+        let mut want = conformance::crowded(11, myriad_core::Placement::Uniform);
+        let mut got = want.clone();
+        for _ in 0..3 {
+            cpu.step(&mut want, &k).unwrap();
+            b.step(&mut got, &k).unwrap();
+        }
+        let n = got.dynamics.len() as u32;
+        let slots: Vec<u32> = (0..n).rev().step_by(7).chain([0, 0, n - 1]).collect();
+        let expect: Vec<_> = slots.iter().map(|&s| want.dynamics.positions()[s as usize]).collect();
+        let mut out = Vec::new();
+        assert!(got.dynamics.state_held(), "{name}: the step left the state on the device");
+        got.dynamics.positions_at(&slots, &mut out);
+        assert_eq!(out, expect, "{name}: gathered");
+        assert!(got.dynamics.state_held(), "{name}: a gather fetches nothing else");
+        got.dynamics.positions_at(&[], &mut out);
+        assert!(out.is_empty());
+        drop(b);
+        got.dynamics.positions_at(&slots, &mut out);
+        assert_eq!(out, expect, "{name}: read back without the backend");
+        assert!(got.dynamics.state_held());
+        assert_eq!(got.state_hash(), want.state_hash(), "{name}");
+        assert!(!got.dynamics.state_held(), "the hash read everything");
+        println!("{name}: {} positions gathered = cpu, with and without the backend", slots.len());
     }
 }
 

@@ -385,7 +385,7 @@ pub fn a_moved_backend_answers_for_its_new_world(reference: &mut dyn Backend, ot
 
 /// Worlds stepped in turn by one backend, read only at the end, each end as if stepped
 /// alone: a backend that leaves a step's state where it computed it (the CUDA backends
-/// keep the previous positions and flags on the device until the host reads them) must
+/// keep the positions, previous positions and flags on the device until the host reads them) must
 /// not hand one world another's, nor an older step's, whether the worlds are three (more
 /// than such a backend keeps copies for), a clone taken mid-run, or a world read between
 /// steps on several threads at once.

@@ -558,9 +558,30 @@ impl Sessions {
         Some(PlayerState::new(p.user_id, self.map_id, store_shape(p.shape), pos))
     }
 
-    /// Every player's current state, for the persister.
+    /// Every player's current state, for the persister: the positions in one read, so
+    /// that a GPU backend's step, which leaves them on the device, sends back only the
+    /// players'.
     pub fn states(&self, world: &World) -> Vec<PlayerState> {
-        (0..self.players.len()).filter_map(|i| self.state_of(world, i)).collect()
+        let d = &world.dynamics;
+        let present: Vec<(&Player, u32)> = self
+            .players
+            .iter()
+            .filter_map(|p| match d.slot(p.entity) {
+                Some(slot) => Some((p, slot as u32)),
+                None => {
+                    missing_entity(p);
+                    None
+                }
+            })
+            .collect();
+        let slots: Vec<u32> = present.iter().map(|&(_, s)| s).collect();
+        let mut positions = Vec::new();
+        d.positions_at(&slots, &mut positions);
+        present
+            .iter()
+            .zip(positions)
+            .map(|(&(p, _), pos)| PlayerState::new(p.user_id, self.map_id, store_shape(p.shape), pos.to_array()))
+            .collect()
     }
 }
 

@@ -37,7 +37,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use myriad_core::World;
+use myriad_core::{Vec3, World};
 use myriad_interest::TickInfo;
 use myriad_physics::{Backend, TickConstants};
 use myriad_protocol::{DisconnectReason, ServerInfo, ServerMessage};
@@ -519,7 +519,7 @@ impl TickLoop {
                 Some(Recipient {
                     session_id: p.session_id,
                     object: slot as u32,
-                    centre: dynamics.positions()[slot],
+                    centre: Vec3::ZERO,
                     addr: p.addr,
                     view: &mut p.view,
                 })
@@ -528,6 +528,14 @@ impl TickLoop {
         let passed = Instant::now();
         #[expect(clippy::filter_map_identity, reason = "`flatten` would not collect in place")]
         let mut recipients: Vec<Recipient<'_>> = chosen.into_iter().filter_map(|r| r).collect();
+        // The centres in one read: when the step left the positions on the device (a GPU
+        // backend), only the players' come back, not every object's.
+        let slots: Vec<u32> = recipients.iter().map(|r| r.object).collect();
+        let mut centres = Vec::new();
+        dynamics.positions_at(&slots, &mut centres);
+        for (r, c) in recipients.iter_mut().zip(centres) {
+            r.centre = c;
+        }
         let tick = TickInfo { tick: self.world.tick, dilation_permille: self.dilation.permille() };
         let sender = Sender::new(self.transport.lanes(), tick.tick);
         let (outbound, backend, world) = (&mut self.outbound, self.backend.as_mut(), &self.world);

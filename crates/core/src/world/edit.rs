@@ -171,8 +171,8 @@ impl Dynamics {
 
         if layout_changes {
             let plan = EditPlan { remove: &e.remove, at: &at };
-            let Dynamics { id, pos, half, radius, shape, kind, action, late, .. } = self;
-            let super::late::LateArrays { prev, flags } = late.get_mut();
+            let Dynamics { id, half, radius, shape, kind, action, late, .. } = self;
+            let super::late::LateArrays { pos, prev, flags } = late.get_mut();
             // On the calling thread, field after field: zones share a process's cores
             // (and rayon's pool, which the backends' copies use), and moving the nine
             // fields at once on the pool made 4 zones of scenario 3 on one H200's host
@@ -228,9 +228,9 @@ impl Dynamics {
     /// Writes a whole state into `slot` (already checked).
     fn put(&mut self, slot: usize, s: &ObjectState) {
         let late = self.late.get_mut();
+        late.pos[slot] = s.pos;
         late.prev[slot] = s.prev;
         late.flags[slot] = s.flags;
-        self.pos[slot] = s.pos;
         self.half[slot] = s.half;
         self.radius[slot] = s.radius;
         self.shape[slot] = s.shape;

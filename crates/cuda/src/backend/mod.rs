@@ -2,9 +2,10 @@
 //!
 //! # How it works
 //! World state lives on the device between steps; a step uploads only what the host
-//! changed, downloads the new positions and actions into pinned buffers, and leaves the
-//! previous positions and flags on the device until the host reads them (`held`). The
-//! upload (`sync`, and [`StepReport::upload_bytes`] counts it):
+//! changed, downloads the new actions into pinned buffers, and leaves the positions,
+//! the previous positions and the flags on the device until the host reads them
+//! (`held`: all of them, or some positions, which a kernel gathers). The upload
+//! (`sync`, and [`StepReport::upload_bytes`] counts it):
 //! - when the device copy was made right after the last step and every change since is
 //!   on the world's record (`Dynamics::changes`: a zone's one `apply_sorted` a tick and
 //!   its actions), only the record travels (`patch`): the runs of kept slots and the
@@ -50,8 +51,8 @@
 //! - `broad`: the count and write passes, and [`CudaBackend::broad_pairs`];
 //! - `narrow`, `forces`: the narrow-phase launches, the force and integration launch;
 //! - `step`: one tick in order, the download of the new state and the stage times;
-//! - `held`: the previous positions and flags a step leaves on the device, and their
-//!   fetch when the host first reads them;
+//! - `held`: the positions, previous positions and flags a step leaves on the device,
+//!   their fetch when the host first reads them, and the gather of some positions;
 //! - `aoi`: area-of-interest queries (the device replicas start from its lists,
 //!   which stay on the device), and `grid`, the columns `cuda` answers them from.
 //!
@@ -168,8 +169,8 @@ pub(crate) struct Resident {
     counters: DevBuf<u32>,
     samples: DevBuf<u16>,
     host: Host,
-    /// The previous positions and flags of recent steps, held on the device for the
-    /// worlds that have not read them (`held`).
+    /// The positions, previous positions and flags of recent steps, held on the device
+    /// for the worlds that have not read them (`held`).
     held: HeldPool,
     events: Vec<Event>,
     // Last: the context must outlive every buffer above (fields drop in order).
@@ -186,7 +187,10 @@ impl CudaBackend {
 
     /// [`CudaBackend::new`] on device `ordinal` (zones of one process, one per GPU).
     pub fn on_device(kind: BackendKind, ordinal: usize) -> Result<CudaBackend, PhysicsError> {
-        Ok(CudaBackend { resident: Arc::new(Mutex::new(Resident::on_device(kind, ordinal)?)) })
+        let resident = Arc::new(Mutex::new(Resident::on_device(kind, ordinal)?));
+        // The held copies gather some positions through the backend they came from.
+        lock(&resident).held = HeldPool::new(Arc::downgrade(&resident));
+        Ok(CudaBackend { resident })
     }
 
     /// Every player's replica on this backend's device (protocol version 3's choices
@@ -265,6 +269,8 @@ impl Resident {
                 aoi_objects: p(),
                 aoi_boxes: p(),
                 aoi_order: p(),
+                gather_slots: p(),
+                gather_pos: p(),
             },
             held: HeldPool::default(),
             events,

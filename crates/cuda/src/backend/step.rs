@@ -1,6 +1,6 @@
 //! One tick: sync, boxes and tree, broad phase, narrow phase, forces, then the download
-//! of the new positions and actions into the `World` (the previous positions and flags
-//! stay on the device, `held`), with the stage times from the events.
+//! of the new actions into the `World` (the positions, previous positions and flags stay
+//! on the device, `held`), with the stage times from the events.
 
 use std::time::Instant;
 
@@ -8,6 +8,7 @@ use myriad_core::World;
 use myriad_physics::{PhysicsError, Stage, StepReport, TickConstants};
 
 use super::broad::write_pass;
+use super::held::Arrays;
 use super::sync::{flat3_mut, par_copy};
 use super::{Resident, Synced};
 
@@ -67,13 +68,13 @@ impl Resident {
         let o = &self.obj;
         let h = &mut self.host;
         let gpu = &self.gpu;
-        // The previous positions and flags stay on the device, copied there for the world
-        // to fetch if it ever reads them (`held`); when every copy is still referred to,
-        // they come back with the rest.
-        let held = self.held.fill(gpu, n, &o.prev, &o.flags)?;
-        h.pos.ensure(gpu, n * 12)?;
+        // The positions, previous positions and flags stay on the device, copied there
+        // for the world to fetch if it ever reads them (`held`); when every copy is still
+        // referred to, they come back with the actions.
+        let held = self.held.fill(gpu, n, Arrays { pos: &o.pos, prev: &o.prev, flags: &o.flags })?;
         h.action.ensure(gpu, n)?;
         if held.is_none() {
+            h.pos.ensure(gpu, n * 12)?;
             h.prev.ensure(gpu, n * 12)?;
             h.flags.ensure(gpu, n)?;
         }
@@ -86,7 +87,9 @@ impl Resident {
         down += gpu.download_async(&mut h.small, 2, sc.add(n), 1)?;
         down += gpu.download_async(&mut h.small, 3, dc.add(n), 1)?;
         gpu.record(self.events[12].raw)?;
-        down += gpu.download_async(&mut h.pos, 0, o.pos.ptr(), 3 * n)?;
+        if held.is_none() {
+            down += gpu.download_async(&mut h.pos, 0, o.pos.ptr(), 3 * n)?;
+        }
         gpu.record(self.events[13].raw)?;
         if held.is_none() {
             down += gpu.download_async(&mut h.prev, 0, o.prev.ptr(), 3 * n)?;
@@ -125,8 +128,7 @@ impl Resident {
             // step's held copy only then: a step that fails leaves the world as it was,
             // holding its own last step's copy.
             gpu.sync()?;
-            let (pos, action) = world.dynamics.state_mut_holding(held);
-            par_copy(flat3_mut(pos), h.pos.slice::<f32>(3 * n));
+            let action = world.dynamics.state_mut_holding(held);
             par_copy(action, h.action.slice::<u8>(n));
             gpu.profile_host("host: physics, the new state into the world", copying);
         } else {

@@ -129,6 +129,10 @@ pub(super) struct Host {
     pub aoi_boxes: Pinned,
     /// The order the grid's warps take the boxes in, on its way up.
     pub aoi_order: Pinned,
+    /// The slots of a gather of some positions (`held`), read by its kernel in place.
+    pub gather_slots: Pinned,
+    /// The gathered positions, written by the kernel in place.
+    pub gather_pos: Pinned,
 }
 
 /// The vectors as packed floats (x, y, z, x, ...), without copying (glam's `Vec3` is

@@ -21,10 +21,6 @@ typedef unsigned char u8;
 // compacts in order.
 __device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(mask & ((1u << lane) - 1u)); }
 
-// Asks for the cache line holding `p` into L1 (a hint: no value, no fault), so that a
-// load the warp will make a little later finds it there.
-__device__ __forceinline__ void r_prefetch(const void* p) { asm volatile("prefetch.global.L1 [%0];" ::"l"(p)); }
-
 // Per-tick constants, world bounds and terrain sampling constants. Mirrors
 // `DeviceParams` in crates/cuda/src/params.rs field for field (all 4 bytes wide).
 struct Params {

@@ -37,18 +37,12 @@ __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const 
     RFilling fill = r_filling_new(cfg, h, info, origin);
     u32 nchosen = 0;
     int open = 1;  // still taking whatever the budget pays (else only the starving)
-    // Each chunk's objects due are loaded a chunk ahead, and the next chunk's candidates
-    // and tracks asked for while this chunk's offers run: the chain of loads (the due
-    // object, then its candidate and track) is the warp's wait otherwise.
-    RDue ahead = {};
-    if (lane < nwanted) ahead = wanted[lane];
     for (u32 base = 0; base < nwanted; base += 32) {
         u32 k = base + lane;
         RRecord rec = {};
         u32 bits = 0, starving = 0, eager = 0, track = 0, cand = 0;
-        RDue d = ahead;
-        if (k + 32 < nwanted) ahead = wanted[k + 32];
         if (k < nwanted) {
+            RDue d = wanted[k];
             starving = d.starving;
             eager = d.eager;
             track = d.track;
@@ -62,10 +56,6 @@ __device__ u32 r_take_sorted_warp(const RConfig* cfg, u64 now, u64 floor, const 
                 rec = r_choose(c->id, c->kind, c->pos, now, acked, r_track_prior(t, acked));
                 bits = r_charge_bits(&rec, origin);
             }
-        }
-        if (k + 32 < nwanted && (open || ahead.starving)) {
-            r_prefetch(&cands[ahead.cand]);
-            r_prefetch(&next[ahead.track]);
         }
         u32 items = min(32u, nwanted - base);
         if (!open && __ballot_sync(FULL_WARP, starving) == 0) {
@@ -154,6 +144,9 @@ __device__ __forceinline__ RAhead r_ahead(const u32* objects, u32 len, u32 j, u3
     }
     return a;
 }
+
+// Asks for the cache line holding `p` (a hint: no value, no fault).
+__device__ __forceinline__ void r_prefetch(const void* p) { asm volatile("prefetch.global.L1 [%0];" ::"l"(p)); }
 
 __device__ __forceinline__ u32 r_bloom_bit(u64 id) { return (u32)((id * 0x9E3779B97F4A7C15ull) >> 52); }
 __device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {

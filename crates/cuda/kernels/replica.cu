@@ -113,41 +113,6 @@ __device__ ROwn r_own_of(const RPlayer* p, u32 n, const float* pos, const u32* i
 // Bits of a warp's filter of the ids its acknowledged flights carry.
 #define DUE_BLOOM_BITS 4096u
 
-// A list item's slot and what its candidate reads of the object, loaded a chunk of the
-// list ahead of its use in `k_replica_due`: a warp's pass over its list is a chain of
-// dependent loads (the slot, the object's id and position, last build's track), and
-// issuing the first two a chunk early lets them travel while the chunk before is merged.
-// `s` is R_NO_SLOT past the list's end.
-typedef struct {
-    u32 s, kind;
-    u64 id;
-    float p[3];
-} RAhead;
-
-__device__ __forceinline__ RAhead r_ahead(const u32* objects, u32 len, u32 j, u32 n, const float* pos,
-                                          const u32* ids, const u8* shapes) {
-    RAhead a;
-    a.s = R_NO_SLOT;
-    a.kind = 0;
-    a.id = 0;
-    a.p[0] = a.p[1] = a.p[2] = 0.0f;
-    if (j < len) {
-        u32 s = objects[j];
-        a.s = s;
-        if (s < n) {
-            a.id = ids[s];
-            a.kind = shapes[s];
-            a.p[0] = pos[3 * (u64)s];
-            a.p[1] = pos[3 * (u64)s + 1];
-            a.p[2] = pos[3 * (u64)s + 2];
-        }
-    }
-    return a;
-}
-
-// Asks for the cache line holding `p` (a hint: no value, no fault).
-__device__ __forceinline__ void r_prefetch(const void* p) { asm volatile("prefetch.global.L1 [%0];" ::"l"(p)); }
-
 __device__ __forceinline__ u32 r_bloom_bit(u64 id) { return (u32)((id * 0x9E3779B97F4A7C15ull) >> 52); }
 __device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {
     u32 b = r_bloom_bit(id);
@@ -229,16 +194,19 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     // fault the host is told of, not a choice.
     u32 nc = 0, nun = 0, nw = 0, nlater = 0, last_slot = 0;
     int has_last = 0, disorder = 0, drift = 0;
-    RAhead next = r_ahead(objects + o, len, lane, n, pos, ids, shapes);
     for (u32 base = 0; base < len; base += 32) {
-        // This chunk's items were loaded one chunk ago; the next chunk's go now.
-        RAhead cur = next;
-        next = r_ahead(objects + o, len, base + 32 + lane, n, pos, ids, shapes);
+        u32 j = base + lane;
         int valid = 0;
         RCand c;
-        if (cur.s < n && !(own.has && cur.id == own.id)) {
-            valid = 1;
-            c = r_candidate(cur.s, cur.id, cur.kind, cur.p, p->centre);
+        if (j < len) {
+            u32 s = objects[o + j];
+            if (s < n) {
+                u64 id = ids[s];
+                if (!(own.has && id == own.id)) {
+                    valid = 1;
+                    c = r_candidate(s, id, shapes[s], pos + 3 * (u64)s, p->centre);
+                }
+            }
         }
         u32 mask = __ballot_sync(FULL_WARP, valid);
         u32 my_slot = valid ? c.slot : 0;
@@ -283,10 +251,6 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
             has_last = 1;
         }
         nc += __popc(mask);
-        // Where the next chunk's tracks should be (if its items are all candidates and
-        // the view shifted as it did), asked for now: the search starts there.
-        u32 est = (u32)max((int)(nc + lane) + drift, 0);
-        if (est < nold) r_prefetch(&old[est]);
     }
     if (__any_sync(FULL_WARP, disorder)) {
         if (lane == 0) {

@@ -103,7 +103,9 @@ impl Held {
 
     /// The positions of `slots` (each below `n`, checked by the world) into `out`: a
     /// gather on the backend's stream, or, when the backend is gone, every position
-    /// read back and picked on the host.
+    /// read back and picked on the host. It locks the backend's state, so nothing that
+    /// holds that lock (a step, the device replicas) may read positions this way; none
+    /// does: they read the device's arrays.
     fn gather(&self, slots: &[u32], out: &mut [Vec3]) -> Result<(), PhysicsError> {
         if let Some(resident) = self.resident.upgrade() {
             // The copies were queued on this same stream: the gather runs after them.

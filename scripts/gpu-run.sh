@@ -44,8 +44,8 @@
 # s4-100 zones"), each step TABLE_ROUNDS times (default 2), alternating the build in
 # .carry/before/ (when there is one) with this one round by round: physics (scenario 3's
 # and 2 M + 1 M objects' steps), s4-14 and s4-100 (scenario 4, 50,000 players, bots 20 a
-# socket, AOI 14 or 100), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario
-# 2 at AOI 100), zones (scenario 3 in 4 zones on the GPU, once a build), refits (the
+# socket, AOI 14 or 100; s4: both in one run, which builds the world and the bots
+# once), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario 2 at AOI 100), zones (scenario 3 in 4 zones on the GPU, once a build), refits (the
 # physics of this build with MYRIAD_TREE_REFITS set to each of TABLE_REFITS, default
 # "0 2 4 8", alternating round by round); profile-X runs X
 # once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
@@ -461,6 +461,7 @@ if [[ $mode == table ]]; then
         physics) args=("${physics[@]}") limit=90 ;;
         s4-14) args=("${s4[@]}" --aoi-size 14) limit=120 ;;
         s4-100) args=("${s4[@]}" --aoi-size 100) limit=240 ;;
+        s4) args=("${s4[@]}" --aoi-size "14,100") limit=300 ;;
         s3) args=("${s3[@]}") limit=150 ;;
         s2-100) args=("${s2[@]}") limit=60 ;;
         zones) args=(sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json) limit=90 ;;

@@ -45,10 +45,10 @@
 # .carry/before/ (when there is one) with this one round by round: physics (scenario 3's
 # and 2 M + 1 M objects' steps), s4-14 and s4-100 (scenario 4, 50,000 players, bots 20 a
 # socket, AOI 14 or 100; s4: both in one run, which builds the world and the bots
-# once), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario 2 at AOI 100), zones (scenario 3 in 4 zones on the GPU, once a build), refits (the
-# physics of this build with MYRIAD_TREE_REFITS set to each of TABLE_REFITS, default
-# "0 2 4 8", alternating round by round); profile-X runs X
-# once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
+# once), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario 2 at AOI 100),
+# zones (scenario 3 in 4 zones on the GPU, once a build), refits (the physics of this
+# build with MYRIAD_TREE_REFITS set to each of TABLE_REFITS, default "0 2 4 8",
+# alternating round by round); profile-X runs X once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
 # soon as it is written, so a call that runs out of time still brings back the steps that
 # finished. The default takes longer than one call of 600 s (scenario 4 at AOI 100 took
 # over 150 s profiled on an H100): name fewer steps, or run the tests in another call.

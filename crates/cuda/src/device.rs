@@ -84,6 +84,41 @@ fn profile_rows(samples: &BTreeMap<&'static str, Vec<f64>>) -> String {
     s
 }
 
+/// What the device gives one kernel, as the driver reports it for the block size it was
+/// launched with: whether its registers or shared memory, not the work, bound how many
+/// of its warps run at once.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Resources {
+    /// Threads a block, at the kernel's first launch.
+    block: u32,
+    /// Registers a thread.
+    registers: i32,
+    /// Local memory a thread (registers spilled, arrays the compiler could not keep in
+    /// registers).
+    local_bytes: i32,
+    /// Static shared memory a block.
+    shared_bytes: i32,
+    /// Blocks of `block` threads a multiprocessor runs at once at most.
+    blocks_per_sm: i32,
+}
+
+/// The resources table: each kernel's block, registers, local and shared memory, and
+/// the warps a multiprocessor runs at once at most (of 64 on sm_80 and sm_90).
+fn resource_rows(rows: &[(&str, Resources)]) -> String {
+    let mut s = String::from(
+        "| kernel | block | registers a thread | local bytes a thread | shared bytes a block | warps a multiprocessor |\n\
+         | --- | ---: | ---: | ---: | ---: | ---: |\n",
+    );
+    for (name, r) in rows {
+        let warps = r.blocks_per_sm * r.block.div_ceil(32) as i32;
+        s.push_str(&format!(
+            "| {name} | {} | {} | {} | {} | {warps} |\n",
+            r.block, r.registers, r.local_bytes, r.shared_bytes
+        ));
+    }
+    s
+}
+
 /// A kernel argument.
 #[derive(Clone, Copy, Debug)]
 pub(crate) enum Arg {
@@ -119,6 +154,8 @@ struct Profile {
     spare: Vec<Event>,
     /// Milliseconds of each launch or span, by name.
     samples: BTreeMap<&'static str, Vec<f64>>,
+    /// Each kernel's block size at its first launch (for the resources table).
+    blocks: BTreeMap<&'static str, u32>,
 }
 
 // SAFETY: the stream, module and function handles belong to the context held in `ctx`;
@@ -192,6 +229,7 @@ impl Gpu {
         let timing = match &self.profile {
             Some(p) => {
                 let mut p = p.borrow_mut();
+                p.blocks.entry(name).or_insert(block);
                 let start = match p.spare.pop() {
                     Some(e) => e,
                     None => Event::new(self)?,
@@ -255,9 +293,34 @@ impl Gpu {
         }
     }
 
-    /// The per-kernel table (launches, total, mean and median time), when profiling.
+    /// The per-kernel table (launches, total, mean and median time), then each launched
+    /// kernel's resources (registers, local and shared memory, warps a multiprocessor
+    /// runs at once), when profiling.
     pub fn profile_table(&self) -> Option<String> {
-        Some(profile_rows(&self.profile.as_ref()?.borrow().samples))
+        let p = self.profile.as_ref()?.borrow();
+        let rows: Vec<(&str, Resources)> =
+            p.blocks.iter().filter_map(|(&name, &block)| Some((name, self.resources(name, block)?))).collect();
+        Some(format!("{}\n{}", profile_rows(&p.samples), resource_rows(&rows)))
+    }
+
+    /// What the driver reports of kernel `name` launched with `block` threads a block;
+    /// `None` when it cannot say (the table leaves the kernel out).
+    fn resources(&self, name: &str, block: u32) -> Option<Resources> {
+        use sys::CUfunction_attribute_enum as A;
+        let &(f, _) = self.kernels.get(name)?;
+        self.ctx.bind_to_thread().ok()?;
+        // SAFETY: `f` belongs to the module this value loaded, which is still loaded;
+        // the context is current.
+        let attribute = |a: A| unsafe { result::function::get_function_attribute(f, a) }.ok();
+        Some(Resources {
+            block,
+            registers: attribute(A::CU_FUNC_ATTRIBUTE_NUM_REGS)?,
+            local_bytes: attribute(A::CU_FUNC_ATTRIBUTE_LOCAL_SIZE_BYTES)?,
+            shared_bytes: attribute(A::CU_FUNC_ATTRIBUTE_SHARED_SIZE_BYTES)?,
+            // SAFETY: as above; no dynamic shared memory (no launch asks for any).
+            blocks_per_sm: unsafe { result::occupancy::max_active_block_per_multiprocessor(f, block as i32, 0) }
+                .ok()?,
+        })
     }
 
     /// Waits for everything queued on the stream.
@@ -658,5 +721,21 @@ mod tests {
         assert_eq!(lines[2], "| k_slow_start | 5 | 105.000 | 21000.00 | 1000.00 |");
         assert_eq!(lines[3], "| host: span | 2 | 1.000 | 500.00 | 500.00 |");
         assert_eq!(lines.len(), 4, "a name with no sample has no row: {table}");
+    }
+
+    #[test]
+    fn the_resources_table_gives_each_kernels_warps_a_multiprocessor() {
+        let due = Resources { block: 128, registers: 96, local_bytes: 0, shared_bytes: 2048, blocks_per_sm: 5 };
+        // A block of 48 threads still takes two warps.
+        let odd = Resources { block: 48, registers: 32, local_bytes: 24, shared_bytes: 0, blocks_per_sm: 32 };
+        let table = resource_rows(&[("k_replica_due", due), ("k_odd", odd)]);
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(
+            lines[0],
+            "| kernel | block | registers a thread | local bytes a thread | shared bytes a block | warps a multiprocessor |"
+        );
+        assert_eq!(lines[2], "| k_replica_due | 128 | 96 | 0 | 2048 | 20 |");
+        assert_eq!(lines[3], "| k_odd | 48 | 32 | 24 | 0 | 64 |");
+        assert_eq!(lines.len(), 4);
     }
 }

@@ -73,6 +73,20 @@ impl Held {
         Ok(())
     }
 
+    /// Runs `read` on `bytes` bytes of this copy's page-locked staging memory, once the
+    /// copies have landed, with the context current.
+    fn staged<R>(
+        &self,
+        bytes: usize,
+        read: impl FnOnce(&mut [u8]) -> Result<R, PhysicsError>,
+    ) -> Result<R, PhysicsError> {
+        self.ctx.bind_to_thread().map_err(dev_err("bind"))?;
+        self.ready.wait()?;
+        let mut staging = self.staging.lock().unwrap_or_else(|p| p.into_inner());
+        staging.ensure_in(&self.ctx, bytes)?;
+        read(staging.slice_mut::<u8>(bytes))
+    }
+
     fn read_back(&self, pos: &mut [Vec3], prev: &mut [Vec3], flags: &mut [u8]) -> Result<(), PhysicsError> {
         let n = self.n;
         assert!(
@@ -80,25 +94,17 @@ impl Held {
             "held for {n} objects, read back into {}",
             prev.len()
         );
-        self.ctx.bind_to_thread().map_err(dev_err("bind"))?;
-        self.ready.wait()?;
-        let mut staging = self.staging.lock().unwrap_or_else(|p| p.into_inner());
-        staging.ensure_in(&self.ctx, 25 * n)?;
-        let (p, rest) = staging.slice_mut::<u8>(25 * n).split_at_mut(12 * n);
-        let (q, f) = rest.split_at_mut(12 * n);
-        // Synchronous copies on the default stream, which the backend's (non-blocking)
-        // stream does not wait for: the tick goes on while a reader fetches.
-        // SAFETY: each source holds at least as many bytes as its destination (the
-        // buffers were sized for `n` objects when this was filled).
-        unsafe {
-            result::memcpy_dtoh_sync(p, self.pos.ptr().raw()).map_err(dev_err("read back"))?;
-            result::memcpy_dtoh_sync(q, self.prev.ptr().raw()).map_err(dev_err("read back"))?;
-            result::memcpy_dtoh_sync(f, self.flags.ptr().raw()).map_err(dev_err("read back"))?;
-        }
-        par_copy(flat3_mut(pos), bytemuck::cast_slice(p));
-        par_copy(flat3_mut(prev), bytemuck::cast_slice(q));
-        par_copy(flags, f);
-        Ok(())
+        self.staged(25 * n, |staging| {
+            let (p, rest) = staging.split_at_mut(12 * n);
+            let (q, f) = rest.split_at_mut(12 * n);
+            copy_back(p, &self.pos)?;
+            copy_back(q, &self.prev)?;
+            copy_back(f, &self.flags)?;
+            par_copy(flat3_mut(pos), bytemuck::cast_slice(p));
+            par_copy(flat3_mut(prev), bytemuck::cast_slice(q));
+            par_copy(flags, f);
+            Ok(())
+        })
     }
 
     /// The positions of `slots` (each below `n`, checked by the world) into `out`: a
@@ -111,20 +117,24 @@ impl Held {
             // The copies were queued on this same stream: the gather runs after them.
             return lock(&resident).gather_positions(self.pos.ptr(), slots, out);
         }
-        let n = self.n;
-        self.ctx.bind_to_thread().map_err(dev_err("bind"))?;
-        self.ready.wait()?;
-        let mut staging = self.staging.lock().unwrap_or_else(|p| p.into_inner());
-        staging.ensure_in(&self.ctx, 12 * n)?;
-        let p = staging.slice_mut::<u8>(12 * n);
-        // SAFETY: `pos` holds at least `12 n` bytes (sized when this was filled).
-        unsafe { result::memcpy_dtoh_sync(p, self.pos.ptr().raw()) }.map_err(dev_err("read back"))?;
-        let pos: &[Vec3] = bytemuck::cast_slice(p);
-        for (o, &s) in out.iter_mut().zip(slots) {
-            *o = pos[s as usize];
-        }
-        Ok(())
+        self.staged(12 * self.n, |staging| {
+            copy_back(staging, &self.pos)?;
+            let pos: &[Vec3] = bytemuck::cast_slice(staging);
+            for (o, &s) in out.iter_mut().zip(slots) {
+                *o = pos[s as usize];
+            }
+            Ok(())
+        })
     }
+}
+
+/// Copies the first `dst.len()` bytes of `src` into `dst`: a synchronous copy on the
+/// default stream, which the backend's (non-blocking) stream does not wait for, so the
+/// tick goes on while a reader fetches. Every caller passes a buffer sized for the `n`
+/// objects the copy holds, and at most that many bytes of it.
+fn copy_back<T>(dst: &mut [u8], src: &DevBuf<T>) -> Result<(), PhysicsError> {
+    // SAFETY: `src` holds at least `dst.len()` bytes (see above).
+    unsafe { result::memcpy_dtoh_sync(dst, src.ptr().raw()) }.map_err(dev_err("read back"))
 }
 
 impl HeldState for Held {

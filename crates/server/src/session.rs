@@ -549,22 +549,20 @@ impl Sessions {
     }
 
     fn state_of(&self, world: &World, idx: usize) -> Option<PlayerState> {
-        let p = &self.players[idx];
-        let Some(slot) = world.dynamics.slot(p.entity) else {
-            missing_entity(p);
-            return None;
-        };
-        let pos = world.dynamics.positions()[slot].to_array();
-        Some(PlayerState::new(p.user_id, self.map_id, store_shape(p.shape), pos))
+        self.states_of(world, &self.players[idx..=idx]).pop()
     }
 
-    /// Every player's current state, for the persister: the positions in one read, so
-    /// that a GPU backend's step, which leaves them on the device, sends back only the
-    /// players'.
+    /// Every player's current state, for the persister.
     pub fn states(&self, world: &World) -> Vec<PlayerState> {
+        self.states_of(world, &self.players)
+    }
+
+    /// The states of `players` whose objects are in `world` (a missing one is logged and
+    /// counted), their positions in one read: a GPU backend's step leaves the positions
+    /// on the device, and only these players' come back.
+    fn states_of(&self, world: &World, players: &[Player]) -> Vec<PlayerState> {
         let d = &world.dynamics;
-        let present: Vec<(&Player, u32)> = self
-            .players
+        let present: Vec<(&Player, u32)> = players
             .iter()
             .filter_map(|p| match d.slot(p.entity) {
                 Some(slot) => Some((p, slot as u32)),

@@ -171,6 +171,7 @@ impl TickLoopBuilder {
             gate: (!self.transport.gates()).then(|| Gate::new(config.receive_limits())),
             receive_buffers: ReceiveBuffers::default(),
             recipient_store: Vec::new(),
+            centres: Centres::default(),
             dilation: DilationController::new(nominal, config.dilation, config.dilation_min_permille),
             sessions: Sessions::new(config.max_players as usize, self.map_id),
             world: self.world,
@@ -186,6 +187,14 @@ impl TickLoopBuilder {
             config,
         }
     }
+}
+
+/// The slots whose positions a tick reads for its recipients' centres, and the
+/// positions read (`Dynamics::positions_at`), kept from tick to tick for their memory.
+#[derive(Default)]
+struct Centres {
+    slots: Vec<u32>,
+    centres: Vec<Vec3>,
 }
 
 /// The tick loop; see the module docs.
@@ -211,6 +220,8 @@ pub(crate) struct TickLoop {
     /// The recipients' memory, empty between ticks (each tick borrows the sessions
     /// anew; [`recycle`] gives it the next tick's lifetime).
     recipient_store: Vec<Option<Recipient<'static>>>,
+    /// The recipients' slots and centres (kept for their memory).
+    centres: Centres,
     /// Sessions shared with other servers, if any.
     registry: Option<Box<dyn SessionRegistry>>,
     /// The admin API's side of the tick, when it runs.
@@ -530,10 +541,11 @@ impl TickLoop {
         let mut recipients: Vec<Recipient<'_>> = chosen.into_iter().filter_map(|r| r).collect();
         // The centres in one read: when the step left the positions on the device (a GPU
         // backend), only the players' come back, not every object's.
-        let slots: Vec<u32> = recipients.iter().map(|r| r.object).collect();
-        let mut centres = Vec::new();
-        dynamics.positions_at(&slots, &mut centres);
-        for (r, c) in recipients.iter_mut().zip(centres) {
+        let Centres { slots, centres } = &mut self.centres;
+        slots.clear();
+        slots.extend(recipients.iter().map(|r| r.object));
+        dynamics.positions_at(slots, centres);
+        for (r, &c) in recipients.iter_mut().zip(centres.iter()) {
             r.centre = c;
         }
         let tick = TickInfo { tick: self.world.tick, dilation_permille: self.dilation.permille() };

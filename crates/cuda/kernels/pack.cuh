@@ -1,7 +1,9 @@
 // Packing a player's chosen records into delta update bodies: `pack_deltas`
-// (crates/protocol/src/delta.rs, protocol version 3) in C that compiles for the device
-// (kernels/replica.cu, `k_replica_pack`) and for the host (src/replica/host.c, whose
-// test holds it to the Rust byte for byte). The host only frames and seals the bodies.
+// (crates/protocol/src/delta.rs, protocol version 3) in C that compiles for the host
+// (src/replica/host.c, whose test holds it to the Rust byte for byte) and for the device,
+// where `k_replica_pack` (kernels/pack.cu) shares `r_pack`'s passes among a warp's lanes
+// with the functions below (a record's bits, the writer, the header), and the GPU suite
+// holds its bodies to the host's. The host only frames and seals the bodies.
 //
 // Every choice is the Rust one: the stream parameters (the usual back, the order of
 // the id codes) from the same histograms and ties, the same greedy split into

@@ -4,10 +4,10 @@
 // k_replica_carry (players left out keep their tracks), k_replica_due (a warp a player:
 // the view matched with the tracks, acknowledgements, priorities, the objects due),
 // k_replica_rank (a block a player: the objects due sorted by urgency in shared memory),
-// k_replica_take (a warp a player: the budget, the records chosen), k_replica_pack (a
-// thread a player: the records packed into delta update bodies, pack.cuh, then copied
-// into mapped host memory by the warp), the host's framing and sealing, then
-// k_replica_commit (what the datagrams took, flights, tracks marked sent).
+// k_replica_take (a warp a player: the budget, the records chosen), k_replica_pack
+// (kernels/pack.cu, a warp a player: the records packed into delta update bodies in
+// mapped host memory), the host's framing and sealing, then k_replica_commit (what the
+// datagrams took, flights, tracks marked sent).
 //
 // What is per object (candidates, the merge with last build's tracks, acknowledgements
 // within a datagram, priorities, the records' forms, marking what was sent) runs on the
@@ -21,7 +21,6 @@
 // states at its home times R_FLIGHTS and R_STATES.
 #include "common.cuh"
 #include "replica.cuh"
-#include "pack.cuh"
 
 // `NETWORK_SORT` by the warp's 32 lanes (`lane`).
 #define WARP_SORT(T, a, n, LESS, lane) NETWORK_SORT(T, a, n, LESS, lane, 32u, __syncwarp())
@@ -442,51 +441,6 @@ extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, 
         h->track_len = nc;
         info[i] = mine;
         infos[i] = mine;
-    }
-}
-
-// Step 4 of a build, a thread a player: each thread packs its player's chosen records
-// and own one into delta update bodies (pack.cuh's `r_pack`, `pack_deltas`' rules, in
-// order as the host C packs them) in device memory, 32 players at once a warp (with a
-// warp a player, 31 lanes waited while lane 0 packed, and at 50,000 players most warps
-// waited for a place on the device); then each warp copies its players' bodies into
-// mapped host memory, a player at a time, 16 bytes a lane, so that what crosses the
-// bus is the datagrams' bytes, not the records. `ends` (where each datagram's records
-// end) stays on the device for `k_replica_commit`; the bodies (`out`), their lengths
-// (`out_lens`) and `RPacked` go to the host, which frames and seals them.
-extern "C" __global__ void k_replica_pack(u32 nq, const RConfig* cfg, u64 tick, u32 dilation, const u32* offsets,
-                                          const RPlayer* players, const u32* counts, const RInfo* infos,
-                                          const RChosen* chosen, u8* bodies, u32* ends, u32* lens, RPacked* packed,
-                                          u8* out, u32* out_lens) {
-    u32 lane = threadIdx.x & 31u;
-    u32 i = blockIdx.x * blockDim.x + threadIdx.x;
-    u32 mdg = cfg->max_datagrams;
-    RPacked done = {0, 0, 0, 0};
-    if (i < nq && counts[2 * i + 1] != R_NO_SLOT) {
-        const RInfo* in = &infos[i];
-        const RPlayer* p = &players[i];
-        RPos origin = {r_quant(p->centre[0]), r_quant(p->centre[1]), r_quant(p->centre[2])};
-        u32 most = in->datagrams < mdg ? in->datagrams : mdg;
-        u64 at = (u64)i * mdg;
-        done = r_pack(tick, dilation, origin, in->has_own_record ? &in->own_record : 0, chosen + offsets[i],
-                      in->count, most, bodies + at * R_BODY_STRIDE, lens + at, ends + at);
-        packed[i] = done;
-    }
-    // Every lane's bodies are written before any lane copies them.
-    __syncwarp();
-    u32 first = i - lane;
-    for (u32 q = 0; q < 32 && first + q < nq; q++) {
-        u32 datagrams = __shfl_sync(FULL_WARP, done.datagrams, q);
-        u64 at = (u64)(first + q) * mdg;
-        for (u32 d = 0; d < datagrams; d++) {
-            u64 base = (at + d) * R_BODY_STRIDE;
-            u32 len = lens[at + d];
-            if (lane == 0) out_lens[at + d] = len;
-            u32 words = (len + 15) / 16;
-            const uint4* src = (const uint4*)(bodies + base);
-            uint4* dst = (uint4*)(out + base);
-            for (u32 k = lane; k < words; k += 32) dst[k] = src[k];
-        }
     }
 }
 

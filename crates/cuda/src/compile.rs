@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use cudarc::nvrtc::sys as nvrtc;
 
 /// The kernel sources, in the order they are concatenated into one program.
-pub const SOURCES: [(&str, &str); 7] = [
+pub const SOURCES: [(&str, &str); 8] = [
     ("scan.cu", include_str!("../kernels/scan.cu")),
     ("lbvh.cu", include_str!("../kernels/lbvh.cu")),
     ("broad.cu", include_str!("../kernels/broad.cu")),
@@ -25,6 +25,7 @@ pub const SOURCES: [(&str, &str); 7] = [
     ("physics.cu", include_str!("../kernels/physics.cu")),
     ("patch.cu", include_str!("../kernels/patch.cu")),
     ("replica.cu", include_str!("../kernels/replica.cu")),
+    ("pack.cu", include_str!("../kernels/pack.cu")),
 ];
 
 /// Headers the sources include, handed to NVRTC by name.
@@ -65,7 +66,7 @@ pub const KERNELS: [(&str, usize); 29] = [
     ("k_replica_due", 24),
     ("k_replica_rank", 5),
     ("k_replica_take", 17),
-    ("k_replica_pack", 15),
+    ("k_replica_pack", 13),
     ("k_replica_commit", 13),
     ("k_replica_carry", 5),
 ];

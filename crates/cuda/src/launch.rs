@@ -279,9 +279,10 @@ kernels! {
         info: DevPtr<RInfo>,
         infos: DevPtr<RInfo>,
     }
-    /// `k_replica_pack`: one warp per player packs its chosen records and its own into
-    /// delta update bodies (`pack.cuh`'s `r_pack`, `pack_deltas`' rules) and copies them
-    /// into mapped host memory (`out`, `out_lens`, `packed`); `ends` stays on the device.
+    /// `k_replica_pack` (`kernels/pack.cu`): one warp per player packs its chosen records
+    /// and its own into delta update bodies (`pack.cuh`'s `r_pack`, `pack_deltas`' rules,
+    /// its passes shared by the lanes) in shared memory and stores them into mapped host
+    /// memory (`out`, `out_lens`, `packed`); `ends` stays on the device.
     KReplicaPack = "k_replica_pack" {
         nq: u32,
         cfg: DevPtr<RConfig>,
@@ -292,9 +293,7 @@ kernels! {
         counts: DevPtr<u32>,
         infos: DevPtr<RInfo>,
         chosen: DevPtr<RChosen>,
-        bodies: DevPtr<u8>,
         ends: DevPtr<u32>,
-        lens: DevPtr<u32>,
         packed: DevPtr<RPacked>,
         out: DevPtr<u8>,
         out_lens: DevPtr<u32>,

@@ -4,8 +4,8 @@
 //! stay there), carries the tracks of players left out of the build, and runs
 //! `k_replica_due` (a warp a player: the objects due), `k_replica_rank` (a block a
 //! player: sorted by urgency), `k_replica_take` (a warp a player: the budget) and
-//! `k_replica_pack` (a thread a player: the chosen records packed into delta update
-//! bodies, which the warp copies into mapped host memory); the host frames and seals
+//! `k_replica_pack` (a warp a player: the chosen records packed into delta update
+//! bodies in mapped host memory); the host frames and seals
 //! them per player ([`Choices`], then `Subscriber::seal_packed`) and hands back what
 //! sealing did with [`DeviceReplicas::commit`], which queues `k_replica_commit` and does
 //! not wait.
@@ -53,10 +53,10 @@ pub const FORGET_BUILDS: u64 = 2 * myriad_protocol::MAX_BACK;
 const PLAYERS_PER_BLOCK: u32 = 4;
 const _: () = assert!(PLAYERS_PER_BLOCK == 4, "DUE_WARPS in kernels/replica.cu");
 
-/// Threads (one a player) per block of `k_replica_pack`: whole warps, which copy their
-/// players' bodies together.
-const PACK_BLOCK: u32 = 128;
-const _: () = assert!(PACK_BLOCK.is_multiple_of(32));
+/// Players (one warp each) per block of `k_replica_pack`, each with a body and a
+/// histogram in shared memory.
+const PACK_WARPS: u32 = 4;
+const _: () = assert!(PACK_WARPS == 4, "PACK_WARPS in kernels/pack.cu");
 
 /// Threads per block of `k_replica_rank` (one block a player).
 const RANK_BLOCK: u32 = 256;
@@ -127,10 +127,7 @@ struct State {
     config: DevBuf<RConfig>,
     /// Per player: `k_replica_take`'s counts, for `k_replica_pack`.
     infos: DevBuf<RInfo>,
-    /// Per player and datagram: the packed bodies (`BODY_STRIDE` bytes each), their
-    /// lengths, and where their records end (read by `k_replica_commit`).
-    bodies: DevBuf<u8>,
-    lens: DevBuf<u32>,
+    /// Per player and datagram: where its records end (read by `k_replica_commit`).
     ends: DevBuf<u32>,
     commits: DevBuf<RCommit>,
     carry: DevBuf<u32>,
@@ -300,8 +297,6 @@ impl State {
             players: DevBuf::empty(),
             config: DevBuf::empty(),
             infos: DevBuf::empty(),
-            bodies: DevBuf::empty(),
-            lens: DevBuf::empty(),
             ends: DevBuf::empty(),
             commits: DevBuf::empty(),
             carry: DevBuf::empty(),
@@ -426,8 +421,6 @@ impl State {
         self.host_config.ensure(gpu, size_of::<RConfig>())?;
         self.host_carry.ensure(gpu, carry.len().max(1) * 4)?;
         self.infos.ensure(gpu, nq.max(1) * size_of::<RInfo>(), 1.25)?;
-        self.bodies.ensure(gpu, (nq * mdg).max(1) * BODY_STRIDE, 1.25)?;
-        self.lens.ensure(gpu, (nq * mdg).max(1) * 4, 1.25)?;
         self.ends.ensure(gpu, (nq * mdg).max(1) * 4, 1.25)?;
         self.host_info.ensure(gpu, nq.max(1) * size_of::<RInfo>())?;
         self.host_packed.ensure(gpu, nq.max(1) * size_of::<RPacked>())?;
@@ -541,8 +534,8 @@ impl State {
                 },
             )?;
             gpu.launch_grid(
-                (nq as u32).div_ceil(PACK_BLOCK),
-                PACK_BLOCK,
+                (nq as u32).div_ceil(PACK_WARPS),
+                32 * PACK_WARPS,
                 KReplicaPack {
                     nq: nq as u32,
                     cfg: self.config.ptr(),
@@ -553,9 +546,7 @@ impl State {
                     counts: self.counts.ptr(),
                     infos: self.infos.ptr(),
                     chosen: self.chosen.ptr(),
-                    bodies: self.bodies.ptr(),
                     ends: self.ends.ptr(),
-                    lens: self.lens.ptr(),
                     packed: self.host_packed.device_ptr()?,
                     out: self.host_bodies.device_ptr()?,
                     out_lens: self.host_lens.device_ptr()?,

@@ -74,15 +74,29 @@ pub const KERNELS: [(&str, usize); 29] = [
 /// The parameter count of each `extern "C" __global__` function in the sources, read
 /// from the text (for checking [`KERNELS`]).
 pub fn declared_kernels() -> Vec<(String, usize)> {
+    kernel_declarations()
+        .into_iter()
+        .map(|(name, params)| (name.to_string(), params.split(',').filter(|p| !p.trim().is_empty()).count()))
+        .collect()
+}
+
+/// Every `extern "C" __global__` function of the sources as its name and the text of
+/// its parameter list, in the sources' order (an occupancy hint before the name,
+/// `__launch_bounds__(…)`, is passed over).
+pub fn kernel_declarations() -> Vec<(&'static str, &'static str)> {
+    const HEAD: &str = "extern \"C\" __global__ void ";
     let mut out = Vec::new();
     for (_, text) in SOURCES {
         let mut rest = text;
-        while let Some(at) = rest.find("extern \"C\" __global__ void ") {
-            rest = &rest[at + "extern \"C\" __global__ void ".len()..];
+        while let Some(at) = rest.find(HEAD) {
+            rest = &rest[at + HEAD.len()..];
+            if let Some(bounded) = rest.strip_prefix("__launch_bounds__(") {
+                let Some(end) = bounded.find(')') else { break };
+                rest = bounded[end + 1..].trim_start();
+            }
             let Some(open) = rest.find('(') else { break };
             let Some(close) = rest.find(')') else { break };
-            let params = &rest[open + 1..close];
-            out.push((rest[..open].trim().to_string(), params.split(',').filter(|p| !p.trim().is_empty()).count()));
+            out.push((rest[..open].trim(), &rest[open + 1..close]));
             rest = &rest[close..];
         }
     }

@@ -596,15 +596,10 @@ mod tests {
     /// Every `extern "C" __global__` function of the sources as (name, [(parameter name,
     /// C type without `const` and `*`, pointer)]).
     fn kernel_signatures() -> Vec<Signature> {
-        const HEAD: &str = "extern \"C\" __global__ void ";
-        let mut out = Vec::new();
-        for (_, text) in compile::SOURCES {
-            let mut rest = text;
-            while let Some(at) = rest.find(HEAD) {
-                rest = &rest[at + HEAD.len()..];
-                let open = rest.find('(').expect("(");
-                let close = rest.find(')').expect(")");
-                let params = rest[open + 1..close]
+        let mut out: Vec<Signature> = compile::kernel_declarations()
+            .into_iter()
+            .map(|(name, params)| {
+                let params = params
                     .split(',')
                     .map(|p| {
                         let p = p.split_whitespace().collect::<Vec<_>>().join(" ");
@@ -615,10 +610,9 @@ mod tests {
                         (name.to_string(), ty.join(" "), pointer)
                     })
                     .collect();
-                out.push((rest[..open].trim().to_string(), params));
-                rest = &rest[close..];
-            }
-        }
+                (name.to_string(), params)
+            })
+            .collect();
         out.sort();
         out
     }

@@ -21,6 +21,15 @@ typedef unsigned char u8;
 // compacts in order.
 __device__ __forceinline__ u32 lanes_before(u32 mask, u32 lane) { return __popc(mask & ((1u << lane) - 1u)); }
 
+// The sum of `v` over this lane and the lanes below it (every lane of the warp calls it).
+__device__ __forceinline__ u32 warp_inclusive_sum(u32 v, u32 lane) {
+    for (u32 d = 1; d < 32; d <<= 1) {
+        u32 o = __shfl_up_sync(FULL_WARP, v, d);
+        if (lane >= d) v += o;
+    }
+    return v;
+}
+
 // Per-tick constants, world bounds and terrain sampling constants. Mirrors
 // `DeviceParams` in crates/cuda/src/params.rs field for field (all 4 bytes wide).
 struct Params {

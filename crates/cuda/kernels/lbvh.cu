@@ -82,11 +82,7 @@ extern "C" __global__ void k_radix_counts(const u64* keys, u32 n, u32* hist) {
 __device__ __forceinline__ u32 scan256(u32 v) {
     __shared__ u32 warp_sums[RADIX_THREADS / 32];
     u32 lane = threadIdx.x & 31, w = threadIdx.x >> 5;
-    u32 x = v;
-    for (u32 o = 1; o < 32; o <<= 1) {
-        u32 y = __shfl_up_sync(0xffffffffu, x, o);
-        if (lane >= o) x += y;
-    }
+    u32 x = warp_inclusive_sum(v, lane);
     if (lane == 31) warp_sums[w] = x;
     __syncthreads();
     u32 before = 0;

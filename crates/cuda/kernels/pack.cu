@@ -29,14 +29,6 @@
 // record of 101, with the word the writer still holds.
 #define PACK_RECORD_WORDS 5u
 
-__device__ __forceinline__ u32 warp_sum_inclusive(u32 v, u32 lane) {
-    for (u32 d = 1; d < 32; d <<= 1) {
-        u32 t = __shfl_up_sync(FULL_WARP, v, d);
-        if (lane >= d) v += t;
-    }
-    return v;
-}
-
 __device__ __forceinline__ u32 warp_max(u32 v) {
     for (u32 d = 16; d > 0; d >>= 1) v = max(v, __shfl_xor_sync(FULL_WARP, v, d));
     return v;
@@ -126,7 +118,7 @@ __device__ u32 r_split_warp(const RChosen* ch, u32 from, u32 n, RParams p, RPos 
         u32 j = base + lane;
         u32 bits = 0;
         if (j < n) bits = r_stream_bits(&ch[j].rec, j > from, j > from ? ch[j - 1].rec.id : 0, p, origin);
-        u32 incl = warp_sum_inclusive(bits, lane);
+        u32 incl = warp_inclusive_sum(bits, lane);
         u32 stop = __ballot_sync(FULL_WARP, j < n && (bits == 0 || used + incl > room));
         if (stop) return base + __ffs(stop) - 1;
         used += __shfl_sync(FULL_WARP, incl, 31);
@@ -176,7 +168,7 @@ __device__ u32 r_write_warp(const RChosen* ch, u32 from, u32 end, const RRecord*
             bits = r_record_words(r, m > 0, previous, p, origin, words);
             counted = r != pinned && r->form != R_ABSOLUTE;
         }
-        u32 incl = warp_sum_inclusive(bits, lane);
+        u32 incl = warp_inclusive_sum(bits, lane);
         if (m < total) r_or_bits(body, PACK_STREAM_BIT + bit + incl - bits, words, bits);
         *relative += __popc(__ballot_sync(FULL_WARP, counted));
         bit += __shfl_sync(FULL_WARP, incl, 31);

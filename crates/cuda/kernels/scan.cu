@@ -9,20 +9,11 @@
 __device__ __forceinline__ u32 block_exclusive_scan(u32 v, u32* total) {
     __shared__ u32 warp_sums[32];
     u32 lane = threadIdx.x & 31, w = threadIdx.x >> 5;
-    u32 x = v;
-    for (u32 o = 1; o < 32; o <<= 1) {
-        u32 y = __shfl_up_sync(0xffffffffu, x, o);
-        if (lane >= o) x += y;
-    }
+    u32 x = warp_inclusive_sum(v, lane);
     if (lane == 31) warp_sums[w] = x;
     __syncthreads();
     if (w == 0) {
-        u32 s = warp_sums[lane];
-        for (u32 o = 1; o < 32; o <<= 1) {
-            u32 y = __shfl_up_sync(0xffffffffu, s, o);
-            if (lane >= o) s += y;
-        }
-        warp_sums[lane] = s;
+        warp_sums[lane] = warp_inclusive_sum(warp_sums[lane], lane);
     }
     __syncthreads();
     u32 incl = x + (w > 0 ? warp_sums[w - 1] : 0u);

@@ -112,13 +112,18 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
     sort_range(dst, min(c, len));
 }
 
-// Sorts each query's range of `objects` ascending, one block a query: ranges of up to
-// SORT_SHARED slots by a radix sort in shared memory, longer ones (a crowd of thousands
-// in one box) by `NETWORK_SORT` in global memory, the whole block. The AOI queries of the
-// server (thousands of boxes of thousands of objects, `grid.cu`) are sorted here: one
-// thread sorting each range in global memory left the device waiting on memory for tens
-// of milliseconds, and the sorting network in shared memory took 78 steps of the block
-// for a range of 2,500 (scenario 3, AOI 100), 1 ms a tick for 10,000 players.
+// Sorts each query's range of `objects` ascending, one block a query, in shared memory
+// up to SORT_SHARED slots, longer ones (a crowd of thousands in one box) by
+// `NETWORK_SORT` in global memory, the whole block. The AOI queries of the server
+// (thousands of boxes of thousands of objects, `grid.cu`) are sorted here: one thread
+// sorting each range in global memory left the device waiting on memory for tens of
+// milliseconds. In shared memory, ranges of up to SORT_NETWORK_MAX slots take the sorting
+// network, longer ones a radix sort: the network pads a range to a power of two (a range
+// of 2,500, scenario 3 at AOI 100, is 78 steps of 4 comparisons a thread), and the radix
+// sort's passes cost about the same whatever the range (its counts are summed whole), so
+// it pays only for the longest (a lent H100, 2026-12-07: 1.02 ms a tick with the network
+// alone at scenario 3, AOI 100, 0.76 with the radix sort alone, whose 0.40 at AOI 14
+// the network takes a fraction of).
 //
 // The radix sort: SORT_BITS a pass from the lowest bit to the highest one any slot of the
 // range has (5 passes for 260,000 objects). A thread holds its items of each round
@@ -127,6 +132,7 @@ extern "C" __global__ void k_tree_write(u32 nq, const float* qboxes, const u32* 
 // and each item goes to its count's sum plus its rank: every pass is stable, so the
 // range ends sorted by the whole slot.
 #define SORT_SHARED 4096
+#define SORT_NETWORK_MAX 2048
 // The launch's block (src/backend/aoi.rs); another block size takes the network.
 #define SORT_THREADS 512u
 #define SORT_WARPS (SORT_THREADS / 32u)
@@ -159,6 +165,12 @@ extern "C" __global__ void k_sort_ranges(u32 nq, const u32* offsets, u32* object
         u32 v = a[i];
         s[i] = v;
         any |= v;
+    }
+    if (len <= SORT_NETWORK_MAX) {
+        __syncthreads();
+        NETWORK_SORT(u32, s, len, slot_less, t, step, __syncthreads());
+        for (u32 i = t; i < len; i += SORT_THREADS) a[i] = s[i];
+        return;
     }
     any = __reduce_or_sync(FULL_WARP, any);
     if (lane == 0) sums[warp] = any;

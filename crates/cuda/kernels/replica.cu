@@ -109,13 +109,6 @@ __device__ ROwn r_own_of(const RPlayer* p, u32 n, const float* pos, const u32* i
 
 // Warps a block of `k_replica_due` (PLAYERS_PER_BLOCK in src/replica/device.rs).
 #define DUE_WARPS 4u
-// Blocks of `k_replica_due` and `k_replica_take` a multiprocessor should hold at once
-// (`__launch_bounds__`): each warp waits on a chain of loads (its list, the objects, last
-// build's tracks), so more warps resident hide more of it. Left to itself the compiler
-// took 78 and 88 registers a thread (6 and 5 blocks, 24 and 20 warps of 64); at 7 and 6
-// blocks it takes 72 and 80 with 12 and 8 bytes spilled (ptxas -v, sm_90).
-#define DUE_MIN_BLOCKS 7
-#define TAKE_MIN_BLOCKS 6
 // Bits of a warp's filter of the ids its acknowledged flights carry.
 #define DUE_BLOOM_BITS 4096u
 
@@ -137,7 +130,7 @@ __device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {
 // acknowledgements may touch) after the acknowledgements, as the host replica does
 // for all. The objects due are in no particular order (`k_replica_rank` orders them by
 // what they are).
-extern "C" __global__ void __launch_bounds__(32 * DUE_WARPS, DUE_MIN_BLOCKS) k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u64 build, const u32* offsets,
+extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u64 build, const u32* offsets,
                                          const u32* objects, u32 n, const float* pos, const u32* ids,
                                          const u8* shapes, const RPlayer* players, RHome* homes,
                                          const RTrack* old_tracks, RTrack* next_tracks, u64* taken, RCand* cands,
@@ -406,7 +399,7 @@ extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32*
 // the order of urgency) into the budget (`r_take_due`'s steps: every lane keeps the same
 // budget), the chosen records sorted by the warp; the counts to the host (`info`, mapped)
 // and to `k_replica_pack` (`infos`).
-extern "C" __global__ void __launch_bounds__(32 * DUE_WARPS, TAKE_MIN_BLOCKS) k_replica_take(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, u32 n,
+extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, u32 n,
                                           const float* pos, const u32* ids, const u8* shapes,
                                           const RPlayer* players, RHome* homes, const RTrack* next_tracks,
                                           const RCand* cands, const u32* counts, const RDue* ranked,

@@ -81,8 +81,8 @@ pub fn declared_kernels() -> Vec<(String, usize)> {
 }
 
 /// Every `extern "C" __global__` function of the sources as its name and the text of
-/// its parameter list, in the sources' order (an occupancy hint before the name,
-/// `__launch_bounds__(…)`, is passed over).
+/// its parameter list, in the sources' order (for [`declared_kernels`] and the launch
+/// structs' check).
 pub fn kernel_declarations() -> Vec<(&'static str, &'static str)> {
     const HEAD: &str = "extern \"C\" __global__ void ";
     let mut out = Vec::new();
@@ -90,10 +90,6 @@ pub fn kernel_declarations() -> Vec<(&'static str, &'static str)> {
         let mut rest = text;
         while let Some(at) = rest.find(HEAD) {
             rest = &rest[at + HEAD.len()..];
-            if let Some(bounded) = rest.strip_prefix("__launch_bounds__(") {
-                let Some(end) = bounded.find(')') else { break };
-                rest = bounded[end + 1..].trim_start();
-            }
             let Some(open) = rest.find('(') else { break };
             let Some(close) = rest.find(')') else { break };
             out.push((rest[..open].trim(), &rest[open + 1..close]));

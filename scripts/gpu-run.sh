@@ -48,7 +48,9 @@
 # once), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario 2 at AOI 100),
 # zones (scenario 3 in 4 zones on the GPU, once a build), refits (the physics of this
 # build with MYRIAD_TREE_REFITS set to each of TABLE_REFITS, default "0 2 4 8",
-# alternating round by round); profile-X runs X once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
+# alternating round by round), chunks-X (X with this build's device outbound in chunks of
+# players, MYRIAD_REPLICA_CHUNKS set to each of TABLE_CHUNKS, default "1 4", alternating
+# round by round); profile-X runs X once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
 # soon as it is written, so a call that runs out of time still brings back the steps that
 # finished. The default takes longer than one call of 600 s (scenario 4 at AOI 100 took
 # over 150 s profiled on an H100): name fewer steps, or run the tests in another call.
@@ -471,7 +473,15 @@ if [[ $mode == table ]]; then
     # Each step in turn, so a call cut short still brings back the first steps whole;
     # within a step the builds alternate round by round.
     for step in ${TABLE_STEPS:-physics s4-14 s2-100 profile-s4-14 profile-s4-100 profile-s2-100 profile-physics s4-100 zones}; do
-        if [[ $step == refits ]]; then
+        if [[ $step == chunks-* ]] && run_of "${step#chunks-}"; then
+            # This build's device outbound in chunks of players (MYRIAD_REPLICA_CHUNKS)
+            # for each count of TABLE_CHUNKS (default "1 4"), alternating round by round.
+            for r in $(seq 1 "${TABLE_ROUNDS:-2}"); do
+                for n in ${TABLE_CHUNKS:-1 4}; do
+                    MYRIAD_REPLICA_CHUNKS=$n measure "$step-$n-$r" "$limit" .carry/myriad "${args[@]}"
+                done
+            done
+        elif [[ $step == refits ]]; then
             # The physics with the dynamic tree refit for N steps between builds, for each
             # N of TABLE_REFITS, this build only, alternating N round by round.
             for r in $(seq 1 "${TABLE_ROUNDS:-2}"); do

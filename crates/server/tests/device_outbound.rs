@@ -162,15 +162,21 @@ fn compare(
 }
 
 /// Runs `ticks` ticks of `world` with players at `slots`, building both outbounds with
-/// AOI edge `aoi` and a budget of `kbps`; on some ticks players miss the tick, change
-/// order, leave or join.
-fn run(world: &mut World, backend: &mut CudaBackend, aoi: f32, kbps: f64, slots: &[u32], ticks: u64) -> Covered {
+/// AOI edge `aoi` and a budget of `kbps` (the device's in `chunks` chunks of players);
+/// on some ticks players miss the tick, change order, leave or join.
+fn run(
+    world: &mut World,
+    backend: &mut CudaBackend,
+    (aoi, kbps, chunks): (f32, f64, usize),
+    slots: &[u32],
+    ticks: u64,
+) -> Covered {
     let k = TickConstants::new(&PhysicsConfig::default(), 1.0);
     let config = InterestConfig::with_budget(2, kbps, 30.0);
     let mut host = HostOutbound::new(aoi, config);
     // The replicas of the backend that steps the world, as the factory hands them out
     // beside the backend.
-    let mut device = DeviceOutbound::new(backend.device_replicas(), aoi, config);
+    let mut device = DeviceOutbound::new(backend.device_replicas(), aoi, config).with_chunks(chunks);
     let mut players: Vec<Player> = slots.iter().enumerate().map(|(i, &s)| Player::new(1000 + i as u64, s)).collect();
     let mut covered = Covered::default();
     for t in 0..ticks {
@@ -215,22 +221,27 @@ fn device_outbound_datagrams_equal_the_host_outbound() {
     let many: Vec<u32> = (0..300).map(|i| i * (n / 300)).collect();
     // AOI 100 at the default budget: views of hundreds, deltas against what the clients
     // acknowledged, near objects first, far ones waiting their turn.
-    let c = run(&mut world, &mut backend, 100.0, 256.0, &many, 40);
+    let c = run(&mut world, &mut backend, (100.0, 256.0, 1), &many, 40);
     eprintln!("AOI 100, 256 kbit/s: {c:?}");
     assert!(c.relative > c.records / 2 && c.deferred > 0, "{c:?}");
     // A budget far too small: most objects wait, some starve and go over it, into a
     // second datagram (the packing's split).
-    let c = run(&mut world, &mut backend, 100.0, 16.0, &many, 40);
+    let c = run(&mut world, &mut backend, (100.0, 16.0, 1), &many, 40);
     eprintln!("AOI 100, 16 kbit/s: {c:?}");
     assert!(c.starving > 0 && c.most_datagrams > 1, "{c:?}");
     // AOI 14: views that fit.
-    let c = run(&mut world, &mut backend, 14.0, 256.0, &many, 20);
+    let c = run(&mut world, &mut backend, (14.0, 256.0, 1), &many, 20);
     eprintln!("AOI 14: {c:?}");
     assert!(c.records > 0, "{c:?}");
     // AOI 400: views of thousands, more objects due than `k_replica_rank` sorts in
     // shared memory (4,096), which the block then sorts in global memory.
     let few: Vec<u32> = (0..12).map(|i| i * (n / 12)).collect();
-    let c = run(&mut world, &mut backend, 400.0, 256.0, &few, 6);
+    let c = run(&mut world, &mut backend, (400.0, 256.0, 1), &few, 6);
     eprintln!("AOI 400: {c:?}");
     assert!(c.most_due > 4096, "{c:?}");
+    // The device's build in three chunks of players (the host seals and sends one while
+    // the device chooses for the next), fresh replicas at first: the same bytes.
+    let c = run(&mut world, &mut backend, (100.0, 256.0, 3), &many, 20);
+    eprintln!("AOI 100, 256 kbit/s, three chunks: {c:?}");
+    assert!(c.relative > c.records / 2 && c.deferred > 0, "{c:?}");
 }

@@ -5,10 +5,11 @@
 //! `k_replica_due` (a warp a player: the objects due), `k_replica_rank` (a block a
 //! player: sorted by urgency), `k_replica_take` (a warp a player: the budget) and
 //! `k_replica_pack` (a warp a player: the chosen records packed into delta update
-//! bodies in mapped host memory); the host frames and seals
-//! them per player ([`Choices`], then `Subscriber::seal_packed`) and hands back what
-//! sealing did with [`DeviceReplicas::commit`], which queues `k_replica_commit` and does
-//! not wait.
+//! bodies in mapped host memory), for the players in chunks, an event after each;
+//! [`DeviceReplicas::ready`] waits for a chunk, whose players the host frames and seals
+//! ([`Choices`], then `Subscriber::seal_packed`) while the device chooses for the next,
+//! and hands back what sealing did for every player with [`DeviceReplicas::commit`],
+//! which queues `k_replica_commit` and does not wait.
 //!
 //! Players are known by a key (the session id): each has a *home*, an index into the
 //! device arrays of what persists besides its tracks (own object's track, credit,
@@ -18,6 +19,7 @@
 //! [`FORGET_BUILDS`] builds in a row is forgotten and starts afresh if it comes back.
 //! After any failure every player starts afresh (the device state is not trusted).
 
+use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -30,7 +32,7 @@ use super::device_config;
 use super::homes::{Homes, Placed, Twice};
 use super::layout::*;
 use crate::backend::{Resident, lock};
-use crate::device::{DevBuf, Pinned};
+use crate::device::{DevBuf, Event, Pinned};
 use crate::launch::{KReplicaCarry, KReplicaCommit, KReplicaDue, KReplicaPack, KReplicaRank, KReplicaTake};
 
 /// Flights a player keeps at most (`R_FLIGHTS` in the kernels; the host replica's
@@ -88,6 +90,11 @@ struct Pending {
     used: usize,
     /// Whether the world had no object (the lists are `no_lists`).
     no_objects: bool,
+    /// Players a chunk (the last may have fewer), and chunks in all.
+    per_chunk: usize,
+    chunks: usize,
+    /// Chunks [`DeviceReplicas::ready`] has answered so far.
+    ready: usize,
 }
 
 struct State {
@@ -102,6 +109,8 @@ struct State {
     current: usize,
     used: usize,
     pending: Option<Pending>,
+    /// One event a chunk, recorded after its packing.
+    chunk_done: Vec<Event>,
     /// The last build's placement (its vectors reused).
     placed: Placed,
     /// Scratch: (home, offset) pairs for `k_replica_carry`.
@@ -202,10 +211,13 @@ impl DeviceReplicas {
         DeviceReplicas { state: State::new(), resident }
     }
 
-    /// Runs the choosing half of a build for `players` (boxes `boxes`, one each): see
-    /// the module docs. Read the result with [`choices`](Self::choices), then call
-    /// [`commit`](Self::commit) with what packing and sealing did. A failure leaves
-    /// every player to start afresh at the next build.
+    /// Queues the choosing half of a build for `players` (boxes `boxes`, one each), in
+    /// `chunks` chunks of players (at least one, at most one a player): see the module
+    /// docs. Take each chunk's players with [`ready`](Self::ready) and read what was
+    /// chosen for them with [`choices`](Self::choices), then call
+    /// [`commit`](Self::commit) with what packing and sealing did for every player. A
+    /// failure leaves every player to start afresh at the next build.
+    #[allow(clippy::too_many_arguments)]
     pub fn select(
         &mut self,
         world: &World,
@@ -214,10 +226,25 @@ impl DeviceReplicas {
         config: &ReplicationConfig,
         max_datagrams: usize,
         tick: TickInfo,
+        chunks: usize,
     ) -> Result<(), PhysicsError> {
         let mut resident = lock(&self.resident);
         let s = &mut self.state;
-        let r = s.select(&mut resident, world, boxes, players, config, max_datagrams, tick);
+        let r = s.select(&mut resident, world, boxes, players, config, max_datagrams, tick, chunks);
+        if r.is_err() {
+            s.failed();
+        }
+        r
+    }
+
+    /// Waits for the next chunk of the last [`select`](Self::select)'s players (in
+    /// order) and returns their indices, or `None` when every chunk has been taken. A
+    /// failure (a list out of order: a device fault) leaves every player to start
+    /// afresh, and the build is not committed.
+    pub fn ready(&mut self) -> Result<Option<Range<usize>>, PhysicsError> {
+        let resident = lock(&self.resident);
+        let s = &mut self.state;
+        let r = s.ready(&resident);
         if r.is_err() {
             s.failed();
         }
@@ -279,6 +306,7 @@ impl State {
             current: 0,
             used: 0,
             pending: None,
+            chunk_done: Vec::new(),
             placed: Placed::default(),
             carry_pairs: Vec::new(),
             homes: DevBuf::empty(),
@@ -343,6 +371,7 @@ impl State {
         config: &ReplicationConfig,
         max_datagrams: usize,
         at: TickInfo,
+        chunks: usize,
     ) -> Result<(), PhysicsError> {
         let nq = players.len();
         let tick = at.tick;
@@ -466,113 +495,149 @@ impl State {
                 },
             )?;
         }
-        if nq > 0 {
-            let objects = if d.n == 0 { self.no_lists.ptr() } else { d.aoi_out.ptr() };
-            let info = self.host_info.device_ptr()?;
-            gpu.launch_grid(
-                (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
-                32 * PLAYERS_PER_BLOCK,
-                KReplicaDue {
-                    nq: nq as u32,
-                    cfg: self.config.ptr(),
-                    tick,
-                    build: self.builds,
-                    offsets,
-                    objects,
-                    n: d.n as u32,
-                    pos: d.obj.pos.ptr(),
-                    ids: d.obj.id.ptr(),
-                    shapes: d.obj.shape.ptr(),
-                    players: self.players.ptr(),
-                    homes: self.homes.ptr(),
-                    old_tracks: self.tracks[old].ptr(),
-                    next_tracks: self.tracks[new].ptr(),
-                    taken: self.taken.ptr(),
-                    cands: self.cands.ptr(),
-                    un: self.un.ptr(),
-                    orph: self.orph.ptr(),
-                    moved: self.moved.ptr(),
-                    wanted: self.wanted.ptr(),
-                    flights: self.flights.ptr(),
-                    states: self.states.ptr(),
-                    counts: self.counts.ptr(),
-                    info,
-                },
-            )?;
-            gpu.launch_grid(
-                nq as u32,
-                RANK_BLOCK,
-                KReplicaRank {
-                    nq: nq as u32,
-                    offsets,
-                    counts: self.counts.ptr(),
-                    wanted: self.wanted.ptr(),
-                    ranked: self.ranked.ptr(),
-                },
-            )?;
-            gpu.launch_grid(
-                (nq as u32).div_ceil(PLAYERS_PER_BLOCK),
-                32 * PLAYERS_PER_BLOCK,
-                KReplicaTake {
-                    nq: nq as u32,
-                    cfg: self.config.ptr(),
-                    tick,
-                    offsets,
-                    n: d.n as u32,
-                    pos: d.obj.pos.ptr(),
-                    ids: d.obj.id.ptr(),
-                    shapes: d.obj.shape.ptr(),
-                    players: self.players.ptr(),
-                    homes: self.homes.ptr(),
-                    next_tracks: self.tracks[new].ptr(),
-                    cands: self.cands.ptr(),
-                    counts: self.counts.ptr(),
-                    ranked: self.ranked.ptr(),
-                    chosen: self.chosen.ptr(),
-                    info,
-                    infos: self.infos.ptr(),
-                },
-            )?;
-            gpu.launch_grid(
-                (nq as u32).div_ceil(PACK_WARPS),
-                32 * PACK_WARPS,
-                KReplicaPack {
-                    nq: nq as u32,
-                    cfg: self.config.ptr(),
-                    tick,
-                    dilation: u32::from(at.dilation_permille),
-                    offsets,
-                    players: self.players.ptr(),
-                    counts: self.counts.ptr(),
-                    infos: self.infos.ptr(),
-                    chosen: self.chosen.ptr(),
-                    ends: self.ends.ptr(),
-                    packed: self.host_packed.device_ptr()?,
-                    out: self.host_bodies.device_ptr()?,
-                    out_lens: self.host_lens.device_ptr()?,
-                },
-            )?;
+        // The players in chunks, each chunk's kernels on its players alone (every
+        // per-player array from the chunk's first player on; homes and list offsets are
+        // the build's), an event after each chunk's packing: the host seals and sends a
+        // chunk while the device chooses for the next (`ready`).
+        let chunks = chunks.clamp(1, nq.max(1));
+        let per_chunk = nq.div_ceil(chunks).max(1);
+        while self.chunk_done.len() < chunks {
+            self.chunk_done.push(Event::new(gpu)?);
+        }
+        let objects = if d.n == 0 { self.no_lists.ptr() } else { d.aoi_out.ptr() };
+        let info = self.host_info.device_ptr::<RInfo>()?;
+        let packed = self.host_packed.device_ptr::<RPacked>()?;
+        let out = self.host_bodies.device_ptr::<u8>()?;
+        let out_lens = self.host_lens.device_ptr::<u32>()?;
+        for (c, done) in self.chunk_done[..chunks].iter().enumerate() {
+            let first = c * per_chunk;
+            let count = per_chunk.min(nq.saturating_sub(first)) as u32;
+            if count > 0 {
+                let offsets = offsets.add(first);
+                let players = self.players.ptr().add(first);
+                let counts = self.counts.ptr().add(2 * first);
+                let (info, infos) = (info.add(first), self.infos.ptr().add(first));
+                gpu.launch_grid(
+                    count.div_ceil(PLAYERS_PER_BLOCK),
+                    32 * PLAYERS_PER_BLOCK,
+                    KReplicaDue {
+                        nq: count,
+                        cfg: self.config.ptr(),
+                        tick,
+                        build: self.builds,
+                        offsets,
+                        objects,
+                        n: d.n as u32,
+                        pos: d.obj.pos.ptr(),
+                        ids: d.obj.id.ptr(),
+                        shapes: d.obj.shape.ptr(),
+                        players,
+                        homes: self.homes.ptr(),
+                        old_tracks: self.tracks[old].ptr(),
+                        next_tracks: self.tracks[new].ptr(),
+                        taken: self.taken.ptr(),
+                        cands: self.cands.ptr(),
+                        un: self.un.ptr(),
+                        orph: self.orph.ptr(),
+                        moved: self.moved.ptr(),
+                        wanted: self.wanted.ptr(),
+                        flights: self.flights.ptr(),
+                        states: self.states.ptr(),
+                        counts,
+                        info,
+                    },
+                )?;
+                gpu.launch_grid(
+                    count,
+                    RANK_BLOCK,
+                    KReplicaRank { nq: count, offsets, counts, wanted: self.wanted.ptr(), ranked: self.ranked.ptr() },
+                )?;
+                gpu.launch_grid(
+                    count.div_ceil(PLAYERS_PER_BLOCK),
+                    32 * PLAYERS_PER_BLOCK,
+                    KReplicaTake {
+                        nq: count,
+                        cfg: self.config.ptr(),
+                        tick,
+                        offsets,
+                        n: d.n as u32,
+                        pos: d.obj.pos.ptr(),
+                        ids: d.obj.id.ptr(),
+                        shapes: d.obj.shape.ptr(),
+                        players,
+                        homes: self.homes.ptr(),
+                        next_tracks: self.tracks[new].ptr(),
+                        cands: self.cands.ptr(),
+                        counts,
+                        ranked: self.ranked.ptr(),
+                        chosen: self.chosen.ptr(),
+                        info,
+                        infos,
+                    },
+                )?;
+                gpu.launch_grid(
+                    count.div_ceil(PACK_WARPS),
+                    32 * PACK_WARPS,
+                    KReplicaPack {
+                        nq: count,
+                        cfg: self.config.ptr(),
+                        tick,
+                        dilation: u32::from(at.dilation_permille),
+                        offsets,
+                        players,
+                        counts,
+                        infos,
+                        chosen: self.chosen.ptr(),
+                        ends: self.ends.ptr().add(first * mdg),
+                        packed: packed.add(first),
+                        out: out.add(first * mdg * BODY_STRIDE),
+                        out_lens: out_lens.add(first * mdg),
+                    },
+                )?;
+            }
+            gpu.record(done.raw)?;
         }
         gpu.profile_host("host: replica buffers and launches", started);
+        let no_objects = d.n == 0 || nq == 0;
+        self.pending =
+            Some(Pending { players: nq, max_datagrams: mdg, tick, used, no_objects, per_chunk, chunks, ready: 0 });
+        self.placed = placement;
+        Ok(())
+    }
+
+    /// Waits for the next chunk of the pending build (they come in order) and returns
+    /// its players' indices; fails if a list was out of order (a device fault).
+    fn ready(&mut self, d: &Resident) -> Result<Option<Range<usize>>, PhysicsError> {
+        let Some(p) = self.pending.as_mut() else {
+            return Err(PhysicsError::Device { stage: "replica", message: "no build to wait for".into() });
+        };
+        if p.ready == p.chunks {
+            return Ok(None);
+        }
+        let c = p.ready;
+        p.ready += 1;
+        let (first, last_chunk) = (c * p.per_chunk, p.ready == p.chunks);
+        let range = first.min(p.players)..(first + p.per_chunk).min(p.players);
+        let gpu = &d.gpu;
+        gpu.bind()?;
         let started = Instant::now();
-        gpu.sync()?;
+        self.chunk_done[c].wait()?;
         gpu.profile_host("host: wait for the replica kernels", started);
-        gpu.collect_profile()?;
+        if last_chunk {
+            gpu.collect_profile()?;
+        }
         let started = Instant::now();
-        let info = self.host_info.slice::<RInfo>(nq);
+        let info = &self.host_info.slice::<RInfo>(range.end)[range.clone()];
         if let Some(i) = info.iter().position(|r| r.unsorted != 0) {
-            let message = format!("player {i}'s AOI list is not in ascending slot order");
+            let message = format!("player {}'s AOI list is not in ascending slot order", range.start + i);
             return Err(PhysicsError::Device { stage: "replica", message });
         }
         // By home, not by key: a store a player instead of a hash look-up.
-        for (&(home, _), r) in placed.iter().zip(info) {
+        for (&(home, _), r) in self.placed.homes[range.clone()].iter().zip(info) {
             self.home_of.set_tracks(home, r.in_view);
         }
         gpu.profile_host("host: replica reports", started);
-        let no_objects = d.n == 0 || nq == 0;
-        self.pending = Some(Pending { players: nq, max_datagrams: mdg, tick, used, no_objects });
-        self.placed = placement;
-        Ok(())
+        Ok(Some(range))
     }
 
     fn commit(&mut self, d: &mut Resident, commits: &[RCommit]) -> Result<(), PhysicsError> {
@@ -580,6 +645,14 @@ impl State {
             return Err(PhysicsError::Device { stage: "replica", message: "a commit without a build".into() });
         };
         let nq = p.players;
+        if p.ready != p.chunks {
+            // The host's commits may not be written while the stream could still read
+            // the last build's: waiting for a chunk of this build is what proves it can't.
+            return Err(PhysicsError::Device {
+                stage: "replica",
+                message: "a commit before every chunk was ready".into(),
+            });
+        }
         if commits.len() != nq {
             return Err(PhysicsError::Device {
                 stage: "replica",
@@ -592,7 +665,7 @@ impl State {
         if nq > 0 {
             self.commits.ensure(gpu, nq * size_of::<RCommit>(), 1.25)?;
             self.host_commits.ensure(gpu, nq * size_of::<RCommit>())?;
-            // The stream may still read last build's: `select` waited for it since.
+            // The stream may still read last build's: `ready` waited for this build's since.
             self.host_commits.slice_mut::<RCommit>(nq).copy_from_slice(commits);
             gpu.upload_async(&self.commits, &self.host_commits, nq)?;
             let offsets = if p.no_objects { self.no_lists.ptr() } else { d.aoi_counts.ptr() };

@@ -1,8 +1,10 @@
 //! The device implementation of [`Outbound`]: every player's replica lives on the CUDA
 //! backend's device ([`DeviceReplicas`]), which answers the AOI boxes, chooses each
 //! player's records and packs them into delta update bodies there; the host frames and
-//! seals the bodies in parallel over players (`Subscriber::seal_packed`) and hands what
-//! sealing did back to the device.
+//! seals the bodies in parallel over players (`Subscriber::seal_packed`), sends them, and
+//! hands what sealing did back to the device. With the players in chunks
+//! ([`DeviceOutbound::with_chunks`], `MYRIAD_REPLICA_CHUNKS`), the host seals and sends
+//! a chunk while the device chooses for the next.
 //! The bytes are the host outbound's, byte for byte (`tests/device_outbound.rs`).
 
 use std::time::{Duration, Instant};
@@ -24,6 +26,15 @@ pub struct DeviceOutbound {
     boxes: Vec<Aabb>,
     players: Vec<ReplicaPlayer>,
     commits: Vec<RCommit>,
+    /// Chunks of players a build runs in (1: the device chooses for all, then the host
+    /// seals and sends all).
+    chunks: usize,
+}
+
+/// Chunks of players a build runs in unless told ([`DeviceOutbound::with_chunks`]):
+/// `MYRIAD_REPLICA_CHUNKS`, else 1.
+fn default_chunks() -> usize {
+    std::env::var("MYRIAD_REPLICA_CHUNKS").ok().and_then(|v| v.parse().ok()).filter(|&n| n >= 1).unwrap_or(1)
 }
 
 impl DeviceOutbound {
@@ -37,11 +48,20 @@ impl DeviceOutbound {
             boxes: Vec::new(),
             players: Vec::new(),
             commits: Vec::new(),
+            chunks: default_chunks(),
         }
     }
 
-    /// [`Outbound::build`] without the hand-over.
-    fn build_all(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
+    /// The same, each build in `chunks` chunks of players (at least 1): the host seals
+    /// and sends a chunk's datagrams while the device chooses for the next.
+    pub fn with_chunks(mut self, chunks: usize) -> Self {
+        self.chunks = chunks.max(1);
+        self
+    }
+
+    /// [`Outbound::build`]: each chunk's players sealed and handed to `job.ready` as soon
+    /// as the device has chosen for them.
+    fn build_chunked(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         let mut report = OutboundReport::default();
         let setting_up = Instant::now();
         aim(recipients, self.half, &mut self.boxes);
@@ -57,35 +77,67 @@ impl DeviceOutbound {
         self.replicas.profile_host("host: outbound set-up", setting_up);
         let mdg = self.config.max_datagrams.max(1);
         let t = Instant::now();
+        let replication = &self.config.replication;
         let chose =
-            self.replicas.select(job.world, &self.boxes, &self.players, &self.config.replication, mdg, job.tick);
-        report.aoi_ms = t.elapsed().as_secs_f64() * 1e3;
+            self.replicas.select(job.world, &self.boxes, &self.players, replication, mdg, job.tick, self.chunks);
+        // The AOI query and the device's choice: the time the tick waits for the device.
+        let mut waited = t.elapsed();
         if let Err(e) = chose {
-            tracing::error!(error = %e, "device replicas failed");
-            metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
-            clear_all(recipients);
+            report.aoi_ms = waited.as_secs_f64() * 1e3;
+            failed(&e, recipients);
             return report;
         }
         let n = recipients.len();
         self.commits.clear();
         self.commits.resize(n, RCommit::default());
-        let sealing = Instant::now();
-        let choices = self.replicas.choices();
-        // The tick's report is summed here, over each player just sealed (its
-        // subscriber is in cache), rather than by a serial pass after.
-        let (faults, tick_report) = recipients
-            .par_iter_mut()
-            .zip(self.commits.par_iter_mut())
-            .enumerate()
-            .fold(
-                || (0usize, TickReport::default()),
-                |(faults, report), (i, (r, commit))| {
-                    let ok = seal_one(&choices, i, r, commit);
-                    (faults + usize::from(!ok), report.with(&r.view.report()))
-                },
-            )
-            .reduce(|| (0, TickReport::default()), |a, b| (a.0 + b.0, a.1.merge(b.1)));
-        self.replicas.profile_host("host: frame and seal", sealing);
+        let (mut sealing, mut sending) = (Duration::ZERO, Duration::ZERO);
+        let mut tick_report = TickReport::default();
+        let (mut faults, mut handled) = (0, 0);
+        loop {
+            let waiting = Instant::now();
+            let ready = self.replicas.ready();
+            waited += waiting.elapsed();
+            let range = match ready {
+                Ok(Some(range)) => range,
+                Ok(None) => break,
+                Err(e) => {
+                    // The chunks sent are sent; the rest get nothing, and the device
+                    // starts everyone afresh (nothing is committed).
+                    report.aoi_ms = waited.as_secs_f64() * 1e3;
+                    failed(&e, &mut recipients[handled..]);
+                    report.add_interest(&tick_report);
+                    return report;
+                }
+            };
+            handled = range.end;
+            let started = Instant::now();
+            let choices = self.replicas.choices();
+            let first = range.start;
+            let chunk = &mut recipients[range.clone()];
+            // The tick's report is summed here, over each player just sealed (its
+            // subscriber is in cache), rather than by a serial pass after.
+            let (f, r) = chunk
+                .par_iter_mut()
+                .zip(self.commits[range].par_iter_mut())
+                .enumerate()
+                .fold(
+                    || (0usize, TickReport::default()),
+                    |(faults, report), (i, (r, commit))| {
+                        let ok = seal_one(&choices, first + i, r, commit);
+                        (faults + usize::from(!ok), report.with(&r.view.report()))
+                    },
+                )
+                .reduce(|| (0, TickReport::default()), |a, b| (a.0 + b.0, a.1.merge(b.1)));
+            faults += f;
+            tick_report = tick_report.merge(r);
+            let handing = Instant::now();
+            sealing += handing - started;
+            spread_over_lanes(chunk, job.ready);
+            sending += handing.elapsed();
+        }
+        report.aoi_ms = waited.as_secs_f64() * 1e3;
+        self.replicas.profile_span("host: frame and seal", sealing);
+        self.replicas.profile_span("host: hand to the lanes (sending)", sending);
         if faults > 0 {
             tracing::error!(players = faults, "the device packed bodies no datagram can carry");
             metrics::counter!("myriad_outbound_errors_total", "reason" => "device_record").increment(faults as u64);
@@ -100,6 +152,13 @@ impl DeviceOutbound {
         report.add_interest(&tick_report);
         report
     }
+}
+
+/// A build that failed on the device: `recipients` get nothing this tick.
+fn failed(e: &myriad_physics::PhysicsError, recipients: &mut [Recipient<'_>]) {
+    tracing::error!(error = %e, "device replicas failed");
+    metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
+    clear_all(recipients);
 }
 
 /// Frames and seals player `i`'s bodies into its subscriber, and notes in `commit` what
@@ -148,10 +207,6 @@ impl Outbound for DeviceOutbound {
     }
 
     fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
-        let report = self.build_all(job, recipients);
-        let sending = Instant::now();
-        spread_over_lanes(recipients, job.ready);
-        self.replicas.profile_host("host: hand to the lanes (sending)", sending);
-        report
+        self.build_chunked(job, recipients)
     }
 }

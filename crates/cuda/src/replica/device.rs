@@ -509,6 +509,10 @@ impl State {
         let packed = self.host_packed.device_ptr::<RPacked>()?;
         let out = self.host_bodies.device_ptr::<u8>()?;
         let out_lens = self.host_lens.device_ptr::<u32>()?;
+        // What every chunk's kernels share: the objects, the homes, the tracks, the lists.
+        let (n, pos, ids, shapes) = (d.n as u32, d.obj.pos.ptr(), d.obj.id.ptr(), d.obj.shape.ptr());
+        let (cfg, homes, next_tracks) = (self.config.ptr(), self.homes.ptr(), self.tracks[new].ptr());
+        let (cands, chosen) = (self.cands.ptr(), self.chosen.ptr());
         for (c, done) in self.chunk_done[..chunks].iter().enumerate() {
             let first = c * per_chunk;
             let count = per_chunk.min(nq.saturating_sub(first)) as u32;
@@ -522,21 +526,21 @@ impl State {
                     32 * PLAYERS_PER_BLOCK,
                     KReplicaDue {
                         nq: count,
-                        cfg: self.config.ptr(),
+                        cfg,
                         tick,
                         build: self.builds,
                         offsets,
                         objects,
-                        n: d.n as u32,
-                        pos: d.obj.pos.ptr(),
-                        ids: d.obj.id.ptr(),
-                        shapes: d.obj.shape.ptr(),
+                        n,
+                        pos,
+                        ids,
+                        shapes,
                         players,
-                        homes: self.homes.ptr(),
+                        homes,
                         old_tracks: self.tracks[old].ptr(),
-                        next_tracks: self.tracks[new].ptr(),
+                        next_tracks,
                         taken: self.taken.ptr(),
-                        cands: self.cands.ptr(),
+                        cands,
                         un: self.un.ptr(),
                         orph: self.orph.ptr(),
                         moved: self.moved.ptr(),
@@ -557,20 +561,20 @@ impl State {
                     32 * PLAYERS_PER_BLOCK,
                     KReplicaTake {
                         nq: count,
-                        cfg: self.config.ptr(),
+                        cfg,
                         tick,
                         offsets,
-                        n: d.n as u32,
-                        pos: d.obj.pos.ptr(),
-                        ids: d.obj.id.ptr(),
-                        shapes: d.obj.shape.ptr(),
+                        n,
+                        pos,
+                        ids,
+                        shapes,
                         players,
-                        homes: self.homes.ptr(),
-                        next_tracks: self.tracks[new].ptr(),
-                        cands: self.cands.ptr(),
+                        homes,
+                        next_tracks,
+                        cands,
                         counts,
                         ranked: self.ranked.ptr(),
-                        chosen: self.chosen.ptr(),
+                        chosen,
                         info,
                         infos,
                     },
@@ -580,14 +584,14 @@ impl State {
                     32 * PACK_WARPS,
                     KReplicaPack {
                         nq: count,
-                        cfg: self.config.ptr(),
+                        cfg,
                         tick,
                         dilation: u32::from(at.dilation_permille),
                         offsets,
                         players,
                         counts,
                         infos,
-                        chosen: self.chosen.ptr(),
+                        chosen,
                         ends: self.ends.ptr().add(first * mdg),
                         packed: packed.add(first),
                         out: out.add(first * mdg * BODY_STRIDE),

@@ -34,7 +34,20 @@ pub struct DeviceOutbound {
 /// Chunks of players a build runs in unless told ([`DeviceOutbound::with_chunks`]):
 /// `MYRIAD_REPLICA_CHUNKS`, else 1.
 fn default_chunks() -> usize {
-    std::env::var("MYRIAD_REPLICA_CHUNKS").ok().and_then(|v| v.parse().ok()).filter(|&n| n >= 1).unwrap_or(1)
+    chunks_from(std::env::var("MYRIAD_REPLICA_CHUNKS").ok().as_deref())
+}
+
+/// A count of chunks from `value` (unset: 1); one that is not a count of at least 1 is
+/// reported and ignored.
+fn chunks_from(value: Option<&str>) -> usize {
+    let Some(v) = value else { return 1 };
+    match v.trim().parse::<usize>() {
+        Ok(n) if n >= 1 => n,
+        _ => {
+            tracing::warn!(value = v, "MYRIAD_REPLICA_CHUNKS is not a count of at least 1; using 1");
+            1
+        }
+    }
 }
 
 impl DeviceOutbound {
@@ -208,5 +221,20 @@ impl Outbound for DeviceOutbound {
 
     fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         self.build_chunked(job, recipients)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::chunks_from;
+
+    #[test]
+    fn a_chunk_count_is_read_and_anything_else_is_one() {
+        assert_eq!(chunks_from(None), 1);
+        assert_eq!(chunks_from(Some("4")), 4);
+        assert_eq!(chunks_from(Some(" 3 ")), 3);
+        for bad in ["0", "-2", "four", ""] {
+            assert_eq!(chunks_from(Some(bad)), 1, "{bad:?}");
+        }
     }
 }

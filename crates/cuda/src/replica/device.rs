@@ -499,8 +499,9 @@ impl State {
         // per-player array from the chunk's first player on; homes and list offsets are
         // the build's), an event after each chunk's packing: the host seals and sends a
         // chunk while the device chooses for the next (`ready`).
-        let chunks = chunks.clamp(1, nq.max(1));
-        let per_chunk = nq.div_ceil(chunks).max(1);
+        let per_chunk = nq.div_ceil(chunks.clamp(1, nq.max(1))).max(1);
+        // No chunk is left empty (10 players in 6 chunks: 5 of 2).
+        let chunks = nq.div_ceil(per_chunk).max(1);
         while self.chunk_done.len() < chunks {
             self.chunk_done.push(Event::new(gpu)?);
         }

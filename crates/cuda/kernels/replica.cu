@@ -93,16 +93,52 @@ typedef struct {
     RPos pos;
 } ROwn;
 
-__device__ ROwn r_own_of(const RPlayer* p, u32 n, const float* pos, const u32* ids, const u8* shapes) {
+// An object as a build reads it (`RObj`, src/replica/layout.rs), gathered from the
+// world's arrays once a build by `k_replica_objects`: a view's slots are scattered over
+// the world, so a candidate read from the arrays touched a 32-byte sector for its
+// position, one for its id and one for its shape; from here it touches one, and its
+// position comes quantized.
+typedef struct __align__(16) {
+    RPos q;
+    float p[3];
+    u32 id, kind;
+} RObj;
+static_assert(sizeof(RObj) == 32, "RObj is one sector");
+
+extern "C" __global__ void k_replica_objects(u32 n, const float* pos, const u32* ids, const u8* shapes,
+                                             RObj* objs) {
+    u32 s = blockIdx.x * blockDim.x + threadIdx.x;
+    if (s >= n) return;
+    RObj o;
+    for (u32 a = 0; a < 3; a++) o.p[a] = pos[3 * (u64)s + a];
+    o.q.x = r_quant(o.p[0]);
+    o.q.y = r_quant(o.p[1]);
+    o.q.z = r_quant(o.p[2]);
+    o.id = ids[s];
+    o.kind = shapes[s];
+    objs[s] = o;
+}
+
+// `r_candidate` of a gathered object: the same operations, the quantization done.
+__device__ __forceinline__ RCand r_candidate_obj(u32 slot, const RObj* o, const float* centre) {
+    RCand c;
+    c.id = o->id;
+    c.slot = slot;
+    c.kind = o->kind;
+    c.pos = o->q;
+    float d0 = o->p[0] - centre[0], d1 = o->p[1] - centre[1], d2 = o->p[2] - centre[2];
+    c.distance = sqrtf(d0 * d0 + d1 * d1 + d2 * d2);
+    return c;
+}
+
+__device__ ROwn r_own_of(const RPlayer* p, u32 n, const RObj* objs) {
     ROwn own = {0, 0, 0, {0, 0, 0}};
     if (p->own_slot < n) {
-        u32 s = p->own_slot;
+        const RObj* o = &objs[p->own_slot];
         own.has = 1;
-        own.id = ids[s];
-        own.kind = shapes[s];
-        own.pos.x = r_quant(pos[3 * (u64)s]);
-        own.pos.y = r_quant(pos[3 * (u64)s + 1]);
-        own.pos.z = r_quant(pos[3 * (u64)s + 2]);
+        own.id = o->id;
+        own.kind = o->kind;
+        own.pos = o->q;
     }
     return own;
 }
@@ -118,6 +154,32 @@ __device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {
     return (bloom[b >> 5] >> (b & 31u)) & 1u;
 }
 
+// Entries of a warp's table from slot to candidate index, for the acknowledgements: a
+// state names its object by slot, and bisecting this build's tracks (64 bytes apart) for
+// it cost a dozen dependent reads of global memory a state. Only candidates whose id the
+// filter above holds go in (every state acknowledged is one of them), at most half the
+// table; a view that would put more bisects as before.
+#define DUE_SLOTS 1024u
+
+__device__ __forceinline__ u32 r_slot_hash(u32 slot) { return (slot * 0x9E3779B1u) >> 22; }
+
+// Puts `slot` (distinct in a list) with its candidate index `k` (open addressing).
+__device__ __forceinline__ void r_slots_put(u64* table, u32 slot, u32 k) {
+    u64 e = ((u64)slot << 32) | k;
+    for (u32 h = r_slot_hash(slot);; h = (h + 1) & (DUE_SLOTS - 1)) {
+        if (atomicCAS((unsigned long long*)&table[h], R_NONE, e) == R_NONE) return;
+    }
+}
+
+// The candidate index put with `slot`, or R_NO_SLOT.
+__device__ __forceinline__ u32 r_slots_get(const u64* table, u32 slot) {
+    for (u32 h = r_slot_hash(slot);; h = (h + 1) & (DUE_SLOTS - 1)) {
+        u64 e = table[h];
+        if (e == R_NONE) return R_NO_SLOT;
+        if ((u32)(e >> 32) == slot) return (u32)e;
+    }
+}
+
 // Step 1 and 2 of a build, a warp a player: the candidates, the merge with last build's
 // tracks, the acknowledgements and the priorities; the objects due go to `wanted`, and
 // `counts[2 i]` and `counts[2 i + 1]` say how many candidates and how many due
@@ -131,8 +193,8 @@ __device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {
 // for all. The objects due are in no particular order (`k_replica_rank` orders them by
 // what they are).
 extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u64 build, const u32* offsets,
-                                         const u32* objects, u32 n, const float* pos, const u32* ids,
-                                         const u8* shapes, const RPlayer* players, RHome* homes,
+                                         const u32* objects, u32 n, const RObj* objs, const RPlayer* players,
+                                         RHome* homes,
                                          const RTrack* old_tracks, RTrack* next_tracks, u64* taken, RCand* cands,
                                          RKey* un, RKey* orph, RMoved* moved, RDue* wanted, RFlight* flights,
                                          RState* states, u32* counts, RInfo* info) {
@@ -148,7 +210,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     __syncwarp();
     u64 floor = tick > R_MAX_BACK - 1 ? tick - (R_MAX_BACK - 1) : 0;
     u32 o = offsets[i], len = offsets[i + 1] - o;
-    ROwn own = r_own_of(p, n, pos, ids, shapes);
+    ROwn own = r_own_of(p, n, objs);
     // Last build's tracks (`k_replica_take` points the home at this build's).
     const RTrack* old = old_tracks + h->track_off;
     u32 nold = h->track_len;
@@ -166,8 +228,11 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
 
     // The filter of the ids the acknowledged flights carry.
     __shared__ u32 blooms[DUE_WARPS][DUE_BLOOM_BITS / 32];
+    __shared__ u64 slot_tables[DUE_WARPS][DUE_SLOTS];
     u32* bloom = blooms[(threadIdx.x >> 5) % DUE_WARPS];
+    u64* slots = slot_tables[(threadIdx.x >> 5) % DUE_WARPS];
     for (u32 w = lane; w < DUE_BLOOM_BITS / 32; w += 32) bloom[w] = 0;
+    for (u32 w = lane; w < DUE_SLOTS; w += 32) slots[w] = R_NONE;
     __syncwarp();
     u32 nfl = h->nflights;
     for (u32 f = 0; f < nfl; f++) {
@@ -191,7 +256,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     // The device's lists are sorted with no slot twice, so every candidate takes a track
     // (the host replica's out-of-order drops never happen); a list that is not is a
     // fault the host is told of, not a choice.
-    u32 nc = 0, nun = 0, nw = 0, nlater = 0, last_slot = 0;
+    u32 nc = 0, nun = 0, nw = 0, nlater = 0, last_slot = 0, nslots = 0;
     int has_last = 0, disorder = 0, drift = 0;
     for (u32 base = 0; base < len; base += 32) {
         u32 j = base + lane;
@@ -200,10 +265,10 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         if (j < len) {
             u32 s = objects[o + j];
             if (s < n) {
-                u64 id = ids[s];
-                if (!(own.has && id == own.id)) {
+                RObj ob = objs[s];
+                if (!(own.has && ob.id == own.id)) {
                     valid = 1;
-                    c = r_candidate(s, id, shapes[s], pos + 3 * (u64)s, p->centre);
+                    c = r_candidate_obj(s, &ob, p->centre);
                 }
             }
         }
@@ -211,7 +276,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         u32 my_slot = valid ? c.slot : 0;
         u32 below = mask & ((1u << lane) - 1u);
         u32 before = __shfl_sync(FULL_WARP, my_slot, below ? 31 - __clz(below) : lane);
-        int fresh = 0, due = 0, later = 0;
+        int fresh = 0, due = 0, later = 0, acked = 0;
         RDue d;
         u32 k = nc + __popc(below);
         if (valid) {
@@ -222,19 +287,24 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
                 taken_p[at] = build;
                 drift = (int)at - (int)k;
                 if (r_bloom_has(bloom, c.id))
-                    later = 1;
+                    later = acked = 1;
                 else
                     due = r_priority(cfg, tick, floor, &t, &c, k, k, &d);
                 nx[k] = t;
             } else {
                 nx[k] = r_track_new(c.id, c.slot);
                 fresh = 1;
+                acked = r_bloom_has(bloom, c.id);
             }
             // Only what a later step reads keeps its candidate: the due (the take and
             // the commit), the fresh and the later (their priorities below). At AOI 100
             // most of a view is neither, and this is 32 bytes a candidate not written.
             if (fresh || due || later) cs[k] = c;
         }
+        // The slots an acknowledged state may name (a table full enough is not used).
+        u32 amask = __ballot_sync(FULL_WARP, acked);
+        if (nslots + __popc(amask) <= DUE_SLOTS / 2 && acked) r_slots_put(slots, c.slot, k);
+        nslots += __popc(amask);
         u32 fmask = __ballot_sync(FULL_WARP, fresh);
         if (fresh) un_p[nun + lanes_before(fmask, lane)].index = k;
         nun += __popc(fmask);
@@ -301,7 +371,19 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         int acked;
         int keep = r_flight_kept(p, &fl, floor, &acked);
         if (acked) {
-            for (u32 s = lane; s < fl.len; s += 32) r_ack_state(h, nx, nc, &st_p[fl.start + s], fl.tick);
+            for (u32 s = lane; s < fl.len; s += 32) {
+                // `r_ack_state`, the track found through the table.
+                const RState* st = &st_p[fl.start + s];
+                RTrack* t = 0;
+                if (h->has_own && h->own.id == st->id) {
+                    t = &h->own;
+                } else {
+                    u32 k = nslots <= DUE_SLOTS / 2 ? r_slots_get(slots, st->slot)
+                                                    : r_find_slot(nx, nc, st->slot, R_NO_SLOT);
+                    if (k != R_NO_SLOT && nx[k].id == st->id) t = &nx[k];
+                }
+                if (t) r_track_acknowledge(t, fl.tick, st->pos);
+            }
         }
         __syncwarp();
         if (keep) {
@@ -400,8 +482,7 @@ extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32*
 // budget), the chosen records sorted by the warp; the counts to the host (`info`, mapped)
 // and to `k_replica_pack` (`infos`).
 extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, u32 n,
-                                          const float* pos, const u32* ids, const u8* shapes,
-                                          const RPlayer* players, RHome* homes, const RTrack* next_tracks,
+                                          const RObj* objs, const RPlayer* players, RHome* homes, const RTrack* next_tracks,
                                           const RCand* cands, const u32* counts, const RDue* ranked,
                                           RChosen* chosen, RInfo* info, RInfo* infos) {
     u32 lane = threadIdx.x & 31u;
@@ -413,7 +494,7 @@ extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, 
     RHome* h = &homes[p->home];
     u64 floor = tick > R_MAX_BACK - 1 ? tick - (R_MAX_BACK - 1) : 0;
     u32 o = offsets[i];
-    ROwn own = r_own_of(p, n, pos, ids, shapes);
+    ROwn own = r_own_of(p, n, objs);
     RChosen* ch = chosen + o;
 
     RInfo mine = {};

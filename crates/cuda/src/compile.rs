@@ -39,7 +39,7 @@ pub const HEADERS: [(&str, &str); 4] = [
 /// Every kernel entry point the backends load, with its number of parameters (each
 /// launch's argument count is checked against it at run time; the argument structs of
 /// the `launch` module are checked against the sources' signatures by a unit test).
-pub const KERNELS: [(&str, usize); 29] = [
+pub const KERNELS: [(&str, usize); 30] = [
     ("k_scan_blocks", 3),
     ("k_scan_sums", 2),
     ("k_scan_add", 3),
@@ -63,9 +63,10 @@ pub const KERNELS: [(&str, usize); 29] = [
     ("k_patch_gather", 21),
     ("k_patch_scatter", 12),
     ("k_gather_positions", 4),
-    ("k_replica_due", 24),
+    ("k_replica_objects", 5),
+    ("k_replica_due", 22),
     ("k_replica_rank", 5),
-    ("k_replica_take", 17),
+    ("k_replica_take", 15),
     ("k_replica_pack", 13),
     ("k_replica_commit", 13),
     ("k_replica_carry", 5),

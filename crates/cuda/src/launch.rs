@@ -27,7 +27,7 @@ use myriad_physics::PhysicsError;
 use crate::device::{Arg, Gpu};
 use crate::params::DeviceParams;
 use crate::replica::{
-    RCand, RChosen, RCommit, RConfig, RDue, RFlight, RHome, RInfo, RKey, RMoved, RPacked, RPlayer, RState, RTrack,
+    RCand, RChosen, RCommit, RConfig, RDue, RFlight, RHome, RInfo, RKey, RMoved, RObj, RPacked, RPlayer, RState, RTrack,
 };
 
 /// A device address of items of type `T` (no ownership: the buffer it came from owns the
@@ -104,6 +104,7 @@ device_items!(
     Node => "Node",
     DeviceParams => "Params",
     RTrack => "RTrack",
+    RObj => "RObj",
     RConfig => "RConfig",
     RCand => "RCand",
     RFlight => "RFlight",
@@ -219,6 +220,15 @@ macro_rules! kernels {
 }
 
 kernels! {
+    /// `k_replica_objects` (`kernels/replica.cu`): a thread an object gathers its
+    /// position (quantized too), id and shape into one 32-byte `RObj` for the build.
+    KReplicaObjects = "k_replica_objects" {
+        n: u32,
+        pos: DevPtr<f32>,
+        ids: DevPtr<u32>,
+        shapes: DevPtr<u8>,
+        objs: DevPtr<RObj>,
+    }
     /// `k_replica_due` (`kernels/replica.cu`): one warp per player matches its view
     /// with its tracks, applies its acknowledgements and finds the objects due (steps 1
     /// and 2 of `replica.cuh`'s `r_select`); `counts` gets how many of each.
@@ -230,9 +240,7 @@ kernels! {
         offsets: DevPtr<u32>,
         objects: DevPtr<u32>,
         n: u32,
-        pos: DevPtr<f32>,
-        ids: DevPtr<u32>,
-        shapes: DevPtr<u8>,
+        objs: DevPtr<RObj>,
         players: DevPtr<RPlayer>,
         homes: DevPtr<RHome>,
         old_tracks: DevPtr<RTrack>,
@@ -266,9 +274,7 @@ kernels! {
         tick: u64,
         offsets: DevPtr<u32>,
         n: u32,
-        pos: DevPtr<f32>,
-        ids: DevPtr<u32>,
-        shapes: DevPtr<u8>,
+        objs: DevPtr<RObj>,
         players: DevPtr<RPlayer>,
         homes: DevPtr<RHome>,
         next_tracks: DevPtr<RTrack>,

@@ -33,7 +33,9 @@ use super::homes::{Homes, Placed, Twice};
 use super::layout::*;
 use crate::backend::{Resident, lock};
 use crate::device::{DevBuf, Event, Pinned};
-use crate::launch::{KReplicaCarry, KReplicaCommit, KReplicaDue, KReplicaPack, KReplicaRank, KReplicaTake};
+use crate::launch::{
+    KReplicaCarry, KReplicaCommit, KReplicaDue, KReplicaObjects, KReplicaPack, KReplicaRank, KReplicaTake,
+};
 
 /// Flights a player keeps at most (`R_FLIGHTS` in the kernels; the host replica's
 /// `MAX_FLIGHTS`).
@@ -65,6 +67,8 @@ const RANK_BLOCK: u32 = 256;
 
 /// Threads per block of `k_replica_carry` (one a player left out).
 const CARRY_BLOCK: u32 = 32;
+/// Threads a block of `k_replica_objects` (an object each).
+const OBJECTS_BLOCK: u32 = 256;
 
 /// One player of a build.
 #[derive(Debug, Clone, Copy)]
@@ -122,6 +126,8 @@ struct State {
     /// At last build's track offsets: the build whose candidate took each old track
     /// (builds count from 1; zeroed when allocated).
     taken: DevBuf<u64>,
+    /// The world's objects gathered for this build (`k_replica_objects`).
+    objs: DevBuf<RObj>,
     cands: DevBuf<RCand>,
     un: DevBuf<RKey>,
     orph: DevBuf<RKey>,
@@ -314,6 +320,7 @@ impl State {
             states: DevBuf::empty(),
             tracks: [DevBuf::empty(), DevBuf::empty()],
             taken: DevBuf::empty(),
+            objs: DevBuf::empty(),
             cands: DevBuf::empty(),
             un: DevBuf::empty(),
             orph: DevBuf::empty(),
@@ -431,6 +438,7 @@ impl State {
         self.tracks[new].ensure(gpu, used.max(1) * size_of::<RTrack>(), 1.25)?;
         // The old buffer must exist for the kernels' pointer even when nothing is in it.
         self.tracks[old].ensure(gpu, size_of::<RTrack>(), 1.0)?;
+        self.objs.ensure(gpu, d.n.max(1) * size_of::<RObj>(), 1.25)?;
         self.cands.ensure(gpu, items * size_of::<RCand>(), 1.25)?;
         self.un.ensure(gpu, items * size_of::<RKey>(), 1.25)?;
         self.orph.ensure(gpu, self.used.max(1) * size_of::<RKey>(), 1.25)?;
@@ -511,7 +519,14 @@ impl State {
         let out = self.host_bodies.device_ptr::<u8>()?;
         let out_lens = self.host_lens.device_ptr::<u32>()?;
         // What every chunk's kernels share: the objects, the homes, the tracks, the lists.
-        let (n, pos, ids, shapes) = (d.n as u32, d.obj.pos.ptr(), d.obj.id.ptr(), d.obj.shape.ptr());
+        let (n, objs) = (d.n as u32, self.objs.ptr());
+        if n > 0 {
+            gpu.launch_grid(
+                n.div_ceil(OBJECTS_BLOCK),
+                OBJECTS_BLOCK,
+                KReplicaObjects { n, pos: d.obj.pos.ptr(), ids: d.obj.id.ptr(), shapes: d.obj.shape.ptr(), objs },
+            )?;
+        }
         let (cfg, homes, next_tracks) = (self.config.ptr(), self.homes.ptr(), self.tracks[new].ptr());
         let (cands, chosen) = (self.cands.ptr(), self.chosen.ptr());
         for (c, done) in self.chunk_done[..chunks].iter().enumerate() {
@@ -533,9 +548,7 @@ impl State {
                         offsets,
                         objects,
                         n,
-                        pos,
-                        ids,
-                        shapes,
+                        objs,
                         players,
                         homes,
                         old_tracks: self.tracks[old].ptr(),
@@ -566,9 +579,7 @@ impl State {
                         tick,
                         offsets,
                         n,
-                        pos,
-                        ids,
-                        shapes,
+                        objs,
                         players,
                         homes,
                         next_tracks,

@@ -69,6 +69,20 @@ pub struct RCand {
     pub distance: f32,
 }
 
+/// `RObj` (`kernels/replica.cu`, device only): an object as a build reads it, gathered
+/// once a build into one 32-byte sector (its position quantized and as is, its id and
+/// shape).
+#[repr(C, align(16))]
+#[derive(Debug, Clone, Copy, Default, Pod, Zeroable)]
+pub struct RObj {
+    pub q: RPos,
+    pub p: [f32; 3],
+    pub id: u32,
+    pub kind: u32,
+}
+
+const _: () = assert!(size_of::<RObj>() == 32);
+
 /// `RFlight`: a datagram in flight.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, Pod, Zeroable)]

@@ -154,32 +154,6 @@ __device__ __forceinline__ int r_bloom_has(const u32* bloom, u64 id) {
     return (bloom[b >> 5] >> (b & 31u)) & 1u;
 }
 
-// Entries of a warp's table from slot to candidate index, for the acknowledgements: a
-// state names its object by slot, and bisecting this build's tracks (64 bytes apart) for
-// it cost a dozen dependent reads of global memory a state. Only candidates whose id the
-// filter above holds go in (every state acknowledged is one of them), at most half the
-// table; a view that would put more bisects as before.
-#define DUE_SLOTS 1024u
-
-__device__ __forceinline__ u32 r_slot_hash(u32 slot) { return (slot * 0x9E3779B1u) >> 22; }
-
-// Puts `slot` (distinct in a list) with its candidate index `k` (open addressing).
-__device__ __forceinline__ void r_slots_put(u64* table, u32 slot, u32 k) {
-    u64 e = ((u64)slot << 32) | k;
-    for (u32 h = r_slot_hash(slot);; h = (h + 1) & (DUE_SLOTS - 1)) {
-        if (atomicCAS((unsigned long long*)&table[h], R_NONE, e) == R_NONE) return;
-    }
-}
-
-// The candidate index put with `slot`, or R_NO_SLOT.
-__device__ __forceinline__ u32 r_slots_get(const u64* table, u32 slot) {
-    for (u32 h = r_slot_hash(slot);; h = (h + 1) & (DUE_SLOTS - 1)) {
-        u64 e = table[h];
-        if (e == R_NONE) return R_NO_SLOT;
-        if ((u32)(e >> 32) == slot) return (u32)e;
-    }
-}
-
 // Step 1 and 2 of a build, a warp a player: the candidates, the merge with last build's
 // tracks, the acknowledgements and the priorities; the objects due go to `wanted`, and
 // `counts[2 i]` and `counts[2 i + 1]` say how many candidates and how many due
@@ -228,11 +202,8 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
 
     // The filter of the ids the acknowledged flights carry.
     __shared__ u32 blooms[DUE_WARPS][DUE_BLOOM_BITS / 32];
-    __shared__ u64 slot_tables[DUE_WARPS][DUE_SLOTS];
     u32* bloom = blooms[(threadIdx.x >> 5) % DUE_WARPS];
-    u64* slots = slot_tables[(threadIdx.x >> 5) % DUE_WARPS];
     for (u32 w = lane; w < DUE_BLOOM_BITS / 32; w += 32) bloom[w] = 0;
-    for (u32 w = lane; w < DUE_SLOTS; w += 32) slots[w] = R_NONE;
     __syncwarp();
     u32 nfl = h->nflights;
     for (u32 f = 0; f < nfl; f++) {
@@ -256,7 +227,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     // The device's lists are sorted with no slot twice, so every candidate takes a track
     // (the host replica's out-of-order drops never happen); a list that is not is a
     // fault the host is told of, not a choice.
-    u32 nc = 0, nun = 0, nw = 0, nlater = 0, last_slot = 0, nslots = 0;
+    u32 nc = 0, nun = 0, nw = 0, nlater = 0, last_slot = 0;
     int has_last = 0, disorder = 0, drift = 0;
     for (u32 base = 0; base < len; base += 32) {
         u32 j = base + lane;
@@ -276,7 +247,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         u32 my_slot = valid ? c.slot : 0;
         u32 below = mask & ((1u << lane) - 1u);
         u32 before = __shfl_sync(FULL_WARP, my_slot, below ? 31 - __clz(below) : lane);
-        int fresh = 0, due = 0, later = 0, acked = 0;
+        int fresh = 0, due = 0, later = 0;
         RDue d;
         u32 k = nc + __popc(below);
         if (valid) {
@@ -287,24 +258,19 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
                 taken_p[at] = build;
                 drift = (int)at - (int)k;
                 if (r_bloom_has(bloom, c.id))
-                    later = acked = 1;
+                    later = 1;
                 else
                     due = r_priority(cfg, tick, floor, &t, &c, k, k, &d);
                 nx[k] = t;
             } else {
                 nx[k] = r_track_new(c.id, c.slot);
                 fresh = 1;
-                acked = r_bloom_has(bloom, c.id);
             }
             // Only what a later step reads keeps its candidate: the due (the take and
             // the commit), the fresh and the later (their priorities below). At AOI 100
             // most of a view is neither, and this is 32 bytes a candidate not written.
             if (fresh || due || later) cs[k] = c;
         }
-        // The slots an acknowledged state may name (a table full enough is not used).
-        u32 amask = __ballot_sync(FULL_WARP, acked);
-        if (nslots + __popc(amask) <= DUE_SLOTS / 2 && acked) r_slots_put(slots, c.slot, k);
-        nslots += __popc(amask);
         u32 fmask = __ballot_sync(FULL_WARP, fresh);
         if (fresh) un_p[nun + lanes_before(fmask, lane)].index = k;
         nun += __popc(fmask);
@@ -371,19 +337,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         int acked;
         int keep = r_flight_kept(p, &fl, floor, &acked);
         if (acked) {
-            for (u32 s = lane; s < fl.len; s += 32) {
-                // `r_ack_state`, the track found through the table.
-                const RState* st = &st_p[fl.start + s];
-                RTrack* t = 0;
-                if (h->has_own && h->own.id == st->id) {
-                    t = &h->own;
-                } else {
-                    u32 k = nslots <= DUE_SLOTS / 2 ? r_slots_get(slots, st->slot)
-                                                    : r_find_slot(nx, nc, st->slot, R_NO_SLOT);
-                    if (k != R_NO_SLOT && nx[k].id == st->id) t = &nx[k];
-                }
-                if (t) r_track_acknowledge(t, fl.tick, st->pos);
-            }
+            for (u32 s = lane; s < fl.len; s += 32) r_ack_state(h, nx, nc, &st_p[fl.start + s], fl.tick);
         }
         __syncwarp();
         if (keep) {

@@ -27,25 +27,32 @@ pub struct DeviceOutbound {
     players: Vec<ReplicaPlayer>,
     commits: Vec<RCommit>,
     /// Chunks of players a build runs in (1: the device chooses for all, then the host
-    /// seals and sends all).
+    /// seals and sends all; [`DEFAULT_CHUNKS`] unless told).
     chunks: usize,
 }
 
+/// Chunks of players a build runs in when `MYRIAD_REPLICA_CHUNKS` does not say. Four
+/// overlap the host's sealing and sending of three of them with the device's choice for
+/// the next: scenario 3 at AOI 100 took 15.76 and 15.72 ms a tick against 17.06 in one
+/// chunk (lent H100, 2026-12-07, `docs/benchmarks.md`, "The device outbound in four
+/// chunks").
+const DEFAULT_CHUNKS: usize = 4;
+
 /// Chunks of players a build runs in unless told ([`DeviceOutbound::with_chunks`]):
-/// `MYRIAD_REPLICA_CHUNKS`, else 1.
+/// `MYRIAD_REPLICA_CHUNKS`, else [`DEFAULT_CHUNKS`].
 fn default_chunks() -> usize {
     chunks_from(std::env::var("MYRIAD_REPLICA_CHUNKS").ok().as_deref())
 }
 
-/// A count of chunks from `value` (unset: 1); one that is not a count of at least 1 is
-/// reported and ignored.
+/// A count of chunks from `value` (unset: [`DEFAULT_CHUNKS`]); one that is not a count of
+/// at least 1 is reported and ignored.
 fn chunks_from(value: Option<&str>) -> usize {
-    let Some(v) = value else { return 1 };
+    let Some(v) = value else { return DEFAULT_CHUNKS };
     match v.trim().parse::<usize>() {
         Ok(n) if n >= 1 => n,
         _ => {
-            tracing::warn!(value = v, "MYRIAD_REPLICA_CHUNKS is not a count of at least 1; using 1");
-            1
+            tracing::warn!(value = v, default = DEFAULT_CHUNKS, "MYRIAD_REPLICA_CHUNKS is not a count of at least 1");
+            DEFAULT_CHUNKS
         }
     }
 }
@@ -226,15 +233,15 @@ impl Outbound for DeviceOutbound {
 
 #[cfg(test)]
 mod tests {
-    use super::chunks_from;
+    use super::{DEFAULT_CHUNKS, chunks_from};
 
     #[test]
-    fn a_chunk_count_is_read_and_anything_else_is_one() {
-        assert_eq!(chunks_from(None), 1);
-        assert_eq!(chunks_from(Some("4")), 4);
+    fn a_chunk_count_is_read_and_anything_else_is_the_default() {
+        assert_eq!(chunks_from(None), DEFAULT_CHUNKS);
+        assert_eq!(chunks_from(Some("1")), 1);
         assert_eq!(chunks_from(Some(" 3 ")), 3);
         for bad in ["0", "-2", "four", ""] {
-            assert_eq!(chunks_from(Some(bad)), 1, "{bad:?}");
+            assert_eq!(chunks_from(Some(bad)), DEFAULT_CHUNKS, "{bad:?}");
         }
     }
 }

@@ -45,7 +45,8 @@
 # .carry/before/ (when there is one) with this one round by round: physics (scenario 3's
 # and 2 M + 1 M objects' steps), s4-14 and s4-100 (scenario 4, 50,000 players, bots 20 a
 # socket, AOI 14 or 100; s4: both in one run, which builds the world and the bots
-# once), s3 (scenario 3's whole tick, AOI 14 and 100), s2-100 (scenario 2 at AOI 100),
+# once), s3 (scenario 3's whole tick, AOI 14 and 100; s3-14 and s3-100: one of them,
+# about half the time), s2-100 (scenario 2 at AOI 100),
 # zones (scenario 3 in 4 zones on the GPU, once a build), refits (the physics of this
 # build with MYRIAD_TREE_REFITS set to each of TABLE_REFITS, default "0 2 4 8",
 # alternating round by round), chunks-X (X with this build's device outbound in chunks of
@@ -453,7 +454,7 @@ if [[ $mode == table ]]; then
     }
     ulimit -n 65536 || true
     s4=(bench --scenario 4 --backend cuda --ticks 20 --warmup 3 --bots-per-socket 20 --quality-players 0)
-    s3=(bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size "14,100" --quality-players 0)
+    s3=(bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --quality-players 0)
     s2=(bench --scenario 2 --backend cuda --ticks 60 --warmup 30 --aoi-size 100 --quality-players 0)
     physics=(bench --scenario 3 --backend cuda --ticks 30 --warmup 3 --physics-only --sweep 2000000)
     # A measured run's arguments and time limit, by name (a table step, or what a
@@ -464,7 +465,8 @@ if [[ $mode == table ]]; then
         s4-14) args=("${s4[@]}" --aoi-size 14) limit=120 ;;
         s4-100) args=("${s4[@]}" --aoi-size 100) limit=240 ;;
         s4) args=("${s4[@]}" --aoi-size "14,100") limit=300 ;;
-        s3) args=("${s3[@]}") limit=150 ;;
+        s3) args=("${s3[@]}" --aoi-size "14,100") limit=150 ;;
+        s3-14 | s3-100) args=("${s3[@]}" --aoi-size "${1#s3-}") limit=110 ;;
         s2-100) args=("${s2[@]}") limit=60 ;;
         zones) args=(sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json) limit=90 ;;
         *) return 1 ;;

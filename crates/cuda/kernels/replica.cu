@@ -464,9 +464,9 @@ extern "C" __global__ void k_replica_rank(u32 nq, const u32* offsets, const u32*
 // budget), the chosen records sorted by the warp; the counts to the host (`info`, mapped)
 // and to `k_replica_pack` (`infos`).
 extern "C" __global__ void k_replica_take(u32 nq, const RConfig* cfg, u64 tick, const u32* offsets, u32 n,
-                                          const RObj* objs, const RPlayer* players, RHome* homes, const RTrack* next_tracks,
-                                          const RCand* cands, const u32* counts, const RDue* ranked,
-                                          RChosen* chosen, RInfo* info, RInfo* infos) {
+                                          const RObj* objs, const RPlayer* players, RHome* homes,
+                                          const RTrack* next_tracks, const RCand* cands, const u32* counts,
+                                          const RDue* ranked, RChosen* chosen, RInfo* info, RInfo* infos) {
     u32 lane = threadIdx.x & 31u;
     u32 i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     if (i >= nq) return;

@@ -145,8 +145,6 @@ __device__ ROwn r_own_of(const RPlayer* p, u32 n, const RObj* objs) {
 
 // Warps a block of `k_replica_due` (PLAYERS_PER_BLOCK in src/replica/device.rs).
 #define DUE_WARPS 4u
-// New tracks a build matches with old ones by id on the warp's lanes (beyond, on lane 0).
-#define DUE_MOVED_WARP_MAX 512u
 // Bits of a warp's filter of the ids its acknowledged flights carry.
 #define DUE_BLOOM_BITS 4096u
 
@@ -312,34 +310,8 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     }
     __syncwarp();
     u32 nmoved = 0;
-    if (nun > DUE_MOVED_WARP_MAX) {
-        // A view that jumped: the sort's n log n on one lane, where the lanes' answers
-        // would cost n² (`r_moved_orphan` scans the lists).
-        if (lane == 0) nmoved = r_match_moved(old, nx, un_p, nun, orph_p, norph, mv);
-        nmoved = __shfl_sync(FULL_WARP, nmoved, 0);
-    } else if (nun > 0 && norph > 0) {
-        // `r_match_moved`'s pairs, each new track's answered by a lane; `moved` in another
-        // order, which nothing reads by (its old slots are distinct).
-        for (u32 k = lane; k < nun; k += 32) un_p[k].id = nx[un_p[k].index].id;
-        for (u32 k = lane; k < norph; k += 32) orph_p[k].id = old[orph_p[k].index].id;
-        __syncwarp();
-        for (u32 base = 0; base < nun; base += 32) {
-            u32 k = base + lane;
-            u32 from = k < nun ? r_moved_orphan(un_p, k, orph_p, norph) : R_NO_SLOT;
-            u32 mask = __ballot_sync(FULL_WARP, from != R_NO_SLOT);
-            if (from != R_NO_SLOT) {
-                u32 at = un_p[k].index, slot = nx[at].slot;
-                const RTrack* t = &old[orph_p[from].index];
-                RMoved* m = &mv[nmoved + lanes_before(mask, lane)];
-                m->from = t->slot;
-                m->id = un_p[k].id;
-                m->to = slot;
-                nx[at] = *t;
-                nx[at].slot = slot;
-            }
-            nmoved += __popc(mask);
-        }
-    }
+    if (lane == 0) nmoved = r_match_moved(old, nx, un_p, nun, orph_p, norph, mv);
+    nmoved = __shfl_sync(FULL_WARP, nmoved, 0);
     __syncwarp();
     if (nmoved > 0) {
         // States in flight name objects by slot: the moved ones' follow them.

@@ -493,24 +493,6 @@ RFN u32 r_match_moved(const RTrack* old, RTrack* next, RKey* un, u32 nun, RKey* 
     return nmoved;
 }
 
-// The orphan `r_match_moved` pairs with `un[k]`, or R_NO_SLOT: both lists in ascending
-// index order with their ids filled in; the merge of the two lists sorted by (id, index)
-// pairs the `r`-th of an id in `un` with the `r`-th of that id in `orph`, so `un[k]`
-// takes the `r`-th orphan of its id, where `r` counts the entries before it in `un` with
-// its id. Each entry is answered alone (`k_replica_due` answers 32 at once, where one
-// lane sorting both lists in global memory waited on every step of the sort).
-RFN u32 r_moved_orphan(const RKey* un, u32 k, const RKey* orph, u32 norph) {
-    u64 id = un[k].id;
-    u32 r = 0;
-    for (u32 j = 0; j < k; j++) r += un[j].id == id;
-    for (u32 o = 0; o < norph; o++) {
-        if (orph[o].id != id) continue;
-        if (r == 0) return o;
-        r--;
-    }
-    return R_NO_SLOT;
-}
-
 // `Replica::match_view`: this build's tracks into `next` (one per candidate taken, in
 // the view's order, its candidate in `cand_of`); returns how many there are. `un` and
 // `moved` are scratch for `ncands` entries, `orph` for `nold`.

@@ -37,17 +37,6 @@ u32 myriad_replica_find_slot(const RTrack* tracks, u32 n, u32 slot, u32 hint) {
     return r_find_slot(tracks, n, slot, hint);
 }
 
-// `r_match_moved` and `r_moved_orphan`, for the test that holds the lanes' answers to the
-// sort's.
-u32 myriad_replica_match_moved(const RTrack* old, RTrack* next, RKey* un, u32 nun, RKey* orph, u32 norph,
-                               RMoved* moved) {
-    return r_match_moved(old, next, un, nun, orph, norph, moved);
-}
-
-u32 myriad_replica_moved_orphan(const RKey* un, u32 k, const RKey* orph, u32 norph) {
-    return r_moved_orphan(un, k, orph, norph);
-}
-
 // The size of each shared struct, for the layout test.
 void myriad_replica_sizes(u32* out) {
     out[0] = sizeof(RTrack);

@@ -58,16 +58,6 @@ unsafe extern "C" {
     fn myriad_replica_candidate(slot: u32, id: u64, kind: u32, p: *const f32, centre: *const f32, out: *mut RCand);
     fn myriad_replica_sizes(out: *mut u32);
     fn myriad_replica_find_slot(tracks: *const RTrack, n: u32, slot: u32, hint: u32) -> u32;
-    fn myriad_replica_match_moved(
-        old: *const RTrack,
-        next: *mut RTrack,
-        un: *mut RKey,
-        nun: u32,
-        orph: *mut RKey,
-        norph: u32,
-        moved: *mut RMoved,
-    ) -> u32;
-    fn myriad_replica_moved_orphan(un: *const RKey, k: u32, orph: *const RKey, norph: u32) -> u32;
     fn myriad_replica_pack(
         tick: u64,
         dilation: u32,
@@ -154,94 +144,6 @@ fn a_search_from_any_hint_finds_the_slot() {
             }
         }
     }
-}
-
-/// `k_replica_due`'s way of matching new tracks with orphans by id (each new track asks
-/// `r_moved_orphan` alone) gives the tracks and moves that `r_match_moved`'s sorted merge
-/// gives: ids unique and repeated, lists empty, short and long, some ids on one side only.
-#[test]
-fn the_lanes_match_moved_objects_as_the_sort_does() {
-    let mut rng = Stream::new(12, 0);
-    let track = |rng: &mut Stream, id: u64, slot: u32| {
-        // SAFETY: `RTrack` is plain data; all zeros is a valid value.
-        let mut t: RTrack = unsafe { std::mem::zeroed() };
-        t.id = id;
-        t.slot = slot;
-        t.acked_tick = u64::from(rng.below(1000));
-        t.priority = rng.unit();
-        t
-    };
-    let mut moved_total = 0;
-    for case in 0..400u32 {
-        // Few distinct ids make repeats (the merge pairs them in index order).
-        let ids = 1 + rng.below(if case % 2 == 0 { 8 } else { 400 });
-        let (nold, nnext) = (rng.below(120), rng.below(120));
-        let mut tracks = |n: u32, first: u32| -> Vec<RTrack> {
-            (0..n)
-                .map(|i| {
-                    let id = u64::from(rng.below(ids));
-                    track(&mut rng, id, first + i)
-                })
-                .collect()
-        };
-        let (old, next) = (tracks(nold, 1000), tracks(nnext, 5000));
-        // Each list a subset in ascending index order, as the due kernel builds them.
-        let key = |index: u32| RKey { id: 0, index, pad: 0 };
-        let un: Vec<RKey> = (0..nnext).filter(|_| rng.below(3) > 0).map(key).collect();
-        let orph: Vec<RKey> = (0..nold).filter(|_| rng.below(3) > 0).map(key).collect();
-
-        let (mut sorted_next, mut sorted_un, mut sorted_orph) = (next.clone(), un.clone(), orph.clone());
-        let mut sorted_moved = vec![RMoved::default(); un.len().max(1)];
-        // SAFETY: every array holds the counts passed; `moved` one entry per new track.
-        let n = unsafe {
-            myriad_replica_match_moved(
-                old.as_ptr(),
-                sorted_next.as_mut_ptr(),
-                sorted_un.as_mut_ptr(),
-                un.len() as u32,
-                sorted_orph.as_mut_ptr(),
-                orph.len() as u32,
-                sorted_moved.as_mut_ptr(),
-            )
-        } as usize;
-
-        let (mut lanes_next, mut lanes_un, mut lanes_orph) = (next.clone(), un.clone(), orph.clone());
-        let mut lanes_moved = Vec::new();
-        if !un.is_empty() && !orph.is_empty() {
-            lanes_un.iter_mut().for_each(|k| k.id = next[k.index as usize].id);
-            lanes_orph.iter_mut().for_each(|k| k.id = old[k.index as usize].id);
-            for k in 0..lanes_un.len() {
-                // SAFETY: reads the lists' entries.
-                let from = unsafe {
-                    myriad_replica_moved_orphan(lanes_un.as_ptr(), k as u32, lanes_orph.as_ptr(), orph.len() as u32)
-                };
-                if from != u32::MAX {
-                    let at = lanes_un[k].index as usize;
-                    let t = old[lanes_orph[from as usize].index as usize];
-                    let slot = lanes_next[at].slot;
-                    lanes_moved.push(RMoved { id: lanes_un[k].id, from: t.slot, to: slot });
-                    lanes_next[at] = t;
-                    lanes_next[at].slot = slot;
-                }
-            }
-        }
-        let mut sorted_moved = sorted_moved[..n].to_vec();
-        let by_move = |m: &RMoved| (m.from, m.id, m.to);
-        sorted_moved.sort_by_key(by_move);
-        lanes_moved.sort_by_key(by_move);
-        assert_eq!(
-            lanes_moved.iter().map(by_move).collect::<Vec<_>>(),
-            sorted_moved.iter().map(by_move).collect::<Vec<_>>(),
-            "case {case}"
-        );
-        assert_eq!(
-            bytemuck::cast_slice::<RTrack, u8>(&lanes_next),
-            bytemuck::cast_slice::<RTrack, u8>(&sorted_next),
-            "case {case}"
-        );
-        moved_total += n;
-    }
-    assert!(moved_total > 1000, "the cases moved {moved_total} objects");
 }
 
 fn pos(q: QuantPos) -> RPos {

@@ -119,15 +119,14 @@ extern "C" __global__ void k_replica_objects(u32 n, const float* pos, const u32*
     objs[s] = o;
 }
 
-// `r_candidate` of a gathered object: the same operations, the quantization done.
+// `r_candidate` of a gathered object, the quantization done.
 __device__ __forceinline__ RCand r_candidate_obj(u32 slot, const RObj* o, const float* centre) {
     RCand c;
     c.id = o->id;
     c.slot = slot;
     c.kind = o->kind;
     c.pos = o->q;
-    float d0 = o->p[0] - centre[0], d1 = o->p[1] - centre[1], d2 = o->p[2] - centre[2];
-    c.distance = sqrtf(d0 * d0 + d1 * d1 + d2 * d2);
+    c.distance = r_distance(o->p, centre);
     return c;
 }
 

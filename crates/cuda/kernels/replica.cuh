@@ -314,8 +314,15 @@ RFN int r_quant(float v) {
     return (int)t;
 }
 
+// A candidate's distance from the player's centre as `InterestManager` computes it:
+// `((dx² + dy²) + dz²)`, then the square root.
+RFN float r_distance(const float* p, const float* centre) {
+    float d0 = p[0] - centre[0], d1 = p[1] - centre[1], d2 = p[2] - centre[2];
+    return sqrtf(d0 * d0 + d1 * d1 + d2 * d2);
+}
+
 // A candidate as `InterestManager` builds it: the object's quantized position and its
-// distance from the player's centre, `((dx² + dy²) + dz²)` then the square root.
+// distance from the player's centre.
 RFN RCand r_candidate(u32 slot, u64 id, u32 kind, const float* p, const float* centre) {
     RCand c;
     c.id = id;
@@ -324,8 +331,7 @@ RFN RCand r_candidate(u32 slot, u64 id, u32 kind, const float* p, const float* c
     c.pos.x = r_quant(p[0]);
     c.pos.y = r_quant(p[1]);
     c.pos.z = r_quant(p[2]);
-    float d0 = p[0] - centre[0], d1 = p[1] - centre[1], d2 = p[2] - centre[2];
-    c.distance = sqrtf(d0 * d0 + d1 * d1 + d2 * d2);
+    c.distance = r_distance(p, centre);
     return c;
 }
 

@@ -78,10 +78,63 @@ impl DeviceOutbound {
         self.chunks = chunks.max(1);
         self
     }
+}
 
-    /// [`Outbound::build`]: each chunk's players sealed and handed to `job.ready` as soon
-    /// as the device has chosen for them.
-    fn build_chunked(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
+/// A build that failed on the device: `recipients` get nothing this tick.
+fn failed(e: &myriad_physics::PhysicsError, recipients: &mut [Recipient<'_>]) {
+    tracing::error!(error = %e, "device replicas failed");
+    metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
+    clear_all(recipients);
+}
+
+/// Frames and seals player `i`'s bodies into its subscriber, and notes in `commit` what
+/// that did; false if the device packed a body no datagram can carry (the player then
+/// gets nothing this tick, and the device is told nothing was sealed).
+fn seal_one(choices: &Choices<'_>, i: usize, r: &mut Recipient<'_>, commit: &mut RCommit) -> bool {
+    let info = choices.info(i);
+    let packed = choices.packed(i);
+    let packing =
+        Packing { chosen: info.count as usize, packed: packed.packed as usize, relative: packed.relative as usize };
+    let bodies = choices.bodies(i);
+    let datagrams = bodies.len() as u32;
+    match r.view.seal_packed(bodies, info.has_own_record != 0, packing, chose_report(info)) {
+        Ok(done) => {
+            *commit = RCommit {
+                first: done.first,
+                spent: done.spent,
+                ok: u32::from(done.sealed.is_ok()),
+                packed: packed.packed,
+                datagrams,
+            };
+            true
+        }
+        Err(_) => {
+            *commit = RCommit::default();
+            false
+        }
+    }
+}
+
+impl Outbound for DeviceOutbound {
+    fn description(&self) -> String {
+        let c = &self.config;
+        format!(
+            "device replicas, protocol 3 ({:.0} bytes a player a tick, {} datagrams at most)",
+            c.replication.budget_bytes_per_tick, c.max_datagrams
+        )
+    }
+
+    fn profile(&self, span: &'static str, took: Duration) {
+        self.replicas.profile_span(span, took);
+    }
+
+    fn restart_profile(&self) {
+        self.replicas.restart_profile();
+    }
+
+    /// Each chunk's players sealed and handed to `job.ready` as soon as the device has
+    /// chosen for them.
+    fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
         let mut report = OutboundReport::default();
         let setting_up = Instant::now();
         aim(recipients, self.half, &mut self.boxes);
@@ -171,63 +224,6 @@ impl DeviceOutbound {
         }
         report.add_interest(&tick_report);
         report
-    }
-}
-
-/// A build that failed on the device: `recipients` get nothing this tick.
-fn failed(e: &myriad_physics::PhysicsError, recipients: &mut [Recipient<'_>]) {
-    tracing::error!(error = %e, "device replicas failed");
-    metrics::counter!("myriad_outbound_errors_total", "reason" => "device_replica").increment(1);
-    clear_all(recipients);
-}
-
-/// Frames and seals player `i`'s bodies into its subscriber, and notes in `commit` what
-/// that did; false if the device packed a body no datagram can carry (the player then
-/// gets nothing this tick, and the device is told nothing was sealed).
-fn seal_one(choices: &Choices<'_>, i: usize, r: &mut Recipient<'_>, commit: &mut RCommit) -> bool {
-    let info = choices.info(i);
-    let packed = choices.packed(i);
-    let packing =
-        Packing { chosen: info.count as usize, packed: packed.packed as usize, relative: packed.relative as usize };
-    let bodies = choices.bodies(i);
-    let datagrams = bodies.len() as u32;
-    match r.view.seal_packed(bodies, info.has_own_record != 0, packing, chose_report(info)) {
-        Ok(done) => {
-            *commit = RCommit {
-                first: done.first,
-                spent: done.spent,
-                ok: u32::from(done.sealed.is_ok()),
-                packed: packed.packed,
-                datagrams,
-            };
-            true
-        }
-        Err(_) => {
-            *commit = RCommit::default();
-            false
-        }
-    }
-}
-
-impl Outbound for DeviceOutbound {
-    fn description(&self) -> String {
-        let c = &self.config;
-        format!(
-            "device replicas, protocol 3 ({:.0} bytes a player a tick, {} datagrams at most)",
-            c.replication.budget_bytes_per_tick, c.max_datagrams
-        )
-    }
-
-    fn profile(&self, span: &'static str, took: Duration) {
-        self.replicas.profile_span(span, took);
-    }
-
-    fn restart_profile(&self) {
-        self.replicas.restart_profile();
-    }
-
-    fn build(&mut self, job: &mut Job<'_>, recipients: &mut [Recipient<'_>]) -> OutboundReport {
-        self.build_chunked(job, recipients)
     }
 }
 

@@ -50,8 +50,8 @@
 # zones (scenario 3 in 4 zones on the GPU, once a build), refits (the physics of this
 # build with MYRIAD_TREE_REFITS set to each of TABLE_REFITS, default "0 2 4 8",
 # alternating round by round), chunks-X (X with this build's device outbound in chunks of
-# players, MYRIAD_REPLICA_CHUNKS set to each of TABLE_CHUNKS, default "1 4", alternating
-# round by round); profile-X runs X once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
+# players for each of TABLE_CHUNKS, default "1 4", alternating round by round: N sets
+# MYRIAD_REPLICA_CHUNKS=N, N:TAPER also MYRIAD_REPLICA_TAPER=TAPER, as in "4:equal 4:0.6"); profile-X runs X once, this build only, with MYRIAD_CUDA_PROFILE=1. Every log lands in $OUT/table.tgz as
 # soon as it is written, so a call that runs out of time still brings back the steps that
 # finished. The default takes longer than one call of 600 s (scenario 4 at AOI 100 took
 # over 150 s profiled on an H100): name fewer steps, or run the tests in another call.
@@ -445,11 +445,16 @@ if [[ $mode == table ]]; then
     which_build() { if [[ $1 == .carry/myriad ]]; then echo after; else echo before; fi; }
     keep() { tar -C "$dir/.." -czf "$out/table.tgz" table; }
     # One run: a log name, a time limit, the build, then its arguments.
+    # Each run's log starts with the host's load and ends with its seconds: a host whose
+    # other tenants took its cores shows there (one such H100 ran the same runs twice as
+    # slowly in the second half of a call, 2026-12-07).
     measure() {
-        local log=$1 limit=$2 bin=$3
+        local log=$1 limit=$2 bin=$3 started=$SECONDS
         shift 3
-        timeout "$limit" "$bin" "$@" >"$dir/$log.txt" 2>&1 || fail "table: $log ($bin $*)"
-        grep -E '^\| (2|3|4|sweep-[0-9]+) \||state_hash' "$dir/$log.txt" | sed "s/^/$log: /"
+        echo "load before: $(cat /proc/loadavg)" >"$dir/$log.txt"
+        timeout -k 5 "$limit" "$bin" "$@" >>"$dir/$log.txt" 2>&1 || fail "table: $log ($bin $*)"
+        echo "seconds: $((SECONDS - started)), load after: $(cat /proc/loadavg)" >>"$dir/$log.txt"
+        grep -E '^\| (2|3|4|sweep-[0-9]+) \||state_hash|^load before|^seconds' "$dir/$log.txt" | sed "s/^/$log: /"
         keep
     }
     ulimit -n 65536 || true
@@ -466,7 +471,7 @@ if [[ $mode == table ]]; then
         s4-100) args=("${s4[@]}" --aoi-size 100) limit=240 ;;
         s4) args=("${s4[@]}" --aoi-size "14,100") limit=300 ;;
         s3) args=("${s3[@]}" --aoi-size "14,100") limit=150 ;;
-        s3-14 | s3-100) args=("${s3[@]}" --aoi-size "${1#s3-}") limit=110 ;;
+        s3-14 | s3-100) args=("${s3[@]}" --aoi-size "${1#s3-}") limit=160 ;;
         s2-100) args=("${s2[@]}") limit=60 ;;
         zones) args=(sim --scenario 3 --ticks 60 --backend cuda --zones 4 --json) limit=90 ;;
         *) return 1 ;;
@@ -476,11 +481,15 @@ if [[ $mode == table ]]; then
     # within a step the builds alternate round by round.
     for step in ${TABLE_STEPS:-physics s4-14 s2-100 profile-s4-14 profile-s4-100 profile-s2-100 profile-physics s4-100 zones}; do
         if [[ $step == chunks-* ]] && run_of "${step#chunks-}"; then
-            # This build's device outbound in chunks of players (MYRIAD_REPLICA_CHUNKS)
-            # for each count of TABLE_CHUNKS (default "1 4"), alternating round by round.
+            # This build's device outbound in chunks of players (MYRIAD_REPLICA_CHUNKS,
+            # MYRIAD_REPLICA_TAPER) for each of TABLE_CHUNKS (default "1 4"), alternating
+            # round by round.
             for r in $(seq 1 "${TABLE_ROUNDS:-2}"); do
-                for n in ${TABLE_CHUNKS:-1 4}; do
-                    MYRIAD_REPLICA_CHUNKS=$n measure "$step-$n-$r" "$limit" .carry/myriad "${args[@]}"
+                for plan in ${TABLE_CHUNKS:-1 4}; do
+                    n=${plan%%:*} taper=measured
+                    [[ $plan == *:* ]] && taper=${plan#*:}
+                    MYRIAD_REPLICA_CHUNKS=$n MYRIAD_REPLICA_TAPER=$taper \
+                        measure "$step-${plan/:/-}-$r" "$limit" .carry/myriad "${args[@]}"
                 done
             done
         elif [[ $step == refits ]]; then

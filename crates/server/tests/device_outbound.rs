@@ -13,7 +13,7 @@ use myriad_cuda::CudaBackend;
 use myriad_interest::{InterestConfig, Subscriber, TickInfo};
 use myriad_physics::{Backend, BackendKind, TickConstants};
 use myriad_protocol::{AckTracker, Direction, Sealer};
-use myriad_server::outbound::{DeviceOutbound, HostOutbound, Job, Outbound, Ready, Recipient};
+use myriad_server::outbound::{ChunkPlan, DeviceOutbound, HostOutbound, Job, Outbound, Ready, Recipient};
 
 /// Whether the run must fail instead of skipping when no GPU is usable.
 fn cuda_required() -> bool {
@@ -162,12 +162,12 @@ fn compare(
 }
 
 /// Runs `ticks` ticks of `world` with players at `slots`, building both outbounds with
-/// AOI edge `aoi` and a budget of `kbps` (the device's in `chunks` chunks of players);
+/// AOI edge `aoi` and a budget of `kbps` (the device's players in chunks as `chunks` says);
 /// on some ticks players miss the tick, change order, leave or join.
 fn run(
     world: &mut World,
     backend: &mut CudaBackend,
-    (aoi, kbps, chunks): (f32, f64, usize),
+    (aoi, kbps, chunks): (f32, f64, ChunkPlan),
     slots: &[u32],
     ticks: u64,
 ) -> Covered {
@@ -219,29 +219,40 @@ fn device_outbound_datagrams_equal_the_host_outbound() {
     let n = world.dynamics.len() as u32;
     // Players spread over the world's slots.
     let many: Vec<u32> = (0..300).map(|i| i * (n / 300)).collect();
+    // One chunk: the device chooses for every player, then the host seals them all.
+    let one = || ChunkPlan::equal(1);
     // AOI 100 at the default budget: views of hundreds, deltas against what the clients
     // acknowledged, near objects first, far ones waiting their turn.
-    let c = run(&mut world, &mut backend, (100.0, 256.0, 1), &many, 40);
+    let c = run(&mut world, &mut backend, (100.0, 256.0, one()), &many, 40);
     eprintln!("AOI 100, 256 kbit/s: {c:?}");
     assert!(c.relative > c.records / 2 && c.deferred > 0, "{c:?}");
     // A budget far too small: most objects wait, some starve and go over it, into a
     // second datagram (the packing's split).
-    let c = run(&mut world, &mut backend, (100.0, 16.0, 1), &many, 40);
+    let c = run(&mut world, &mut backend, (100.0, 16.0, one()), &many, 40);
     eprintln!("AOI 100, 16 kbit/s: {c:?}");
     assert!(c.starving > 0 && c.most_datagrams > 1, "{c:?}");
     // AOI 14: views that fit.
-    let c = run(&mut world, &mut backend, (14.0, 256.0, 1), &many, 20);
+    let c = run(&mut world, &mut backend, (14.0, 256.0, one()), &many, 20);
     eprintln!("AOI 14: {c:?}");
     assert!(c.records > 0, "{c:?}");
     // AOI 400: views of thousands, more objects due than `k_replica_rank` sorts in
     // shared memory (4,096), which the block then sorts in global memory.
     let few: Vec<u32> = (0..12).map(|i| i * (n / 12)).collect();
-    let c = run(&mut world, &mut backend, (400.0, 256.0, 1), &few, 6);
+    let c = run(&mut world, &mut backend, (400.0, 256.0, one()), &few, 6);
     eprintln!("AOI 400: {c:?}");
     assert!(c.most_due > 4096, "{c:?}");
     // The device's build in three chunks of players (the host seals and sends one while
     // the device chooses for the next), fresh replicas at first: the same bytes.
-    let c = run(&mut world, &mut backend, (100.0, 256.0, 3), &many, 20);
+    let c = run(&mut world, &mut backend, (100.0, 256.0, ChunkPlan::equal(3)), &many, 20);
     eprintln!("AOI 100, 256 kbit/s, three chunks: {c:?}");
+    assert!(c.relative > c.records / 2 && c.deferred > 0, "{c:?}");
+    // Chunks of unequal sizes (each half the one before: 155, 77, 39, 19, 10 players of
+    // 300 at first), and chunks sized by the measured ratio of host to device, as `serve`
+    // runs them: the same bytes.
+    let c = run(&mut world, &mut backend, (100.0, 256.0, ChunkPlan::tapered(5, 0.5).with_min_chunk(1)), &many, 20);
+    eprintln!("AOI 100, 256 kbit/s, five chunks tapered by half: {c:?}");
+    assert!(c.relative > c.records / 2 && c.deferred > 0, "{c:?}");
+    let c = run(&mut world, &mut backend, (100.0, 256.0, ChunkPlan::measured(4)), &many, 20);
+    eprintln!("AOI 100, 256 kbit/s, four chunks by the measured ratio: {c:?}");
     assert!(c.relative > c.records / 2 && c.deferred > 0, "{c:?}");
 }

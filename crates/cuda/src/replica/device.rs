@@ -94,8 +94,7 @@ struct Pending {
     used: usize,
     /// Whether the world had no object (the lists are `no_lists`).
     no_objects: bool,
-    /// Players a chunk (the last may have fewer), and chunks in all.
-    per_chunk: usize,
+    /// Chunks in all (their ends are `State::chunk_ends`).
     chunks: usize,
     /// Chunks [`DeviceReplicas::ready`] has answered so far.
     ready: usize,
@@ -113,8 +112,15 @@ struct State {
     current: usize,
     used: usize,
     pending: Option<Pending>,
-    /// One event a chunk, recorded after its packing.
+    /// One event a chunk, recorded after its packing, and one before the first
+    /// chunk's kernels: the device's time for the choice.
     chunk_done: Vec<Event>,
+    chunks_start: Option<Event>,
+    /// Where each chunk of the pending build ends (players).
+    chunk_ends: Vec<usize>,
+    /// The device's time from the first chunk's kernels to the last chunk's packing,
+    /// of the last build whose chunks were all taken.
+    choice_ms: Option<f64>,
     /// The last build's placement (its vectors reused).
     placed: Placed,
     /// Scratch: (home, offset) pairs for `k_replica_carry`.
@@ -218,8 +224,8 @@ impl DeviceReplicas {
     }
 
     /// Queues the choosing half of a build for `players` (boxes `boxes`, one each), in
-    /// `chunks` chunks of players (at least one, at most one a player): see the module
-    /// docs. Take each chunk's players with [`ready`](Self::ready) and read what was
+    /// chunks of players of the sizes `chunks` says, in order (each at least one player,
+    /// together every player; none when there are no players): see the module docs. Take each chunk's players with [`ready`](Self::ready) and read what was
     /// chosen for them with [`choices`](Self::choices), then call
     /// [`commit`](Self::commit) with what packing and sealing did for every player. A
     /// failure leaves every player to start afresh at the next build.
@@ -232,7 +238,7 @@ impl DeviceReplicas {
         config: &ReplicationConfig,
         max_datagrams: usize,
         tick: TickInfo,
-        chunks: usize,
+        chunks: &[usize],
     ) -> Result<(), PhysicsError> {
         let mut resident = lock(&self.resident);
         let s = &mut self.state;
@@ -276,6 +282,13 @@ impl DeviceReplicas {
         lock(&self.resident).gpu.profile_span(name, took);
     }
 
+    /// The device's time (ms) from the first chunk's kernels to the last chunk's packing
+    /// in the last build whose every chunk [`ready`](Self::ready) answered: what the
+    /// host's sealing and sending overlap. `None` before that.
+    pub fn choice_ms(&self) -> Option<f64> {
+        self.state.choice_ms
+    }
+
     /// The last [`select`](Self::select)'s choices.
     pub fn choices(&self) -> Choices<'_> {
         let s = &self.state;
@@ -313,6 +326,9 @@ impl State {
             used: 0,
             pending: None,
             chunk_done: Vec::new(),
+            chunks_start: None,
+            chunk_ends: Vec::new(),
+            choice_ms: None,
             placed: Placed::default(),
             carry_pairs: Vec::new(),
             homes: DevBuf::empty(),
@@ -378,7 +394,7 @@ impl State {
         config: &ReplicationConfig,
         max_datagrams: usize,
         at: TickInfo,
-        chunks: usize,
+        chunks: &[usize],
     ) -> Result<(), PhysicsError> {
         let nq = players.len();
         let tick = at.tick;
@@ -386,6 +402,12 @@ impl State {
             return Err(PhysicsError::Device {
                 stage: "replica",
                 message: format!("{} boxes for {nq} players", boxes.len()),
+            });
+        }
+        if chunks.iter().sum::<usize>() != nq || chunks.contains(&0) {
+            return Err(PhysicsError::Device {
+                stage: "replica",
+                message: format!("chunks of {chunks:?} players for {nq} players"),
             });
         }
         // The placement's vectors are reused; a build that fails drops them (the next
@@ -507,12 +529,24 @@ impl State {
         // per-player array from the chunk's first player on; homes and list offsets are
         // the build's), an event after each chunk's packing: the host seals and sends a
         // chunk while the device chooses for the next (`ready`).
-        let per_chunk = nq.div_ceil(chunks.clamp(1, nq.max(1))).max(1);
-        // No chunk is left empty (10 players in 6 chunks: 5 of 2).
-        let chunks = nq.div_ceil(per_chunk).max(1);
+        // No players: one empty chunk, whose event `ready` still waits for.
+        self.chunk_ends.clear();
+        self.chunk_ends.extend(chunks.iter().scan(0, |end, &size| {
+            *end += size;
+            Some(*end)
+        }));
+        if self.chunk_ends.is_empty() {
+            self.chunk_ends.push(0);
+        }
+        let chunks = self.chunk_ends.len();
         while self.chunk_done.len() < chunks {
             self.chunk_done.push(Event::new(gpu)?);
         }
+        let start = match self.chunks_start.take() {
+            Some(e) => e,
+            None => Event::new(gpu)?,
+        };
+        self.choice_ms = None;
         let objects = if d.n == 0 { self.no_lists.ptr() } else { d.aoi_out.ptr() };
         let info = self.host_info.device_ptr::<RInfo>()?;
         let packed = self.host_packed.device_ptr::<RPacked>()?;
@@ -529,9 +563,11 @@ impl State {
         }
         let (cfg, homes, next_tracks) = (self.config.ptr(), self.homes.ptr(), self.tracks[new].ptr());
         let (cands, chosen) = (self.cands.ptr(), self.chosen.ptr());
+        gpu.record(start.raw)?;
+        self.chunks_start = Some(start);
         for (c, done) in self.chunk_done[..chunks].iter().enumerate() {
-            let first = c * per_chunk;
-            let count = per_chunk.min(nq.saturating_sub(first)) as u32;
+            let first = if c == 0 { 0 } else { self.chunk_ends[c - 1] };
+            let count = (self.chunk_ends[c] - first) as u32;
             if count > 0 {
                 let offsets = offsets.add(first);
                 let players = self.players.ptr().add(first);
@@ -615,8 +651,7 @@ impl State {
         }
         gpu.profile_host("host: replica buffers and launches", started);
         let no_objects = d.n == 0 || nq == 0;
-        self.pending =
-            Some(Pending { players: nq, max_datagrams: mdg, tick, used, no_objects, per_chunk, chunks, ready: 0 });
+        self.pending = Some(Pending { players: nq, max_datagrams: mdg, tick, used, no_objects, chunks, ready: 0 });
         self.placed = placement;
         Ok(())
     }
@@ -632,8 +667,8 @@ impl State {
         }
         let c = p.ready;
         p.ready += 1;
-        let (first, last_chunk) = (c * p.per_chunk, p.ready == p.chunks);
-        let range = first.min(p.players)..(first + p.per_chunk).min(p.players);
+        let last_chunk = p.ready == p.chunks;
+        let range = if c == 0 { 0 } else { self.chunk_ends[c - 1] }..self.chunk_ends[c];
         let gpu = &d.gpu;
         gpu.bind()?;
         let started = Instant::now();
@@ -641,6 +676,9 @@ impl State {
         gpu.profile_host("host: wait for the replica kernels", started);
         if last_chunk {
             gpu.collect_profile()?;
+            if let Some(start) = &self.chunks_start {
+                self.choice_ms = Some(start.ms_to(&self.chunk_done[c])?);
+            }
         }
         let started = Instant::now();
         let info = &self.host_info.slice::<RInfo>(range.end)[range.clone()];

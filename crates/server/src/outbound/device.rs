@@ -3,8 +3,8 @@
 //! player's records and packs them into delta update bodies there; the host frames and
 //! seals the bodies in parallel over players (`Subscriber::seal_packed`), sends them, and
 //! hands what sealing did back to the device. With the players in chunks
-//! ([`DeviceOutbound::with_chunks`], `MYRIAD_REPLICA_CHUNKS`), the host seals and sends
-//! a chunk while the device chooses for the next.
+//! ([`ChunkPlan`], `MYRIAD_REPLICA_CHUNKS` and `MYRIAD_REPLICA_TAPER`), the host seals
+//! and sends a chunk while the device chooses for the next.
 //! The bytes are the host outbound's, byte for byte (`tests/device_outbound.rs`).
 
 use std::time::{Duration, Instant};
@@ -14,6 +14,7 @@ use myriad_cuda::replica::{Choices, DeviceReplicas, RCommit, ReplicaPlayer, chos
 use myriad_interest::{InterestConfig, Packing, TickReport};
 use rayon::prelude::*;
 
+use super::chunks::ChunkPlan;
 use super::{Job, Outbound, OutboundReport, Recipient, aim, clear_all, spread_over_lanes};
 
 /// The device implementation: see the module docs.
@@ -26,35 +27,10 @@ pub struct DeviceOutbound {
     boxes: Vec<Aabb>,
     players: Vec<ReplicaPlayer>,
     commits: Vec<RCommit>,
-    /// Chunks of players a build runs in (1: the device chooses for all, then the host
-    /// seals and sends all; [`DEFAULT_CHUNKS`] unless told).
-    chunks: usize,
-}
-
-/// Chunks of players a build runs in when `MYRIAD_REPLICA_CHUNKS` does not say. Four
-/// overlap the host's sealing and sending of three of them with the device's choice for
-/// the next: scenario 3 at AOI 100 took 15.76 and 15.72 ms a tick against 17.06 in one
-/// chunk (lent H100, 2026-12-07, `docs/benchmarks.md`, "The device outbound in four
-/// chunks").
-const DEFAULT_CHUNKS: usize = 4;
-
-/// Chunks of players a build runs in unless told ([`DeviceOutbound::with_chunks`]):
-/// `MYRIAD_REPLICA_CHUNKS`, else [`DEFAULT_CHUNKS`].
-fn default_chunks() -> usize {
-    chunks_from(std::env::var("MYRIAD_REPLICA_CHUNKS").ok().as_deref())
-}
-
-/// A count of chunks from `value` (unset: [`DEFAULT_CHUNKS`]); one that is not a count of
-/// at least 1 is reported and ignored.
-fn chunks_from(value: Option<&str>) -> usize {
-    let Some(v) = value else { return DEFAULT_CHUNKS };
-    match v.trim().parse::<usize>() {
-        Ok(n) if n >= 1 => n,
-        _ => {
-            tracing::warn!(value = v, default = DEFAULT_CHUNKS, "MYRIAD_REPLICA_CHUNKS is not a count of at least 1");
-            DEFAULT_CHUNKS
-        }
-    }
+    /// How a build's players are split into chunks ([`ChunkPlan::from_env`] unless
+    /// told), and this build's sizes.
+    plan: ChunkPlan,
+    chunks: Vec<usize>,
 }
 
 impl DeviceOutbound {
@@ -68,14 +44,15 @@ impl DeviceOutbound {
             boxes: Vec::new(),
             players: Vec::new(),
             commits: Vec::new(),
-            chunks: default_chunks(),
+            plan: ChunkPlan::from_env(),
+            chunks: Vec::new(),
         }
     }
 
-    /// The same, each build in `chunks` chunks of players (at least 1): the host seals
-    /// and sends a chunk's datagrams while the device chooses for the next.
-    pub fn with_chunks(mut self, chunks: usize) -> Self {
-        self.chunks = chunks.max(1);
+    /// The same, each build's players in chunks as `plan` says: the host seals and
+    /// sends a chunk's datagrams while the device chooses for the next.
+    pub fn with_chunks(mut self, plan: ChunkPlan) -> Self {
+        self.plan = plan;
         self
     }
 }
@@ -151,8 +128,9 @@ impl Outbound for DeviceOutbound {
         let mdg = self.config.max_datagrams.max(1);
         let t = Instant::now();
         let replication = &self.config.replication;
+        self.plan.sizes(self.players.len(), &mut self.chunks);
         let chose =
-            self.replicas.select(job.world, &self.boxes, &self.players, replication, mdg, job.tick, self.chunks);
+            self.replicas.select(job.world, &self.boxes, &self.players, replication, mdg, job.tick, &self.chunks);
         // The AOI query and the device's choice: the time the tick waits for the device.
         let mut waited = t.elapsed();
         if let Err(e) = chose {
@@ -209,6 +187,9 @@ impl Outbound for DeviceOutbound {
             sending += handing.elapsed();
         }
         report.aoi_ms = waited.as_secs_f64() * 1e3;
+        if let Some(device_ms) = self.replicas.choice_ms() {
+            self.plan.observe((sealing + sending).as_secs_f64() * 1e3, device_ms);
+        }
         self.replicas.profile_span("host: frame and seal", sealing);
         self.replicas.profile_span("host: hand to the lanes (sending)", sending);
         if faults > 0 {
@@ -224,20 +205,5 @@ impl Outbound for DeviceOutbound {
         }
         report.add_interest(&tick_report);
         report
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::{DEFAULT_CHUNKS, chunks_from};
-
-    #[test]
-    fn a_chunk_count_is_read_and_anything_else_is_the_default() {
-        assert_eq!(chunks_from(None), DEFAULT_CHUNKS);
-        assert_eq!(chunks_from(Some("1")), 1);
-        assert_eq!(chunks_from(Some(" 3 ")), 3);
-        for bad in ["0", "-2", "four", ""] {
-            assert_eq!(chunks_from(Some(bad)), DEFAULT_CHUNKS, "{bad:?}");
-        }
     }
 }

@@ -19,6 +19,7 @@
 //!
 //! Either way every recipient is ready at the end.
 
+mod chunks;
 mod device;
 mod host;
 
@@ -35,6 +36,7 @@ use rayon::prelude::*;
 
 use crate::config::{OutboundKind, ServerConfig};
 use crate::transport::lane_share;
+pub use chunks::ChunkPlan;
 pub use device::DeviceOutbound;
 pub use host::HostOutbound;
 

@@ -188,7 +188,9 @@ impl Outbound for DeviceOutbound {
         }
         report.aoi_ms = waited.as_secs_f64() * 1e3;
         if let Some(device_ms) = self.replicas.choice_ms() {
-            self.plan.observe((sealing + sending).as_secs_f64() * 1e3, device_ms);
+            let host_ms = (sealing + sending).as_secs_f64() * 1e3;
+            self.plan.observe(host_ms, device_ms);
+            tracing::debug!(host_ms, device_ms, chunks = ?self.chunks, ratio = self.plan.ratio(), "device outbound chunks");
         }
         self.replicas.profile_span("host: frame and seal", sealing);
         self.replicas.profile_span("host: hand to the lanes (sending)", sending);

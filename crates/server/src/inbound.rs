@@ -21,36 +21,32 @@
 //! # Opening in parallel
 //!
 //! The tag checks (ChaCha20-Poly1305, about a microsecond each) are most of what a
-//! receive costs, so each batch the transport hands over is opened in three phases:
+//! receive costs, so each batch the transport hands over is opened in two phases:
 //!
 //! 1. the gate (when this receive gates) and the lookup of each datagram's session,
 //!    with the same refusals and counters as one at a time: in arrival order on the
 //!    tick thread when the gate is here, else (the receiver thread gated, and nothing
 //!    in this phase depends on what came before) on the rayon pool for a large batch,
 //!    the admitted kept in arrival order;
-//! 2. on the rayon pool: `Opener::verify` of every datagram that got through, which
-//!    checks the header, the replay window as it was before the batch, the tag and the
-//!    body, and changes nothing (so the openers are only read); for an action, also the
-//!    slot of the player's object (the slot it had last tick, else a look-up in the map
-//!    of every object's id; no part of a receive changes slots);
-//! 3. `Opener::commit`, which checks the window again and records the sequence number
-//!    (so of two copies of one datagram only the first is accepted), then the message
-//!    is applied: first, on the rayon pool for a large batch, each player's part (its
-//!    opener, acknowledgements, frame, address and sealed reply), a player's datagrams
-//!    in arrival order on one thread; then, in arrival order on the tick thread, what
-//!    players share: the world's actions, the counts, the published directory and the
-//!    queue of replies. A player's part touches that player alone, so the order among
-//!    players changes nothing, and each player's entry (several cache misses, at 50,000
-//!    players most of the receive's time on one thread) is fetched by the pool.
+//! 2. the datagrams grouped by player, then, on the rayon pool for a large batch, each
+//!    player's part, its datagrams in arrival order: `Opener::open` (the header, the
+//!    replay window, the tag and the body, then the sequence number recorded, so of two
+//!    copies of one datagram only the first is accepted), for an action the slot of the
+//!    player's object (the slot it had last tick, else a look-up in the map of every
+//!    object's id; no part of a receive changes slots), and what the message changes of
+//!    that player alone (acknowledgements, frame, address and sealed reply); then, in
+//!    arrival order on the tick thread, what players share: the world's actions, the
+//!    counts, the published directory and the queue of replies. A player's part
+//!    touches that player alone (and reads the world), so the order among players
+//!    changes nothing, and each player's entry (several cache misses, at 50,000 players
+//!    most of the receive's time on one thread) is fetched once, by the thread that
+//!    opens its datagrams.
 //!
 //! Every decision is the one that opening the datagrams one at a time would make:
 //!
-//! * the window only moves forward, so what it refused before the batch it still
-//!   refuses, and what it accepted before but refuses now (a copy of an earlier datagram
-//!   of the batch) is refused at the commit. A datagram whose tag or body failed is
-//!   counted as replayed if the window refuses it by its turn: one at a time, it would
-//!   have failed there first;
-//! * the one thing phase 3 changes that phase 1 reads is a session's address, which
+//! * a player's datagrams are opened one at a time, in arrival order, each against the
+//!   window as the ones before it left it;
+//! * the one thing phase 2 changes that phase 1 reads is a session's address, which
 //!   picks the gate's own-address or other-address budget. A datagram admitted from
 //!   another address than its session's may move it, so the batch is cut before the
 //!   session's next datagram, which is gated once everything before it was applied.
@@ -65,8 +61,7 @@ use std::time::{Duration, Instant};
 
 use myriad_core::{Action, Dynamics, World};
 use myriad_protocol::{
-    ClientMessage, DecodeError, Direction, ErrorClass, Header, OpenError, ServerInfo, ServerMessage, Verified,
-    peek_header,
+    ClientMessage, DecodeError, Direction, ErrorClass, Header, ServerInfo, ServerMessage, peek_header,
 };
 use rayon::prelude::*;
 
@@ -106,9 +101,9 @@ pub(crate) struct InboundReport {
     pub actions: u64,
     /// Sessions that asked to leave (authenticated `Disconnect`), in arrival order.
     pub leaving: Vec<u64>,
-    /// Time in each phase of the module docs (1, 2, then 3 in its two parts: each
+    /// Time in each phase of the module docs (1, then 2 in its two parts: each
     /// player's, what players share), over every batch.
-    pub phases: [Duration; 4],
+    pub phases: [Duration; 3],
 }
 
 /// Datagrams in arrival order, copied into one flat buffer: a batch taken from the
@@ -184,7 +179,6 @@ struct Admitted {
     item: usize,
     from: SocketAddr,
     session_id: u64,
-    sequence: u64,
     /// Its length, which earns its session's address reply credit.
     len: usize,
     /// Its player's position in the session table (stable during a receive: nothing
@@ -268,13 +262,10 @@ fn handle_batch(
         let t = Instant::now();
         start = admit(sessions, ctx, report, buffers, start);
         let admitted = Instant::now();
-        let verified = verify(sessions, &world.dynamics, buffers);
-        let checked = Instant::now();
-        let shared = apply(sessions, world, ctx, report, buffers, verified);
+        let shared = open_and_apply(sessions, world, ctx, report, buffers);
         report.phases[0] += admitted - t;
-        report.phases[1] += checked - admitted;
-        report.phases[2] += shared - checked;
-        report.phases[3] += shared.elapsed();
+        report.phases[1] += shared - admitted;
+        report.phases[2] += shared.elapsed();
     }
 }
 
@@ -345,50 +336,10 @@ fn resolve(
         Refusal::UnknownSession.count();
         return None;
     };
-    Some(Admitted { item, from, session_id: header.session_id, sequence: header.sequence, len: datagram.len(), player })
+    Some(Admitted { item, from, session_id: header.session_id, len: datagram.len(), player })
 }
 
-/// What phase 2 found of one datagram: `None` if its session is gone, else the
-/// verification and, for an action, its player's object's slot (`None`: no object).
-type Checked = Option<(Result<Verified<ClientMessage>, OpenError>, Option<usize>)>;
-
-/// One datagram for phase 2: its player (`None`: the session is gone), whose opener,
-/// object and object's last slot the pool reads (not the tick thread: at 50,000 players
-/// each is a cache miss), and its bytes.
-type Job<'a> = (Option<&'a Player>, &'a mut [u8]);
-
-/// Phase 2: verifies every admitted datagram against its session's opener, in parallel
-/// for a large batch, and finds the slot an action will set (from the slot the tick last
-/// saw, else a look-up in the map of every object, which phase 3 would otherwise make
-/// one at a time: nothing changes slots during a receive); one result per admitted
-/// datagram.
-fn verify(sessions: &Sessions, dynamics: &Dynamics, buffers: &mut ReceiveBuffers) -> Vec<Checked> {
-    let ReceiveBuffers { inbox: Inbox { bytes, items }, admitted, .. } = buffers;
-    let mut jobs: Vec<Job<'_>> = Vec::with_capacity(admitted.len());
-    // Admitted datagrams lie in the buffer in order and apart: split it into them.
-    let (mut rest, mut offset) = (&mut bytes[..], 0);
-    for a in admitted.iter() {
-        let range = &items[a.item].1;
-        let (_, tail) = std::mem::take(&mut rest).split_at_mut(range.start - offset);
-        let (datagram, tail) = tail.split_at_mut(range.len());
-        (rest, offset) = (tail, range.end);
-        jobs.push((sessions.get(a.player), datagram));
-    }
-    let open = |(player, datagram): &mut Job<'_>| {
-        player.map(|p| {
-            let verified = p.opener.verify(datagram, ClientMessage::decode_body);
-            let acts = verified.as_ref().is_ok_and(|v| matches!(v.message(), ClientMessage::Action { .. }));
-            (verified, if acts { dynamics.slot_hinted(p.entity, p.slot_hint) } else { None })
-        })
-    };
-    if jobs.len() >= PARALLEL_OPEN_MIN {
-        jobs.par_iter_mut().with_min_len(OPEN_CHUNK).map(open).collect()
-    } else {
-        jobs.iter_mut().map(open).collect()
-    }
-}
-
-/// What phase 3 needs of the receive besides the datagram: the same for every player.
+/// What phase 2 needs of the receive besides the datagram: the same for every player.
 #[derive(Clone, Copy)]
 struct Now {
     info: ServerInfo,
@@ -396,24 +347,43 @@ struct Now {
     now: Instant,
 }
 
-/// Phase 3 (module docs): each player's part of every admitted datagram (on the pool
-/// for a large batch), then the shared part in arrival order. `verified` holds one
-/// result per admitted datagram. Returns when the shared part started (a small batch,
+/// The admitted datagrams' bytes, in arrival order, apart (they lie in the inbox's
+/// buffer in that order).
+fn admitted_bytes<'a>(
+    bytes: &'a mut [u8],
+    items: &[(SocketAddr, Range<usize>)],
+    admitted: &[Admitted],
+) -> Vec<&'a mut [u8]> {
+    let mut out = Vec::with_capacity(admitted.len());
+    let (mut rest, mut offset) = (bytes, 0);
+    for a in admitted {
+        let range = &items[a.item].1;
+        let (_, tail) = std::mem::take(&mut rest).split_at_mut(range.start - offset);
+        let (datagram, tail) = tail.split_at_mut(range.len());
+        (rest, offset) = (tail, range.end);
+        out.push(datagram);
+    }
+    out
+}
+
+/// Phase 2 (module docs): each player's part of every admitted datagram (on the pool
+/// for a large batch, a player's datagrams in arrival order on one thread), then the
+/// shared part in arrival order. Returns when the shared part started (a small batch,
 /// one datagram at a time, counts whole as the shared part).
-fn apply(
+fn open_and_apply(
     sessions: &mut Sessions,
     world: &mut World,
     ctx: &Ctx<'_>,
     report: &mut InboundReport,
     buffers: &mut ReceiveBuffers,
-    mut verified: Vec<Checked>,
 ) -> Instant {
-    let ReceiveBuffers { admitted, by_player, position, .. } = buffers;
+    let ReceiveBuffers { inbox: Inbox { bytes, items }, admitted, by_player, position, .. } = buffers;
     let now = Now { info: ctx.info, tick: ctx.tick, now: ctx.now };
+    let mut datagrams = admitted_bytes(bytes, items, admitted);
     if admitted.len() < PARALLEL_OPEN_MIN {
         let started = Instant::now();
-        for (a, checked) in admitted.drain(..).zip(verified) {
-            let done = apply_to_player(sessions.get_mut(a.player), now, &a, checked);
+        for (a, datagram) in admitted.drain(..).zip(datagrams) {
+            let done = apply_to_player(sessions.get_mut(a.player), &world.dynamics, now, &a, datagram);
             finish(sessions, world, report, &a, done);
         }
         return started;
@@ -422,8 +392,8 @@ fn apply(
     by_player.extend(admitted.iter().enumerate().map(|(i, a)| ((a.player as u64) << 32) | i as u64));
     by_player.par_sort_unstable();
     let arrival = |key: u64| key as u32 as usize;
-    let mut items: Vec<(Checked, Applied)> =
-        by_player.iter().map(|&k| (verified[arrival(k)].take(), Applied::default())).collect();
+    let mut items: Vec<(&mut [u8], Applied)> =
+        by_player.iter().map(|&k| (std::mem::take(&mut datagrams[arrival(k)]), Applied::default())).collect();
     // One group a player, its datagrams in arrival order, and the player with it.
     let player_of = |k: &u64| (k >> 32) as usize;
     let mut groups = Vec::new();
@@ -435,9 +405,10 @@ fn apply(
     }
     let players = sessions.players_at_mut(groups.iter().map(|(keys, _)| player_of(&keys[0])));
     let admitted_now: &[Admitted] = admitted;
+    let dynamics = &world.dynamics;
     players.into_par_iter().zip(groups).with_min_len(OPEN_CHUNK).for_each(|(mut p, (keys, group))| {
-        for (&k, (checked, done)) in keys.iter().zip(group) {
-            *done = apply_to_player(p.as_deref_mut(), now, &admitted_now[arrival(k)], checked.take());
+        for (&k, (datagram, done)) in keys.iter().zip(group) {
+            *done = apply_to_player(p.as_deref_mut(), dynamics, now, &admitted_now[arrival(k)], datagram);
         }
     });
     let shared = Instant::now();
@@ -467,22 +438,23 @@ struct Applied {
     answered: Option<Answered>,
 }
 
-/// Phase 3, a player's part: commits one verified datagram into the player's opener and
-/// applies what its message changes of that player alone; `p` is `None` when the
+/// Phase 2, a player's part: opens one datagram with the player's opener (the window
+/// as the player's datagrams before it left it) and applies what its message changes of
+/// that player alone, finding an action's slot in `dynamics`; `p` is `None` when the
 /// session is gone.
-fn apply_to_player(p: Option<&mut Player>, now: Now, a: &Admitted, checked: Checked) -> Applied {
-    let (Some(p), Some((verified, slot))) = (p, checked) else {
+fn apply_to_player(
+    p: Option<&mut Player>,
+    dynamics: &Dynamics,
+    now: Now,
+    a: &Admitted,
+    datagram: &mut [u8],
+) -> Applied {
+    let Some(p) = p else {
         Refusal::UnknownSession.count();
         return Applied::default();
     };
     let mut done = Applied { checked: true, ..Applied::default() };
-    let opened = match verified {
-        Ok(v) => p.opener.commit(v),
-        // One at a time, a datagram that an earlier one of the batch made a replay
-        // fails at the window, before its tag: counted as replayed, whatever its tag.
-        Err(e) => Err(p.opener.window().check(a.sequence).err().map_or(e, OpenError::Replayed)),
-    };
-    let opened = match opened {
+    let opened = match p.opener.open_with(datagram, ClientMessage::decode_body) {
         Ok(o) => o,
         Err(e) => {
             dropped(match e.class() {
@@ -503,6 +475,7 @@ fn apply_to_player(p: Option<&mut Player>, now: Now, a: &Admitted, checked: Chec
     let reply = match opened.message {
         ClientMessage::Action { input, .. } => {
             if p.accept_frame(input.client_frame) {
+                let slot = dynamics.slot_hinted(p.entity, p.slot_hint);
                 done.action = Some((slot, p.action_for(input.mask.bits(), now.tick)));
             }
             None
@@ -526,7 +499,7 @@ fn apply_to_player(p: Option<&mut Player>, now: Now, a: &Admitted, checked: Chec
     done
 }
 
-/// Phase 3, the shared part of one datagram, in arrival order: the action into the
+/// Phase 2, the shared part of one datagram, in arrival order: the action into the
 /// world, the counts, the table's half of the answer.
 fn finish(sessions: &mut Sessions, world: &mut World, report: &mut InboundReport, a: &Admitted, done: Applied) {
     report.tag_checks += u64::from(done.checked);

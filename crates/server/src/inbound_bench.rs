@@ -43,7 +43,7 @@ fn receive_timing() {
     let mut buffers = ReceiveBuffers::default();
     let info = ServerInfo { tick_rate_hz: 30, dilation_permille: 1000 };
     let mut times = Vec::new();
-    let mut phases: [Vec<f64>; 4] = Default::default();
+    let mut phases: [Vec<f64>; 3] = Default::default();
     for frame in 1..=60u32 {
         for (i, c) in clients.iter_mut().enumerate() {
             let input = PlayerInput { mask: ActionMask::new(ActionMask::FORWARD).unwrap(), client_frame: frame };
@@ -68,9 +68,9 @@ fn receive_timing() {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    let [admit, verify, own, shared] = phases.each_mut().map(median);
+    let [admit, own, shared] = phases.each_mut().map(median);
     eprintln!(
-        "phases (medians, ms): admit {admit:.3}, verify {verify:.3}, apply each player's part {own:.3}, the shared part {shared:.3}"
+        "phases (medians, ms): admit {admit:.3}, open and apply each player's part {own:.3}, the shared part {shared:.3}"
     );
     times.sort_by(f64::total_cmp);
     eprintln!(

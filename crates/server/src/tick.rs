@@ -378,9 +378,8 @@ impl TickLoop {
         let checked = Instant::now();
         let phases = [
             "tick: receive, phase 1 (admit)",
-            "tick: receive, phase 2 (verify)",
-            "tick: receive, phase 3 (apply, each player's part)",
-            "tick: receive, phase 3 (apply, the shared part)",
+            "tick: receive, phase 2 (open and apply, each player's part)",
+            "tick: receive, phase 2 (apply, the shared part)",
         ];
         for (span, took) in phases.into_iter().zip(inbound.phases) {
             self.outbound.profile(span, took);

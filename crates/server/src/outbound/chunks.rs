@@ -25,13 +25,10 @@
 //! not made (each costs some fixed work on both sides): the plan takes fewer chunks
 //! instead. The chunks change nothing that is sent, only when.
 
-/// Chunks of players a build runs in when `MYRIAD_REPLICA_CHUNKS` does not say.
-pub(super) const DEFAULT_CHUNKS: usize = 4;
-
 /// Fewest players in a chunk of a tapered plan (where there are enough players): each
 /// chunk costs four launches, an event, a wait and a hand-over to the pool, some tens of
 /// microseconds, about the host's work for a hundred players.
-pub(super) const MIN_CHUNK: usize = 256;
+const MIN_CHUNK: usize = 256;
 
 /// The measured ratio is kept within these bounds: chunks never grow (module docs).
 const RATIO_BOUNDS: (f64, f64) = (0.25, 1.0);
@@ -63,6 +60,9 @@ pub struct ChunkPlan {
 }
 
 impl ChunkPlan {
+    /// Chunks of players a build runs in when `MYRIAD_REPLICA_CHUNKS` does not say.
+    pub const DEFAULT_COUNT: usize = 4;
+
     /// `count` chunks (at least 1) of equal size.
     pub fn equal(count: usize) -> ChunkPlan {
         ChunkPlan { count: count.max(1), taper: Taper::Equal, measured: None, min_chunk: MIN_CHUNK }
@@ -87,7 +87,7 @@ impl ChunkPlan {
         self
     }
 
-    /// The plan `MYRIAD_REPLICA_CHUNKS` (a count, default [`DEFAULT_CHUNKS`]) and
+    /// The plan `MYRIAD_REPLICA_CHUNKS` (a count, default [`ChunkPlan::DEFAULT_COUNT`]) and
     /// `MYRIAD_REPLICA_TAPER` (`measured`, the default; `equal`; or a ratio) say.
     pub fn from_env() -> ChunkPlan {
         let count = std::env::var("MYRIAD_REPLICA_CHUNKS").ok();
@@ -99,15 +99,15 @@ impl ChunkPlan {
     /// its default taken.
     fn from_values(count: Option<&str>, taper: Option<&str>) -> ChunkPlan {
         let count = match count.map(|v| (v, v.trim().parse::<usize>())) {
-            None => DEFAULT_CHUNKS,
+            None => ChunkPlan::DEFAULT_COUNT,
             Some((_, Ok(n))) if n >= 1 => n,
             Some((v, _)) => {
                 tracing::warn!(
                     value = v,
-                    default = DEFAULT_CHUNKS,
+                    default = ChunkPlan::DEFAULT_COUNT,
                     "MYRIAD_REPLICA_CHUNKS is not a count of at least 1"
                 );
-                DEFAULT_CHUNKS
+                ChunkPlan::DEFAULT_COUNT
             }
         };
         match taper.map(str::trim) {
@@ -274,12 +274,16 @@ mod tests {
 
     #[test]
     fn the_environment_names_a_count_and_a_taper_and_anything_else_is_the_default() {
-        assert_eq!(ChunkPlan::from_values(None, None), ChunkPlan::measured(DEFAULT_CHUNKS));
+        assert_eq!(ChunkPlan::from_values(None, None), ChunkPlan::measured(ChunkPlan::DEFAULT_COUNT));
         assert_eq!(ChunkPlan::from_values(Some(" 6 "), Some("equal")), ChunkPlan::equal(6));
         assert_eq!(ChunkPlan::from_values(Some("1"), Some("0.5")), ChunkPlan::tapered(1, 0.5));
         assert_eq!(ChunkPlan::from_values(Some("3"), Some("measured")), ChunkPlan::measured(3));
         for bad in ["0", "-2", "four", ""] {
-            assert_eq!(ChunkPlan::from_values(Some(bad), None), ChunkPlan::measured(DEFAULT_CHUNKS), "{bad:?}");
+            assert_eq!(
+                ChunkPlan::from_values(Some(bad), None),
+                ChunkPlan::measured(ChunkPlan::DEFAULT_COUNT),
+                "{bad:?}"
+            );
         }
         for bad in ["0", "-1", "NaN", "inf", "steep"] {
             assert_eq!(ChunkPlan::from_values(Some("4"), Some(bad)), ChunkPlan::measured(4), "{bad:?}");

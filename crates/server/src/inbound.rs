@@ -29,7 +29,7 @@
 //!    in this phase depends on what came before) on the rayon pool for a large batch,
 //!    the admitted kept in arrival order;
 //! 2. the datagrams grouped by player, then, on the rayon pool for a large batch, each
-//!    player's part, its datagrams in arrival order: `Opener::open` (the header, the
+//!    player's part, its datagrams in arrival order: `Opener::open_with` (the header, the
 //!    replay window, the tag and the body, then the sequence number recorded, so of two
 //!    copies of one datagram only the first is accepted), for an action the slot of the
 //!    player's object (the slot it had last tick, else a look-up in the map of every

@@ -92,7 +92,8 @@ const OPEN_CHUNK: usize = 16;
 pub(crate) struct InboundReport {
     /// Datagrams taken from the transport (before authentication).
     pub received: u64,
-    /// Datagrams that reached the tag check (the cryptography this tick paid for).
+    /// Datagrams that reached their session's opener (its replay window, then its tag
+    /// check): at most this many tag checks were paid for this tick.
     pub tag_checks: u64,
     /// Datagrams dropped, before any cryptography, because their session's budget for
     /// this tick was spent (either address).

@@ -148,7 +148,7 @@ pub struct TickWork {
     pub received: u64,
     /// Actions applied to the world.
     pub actions: u64,
-    /// Received datagrams that reached the tag check.
+    /// Received datagrams that reached their session's opener (window, then tag check).
     pub tag_checks: u64,
     /// Received datagrams dropped over their session's receive budget, before any
     /// cryptography.

@@ -33,7 +33,8 @@ pub struct ServerShared {
 /// and tools in the same process can read them without a metrics endpoint).
 #[derive(Debug, Default)]
 pub struct DefenceCounters {
-    /// Datagrams that reached the tag check (the cryptography paid for).
+    /// Datagrams that reached their session's opener (window, then tag check): at most
+    /// this many tag checks were paid.
     pub tag_checks: AtomicU64,
     /// Datagrams dropped over a session's receive budget, before any cryptography.
     pub over_budget: AtomicU64,

@@ -458,9 +458,9 @@ fn a_parallel_batch_accepts_a_datagram_twice_in_it_once_and_a_forged_one_never()
     for _ in 0..PARALLEL {
         r.send(&mut c, &ClientMessage::KeepAlive { acks: None });
     }
-    // Both copies verify before either is committed: the commit must refuse the second.
-    // (The action's copy would be ignored as an old frame anyway; a keep-alive's would
-    // be answered twice.)
+    // Copies in the same batch as their originals: a player's datagrams are opened one at
+    // a time, so the window must refuse each second copy. (The action's copy would be
+    // ignored as an old frame anyway; a keep-alive's would be answered twice.)
     let action = r.action(&mut c, ActionMask::LEFT);
     r.net.push(c.addr, action);
     let keep_alive = r.send(&mut c, &ClientMessage::KeepAlive { acks: None });
@@ -478,7 +478,7 @@ fn a_parallel_batch_accepts_a_datagram_twice_in_it_once_and_a_forged_one_never()
 
     let work = r.tick.tick_once();
     assert_eq!(work.received, PARALLEL as u64 + 5);
-    assert_eq!(work.tag_checks, PARALLEL as u64 + 5, "all of them reached the tag check, in one parallel batch");
+    assert_eq!(work.tag_checks, PARALLEL as u64 + 5, "all of them reached the opener, in one parallel batch");
     assert_eq!(work.actions, 1, "the action once, the copy and the forgery never");
     assert_eq!(r.action_of(&c).bits(), Action::LEFT);
     let sent = r.net.take_sent();

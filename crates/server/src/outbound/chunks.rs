@@ -172,11 +172,11 @@ impl ChunkPlan {
 /// the ends are the nearest players to the exact ones (a chunk may come out empty).
 fn split(players: usize, k: usize, ratio: f64, out: &mut Vec<usize>) {
     out.clear();
-    let weights: Vec<f64> = (0..k).map(|c| ratio.powi(c as i32)).collect();
-    let total: f64 = weights.iter().sum();
+    let weight = |c: usize| ratio.powi(c as i32);
+    let total: f64 = (0..k).map(weight).sum();
     let (mut sum, mut end) = (0.0, 0usize);
-    for (c, w) in weights.iter().enumerate() {
-        sum += w;
+    for c in 0..k {
+        sum += weight(c);
         let next = if c + 1 == k { players } else { ((players as f64) * sum / total).round() as usize };
         let next = next.clamp(end, players);
         out.push(next - end);

@@ -167,9 +167,9 @@ pub(crate) struct ReceiveBuffers {
     /// Sessions with a datagram from another address than their own in the current
     /// part of the batch (module docs).
     moving: HashSet<u64>,
-    /// Phase 3: the admitted datagrams by player, then arrival (`player << 32 | index`).
+    /// Phase 2: the admitted datagrams by player, then arrival (`player << 32 | index`).
     by_player: Vec<u64>,
-    /// Phase 3: where each admitted datagram (by arrival) is in `by_player`.
+    /// Phase 2: where each admitted datagram (by arrival) is in `by_player`.
     position: Vec<u32>,
 }
 

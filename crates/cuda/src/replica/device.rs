@@ -225,8 +225,9 @@ impl DeviceReplicas {
 
     /// Queues the choosing half of a build for `players` (boxes `boxes`, one each), in
     /// chunks of players of the sizes `chunks` says, in order (each at least one player,
-    /// together every player; none when there are no players): see the module docs. Take each chunk's players with [`ready`](Self::ready) and read what was
-    /// chosen for them with [`choices`](Self::choices), then call
+    /// together every player; none when there are no players): see the module docs.
+    /// Take each chunk's players with [`ready`](Self::ready) and read what was chosen
+    /// for them with [`choices`](Self::choices), then call
     /// [`commit`](Self::commit) with what packing and sealing did for every player. A
     /// failure leaves every player to start afresh at the next build.
     #[allow(clippy::too_many_arguments)]

@@ -124,6 +124,8 @@ typedef struct {
     u64 own_now_id;
     RPos own_now;
     u32 pad;
+    // One past the tick of the newest flight the player acknowledged (0: none yet).
+    u64 heard;
 } RHome;
 
 // One player's inputs of a build.
@@ -601,6 +603,12 @@ RFN void r_ack_state(RHome* h, RTrack* tracks, u32 ntracks, const RState* st, u6
     if (t) r_track_acknowledge(t, tick, st->pos);
 }
 
+// Whether the link acknowledged a flight within `resend_ticks` (eager records go only
+// over such a link): `heard` is one past the newest acknowledged flight's tick.
+RFN int r_fresh_link(const RConfig* cfg, u64 heard, u64 now) {
+    return heard != 0 && heard + cfg->resend_ticks > now;
+}
+
 // Whether `Replica::apply_acks` keeps a flight (0: acknowledged, unacknowledgeable or
 // too old); `acked` is set if the player acknowledged it.
 RFN int r_flight_kept(const RPlayer* p, const RFlight* fl, u64 floor, int* acked) {
@@ -612,10 +620,12 @@ RFN int r_flight_kept(const RPlayer* p, const RFlight* fl, u64 floor, int* acked
 
 // Step 2 of `Replica::build` for one track (index `k`, candidate `cand`): its priority
 // grows by its rate; if it is due, `due` describes it and 1 is returned.
-RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, RTrack* t, const RCand* c, u32 k, u32 cand, RDue* due) {
+// `fresh_link`: the player acknowledged a flight within `resend_ticks` (`r_fresh_link`).
+RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, int fresh_link, RTrack* t, const RCand* c, u32 k, u32 cand,
+                   RDue* due) {
     RBase acked = r_track_acked(t, floor);
     int has_sent = t->sent_tick != R_NONE;
-    int holds = acked.valid && r_pos_eq(acked.pos, c->pos);
+    int holds = acked.valid && r_pos_eq(acked.pos, c->pos) && (!has_sent || r_pos_eq(t->sent, c->pos));
     u64 since = now > t->sent_tick ? now - t->sent_tick : 0;
     int sending = has_sent && r_pos_eq(t->sent, c->pos) && since < cfg->resend_ticks;
     int stopped = sending && t->sent_moved && c->distance <= cfg->near_units && t->sent_tick + 1 == now;
@@ -635,7 +645,7 @@ RFN int r_priority(const RConfig* cfg, u64 now, u64 floor, RTrack* t, const RCan
     if (t->priority < 1.0f) {
         // Near and not held, before its bound: offered after everything due.
         if (holds || !(rate > 0.0f) || !(c->distance <= cfg->near_units)) return 0;
-        if (!acked.valid || acked.tick + cfg->resend_ticks < now) return 0;
+        if (!acked.valid || !fresh_link) return 0;
         eager = 1;
     }
     int starving = !eager && rate > 0.0f && t->priority / rate + R_WAIT_SLACK >= cfg->max_wait;
@@ -661,6 +671,7 @@ RFN void r_apply_acks(RHome* h, const RPlayer* p, u64 now, RTrack* tracks, u32 n
         int acked;
         int keep = r_flight_kept(p, &fl, floor, &acked);
         if (acked) {
+            if (fl.tick + 1 > h->heard) h->heard = fl.tick + 1;
             for (u32 s = 0; s < fl.len; s++) r_ack_state(h, tracks, ntracks, &states[fl.start + s], fl.tick);
         }
         if (keep) flights[kept++] = fl;
@@ -881,8 +892,9 @@ RFN void r_select(const RConfig* cfg, u64 now, RHome* h, const RPlayer* p, int h
     info->in_view = n;
 
     u32 nwanted = 0;
+    int fresh = r_fresh_link(cfg, h->heard, now);
     for (u32 k = 0; k < n; k++) {
-        if (r_priority(cfg, now, floor, &next[k], &cands[cand_of[k]], k, cand_of[k], &wanted[nwanted])) nwanted++;
+        if (r_priority(cfg, now, floor, fresh, &next[k], &cands[cand_of[k]], k, cand_of[k], &wanted[nwanted])) nwanted++;
     }
 
     r_take_due(cfg, now, floor, h, origin, cands, next, wanted, nwanted, chosen, info);

@@ -14,7 +14,8 @@
 //!    it are dropped, new ones start with nothing held; acknowledgements that arrived
 //!    turn in-flight states into baselines (also of an object back in view since);
 //! 2. an object new in view is due at once; every other one whose current (quantized)
-//!    state the client neither holds nor was just sent gains `1 / bound(d)` priority,
+//!    state the client neither holds (its baseline, with no other state sent since) nor
+//!    was just sent gains `1 / bound(d)` priority,
 //!    where `bound(d)` is the refresh bound in ticks at its distance `d` from the
 //!    player: `near_bound_ticks` within `near` units, growing linearly to
 //!    `far_bound_ticks` at `far` units; an object the client holds unchanged gains `1 / refresh_ticks` (a cheap `Same` record confirms it now and
@@ -23,9 +24,9 @@
 //!    client holds it still (two equal states) instead of carrying it on past its stop; a
 //!    near object the client does not hold, not yet due, is offered after everything
 //!    due, from what the budget would otherwise forfeit (beyond the tick's worth that
-//!    carries over), if the client acknowledged a state of it within
-//!    `resend_ticks` (a slower or lossy link gets near objects at their bound: every
-//!    record against an older baseline is larger);
+//!    carries over), if the client holds a baseline of it and acknowledged some datagram
+//!    within `resend_ticks` (a slower or lossy link gets near objects at their bound:
+//!    every record against an older baseline is larger);
 //! 3. the objects due (priority at least 1) are taken into this tick's byte budget, near
 //!    ones and ones the client lacks first, then by priority
 //!    (`budget_bytes_per_tick`, with what earlier ticks left unspent, up to one tick's
@@ -301,6 +302,9 @@ pub struct Replica {
     acks: Option<AckField>,
     /// Unspent budget carried to the next tick.
     credit: f32,
+    /// One past the tick of the newest datagram the client acknowledged (0: none yet):
+    /// how fresh the link is, whatever the objects it carried.
+    heard: u64,
 }
 
 /// An object in view this tick.
@@ -518,6 +522,11 @@ impl Replica {
         // On this tick's tracks, which the match just wrote (a search in last tick's,
         // cold in memory, missed the cache at every step).
         self.apply_acks(now, next);
+        // Eager records go only over a link that acknowledged a datagram within
+        // `resend_ticks`: the link's age, not the object's baseline's, which is old for
+        // an object that rested long before it moved (such an object then waited for
+        // its bound, and a client drew its first steps between states ticks apart).
+        let fresh_link = self.heard != 0 && self.heard + config.resend_ticks > now;
 
         // Own object first: it is in every datagram whatever the budget.
         let own_record = own.zip(self.own).map(|((id, kind, pos), t)| {
@@ -531,7 +540,10 @@ impl Replica {
         for (k, (t, &j)) in next.iter_mut().zip(candidate_of.iter()).enumerate() {
             let c = &candidates[j as usize];
             let (acked, sent) = (t.acked(floor), t.sent());
-            let holds = acked.is_some_and(|b| b.pos == c.pos);
+            // The client holds the current state if its baseline is that state and no
+            // other was sent since: an object that moved away and back (a jitter) is
+            // drawn from the state it moved to until it gets the current one.
+            let holds = acked.is_some_and(|b| b.pos == c.pos) && sent.is_none_or(|s| s.pos == c.pos);
             let sending = sent.is_some_and(|s| s.pos == c.pos && now.saturating_sub(s.tick) < config.resend_ticks);
             // Sent moving last tick and still there since: it stopped, and the client,
             // holding two states apart, would carry it on past the stop. The same state
@@ -563,11 +575,7 @@ impl Replica {
                 let first = c.distance <= config.near || acked.is_none();
                 let rank = Due::rank(false, first, t.priority, c.distance, c.id);
                 wanted.push(Due { rank, track: k as u32, candidate: j, starving, eager: false });
-            } else if !holds
-                && rate > 0.0
-                && c.distance <= config.near
-                && acked.is_some_and(|b| b.tick + config.resend_ticks >= now)
-            {
+            } else if !holds && rate > 0.0 && c.distance <= config.near && acked.is_some() && fresh_link {
                 // A near object the client does not hold, before its bound: what the
                 // budget would forfeit goes to these (every tick where it can), so a
                 // small view is sent whole each tick and drawn as exactly as full
@@ -781,6 +789,7 @@ impl Replica {
             let Some(mut f) = self.flights.pop_front() else { break };
             let acked = acks.is_some_and(|a| a.contains(f.sequence));
             if acked {
+                self.heard = self.heard.max(f.tick + 1);
                 for &(slot, id, pos) in &f.states {
                     let track = match &mut self.own {
                         Some(t) if t.id == id => Some(t),

@@ -316,6 +316,45 @@ fn an_object_that_stops_is_sent_once_more_where_it_stopped() {
 }
 
 #[test]
+fn a_near_object_that_jitters_is_sent_each_time_it_moves() {
+    // An object that jumps between two places every tick, its client acknowledging every
+    // third tick: its baseline is often where it is now, but the client's newest state
+    // is the other place, so it goes every tick as a walker would (from tick 4, the first
+    // build with a baseline: an eager record is relative).
+    let config = ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() };
+    let mut run = Run::new(config);
+    let at = |t: u64| {
+        let x = 2.0 + (t % 2) as f32 * 0.5;
+        [Candidate { slot: 0, id: 100, kind: ShapeKind::Sphere, pos: QuantPos::from_f32([x, 0.0, 0.0]), distance: x }]
+    };
+    let packed: Vec<usize> = (1..=30).map(|t| run.tick(t, &at(t), |_, _| true, t % 3 == 0).packed).collect();
+    assert!(packed[3..].iter().all(|&p| p == 1), "{packed:?}");
+    assert_eq!(run.client.held[&100], (30, at(30)[0].pos));
+    assert_eq!(run.client.unresolved, 0);
+}
+
+#[test]
+fn a_near_object_that_rested_long_is_sent_the_tick_it_moves() {
+    // Still until tick 40, then walking; the client acknowledges every third tick, so its
+    // baseline is the refresh of tick 27 when it starts. A fresh link gets the first
+    // step at once, however old the baseline, so the client does not draw it gliding
+    // from a state ticks old.
+    let config = ReplicationConfig { budget_bytes_per_tick: 10_000.0, ..Default::default() };
+    let view = |t: u64| walkers(t.saturating_sub(40), 1, |_| 100, |_| 2.0);
+    let mut run = Run::new(config);
+    let packed: Vec<usize> = (1..=50).map(|t| run.tick(t, &view(t), |_, _| true, t % 3 == 0).packed).collect();
+    let sent: Vec<usize> = (1..=50).filter(|&t| packed[t - 1] == 1).collect();
+    assert_eq!(sent, [1, 27, 41, 42, 43, 44, 45, 46, 47, 48, 49, 50], "{packed:?}");
+    // A link that has acknowledged nothing for longer than `resend_ticks` gets it at its
+    // bound instead (a record against an old baseline is larger, and may be lost too):
+    // acknowledged once, at tick 30, it moves from 41 and goes every third tick.
+    let mut run = Run::new(config);
+    let packed: Vec<usize> = (1..=50).map(|t| run.tick(t, &view(t), |_, _| true, t == 30).packed).collect();
+    let moving: Vec<usize> = (41..=50).filter(|&t| packed[t - 1] == 1).collect();
+    assert_eq!(moving, [42, 45, 48], "{packed:?}");
+}
+
+#[test]
 fn a_budget_too_small_for_anything_still_sends_the_starving() {
     // Less than a datagram's own overhead: only objects past twice their bound go.
     let config = ReplicationConfig { budget_bytes_per_tick: 40.0, ..Default::default() };

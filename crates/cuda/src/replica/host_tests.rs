@@ -303,7 +303,9 @@ fn run(seed: u64, n: usize, players: usize, ticks: u64, config: InterestConfig, 
     let mut kinds: Vec<ShapeKind> = (0..n).map(|_| ShapeKind::from_code(rng.below(3) as u8).unwrap()).collect();
     let mut positions: Vec<[f32; 3]> =
         (0..n).map(|_| [rng.unit() * 200.0, rng.unit() * 4.0, rng.unit() * 200.0]).collect();
-    // A third stand still, most walk, a few jump now and then.
+    // A third stand still, most walk, a few jump now and then, and one in ten of the
+    // still ones jitters between two places every tick (back where its baseline was
+    // while the client's newest state is elsewhere).
     let speed: Vec<f32> = (0..n).map(|i| if i % 3 == 0 { 0.0 } else { rng.unit() * 0.6 }).collect();
     let manager = InterestManager::new(config);
     let cfg = device_config(&config.replication, config.max_datagrams);
@@ -319,6 +321,9 @@ fn run(seed: u64, n: usize, players: usize, ticks: u64, config: InterestConfig, 
     for t in 1..=ticks {
         for (i, p) in positions.iter_mut().enumerate() {
             let s = speed[i];
+            if s == 0.0 && i % 30 == 0 {
+                p[0] += if t % 2 == 0 { 0.5 } else { -0.5 };
+            }
             if s > 0.0 {
                 p[0] += (rng.unit() - 0.3) * s;
                 p[2] += (rng.unit() - 0.3) * s;

@@ -146,6 +146,8 @@ pub struct RHome {
     pub own_now_id: u64,
     pub own_now: RPos,
     pub pad: u32,
+    /// One past the tick of the newest flight the player acknowledged (0: none yet).
+    pub heard: u64,
 }
 
 /// `RPlayer`: one player's inputs of a build.

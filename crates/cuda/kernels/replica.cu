@@ -221,7 +221,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
     }
     __syncwarp();
     if (lane == 0) h->heard = heard;
-    int fresh = r_fresh_link(cfg, heard, tick);
+    int fresh_link = r_fresh_link(cfg, heard, tick);
 
     // One pass over the list: the candidates (the list less the own object, in its
     // order), each checked against the one before it and merged at once with last
@@ -265,7 +265,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
                 if (r_bloom_has(bloom, c.id))
                     later = 1;
                 else
-                    due = r_priority(cfg, tick, floor, fresh, &t, &c, k, k, &d);
+                    due = r_priority(cfg, tick, floor, fresh_link, &t, &c, k, k, &d);
                 nx[k] = t;
             } else {
                 nx[k] = r_track_new(c.id, c.slot);
@@ -361,7 +361,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         u32 j = base + lane;
         u32 k = j < nun ? un_p[j].index : 0;
         RDue d;
-        int due = j < nun && r_priority(cfg, tick, floor, fresh, &nx[k], &cs[k], k, k, &d);
+        int due = j < nun && r_priority(cfg, tick, floor, fresh_link, &nx[k], &cs[k], k, k, &d);
         u32 mask = __ballot_sync(FULL_WARP, due);
         if (due) wd[nw + lanes_before(mask, lane)] = d;
         nw += __popc(mask);
@@ -371,7 +371,7 @@ extern "C" __global__ void k_replica_due(u32 nq, const RConfig* cfg, u64 tick, u
         u32 k = j < nlater ? wd[len - nlater + j].track : 0;
         __syncwarp();
         RDue d;
-        int due = j < nlater && r_priority(cfg, tick, floor, fresh, &nx[k], &cs[k], k, k, &d);
+        int due = j < nlater && r_priority(cfg, tick, floor, fresh_link, &nx[k], &cs[k], k, k, &d);
         u32 mask = __ballot_sync(FULL_WARP, due);
         if (due) wd[nw + lanes_before(mask, lane)] = d;
         nw += __popc(mask);

@@ -71,8 +71,9 @@ pub struct ReplicationConfig {
     pub far: f32,
     /// An unchanged object the client holds is confirmed at least this often, in ticks.
     pub refresh_ticks: f32,
-    /// A state sent but not acknowledged after this many ticks counts as lost and is
-    /// due again.
+    /// How long an acknowledgement may take, in ticks: a state sent but not
+    /// acknowledged after this many counts as lost and is due again, and a link that
+    /// acknowledged nothing for this many gets no eager records.
     pub resend_ticks: u64,
     /// An object that has wanted sending for this many ticks is sent even over the
     /// budget (the starvation bound).

@@ -410,8 +410,7 @@ impl<T> Verified<T> {
         self.header.sequence
     }
 
-    /// Its message, verified but not committed: reading it changes nothing (the
-    /// receiver prepares what applying it will need while the window is not yet moved).
+    /// Its message, verified but not committed: reading it changes nothing.
     pub fn message(&self) -> &T {
         &self.message
     }

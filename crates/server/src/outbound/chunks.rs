@@ -14,8 +14,9 @@
 //!
 //! [`ChunkPlan::observe`] measures `ρ` from each build (the host's sealing and sending
 //! against the device's time for the choice), so the chunks follow the load: scenario 3
-//! at AOI 100 measures 0.45–0.65 on an H200 (chunks of 5,862, 2,549, 1,107 and 482
-//! players: 14.88 ms a tick against 15.45 in equal chunks, `docs/benchmarks.md`).
+//! at AOI 100 measures 0.44–0.66 on an H200 (chunks of 5,862, 2,549, 1,107 and 482
+//! players: 14.88 ms a tick against 15.45 in equal chunks, one run each,
+//! `docs/benchmarks.md`).
 //! A measured plan never lets chunks grow (`ρ` is taken at most 1): where the host is
 //! the slower, the first chunk's device time it would save is small, and large chunks
 //! cost the host more: scenario 4 at AOI 14 (`ρ` about 5) in chunks growing from 592 to

@@ -364,6 +364,12 @@ impl State {
         }
     }
 
+    /// The players of the pending build's chunk `c`.
+    fn chunk_range(&self, c: usize) -> Range<usize> {
+        let first = if c == 0 { 0 } else { self.chunk_ends[c - 1] };
+        first..self.chunk_ends[c]
+    }
+
     /// After a failure: nothing on the device is trusted; every player starts afresh.
     fn failed(&mut self) {
         self.valid = false;
@@ -567,8 +573,8 @@ impl State {
         gpu.record(start.raw)?;
         self.chunks_start = Some(start);
         for (c, done) in self.chunk_done[..chunks].iter().enumerate() {
-            let first = if c == 0 { 0 } else { self.chunk_ends[c - 1] };
-            let count = (self.chunk_ends[c] - first) as u32;
+            let range = self.chunk_range(c);
+            let (first, count) = (range.start, range.len() as u32);
             if count > 0 {
                 let offsets = offsets.add(first);
                 let players = self.players.ptr().add(first);
@@ -669,7 +675,7 @@ impl State {
         let c = p.ready;
         p.ready += 1;
         let last_chunk = p.ready == p.chunks;
-        let range = if c == 0 { 0 } else { self.chunk_ends[c - 1] }..self.chunk_ends[c];
+        let range = self.chunk_range(c);
         let gpu = &d.gpu;
         gpu.bind()?;
         let started = Instant::now();

@@ -13,9 +13,14 @@ use myriad_server::ServerConfig;
 use myriad_server::TickStage;
 use myriad_server::tick_bench::{BotOptions, TickBench, TickSample};
 
+use super::pace::Pace;
 use super::quality::{QualityConfig, QualityProbe};
 use super::shadow::Link;
 use super::{BenchArgs, PHYSICS, QualityRow, Row, SERVER, ServerTick};
+
+/// Ticks of a server-tick run between two lines of where its wall time went
+/// ([`Pace`]).
+const PACE_TICKS: u32 = 10;
 
 /// User + system CPU time of this process so far, in ms (0 where unsupported).
 fn process_cpu_ms() -> f64 {
@@ -181,7 +186,13 @@ fn server_one(
         bots_per_socket: usize::try_from(args.bots_per_socket).context("--bots-per-socket")?,
         open_every: args.open_every,
     };
+    let starting = Instant::now();
     let mut bench = TickBench::with_bots(config, world.clone(), backend, bots).context("starting the server tick")?;
+    progress.note(format!(
+        "  the server and {} bots ready in {:.1} s",
+        bench.players(),
+        starting.elapsed().as_secs_f64()
+    ));
     if bench.ready_resent() > 0 {
         eprintln!(
             "note: {} Ready sent again before every player was active (a full receive buffer)",
@@ -219,10 +230,22 @@ fn server_one(
             }),
         },
     );
-    for _ in 0..args.warmup {
-        bench.tick_with(|bot, tick, records| probe.on_update(bot, tick, records))?;
+    let (total, mut pace) = (args.warmup + args.ticks, Pace::new(PACE_TICKS));
+    // One tick's parts into `pace`, logged every few ticks.
+    let mut paced = |done: u64, began: Instant, probed: Instant, sample: &TickSample| {
+        let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+        let wall = ms(began.elapsed());
+        if let Some(line) = pace.add(done, total, wall, sample.total_ms(), sample.bots_ms, ms(probed.elapsed())) {
+            progress.note(line);
+        }
+    };
+    for done in 1..=args.warmup {
+        let began = Instant::now();
+        let sample = bench.tick_with(|bot, tick, records| probe.on_update(bot, tick, records))?;
+        let probed = Instant::now();
         // Measures nothing yet; the shadows (if any) fill their clients as the bots do.
         probe.after_tick(bench.world());
+        paced(done, began, probed, &sample);
         progress.tick();
     }
     probe.start_measuring();
@@ -230,11 +253,14 @@ fn server_one(
     let mut samples: Vec<TickSample> = Vec::with_capacity(args.ticks as usize);
     let mut probe_ms = 0.0;
     let cpu_before = process_cpu_ms();
-    for _ in 0..args.ticks {
-        samples.push(bench.tick_with(|bot, tick, records| probe.on_update(bot, tick, records))?);
-        let probe_cpu = process_cpu_ms();
+    for done in args.warmup + 1..=total {
+        let began = Instant::now();
+        let sample = bench.tick_with(|bot, tick, records| probe.on_update(bot, tick, records))?;
+        let (probed, probe_cpu) = (Instant::now(), process_cpu_ms());
         probe.after_tick(bench.world());
         probe_ms += process_cpu_ms() - probe_cpu;
+        paced(done, began, probed, &sample);
+        samples.push(sample);
         progress.tick();
     }
     // The bots send and drain in this process too, on one thread, and the probe compares
@@ -330,6 +356,14 @@ impl Progress {
 
     fn log(&self, line: String) {
         if self.bar.is_hidden() { eprintln!("{line}") } else { self.bar.println(line) }
+    }
+
+    /// Logs `line` where no bar is drawn (a log file, the GPU machine's runs), whose
+    /// reader has nothing else to go by while the run goes; a terminal has the bar.
+    fn note(&self, line: String) {
+        if self.bar.is_hidden() {
+            eprintln!("{line}");
+        }
     }
 }
 

@@ -5,6 +5,7 @@
 //! run; [`report`] writes the rows as Markdown tables, JSON lines or CSV.
 
 mod measure;
+mod pace;
 mod quality;
 mod report;
 mod shadow;

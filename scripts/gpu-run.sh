@@ -37,7 +37,11 @@
 # before and after; REPLICATION_S4=1 scenario 4 (50,000 players, bots 20 a socket) at AOI
 # 14, before and after (REPLICATION_S4_TIMEOUT seconds at most each; profiled with
 # REPLICATION_S4_PROFILE=1; REPLICATION_S4_AOI=100 at another edge). REPLICATION_S3=0
-# leaves out scenario 3 (for a second run of the others in the same call).
+# leaves out scenario 3 (for a second run of the others in the same call);
+# REPLICATION_AOI (default "14,100") picks scenario 3's AOI edges, and
+# REPLICATION_TIMEOUT (seconds, default none) bounds each of its runs, before, after and
+# lossy alike, so that one slow run leaves the call time for the others (its log
+# says, every 10 ticks, where the run's time went).
 #
 # MODE=table measures issue 27's table, step by step (TABLE_STEPS, in order; default
 # "physics s4-14 s2-100 profile-s4-14 profile-s4-100 profile-s2-100 profile-physics
@@ -362,14 +366,16 @@ if [[ $mode == replication ]]; then
         [[ -x $bin && ${REPLICATION_S3:-1} == 1 ]] || continue
         tag=$([[ $bin == .carry/myriad ]] && echo after || echo before)
         echo "=== $tag"
-        $bin bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 \
+        timeout -k 5 "${REPLICATION_TIMEOUT:-0}" $bin bench --scenario 3 --backend cuda --ticks 60 --warmup 30 \
+            --aoi-size "${REPLICATION_AOI:-14,100}" \
             --out "$out/bench/replication-$tag" >"$out/replication-$tag.md" 2>>"$out/replication.log" ||
             fail "bench scenario 3 ($tag) failed"
         grep -E '^\| 3 \|' "$out/replication-$tag.md"
     done 2>&1 | tee "$out/replication.txt"
     if [[ ${REPLICATION_LOSSY:-1} == 1 ]]; then
         echo "=== after, shadow through 5 % loss, 100 ± 20 ms" | tee -a "$out/replication.txt"
-        .carry/myriad bench --scenario 3 --backend cuda --ticks 60 --warmup 30 --aoi-size 14,100 \
+        timeout -k 5 "${REPLICATION_TIMEOUT:-0}" .carry/myriad bench --scenario 3 --backend cuda --ticks 60 \
+            --warmup 30 --aoi-size "${REPLICATION_AOI:-14,100}" \
             --shadow-budget-kbps 244 --shadow-loss 0.05 --shadow-delay-ms 100 --shadow-jitter-ms 20 \
             --out "$out/bench/replication-lossy" >"$out/replication-lossy.md" 2>>"$out/replication.log" ||
             fail "bench scenario 3 (lossy shadow) failed"

@@ -362,7 +362,7 @@ impl Progress {
     /// reader has nothing else to go by while the run goes; a terminal has the bar.
     fn note(&self, line: String) {
         if self.bar.is_hidden() {
-            eprintln!("{line}");
+            self.log(line);
         }
     }
 }

@@ -1,6 +1,6 @@
 //! Where a server-tick run's wall time goes, a few ticks at a time: the server's tick,
 //! the bots' untimed work, the staleness and error probe, and the rest (waiting for the
-//! receiver thread). Logged as the run goes, so a run stopped by a time limit still
+//! receiver thread, and what of the tick no stage times). Logged as the run goes, so a run stopped by a time limit still
 //! says which part made it long (the probe on a GPU host took minutes where the tick
 //! took seconds, and nothing said so).
 
